@@ -1,0 +1,86 @@
+"""Blending forward: front-to-back alpha compositing of any number of channels.
+
+One thread per pixel; the ``tile_size^2`` threads of a tile are consecutive,
+so they walk the same depth-sorted Gaussian range together. Per pixel::
+
+    T = 1
+    for each Gaussian of the tile, front to back:
+        alpha = splat_alpha(...)            # -1: skipped (pixel.py)
+        if ends_pixel(T, alpha): break      # not blended
+        out += colors[g] * alpha * T;  T *= 1 - alpha
+    out += T * background
+
+Outputs what the backward needs: the final transmittance and the position of
+the last blended Gaussian in the sorted list.
+"""
+
+import functools
+
+import warp as wp
+
+from .pixel import pixel_funcs
+from .types import channel_vector, types_for
+
+
+@functools.lru_cache(maxsize=None)
+def forward_kernel(scalar, channels: int):
+    t = types_for(scalar)
+    vec2, vec3 = t.vec2, t.vec3
+    vecD = channel_vector(scalar, channels)
+    splat_alpha, ends_pixel = pixel_funcs(scalar)
+
+    @wp.kernel(module="unique")
+    def blend_forward(
+        means2d: wp.array(dtype=vec2),
+        conics: wp.array(dtype=vec3),
+        opacities: wp.array(dtype=scalar),
+        colors: wp.array(dtype=vecD),
+        backgrounds: wp.array(dtype=vecD),
+        flatten_ids: wp.array(dtype=wp.int32),
+        offsets: wp.array(dtype=wp.int32),
+        width: int,
+        height: int,
+        tile_size: int,
+        tile_width: int,
+        tile_height: int,
+        alpha_min: scalar,
+        alpha_max: scalar,
+        t_min: scalar,
+        out_colors: wp.array(dtype=vecD),
+        out_T: wp.array(dtype=scalar),
+        last_ids: wp.array(dtype=wp.int32),
+    ):
+        tid = wp.tid()
+        tile_pixels = tile_size * tile_size
+        rng = tid // tile_pixels
+        local = tid - rng * tile_pixels
+        n_tiles = tile_width * tile_height
+        cam = rng // n_tiles
+        tile = rng - cam * n_tiles
+        tyi = tile // tile_width
+        x = (tile - tyi * tile_width) * tile_size + local % tile_size
+        y = tyi * tile_size + local // tile_size
+        if x >= width or y >= height:
+            return
+        px = scalar(x) + scalar(0.5)
+        py = scalar(y) + scalar(0.5)
+        T = scalar(1.0)
+        acc = vecD()
+        last = wp.int32(-1)
+        for k in range(offsets[rng], offsets[rng + 1]):
+            g = flatten_ids[k]
+            r = splat_alpha(means2d[g], conics[g], opacities[g], px, py, alpha_min, alpha_max)
+            alpha = r[0]
+            if alpha < scalar(0.0):
+                continue
+            if ends_pixel(T, alpha, t_min):
+                break
+            acc = acc + colors[g] * (alpha * T)
+            T = T * (scalar(1.0) - alpha)
+            last = wp.int32(k)
+        pix = (cam * height + y) * width + x
+        out_colors[pix] = acc + backgrounds[cam] * T
+        out_T[pix] = T
+        last_ids[pix] = last
+
+    return blend_forward

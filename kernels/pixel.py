@@ -1,0 +1,48 @@
+"""The per-pixel rule, written once and used by the blending forward and backward kernels.
+
+For a Gaussian with screen mean ``xy``, conic ``(a, b, c)`` and opacity ``o``,
+seen from pixel centre ``(px, py)``::
+
+    dx, dy = xy - (px, py)
+    sigma  = 0.5 (a dx^2 + c dy^2) + b dx dy
+    alpha  = min(alpha_max, o exp(-sigma))
+
+The contribution is skipped when ``sigma < 0`` or ``alpha < alpha_min``.
+The transmittance cut-off (the Gaussian that would bring T to <= t_min ends
+the pixel unblended) is :func:`ends_pixel`.
+"""
+
+import functools
+
+import warp as wp
+
+from .types import types_for
+
+
+@functools.lru_cache(maxsize=None)
+def pixel_funcs(scalar):
+    """``(splat_alpha, ends_pixel)`` for one precision.
+
+    ``splat_alpha(xy, conic, opacity, px, py, alpha_min, alpha_max) -> vec4(alpha, g, dx, dy)``
+    with ``g = exp(-sigma)``; ``alpha`` is -1 when the contribution is skipped.
+    """
+    t = types_for(scalar)
+    vec2, vec3, vec4 = t.vec2, t.vec3, t.vec4
+
+    @wp.func
+    def splat_alpha(xy: vec2, conic: vec3, opacity: scalar, px: scalar, py: scalar,
+                    alpha_min: scalar, alpha_max: scalar):
+        dx = xy[0] - px
+        dy = xy[1] - py
+        sigma = scalar(0.5) * (conic[0] * dx * dx + conic[2] * dy * dy) + conic[1] * dx * dy
+        g = wp.exp(-sigma)
+        alpha = wp.min(alpha_max, opacity * g)
+        if sigma < scalar(0.0) or alpha < alpha_min:
+            alpha = scalar(-1.0)
+        return vec4(alpha, g, dx, dy)
+
+    @wp.func
+    def ends_pixel(T: scalar, alpha: scalar, t_min: scalar):
+        return T * (scalar(1.0) - alpha) <= t_min
+
+    return splat_alpha, ends_pixel

@@ -1,0 +1,23 @@
+"""User-facing errors.
+
+Anything a user can cause (a missing file, a corrupt PLY, a bad flag) raises
+:class:`SsgwarpError` (or a subclass) with a one-line message that says what
+was wrong and how to fix it. The CLI prints that line and exits with code 2;
+``--debug`` shows the traceback.
+"""
+
+
+class SsgwarpError(Exception):
+    """An error caused by the user's input, reported as one line (exit code 2)."""
+
+
+class InputError(SsgwarpError, ValueError):
+    """Bad input data: missing or corrupt files, wrong shapes, NaN values."""
+
+
+class WeightsNotFound(SsgwarpError):
+    """Pretrained weights were asked for but are not on this machine."""
+
+
+class Interrupted(SsgwarpError):
+    """A long run was stopped (Ctrl-C); its last checkpoint is kept."""

@@ -1,0 +1,268 @@
+"""``ssgwarp.rasterization``: the differentiable 3DGS renderer, gsplat 1.5.3-compatible.
+
+A gsplat user swaps the import and keeps the call. The work runs in Warp
+kernels (``backend="warp"``, CPU tensors on Warp's CPU device, CUDA tensors on
+CUDA, zero-copy on torch's current stream) or in the dense torch reference
+(``backend="torch"``, :mod:`ssgwarp.reference`, the spec).
+
+Pipeline (one module each): projection + SH (``kernels/projection.py``,
+``kernels/sh.py``) → tile binning and sort (``kernels/binning.py``) → blending
+(``kernels/blend_forward.py``, ``kernels/blend_backward.py``), the per-pixel
+rule shared by both in ``kernels/pixel.py``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal, Optional
+
+import torch
+
+Tensor = torch.Tensor
+
+
+@dataclass(frozen=True)
+class RasterSettings:
+    """Speed/accuracy knobs of the rasterizer (defaults = gsplat classic mode).
+
+    alpha_min: contributions with alpha below it are skipped, and Gaussians
+        whose opacity is below it are culled (gsplat: 1/255).
+    t_min: transmittance cut-off: the Gaussian that would bring T to
+        ``<= t_min`` ends the pixel and is not blended (gsplat: 1e-4).
+    alpha_max: alpha clamp (gsplat: 0.999).
+    extent: ``"opacity"``: per-axis radius of ``min(sigma_max, sqrt(2 ln(opacity /
+        alpha_min)))`` standard deviations (gsplat); ``"fixed"``: ``sigma_max``.
+    sigma_max: the extent cap in standard deviations (gsplat: 3.33).
+    """
+
+    alpha_min: float = 1.0 / 255.0
+    t_min: float = 1e-4
+    alpha_max: float = 0.999
+    extent: Literal["opacity", "fixed"] = "opacity"
+    sigma_max: float = 3.33
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.alpha_min < 1.0:
+            raise ValueError(f"RasterSettings.alpha_min must be in [0, 1), got {self.alpha_min}")
+        if not 0.0 <= self.t_min < 1.0:
+            raise ValueError(f"RasterSettings.t_min must be in [0, 1), got {self.t_min}")
+        if not 0.0 < self.alpha_max <= 1.0:
+            raise ValueError(f"RasterSettings.alpha_max must be in (0, 1], got {self.alpha_max}")
+        if self.extent not in ("opacity", "fixed"):
+            raise ValueError(f"RasterSettings.extent must be 'opacity' or 'fixed', got {self.extent!r}")
+        if not self.sigma_max > 0.0:
+            raise ValueError(f"RasterSettings.sigma_max must be > 0, got {self.sigma_max}")
+
+    @classmethod
+    def exact(cls, sigma_max: float = 3.33) -> "RasterSettings":
+        """No alpha threshold, no transmittance cut-off, no alpha clamp (gradient checks)."""
+        return cls(alpha_min=0.0, t_min=0.0, alpha_max=1.0, extent="fixed", sigma_max=sigma_max)
+
+
+RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
+
+
+def _check_finite(name: str, t: Tensor) -> None:
+    if not bool(torch.isfinite(t).all()):
+        bad = int((~torch.isfinite(t)).sum())
+        raise ValueError(f"rasterization: {name} has {bad} NaN/Inf values")
+
+
+def validate_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+                    sh_degree, backgrounds, render_mode, rasterize_mode, tile_size) -> None:
+    """One cheap pass over the inputs; raises ValueError naming the bad argument."""
+    named = {"means": means, "quats": quats, "scales": scales, "opacities": opacities,
+             "colors": colors, "viewmats": viewmats, "Ks": Ks}
+    if backgrounds is not None:
+        named["backgrounds"] = backgrounds
+    for name, t in named.items():
+        if not isinstance(t, torch.Tensor):
+            raise ValueError(f"rasterization: {name} must be a torch.Tensor, got {type(t).__name__}")
+    dev, dt = means.device, means.dtype
+    if dt not in (torch.float32, torch.float64):
+        raise ValueError(f"rasterization: means must be float32 or float64, got {dt}")
+    for name, t in named.items():
+        if t.device != dev:
+            raise ValueError(f"rasterization: {name} is on {t.device} but means is on {dev}")
+        if t.dtype != dt:
+            raise ValueError(f"rasterization: {name} is {t.dtype} but means is {dt} (use one dtype)")
+    if means.ndim != 2 or means.shape[1] != 3:
+        raise ValueError(f"rasterization: means must be [N, 3], got {tuple(means.shape)}")
+    N = means.shape[0]
+    if quats.shape != (N, 4):
+        raise ValueError(f"rasterization: quats must be [N={N}, 4], got {tuple(quats.shape)}")
+    if scales.shape != (N, 3):
+        raise ValueError(f"rasterization: scales must be [N={N}, 3], got {tuple(scales.shape)}")
+    if opacities.shape != (N,):
+        raise ValueError(f"rasterization: opacities must be [N={N}], got {tuple(opacities.shape)}")
+    if viewmats.ndim != 3 or viewmats.shape[1:] != (4, 4):
+        raise ValueError(f"rasterization: viewmats must be [C, 4, 4], got {tuple(viewmats.shape)}")
+    C = viewmats.shape[0]
+    if Ks.shape != (C, 3, 3):
+        raise ValueError(f"rasterization: Ks must be [C={C}, 3, 3], got {tuple(Ks.shape)}")
+    if sh_degree is None:
+        if not ((colors.ndim == 2 and colors.shape[0] == N) or (colors.ndim == 3 and colors.shape[:2] == (C, N))):
+            raise ValueError(f"rasterization: colors must be [N={N}, D] or [C={C}, N, D], got {tuple(colors.shape)}")
+        if colors.shape[-1] < 1:
+            raise ValueError("rasterization: colors has zero channels")
+    else:
+        if not 0 <= sh_degree <= 3:
+            raise ValueError(f"rasterization: sh_degree must be 0..3, got {sh_degree}")
+        ok = (colors.ndim == 3 and colors.shape[0] == N) or (colors.ndim == 4 and colors.shape[:2] == (C, N))
+        if not ok or colors.shape[-1] != 3 or colors.shape[-2] < (sh_degree + 1) ** 2:
+            raise ValueError(f"rasterization: with sh_degree={sh_degree} colors must be [N={N}, K>={(sh_degree + 1) ** 2}, 3]"
+                             f" (or [C, N, K, 3]), got {tuple(colors.shape)}")
+    if int(width) <= 0 or int(height) <= 0:
+        raise ValueError(f"rasterization: width and height must be positive, got {width}x{height}")
+    if render_mode not in RENDER_MODES:
+        raise ValueError(f"rasterization: render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
+    if rasterize_mode not in ("classic", "antialiased"):
+        raise ValueError(f"rasterization: rasterize_mode must be 'classic' or 'antialiased', got {rasterize_mode!r}")
+    if int(tile_size) <= 0 or int(tile_size) > 64:
+        raise ValueError(f"rasterization: tile_size must be in 1..64, got {tile_size}")
+    for name, t in named.items():
+        _check_finite(name, t)
+    if N:
+        if bool((torch.linalg.vector_norm(quats, dim=-1) == 0).any()):
+            raise ValueError("rasterization: quats has zero quaternions (rotation undefined)")
+        if bool((scales < 0).any()):
+            raise ValueError("rasterization: scales has negative values (scales are linear, >= 0)")
+        if bool(((opacities < 0) | (opacities > 1)).any()):
+            raise ValueError("rasterization: opacities must lie in [0, 1] (apply a sigmoid to logits)")
+    if bool((Ks[:, 0, 0] <= 0).any()) or bool((Ks[:, 1, 1] <= 0).any()):
+        raise ValueError("rasterization: Ks has non-positive focal lengths")
+
+
+def rasterization(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    radius_clip: float = 0.0,
+    eps2d: float = 0.3,
+    sh_degree: Optional[int] = None,
+    packed: bool = True,
+    tile_size: int = 16,
+    backgrounds: Optional[Tensor] = None,
+    render_mode: str = "RGB",
+    sparse_grad: bool = False,
+    absgrad: bool = False,
+    rasterize_mode: str = "classic",
+    channel_chunk: int = 32,
+    *,
+    settings: Optional[RasterSettings] = None,
+    deterministic: bool = False,
+    validate: bool = True,
+    backend: str = "auto",
+):
+    """Render N Gaussians into C cameras (gsplat 1.5.3 ``rasterization`` semantics, classic mode).
+
+    Args (gsplat's): ``means [N,3]``, ``quats [N,4]`` (wxyz, any norm), ``scales [N,3]`` (linear),
+        ``opacities [N]`` in [0,1], ``colors [N,D]`` / ``[C,N,D]`` or SH ``[N,K,3]`` / ``[C,N,K,3]``
+        with ``sh_degree``, ``viewmats [C,4,4]`` (world-to-camera), ``Ks [C,3,3]``, ``width``,
+        ``height``, ``near_plane``, ``far_plane``, ``radius_clip``, ``eps2d``, ``backgrounds [C,D]``,
+        ``render_mode`` (RGB, D, ED, RGB+D, RGB+ED), ``rasterize_mode`` (classic, antialiased),
+        ``tile_size``. ``packed``, ``sparse_grad`` and ``channel_chunk`` are accepted for
+        compatibility; the layout is always the non-packed one ([C, N] per-camera arrays).
+    Extra (keyword only):
+        settings: :class:`RasterSettings` speed/accuracy knobs (default: gsplat's rules).
+        deterministic: bit-identical gradients from run to run on CUDA (slower backward).
+        validate: check inputs for NaN/Inf, bad shapes, devices, dtypes, quaternions, scales,
+            opacities (one cheap pass); ``False`` skips it.
+        backend: ``"warp"`` (kernels), ``"torch"`` (dense reference) or ``"auto"`` (warp).
+
+    Returns:
+        ``render_colors [C,H,W,D']``, ``render_alphas [C,H,W,1]``, ``meta`` with ``radii [C,N,2]``,
+        ``means2d [C,N,2]`` (after backward its ``.grad`` is the screen-space positional gradient
+        used by densification; call ``meta["means2d"].retain_grad()`` first), ``depths [C,N]``,
+        ``conics [C,N,3]``, ``opacities [C,N]``, ``tiles_per_gauss``, ``isect_ids``,
+        ``flatten_ids``, ``isect_offsets [C,th,tw]``, ``tile_width``, ``tile_height``,
+        ``width``, ``height``, ``tile_size``, ``n_cameras``, ``settings``.
+    """
+    settings = settings or RasterSettings()
+    if absgrad:
+        raise ValueError("rasterization: absgrad=True is not supported (use means2d.grad)")
+    width, height, tile_size = int(width), int(height), int(tile_size)
+    if validate:
+        validate_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+                        sh_degree, backgrounds, render_mode, rasterize_mode, tile_size)
+    if backend == "auto":
+        backend = "warp" if _warp_available() else "torch"
+    if backend not in ("warp", "torch"):
+        raise ValueError(f"rasterization: backend must be 'warp', 'torch' or 'auto', got {backend!r}")
+    C, N = viewmats.shape[0], means.shape[0]
+    antialiased = rasterize_mode == "antialiased"
+    proj_kw = dict(near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip, eps2d=eps2d,
+                   antialiased=antialiased, settings=settings)
+
+    if backend == "torch":
+        from .reference import project_reference as project
+    else:
+        from .ops import project_warp as project
+
+        proj_kw["deterministic"] = deterministic
+    radii, means2d, depths, conics, opacs = project(means, quats, scales, opacities, viewmats, Ks,
+                                                    width, height, **proj_kw)
+
+    if sh_degree is not None:
+        campos = torch.linalg.inv(viewmats)[:, :3, 3]
+        dirs = means[None] - campos[:, None]
+        shs = colors if colors.ndim == 4 else colors[None].expand(C, -1, -1, -1)
+        if backend == "torch":
+            from .sh import spherical_harmonics
+        else:
+            from .ops import spherical_harmonics_warp as spherical_harmonics
+        visible = (radii > 0).all(dim=-1)
+        cols = spherical_harmonics(sh_degree, dirs, shs)
+        colors = torch.where(visible[..., None], torch.clamp_min(cols + 0.5, 0.0), 0.0)
+    elif colors.ndim == 2:
+        colors = colors[None].expand(C, -1, -1)
+
+    if render_mode in ("RGB+D", "RGB+ED"):
+        colors = torch.cat([colors, depths[..., None]], dim=-1)
+        if backgrounds is not None:
+            backgrounds = torch.cat([backgrounds, torch.zeros_like(backgrounds[:, :1])], dim=-1)
+    elif render_mode in ("D", "ED"):
+        colors = depths[..., None]
+        if backgrounds is not None:
+            backgrounds = torch.zeros_like(backgrounds[:, :1])
+
+    tile_width, tile_height = math.ceil(width / tile_size), math.ceil(height / tile_size)
+    meta = {
+        "radii": radii, "means2d": means2d, "depths": depths, "conics": conics, "opacities": opacs,
+        "tile_width": tile_width, "tile_height": tile_height, "width": width, "height": height,
+        "tile_size": tile_size, "n_cameras": C, "settings": settings, "backend": backend,
+    }
+    if backend == "torch":
+        from .reference import blend_reference
+
+        render_colors, render_alphas = blend_reference(
+            means2d, conics, colors, opacs, radii, depths, width, height, tile_size, backgrounds, settings)
+    else:
+        from .ops import bin_tiles, blend_warp
+
+        tiles = bin_tiles(means2d, radii, depths, tile_size, tile_width, tile_height)
+        meta.update(tiles)
+        render_colors, render_alphas = blend_warp(
+            means2d, conics, colors, opacs, backgrounds, tiles, width, height, tile_size, settings,
+            deterministic=deterministic)
+
+    if render_mode in ("ED", "RGB+ED"):
+        render_colors = torch.cat(
+            [render_colors[..., :-1], render_colors[..., -1:] / render_alphas.clamp(min=1e-10)], dim=-1)
+    return render_colors, render_alphas, meta
+
+
+def _warp_available() -> bool:
+    try:
+        from . import ops  # noqa: F401
+    except ImportError:
+        return False
+    return True
