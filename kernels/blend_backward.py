@@ -112,7 +112,8 @@ def backward_kernel(scalar, channels: int, per_tile: bool = False):
         y = tyi * tile_size + local // tile_size
         return wp.vec3i(cam, x, y)
 
-    @wp.kernel(module="unique")
+    # no FMA contraction: the gating in pixel.py must decide identically in both passes
+    @wp.kernel(module="unique", module_options={"fuse_fp": False})
     def blend_backward(
         means2d: wp.array(dtype=vec2),
         conics: wp.array(dtype=vec3),
@@ -183,7 +184,7 @@ def gather_kernel(scalar, channels: int):
         b = vec3()
         o = scalar(0.0)
         c = vecD()
-        for k in range(end - counts[i], end):
+        for k in range(int(end - counts[i]), int(end)):
             a = a + s_means2d[k]
             b = b + s_conics[k]
             o = o + s_opacities[k]

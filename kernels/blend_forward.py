@@ -29,7 +29,8 @@ def forward_kernel(scalar, channels: int):
     vecD = channel_vector(scalar, channels)
     splat_alpha, ends_pixel = pixel_funcs(scalar)
 
-    @wp.kernel(module="unique")
+    # no FMA contraction: the gating in pixel.py must decide identically in both passes
+    @wp.kernel(module="unique", module_options={"fuse_fp": False})
     def blend_forward(
         means2d: wp.array(dtype=vec2),
         conics: wp.array(dtype=vec3),

@@ -53,6 +53,13 @@ class RasterSettings:
         if not self.sigma_max > 0.0:
             raise ValueError(f"RasterSettings.sigma_max must be > 0, got {self.sigma_max}")
 
+    def for_dtype(self, dtype: torch.dtype) -> "RasterSettings":
+        """These settings with ``t_min`` raised to the precision's floor (see ``T_MIN_FLOOR``)."""
+        floor = T_MIN_FLOOR.get(dtype, 0.0)
+        if self.t_min >= floor:
+            return self
+        return RasterSettings(self.alpha_min, floor, self.alpha_max, self.extent, self.sigma_max)
+
     @classmethod
     def exact(cls, sigma_max: float = 3.33) -> "RasterSettings":
         """No alpha threshold, no transmittance cut-off, no alpha clamp (gradient checks)."""
@@ -61,15 +68,15 @@ class RasterSettings:
 
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 
-
-def _check_finite(name: str, t: Tensor) -> None:
-    if not bool(torch.isfinite(t).all()):
-        bad = int((~torch.isfinite(t)).sum())
-        raise ValueError(f"rasterization: {name} has {bad} NaN/Inf values")
+# Pixels always end once the transmittance would fall to this floor, also with t_min = 0: layers
+# behind it add less than the precision resolves, and the backward pass rebuilds each layer's
+# transmittance from the final one by division, which needs the final one well inside the normal
+# range of the type (float32 denormals start at 1.2e-38).
+T_MIN_FLOOR = {torch.float32: 1e-20, torch.float64: 1e-200}
 
 
 def validate_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-                    sh_degree, backgrounds, render_mode, rasterize_mode, tile_size) -> None:
+                    sh_degree, backgrounds, render_mode, rasterize_mode, tile_size, near_plane=0.01) -> None:
     """One cheap pass over the inputs; raises ValueError naming the bad argument."""
     named = {"means": means, "quats": quats, "scales": scales, "opacities": opacities,
              "colors": colors, "viewmats": viewmats, "Ks": Ks}
@@ -118,19 +125,22 @@ def validate_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width
         raise ValueError(f"rasterization: render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
     if rasterize_mode not in ("classic", "antialiased"):
         raise ValueError(f"rasterization: rasterize_mode must be 'classic' or 'antialiased', got {rasterize_mode!r}")
+    if not near_plane > 0:
+        raise ValueError(f"rasterization: near_plane must be > 0, got {near_plane}")
     if int(tile_size) <= 0 or int(tile_size) > 64:
         raise ValueError(f"rasterization: tile_size must be in 1..64, got {tile_size}")
-    for name, t in named.items():
-        _check_finite(name, t)
-    if N:
-        if bool((torch.linalg.vector_norm(quats, dim=-1) == 0).any()):
-            raise ValueError("rasterization: quats has zero quaternions (rotation undefined)")
-        if bool((scales < 0).any()):
-            raise ValueError("rasterization: scales has negative values (scales are linear, >= 0)")
-        if bool(((opacities < 0) | (opacities > 1)).any()):
-            raise ValueError("rasterization: opacities must lie in [0, 1] (apply a sigmoid to logits)")
-    if bool((Ks[:, 0, 0] <= 0).any()) or bool((Ks[:, 1, 1] <= 0).any()):
-        raise ValueError("rasterization: Ks has non-positive focal lengths")
+    # value checks: all flags computed on the device, read back with one synchronisation
+    checks = [(f"{name} has NaN/Inf values", ~torch.isfinite(t).all()) for name, t in named.items()]
+    checks += [
+        ("quats has zero quaternions (rotation undefined)", (quats.abs().sum(-1) == 0).any()),
+        ("scales has negative values (scales are linear, >= 0)", (scales < 0).any()),
+        ("opacities must lie in [0, 1] (apply a sigmoid to logits)", ((opacities < 0) | (opacities > 1)).any()),
+        ("Ks has non-positive focal lengths", (Ks[:, 0, 0] <= 0).any() | (Ks[:, 1, 1] <= 0).any()),
+    ]
+    failed = torch.stack([flag for _, flag in checks]).tolist()
+    for (message, _), bad in zip(checks, failed):
+        if bad:
+            raise ValueError(f"rasterization: {message}")
 
 
 def rasterization(
@@ -186,13 +196,13 @@ def rasterization(
         ``flatten_ids``, ``isect_offsets [C,th,tw]``, ``tile_width``, ``tile_height``,
         ``width``, ``height``, ``tile_size``, ``n_cameras``, ``settings``.
     """
-    settings = settings or RasterSettings()
+    settings = (settings or RasterSettings()).for_dtype(means.dtype)
     if absgrad:
         raise ValueError("rasterization: absgrad=True is not supported (use means2d.grad)")
     width, height, tile_size = int(width), int(height), int(tile_size)
     if validate:
         validate_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-                        sh_degree, backgrounds, render_mode, rasterize_mode, tile_size)
+                        sh_degree, backgrounds, render_mode, rasterize_mode, tile_size, near_plane)
     if backend == "auto":
         backend = "warp" if _warp_available() else "torch"
     if backend not in ("warp", "torch"):

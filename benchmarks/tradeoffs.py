@@ -1,0 +1,519 @@
+"""The measured speed/accuracy trade: each knob of the renderer and of stylization, time vs error.
+
+Rasterizer knobs (one changed at a time from the defaults: float32, gsplat's
+rules ``RasterSettings()``, tile 16, the scene's full SH degree, all Gaussians):
+
+    precision        float32 | float64
+    alpha_min        1/255 | 0            (skip faint contributions)
+    t_min            1e-4 | 0             (transmittance cut-off)
+    alpha_max        0.999 | 1            (alpha clamp)
+    extent           opacity-aware | fixed 3.33 sigma
+    tile_size        8 | 16 | 32
+    sh_degree        0 | 1 | 2 | 3        (SH bands evaluated)
+    gaussians        25 | 50 | 100 %      (kept by opacity, the most opaque first)
+    exact            RasterSettings.exact() in float32 (all three gates off)
+
+Each case is timed (median of ``--repeats``, CUDA-synchronised; forward, and
+forward + backward of a fixed random weighting of the image) and compared with
+the *reference*: the same scene rendered in float64 with
+``RasterSettings.exact()`` (no threshold, cut-off or clamp; fixed 3.33-sigma
+extent), all Gaussians, full SH degree. Errors: image RMSE and max abs error
+(colours in [0, 1]) and the relative L2 error of the positional gradient
+``dL/dmeans`` (what densification reads) on the Gaussians the case keeps.
+
+Stylization knobs (``--stylize``; Stage 2 through :func:`ssgwarp.stylize.stylize_run`):
+key views 2 | 4 | 8 and feature resolution (``feature_scale`` 0.25 | 0.5 | 1),
+each reporting the Stage 2 time and the resulting Gram style loss and content
+loss (:mod:`ssgwarp.metrics`). Without Stage 1 weights the key views fall back
+to global matching and the table says so.
+
+Outputs in ``--out``: ``tradeoffs.md`` (tables, device names, date),
+``tradeoffs.json`` (raw numbers; ``--append`` keeps other devices' results)
+and ``tradeoffs_pareto.png`` (time vs error, one panel per device, the Pareto
+front drawn).
+
+    python benchmarks/tradeoffs.py --quick --out /tmp/tradeoffs          # < 1 min CPU smoke run
+    python benchmarks/tradeoffs.py --devices cpu --n 20000 --size 256 --out bench/tradeoffs
+    python benchmarks/tradeoffs.py --devices cuda --n 500000 --size 1024 --stylize --append --out bench/tradeoffs
+    python benchmarks/tradeoffs.py --scene runs/fern --size 504 --out bench/fern   # a real reconstruction
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import math
+import platform
+import statistics
+import sys
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Optional
+
+import torch
+
+_ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(_ROOT))  # run from a checkout without installing
+
+import ssgwarp  # noqa: E402
+
+try:  # a checkout that was not pip-installed has kernels/ but no ssgwarp.kernels: map it
+    import ssgwarp.kernels  # noqa: F401
+except ImportError:
+    import importlib.util
+
+    _spec = importlib.util.spec_from_file_location("ssgwarp.kernels", _ROOT / "kernels" / "__init__.py",
+                                                   submodule_search_locations=[str(_ROOT / "kernels")])
+    if _spec is not None and _spec.loader is not None:
+        _mod = importlib.util.module_from_spec(_spec)
+        sys.modules["ssgwarp.kernels"] = _mod
+        _spec.loader.exec_module(_mod)
+from ssgwarp import RasterSettings  # noqa: E402
+from ssgwarp.cameras import Cameras, look_at  # noqa: E402
+from ssgwarp.scene import GaussianScene  # noqa: E402
+
+
+# ----------------------------------------------------------------------------- scene and cameras
+def synthetic_scene(n: int, sh_degree: int = 3, seed: int = 0) -> GaussianScene:
+    """N Gaussians in a ball of radius ~1.5 at the origin: scales log-uniform in [0.005, 0.08],
+    opacities U(0.02, 1), colours U(0,1), higher SH bands N(0, 0.15) (visible view dependence)."""
+    g = torch.Generator().manual_seed(seed)
+    means = torch.randn(n, 3, generator=g) * 0.6
+    log_s = torch.empty(n, 3).uniform_(math.log(0.005), math.log(0.08), generator=g)
+    quats = torch.randn(n, 4, generator=g)
+    op = torch.empty(n).uniform_(0.02, 1.0, generator=g)
+    rgb = torch.rand(n, 3, generator=g)
+    k = (sh_degree + 1) ** 2 - 1
+    rest = torch.randn(n, k, 3, generator=g) * 0.15 if sh_degree > 0 else None
+    from ssgwarp.scene import rgb_to_sh_dc
+
+    return GaussianScene(means, log_s, quats, torch.logit(op), rgb_to_sh_dc(rgb), rest, None, sh_degree)
+
+
+def synthetic_cameras(views: int, width: int, height: int) -> Cameras:
+    """``views`` cameras on a circle of radius 4 around the origin, 60 degree horizontal field of view."""
+    ang = torch.linspace(0.0, 2.0 * math.pi, views + 1)[:-1].double()
+    eyes = torch.stack([4.0 * torch.sin(ang), -0.8 * torch.ones_like(ang), -4.0 * torch.cos(ang)], -1)
+    vms = look_at(eyes, torch.zeros(views, 3, dtype=torch.float64), up=(0.0, -1.0, 0.0)).float()
+    f = 0.5 * width / math.tan(math.radians(30.0))
+    K = torch.tensor([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
+    return Cameras(vms, K.expand(views, 3, 3).clone(), width, height)
+
+
+def run_scene(run_dir: Path, views: int, side: int) -> tuple[GaussianScene, Cameras]:
+    """A reconstruction's scene and ``views`` of its cameras (evenly spread), longer side ``side``."""
+    from ssgwarp.ply import read_ply
+
+    scene = read_ply(run_dir / "scene.ply")
+    cams = Cameras.load(run_dir / "cameras.json")
+    ids = torch.linspace(0, len(cams) - 1, min(views, len(cams))).round().long().unique().tolist()
+    cams = cams[ids]
+    k = side / max(cams.width, cams.height)
+    return scene, cams.rescaled(max(1, round(cams.width * k)), max(1, round(cams.height * k)))
+
+
+# ----------------------------------------------------------------------------- cases
+@dataclass
+class Case:
+    knob: str
+    value: str
+    dtype: torch.dtype = torch.float32
+    settings: RasterSettings = field(default_factory=RasterSettings)
+    tile_size: int = 16
+    sh_degree: Optional[int] = None   # None: the scene's
+    keep: float = 1.0
+    default: bool = False
+
+
+def raster_cases(scene_degree: int) -> list[Case]:
+    d = RasterSettings()
+    cases = [Case("default", "float32, gsplat rules, tile 16", default=True),
+             Case("precision", "float64", dtype=torch.float64),
+             Case("alpha_min", "0", settings=replace(d, alpha_min=0.0)),
+             Case("t_min", "0", settings=replace(d, t_min=0.0)),
+             Case("alpha_max", "1", settings=replace(d, alpha_max=1.0)),
+             Case("extent", "fixed 3.33 sigma", settings=replace(d, extent="fixed")),
+             Case("tile_size", "8", tile_size=8),
+             Case("tile_size", "32", tile_size=32)]
+    cases += [Case("sh_degree", str(k), sh_degree=k) for k in range(scene_degree)]
+    cases += [Case("gaussians", f"{int(p * 100)}%", keep=p) for p in (0.25, 0.5)]
+    cases.append(Case("exact", "RasterSettings.exact(), float32", settings=RasterSettings.exact()))
+    return cases
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _timed(fn, device: torch.device, repeats: int) -> float:
+    fn()                      # warm-up: kernel compilation for this configuration
+    _sync(device)
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        _sync(device)
+        ts.append((time.perf_counter() - t0) * 1e3)
+    return statistics.median(ts)
+
+
+def _inputs(scene: GaussianScene, cams: Cameras, device, dtype, degree: int, keep_idx: Optional[torch.Tensor]):
+    s = scene if keep_idx is None else scene.subset(keep_idx)
+    s = s.to(device=device, dtype=dtype)
+    coeffs = s.sh_coeffs[:, : (degree + 1) ** 2].contiguous()
+    return [s.means, s.quats, s.scales, s.opacities, coeffs], cams.viewmats.to(device, dtype), cams.Ks.to(device, dtype)
+
+
+BACKEND = "warp"   # the Warp kernels; "torch" = the dense reference (slow, for comparison only)
+
+
+def render_case(scene: GaussianScene, cams: Cameras, device: torch.device, case: Case, weight: torch.Tensor,
+                keep_idx: Optional[torch.Tensor], repeats: int, time_it: bool = True) -> dict:
+    """Time one case and return its image, alpha and positional gradient."""
+    degree = scene.sh_degree if case.sh_degree is None else case.sh_degree
+    params, vm, K = _inputs(scene, cams, device, case.dtype, degree, keep_idx)
+    kw = dict(sh_degree=degree, tile_size=case.tile_size, settings=case.settings, backend=BACKEND)
+    W, H = cams.width, cams.height
+    w = weight.to(device, case.dtype)
+
+    def fwd():
+        with torch.no_grad():
+            return ssgwarp.rasterization(*params, vm, K, W, H, **kw)
+
+    leaves = [p.detach().clone().requires_grad_(True) for p in params]
+
+    def fwd_bwd():
+        for p in leaves:
+            p.grad = None
+        img, alpha, _ = ssgwarp.rasterization(*leaves, vm, K, W, H, **kw)
+        ((img * w).sum() + alpha.sum()).backward()
+
+    out: dict[str, Any] = {}
+    if time_it:
+        out["fwd_ms"] = _timed(fwd, device, repeats)
+        out["fwd_bwd_ms"] = _timed(fwd_bwd, device, repeats)
+    else:
+        fwd_bwd()
+    img, alpha, _ = fwd()
+    out["image"] = img.detach().double()
+    out["alpha"] = alpha.detach().double()
+    out["grad_means"] = leaves[0].grad.detach().double()
+    return out
+
+
+def raster_study(scene: GaussianScene, cams: Cameras, device: torch.device, repeats: int,
+                 progress: bool = True) -> list[dict]:
+    from tqdm.auto import tqdm
+
+    g = torch.Generator().manual_seed(1)
+    weight = torch.rand(len(cams), cams.height, cams.width, 3, generator=g)
+    order = torch.argsort(scene.opacities.detach(), descending=True)
+    ref = render_case(scene, cams, device, Case("reference", "float64 exact", torch.float64, RasterSettings.exact()),
+                      weight, None, repeats, time_it=False)
+    rows = []
+    for case in tqdm(raster_cases(scene.sh_degree), desc=f"raster knobs ({device.type})", disable=not progress):
+        keep_idx = None
+        if case.keep < 1.0:
+            keep_idx = torch.sort(order[: max(1, int(round(case.keep * len(scene))))]).values
+        r = render_case(scene, cams, device, case, weight, keep_idx, repeats)
+        d = r["image"] - ref["image"]
+        gref = ref["grad_means"] if keep_idx is None else ref["grad_means"][keep_idx.to(device)]
+        gerr = float((r["grad_means"] - gref).norm() / gref.norm().clamp_min(1e-300))
+        rows.append({
+            "knob": case.knob, "value": case.value, "default": case.default,
+            "fwd_ms": r["fwd_ms"], "fwd_bwd_ms": r["fwd_bwd_ms"],
+            "rmse": float(d.pow(2).mean().sqrt()), "max_abs": float(d.abs().max()),
+            "alpha_max_abs": float((r["alpha"] - ref["alpha"]).abs().max()),
+            "grad_rel": gerr, "gaussians": len(scene) if keep_idx is None else len(keep_idx),
+        })
+    return rows
+
+
+# ----------------------------------------------------------------------------- stylization knobs
+def _synthetic_run(folder: Path, scene: GaussianScene, cams: Cameras) -> Path:
+    """A minimal reconstruction folder (scene.ply, cameras.json, data.json) for Stage 2."""
+    from ssgwarp.fileio import write_json
+    from ssgwarp.ply import write_ply
+
+    folder.mkdir(parents=True, exist_ok=True)
+    write_ply(folder / "scene.ply", scene)
+    cams.save(folder / "cameras.json")
+    write_json(folder / "data.json", {"data_dir": None, "split": {"train": list(cams.names), "test": []},
+                                      "background": [1.0, 1.0, 1.0], "format": "synthetic"})
+    return folder
+
+
+def _procedural_style(path: Path, size: int = 64) -> Path:
+    """Diagonal stripes of three colours (stands in when no --style is given)."""
+    from ssgwarp.fileio import write_image
+
+    y, x = torch.meshgrid(torch.arange(size), torch.arange(size), indexing="ij")
+    band = ((x + y) // 6) % 3
+    pal = torch.tensor([[0.95, 0.75, 0.1], [0.1, 0.3, 0.8], [0.85, 0.15, 0.2]])
+    write_image(path, pal[band])
+    return path
+
+
+def stylize_study(run_dir: Path, style: Path, out: Path, device: torch.device, iters: int,
+                  keyviews=(2, 4, 8), scales=(0.25, 0.5, 1.0), max_side: int = 256) -> list[dict]:
+    try:
+        from ssgwarp.stylize import Stage2Config, StylizeOptions, stylize_run
+    except ImportError as e:
+        return [{"knob": "stylize", "value": "-", "skipped": f"ssgwarp.stylize not available ({e})"}]
+    rows = []
+    jobs = [("key views", str(k), Stage2Config(mode="ist", iters=iters), StylizeOptions(
+        keyviews=k, path_frames=0, max_side=max_side)) for k in keyviews]
+    jobs += [("feature resolution", f"{s:g}", Stage2Config(mode="global", iters=iters, feature_scale=s),
+              StylizeOptions(path_frames=0, max_side=max_side)) for s in scales]
+    # warm-up (kernel compilation, extractor set-up), not recorded: the first timed job would pay for it
+    try:
+        stylize_run(run_dir, style, out / "stylize_runs" / "warmup", stage2=Stage2Config(mode="global", iters=1),
+                    opts=StylizeOptions(path_frames=0, max_side=max_side), device=device, force=True, progress=False)
+    except Exception:
+        pass
+    for knob, value, s2, opts in jobs:
+        dst = out / "stylize_runs" / f"{knob.replace(' ', '_')}_{value}"
+        try:
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            t0 = time.perf_counter()
+            m = stylize_run(run_dir, style, dst, stage2=s2, opts=opts, device=device, force=True, progress=False)
+            total = time.perf_counter() - t0
+        except Exception as e:  # report and go on: the study must finish
+            rows.append({"knob": knob, "value": value, "skipped": f"{type(e).__name__}: {e}"})
+            continue
+        secs = m.get("seconds", {})
+        rows.append({
+            "knob": knob, "value": value, "mode": s2.mode, "iters": iters,
+            "stage2_s": secs.get("stage2", total), "total_s": total,
+            "gram_style_loss": m.get("gram_style_loss"), "content_loss": m.get("content_loss"),
+            "gram_style_loss_original": m.get("gram_style_loss_original"),
+            "extractor": m.get("extractor"), "stage1_ran": bool((m.get("stage1") or {}).get("ran")),
+            "matching": m.get("matching"),
+        })
+    return rows
+
+
+# ----------------------------------------------------------------------------- report
+def device_name(device: torch.device) -> str:
+    if device.type == "cuda":
+        return torch.cuda.get_device_name(device)
+    import os
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{cpu}, {os.cpu_count()} cores, torch threads {torch.get_num_threads()}"
+
+
+def _f(x: Any, digits: int = 3) -> str:
+    if x is None:
+        return "-"
+    if isinstance(x, float):
+        if x == 0.0:
+            return "0"
+        return f"{x:.{digits}g}" if 1e-3 <= abs(x) < 1e5 else f"{x:.2e}"
+    return str(x)
+
+
+def markdown(results: dict) -> str:
+    lines = ["# Speed / accuracy trade-offs (measured)", ""]
+    for key, res in results["devices"].items():
+        meta = res["meta"]
+        lines += [f"## {key}: {meta['device_name']}", "",
+                  f"{meta['date']}; torch {meta['torch']}, warp {meta['warp']}; scene: {meta['scene']}; "
+                  f"{meta['views']} view(s) {meta['width']}x{meta['height']}; median of {meta['repeats']} runs; "
+                  f"backend {meta.get('backend', 'warp')}.",
+                  "Reference: float64, `RasterSettings.exact()`, all Gaussians, full SH degree. "
+                  "Errors on colours in [0, 1]; grad = relative L2 error of dL/dmeans.", "",
+                  "| knob | value | fwd ms | fwd+bwd ms | speed-up (fwd) | image RMSE | max abs err | grad rel err |",
+                  "|---|---|---|---|---|---|---|---|"]
+        base = next((r for r in res["raster"] if r.get("default")), None)
+        for r in res["raster"]:
+            sp = base["fwd_ms"] / r["fwd_ms"] if base and r["fwd_ms"] > 0 else None
+            lines.append(f"| {r['knob']} | {r['value']} | {_f(r['fwd_ms'])} | {_f(r['fwd_bwd_ms'])} | "
+                         f"{_f(sp)}x | {_f(r['rmse'])} | {_f(r['max_abs'])} | {_f(r['grad_rel'])} |")
+        if res.get("stylize"):
+            lines += ["", "Stylization knobs (Stage 2, "
+                      f"{res['stylize'][0].get('iters', '-')} iterations):", "",
+                      "| knob | value | mode | Stage 2 s | total s | Gram style loss | content loss | note |",
+                      "|---|---|---|---|---|---|---|---|"]
+            for r in res["stylize"]:
+                if "skipped" in r:
+                    lines.append(f"| {r['knob']} | {r['value']} | - | - | - | - | - | skipped: {r['skipped']} |")
+                    continue
+                note = r.get("extractor") or ""
+                if r["knob"] == "key views" and not r.get("stage1_ran"):
+                    note += "; Stage 1 did not run (no diffusion weights): key views fall back to global matching"
+                lines.append(f"| {r['knob']} | {r['value']} | {r['mode']} | {_f(r['stage2_s'])} | {_f(r['total_s'])} | "
+                             f"{_f(r['gram_style_loss'])} | {_f(r['content_loss'])} | {note} |")
+        lines.append("")
+    lines += ["![time vs error](tradeoffs_pareto.png)", ""]
+    return "\n".join(lines)
+
+
+def _short(row: dict) -> str:
+    """Plot label of a row."""
+    if row["knob"] in ("default", "exact"):
+        return row["knob"]
+    first = row["value"].split()[0]
+    return f"{row['knob']}={first}" if row["knob"] in ("alpha_min", "t_min", "alpha_max", "sh_degree", "tile_size") \
+        else first
+
+
+def pareto_front(points: list[tuple[float, float]]) -> list[int]:
+    """Indices of the points no other point beats in both time and error (sorted by time)."""
+    idx = sorted(range(len(points)), key=lambda i: (points[i][0], points[i][1]))
+    front, best = [], math.inf
+    for i in idx:
+        if points[i][1] < best:
+            front.append(i)
+            best = points[i][1]
+    return front
+
+
+def pareto_plot(results: dict, path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys = list(results["devices"])
+    fig, axes = plt.subplots(1, len(keys), figsize=(6.5 * len(keys), 5), squeeze=False)
+    for ax, key in zip(axes[0], keys):
+        res = results["devices"][key]
+        rows = res["raster"]
+        pts = [(r["fwd_bwd_ms"], max(r["rmse"], 1e-12)) for r in rows]
+        knobs = sorted({r["knob"] for r in rows})
+        cmap = plt.get_cmap("tab10")
+        for j, k in enumerate(knobs):
+            sel = [i for i, r in enumerate(rows) if r["knob"] == k]
+            ax.scatter([pts[i][0] for i in sel], [pts[i][1] for i in sel], color=cmap(j % 10), label=k, s=36,
+                       marker="*" if k == "default" else "o", zorder=3)
+            for i in sel:
+                ax.annotate(_short(rows[i]), pts[i], fontsize=7, xytext=(3, 3), textcoords="offset points")
+        front = pareto_front(pts)
+        ax.plot([pts[i][0] for i in front], [pts[i][1] for i in front], "k--", lw=1, label="Pareto front", zorder=2)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("forward + backward time (ms)")
+        ax.set_ylabel("image RMSE vs float64 exact render")
+        meta = res["meta"]
+        ax.set_title(f"{key}: {meta['device_name'][:48]}\n{meta['scene']}, {meta['width']}x{meta['height']}, "
+                     f"{meta['date'][:10]}", fontsize=9)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    from ssgwarp.fileio import atomic_path
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=120)
+    plt.close(fig)
+    return path
+
+
+# ----------------------------------------------------------------------------- main
+def _write_text(path: Path, text: str) -> None:
+    from ssgwarp.fileio import atomic_path
+
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", type=Path, default=Path("tradeoffs"), help="output folder")
+    p.add_argument("--quick", action="store_true", help="tiny sizes: a CPU smoke run in under a minute")
+    p.add_argument("--devices", default=None, help="cpu, cuda or cpu,cuda (default: cpu, and cuda when present)")
+    p.add_argument("--n", type=int, default=20000, help="Gaussians of the synthetic scene")
+    p.add_argument("--sh-degree", type=int, default=3, help="SH degree of the synthetic scene")
+    p.add_argument("--size", type=int, default=256, help="longer image side")
+    p.add_argument("--views", type=int, default=1, help="cameras rendered per call")
+    p.add_argument("--scene", type=Path, default=None, help="a reconstruction run folder instead of the synthetic scene")
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--stylize", action="store_true", help="also the stylization knobs (Stage 2 runs)")
+    p.add_argument("--style", type=Path, default=None, help="style image of the stylization knobs")
+    p.add_argument("--stylize-iters", type=int, default=100, help="Stage 2 iterations per stylization run")
+    p.add_argument("--append", action="store_true", help="keep other devices' results already in --out")
+    p.add_argument("--backend", choices=("warp", "torch"), default="warp",
+                   help="rasterizer backend (torch: the dense reference, for comparison)")
+    p.add_argument("--seed", type=int, default=0)
+    return p.parse_args(argv)
+
+
+def main(argv=None) -> int:
+    global BACKEND
+    args = parse_args(argv)
+    BACKEND = args.backend
+    if args.quick:
+        args.n, args.size, args.repeats, args.views = min(args.n, 400), min(args.size, 48), min(args.repeats, 2), 1
+        args.stylize, args.stylize_iters = True, min(args.stylize_iters, 2)
+    if args.devices is None:
+        devs = ["cpu"] + (["cuda"] if torch.cuda.is_available() and not args.quick else [])
+    else:
+        devs = [d.strip() for d in args.devices.split(",") if d.strip()]
+    for d in devs:
+        if d == "cuda" and not torch.cuda.is_available():
+            print("tradeoffs: CUDA is not available here; skipping cuda", file=sys.stderr)
+    devs = [d for d in devs if d != "cuda" or torch.cuda.is_available()]
+    args.out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(args.seed)
+
+    if args.scene is not None:
+        scene, cams = run_scene(args.scene, args.views, args.size)
+        scene_desc = f"{args.scene.name} ({len(scene)} Gaussians, SH {scene.sh_degree})"
+        run_dir = args.scene
+    else:
+        w = args.size
+        h = max(8, round(args.size * 3 / 4))
+        scene = synthetic_scene(args.n, args.sh_degree, args.seed)
+        cams = synthetic_cameras(args.views, w, h)
+        scene_desc = f"synthetic ({args.n} Gaussians, SH {args.sh_degree})"
+        run_dir = None
+
+    json_path = args.out / "tradeoffs.json"
+    results: dict = {"devices": {}}
+    if args.append and json_path.is_file():
+        results = json.loads(json_path.read_text())
+    import warp
+
+    for d in devs:
+        device = torch.device(d)
+        t0 = time.perf_counter()
+        rows = raster_study(scene, cams, device, args.repeats)
+        meta = {"device_name": device_name(device), "date": datetime.datetime.now().isoformat(timespec="seconds"),
+                "torch": torch.__version__, "warp": warp.__version__, "scene": scene_desc, "views": len(cams),
+                "width": cams.width, "height": cams.height, "repeats": args.repeats, "quick": args.quick,
+                "backend": BACKEND}
+        entry = {"meta": meta, "raster": rows}
+        if args.stylize:
+            style = args.style or _procedural_style(args.out / "style_stripes.png")
+            if run_dir is None:
+                scam = synthetic_cameras(8 if not args.quick else 4, cams.width, cams.height)
+                base = synthetic_scene(args.n, 0, args.seed)
+                run_dir = _synthetic_run(args.out / "synthetic_run", base, scam)
+            entry["stylize"] = stylize_study(run_dir, style, args.out, device, args.stylize_iters,
+                                             keyviews=(2, 4) if args.quick else (2, 4, 8),
+                                             scales=(0.5, 1.0) if args.quick else (0.25, 0.5, 1.0),
+                                             max_side=max(cams.width, cams.height))
+        meta["seconds"] = round(time.perf_counter() - t0, 1)
+        results["devices"][d] = entry
+        _write_text(json_path, json.dumps(results, indent=1))
+
+    _write_text(args.out / "tradeoffs.md", markdown(results))
+    pareto_plot(results, args.out / "tradeoffs_pareto.png")
+    print(markdown(results))
+    print(f"wrote {args.out / 'tradeoffs.md'}, {json_path}, {args.out / 'tradeoffs_pareto.png'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

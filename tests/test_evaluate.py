@@ -1,0 +1,170 @@
+"""``ssgwarp evaluate`` on small run folders built here: a reconstruction and a stylize output."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from ssgwarp.cameras import Cameras
+from ssgwarp.scene import GaussianScene
+
+W, H, F_PX = 32, 24, 40.0
+
+
+def _scene() -> GaussianScene:
+    """Flat Gaussians tiling the plane z = 4 (smooth colours) and a small blob in front at z = 3."""
+    g = torch.linspace(-2.6, 2.6, 36)
+    gy, gx = torch.meshgrid(g * 0.75, g, indexing="ij")
+    plane = torch.stack([gx.reshape(-1), gy.reshape(-1), torch.full((gx.numel(),), 4.0)], -1)
+    rgb = torch.stack([0.5 + 0.15 * plane[:, 0], 0.5 - 0.1 * plane[:, 1], torch.full((len(plane),), 0.3)], -1)
+    s = GaussianScene.from_points(plane, rgb.clamp(0, 1), opacity=0.99, scale=torch.full((len(plane),), 0.11))
+    s = s.replace(log_scales=s.log_scales.clone().index_fill_(1, torch.tensor([2]), math.log(1e-4)))
+    gen = torch.Generator().manual_seed(0)
+    blob = torch.randn(40, 3, generator=gen) * 0.08 + torch.tensor([0.0, 0.0, 3.0])
+    b = GaussianScene.from_points(blob, torch.tensor([0.9, 0.2, 0.2]).expand(40, 3).clone(), opacity=0.9,
+                                  scale=torch.full((40,), 0.07))
+    return GaussianScene(*(torch.cat([x, y]) for x, y in zip(
+        (s.means, s.log_scales, s.quats, s.logit_opacities, s.sh_dc),
+        (b.means, b.log_scales, b.quats, b.logit_opacities, b.sh_dc))))
+
+
+def _cameras(n: int = 6) -> Cameras:
+    vms = torch.eye(4).repeat(n, 1, 1)
+    vms[:, 0, 3] = -(torch.arange(n, dtype=torch.float32) * 0.12 - 0.3)     # cameras along +x, looking at +z
+    K = torch.tensor([[F_PX, 0.0, W / 2], [0.0, F_PX, H / 2], [0.0, 0.0, 1.0]])
+    return Cameras(vms, K.expand(n, 3, 3).clone(), W, H, [f"v{i}.png" for i in range(n)])
+
+
+@pytest.fixture
+def runs(tmp_path, monkeypatch):
+    """(reconstruction dir, stylized dir, style image) built with the project's own writers."""
+    from ssgwarp.datasets import data_json, load_dataset
+    from ssgwarp.fileio import write_image, write_json
+    from ssgwarp.ply import write_ply
+
+    for var in ("SSGWARP_WEIGHTS", "SSGWARP_RAFT", "SSGWARP_LPIPS", "SSGWARP_VGG16"):
+        monkeypatch.delenv(var, raising=False)
+    scene, cams = _scene(), _cameras()
+    cap = tmp_path / "capture"
+    with torch.no_grad():
+        colors, alphas, _ = scene.render(cams)
+    imgs = colors + (1 - alphas)                   # white background
+    frames = []
+    gl = np.diag([1.0, -1.0, -1.0, 1.0])
+    for i, name in enumerate(cams.names):
+        write_image(cap / "images" / name, imgs[i].clamp(0, 1))
+        frames.append({"file_path": f"images/{name}", "transform_matrix": (cams.camtoworlds[i].double().numpy() @ gl).tolist()})
+    write_json(cap / "transforms.json", {"fl_x": F_PX, "fl_y": F_PX, "cx": W / 2, "cy": H / 2, "w": W, "h": H,
+                                         "frames": frames})
+    data = load_dataset(cap, split_every=3)
+    assert torch.allclose(data.cameras.viewmats, cams.viewmats, atol=1e-5)
+    recon = tmp_path / "runs" / "recon"
+    write_ply(recon / "scene.ply", scene)
+    data.cameras.save(recon / "cameras.json")
+    write_json(recon / "data.json", data_json(data))
+    write_json(recon / "metrics.json", {"iters": 0, "note": "kept"})
+
+    # a 'stylized' run: recoloured, with strong view-dependent (SH degree 1) colour = view-inconsistent
+    gen = torch.Generator().manual_seed(1)
+    styled = scene.with_sh_degree(1)
+    styled = styled.replace(sh_dc=styled.sh_dc * 0.5 + 0.3, sh_rest=torch.randn(styled.sh_rest.shape, generator=gen) * 1.5)
+    sty = tmp_path / "runs" / "styled"
+    write_ply(sty / "scene.ply", styled)
+    yy, xx = np.meshgrid(np.arange(16), np.arange(16), indexing="ij")
+    checker = np.where(((yy // 4 + xx // 4) % 2 == 0)[..., None], [0.9, 0.8, 0.1], [0.1, 0.2, 0.7]).astype(np.float32)
+    write_image(tmp_path / "style.png", checker)
+    write_json(sty / "metrics.json", {"source_scene": str(recon.resolve()), "style": str(tmp_path / "style.png"),
+                                      "mode": "global", "gram_style_loss": 1.25})
+    return recon, sty, tmp_path / "style.png"
+
+
+def test_evaluate_cli_writes_metrics_pairs_and_table(runs, tmp_path, capsys):
+    from ssgwarp.cli import main
+
+    recon, sty, _ = runs
+    table = tmp_path / "table.md"
+    rc = main(["evaluate", str(recon), str(sty), "--max-pairs", "2", "--gap", "3", "--device", "cpu",
+               "--table", str(table)])
+    assert rc == 0, capsys.readouterr().err
+    m_rec = json.loads((recon / "metrics.json").read_text())
+    m_sty = json.loads((sty / "metrics.json").read_text())
+    # other keys of metrics.json are kept
+    assert m_rec["note"] == "kept" and m_sty["gram_style_loss"] == 1.25 and m_sty["mode"] == "global"
+    er, es = m_rec["evaluation"], m_sty["evaluation"]
+    assert er["kind"] == "reconstruction" and es["kind"] == "stylized" and es["mode"] == "global"
+    assert er["views"] == 6 and er["resolution"] == [W, H]
+    c = er["consistency"]["reprojection"]
+    assert c["short"]["pairs"] == 2 and c["long"]["pairs"] == 2 and c["long"]["gap"] == 3
+    assert c["short"]["coverage"] > 0.5
+    # a diffuse scene is consistent; strong view-dependent colour is measurably not
+    assert c["short"]["rmse"] < 0.03 and c["long"]["rmse"] < 0.03
+    cs = es["consistency"]["reprojection"]
+    assert cs["short"]["rmse"] > 2 * c["short"]["rmse"] and cs["long"]["rmse"] > cs["short"]["rmse"]
+    # reconstruction quality against the captured images (8-bit PNGs of the same renders)
+    q = er["quality"]
+    assert q["split"] == "test" and q["views"] == 2 and q["psnr"] > 40 and q["ssim"] > 0.99
+    # style / content: extractor always reported; stylized run has both losses
+    assert es["style_content"]["extractor"].startswith("random-multiscale")
+    assert es["style_content"]["gram_style_loss"] > 0 and es["style_content"]["content_loss"] > 0
+    assert "gram_style_loss" not in er.get("style_content", {})       # no style image for the reconstruction
+    assert "no local weights for lpips" in er["skipped"]["lpips"]
+    assert "raft" in er["skipped"]["flow warp"]
+    # inspection images: a strip and a mask per saved pair
+    strips = sorted(p.name for p in (recon / "evaluation" / "pairs").glob("*.png"))
+    assert len(strips) == 8 and "short_reprojection_v0-v1.png" in strips and "short_reprojection_v0-v1_mask.png" in strips
+    text = table.read_text()
+    assert "| metric | recon | styled |" in text and "short-range RMSE (reprojection)" in text
+    assert "PSNR" in text and "Gram style loss" in text
+
+
+def test_evaluate_with_style_gives_lower_style_loss_to_matching_colours(runs, tmp_path):
+    """The Gram loss ranks runs: a run recoloured towards the style's colours scores lower."""
+    from ssgwarp.evaluate import EvalOptions, evaluate_run
+    from ssgwarp.features import load_extractor
+    from ssgwarp.ply import read_ply, write_ply
+
+    recon, sty, style = runs
+    ext = load_extractor(None, "cpu")
+    opts = EvalOptions(style=str(style), pairs=("short",), max_pairs=1, save_pairs=0)
+    base = evaluate_run(recon, opts, extractor=ext, write=False)
+    # recolour the scene as the style checker at the scale it is compared at (16 px style resized to the
+    # renders' 24 px height: 6 px cells, 0.6 world units on the plane z = 4)
+    s = read_ply(recon / "scene.ply")
+    yellow = torch.tensor([0.9, 0.8, 0.1])
+    blue = torch.tensor([0.1, 0.2, 0.7])
+    cell = torch.floor(s.means[:, 0] / 0.6) + torch.floor(s.means[:, 1] / 0.6)
+    target = torch.where((cell % 2 == 0)[:, None], yellow, blue)
+    from ssgwarp.scene import rgb_to_sh_dc
+
+    s2 = s.replace(sh_dc=rgb_to_sh_dc(target))
+    closer = tmp_path / "runs" / "closer"
+    closer.mkdir()
+    for f in ("cameras.json", "data.json"):
+        (closer / f).write_text((recon / f).read_text())
+    write_ply(closer / "scene.ply", s2)
+    res = evaluate_run(closer, opts, extractor=ext, write=False)
+    assert res["style_content"]["style_image"] == str(style)
+    assert res["style_content"]["gram_style_loss"] < base["style_content"]["gram_style_loss"]
+    assert not (closer / "metrics.json").exists()
+
+
+def test_evaluate_bad_inputs_are_one_line_errors(runs, tmp_path, capsys):
+    from ssgwarp.cli import main
+
+    recon, sty, _ = runs
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["evaluate", str(empty), "--device", "cpu"]) == 2
+    assert "no scene.ply" in capsys.readouterr().err
+    assert main(["evaluate", str(recon), "--pairs", "medium", "--device", "cpu"]) == 2
+    assert "--pairs" in capsys.readouterr().err
+    assert main(["evaluate", str(recon), "--warp", "flow", "--device", "cpu"]) == 2
+    err = capsys.readouterr().err
+    assert "raft" in err and err.count("\n") == 1
+    (sty / "metrics.json").write_text(json.dumps({"source_scene": str(tmp_path / "moved")}))
+    assert main(["evaluate", str(sty), "--device", "cpu"]) == 2
+    assert "source_scene" in capsys.readouterr().err
+    assert "evaluation" not in json.loads((recon / "metrics.json").read_text())   # nothing written on errors
