@@ -12,12 +12,11 @@ then through ``alpha = opacity exp(-sigma)`` (no gradient where the clamp
 ``alpha_max`` is active) to opacity, conic and the screen mean. The gating
 (skip / end) is the same ``@wp.func`` the forward used (:mod:`.pixel`).
 
-Two variants: :func:`backward_kernel` (one thread per pixel, atomic adds per
-Gaussian; fast, summation order varies on CUDA) and
-:func:`backward_tile_kernel` (one thread per tile walking its pixels in order,
-each intersection's gradient in its own slot; with :func:`gather_kernel`
-summing the slots per Gaussian in a fixed order it is bit-identical from run
-to run).
+Variants: :func:`backward_kernel` (one thread per pixel, atomic adds per
+Gaussian; the CPU path) and :func:`reduced_backward_kernel` (one block per
+tile, block-wide sums, one atomic per Gaussian and tile; the CUDA path, and
+with per-intersection slots plus :func:`gather_kernel` the deterministic
+option on both devices).
 """
 
 import functools
@@ -29,90 +28,63 @@ from .types import channel_vector, types_for
 
 
 @functools.lru_cache(maxsize=None)
-def pixel_backward_func(scalar, channels: int):
-    """``walk_pixel(...)``: the reverse traversal of one pixel; writes gradients to
-    slot ``slot_of(k)`` (the Gaussian's flat index, or the intersection's own slot)."""
+def layer_grad_func(scalar, channels: int):
+    """``layer_grad(...)``: one layer of the reverse traversal of one pixel.
+
+    Given the Gaussian's screen data and the pixel's state after it (``T_next``:
+    transmittance behind it, ``S``: colour accumulated behind it), returns
+    ``(used, T, S', v_xy, v_conic, v_opacity, v_color)``; ``used`` is 0 when the
+    forward pass skipped this Gaussian at this pixel (then nothing changes).
+    """
     t = types_for(scalar)
     vec2, vec3 = t.vec2, t.vec3
     vecD = channel_vector(scalar, channels)
     splat_alpha, _ = pixel_funcs(scalar)
 
     @wp.func
-    def walk_pixel(
-        start: int, last: int, T_final: scalar, v_col: vecD, v_alpha_out: scalar, bg: vecD,
-        px: scalar, py: scalar, alpha_min: scalar, alpha_max: scalar,
-        means2d: wp.array(dtype=vec2), conics: wp.array(dtype=vec3), opacities: wp.array(dtype=scalar),
-        colors: wp.array(dtype=vecD), flatten_ids: wp.array(dtype=wp.int32),
-        slots: wp.array(dtype=wp.int32), use_atomics: int,
-        v_means2d: wp.array(dtype=vec2), v_conics: wp.array(dtype=vec3),
-        v_opacities: wp.array(dtype=scalar), v_colors: wp.array(dtype=vecD),
-    ):
-        T_next = T_final
-        S = vecD()
-        bg_term = T_final * wp.dot(bg, v_col)
-        k = last
-        while k >= start:
-            g = flatten_ids[k]
-            xy = means2d[g]
-            cn = conics[g]
-            op = opacities[g]
-            r = splat_alpha(xy, cn, op, px, py, alpha_min, alpha_max)
-            alpha = r[0]
-            if alpha >= scalar(0.0):
-                one_m = scalar(1.0) - alpha
-                T = T_next / one_m
-                c = colors[g]
-                w = alpha * T
-                v_a = T * wp.dot(c, v_col) - (wp.dot(S, v_col) + bg_term) / one_m + v_alpha_out * T_final / one_m
-                S = S + c * w
-                vis = r[1]
-                dx = r[2]
-                dy = r[3]
-                v_xy = vec2()
-                v_cn = vec3()
-                v_op = scalar(0.0)
-                if op * vis <= alpha_max:
-                    v_sigma = -v_a * alpha
-                    v_op = v_a * vis
-                    v_cn = vec3(scalar(0.5) * dx * dx * v_sigma, dx * dy * v_sigma, scalar(0.5) * dy * dy * v_sigma)
-                    v_xy = vec2(v_sigma * (cn[0] * dx + cn[1] * dy), v_sigma * (cn[1] * dx + cn[2] * dy))
-                s = g
-                if use_atomics == 0:
-                    s = slots[k]
-                    v_colors[s] = v_colors[s] + v_col * w
-                    v_means2d[s] = v_means2d[s] + v_xy
-                    v_conics[s] = v_conics[s] + v_cn
-                    v_opacities[s] = v_opacities[s] + v_op
-                else:
-                    wp.atomic_add(v_colors, s, v_col * w)
-                    wp.atomic_add(v_means2d, s, v_xy)
-                    wp.atomic_add(v_conics, s, v_cn)
-                    wp.atomic_add(v_opacities, s, v_op)
-                T_next = T
-            k -= 1
-        return 0
+    def layer_grad(xy: vec2, cn: vec3, op: scalar, c: vecD, px: scalar, py: scalar, alpha_min: scalar,
+                   alpha_max: scalar, T_next: scalar, S: vecD, v_col: vecD, v_alpha_out: scalar,
+                   T_final: scalar, bg_term: scalar):
+        r = splat_alpha(xy, cn, op, px, py, alpha_min, alpha_max)
+        alpha = r[0]
+        used = int(0)
+        T = T_next
+        S_out = S
+        v_xy = vec2()
+        v_cn = vec3()
+        v_op = scalar(0.0)
+        v_c = vecD()
+        if alpha >= scalar(0.0):
+            used = 1
+            one_m = scalar(1.0) - alpha
+            T = T_next / one_m
+            w = alpha * T
+            v_a = T * wp.dot(c, v_col) - (wp.dot(S, v_col) + bg_term) / one_m + v_alpha_out * T_final / one_m
+            S_out = S + c * w
+            v_c = v_col * w
+            vis = r[1]
+            dx = r[2]
+            dy = r[3]
+            if op * vis <= alpha_max:
+                v_sigma = -v_a * alpha
+                v_op = v_a * vis
+                v_cn = vec3(scalar(0.5) * dx * dx * v_sigma, dx * dy * v_sigma, scalar(0.5) * dy * dy * v_sigma)
+                v_xy = vec2(v_sigma * (cn[0] * dx + cn[1] * dy), v_sigma * (cn[1] * dx + cn[2] * dy))
+        return used, T, S_out, v_xy, v_cn, v_op, v_c
 
-    return walk_pixel
+    return layer_grad
 
 
 @functools.lru_cache(maxsize=None)
-def backward_kernel(scalar, channels: int, per_tile: bool = False):
+def backward_kernel(scalar, channels: int):
+    """One thread per pixel walking its own layers back to front, atomic adds per Gaussian
+    (used on CPU, where threads run in turn: exact and deterministic)."""
     t = types_for(scalar)
     vec2, vec3 = t.vec2, t.vec3
     vecD = channel_vector(scalar, channels)
-    walk_pixel = pixel_backward_func(scalar, channels)
+    layer_grad = layer_grad_func(scalar, channels)
 
-    @wp.func
-    def pixel_xy(rng: int, local: int, tile_size: int, tile_width: int, tile_height: int):
-        n_tiles = tile_width * tile_height
-        cam = rng // n_tiles
-        tile = rng - cam * n_tiles
-        tyi = tile // tile_width
-        x = (tile - tyi * tile_width) * tile_size + local % tile_size
-        y = tyi * tile_size + local // tile_size
-        return wp.vec3i(cam, x, y)
-
-    # no FMA contraction: the gating in pixel.py must decide identically in both passes
+    # no FMA contraction: the gating in pixel.py must decide as in the forward pass
     @wp.kernel(module="unique", module_options={"fuse_fp": False})
     def blend_backward(
         means2d: wp.array(dtype=vec2),
@@ -122,7 +94,6 @@ def backward_kernel(scalar, channels: int, per_tile: bool = False):
         backgrounds: wp.array(dtype=vecD),
         flatten_ids: wp.array(dtype=wp.int32),
         offsets: wp.array(dtype=wp.int32),
-        slots: wp.array(dtype=wp.int32),
         width: int,
         height: int,
         tile_size: int,
@@ -141,24 +112,40 @@ def backward_kernel(scalar, channels: int, per_tile: bool = False):
     ):
         tid = wp.tid()
         tile_pixels = tile_size * tile_size
-        rng = tid
-        first = 0
-        count = tile_pixels
-        if wp.static(not per_tile):
-            rng = tid // tile_pixels
-            first = tid - rng * tile_pixels
-            count = 1
-        for local in range(first, first + count):
-            cxy = pixel_xy(rng, local, tile_size, tile_width, tile_height)
-            cam = cxy[0]
-            x = cxy[1]
-            y = cxy[2]
-            if x < width and y < height:
-                pix = (cam * height + y) * width + x
-                walk_pixel(offsets[rng], int(last_ids[pix]), out_T[pix], v_out_colors[pix], v_out_alphas[pix],
-                           backgrounds[cam], scalar(x) + scalar(0.5), scalar(y) + scalar(0.5), alpha_min, alpha_max,
-                           means2d, conics, opacities, colors, flatten_ids, slots,
-                           wp.static(0 if per_tile else 1), v_means2d, v_conics, v_opacities, v_colors)
+        rng = tid // tile_pixels
+        local = tid - rng * tile_pixels
+        n_tiles = tile_width * tile_height
+        cam = rng // n_tiles
+        tile = rng - cam * n_tiles
+        tyi = tile // tile_width
+        x = (tile - tyi * tile_width) * tile_size + local % tile_size
+        y = tyi * tile_size + local // tile_size
+        if x >= width or y >= height:
+            return
+        pix = (cam * height + y) * width + x
+        T_final = out_T[pix]
+        v_col = v_out_colors[pix]
+        v_alpha_out = v_out_alphas[pix]
+        bg_term = T_final * wp.dot(backgrounds[cam], v_col)
+        px = scalar(x) + scalar(0.5)
+        py = scalar(y) + scalar(0.5)
+        T_next = T_final
+        S = vecD()
+        start = offsets[rng]
+        k = int(last_ids[pix])
+        while k >= start:
+            g = flatten_ids[k]
+            used, T, S2, v_xy, v_cn, v_op, v_c = layer_grad(
+                means2d[g], conics[g], opacities[g], colors[g], px, py, alpha_min, alpha_max,
+                T_next, S, v_col, v_alpha_out, T_final, bg_term)
+            if used != 0:
+                wp.atomic_add(v_colors, g, v_c)
+                wp.atomic_add(v_means2d, g, v_xy)
+                wp.atomic_add(v_conics, g, v_cn)
+                wp.atomic_add(v_opacities, g, v_op)
+                T_next = T
+                S = S2
+            k -= 1
 
     return blend_backward
 
@@ -166,32 +153,115 @@ def backward_kernel(scalar, channels: int, per_tile: bool = False):
 @functools.lru_cache(maxsize=None)
 def gather_kernel(scalar, channels: int):
     """Sum each Gaussian's per-intersection gradient slots in a fixed order (deterministic)."""
+    vecG = channel_vector(scalar, channels + 6)
+
+    @wp.kernel(module="unique")
+    def gather(ends: wp.array(dtype=wp.int64), counts: wp.array(dtype=wp.int64),
+               slots: wp.array(dtype=vecG), out: wp.array(dtype=vecG)):
+        i = wp.tid()
+        end = ends[i]
+        acc = vecG()
+        for k in range(int(end - counts[i]), int(end)):
+            acc = acc + slots[k]
+        out[i] = acc
+
+    return gather
+
+
+@functools.lru_cache(maxsize=None)
+def reduced_backward_kernel(scalar, channels: int, to_slots: bool = False):
+    """Backward with one block per tile: the block walks the tile's Gaussians in lockstep (from the
+    largest last index of its pixels), sums the pixels' gradients for each Gaussian with a
+    block-wide tile reduction and adds the sum with one atomic per Gaussian and tile (instead of
+    one per pixel). Gradients land packed as ``[xy(2), conic(3), opacity(1), colour(D)]``.
+    Launch with ``block_dim = tile_size^2`` (on CPU the block width is 1 and this is the per-pixel walk).
+
+    ``to_slots=True`` (the deterministic option) adds each block sum to the intersection's own slot
+    ``slots[k]`` instead of the Gaussian's: on CUDA exactly one block writes a slot and the block
+    reduction has a fixed order, on CPU blocks run in turn, so with :func:`gather_kernel` summing
+    the slots in a fixed order the gradients are bit-identical from run to run.
+    """
     t = types_for(scalar)
     vec2, vec3 = t.vec2, t.vec3
     vecD = channel_vector(scalar, channels)
+    vecG = channel_vector(scalar, channels + 6)
+    layer_grad = layer_grad_func(scalar, channels)
 
-    @wp.kernel(module="unique")
-    def gather(
-        ends: wp.array(dtype=wp.int64), counts: wp.array(dtype=wp.int64),
-        s_means2d: wp.array(dtype=vec2), s_conics: wp.array(dtype=vec3),
-        s_opacities: wp.array(dtype=scalar), s_colors: wp.array(dtype=vecD),
-        v_means2d: wp.array(dtype=vec2), v_conics: wp.array(dtype=vec3),
-        v_opacities: wp.array(dtype=scalar), v_colors: wp.array(dtype=vecD),
+    # no FMA contraction: the gating in pixel.py must decide as in the forward pass
+    @wp.kernel(module="unique", module_options={"fuse_fp": False})
+    def blend_backward_reduced(
+        means2d: wp.array(dtype=vec2),
+        conics: wp.array(dtype=vec3),
+        opacities: wp.array(dtype=scalar),
+        colors: wp.array(dtype=vecD),
+        backgrounds: wp.array(dtype=vecD),
+        flatten_ids: wp.array(dtype=wp.int32),
+        offsets: wp.array(dtype=wp.int32),
+        width: int,
+        height: int,
+        tile_size: int,
+        tile_width: int,
+        tile_height: int,
+        alpha_min: scalar,
+        alpha_max: scalar,
+        out_T: wp.array(dtype=scalar),
+        last_ids: wp.array(dtype=wp.int32),
+        v_out_colors: wp.array(dtype=vecD),
+        v_out_alphas: wp.array(dtype=scalar),
+        slots: wp.array(dtype=wp.int32),
+        v_packed: wp.array(dtype=vecG),
     ):
-        i = wp.tid()
-        end = ends[i]
-        a = vec2()
-        b = vec3()
-        o = scalar(0.0)
-        c = vecD()
-        for k in range(int(end - counts[i]), int(end)):
-            a = a + s_means2d[k]
-            b = b + s_conics[k]
-            o = o + s_opacities[k]
-            c = c + s_colors[k]
-        v_means2d[i] = a
-        v_conics[i] = b
-        v_opacities[i] = o
-        v_colors[i] = c
+        tid = wp.tid()
+        tile_pixels = tile_size * tile_size
+        rng = tid // tile_pixels
+        local = tid - rng * tile_pixels
+        n_tiles = tile_width * tile_height
+        cam = rng // n_tiles
+        tile = rng - cam * n_tiles
+        tyi = tile // tile_width
+        x = (tile - tyi * tile_width) * tile_size + local % tile_size
+        y = tyi * tile_size + local // tile_size
+        last = int(-1)
+        T_final = scalar(1.0)
+        v_col = vecD()
+        v_alpha_out = scalar(0.0)
+        if x < width and y < height:
+            pix = (cam * height + y) * width + x
+            last = int(last_ids[pix])
+            T_final = out_T[pix]
+            v_col = v_out_colors[pix]
+            v_alpha_out = v_out_alphas[pix]
+        bg_term = T_final * wp.dot(backgrounds[cam], v_col)
+        px = scalar(x) + scalar(0.5)
+        py = scalar(y) + scalar(0.5)
+        block_last = wp.tile_extract(wp.tile_max(wp.tile(last)), 0)
+        start = offsets[rng]
+        T_next = T_final
+        S = vecD()
+        k = block_last
+        while k >= start:
+            g = flatten_ids[k]
+            pk = vecG()
+            if k <= last:
+                used, T, S2, v_xy, v_cn, v_op, v_c = layer_grad(
+                    means2d[g], conics[g], opacities[g], colors[g], px, py, alpha_min, alpha_max,
+                    T_next, S, v_col, v_alpha_out, T_final, bg_term)
+                if used != 0:
+                    T_next = T
+                    S = S2
+                    pk[0] = v_xy[0]
+                    pk[1] = v_xy[1]
+                    pk[2] = v_cn[0]
+                    pk[3] = v_cn[1]
+                    pk[4] = v_cn[2]
+                    pk[5] = v_op
+                    for d in range(wp.static(channels)):
+                        pk[6 + d] = v_c[d]
+            total = wp.tile_sum(wp.tile(pk, preserve_type=True))
+            dst = int(g)
+            if wp.static(to_slots):
+                dst = int(slots[k])
+            wp.tile_atomic_add(v_packed, total, offset=(dst,))
+            k -= 1
 
-    return gather
+    return blend_backward_reduced

@@ -18,6 +18,9 @@ from .kernels.types import channel_vector, types_for
 Tensor = torch.Tensor
 _INIT = False
 MAX_CHANNELS = 64
+# The block-reduced blending backward runs on CUDA; on CPU (block width 1) it equals the per-pixel
+# walk and only tests switch it on there, to hold its maths to the reference.
+REDUCED_ON_CPU = False
 
 
 def _init() -> None:
@@ -44,8 +47,12 @@ def _device(t: Tensor) -> str:
     raise ValueError(f"ssgwarp kernels run on CPU or CUDA tensors, got {t.device}")
 
 
-def _wp(t: Tensor, dtype=None, ndim: int = 1) -> wp.array:
-    """Zero-copy ``ndim``-D Warp view of a tensor; ``dtype`` groups the trailing axes into vectors/matrices."""
+def _wp(t: Tensor, dtype=None, ndim: int = 1, ctype: bool = True):
+    """Zero-copy ``ndim``-D Warp view of a tensor; ``dtype`` groups the trailing axes into vectors/matrices.
+
+    ``ctype=True`` returns the light launch descriptor (faster to build and to launch with);
+    ``ctype=False`` a full ``wp.array`` (needed by ``wp.utils``).
+    """
     t = t.detach()
     if not t.is_contiguous():
         t = t.contiguous()
@@ -53,7 +60,7 @@ def _wp(t: Tensor, dtype=None, ndim: int = 1) -> wp.array:
     lead = t.shape[: t.ndim - len(inner)]
     keep = tuple(lead[len(lead) - (ndim - 1):]) if ndim > 1 else ()
     t = t.reshape(-1, *keep, *inner)
-    return wp.from_torch(t, dtype=dtype)
+    return wp.from_torch(t, dtype=dtype, return_ctype=ctype)
 
 
 class _Launcher:
@@ -64,12 +71,13 @@ class _Launcher:
         self.device = _device(like)
         self.stream = wp.stream_from_torch(like.device) if like.device.type == "cuda" else None
 
-    def launch(self, kernel, dim, inputs, outputs=(), adj_inputs=(), adj_outputs=(), adjoint=False):
+    def launch(self, kernel, dim, inputs, outputs=(), adj_inputs=(), adj_outputs=(), adjoint=False,
+               block_dim=None):
         if (isinstance(dim, int) and dim == 0) or (not isinstance(dim, int) and math.prod(dim) == 0):
             return
         wp.launch(kernel, dim=dim, inputs=list(inputs), outputs=list(outputs), adj_inputs=list(adj_inputs),
                   adj_outputs=list(adj_outputs), adjoint=adjoint, device=self.device, stream=self.stream,
-                  record_tape=False)
+                  record_tape=False, block_dim=block_dim)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -78,8 +86,7 @@ class _Launcher:
 class _Project(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, viewmats, Ks, params):
-        (width, height, near, far, eps2d, radius_clip, alpha_min, sigma_max, opacity_extent, antialiased,
-         deterministic) = params
+        width, height, near, far, eps2d, radius_clip, alpha_min, sigma_max, opacity_extent, antialiased = params
         C, N = viewmats.shape[0], means.shape[0]
         dt, dev = means.dtype, means.device
         s = _scalar(dt)
@@ -97,7 +104,6 @@ class _Project(torch.autograd.Function):
                  [_wp(means2d, T.vec2), _wp(depths), _wp(conics, T.vec3), _wp(opac), _wp(radii, wp.vec2i)])
         ctx.save_for_backward(means, quats, scales, opacities, viewmats, Ks, means2d, depths, conics, opac, radii)
         ctx.scal = scal
-        ctx.deterministic = deterministic
         ctx.mark_non_differentiable(radii)
         return radii, means2d, depths, conics, opac
 
@@ -112,42 +118,41 @@ class _Project(torch.autograd.Function):
         g = [x if x is not None else zeros(y) for x, y in
              ((g_means2d, means2d), (g_depths, depths), (g_conics, conics), (g_opac, opac))]
         g = [x.contiguous() for x in g]
-        # Expanded (one slot per camera-Gaussian pair, no atomics) when several cameras share a
-        # Gaussian or the view matrices need gradients under the deterministic option.
+        # Each thread writes its own adjoint slot: per Gaussian when C == 1, else per
+        # (camera, Gaussian) pair ("expanded", summed over cameras by torch). No two threads share
+        # an adjoint address, so the result is deterministic and free of atomic contention. The
+        # view matrices' adjoint is kept per pair as well, and only when asked for.
         need_vm = ctx.needs_input_grad[4]
-        expanded = C > 1 or (ctx.deterministic and need_vm)
+        expanded = C > 1 or need_vm
         if expanded:
             ex = lambda t: t[None].expand(C, *t.shape).reshape(C * N, *t.shape[1:]).contiguous()  # noqa: E731
             ins = [ex(means), ex(quats), ex(scales), ex(opacities),
                    viewmats[:, None].expand(C, N, 4, 4).reshape(C * N, 4, 4).contiguous()]
         else:
             ins = [means, quats, scales, opacities, viewmats]
-        adj = [torch.zeros_like(t) for t in ins]
+        adj = [torch.zeros_like(t) for t in ins[:4]] + [torch.zeros_like(ins[4]) if need_vm else None]
         kern = projection.projection_kernel(s, expanded)
         dtypes = [T.vec3, T.vec4, T.vec3, None, T.mat44]
         ins_wp = [_wp(t, d) for t, d in zip(ins, dtypes)]
-        adj_wp = [_wp(t, d) for t, d in zip(adj, dtypes)]
+        adj_wp = [None if t is None else _wp(t, d) for t, d in zip(adj, dtypes)]
         outs = [_wp(means2d, T.vec2), _wp(depths), _wp(conics, T.vec3), _wp(opac), _wp(radii, wp.vec2i)]
         adj_outs = [_wp(g[0], T.vec2), _wp(g[1]), _wp(g[2], T.vec3), _wp(g[3]), None]
-        Ks_wp = _wp(Ks, T.mat33)
-        L.launch(kern, (C, N), [*ins_wp, Ks_wp, N, *ctx.scal], outs,
-                 [*adj_wp, _wp(torch.zeros_like(Ks), T.mat33), 0, *([0] * 2 + [0.0] * 6 + [0] * 2)],
-                 adj_outs, adjoint=True)
+        L.launch(kern, (C, N), [*ins_wp, _wp(Ks, T.mat33), N, *ctx.scal], outs,
+                 [*adj_wp, None, 0, *([0] * 2 + [0.0] * 6 + [0] * 2)], adj_outs, adjoint=True)
         if expanded:
             v_means, v_quats, v_scales, v_opac = (a.reshape(C, N, *a.shape[1:]).sum(0) for a in adj[:4])
-            v_view = adj[4].reshape(C, N, 4, 4).sum(1)
+            v_view = adj[4].reshape(C, N, 4, 4).sum(1) if need_vm else None
         else:
             v_means, v_quats, v_scales, v_opac, v_view = adj
-        return v_means, v_quats, v_scales, v_opac, (v_view if need_vm else None), None, None
+        return v_means, v_quats, v_scales, v_opac, v_view, None, None
 
 
 def project_warp(means, quats, scales, opacities, viewmats, Ks, width, height, *, near_plane=0.01,
-                 far_plane=1e10, radius_clip=0.0, eps2d=0.3, antialiased=False, settings=None,
-                 deterministic=False):
+                 far_plane=1e10, radius_clip=0.0, eps2d=0.3, antialiased=False, settings=None):
     """Warp version of :func:`ssgwarp.reference.project_reference` (same outputs)."""
     params = (int(width), int(height), float(near_plane), float(far_plane), float(eps2d), float(radius_clip),
               float(settings.alpha_min), float(settings.sigma_max), int(settings.extent == "opacity"),
-              int(bool(antialiased)), bool(deterministic))
+              int(bool(antialiased)))
     return _Project.apply(means, quats, scales, opacities, viewmats, Ks, params)
 
 
@@ -237,9 +242,9 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
         with wp.ScopedDevice(L.device):
             if L.stream is not None:
                 with wp.ScopedStream(L.stream):
-                    wp.utils.radix_sort_pairs(_wp(keys), _wp(values), n_isects, 0, end_bit)
+                    wp.utils.radix_sort_pairs(_wp(keys, ctype=False), _wp(values, ctype=False), n_isects, 0, end_bit)
             else:
-                wp.utils.radix_sort_pairs(_wp(keys), _wp(values), n_isects, 0, end_bit)
+                wp.utils.radix_sort_pairs(_wp(keys, ctype=False), _wp(values, ctype=False), n_isects, 0, end_bit)
         L.launch(binning.offsets_kernel, n_isects, [_wp(keys), n_isects, n_ranges], [_wp(offsets)])
     keys, perm = keys[:n_isects], values[:n_isects]
     flatten_ids = gauss[:n_isects][perm.long()] if n_isects else gauss[:0]
@@ -298,27 +303,38 @@ class _Blend(torch.autograd.Function):
         g_colors = torch.zeros(C, height, width, D, dtype=dt, device=dev) if g_colors is None else g_colors.contiguous()
         g_alphas = torch.zeros(C, height, width, dtype=dt, device=dev) if g_alphas is None else g_alphas[..., 0].contiguous()
         M = tiles["n_isects"]
-        per_tile = bool(ctx.det)
-        n_slots = M if per_tile else C * N
-        v = [torch.zeros(n_slots, 2, dtype=dt, device=dev), torch.zeros(n_slots, 3, dtype=dt, device=dev),
-             torch.zeros(n_slots, dtype=dt, device=dev), torch.zeros(n_slots, D, dtype=dt, device=dev)]
-        v_wp = [_wp(v[0], T.vec2), _wp(v[1], T.vec3), _wp(v[2]), _wp(v[3], vecD)]
         L = _Launcher(colors)
-        dim = C * th * tw if per_tile else C * th * tw * tile_size * tile_size
-        L.launch(blend_backward.backward_kernel(s, D, per_tile), dim,
-                 [_wp(means2d.reshape(C * N, 2), T.vec2), _wp(conics.reshape(C * N, 3), T.vec3),
+        common = [_wp(means2d.reshape(C * N, 2), T.vec2), _wp(conics.reshape(C * N, 3), T.vec3),
                   _wp(opacities.reshape(C * N)), _wp(colors.reshape(C * N, D), vecD), _wp(bg, vecD),
-                  _wp(tiles["flatten_ids"]), _wp(tiles["offsets"]), _wp(tiles["perm"]),
-                  width, height, tile_size, tw, th, st.alpha_min, st.alpha_max,
-                  _wp(out_T.reshape(-1)), _wp(last.reshape(-1)), _wp(g_colors.reshape(-1, D), vecD),
-                  _wp(g_alphas.reshape(-1))], v_wp)
-        if per_tile:
-            out = [torch.zeros(C * N, 2, dtype=dt, device=dev), torch.zeros(C * N, 3, dtype=dt, device=dev),
-                   torch.zeros(C * N, dtype=dt, device=dev), torch.zeros(C * N, D, dtype=dt, device=dev)]
-            counts = tiles["tiles_per_gauss"].reshape(-1).to(torch.int64)
-            L.launch(blend_backward.gather_kernel(s, D), C * N, [_wp(tiles["isect_ends"]), _wp(counts), *v_wp],
-                     [_wp(out[0], T.vec2), _wp(out[1], T.vec3), _wp(out[2]), _wp(out[3], vecD)])
-            v = out
+                  _wp(tiles["flatten_ids"]), _wp(tiles["offsets"])]
+        geom = [width, height, tile_size, tw, th, st.alpha_min, st.alpha_max]
+        state = [_wp(out_T.reshape(-1)), _wp(last.reshape(-1)), _wp(g_colors.reshape(-1, D), vecD),
+                 _wp(g_alphas.reshape(-1))]
+        n_pix = C * th * tw * tile_size * tile_size
+        vecG = channel_vector(s, D + 6)
+        if ctx.det or (dev.type == "cuda" or REDUCED_ON_CPU) and tile_size * tile_size <= 1024:
+            # one block per tile, the pixels' gradients summed over the block before one atomic add
+            # per Gaussian and tile; deterministic: into each intersection's own slot, then summed
+            # per Gaussian in a fixed order
+            if ctx.det and tile_size * tile_size > 1024:
+                raise ValueError("rasterization: deterministic=True needs tile_size <= 32")
+            rows = M if ctx.det else C * N
+            packed = torch.zeros(max(rows, 1), 6 + D, dtype=dt, device=dev)
+            L.launch(blend_backward.reduced_backward_kernel(s, D, bool(ctx.det)), n_pix,
+                     [*common, *geom, *state, _wp(tiles["perm"])], [_wp(packed, vecG)],
+                     block_dim=tile_size * tile_size)
+            if ctx.det:
+                slots, packed = packed, torch.zeros(C * N, 6 + D, dtype=dt, device=dev)
+                counts = tiles["tiles_per_gauss"].reshape(-1).to(torch.int64)
+                L.launch(blend_backward.gather_kernel(s, D), C * N,
+                         [_wp(tiles["isect_ends"]), _wp(counts), _wp(slots, vecG)], [_wp(packed, vecG)])
+            v = [packed[:, 0:2], packed[:, 2:5], packed[:, 5], packed[:, 6:]]
+        else:
+            # one thread per pixel, atomic adds (on CPU threads run in turn: exact and deterministic)
+            v = [torch.zeros(C * N, 2, dtype=dt, device=dev), torch.zeros(C * N, 3, dtype=dt, device=dev),
+                 torch.zeros(C * N, dtype=dt, device=dev), torch.zeros(C * N, D, dtype=dt, device=dev)]
+            v_wp = [_wp(v[0], T.vec2), _wp(v[1], T.vec3), _wp(v[2]), _wp(v[3], vecD)]
+            L.launch(blend_backward.backward_kernel(s, D), n_pix, [*common, *geom, *state], v_wp)
         v_bg = (g_colors * out_T[..., None]).sum(dim=(1, 2)) if ctx.has_bg else None
         return (v[0].reshape(C, N, 2), v[1].reshape(C, N, 3), v[3].reshape(C, N, D), v[2].reshape(C, N),
                 v_bg, None, None, None, None, None, None)

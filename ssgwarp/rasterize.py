@@ -216,8 +216,6 @@ def rasterization(
         from .reference import project_reference as project
     else:
         from .ops import project_warp as project
-
-        proj_kw["deterministic"] = deterministic
     radii, means2d, depths, conics, opacs = project(means, quats, scales, opacities, viewmats, Ks,
                                                     width, height, **proj_kw)
 
