@@ -10,8 +10,10 @@ so they walk the same depth-sorted Gaussian range together. Per pixel::
         out += colors[g] * alpha * T;  T *= 1 - alpha
     out += T * background
 
-Outputs what the backward needs: the final transmittance and the position of
-the last blended Gaussian in the sorted list.
+The pixel's alpha is the sum of the blending weights (equal to ``1 - T`` in
+exact arithmetic, but exact to the last bit for faint pixels where ``1 - T``
+cancels). Outputs what the backward needs: the final transmittance and the
+position of the last blended Gaussian in the sorted list.
 """
 
 import functools
@@ -49,6 +51,7 @@ def forward_kernel(scalar, channels: int):
         t_min: scalar,
         out_colors: wp.array(dtype=vecD),
         out_T: wp.array(dtype=scalar),
+        out_alpha: wp.array(dtype=scalar),
         last_ids: wp.array(dtype=wp.int32),
     ):
         tid = wp.tid()
@@ -67,6 +70,7 @@ def forward_kernel(scalar, channels: int):
         py = scalar(y) + scalar(0.5)
         T = scalar(1.0)
         acc = vecD()
+        wsum = scalar(0.0)
         last = wp.int32(-1)
         for k in range(offsets[rng], offsets[rng + 1]):
             g = flatten_ids[k]
@@ -76,12 +80,15 @@ def forward_kernel(scalar, channels: int):
                 continue
             if ends_pixel(T, alpha, t_min):
                 break
-            acc = acc + colors[g] * (alpha * T)
+            w = alpha * T
+            acc = acc + colors[g] * w
+            wsum = wsum + w
             T = T * (scalar(1.0) - alpha)
             last = wp.int32(k)
         pix = (cam * height + y) * width + x
         out_colors[pix] = acc + backgrounds[cam] * T
         out_T[pix] = T
+        out_alpha[pix] = wsum
         last_ids[pix] = last
 
     return blend_forward

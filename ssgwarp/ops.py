@@ -275,6 +275,7 @@ class _Blend(torch.autograd.Function):
         th, tw = tiles["isect_offsets"].shape[1:]
         out = torch.zeros(C, height, width, D, dtype=dt, device=dev)
         out_T = torch.ones(C, height, width, dtype=dt, device=dev)
+        out_alpha = torch.zeros(C, height, width, 1, dtype=dt, device=dev)
         last = torch.full((C, height, width), -1, dtype=torch.int32, device=dev)
         bg = backgrounds if backgrounds is not None else torch.zeros(C, D, dtype=dt, device=dev)
         colors = colors.contiguous()
@@ -284,11 +285,12 @@ class _Blend(torch.autograd.Function):
                   _wp(opacities.reshape(C * N)), _wp(colors.reshape(C * N, D), vecD), _wp(bg, vecD),
                   _wp(tiles["flatten_ids"]), _wp(tiles["offsets"]), width, height, tile_size, tw, th,
                   settings.alpha_min, settings.alpha_max, settings.t_min],
-                 [_wp(out.reshape(-1, D), vecD), _wp(out_T.reshape(-1)), _wp(last.reshape(-1))])
+                 [_wp(out.reshape(-1, D), vecD), _wp(out_T.reshape(-1)), _wp(out_alpha.reshape(-1)),
+                  _wp(last.reshape(-1))])
         ctx.save_for_backward(means2d, conics, colors, opacities, bg, out_T, last)
         ctx.tiles, ctx.geom, ctx.settings, ctx.det = tiles, (width, height, tile_size, tw, th), settings, deterministic
         ctx.has_bg = backgrounds is not None
-        return out, (1.0 - out_T)[..., None]
+        return out, out_alpha
 
     @staticmethod
     def backward(ctx, g_colors, g_alphas):

@@ -19,7 +19,8 @@ Rules (gsplat 1.5.3 classic mode, with :class:`~ssgwarp.RasterSettings` knobs):
 - front to back by depth (ties: lower index first); ``sigma = 0.5 (a dx^2 + c dy^2) + b dx dy``
   with pixel centres at +0.5; ``alpha = min(alpha_max, opacity exp(-sigma))``;
   skipped if ``sigma < 0`` or ``alpha < alpha_min``; the Gaussian that would
-  bring T to ``<= t_min`` ends the pixel and is not blended.
+  bring T to ``<= t_min`` ends the pixel and is not blended; the pixel's alpha
+  is the sum of the blending weights (``1 - T`` in exact arithmetic).
 """
 from __future__ import annotations
 
@@ -176,7 +177,7 @@ def blend_reference(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: 
             if backgrounds is not None:
                 pix = pix + T_final * backgrounds[ci][None, :]
             img_rows.append(pix.reshape(len(ys), width, D))
-            alpha_rows.append((1.0 - T_final).reshape(len(ys), width, 1))
+            alpha_rows.append(w.sum(dim=1, keepdim=True).reshape(len(ys), width, 1))
         out_img.append(torch.cat(img_rows, 0))
         out_alpha.append(torch.cat(alpha_rows, 0))
     return torch.stack(out_img), torch.stack(out_alpha)

@@ -1,0 +1,88 @@
+"""Numerical extremes: the error of the Warp rasterizer against the float64 torch reference.
+
+For each extreme case the tests cover (tests/test_rasterizer_extremes.py), render with
+default and exact settings and report the max image error and the max gradient error, each
+relative to the reference's largest magnitude, of (a) Warp float64 and (b) Warp float32, both against the float64
+reference. Prints a markdown table (docs/numerics.md holds a run of it).
+
+    python benchmarks/numerics.py
+"""
+from __future__ import annotations
+
+import datetime
+import sys
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+from ssgwarp import RasterSettings, rasterization  # noqa: E402
+from test_rasterizer_extremes import _extreme_case, _front_camera  # noqa: E402
+
+CASES = {
+    "behind_and_near": "10 behind the camera, 5 exactly at the near plane, 5 in the camera plane",
+    "far": "20 at depth 1e6",
+    "tiny_huge_scales": "scales 1e-8 and 1e4",
+    "anisotropy": "anisotropy 1e6 (scales 1e-3 x 1e3)",
+    "opacity_extremes": "opacity 1e-6 and 1 - 1e-7",
+    "offscreen": "everything off-screen",
+    "stack5000": "5,000 Gaussians stacked on one pixel",
+}
+
+
+def stacked():
+    n = 5000
+    g = torch.Generator().manual_seed(5)
+    means = torch.zeros(n, 3, dtype=torch.float64)
+    means[:, 2] = torch.linspace(2.0, 6.0, n, dtype=torch.float64)
+    return (means, torch.randn(n, 4, generator=g, dtype=torch.float64), torch.full((n, 3), 0.002, dtype=torch.float64),
+            torch.full((n,), 0.01, dtype=torch.float64), torch.rand(n, 3, generator=g, dtype=torch.float64))
+
+
+def render(params, vm, K, w, h, backend, dtype, settings):
+    leaves = [p.to(dtype).clone().requires_grad_(True) for p in params]
+    img, alpha, _ = rasterization(*leaves, vm.to(dtype), K.to(dtype), w, h, backend=backend, settings=settings,
+                                  render_mode="RGB+ED")
+    g = torch.Generator().manual_seed(1)
+    wi = torch.randn(img.shape, generator=g, dtype=torch.float64).to(dtype)
+    if img.requires_grad:  # everything culled: no path to the inputs
+        (img * wi).sum().backward()
+    grads = [torch.zeros_like(p) if p.grad is None else p.grad for p in leaves]
+    return img.detach().double(), [gr.double() for gr in grads]
+
+
+def rel(a, b):
+    scale = max(float(a.abs().max()) if a.numel() else 0.0, 1e-12)
+    return float((a - b).abs().max()) / scale if a.numel() else 0.0
+
+
+def main():
+    rows = []
+    for case, text in CASES.items():
+        if case == "stack5000":
+            params, (vm, K), (w, h) = stacked(), _front_camera(8, 8, f=8.0), (8, 8)
+        else:
+            params, (vm, K), (w, h) = _extreme_case(case), _front_camera(40, 30), (40, 30)
+        for name, st in (("default", RasterSettings()), ("exact", RasterSettings.exact())):
+            ref_img, ref_g = render(params, vm, K, w, h, "torch", torch.float64, st)
+            row = [text, name]
+            for dt in (torch.float64, torch.float32):
+                img, gr = render(params, vm, K, w, h, "warp", dt, st)
+                finite = bool(torch.isfinite(img).all()) and all(bool(torch.isfinite(x).all()) for x in gr)
+                ierr = rel(ref_img, img)
+                gerr = max(rel(a, b) for a, b in zip(ref_g, gr))
+                row += [f"{ierr:.1e}", f"{gerr:.1e}", "yes" if finite else "NO"]
+            rows.append(row)
+            print(row, flush=True)
+    head = ["case", "settings", "f64 image rel err", "f64 grad rel err", "f64 finite",
+            "f32 image rel err", "f32 grad rel err", "f32 finite"]
+    print(f"\n{datetime.date.today().isoformat()}, {torch.__version__}, CPU\n")
+    print("| " + " | ".join(head) + " |")
+    print("|" + "---|" * len(head))
+    for r in rows:
+        print("| " + " | ".join(r) + " |")
+
+
+if __name__ == "__main__":
+    main()
