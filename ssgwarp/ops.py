@@ -315,16 +315,18 @@ class _Blend(torch.autograd.Function):
         n_pix = C * th * tw * tile_size * tile_size
         vecG = channel_vector(s, D + 6)
         if ctx.det or (dev.type == "cuda" or REDUCED_ON_CPU) and tile_size * tile_size <= 1024:
-            # one block per tile, the pixels' gradients summed over the block before one atomic add
-            # per Gaussian and tile; deterministic: into each intersection's own slot, then summed
-            # per Gaussian in a fixed order
+            # blocks of pixels of one tile walk its Gaussians in lockstep and sum their pixels'
+            # gradients before one atomic add per Gaussian and block (32-pixel blocks: warp-level
+            # sums). Deterministic: one block per tile adds into the intersection's own slot (one
+            # add per slot on CUDA; blocks in turn on CPU), then the slots are summed per Gaussian
+            # in a fixed order.
             if ctx.det and tile_size * tile_size > 1024:
                 raise ValueError("rasterization: deterministic=True needs tile_size <= 32")
             rows = M if ctx.det else C * N
             packed = torch.zeros(max(rows, 1), 6 + D, dtype=dt, device=dev)
             L.launch(blend_backward.reduced_backward_kernel(s, D, bool(ctx.det)), n_pix,
                      [*common, *geom, *state, _wp(tiles["perm"])], [_wp(packed, vecG)],
-                     block_dim=tile_size * tile_size)
+                     block_dim=tile_size * tile_size if ctx.det else reduce_width(tile_size))
             if ctx.det:
                 slots, packed = packed, torch.zeros(C * N, 6 + D, dtype=dt, device=dev)
                 counts = tiles["tiles_per_gauss"].reshape(-1).to(torch.int64)
@@ -340,6 +342,13 @@ class _Blend(torch.autograd.Function):
         v_bg = (g_colors * out_T[..., None]).sum(dim=(1, 2)) if ctx.has_bg else None
         return (v[0].reshape(C, N, 2), v[1].reshape(C, N, 3), v[3].reshape(C, N, D), v[2].reshape(C, N),
                 v_bg, None, None, None, None, None, None)
+
+
+def reduce_width(tile_size: int) -> int:
+    """Pixels summed together before one atomic add: a 32-lane warp (its reduction needs no
+    block barrier) when the tile splits into warps, else the whole tile."""
+    pixels = tile_size * tile_size
+    return 32 if pixels % 32 == 0 else pixels
 
 
 def blend_warp(means2d, conics, colors, opacities, backgrounds, tiles, width, height, tile_size, settings,

@@ -1,0 +1,778 @@
+"""Stage 1: stylize the key views with SD1.5 + depth ControlNet + IP-Adapter, DDIM inversion and CVSA.
+
+For K key views ``rgb [K,H,W,3]`` with depth ``[K,H,W]`` (H, W multiples of 8):
+
+1. encode each view with the VAE (posterior mean x ``scaling_factor``);
+2. DDIM-invert the latents under the depth ControlNet (disparity ``1/depth``
+   normalised to [0, 1] per view, 0 where nothing was rendered), with guidance 0:
+   only the unconditional branch (negative prompt, zero image embedding) and
+   no CVSA, one view independent of the others;
+3. DDIM-denoise all K views together with classifier-free guidance: the style
+   prompt and the style image through IP-Adapter (scale and per-block scales
+   configurable) on the conditional half, CVSA on the self-attention layers of
+   the chosen blocks (:mod:`ssgwarp.cvsa`), ControlNet on both halves; ``eta``
+   > 0 adds seeded DDIM noise;
+4. decode to images in [0, 1].
+
+``strength`` < 1 inverts/denoises only the last ``round(strength * steps)``
+steps of the schedule (closer to the original views). Inversion and denoising
+use the same timesteps and the same cumulative alphas, so with guidance 0 and
+no CVSA, denoising undoes the inversion up to the DDIM discretisation error
+(measured in tests/test_diffusion.py and docs/stage1.md).
+
+Weights come only from local folders (:mod:`ssgwarp.weights`; nothing is
+downloaded): ``sd15`` (diffusers layout: unet/, vae/, scheduler/,
+text_encoder/, tokenizer/), ``controlnet_depth`` (diffusers ControlNet folder),
+``ip_adapter`` (``ip-adapter_sd15.safetensors`` or ``.bin``) and
+``image_encoder`` (transformers CLIPVisionModelWithProjection folder). Without
+them :func:`stylize_keyviews` prints a notice and returns None: Stage 2 then
+matches against the style image globally.
+
+diffusers and transformers are imported inside functions (heavy imports).
+"""
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Optional, Sequence
+
+import numpy as np
+import torch
+
+from .errors import InputError, SsgwarpError, WeightsNotFound
+
+__all__ = ["Stage1Config", "Stage1Models", "load_stage1", "assemble_stage1", "load_ip_adapter",
+           "read_ip_adapter", "set_ip_adapter_scales", "depth_to_control", "clip_preprocess", "schedule",
+           "ddim_step", "encode_latents", "decode_latents", "predict_noise", "ddim_invert", "ddim_denoise",
+           "stylize_views", "stylize_keyviews", "save_sheet", "random_stage1_components",
+           "random_ip_adapter_state", "add_stage1_arguments", "config_from_args", "missing_weights"]
+
+WEIGHT_KEYS = ("sd15", "controlnet_depth", "ip_adapter", "image_encoder")
+# files that must be inside each diffusers / transformers folder
+_SD15_FILES = ("unet/config.json", "vae/config.json", "scheduler/scheduler_config.json",
+               "text_encoder/config.json", "tokenizer")
+CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)
+CLIP_STD = (0.26862954, 0.26130258, 0.27577711)
+
+
+# -- configuration ------------------------------------------------------------------------------
+@dataclass
+class Stage1Config:
+    """Stage 1 options.
+
+    Weights: ``sd15``, ``controlnet_depth``, ``ip_adapter``, ``image_encoder``
+    are explicit paths (None: look them up, see :mod:`ssgwarp.weights`);
+    ``weights`` is the config file's ``weights`` mapping.
+    ``steps``: DDIM steps (inversion and denoising each); ``strength`` in (0, 1]:
+    fraction of the schedule used; ``guidance``: CFG scale; ``controlnet_scale``;
+    ``ip_adapter_scale``: IP-Adapter scale on every cross-attention layer, except
+    where ``ip_adapter_block_scales`` maps a processor-name prefix (e.g.
+    ``"up_blocks.1.attentions.1"`` or ``"down_blocks.2"``) to another scale
+    (longest prefix wins); ``cvsa`` on/off, ``cvsa_blocks`` (``"last"`` = the last
+    up-sampling block, ``up_blocks.3`` on SD1.5), ``cvsa_views_per_call`` (memory);
+    ``prompt``/``negative_prompt``; ``eta``: DDIM stochasticity (0 = deterministic);
+    ``seed``; ``dtype``: ``auto`` (fp16 on CUDA, fp32 on CPU), ``fp16``, ``bf16`` or ``fp32``.
+    """
+
+    sd15: Optional[str] = None
+    controlnet_depth: Optional[str] = None
+    ip_adapter: Optional[str] = None
+    image_encoder: Optional[str] = None
+    weights: Optional[Mapping[str, str]] = None
+    prompt: str = ""
+    negative_prompt: str = ""
+    steps: int = 50
+    strength: float = 1.0
+    guidance: float = 7.5
+    controlnet_scale: float = 1.0
+    ip_adapter_scale: float = 1.0
+    ip_adapter_block_scales: dict = field(default_factory=dict)
+    cvsa: bool = True
+    cvsa_blocks: tuple = ("last",)
+    cvsa_views_per_call: Optional[int] = None
+    eta: float = 0.0
+    seed: int = 0
+    dtype: str = "auto"
+    progress: bool = True
+
+    def validate(self) -> "Stage1Config":
+        if int(self.steps) < 1:
+            raise InputError(f"Stage 1 steps must be >= 1, got {self.steps}")
+        if not 0.0 < float(self.strength) <= 1.0:
+            raise InputError(f"Stage 1 strength must be in (0, 1], got {self.strength}")
+        if float(self.eta) < 0.0:
+            raise InputError(f"Stage 1 eta must be >= 0, got {self.eta}")
+        if self.dtype not in ("auto", "fp16", "bf16", "fp32"):
+            raise InputError(f"Stage 1 dtype '{self.dtype}': expected auto, fp16, bf16 or fp32")
+        for k, v in dict(self.ip_adapter_block_scales or {}).items():
+            if not isinstance(v, (int, float)):
+                raise InputError(f"ip_adapter_block_scales['{k}'] must be a number, got {v!r}")
+        return self
+
+    def torch_dtype(self, device) -> torch.dtype:
+        device = torch.device(device)
+        if self.dtype == "auto":
+            return torch.float16 if device.type == "cuda" else torch.float32
+        return {"fp16": torch.float16, "bf16": torch.bfloat16, "fp32": torch.float32}[self.dtype]
+
+
+@dataclass
+class Stage1Models:
+    """The modules Stage 1 runs (IP-Adapter already loaded into ``unet``)."""
+
+    unet: Any
+    vae: Any
+    controlnet: Any
+    scheduler: Any
+    text_encoder: Any
+    tokenizer: Any
+    image_encoder: Any
+    device: torch.device
+    dtype: torch.dtype
+
+    @property
+    def vae_scale_factor(self) -> int:
+        return 2 ** (len(self.vae.config.block_out_channels) - 1)
+
+    @property
+    def has_ip_adapter(self) -> bool:
+        return getattr(self.unet.config, "encoder_hid_dim_type", None) == "ip_image_proj"
+
+    @torch.no_grad()
+    def encode_prompt(self, prompts: Sequence[str]) -> torch.Tensor:
+        """``[B, L, D]`` text embeddings (last hidden state of the CLIP text encoder)."""
+        max_len = int(getattr(self.text_encoder.config, "max_position_embeddings", 77))
+        ids = self.tokenizer(list(prompts), padding="max_length", max_length=max_len, truncation=True,
+                             return_tensors="pt").input_ids.to(self.device)
+        return self.text_encoder(ids)[0].to(self.dtype)
+
+    @torch.no_grad()
+    def encode_style(self, style: torch.Tensor) -> torch.Tensor:
+        """``style [H, W, 3]`` in [0, 1] → CLIP image embedding ``[1, E]``."""
+        size = int(self.image_encoder.config.image_size)
+        px = clip_preprocess(style, size).to(self.device, self.image_encoder.dtype)
+        return self.image_encoder(px).image_embeds.to(self.dtype)
+
+
+def missing_weights(cfg: Stage1Config) -> list[str]:
+    """One message per missing weight (empty when all are present)."""
+    from . import weights as W
+
+    out = []
+    for key in WEIGHT_KEYS:
+        explicit = getattr(cfg, key)
+        p = W.find(key, explicit, cfg.weights)
+        if p is None:
+            out.append(W.message(key, explicit))
+            continue
+        need = []
+        if key == "sd15":
+            need = [f for f in _SD15_FILES if not (p / f).exists()]
+        elif key in ("controlnet_depth", "image_encoder"):
+            need = [f for f in ("config.json",) if not (p / f).exists()]
+        if need:
+            out.append(f"{p} lacks {', '.join(need)}: {W.SPECS[key].expected} (from '{W.SPECS[key].source}')")
+    return out
+
+
+def _paths(cfg: Stage1Config) -> dict[str, Path]:
+    from . import weights as W
+
+    missing = missing_weights(cfg)
+    if missing:
+        raise WeightsNotFound("Stage 1 needs local weights: " + " | ".join(missing))
+    return {k: W.find(k, getattr(cfg, k), cfg.weights) for k in WEIGHT_KEYS}
+
+
+def load_stage1(cfg: Stage1Config, device) -> Stage1Models:
+    """Load the Stage 1 modules from local folders (``local_files_only=True``).
+
+    Raises :class:`WeightsNotFound` listing every missing piece when weights are absent.
+    """
+    from diffusers import AutoencoderKL, ControlNetModel, DDIMScheduler, UNet2DConditionModel
+    from transformers import CLIPTextModel, CLIPTokenizer, CLIPVisionModelWithProjection
+
+    cfg.validate()
+    p = _paths(cfg)
+    sd = str(p["sd15"])
+
+    def load(what, fn, *a, **kw):
+        try:
+            return fn(*a, local_files_only=True, **kw)
+        except (OSError, ValueError, KeyError, RuntimeError) as e:
+            raise SsgwarpError(f"cannot load {what} from {a[0]}: {str(e).splitlines()[0] if str(e) else e!r}"
+                               ) from None
+
+    comps = dict(
+        unet=load("the SD1.5 UNet", UNet2DConditionModel.from_pretrained, sd, subfolder="unet"),
+        vae=load("the SD1.5 VAE", AutoencoderKL.from_pretrained, sd, subfolder="vae"),
+        scheduler=load("the scheduler config", DDIMScheduler.from_pretrained, sd, subfolder="scheduler"),
+        text_encoder=load("the CLIP text encoder", CLIPTextModel.from_pretrained, sd, subfolder="text_encoder"),
+        tokenizer=load("the CLIP tokenizer", CLIPTokenizer.from_pretrained, sd, subfolder="tokenizer"),
+        controlnet=load("the depth ControlNet", ControlNetModel.from_pretrained, str(p["controlnet_depth"])),
+        image_encoder=load("the IP-Adapter image encoder", CLIPVisionModelWithProjection.from_pretrained,
+                           str(p["image_encoder"])),
+        ip_state=read_ip_adapter(p["ip_adapter"]),
+    )
+    return assemble_stage1(comps, device, cfg.torch_dtype(device))
+
+
+def assemble_stage1(components: Mapping[str, Any], device, dtype: torch.dtype = torch.float32) -> Stage1Models:
+    """Stage1Models from bare modules: ``unet, vae, controlnet, scheduler, text_encoder, tokenizer,
+    image_encoder`` and ``ip_state`` (IP-Adapter state dict, loaded into the UNet; None: no IP-Adapter).
+
+    The scheduler is converted to DDIM (same betas). Modules go to ``device``/``dtype`` in eval mode.
+    """
+    from diffusers import DDIMScheduler
+
+    c = dict(components)
+    device = torch.device(device)
+    unet = c["unet"]
+    if c.get("ip_state") is not None:
+        load_ip_adapter(unet, c["ip_state"])
+    sched = c["scheduler"]
+    if not isinstance(sched, DDIMScheduler):
+        sched = DDIMScheduler.from_config(sched.config)
+    from diffusers.utils import logging as dlog
+
+    mods = {}
+    level = dlog.get_verbosity()
+    dlog.set_verbosity_error()   # diffusers warns on every .to(dtype=...) about (no) fp32-only modules
+    try:
+        for k in ("unet", "vae", "controlnet", "text_encoder", "image_encoder"):
+            m = unet if k == "unet" else c.get(k)
+            if m is not None:
+                m = m.to(device=device, dtype=dtype).eval()
+                m.requires_grad_(False)
+            mods[k] = m
+    finally:
+        dlog.set_verbosity(level)
+    return Stage1Models(mods["unet"], mods["vae"], mods["controlnet"], sched, mods["text_encoder"],
+                        c["tokenizer"], mods["image_encoder"], device, dtype)
+
+
+# -- IP-Adapter ---------------------------------------------------------------------------------
+def read_ip_adapter(path: str | Path) -> dict:
+    """IP-Adapter weights file → ``{"image_proj": {...}, "ip_adapter": {...}}`` (safetensors or torch)."""
+    path = Path(path)
+    if not path.is_file():
+        raise WeightsNotFound(f"IP-Adapter weights {path} not found")
+    if path.suffix == ".safetensors":
+        from safetensors import safe_open
+
+        sd = {"image_proj": {}, "ip_adapter": {}}
+        with safe_open(str(path), framework="pt", device="cpu") as f:
+            for key in f.keys():
+                head, _, rest = key.partition(".")
+                if head in sd:
+                    sd[head][rest] = f.get_tensor(key)
+    else:
+        sd = torch.load(str(path), map_location="cpu", weights_only=True)
+    if not isinstance(sd, dict) or not sd.get("image_proj") or not sd.get("ip_adapter"):
+        raise InputError(f"{path}: not an IP-Adapter weights file (needs image_proj.* and ip_adapter.* tensors)")
+    return sd
+
+
+def load_ip_adapter(unet, state: Mapping[str, Any] | str | Path) -> None:
+    """Load IP-Adapter weights into ``unet`` with diffusers' ``_load_ip_adapter_weights``.
+
+    Every cross-attention processor becomes an ``IPAdapterAttnProcessor2_0``
+    holding the image key/value projections; the image projection goes to
+    ``unet.encoder_hid_proj`` and the UNet then expects
+    ``added_cond_kwargs={"image_embeds": [embeds [B, 1, E]]}``.
+    """
+    if not isinstance(state, Mapping):
+        state = read_ip_adapter(state)
+    n_cross = sum(1 for n in unet.attn_processors if n.endswith("attn2.processor"))
+    have = {k for k in state["ip_adapter"] if k.endswith("to_k_ip.weight")}
+    if len(have) != n_cross:
+        raise InputError(f"IP-Adapter weights have {len(have)} cross-attention layers, the UNet has {n_cross} "
+                         "(IP-Adapter for another base model?)")
+    from diffusers.utils import logging as dlog
+
+    level = dlog.get_verbosity()
+    dlog.set_verbosity_error()   # it casts with .to(dtype=...), which logs a spurious float32 warning
+    try:
+        unet._load_ip_adapter_weights([dict(state)], low_cpu_mem_usage=False)
+    except (KeyError, RuntimeError) as e:
+        raise InputError(f"IP-Adapter weights do not fit this UNet: {str(e).splitlines()[0]}") from None
+    finally:
+        dlog.set_verbosity(level)
+
+
+def set_ip_adapter_scales(unet, scale: float = 1.0, block_scales: Optional[Mapping[str, float]] = None
+                          ) -> dict[str, float]:
+    """Set the IP-Adapter scale of every IP-Adapter processor; returns ``{processor name: scale}``.
+
+    ``block_scales`` maps processor-name prefixes to scales; the longest matching
+    prefix wins, other layers get ``scale``.
+    """
+    from diffusers.models.attention_processor import IPAdapterAttnProcessor, IPAdapterAttnProcessor2_0
+
+    block_scales = dict(block_scales or {})
+    out = {}
+    for name, proc in unet.attn_processors.items():
+        if isinstance(proc, (IPAdapterAttnProcessor, IPAdapterAttnProcessor2_0)):
+            hits = [p for p in block_scales if name == p or name.startswith(p.rstrip(".") + ".")]
+            s = float(block_scales[max(hits, key=len)]) if hits else float(scale)
+            proc.scale = [s] * len(proc.scale)
+            out[name] = s
+    unknown = [p for p in block_scales if not any(n == p or n.startswith(p.rstrip(".") + ".") for n in out)]
+    if unknown:
+        raise InputError(f"ip_adapter_block_scales: no IP-Adapter layer under {unknown} "
+                         "(use prefixes such as down_blocks.2 or up_blocks.1.attentions.1)")
+    return out
+
+
+# -- conditioning -------------------------------------------------------------------------------
+def depth_to_control(depth: torch.Tensor, alpha: Optional[torch.Tensor] = None, min_alpha: float = 0.5
+                     ) -> torch.Tensor:
+    """Depth-ControlNet condition ``[K, 3, H, W]`` in [0, 1] from expected depth ``[K, H, W]``.
+
+    Disparity ``1/depth`` is normalised per view to [0, 1] over valid pixels
+    (depth > 0, finite, and alpha >= ``min_alpha`` when alpha is given): near is
+    1 (white), far 0; invalid pixels are 0. A view whose valid disparities are
+    all equal gets 1 on its valid pixels.
+    """
+    d = depth.float()
+    valid = torch.isfinite(d) & (d > 0)
+    if alpha is not None:
+        valid &= alpha.float() >= min_alpha
+    disp = torch.where(valid, 1.0 / d.clamp_min(1e-12), torch.zeros_like(d))
+    out = torch.zeros_like(d)
+    for i in range(d.shape[0]):
+        v = valid[i]
+        if not bool(v.any()):
+            continue
+        lo, hi = disp[i][v].min(), disp[i][v].max()
+        span = hi - lo
+        out[i] = torch.where(v, (disp[i] - lo) / span if float(span) > 1e-12 else torch.ones_like(disp[i]),
+                             torch.zeros_like(disp[i]))
+    return out[:, None].expand(-1, 3, -1, -1).contiguous()
+
+
+def clip_preprocess(img, size: int) -> torch.Tensor:
+    """CLIP image preprocessing: shorter side to ``size`` (bicubic), centre crop, normalise → ``[1,3,size,size]``."""
+    import torch.nn.functional as F
+
+    t = torch.as_tensor(np.asarray(img) if not isinstance(img, torch.Tensor) else img).float()
+    if t.ndim != 3 or t.shape[-1] not in (3, 4):
+        raise InputError(f"style image must be [H, W, 3], got shape {tuple(t.shape)}")
+    x = t[..., :3].permute(2, 0, 1)[None].clamp(0, 1)
+    h, w = x.shape[-2:]
+    s = size / min(h, w)
+    nh, nw = max(size, int(round(h * s))), max(size, int(round(w * s)))
+    x = F.interpolate(x, size=(nh, nw), mode="bicubic", align_corners=False, antialias=True).clamp(0, 1)
+    top, left = (nh - size) // 2, (nw - size) // 2
+    x = x[..., top:top + size, left:left + size]
+    mean = torch.tensor(CLIP_MEAN).view(1, 3, 1, 1)
+    std = torch.tensor(CLIP_STD).view(1, 3, 1, 1)
+    return (x - mean) / std
+
+
+# -- DDIM -----------------------------------------------------------------------------------------
+def schedule(scheduler, steps: int, strength: float = 1.0) -> tuple[list[int], list[float], float]:
+    """``(timesteps descending, their alphas_cumprod, final alpha)`` for ``steps`` DDIM steps.
+
+    With ``strength`` < 1 only the last ``max(1, round(strength * steps))`` timesteps are kept.
+    """
+    scheduler.set_timesteps(int(steps))
+    ts = [int(t) for t in scheduler.timesteps]
+    n = max(1, min(len(ts), int(round(float(strength) * len(ts)))))
+    ts = ts[len(ts) - n:]
+    ac = scheduler.alphas_cumprod
+    return ts, [float(ac[t]) for t in ts], float(scheduler.final_alpha_cumprod)
+
+
+def ddim_step(x: torch.Tensor, eps: torch.Tensor, a_from: float, a_to: float, eta: float = 0.0,
+              noise: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Move ``x`` from noise level ``a_from`` (alpha_cumprod) to ``a_to`` along predicted noise ``eps``.
+
+    Deterministic DDIM (``eta = 0``) in either direction (inversion when
+    ``a_to < a_from``); with ``eta > 0`` (denoising only) adds
+    ``sigma * noise``, ``sigma = eta sqrt((1-a_to)/(1-a_from)) sqrt(1 - a_from/a_to)``.
+    """
+    x0 = (x - math.sqrt(1.0 - a_from) * eps) / math.sqrt(a_from)
+    if eta > 0.0 and noise is not None and a_to > a_from:
+        sigma = eta * math.sqrt((1.0 - a_to) / (1.0 - a_from)) * math.sqrt(max(0.0, 1.0 - a_from / a_to))
+        dir_coef = math.sqrt(max(0.0, 1.0 - a_to - sigma ** 2))
+        return math.sqrt(a_to) * x0 + dir_coef * eps + sigma * noise
+    return math.sqrt(a_to) * x0 + math.sqrt(1.0 - a_to) * eps
+
+
+@torch.no_grad()
+def encode_latents(models: Stage1Models, rgb: torch.Tensor) -> torch.Tensor:
+    """``rgb [K, H, W, 3]`` in [0, 1] → latents ``[K, 4, H/f, W/f]`` float32 (posterior mean x scaling)."""
+    vae = models.vae
+    sf = float(vae.config.scaling_factor)
+    out = []
+    for i in range(rgb.shape[0]):
+        x = rgb[i:i + 1].permute(0, 3, 1, 2).to(models.device, models.dtype) * 2.0 - 1.0
+        out.append(vae.encode(x).latent_dist.mean.float() * sf)
+    return torch.cat(out)
+
+
+@torch.no_grad()
+def decode_latents(models: Stage1Models, latents: torch.Tensor) -> torch.Tensor:
+    """latents ``[K, 4, h, w]`` → images ``[K, H, W, 3]`` float32 in [0, 1]."""
+    vae = models.vae
+    sf = float(vae.config.scaling_factor)
+    out = []
+    for i in range(latents.shape[0]):
+        img = vae.decode((latents[i:i + 1] / sf).to(models.device, models.dtype)).sample.float()
+        out.append(((img + 1.0) * 0.5).clamp(0, 1).permute(0, 2, 3, 1))
+    img = torch.cat(out)
+    if not torch.isfinite(img).all():
+        raise SsgwarpError("Stage 1 produced non-finite pixels (half precision overflow?): retry with dtype fp32")
+    return img
+
+
+@torch.no_grad()
+def predict_noise(models: Stage1Models, x: torch.Tensor, t: int, text: torch.Tensor,
+                  image_embeds: Optional[torch.Tensor], control: torch.Tensor, controlnet_scale: float = 1.0
+                  ) -> torch.Tensor:
+    """Predicted noise ``[B, 4, h, w]`` (float32) of the UNet + ControlNet at timestep ``t``.
+
+    ``text [B, L, D]``; ``image_embeds [B, E]`` (IP-Adapter) or None; ``control [B, 3, H, W]``.
+    v-prediction models are converted to noise.
+    """
+    xin = x.to(models.device, models.dtype)
+    text = text.to(models.device, models.dtype)
+    down, mid = models.controlnet(xin, t, encoder_hidden_states=text,
+                                  controlnet_cond=control.to(models.device, models.dtype),
+                                  conditioning_scale=float(controlnet_scale), return_dict=False)
+    added = None
+    if models.has_ip_adapter:
+        if image_embeds is None:
+            raise ValueError("the UNet carries an IP-Adapter: image_embeds are required")
+        added = {"image_embeds": [image_embeds.to(models.device, models.dtype)[:, None]]}
+    out = models.unet(xin, t, encoder_hidden_states=text, added_cond_kwargs=added,
+                      down_block_additional_residuals=down, mid_block_additional_residual=mid,
+                      return_dict=False)[0].float()
+    if models.scheduler.config.prediction_type == "v_prediction":
+        a = float(models.scheduler.alphas_cumprod[int(t)])
+        out = math.sqrt(a) * out + math.sqrt(1.0 - a) * x.float()
+    return out
+
+
+def _progress(it, desc: str, enabled: bool):
+    from tqdm.auto import tqdm
+
+    return tqdm(it, desc=desc, leave=False, disable=not enabled, unit="step")
+
+
+@torch.no_grad()
+def ddim_invert(models: Stage1Models, latents: torch.Tensor, sched: tuple, text: torch.Tensor,
+                image_embeds: Optional[torch.Tensor], control: torch.Tensor, controlnet_scale: float = 1.0,
+                progress: bool = False) -> torch.Tensor:
+    """DDIM inversion of clean ``latents [K, 4, h, w]`` to the first timestep of ``sched`` (guidance 0).
+
+    ``sched`` is :func:`schedule`'s result; ``text``/``image_embeds``/``control``
+    have batch K (the unconditional inputs in Stage 1). Each step moves from the
+    previous level to timestep ``t`` with the noise predicted at ``t``.
+    """
+    ts, alphas, a_final = sched
+    x = latents.float().to(models.device)
+    n = len(ts)
+    for i in _progress(range(n - 1, -1, -1), "DDIM inversion", progress):
+        a_from = a_final if i == n - 1 else alphas[i + 1]
+        eps = predict_noise(models, x, ts[i], text, image_embeds, control, controlnet_scale)
+        x = ddim_step(x, eps, a_from, alphas[i])
+    return x
+
+
+@torch.no_grad()
+def ddim_denoise(models: Stage1Models, latents: torch.Tensor, sched: tuple, text_uncond: torch.Tensor,
+                 text_cond: torch.Tensor, image_uncond: Optional[torch.Tensor], image_cond: Optional[torch.Tensor],
+                 control: torch.Tensor, guidance: float = 7.5, controlnet_scale: float = 1.0, eta: float = 0.0,
+                 generator: Optional[torch.Generator] = None, cvsa: bool = False, cvsa_blocks=("last",),
+                 cvsa_views_per_call: Optional[int] = None, progress: bool = False) -> torch.Tensor:
+    """DDIM denoising of ``latents [K, 4, h, w]`` from the first timestep of ``sched`` to clean latents.
+
+    Classifier-free guidance ``eps = eps_u + guidance (eps_c - eps_u)`` with the
+    batch ``[uncond views; cond views]`` in one UNet call (only the half needed
+    when guidance is 0 or 1). Conditioning tensors have batch K. With ``cvsa``
+    the K views of each half share self-attention on ``cvsa_blocks``.
+    ``eta > 0`` draws noise from ``generator`` (CPU) for reproducibility.
+    """
+    from .cvsa import cvsa_enabled
+
+    ts, alphas, a_final = sched
+    K = latents.shape[0]
+    w = float(guidance)
+    halves = ["u"] if w == 0.0 else ["c"] if w == 1.0 else ["u", "c"]
+    text = torch.cat([text_uncond if h == "u" else text_cond for h in halves])
+    img = None
+    if image_cond is not None:
+        img = torch.cat([image_uncond if h == "u" else image_cond for h in halves])
+    ctrl = torch.cat([control] * len(halves))
+    x = latents.float().to(models.device)
+    with cvsa_enabled(models.unet, K, cvsa_blocks, cvsa_views_per_call, enabled=cvsa):
+        for i in _progress(range(len(ts)), "Stage 1 denoising", progress):
+            eps_all = predict_noise(models, torch.cat([x] * len(halves)), ts[i], text, img, ctrl, controlnet_scale)
+            if len(halves) == 2:
+                eu, ec = eps_all.chunk(2)
+                eps = eu + w * (ec - eu)
+            else:
+                eps = eps_all
+            a_to = alphas[i + 1] if i + 1 < len(ts) else a_final
+            noise = None
+            if eta > 0.0:
+                noise = torch.randn(x.shape, generator=generator, dtype=torch.float32).to(x.device)
+            x = ddim_step(x, eps, alphas[i], a_to, eta, noise)
+    return x
+
+
+# -- Stage 1 ---------------------------------------------------------------------------------------
+def _style_tensor(style) -> torch.Tensor:
+    if isinstance(style, (str, Path)):
+        from .fileio import read_image
+        style = read_image(style, 3)
+    t = torch.as_tensor(np.asarray(style) if not isinstance(style, torch.Tensor) else style).float()
+    if t.ndim != 3 or t.shape[-1] < 3:
+        raise InputError(f"style image must be [H, W, 3], got shape {tuple(t.shape)}")
+    return t[..., :3].cpu()
+
+
+@torch.no_grad()
+def stylize_views(models: Stage1Models, rgb: torch.Tensor, depth: torch.Tensor, style, cfg: Stage1Config,
+                  alpha: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Stylize K views: ``rgb [K, H, W, 3]`` in [0, 1], ``depth [K, H, W]`` → ``[K, H, W, 3]`` float32 (CPU).
+
+    H and W must be multiples of the VAE factor (8 for SD1.5). Steps in the module docstring.
+    """
+    cfg.validate()
+    if rgb.ndim != 4 or rgb.shape[-1] != 3:
+        raise InputError(f"key views must be [K, H, W, 3], got {tuple(rgb.shape)}")
+    K, H, W, _ = rgb.shape
+    f = models.vae_scale_factor
+    if H % f or W % f:
+        raise InputError(f"key views are {W}x{H}: width and height must be multiples of {f} "
+                         "(render them at ssgwarp.keyviews.diffusion_size)")
+    if depth.shape != (K, H, W):
+        raise InputError(f"depth must be [K={K}, H={H}, W={W}], got {tuple(depth.shape)}")
+    control = depth_to_control(depth.cpu(), None if alpha is None else alpha.cpu())
+    text_u = models.encode_prompt([cfg.negative_prompt]).expand(K, -1, -1)
+    text_c = models.encode_prompt([cfg.prompt]).expand(K, -1, -1)
+    img_u = img_c = None
+    if models.has_ip_adapter:
+        set_ip_adapter_scales(models.unet, cfg.ip_adapter_scale, cfg.ip_adapter_block_scales)
+        img_c = models.encode_style(_style_tensor(style)).expand(K, -1)
+        img_u = torch.zeros_like(img_c)
+    sched = schedule(models.scheduler, cfg.steps, cfg.strength)
+    latents = encode_latents(models, rgb)
+    xt = ddim_invert(models, latents, sched, text_u, img_u, control, cfg.controlnet_scale, cfg.progress)
+    gen = torch.Generator("cpu").manual_seed(int(cfg.seed))
+    x0 = ddim_denoise(models, xt, sched, text_u, text_c, img_u, img_c, control, cfg.guidance,
+                      cfg.controlnet_scale, cfg.eta, gen, cfg.cvsa, tuple(cfg.cvsa_blocks),
+                      cfg.cvsa_views_per_call, cfg.progress)
+    return decode_latents(models, x0).cpu()
+
+
+def stylize_keyviews(keyviews, style_image, cfg: Stage1Config, device, models: Optional[Stage1Models] = None
+                     ) -> Optional[torch.Tensor]:
+    """Stage 1 on :class:`ssgwarp.keyviews.KeyViews`: stylized views ``[K, H, W, 3]``, or None without weights.
+
+    When the weights are absent it prints a notice (Stage 1 skipped; Stage 2
+    matches against the style image globally) and returns None.
+    """
+    if models is None:
+        try:
+            models = load_stage1(cfg, device)
+        except WeightsNotFound as e:
+            print(f"ssgwarp: Stage 1 skipped: {e}. Stage 2 will match against the style image globally "
+                  "(no stylized key views).", file=sys.stderr)
+            return None
+    return stylize_views(models, keyviews.rgb, keyviews.depth, style_image, cfg, alpha=keyviews.alpha)
+
+
+def save_sheet(original, stylized, path: str | Path, gap: int = 4) -> Path:
+    """Side-by-side sheet, one row per view: original | stylized (white gaps), written atomically."""
+    from .fileio import write_image
+
+    def np_(x):
+        x = x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+        return np.clip(x.astype(np.float32), 0.0, 1.0)
+
+    a, b = np_(original), np_(stylized)
+    if a.ndim == 3:
+        a, b = a[None], b[None]
+    if a.shape[0] != b.shape[0]:
+        raise InputError(f"save_sheet: {a.shape[0]} originals but {b.shape[0]} stylized views")
+    H, W = a.shape[1], a.shape[2]
+    if b.shape[1:3] != (H, W):
+        from .keyviews import _resize
+        b = _resize(torch.from_numpy(b), W, H).numpy()
+    rows = []
+    for i in range(a.shape[0]):
+        g = np.ones((H, gap, 3), np.float32)
+        rows.append(np.concatenate([a[i, ..., :3], g, b[i, ..., :3]], axis=1))
+        if i + 1 < a.shape[0]:
+            rows.append(np.ones((gap, 2 * W + gap, 3), np.float32))
+    return write_image(path, np.concatenate(rows, axis=0))
+
+
+# -- random-weight models (tests, benchmarks) ---------------------------------------------------------
+def _tiny_tokenizer():
+    from transformers import CLIPTokenizer
+
+    vocab = {"<|startoftext|>": 0, "<|endoftext|>": 1}
+    for c in "abcdefghijklmnopqrstuvwxyz":
+        vocab[c] = len(vocab)
+    for c in "abcdefghijklmnopqrstuvwxyz":
+        vocab[c + "</w>"] = len(vocab)
+    return CLIPTokenizer(vocab=vocab, merges=[])
+
+
+def random_stage1_components(arch: str = "tiny", seed: int = 0, device="cpu") -> dict:
+    """Randomly initialised Stage 1 modules (no weights, no network) for tests and benchmarks.
+
+    ``arch="tiny"``: a 2-level UNet (32, 64 channels, attention in every block),
+    a VAE with the SD factor 8, 1-layer CLIP encoders; runs on a CPU core in
+    milliseconds. ``arch="sd15"``: the SD1.5 / ControlNet / ViT-L text / ViT-H
+    image-encoder architectures at full size (timings only). The ControlNet's
+    zero-initialised output convolutions get small random weights so the depth
+    condition has an effect. ``ip_state`` is a random IP-Adapter state dict.
+    """
+    from diffusers import AutoencoderKL, ControlNetModel, DDIMScheduler, UNet2DConditionModel
+    from transformers import CLIPTextConfig, CLIPTextModel, CLIPVisionConfig, CLIPVisionModelWithProjection
+
+    torch.manual_seed(seed)
+    with torch.device(device):
+        if arch == "tiny":
+            unet = UNet2DConditionModel(
+                sample_size=8, in_channels=4, out_channels=4, block_out_channels=(32, 64), layers_per_block=1,
+                down_block_types=("CrossAttnDownBlock2D", "CrossAttnDownBlock2D"),
+                up_block_types=("CrossAttnUpBlock2D", "CrossAttnUpBlock2D"),
+                cross_attention_dim=32, attention_head_dim=8, norm_num_groups=32)
+            # scaling_factor 3: latents of roughly unit spread, as SD1.5's 0.18215 gives its VAE
+            vae = AutoencoderKL(in_channels=3, out_channels=3, block_out_channels=(8, 16, 16, 16),
+                                down_block_types=("DownEncoderBlock2D",) * 4,
+                                up_block_types=("UpDecoderBlock2D",) * 4, latent_channels=4,
+                                norm_num_groups=8, layers_per_block=1, sample_size=64, scaling_factor=3.0)
+            controlnet = ControlNetModel.from_unet(unet, conditioning_embedding_out_channels=(8, 8, 16, 16))
+            tokenizer = _tiny_tokenizer()
+            text_encoder = CLIPTextModel(CLIPTextConfig(
+                vocab_size=len(tokenizer.get_vocab()), hidden_size=32, intermediate_size=37, num_hidden_layers=1,
+                num_attention_heads=4, max_position_embeddings=77, bos_token_id=0, eos_token_id=1,
+                pad_token_id=1))
+            image_encoder = CLIPVisionModelWithProjection(CLIPVisionConfig(
+                hidden_size=32, intermediate_size=37, num_hidden_layers=1, num_attention_heads=4, image_size=32,
+                patch_size=8, projection_dim=16))
+        elif arch == "sd15":
+            unet = UNet2DConditionModel(
+                sample_size=64, cross_attention_dim=768, attention_head_dim=8,
+                block_out_channels=(320, 640, 1280, 1280), layers_per_block=2,
+                down_block_types=("CrossAttnDownBlock2D",) * 3 + ("DownBlock2D",),
+                up_block_types=("UpBlock2D",) + ("CrossAttnUpBlock2D",) * 3)
+            vae = AutoencoderKL(in_channels=3, out_channels=3, block_out_channels=(128, 256, 512, 512),
+                                down_block_types=("DownEncoderBlock2D",) * 4,
+                                up_block_types=("UpDecoderBlock2D",) * 4, latent_channels=4,
+                                layers_per_block=2, sample_size=512)
+            controlnet = ControlNetModel.from_unet(unet)
+            tokenizer = _tiny_tokenizer()   # timings only: token ids are padded to 77 anyway
+            text_encoder = CLIPTextModel(CLIPTextConfig(
+                vocab_size=49408, hidden_size=768, intermediate_size=3072, num_hidden_layers=12,
+                num_attention_heads=12, max_position_embeddings=77, hidden_act="quick_gelu",
+                projection_dim=768, bos_token_id=0, eos_token_id=1, pad_token_id=1))
+            image_encoder = CLIPVisionModelWithProjection(CLIPVisionConfig(
+                hidden_size=1280, intermediate_size=5120, num_hidden_layers=32, num_attention_heads=16,
+                image_size=224, patch_size=14, projection_dim=1024, hidden_act="gelu"))
+        else:
+            raise InputError(f"unknown random architecture '{arch}' (tiny or sd15)")
+        g = torch.Generator(device="cpu").manual_seed(seed + 1)
+        if arch == "tiny":
+            # a random UNet amplifies input changes ~4x; a trained noise predictor is far gentler. Scaling
+            # the output keeps the tiny model in the regime where DDIM inversion is meaningful.
+            with torch.no_grad():
+                unet.conv_out.weight.mul_(0.1)
+                unet.conv_out.bias.mul_(0.1)
+        for mod in [controlnet.controlnet_down_blocks, controlnet.controlnet_mid_block,
+                    controlnet.controlnet_cond_embedding.conv_out]:
+            for p in mod.parameters():
+                p.data.copy_(torch.randn(p.shape, generator=g, device="cpu") * 0.02)
+    scheduler = DDIMScheduler(beta_start=0.00085, beta_end=0.012, beta_schedule="scaled_linear",
+                              clip_sample=False, set_alpha_to_one=False, steps_offset=1)
+    ip_state = random_ip_adapter_state(unet, image_encoder.config.projection_dim, seed=seed + 2)
+    return dict(unet=unet, vae=vae, controlnet=controlnet, scheduler=scheduler, text_encoder=text_encoder,
+                tokenizer=tokenizer, image_encoder=image_encoder, ip_state=ip_state)
+
+
+def random_ip_adapter_state(unet, image_embed_dim: int, seed: int = 0, num_tokens: int = 4) -> dict:
+    """A random IP-Adapter (SD1.5 layout) state dict for ``unet``: ``image_proj.proj/norm`` and
+    ``ip_adapter.{2i+1}.to_k_ip/to_v_ip`` for the i-th cross-attention layer."""
+    g = torch.Generator().manual_seed(seed)
+    cross = int(unet.config.cross_attention_dim)
+    image_proj = {
+        "proj.weight": torch.randn(num_tokens * cross, image_embed_dim, generator=g) / math.sqrt(image_embed_dim),
+        "proj.bias": torch.zeros(num_tokens * cross),
+        "norm.weight": torch.ones(cross), "norm.bias": torch.zeros(cross),
+    }
+    ip = {}
+    boc = list(unet.config.block_out_channels)
+    key_id = 1
+    for name in unet.attn_processors:
+        if name.endswith("attn1.processor"):
+            continue
+        if name.startswith("mid_block"):
+            hidden = boc[-1]
+        elif name.startswith("up_blocks"):
+            hidden = list(reversed(boc))[int(name.split(".")[1])]
+        else:
+            hidden = boc[int(name.split(".")[1])]
+        ip[f"{key_id}.to_k_ip.weight"] = torch.randn(hidden, cross, generator=g) / math.sqrt(cross)
+        ip[f"{key_id}.to_v_ip.weight"] = torch.randn(hidden, cross, generator=g) / math.sqrt(cross)
+        key_id += 2
+    return {"image_proj": image_proj, "ip_adapter": ip}
+
+
+# -- CLI helpers (used by `ssgwarp stylize`) ----------------------------------------------------------
+def add_stage1_arguments(parser) -> None:
+    """Stage 1 options for a subcommand's parser (weights paths, steps, guidance, IP-Adapter, CVSA)."""
+    g = parser.add_argument_group("Stage 1 (diffusion key views)")
+    g.add_argument("--sd15", default=None, help="SD1.5 diffusers folder (or SSGWARP_SD15 / $SSGWARP_WEIGHTS)")
+    g.add_argument("--controlnet-depth", default=None, help="depth ControlNet diffusers folder")
+    g.add_argument("--ip-adapter", default=None, help="ip-adapter_sd15.safetensors")
+    g.add_argument("--image-encoder", default=None, help="IP-Adapter CLIP image encoder folder")
+    g.add_argument("--prompt", default="", help="style prompt (the style image goes through IP-Adapter)")
+    g.add_argument("--negative-prompt", default="", help="negative prompt")
+    g.add_argument("--steps", type=int, default=50, help="DDIM steps for inversion and denoising (default 50)")
+    g.add_argument("--strength", type=float, default=1.0, help="fraction of the schedule inverted (default 1)")
+    g.add_argument("--guidance", type=float, default=7.5, help="classifier-free guidance scale (default 7.5)")
+    g.add_argument("--controlnet-scale", type=float, default=1.0, help="depth ControlNet scale (default 1)")
+    g.add_argument("--ip-scale", type=float, default=1.0, help="IP-Adapter scale (default 1)")
+    g.add_argument("--ip-block-scale", action="append", default=None, metavar="PREFIX=S",
+                   help="per-block IP-Adapter scale, e.g. up_blocks.1.attentions.1=1.0 (repeatable)")
+    g.add_argument("--no-cvsa", action="store_true", help="turn Cross-View Style Alignment off")
+    g.add_argument("--cvsa-blocks", default="last",
+                   help="comma-separated UNet blocks carrying CVSA (default last = up_blocks.3)")
+    g.add_argument("--cvsa-views-per-call", type=int, default=None,
+                   help="query views per attention call (memory; default all)")
+    g.add_argument("--eta", type=float, default=0.0, help="DDIM eta (0 = deterministic)")
+    g.add_argument("--stage1-dtype", default="auto", choices=("auto", "fp16", "bf16", "fp32"),
+                   help="model precision (auto: fp16 on CUDA, fp32 on CPU)")
+
+
+def config_from_args(args) -> Stage1Config:
+    """Stage1Config from the options of :func:`add_stage1_arguments` (+ ``--seed`` and config ``weights``)."""
+    blocks = {}
+    for item in getattr(args, "ip_block_scale", None) or []:
+        name, sep, val = str(item).partition("=")
+        try:
+            blocks[name.strip()] = float(val)
+        except ValueError:
+            sep = ""
+        if not sep:
+            raise InputError(f"--ip-block-scale '{item}': expected PREFIX=SCALE, e.g. up_blocks.1.attentions.1=1.0")
+    weights = getattr(args, "weights", None)
+    return Stage1Config(
+        sd15=args.sd15, controlnet_depth=args.controlnet_depth, ip_adapter=args.ip_adapter,
+        image_encoder=args.image_encoder, weights=weights if isinstance(weights, Mapping) else None,
+        prompt=args.prompt, negative_prompt=args.negative_prompt, steps=args.steps, strength=args.strength,
+        guidance=args.guidance, controlnet_scale=args.controlnet_scale, ip_adapter_scale=args.ip_scale,
+        ip_adapter_block_scales=blocks, cvsa=not args.no_cvsa,
+        cvsa_blocks=tuple(b.strip() for b in str(args.cvsa_blocks).split(",") if b.strip()),
+        cvsa_views_per_call=args.cvsa_views_per_call, eta=args.eta, seed=int(getattr(args, "seed", 0)),
+        dtype=args.stage1_dtype).validate()
