@@ -52,8 +52,8 @@ def render(params, vm, K, w, h, backend, dtype, settings):
     return img.detach().double(), [gr.double() for gr in grads]
 
 
-def rel(a, b):
-    scale = max(float(a.abs().max()) if a.numel() else 0.0, 1e-12)
+def rel(a, b, floor=1e-12):
+    scale = max(float(a.abs().max()) if a.numel() else 0.0, floor)
     return float((a - b).abs().max()) / scale if a.numel() else 0.0
 
 
@@ -71,7 +71,10 @@ def main():
                 img, gr = render(params, vm, K, w, h, "warp", dt, st)
                 finite = bool(torch.isfinite(img).all()) and all(bool(torch.isfinite(x).all()) for x in gr)
                 ierr = rel(ref_img, img)
-                gerr = max(rel(a, b) for a, b in zip(ref_g, gr))
+                # a gradient that is zero in exact arithmetic (e.g. rotations of isotropic Gaussians)
+                # is measured against 1e-3 of the problem's largest gradient, not its own noise
+                top = max([float(x.abs().max()) for x in ref_g if x.numel()] + [1e-9])
+                gerr = max(rel(a, b, 1e-3 * top) for a, b in zip(ref_g, gr))
                 row += [f"{ierr:.1e}", f"{gerr:.1e}", "yes" if finite else "NO"]
             rows.append(row)
             print(row, flush=True)

@@ -2,7 +2,11 @@
 
 EWA splatting as in gsplat 1.5.3: covariance ``R S S R^T`` from the (normalised)
 quaternion and scales, rotated into the camera, projected with the Jacobian of
-the perspective map whose x/y are clamped at 1.3x the field of view; ``eps2d``
+the perspective map whose x/y are clamped at 1.3x the field of view. The 2D
+covariance is formed from its factor ``A = J R_cam R_q S`` as ``A A^T``, its
+determinant as ``|A_0 x A_1|^2``: the same values as gsplat's ``J Sigma J^T`` in
+exact arithmetic, without its cancellation for very anisotropic Gaussians in
+float32 (docs/numerics.md). ``eps2d``
 is added to the 2D covariance; in antialiased mode the opacity is multiplied
 by ``sqrt(det(cov) / det(cov + eps2d I))``. A Gaussian is culled (radii 0,
 other outputs 0) when its depth is outside [near, far], the blurred
@@ -87,7 +91,6 @@ def projection_kernel(scalar, expanded: bool = False):
         Rq = quat_to_rotmat(quats[gi])
         s = scales[gi]
         M = Rq @ wp.diag(s)
-        cov_c = R @ (M @ wp.transpose(M)) @ wp.transpose(R)
 
         K = Ks[c]
         fx = K[0, 0]
@@ -107,14 +110,19 @@ def projection_kernel(scalar, expanded: bool = False):
         ty = z * wp.min(lim_y_pos, wp.max(-lim_y_neg, p[1] * rz))
         J = mat23(fx * rz, scalar(0.0), -fx * tx * rz * rz,
                   scalar(0.0), fy * rz, -fy * ty * rz * rz)
-        cov2d = J @ cov_c @ wp.transpose(J)
-        a = cov2d[0, 0]
-        b = cov2d[0, 1]
-        cc = cov2d[1, 1]
-        det_orig = a * cc - b * b
+        # the 2D covariance from its 2x3 factor A = J R M: sums of squares, and its determinant as
+        # the squared cross product of A's rows (Binet-Cauchy), free of cancellation
+        A = J @ R @ M
+        r0 = vec3(A[0, 0], A[0, 1], A[0, 2])
+        r1 = vec3(A[1, 0], A[1, 1], A[1, 2])
+        a = wp.dot(r0, r0)
+        b = wp.dot(r0, r1)
+        cc = wp.dot(r1, r1)
+        cr = wp.cross(r0, r1)
+        det_orig = wp.dot(cr, cr)
+        det = det_orig + eps2d * (a + cc) + eps2d * eps2d
         a = a + eps2d
         cc = cc + eps2d
-        det = a * cc - b * b
         if det <= scalar(0.0):
             return
         op = opacities[gi]

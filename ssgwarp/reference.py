@@ -7,7 +7,9 @@ images; :func:`rasterization_reference` has the signature of
 :func:`ssgwarp.rasterization`.
 
 Rules (gsplat 1.5.3 classic mode, with :class:`~ssgwarp.RasterSettings` knobs):
-- EWA projection, Jacobian clamped at 1.3x the field of view;
+- EWA projection, Jacobian clamped at 1.3x the field of view; the 2D covariance
+  is formed from its 2x3 factor ``J R M`` (``M = R_q S``) as ``A A^T`` with the
+  determinant as the squared cross product of A's rows (no cancellation);
 - ``eps2d`` added to the 2D covariance (antialiased: opacity times
   ``sqrt(det(cov) / det(cov + eps2d I))``);
 - culled (radii 0, outputs 0): depth outside [near, far], blurred
@@ -75,9 +77,7 @@ def project_reference(means: Tensor, quats: Tensor, scales: Tensor, opacities: T
     zs = torch.where(valid, z, torch.ones_like(z))       # safe z (no inf/nan on culled paths)
 
     Rq = quat_to_rotmat(quats)                           # [N,3,3]
-    M = Rq * scales[:, None, :]
-    cov = M @ M.transpose(-1, -2)                        # [N,3,3]
-    cov_c = R @ cov[None] @ R.transpose(-1, -2)          # [C,N,3,3]
+    M = Rq * scales[:, None, :]                          # covariance = M M^T
 
     fx, fy = Ks[:, 0, 0, None], Ks[:, 1, 1, None]
     cx, cy = Ks[:, 0, 2, None], Ks[:, 1, 2, None]
@@ -91,13 +91,16 @@ def project_reference(means: Tensor, quats: Tensor, scales: Tensor, opacities: T
         fx / zs, zero, -fx * tx / (zs * zs),
         zero, fy / zs, -fy * ty / (zs * zs),
     ], dim=-1).reshape(C, N, 2, 3)
-    cov2d = J @ cov_c @ J.transpose(-1, -2)              # [C,N,2,2]
+    # 2D covariance J R M (J R M)^T from its 2x3 factor: sums of squares, and the determinant as
+    # the squared cross product of the rows (Binet-Cauchy), free of cancellation
+    A = J @ R @ M[None]                                  # [C,N,2,3]
+    r0, r1 = A[..., 0, :], A[..., 1, :]
     mean2d = torch.stack([fx * x / zs + cx, fy * y / zs + cy], dim=-1)
 
-    a, b, c = cov2d[..., 0, 0], cov2d[..., 0, 1], cov2d[..., 1, 1]
-    det_orig = a * c - b * b
+    a, b, c = (r0 * r0).sum(-1), (r0 * r1).sum(-1), (r1 * r1).sum(-1)
+    det_orig = (torch.linalg.cross(r0, r1) ** 2).sum(-1)
+    det = det_orig + eps2d * (a + c) + eps2d * eps2d     # det of the covariance + eps2d I
     a, c = a + eps2d, c + eps2d
-    det = a * c - b * b
     valid = valid & (det > 0)
     dets = torch.where(valid, det, torch.ones_like(det))
     conic = torch.stack([c / dets, -b / dets, a / dets], dim=-1)
