@@ -1,0 +1,809 @@
+"""3DGS reconstruction of a capture: ``ssgwarp reconstruct``.
+
+The 3D Gaussian Splatting recipe (Kerbl et al. 2023), one view per step:
+
+* loss ``(1 - 0.2) L1 + 0.2 D-SSIM`` (:mod:`ssgwarp.losses`);
+* Adam (eps 1e-15), one parameter group per scene tensor with its own learning
+  rate; the position rate decays exponentially from ``1.6e-4`` to ``1.6e-6``
+  times the scene extent over the run;
+* densification every 100 steps from step 500 until ``refine_stop``: Gaussians
+  whose mean screen-space positional gradient (``meta["means2d"].grad``, in NDC
+  units) exceeds ``2e-4`` are cloned when small (max scale <= 1% of the extent)
+  and split in two when large; pruning of nearly transparent (opacity < 0.005)
+  and, after the first opacity reset, too large Gaussians; opacity reset to
+  0.01 every 3000 steps; at most ``max_gaussians`` Gaussians (the highest
+  gradients win when the cap bites);
+* SH degree raised by one every ``sh_interval`` steps up to ``sh_degree``.
+
+Densification works on every tensor the scene holds (identity encodings
+included), so Gaussian Grouping can train jointly through ``hooks``.
+
+Runs are seeded and repeatable (views, split samples and initial identities
+come from dedicated generators), checkpoint atomically to ``OUT/checkpoint.pt``
+every ``checkpoint_every`` steps and on Ctrl-C, and resume bit-exactly
+(``--resume``). A NaN loss stops the run with the step number; the last good
+checkpoint is kept.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import random
+import shutil
+import signal
+import threading
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Callable, Optional, Sequence
+
+import numpy as np
+import torch
+
+from .cameras import Cameras
+from .errors import InputError, SsgwarpError
+from .scene import GaussianScene
+
+log = logging.getLogger("ssgwarp.reconstruct")
+
+CHECKPOINT_FORMAT = "ssgwarp-reconstruct-checkpoint/1"
+OUTPUTS = ("scene.ply", "cameras.json", "data.json", "metrics.json")
+
+
+@dataclass
+class Recipe:
+    """Training knobs; defaults are the 3DGS paper's. Step counts are absolute.
+
+    ``refine_stop`` None means ``min(15000, iters // 2)``; ``sh_interval`` None means
+    ``min(1000, iters // (2 * sh_degree))`` so short runs still reach their degree.
+    """
+
+    lr_means: float = 1.6e-4           # times the scene extent
+    lr_means_final: float = 1.6e-6     # times the scene extent, reached at the last step
+    lr_sh_dc: float = 2.5e-3
+    lr_sh_rest: float = 2.5e-3 / 20.0
+    lr_opacity: float = 0.05
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    lr_identities: float = 2.5e-3
+    adam_eps: float = 1e-15
+    lambda_dssim: float = 0.2
+    sh_interval: Optional[int] = None
+    refine_start: int = 500
+    refine_stop: Optional[int] = None
+    refine_every: int = 100
+    grad_threshold: float = 2e-4       # NDC units (gsplat / INRIA convention)
+    percent_dense: float = 0.01        # clone if max scale <= this x extent, else split
+    split_factor: float = 1.6          # children scales = parent / split_factor
+    prune_opacity: float = 0.005
+    reset_every: int = 3000
+    reset_opacity: float = 0.01
+    prune_world: float = 0.1           # prune when max scale > this x extent (after the first reset)
+    prune_screen_px: float = 20.0      # prune when the 2D radius exceeded this (after the first reset); 0: off
+    init_opacity: float = 0.1
+    init_max_points: Optional[int] = None  # subsample the initial points (None: all)
+    identity_init_std: float = 0.1
+
+    def resolved(self, iters: int, sh_degree: int) -> "Recipe":
+        r = self
+        if r.refine_stop is None:
+            r = replace(r, refine_stop=min(15000, iters // 2))
+        if r.sh_interval is None:
+            r = replace(r, sh_interval=max(1, min(1000, iters // (2 * max(1, sh_degree)))))
+        return r
+
+
+# ----------------------------------------------------------------------------- rendering
+def render_views(scene: GaussianScene, cameras: Cameras, *, sh_degree: int, identities: bool = False,
+                 backgrounds: Optional[torch.Tensor] = None, rasterize: Optional[Callable] = None, **kwargs):
+    """Render ``scene`` from ``cameras`` with a gsplat-compatible ``rasterize`` function.
+
+    Without identities the SH evaluation is left to the rasterizer (``sh_degree``);
+    with them, colours are evaluated here and the identity channels appended
+    (one blending pass). Returns ``(colors [C,H,W,D], alphas [C,H,W,1], meta)``.
+    """
+    if rasterize is None:
+        from .rasterize import rasterization as rasterize
+    C = len(cameras)
+    viewmats = cameras.viewmats.to(scene.dtype)
+    Ks = cameras.Ks.to(scene.dtype)
+    deg = min(sh_degree, scene.sh_degree)
+    if not identities:
+        coeffs = scene.sh_coeffs[:, : (deg + 1) ** 2]
+        return rasterize(scene.means, scene.quats, scene.scales, scene.opacities, coeffs, viewmats, Ks,
+                         cameras.width, cameras.height, sh_degree=deg, backgrounds=backgrounds, **kwargs)
+    from .sh import spherical_harmonics
+    from .scene import sh_dc_to_rgb
+
+    if deg == 0:
+        rgb = sh_dc_to_rgb(scene.sh_dc).clamp_min(0.0)[None].expand(C, -1, -1)
+    else:
+        dirs = scene.means[None] - cameras.centers.to(scene.dtype)[:, None]
+        coeffs = scene.sh_coeffs[:, : (deg + 1) ** 2]
+        rgb = (spherical_harmonics(deg, dirs, coeffs[None].expand(C, -1, -1, -1)) + 0.5).clamp_min(0.0)
+    colors = torch.cat([rgb, scene.identities[None].expand(C, -1, -1)], dim=-1)
+    return rasterize(scene.means, scene.quats, scene.scales, scene.opacities, colors, viewmats, Ks,
+                     cameras.width, cameras.height, backgrounds=backgrounds, **kwargs)
+
+
+# ----------------------------------------------------------------------------- trainer
+class Trainer:
+    """The 3DGS training loop on one :class:`~ssgwarp.datasets.SceneData`.
+
+    Args:
+        data: the capture (its ``train_ids`` are trained on, ``test_ids`` evaluated).
+        scene: initial scene (default: from ``data.points``).
+        iters: total number of steps.
+        sh_degree: final SH degree (0..3).
+        max_gaussians: cap on the number of Gaussians.
+        recipe: :class:`Recipe`.
+        hooks: objects with ``parameters() -> list[param-group dicts]`` and
+            ``loss(step, view_index, identity_render [H,W,E]) -> Tensor``. When a hook
+            is present and the scene has identities, identities are rendered in the
+            same pass as colour, optimised (``recipe.lr_identities``) and densified,
+            and each hook's loss is added. A hook with a ``scene_fn`` attribute gets
+            a callable returning the current scene. ``view_index`` indexes ``data``.
+        identity_dim: give the initial scene identity encodings of this size (random,
+            ``recipe.identity_init_std``) when it has none.
+        checkpoint_path: where checkpoints go (None: no checkpoints).
+        checkpoint_every: steps between checkpoints.
+        rasterize: a gsplat-compatible rasterization function (default ssgwarp's).
+        raster_kwargs: extra keyword arguments for it.
+        device, seed, progress: as usual.
+    """
+
+    def __init__(self, data, *, scene: Optional[GaussianScene] = None, iters: int = 30000, sh_degree: int = 3,
+                 max_gaussians: int = 1_000_000, recipe: Optional[Recipe] = None, hooks: Sequence = (),
+                 identity_dim: Optional[int] = None, checkpoint_path: Optional[str | Path] = None,
+                 checkpoint_every: int = 500, rasterize: Optional[Callable] = None,
+                 raster_kwargs: Optional[dict] = None, device=None, seed: int = 0, progress: bool = True):
+        if iters < 1:
+            raise InputError(f"iters must be >= 1, got {iters}")
+        if not 0 <= sh_degree <= 3:
+            raise InputError(f"sh_degree must be 0..3, got {sh_degree}")
+        if max_gaussians < 1:
+            raise InputError(f"max_gaussians must be >= 1, got {max_gaussians}")
+        if not data.train_ids:
+            raise InputError("no training views")
+        self.device = torch.device(device) if device is not None else data.device
+        self.data = data.to(self.device)
+        self.iters = int(iters)
+        self.sh_degree = int(sh_degree)
+        self.max_gaussians = int(max_gaussians)
+        self.recipe = (recipe or Recipe()).resolved(self.iters, self.sh_degree)
+        self.hooks = list(hooks)
+        self.checkpoint_path = Path(checkpoint_path) if checkpoint_path is not None else None
+        self.checkpoint_every = int(checkpoint_every)
+        self.rasterize = rasterize
+        self.raster_kwargs = dict(raster_kwargs or {})
+        if rasterize is None:
+            self.raster_kwargs.setdefault("validate", False)  # the loss is checked for NaN every step
+        self.seed = int(seed)
+        self.progress = progress
+        self.extent = float(self.data.extent)
+        self.step = 0
+        self.elapsed = 0.0
+        self.last_checkpoint_step: Optional[int] = None
+        self._stop = False
+        self.history: list[dict] = []
+
+        self.view_gen = torch.Generator().manual_seed(self.seed)
+        self.split_gen = torch.Generator().manual_seed(self.seed + 1)
+        self._queue: list[int] = []
+        self._bg: dict[int, torch.Tensor] = {}
+
+        if scene is None:
+            scene = self._initial_scene()
+        if scene.sh_degree != self.sh_degree:
+            scene = scene.with_sh_degree(self.sh_degree)
+        if identity_dim and scene.identities is None:
+            g = torch.Generator().manual_seed(self.seed + 2)
+            ids = torch.randn(len(scene), int(identity_dim), generator=g) * self.recipe.identity_init_std
+            scene = scene.replace(identities=ids.to(scene.device, scene.dtype))
+        scene = scene.to(self.device, torch.float32)
+        if self.hooks and scene.identities is None:
+            log.warning("hooks given but the scene has no identity encodings (pass identity_dim): "
+                        "their losses are not used")
+        self._build_optimizer(scene)
+        self._reset_stats()
+        for h in self.hooks:
+            if hasattr(h, "scene_fn"):
+                h.scene_fn = lambda: self.scene
+
+    # -- state --------------------------------------------------------------------------------
+    def _initial_scene(self) -> GaussianScene:
+        if self.data.points is None:
+            raise InputError("the capture has no initial points (and none were generated); pass a scene")
+        xyz, rgb = self.data.points
+        xyz, rgb = xyz.float().cpu(), rgb.float().cpu()
+        m = self.recipe.init_max_points
+        if m is not None and len(xyz) > m:
+            g = torch.Generator().manual_seed(self.seed + 3)
+            idx = torch.randperm(len(xyz), generator=g)[:m].sort().values
+            xyz, rgb = xyz[idx], rgb[idx]
+        if len(xyz) == 0:
+            raise InputError("the capture has an empty point cloud")
+        return GaussianScene.from_points(xyz.to(self.device), rgb.to(self.device), sh_degree=0,
+                                         opacity=self.recipe.init_opacity)
+
+    def _lr(self, name: str) -> float:
+        r = self.recipe
+        return {"means": r.lr_means * self.extent, "log_scales": r.lr_scales, "quats": r.lr_quats,
+                "logit_opacities": r.lr_opacity, "sh_dc": r.lr_sh_dc, "sh_rest": r.lr_sh_rest,
+                "identities": r.lr_identities}[name]
+
+    def _build_optimizer(self, scene: GaussianScene) -> None:
+        self.params: dict[str, torch.nn.Parameter] = {
+            k: torch.nn.Parameter(v.detach().clone().contiguous()) for k, v in scene.tensors().items()}
+        groups = [{"params": [p], "lr": self._lr(k), "name": k} for k, p in self.params.items()]
+        self.opt = torch.optim.Adam(groups, eps=self.recipe.adam_eps)
+        self._groups = {g["name"]: g for g in self.opt.param_groups}
+        hook_groups = []
+        for h in self.hooks:
+            hook_groups.extend(h.parameters())
+        self.hook_opt = torch.optim.Adam(hook_groups) if hook_groups else None
+
+    def _hook_params(self) -> list[torch.Tensor]:
+        if self.hook_opt is None:
+            return []
+        return [p for g in self.hook_opt.param_groups for p in g["params"]]
+
+    def _reset_stats(self) -> None:
+        n = len(self.params["means"])
+        self.grad2d = torch.zeros(n, device=self.device)
+        self.count = torch.zeros(n, device=self.device)
+        self.max_radii = torch.zeros(n, device=self.device)
+
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.params["means"].shape[0])
+
+    @property
+    def active_sh_degree(self) -> int:
+        return min(self.sh_degree, self.step // max(1, self.recipe.sh_interval))
+
+    @property
+    def scene(self) -> GaussianScene:
+        """The current scene (tensors are the live parameters)."""
+        p = self.params
+        return GaussianScene(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], p["sh_dc"],
+                             p.get("sh_rest"), p.get("identities"), self.sh_degree)
+
+    def final_scene(self) -> GaussianScene:
+        """A detached copy of the scene."""
+        return self.scene.detach()
+
+    # -- parameter surgery (generic over every tensor the scene holds) -----------------------------
+    def _set(self, name: str, value: torch.Tensor, state_fn: Callable[[torch.Tensor], torch.Tensor]) -> None:
+        group = self._groups[name]
+        old = group["params"][0]
+        st = self.opt.state.pop(old, None)
+        p = torch.nn.Parameter(value.detach().contiguous())
+        group["params"][0] = p
+        if st is not None:
+            self.opt.state[p] = {k: (state_fn(v) if torch.is_tensor(v) and v.shape == old.shape else v)
+                                 for k, v in st.items()}
+        self.params[name] = p
+
+    def _keep(self, mask: torch.Tensor) -> None:
+        for name in list(self.params):
+            self._set(name, self.params[name].data[mask], lambda s: s[mask])
+        self.grad2d, self.count, self.max_radii = self.grad2d[mask], self.count[mask], self.max_radii[mask]
+
+    def _append(self, new: dict[str, torch.Tensor]) -> None:
+        k = next(iter(new.values())).shape[0]
+        for name in list(self.params):
+            t = new[name]
+
+            def grow(s: torch.Tensor, k=k) -> torch.Tensor:
+                return torch.cat([s, torch.zeros((k,) + tuple(s.shape[1:]), dtype=s.dtype, device=s.device)])
+            self._set(name, torch.cat([self.params[name].data, t]), grow)
+        z = torch.zeros(k, device=self.device)
+        self.grad2d, self.count, self.max_radii = (torch.cat([self.grad2d, z]), torch.cat([self.count, z]),
+                                                   torch.cat([self.max_radii, z]))
+
+    @torch.no_grad()
+    def _refine(self) -> dict:
+        r = self.recipe
+        n0 = self.num_gaussians
+        avg = self.grad2d / self.count.clamp_min(1.0)
+        high = (avg >= r.grad_threshold) & (self.count > 0)
+        max_scale = torch.exp(self.params["log_scales"].data).max(dim=1).values
+        small = max_scale <= r.percent_dense * self.extent
+        budget = max(0, self.max_gaussians - n0)
+        if int(high.sum()) > budget:  # the cap: keep the highest gradients
+            idx = torch.nonzero(high)[:, 0]
+            top = idx[avg[idx].argsort(descending=True, stable=True)[:budget]]
+            high = torch.zeros_like(high)
+            high[top] = True
+        clone = high & small
+        split = high & ~small
+        n_clone, n_split = int(clone.sum()), int(split.sum())
+        if n_clone:
+            self._append({k: v.data[clone] for k, v in self.params.items()})
+        if n_split:
+            pad = torch.zeros(self.num_gaussians - n0, dtype=torch.bool, device=self.device)
+            sel = torch.cat([split, pad])
+            children = self._split_children(sel)
+            self._append(children)
+            keep = torch.ones(self.num_gaussians, dtype=torch.bool, device=self.device)
+            keep[: sel.shape[0]] = ~sel
+            self._keep(keep)
+        # prune
+        opac = torch.sigmoid(self.params["logit_opacities"].data)
+        prune = opac < r.prune_opacity
+        if self.step > r.reset_every:
+            big = torch.exp(self.params["log_scales"].data).max(dim=1).values > r.prune_world * self.extent
+            if r.prune_screen_px > 0:
+                big |= self.max_radii > r.prune_screen_px
+            prune |= big
+        n_prune = int(prune.sum())
+        if n_prune and n_prune < self.num_gaussians:
+            self._keep(~prune)
+        else:
+            n_prune = 0
+        self._reset_stats()
+        return {"clone": n_clone, "split": n_split, "prune": n_prune}
+
+    def _split_children(self, sel: torch.Tensor) -> dict[str, torch.Tensor]:
+        from .reference import quat_to_rotmat
+
+        p = {k: v.data[sel] for k, v in self.params.items()}
+        m = int(sel.sum())
+        scales = torch.exp(p["log_scales"])
+        noise = torch.randn(2, m, 3, generator=self.split_gen).to(self.device)
+        R = quat_to_rotmat(p["quats"])
+        offsets = torch.einsum("nij,bnj->bni", R, noise * scales[None])
+        out = {}
+        for k, v in p.items():
+            if k == "means":
+                out[k] = (v[None] + offsets).reshape(2 * m, 3)
+            elif k == "log_scales":
+                out[k] = (v - math.log(self.recipe.split_factor)).repeat(2, 1)
+            else:
+                out[k] = v.repeat((2,) + (1,) * (v.ndim - 1))
+        return out
+
+    @torch.no_grad()
+    def _reset_opacity(self) -> None:
+        cap = math.log(self.recipe.reset_opacity / (1.0 - self.recipe.reset_opacity))
+        v = self.params["logit_opacities"].data.clamp_max(cap)
+        self._set("logit_opacities", v, torch.zeros_like)
+
+    # -- training -------------------------------------------------------------------------------
+    def _next_view(self) -> int:
+        if not self._queue:
+            ids = torch.as_tensor(self.data.train_ids)
+            self._queue = ids[torch.randperm(len(ids), generator=self.view_gen)].tolist()
+        return self._queue.pop()
+
+    def _set_lrs(self) -> None:
+        r = self.recipe
+        t = min(1.0, self.step / max(1, self.iters))
+        lr0, lr1 = r.lr_means * self.extent, r.lr_means_final * self.extent
+        self._groups["means"]["lr"] = math.exp(math.log(lr0) * (1 - t) + math.log(lr1) * t)
+
+    def train_step(self) -> dict:
+        """One optimisation step (``self.step`` counts completed steps)."""
+        from .losses import dssim, l1
+
+        r = self.recipe
+        vi = self._next_view()
+        self._set_lrs()
+        cam = self.data.cameras[vi]
+        gt = self.data.images[vi][None]
+        scene = self.scene
+        with_ids = bool(self.hooks) and scene.identities is not None
+        ch = 3 + (scene.identities.shape[1] if with_ids else 0)
+        bg = self._bg.get(ch)
+        if bg is None:
+            bg = self._bg[ch] = self.data.background_tensor(ch)[None]
+        try:
+            out, alphas, meta = render_views(scene, cam, sh_degree=self.active_sh_degree, identities=with_ids,
+                                             backgrounds=bg, rasterize=self.rasterize, **self.raster_kwargs)
+        except ValueError as e:
+            if "NaN" in str(e) or "Inf" in str(e):
+                self._diverged(str(e))
+            raise
+        means2d = meta["means2d"]
+        if means2d.requires_grad:
+            means2d.retain_grad()
+        img = out[..., :3]
+        loss = (1.0 - r.lambda_dssim) * l1(img, gt) + r.lambda_dssim * dssim(img, gt)
+        hook_losses = []
+        if with_ids:
+            for h in self.hooks:
+                hook_losses.append(h.loss(self.step, vi, out[0, ..., 3:]))
+        total = loss + sum(hook_losses) if hook_losses else loss
+        if not bool(torch.isfinite(total)):
+            self._diverged("the loss is NaN/inf")
+        total.backward()
+        with torch.no_grad():
+            self._accumulate(meta, cam.width, cam.height)
+        self.opt.step()
+        self.opt.zero_grad(set_to_none=True)
+        if self.hook_opt is not None:
+            self.hook_opt.step()
+            self.hook_opt.zero_grad(set_to_none=True)
+        self.step += 1
+        info = {"loss": total.detach(), "mse": ((img.detach().clamp(0, 1) - gt) ** 2).mean()}
+        step = self.step
+        if r.refine_start <= step < r.refine_stop and step % r.refine_every == 0:
+            info["refine"] = self._refine()
+        if step < r.refine_stop and step % r.reset_every == 0:
+            self._reset_opacity()
+        return info
+
+    def _accumulate(self, meta: dict, width: int, height: int) -> None:
+        g = meta["means2d"].grad
+        if g is None:
+            return
+        radii = meta["radii"]
+        vis = (radii > 0).all(dim=-1) if radii.ndim == 3 else radii > 0          # [C, N]
+        c = g.shape[0]
+        scale = torch.tensor([width / 2.0 * c, height / 2.0 * c], device=g.device, dtype=g.dtype)
+        norms = (g * scale).norm(dim=-1)                                          # [C, N]
+        self.grad2d += (norms * vis).sum(dim=0).to(self.grad2d.dtype)
+        self.count += vis.sum(dim=0).to(self.count.dtype)
+        rmax = (radii.max(dim=-1).values if radii.ndim == 3 else radii).to(self.max_radii.dtype)
+        self.max_radii = torch.maximum(self.max_radii, rmax.max(dim=0).values)
+
+    def _diverged(self, why: str) -> None:
+        where = (f"the last good checkpoint (step {self.last_checkpoint_step}) is kept at {self.checkpoint_path}"
+                 if self.last_checkpoint_step is not None else "no checkpoint was written yet")
+        raise SsgwarpError(f"training diverged at step {self.step + 1} ({why}); {where}; try a lower learning "
+                           f"rate, another --seed, or --resume from the checkpoint")
+
+    def train(self, until: Optional[int] = None) -> GaussianScene:
+        """Train up to step ``until`` (default ``iters``); checkpoints on the way and on Ctrl-C."""
+        from tqdm import tqdm
+
+        until = self.iters if until is None else min(int(until), self.iters)
+        old_handler = None
+        if threading.current_thread() is threading.main_thread():
+            def on_sigint(signum, frame):
+                if self._stop:  # second Ctrl-C: stop now
+                    raise KeyboardInterrupt
+                self._stop = True
+            old_handler = signal.signal(signal.SIGINT, on_sigint)
+        bar = tqdm(total=until, initial=self.step, desc="reconstruct", unit="step", disable=not self.progress,
+                   dynamic_ncols=True)
+        t0 = time.time() - self.elapsed
+        ema_psnr = None
+        clean = False
+        try:
+            while self.step < until:
+                info = self.train_step()
+                self.elapsed = time.time() - t0
+                bar.update(1)
+                if self.step % 10 == 0 or self.step == until:
+                    mse = float(info["mse"])
+                    p = -10.0 * math.log10(max(mse, 1e-10))
+                    ema_psnr = p if ema_psnr is None else 0.9 * ema_psnr + 0.1 * p
+                    bar.set_postfix(loss=f"{float(info['loss']):.4f}", psnr=f"{ema_psnr:.2f}",
+                                    gaussians=self.num_gaussians, sh=self.active_sh_degree, refresh=False)
+                    self.history.append({"step": self.step, "loss": float(info["loss"]), "psnr": p,
+                                         "gaussians": self.num_gaussians})
+                if self.checkpoint_path is not None and self.checkpoint_every > 0 \
+                        and self.step % self.checkpoint_every == 0:
+                    self.save_checkpoint()
+                if self._stop:  # Ctrl-C arrived during this step: it finished cleanly, save it
+                    self.elapsed = time.time() - t0
+                    if self.checkpoint_path is not None:
+                        self.save_checkpoint()
+                        log.warning("interrupted at step %d; checkpoint saved to %s (rerun with --resume)",
+                                    self.step, self.checkpoint_path)
+                    clean = True
+                    raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            if not clean:
+                # stopped inside a step (second Ctrl-C): its state may be half-updated, keep the last checkpoint
+                log.warning("interrupted inside step %d; the last checkpoint (step %s) is kept", self.step + 1,
+                            self.last_checkpoint_step)
+            raise
+        finally:
+            bar.close()
+            if old_handler is not None:
+                signal.signal(signal.SIGINT, old_handler)
+            self._stop = False
+        if self.checkpoint_path is not None and self.last_checkpoint_step != self.step:
+            self.save_checkpoint()
+        return self.final_scene()
+
+    # -- checkpoints ----------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        npst = np.random.get_state()
+        rng = {"torch": torch.get_rng_state(),
+               "numpy": [npst[0], torch.from_numpy(npst[1].astype(np.int64)), int(npst[2]), int(npst[3]),
+                         float(npst[4])],
+               "python": random.getstate(),
+               "view": self.view_gen.get_state(), "split": self.split_gen.get_state()}
+        if torch.cuda.is_available():
+            rng["cuda"] = torch.cuda.get_rng_state_all()
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "step": self.step,
+            "iters": self.iters,
+            "sh_degree": self.sh_degree,
+            "max_gaussians": self.max_gaussians,
+            "seed": self.seed,
+            "elapsed": self.elapsed,
+            "recipe": asdict(self.recipe),
+            "names": list(self.data.names),
+            "params": {k: v.detach().cpu() for k, v in self.params.items()},
+            "optimizer": _to_cpu(self.opt.state_dict()),
+            "hook_params": [p.detach().cpu() for p in self._hook_params()],
+            "hook_optimizer": _to_cpu(self.hook_opt.state_dict()) if self.hook_opt is not None else None,
+            "stats": {"grad2d": self.grad2d.cpu(), "count": self.count.cpu(), "max_radii": self.max_radii.cpu()},
+            "queue": list(self._queue),
+            "rng": rng,
+            "history": self.history[-1000:],
+        }
+
+    def save_checkpoint(self, path: Optional[str | Path] = None) -> Path:
+        from .fileio import atomic_path
+
+        path = Path(path) if path is not None else self.checkpoint_path
+        if path is None:
+            raise ValueError("no checkpoint path")
+        state = self.state_dict()
+        with atomic_path(path) as tmp:
+            torch.save(state, tmp)
+        self.last_checkpoint_step = self.step
+        return path
+
+    def load_state_dict(self, st: dict) -> None:
+        if st.get("format") != CHECKPOINT_FORMAT:
+            raise InputError(f"not a reconstruction checkpoint (format {st.get('format')!r})")
+        if list(st["names"]) != list(self.data.names):
+            raise InputError("the checkpoint was trained on other images than this capture's "
+                             "(different --images/--max-images?); use --force to start over")
+        if int(st["sh_degree"]) != self.sh_degree:
+            raise InputError(f"the checkpoint has SH degree {st['sh_degree']}, not {self.sh_degree}; "
+                             f"pass --sh-degree {st['sh_degree']} to resume it")
+        saved = set(st["params"])
+        if saved != set(self.params):
+            raise InputError(f"the checkpoint holds {sorted(saved)}, this run {sorted(self.params)}")
+        scene = GaussianScene(**{k: v for k, v in st["params"].items()}, sh_degree=self.sh_degree)
+        self._build_optimizer(scene.to(self.device))
+        self.opt.load_state_dict(st["optimizer"])
+        self._groups = {g["name"]: g for g in self.opt.param_groups}  # load_state_dict makes new group dicts
+        hp = self._hook_params()
+        if len(hp) != len(st["hook_params"]):
+            raise InputError("the checkpoint's hook parameters do not match this run's hooks")
+        with torch.no_grad():
+            for p, v in zip(hp, st["hook_params"]):
+                p.copy_(v.to(p.device))
+        if self.hook_opt is not None and st["hook_optimizer"] is not None:
+            self.hook_opt.load_state_dict(st["hook_optimizer"])
+        self.grad2d = st["stats"]["grad2d"].to(self.device)
+        self.count = st["stats"]["count"].to(self.device)
+        self.max_radii = st["stats"]["max_radii"].to(self.device)
+        self.step = int(st["step"])
+        self.elapsed = float(st.get("elapsed", 0.0))
+        self._queue = list(st["queue"])
+        rng = st["rng"]
+        torch.set_rng_state(rng["torch"])
+        kind, keys, pos, has_gauss, cached = rng["numpy"]
+        np.random.set_state((kind, keys.numpy().astype(np.uint32), pos, has_gauss, cached))
+        random.setstate(rng["python"])
+        self.view_gen.set_state(rng["view"])
+        self.split_gen.set_state(rng["split"])
+        if "cuda" in rng and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(rng["cuda"])
+        self.history = list(st.get("history", []))
+        self.last_checkpoint_step = self.step
+
+    def load_checkpoint(self, path: Optional[str | Path] = None) -> None:
+        path = Path(path) if path is not None else self.checkpoint_path
+        try:
+            st = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as e:
+            raise InputError(f"{path}: unreadable checkpoint ({str(e).splitlines()[0] if str(e) else type(e).__name__});"
+                             f" use --force to start over") from None
+        if not isinstance(st, dict):
+            raise InputError(f"{path}: not a reconstruction checkpoint")
+        try:
+            self.load_state_dict(st)
+        except KeyError as e:
+            raise InputError(f"{path}: checkpoint lacks {e}; use --force to start over") from None
+        log.info("resumed from %s at step %d", path, self.step)
+
+    # -- evaluation -----------------------------------------------------------------------------
+    @torch.no_grad()
+    def render(self, ids: Sequence[int]) -> torch.Tensor:
+        """``[len(ids), H, W, 3]`` renders of the data's views ``ids`` at the final SH degree."""
+        scene = self.scene.detach()
+        out = []
+        bg = self.data.background_tensor(3)[None]
+        for i in ids:
+            img, _, _ = render_views(scene, self.data.cameras[i], sh_degree=self.sh_degree, backgrounds=bg,
+                                     rasterize=self.rasterize, **self.raster_kwargs)
+            out.append(img[0, ..., :3].clamp(0.0, 1.0))
+        return torch.stack(out) if out else torch.zeros(0, self.data.height, self.data.width, 3)
+
+    @torch.no_grad()
+    def evaluate(self, ids: Optional[Sequence[int]] = None, lpips=None) -> dict:
+        """PSNR / SSIM (and LPIPS when a model is given) over the views ``ids`` (default: test views)."""
+        from .losses import psnr, ssim
+
+        ids = list(self.data.test_ids if ids is None else ids)
+        per = []
+        for i in ids:
+            pred = self.render([i])
+            gt = self.data.images[i][None]
+            row = {"name": self.data.names[i], "psnr": float(psnr(pred, gt)), "ssim": float(ssim(pred, gt))}
+            if lpips is not None:
+                row["lpips"] = float(lpips(pred.permute(0, 3, 1, 2), gt.permute(0, 3, 1, 2)).mean())
+            per.append(row)
+        out = {"views": len(per), "per_view": per}
+        for k in ("psnr", "ssim", "lpips"):
+            vals = [r[k] for r in per if k in r]
+            out[k] = float(np.mean(vals)) if vals else None
+        return out
+
+
+def _to_cpu(obj):
+    if torch.is_tensor(obj):
+        return obj.detach().cpu()
+    if isinstance(obj, dict):
+        return {k: _to_cpu(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_to_cpu(v) for v in obj]
+    return obj
+
+
+# ----------------------------------------------------------------------------- the stage
+def _lpips_model(device):
+    """LPIPS from local weights, or ``(None, reason)``."""
+    from . import weights
+
+    if weights.find("lpips") is None or weights.find("vgg16") is None:
+        return None, ("skipped: no local LPIPS weights (set SSGWARP_LPIPS and SSGWARP_VGG16, "
+                      "or put them under $SSGWARP_WEIGHTS)")
+    try:
+        from .metrics import load_lpips
+
+        return load_lpips(device=device), None
+    except Exception as e:  # weights present but unusable: report, do not fail the run
+        return None, f"skipped: LPIPS weights could not be loaded ({str(e).splitlines()[0] if str(e) else e})"
+
+
+def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, images: str = "images",
+                sh_degree: int = 3, max_gaussians: int = 1_000_000, resume: bool = False, force: bool = False,
+                device=None, seed: int = 0, hooks: Sequence = (), identity_dim: Optional[int] = None,
+                split_every: int = 8, width: Optional[int] = None, max_images: Optional[int] = None,
+                background: Optional[Sequence[float]] = None, recipe: Optional[Recipe] = None,
+                checkpoint_every: int = 500, num_random_points: int = 100_000,
+                rasterize: Optional[Callable] = None, raster_kwargs: Optional[dict] = None,
+                progress: bool = True, data=None) -> dict:
+    """Reconstruct the capture in ``data_dir`` into the run folder ``out`` (what the CLI runs).
+
+    Writes ``out/scene.ply``, ``cameras.json``, ``data.json``, ``metrics.json`` (and keeps
+    ``out/checkpoint.pt``). Existing outputs are never overwritten unless ``force``
+    (which starts over) or ``resume`` (which continues from the checkpoint).
+    ``data`` may be a preloaded :class:`~ssgwarp.datasets.SceneData` of ``data_dir``.
+    Returns the metrics dict.
+    """
+    from .datasets import data_json, load_dataset
+    from .fileio import write_json
+    from .ply import write_ply
+
+    out = Path(out).expanduser()
+    device = torch.device(device) if device is not None else torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    ckpt = out / "checkpoint.pt"
+    existing = [f for f in OUTPUTS + ("checkpoint.pt",) if (out / f).exists()]
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out}: exists and is not a folder")
+    if existing and not (force or resume):
+        raise SsgwarpError(f"{out} already holds a reconstruction ({', '.join(existing)}); pass --force to "
+                           f"overwrite it or --resume to continue it")
+    # load and validate everything before touching the output folder
+    if data is None:
+        kw = {} if background is None else {"background": background}
+        data = load_dataset(data_dir, images=images, split_every=split_every, max_images=max_images, width=width,
+                            num_random_points=num_random_points, seed=seed, **kw)
+    trainer = Trainer(data, iters=iters, sh_degree=sh_degree, max_gaussians=max_gaussians, recipe=recipe,
+                      hooks=hooks, identity_dim=identity_dim, checkpoint_path=ckpt,
+                      checkpoint_every=checkpoint_every, rasterize=rasterize, raster_kwargs=raster_kwargs,
+                      device=device, seed=seed, progress=progress)
+    if resume and ckpt.is_file() and not force:
+        trainer.load_checkpoint(ckpt)
+        if trainer.step >= iters:
+            log.info("the checkpoint is already at step %d: writing outputs only", trainer.step)
+    elif resume and not force:
+        if existing:
+            raise SsgwarpError(f"{out}: nothing to resume (no checkpoint.pt); pass --force to start over")
+        log.info("no checkpoint in %s: starting from scratch", out)
+    if force:
+        for f in existing:
+            p = out / f
+            p.unlink() if p.is_file() else shutil.rmtree(p)
+    out.mkdir(parents=True, exist_ok=True)
+
+    if torch.cuda.is_available() and device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    trainer.train()
+    scene = trainer.final_scene()
+
+    lpips, lpips_note = _lpips_model(device)
+    ev = trainer.evaluate(lpips=lpips)
+    metrics = {
+        "psnr": ev["psnr"], "ssim": ev["ssim"], "lpips": ev["lpips"],
+        "test_views": ev["views"],
+        "num_gaussians": len(scene),
+        "train_seconds": round(trainer.elapsed, 2),
+        "iters": trainer.step,
+        "sh_degree": scene.sh_degree,
+        "identity_dim": None if scene.identities is None else int(scene.identities.shape[1]),
+        "seed": seed,
+        "device": str(device),
+        "resolution": [data.width, data.height],
+        "per_view": ev["per_view"],
+    }
+    if ev["views"] == 0:
+        metrics["note"] = "no held-out views (split_every=0 or a single image): PSNR/SSIM not measured"
+    if lpips_note:
+        metrics["lpips_note"] = lpips_note
+    if device.type == "cuda" and torch.cuda.is_available():
+        metrics["peak_gpu_memory_mb"] = round(torch.cuda.max_memory_allocated(device) / 2**20, 1)
+
+    write_ply(out / "scene.ply", scene)
+    data.cameras.to("cpu").save(out / "cameras.json")
+    write_json(out / "data.json", data_json(data, seed=seed))
+    write_json(out / "metrics.json", metrics)
+    log.info("wrote %s: %d Gaussians, held-out PSNR %s", out, len(scene),
+             "n/a" if metrics["psnr"] is None else f"{metrics['psnr']:.2f} dB")
+    return metrics
+
+
+# ----------------------------------------------------------------------------- CLI
+def _background(s: str) -> tuple[float, float, float]:
+    named = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
+    if s in named:
+        return named[s]
+    try:
+        v = tuple(float(x) for x in s.split(","))
+    except ValueError:
+        v = ()
+    if len(v) != 3:
+        raise InputError(f"--background {s!r}: expected white, black or R,G,B in [0, 1]")
+    return v  # type: ignore[return-value]
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("data_dir", type=Path, help="the capture: COLMAP (sparse/0), LLFF (poses_bounds.npy) "
+                        "or NeRF/instant-ngp (transforms*.json) folder")
+    parser.add_argument("--out", type=Path, required=True, help="run folder to write")
+    parser.add_argument("--iters", type=int, default=30000, help="training steps (default 30000; 7000 is a quick run)")
+    parser.add_argument("--images", default="images", help="image sub-folder, e.g. images_4 or images_8 (default images)")
+    parser.add_argument("--width", type=int, default=None, help="resize images to this width (default: as loaded)")
+    parser.add_argument("--sh-degree", type=int, default=3, help="final SH degree 0..3 (default 3)")
+    parser.add_argument("--max-gaussians", type=int, default=1_000_000, help="cap on the number of Gaussians")
+    parser.add_argument("--split-every", type=int, default=8,
+                        help="hold out every N-th image for testing (default 8, the LLFF convention; 0: none)")
+    parser.add_argument("--max-images", type=int, default=None, help="use at most this many images (evenly spaced)")
+    parser.add_argument("--background", type=_background, default=None,
+                        help="white, black or R,G,B: what RGBA images are composited on (default white)")
+    parser.add_argument("--random-points", type=int, default=100_000,
+                        help="initial points when the capture has no point cloud (default 100000)")
+    parser.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints (default 500)")
+    parser.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    parser.add_argument("--force", action="store_true", help="overwrite an existing run in OUT")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args) -> int:
+    if args.resume and args.force:
+        raise InputError("--resume and --force exclude each other")
+    logging.basicConfig(level=logging.INFO, format="ssgwarp: %(message)s")
+    m = reconstruct(args.data_dir, args.out, iters=args.iters, images=args.images, sh_degree=args.sh_degree,
+                    max_gaussians=args.max_gaussians, resume=args.resume, force=args.force, device=args.device,
+                    seed=args.seed, split_every=args.split_every, width=args.width, max_images=args.max_images,
+                    background=args.background, checkpoint_every=args.checkpoint_every,
+                    num_random_points=args.random_points, progress=not args.no_progress)
+    ps = "n/a" if m["psnr"] is None else f"{m['psnr']:.2f} dB"
+    ss = "n/a" if m["ssim"] is None else f"{m['ssim']:.4f}"
+    print(f"{args.out}: {m['num_gaussians']} Gaussians, held-out PSNR {ps}, SSIM {ss}, "
+          f"{m['train_seconds']:.0f} s")
+    return 0

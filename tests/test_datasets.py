@@ -1,0 +1,320 @@
+"""Loaders: COLMAP (text, written here; binary, shared data), LLFF and transforms.json.
+
+Checks the camera conventions against hand-built poses, intrinsics scaling to the
+loaded resolution, RGBA compositing, lens undistortion against an analytic pattern,
+the every-8th split, errors that name what is missing, and -- on the shared real
+captures -- that the sparse points land on pixels of their own colour."""
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from ssgwarp.colmap import ColmapCamera, ColmapImage, ColmapPoints, rotmat_to_qvec, write_model_text
+from ssgwarp.datasets import SceneData, detect_format, load_dataset
+from ssgwarp.errors import InputError
+from ssgwarp.fileio import write_image
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+needs = lambda name: pytest.mark.skipif(not (DATA / name).is_dir(), reason="shared data not present")  # noqa: E731
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """These tensors are tiny: one thread is faster, and immune to a busy machine's OpenMP spinning."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def _look(eye, target, up=(0.0, 1.0, 0.0)):
+    """OpenCV world-to-camera [4,4] (float64 numpy)."""
+    from ssgwarp.cameras import look_at
+
+    return look_at(torch.tensor([eye], dtype=torch.float64), torch.tensor([target], dtype=torch.float64), up)[0].numpy()
+
+
+# ----------------------------------------------------------------------------- COLMAP text
+def _colmap_scene(root: Path, n=9, w=32, h=24, full=(64, 48), folder="images", ext=".png", model="PINHOLE"):
+    rng = np.random.default_rng(0)
+    cams = {1: ColmapCamera(1, model, full[0], full[1],
+                            np.array({"PINHOLE": [60.0, 62.0, 32.0, 24.0],
+                                      "SIMPLE_PINHOLE": [60.0, 32.0, 24.0]}[model]))}
+    images, views = {}, []
+    for i in range(n):
+        a = 2 * np.pi * i / n
+        V = _look([3 * np.cos(a), 0.5, 3 * np.sin(a)], [0, 0, 0])
+        views.append(V)
+        images[i + 1] = ColmapImage(i + 1, rotmat_to_qvec(V[:3, :3]), V[:3, 3], 1, f"view_{(n - i):02d}.jpg")
+        write_image(root / folder / f"view_{(n - i):02d}{ext}", rng.uniform(0, 1, (h, w, 3)).astype(np.float32))
+    pts = ColmapPoints(np.arange(5), rng.normal(size=(5, 3)) * 0.3, rng.integers(0, 255, (5, 3)).astype(np.uint8),
+                       np.zeros(5), np.zeros(5, np.int64))
+    write_model_text(root / "sparse" / "0", cams, images, pts)
+    return cams, images, views, pts
+
+
+def test_colmap_text_capture(tmp_path):
+    cams, images, views, pts = _colmap_scene(tmp_path)
+    assert detect_format(tmp_path) == "colmap"
+    d = load_dataset(tmp_path, split_every=4)
+    assert isinstance(d, SceneData) and d.format == "colmap" and not d.undistorted
+    # sorted by name; files found under another extension (.png for a .jpg name)
+    assert d.names == sorted(f"view_{i:02d}.png" for i in range(1, 10))
+    assert d.images.shape == (9, 24, 32, 3) and d.images.dtype == torch.float32
+    assert d.test_ids == [0, 4, 8] and d.train_ids == [1, 2, 3, 5, 6, 7]
+    # intrinsics scaled from the 64x48 model to the 32x24 images
+    assert torch.allclose(d.cameras.Ks[0], torch.tensor([[30.0, 0, 16.0], [0, 31.0, 12.0], [0, 0, 1]]))
+    by_name = {im.name.replace(".jpg", ".png"): i for i, im in enumerate(images.values())}
+    for j, name in enumerate(d.names):
+        assert np.allclose(d.cameras.viewmats[j].double().numpy(), views[by_name[name]], atol=1e-6)
+    assert d.points_source == "colmap"
+    assert torch.allclose(d.points[0], torch.from_numpy(pts.xyz).float())
+    assert torch.allclose(d.points[1] * 255, torch.from_numpy(pts.rgb).float())
+    assert 2.0 < d.near < d.far < 4.5  # depth range of the points from the cameras
+    # max_images keeps an evenly spaced subset, resize keeps the aspect ratio
+    d2 = load_dataset(tmp_path, max_images=3, width=16)
+    assert d2.names == [d.names[0], d.names[4], d.names[8]] and (d2.width, d2.height) == (16, 12)
+    assert torch.allclose(d2.cameras.Ks[0, 0, 0], torch.tensor(15.0))
+
+
+def test_colmap_images_n_folder_and_missing_images(tmp_path):
+    _colmap_scene(tmp_path, folder="images_2", w=32, h=24, full=(64, 48))
+    with pytest.raises(InputError, match=r"image folder not found; available: images_2 \(pass --images images_2\)"):
+        load_dataset(tmp_path)
+    d = load_dataset(tmp_path, images="images_2")
+    assert d.width == 32 and d.image_dir == "images_2"
+    (tmp_path / "images_2" / "view_03.png").unlink()
+    (tmp_path / "images_2" / "view_07.png").unlink()
+    with pytest.raises(InputError, match=r"2 image\(s\) referenced by .* are missing .*view_03\.jpg, view_07\.jpg"):
+        load_dataset(tmp_path, images="images_2")
+
+
+def _pattern(xn, yn):
+    return np.stack([0.5 + 0.35 * np.sin(5 * xn) * np.cos(4 * yn), 0.5 + 0.35 * np.cos(6 * xn + 1),
+                     0.5 + 0.35 * np.sin(7 * yn + 0.5)], axis=-1).astype(np.float32)
+
+
+def _distort(x, y, k1, k2, p1, p2):
+    r2 = x * x + y * y
+    rad = 1 + k1 * r2 + k2 * r2 * r2
+    return x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x), y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+
+
+def test_opencv_distortion_is_removed(tmp_path, caplog):
+    """A distorted capture of an analytic pattern comes out as the pattern seen by a pinhole camera."""
+    w, h, f, cx, cy = 64, 48, 40.0, 32.0, 24.0
+    dist = (0.12, -0.03, 0.004, -0.003)
+    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    xd, yd = (u - cx) / f, (v - cy) / f
+    xu, yu = xd.copy(), yd.copy()
+    for _ in range(50):  # invert the distortion by fixed-point iteration
+        dx, dy = _distort(xu, yu, *dist)
+        xu, yu = xu - (dx - xd), yu - (dy - yd)
+    raw = _pattern(xu, yu)
+    cams = {1: ColmapCamera(1, "OPENCV", w, h, np.array([f, f, cx, cy, *dist]))}
+    V = _look([0, 0, -3], [0, 0, 0])
+    images = {1: ColmapImage(1, rotmat_to_qvec(V[:3, :3]), V[:3, 3], 1, "a.exr")}
+    write_image(tmp_path / "images" / "a.exr", raw)
+    write_model_text(tmp_path / "sparse" / "0", cams, images)
+    with caplog.at_level(logging.INFO, logger="ssgwarp.datasets"):
+        d = load_dataset(tmp_path)
+    assert d.undistorted and "undistorting 1 images (COLMAP model OPENCV) with kornia" in caplog.text
+    assert d.points is None and d.points_source == "none"
+    want = _pattern(xd, yd)
+    inner = (slice(6, h - 6), slice(6, w - 6))
+    err = np.abs(d.images[0].numpy() - want)[inner].mean()
+    err_raw = np.abs(raw - want)[inner].mean()
+    assert err < 0.004 and err_raw > 5 * err, (err, err_raw)
+
+
+# ----------------------------------------------------------------------------- LLFF
+def _llff_scene(root: Path, n=6, w=40, h=30, full=(400, 300), focal=350.0, points=False):
+    rng = np.random.default_rng(1)
+    rows, views = [], []
+    for i in range(n):
+        V = _look([0.3 * i - 0.75, 0.1 * i, -4.0], [0, 0, 0])
+        views.append(V)
+        c2w = np.linalg.inv(V)
+        x, y, z, t = c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3]
+        pose = np.stack([y, x, -z, t, [full[1], full[0], focal]], axis=1)  # [down, right, back, t, hwf]
+        rows.append(np.concatenate([pose.ravel(), [2.0, 6.0]]))
+        write_image(root / "images_10" / f"IMG_{i:03d}.png", rng.uniform(0, 1, (h, w, 3)).astype(np.float32))
+    np.save(root / "poses_bounds.npy", np.array(rows))
+    return views
+
+
+def test_llff_capture(tmp_path):
+    views = _llff_scene(tmp_path)
+    assert detect_format(tmp_path) == "llff"
+    d = load_dataset(tmp_path, images="images_10", num_random_points=500)
+    assert d.format == "llff" and len(d) == 6 and (d.width, d.height) == (40, 30)
+    for j in range(6):
+        assert np.allclose(d.cameras.viewmats[j].double().numpy(), views[j], atol=1e-5)
+    # focal given at 400 px wide, images loaded 40 px wide
+    assert torch.allclose(d.cameras.Ks[0], torch.tensor([[35.0, 0, 20.0], [0, 35.0, 15.0], [0, 0, 1]]))
+    assert (d.near, d.far) == (2.0, 6.0)
+    assert d.test_ids == [0] and d.train_ids == [1, 2, 3, 4, 5]
+    # no sparse model: random points inside the views' near/far bounds, coloured from the images
+    assert d.points_source == "random"
+    xyz, rgb = d.points
+    assert xyz.shape == (500, 3) and rgb.shape == (500, 3)
+    pc = torch.einsum("cij,pj->cpi", d.cameras.viewmats[:, :3, :3], xyz) + d.cameras.viewmats[:, None, :3, 3]
+    uv = pc[..., :2] / pc[..., 2:] * 35.0 + torch.tensor([20.0, 15.0])
+    inside = ((pc[..., 2] >= 2.0 - 1e-4) & (pc[..., 2] <= 6.0 + 1e-4) & (uv[..., 0] >= 0) & (uv[..., 0] <= 40)
+              & (uv[..., 1] >= 0) & (uv[..., 1] <= 30))
+    assert bool(inside.any(dim=0).all())
+    # seeded: the same points every time
+    assert torch.equal(load_dataset(tmp_path, images="images_10", num_random_points=500).points[0], xyz)
+
+
+def test_llff_errors(tmp_path):
+    _llff_scene(tmp_path)
+    np.save(tmp_path / "poses_bounds.npy", np.zeros((6, 15)))
+    with pytest.raises(InputError, match=r"poses of the wrong shape \(6, 15\)"):
+        load_dataset(tmp_path, images="images_10")
+    _llff_scene(tmp_path)
+    (tmp_path / "images_10" / "IMG_002.png").unlink()
+    with pytest.raises(InputError, match="has 6 poses but .*images_10 has 5 images"):
+        load_dataset(tmp_path, images="images_10")
+    (tmp_path / "poses_bounds.npy").write_bytes(b"garbage")
+    with pytest.raises(InputError, match="poses_bounds.npy: cannot read"):
+        load_dataset(tmp_path, images="images_10")
+
+
+# ----------------------------------------------------------------------------- transforms.json
+def _transforms_scene(root: Path, n=4, w=12, h=8, rgba=True, name="transforms.json", intr=None):
+    frames = []
+    rng = np.random.default_rng(2)
+    colors = []
+    for i in range(n):
+        a = 2 * np.pi * i / n
+        V = _look([4 * np.cos(a), 4 * np.sin(a), 1.0], [0, 0, 0], up=(0, 0, 1))
+        c2w_gl = np.linalg.inv(V) @ np.diag([1.0, -1.0, -1.0, 1.0])
+        frames.append({"file_path": f"./train/r_{i}", "transform_matrix": c2w_gl.tolist()})
+        c = rng.uniform(0, 1, (h, w, 3)).astype(np.float32)
+        a_ = np.ones((h, w, 1), np.float32)
+        a_[0, 0] = 0.0
+        a_[1, 1] = 0.5
+        colors.append((c, a_))
+        img = np.concatenate([c * a_, a_], axis=2) if rgba else c
+        write_image(root / "train" / f"r_{i}.png", img)
+    meta = {"camera_angle_x": 2 * np.arctan(0.5 * w / 10.0), "frames": frames}
+    if intr:
+        meta = {**intr, "frames": frames}
+    (root / name).write_text(json.dumps(meta))
+    return colors
+
+
+def test_transforms_capture_and_rgba_compositing(tmp_path):
+    colors = _transforms_scene(tmp_path)
+    assert detect_format(tmp_path) == "transforms"
+    d = load_dataset(tmp_path, background=(0.0, 1.0, 0.0), num_random_points=100)
+    assert d.names == [f"train/r_{i}.png" for i in range(4)]
+    assert torch.allclose(d.cameras.Ks[0], torch.tensor([[10.0, 0, 6.0], [0, 10.0, 4.0], [0, 0, 1]]), atol=1e-5)
+    # OpenGL c2w -> OpenCV w2c: every camera sees the origin straight ahead at depth ~4.12
+    o = d.cameras.viewmats[:, :3, 3]
+    assert torch.allclose(o[:, :2], torch.zeros(4, 2), atol=1e-5)
+    assert torch.allclose(o[:, 2], torch.full((4,), float(np.sqrt(17.0))), atol=1e-4)
+    # world up (+z) points up in the image (camera -y)
+    up_cam = d.cameras.viewmats[:, :3, :3] @ torch.tensor([0.0, 0.0, 1.0])
+    assert bool((up_cam[:, 1] < 0).all())
+    c, a = colors[0]
+    img = d.images[0].numpy()
+    assert np.allclose(img[0, 0], [0, 1, 0], atol=1e-6)  # transparent -> background
+    assert np.allclose(img[1, 1], c[1, 1] * 0.5 + 0.5 * np.array([0, 1, 0]), atol=0.01)
+    assert np.allclose(img[3, 3], c[3, 3], atol=0.003)
+    # no point cloud: random points around the point the cameras look at
+    assert d.points_source == "random" and d.points[0].abs().max() <= np.sqrt(17.0) / 3 + 1e-4
+    assert d.options["background"] == [0.0, 1.0, 0.0]
+
+
+def test_transforms_explicit_intrinsics_test_split_and_errors(tmp_path):
+    _transforms_scene(tmp_path, name="transforms_train.json", rgba=False,
+                      intr={"fl_x": 20.0, "fl_y": 22.0, "cx": 5.5, "cy": 4.5, "w": 24, "h": 16})
+    d = load_dataset(tmp_path, num_random_points=10)
+    # the JSON's intrinsics are for 24x16, the images are 12x8
+    assert torch.allclose(d.cameras.Ks[0], torch.tensor([[10.0, 0, 2.75], [0, 11.0, 2.25], [0, 0, 1]]))
+    assert d.test_ids == [0]
+    (tmp_path / "test").mkdir()
+    for i in range(2):
+        write_image(tmp_path / "test" / f"t_{i}.png", np.zeros((8, 12, 3), np.float32))
+    meta = json.loads((tmp_path / "transforms_train.json").read_text())
+    meta["frames"] = [{**f, "file_path": f"test/t_{i}.png"} for i, f in enumerate(meta["frames"][:2])]
+    (tmp_path / "transforms_test.json").write_text(json.dumps(meta))
+    d = load_dataset(tmp_path, num_random_points=10)
+    assert len(d) == 6 and [d.names[i] for i in d.test_ids] == ["test/t_0.png", "test/t_1.png"]
+    (tmp_path / "train" / "r_2.png").unlink()
+    with pytest.raises(InputError, match=r"1 image\(s\) referenced by transforms_test.json, transforms_train.json "
+                                         r"are missing .*train/r_2"):
+        load_dataset(tmp_path)
+    (tmp_path / "transforms_train.json").write_text('{"frames": [{"file_path": "x"}]}')
+    with pytest.raises(InputError, match="frame 0 needs 'file_path' and 'transform_matrix'"):
+        load_dataset(tmp_path)
+    (tmp_path / "transforms_train.json").write_text("{not json")
+    with pytest.raises(InputError, match="not valid JSON"):
+        load_dataset(tmp_path)
+
+
+def test_missing_or_unknown_folders(tmp_path):
+    with pytest.raises(InputError, match="data folder not found"):
+        load_dataset(tmp_path / "nope")
+    with pytest.raises(InputError, match="no capture found"):
+        load_dataset(tmp_path)
+
+
+# ----------------------------------------------------------------------------- real captures
+def _color_agreement(d: SceneData, views) -> tuple[float, float]:
+    """Median |pixel - point colour| at the points' projections, and the same with the points shuffled."""
+    xyz, rgb = d.points
+    g = torch.Generator().manual_seed(0)
+    errs, base = [], []
+    for i in views:
+        V, K = d.cameras.viewmats[i], d.cameras.Ks[i]
+        pc = xyz @ V[:3, :3].T + V[:3, 3]
+        uv = pc[:, :2] / pc[:, 2:3] @ K[:2, :2].T + K[:2, 2]
+        m = (pc[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < d.width) & (uv[:, 1] >= 0) & (uv[:, 1] < d.height)
+        pix = d.images[i, uv[m, 1].long(), uv[m, 0].long()]
+        errs.append((pix - rgb[m]).abs().mean(1).median())
+        base.append((pix[torch.randperm(int(m.sum()), generator=g)] - rgb[m]).abs().mean(1).median())
+    return float(torch.stack(errs).mean()), float(torch.stack(base).mean())
+
+
+@needs("llff_fern")
+def test_llff_fern():
+    d = load_dataset(DATA / "llff_fern", images="images_8", width=252)
+    assert d.format == "llff" and len(d) == 20 and (d.width, d.height) == (252, 189)
+    assert d.test_ids == [0, 8, 16] and len(d.train_ids) == 17
+    assert abs(float(d.cameras.Ks[0, 0, 0]) - 3260.526 * 252 / 4032) < 1e-2
+    assert d.undistorted  # sparse/0/cameras.bin is SIMPLE_RADIAL with the poses' focal
+    assert d.points_source == "colmap" and len(d.points[0]) == 10091
+    err, base = _color_agreement(d, range(0, 20, 4))
+    assert err < 0.6 * base, (err, base)
+
+
+@needs("colmap_cup")
+def test_colmap_cup_points_match_image_colours():
+    d = load_dataset(DATA / "colmap_cup", max_images=8, width=200)
+    assert d.format == "colmap" and len(d) == 8 and (d.width, d.height) == (200, 150)
+    assert not d.undistorted and d.points_source == "colmap"
+    err, base = _color_agreement(d, range(8))
+    assert err < 0.75 * base, (err, base)
+    assert 0 < d.near < d.far
+
+
+@needs("lego_200")
+def test_lego_transforms():
+    d = load_dataset(DATA / "lego_200", num_random_points=1000, max_images=25)
+    assert d.format == "transforms" and len(d) == 25 and (d.width, d.height) == (200, 200)
+    assert abs(float(d.cameras.Ks[0, 0, 0]) - 100.0 / np.tan(0.5 * 0.6911112070083618)) < 1e-3
+    # cameras on a sphere of radius ~4 looking at the origin
+    c, f = d.cameras.centers, d.cameras.forwards
+    assert torch.allclose(c.norm(dim=1), torch.full((25,), 4.03), atol=0.05)
+    assert bool(((f * -torch.nn.functional.normalize(c, dim=1)).sum(1) > 0.95).all())
+    # white background around the object
+    assert torch.allclose(d.images[:, 0, 0], torch.ones(25, 3))
+    assert d.images.mean() > 0.6
