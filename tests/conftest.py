@@ -13,3 +13,15 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"shared test data not found at {SHARED_DATA}")
     return SHARED_DATA
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _release_vtk_objects():
+    """Free pyvista/VTK objects before interpreter shutdown (their late __del__ prints noise)."""
+    yield
+    import gc
+    import sys
+
+    if "pyvista" in sys.modules:
+        sys.modules["pyvista"].close_all()
+    gc.collect()
