@@ -31,21 +31,21 @@ from .types import channel_vector, types_for
 def layer_grad_func(scalar, channels: int):
     """``layer_grad(...)``: one layer of the reverse traversal of one pixel.
 
-    Given the Gaussian's screen data and the pixel's state after it (``T_next``:
+    Given the packed projected Gaussian and the pixel's state after it (``T_next``:
     transmittance behind it, ``S``: colour accumulated behind it), returns
     ``(used, T, S', v_xy, v_conic, v_opacity, v_color)``; ``used`` is 0 when the
     forward pass skipped this Gaussian at this pixel (then nothing changes).
     """
     t = types_for(scalar)
-    vec2, vec3 = t.vec2, t.vec3
+    vec2, vec3, splat = t.vec2, t.vec3, t.splat
     vecD = channel_vector(scalar, channels)
     splat_alpha, _ = pixel_funcs(scalar)
 
     @wp.func
-    def layer_grad(xy: vec2, cn: vec3, op: scalar, c: vecD, px: scalar, py: scalar, alpha_min: scalar,
+    def layer_grad(sp: splat, c: vecD, px: scalar, py: scalar, alpha_min: scalar,
                    alpha_max: scalar, T_next: scalar, S: vecD, v_col: vecD, v_alpha_out: scalar,
                    T_final: scalar, bg_term: scalar):
-        r = splat_alpha(xy, cn, op, px, py, alpha_min, alpha_max)
+        r = splat_alpha(sp, px, py, alpha_min, alpha_max)
         alpha = r[0]
         used = int(0)
         T = T_next
@@ -65,11 +65,11 @@ def layer_grad_func(scalar, channels: int):
             vis = r[1]
             dx = r[2]
             dy = r[3]
-            if op * vis <= alpha_max:
+            if sp[5] * vis <= alpha_max:
                 v_sigma = -v_a * alpha
                 v_op = v_a * vis
                 v_cn = vec3(scalar(0.5) * dx * dx * v_sigma, dx * dy * v_sigma, scalar(0.5) * dy * dy * v_sigma)
-                v_xy = vec2(v_sigma * (cn[0] * dx + cn[1] * dy), v_sigma * (cn[1] * dx + cn[2] * dy))
+                v_xy = vec2(v_sigma * (sp[2] * dx + sp[3] * dy), v_sigma * (sp[3] * dx + sp[4] * dy))
         return used, T, S_out, v_xy, v_cn, v_op, v_c
 
     return layer_grad
@@ -80,6 +80,7 @@ def backward_kernel(scalar, channels: int):
     """One thread per pixel walking its own layers back to front, atomic adds per Gaussian
     (used on CPU, where threads run in turn: exact and deterministic)."""
     t = types_for(scalar)
+    splat = t.splat
     vec2, vec3 = t.vec2, t.vec3
     vecD = channel_vector(scalar, channels)
     layer_grad = layer_grad_func(scalar, channels)
@@ -87,9 +88,7 @@ def backward_kernel(scalar, channels: int):
     # no FMA contraction: the gating in pixel.py must decide as in the forward pass
     @wp.kernel(module="unique", module_options={"fuse_fp": False})
     def blend_backward(
-        means2d: wp.array(dtype=vec2),
-        conics: wp.array(dtype=vec3),
-        opacities: wp.array(dtype=scalar),
+        splats: wp.array(dtype=splat),
         colors: wp.array(dtype=vecD),
         backgrounds: wp.array(dtype=vecD),
         flatten_ids: wp.array(dtype=wp.int32),
@@ -136,7 +135,7 @@ def backward_kernel(scalar, channels: int):
         while k >= start:
             g = flatten_ids[k]
             used, T, S2, v_xy, v_cn, v_op, v_c = layer_grad(
-                means2d[g], conics[g], opacities[g], colors[g], px, py, alpha_min, alpha_max,
+                splats[k], colors[g], px, py, alpha_min, alpha_max,
                 T_next, S, v_col, v_alpha_out, T_final, bg_term)
             if used != 0:
                 wp.atomic_add(v_colors, g, v_c)
@@ -182,6 +181,7 @@ def reduced_backward_kernel(scalar, channels: int, to_slots: bool = False):
     the slots in a fixed order the gradients are bit-identical from run to run.
     """
     t = types_for(scalar)
+    splat = t.splat
     vec2, vec3 = t.vec2, t.vec3
     vecD = channel_vector(scalar, channels)
     vecG = channel_vector(scalar, channels + 6)
@@ -190,9 +190,7 @@ def reduced_backward_kernel(scalar, channels: int, to_slots: bool = False):
     # no FMA contraction: the gating in pixel.py must decide as in the forward pass
     @wp.kernel(module="unique", module_options={"fuse_fp": False})
     def blend_backward_reduced(
-        means2d: wp.array(dtype=vec2),
-        conics: wp.array(dtype=vec3),
-        opacities: wp.array(dtype=scalar),
+        splats: wp.array(dtype=splat),
         colors: wp.array(dtype=vecD),
         backgrounds: wp.array(dtype=vecD),
         flatten_ids: wp.array(dtype=wp.int32),
@@ -244,7 +242,7 @@ def reduced_backward_kernel(scalar, channels: int, to_slots: bool = False):
             pk = vecG()
             if k <= last:
                 used, T, S2, v_xy, v_cn, v_op, v_c = layer_grad(
-                    means2d[g], conics[g], opacities[g], colors[g], px, py, alpha_min, alpha_max,
+                    splats[k], colors[g], px, py, alpha_min, alpha_max,
                     T_next, S, v_col, v_alpha_out, T_final, bg_term)
                 if used != 0:
                     T_next = T

@@ -1,7 +1,9 @@
 """Blending forward: front-to-back alpha compositing of any number of channels.
 
 One thread per pixel; the ``tile_size^2`` threads of a tile are consecutive,
-so they walk the same depth-sorted Gaussian range together. Per pixel::
+so they walk the same depth-sorted Gaussian range together, reading each
+intersection's packed projected Gaussian (``splats[k]``: x, y, conic,
+opacity, laid out in sorted order) with one contiguous load. Per pixel::
 
     T = 1
     for each Gaussian of the tile, front to back:
@@ -27,16 +29,14 @@ from .types import channel_vector, types_for
 @functools.lru_cache(maxsize=None)
 def forward_kernel(scalar, channels: int):
     t = types_for(scalar)
-    vec2, vec3 = t.vec2, t.vec3
+    splat = t.splat
     vecD = channel_vector(scalar, channels)
     splat_alpha, ends_pixel = pixel_funcs(scalar)
 
     # no FMA contraction: the gating in pixel.py must decide identically in both passes
     @wp.kernel(module="unique", module_options={"fuse_fp": False})
     def blend_forward(
-        means2d: wp.array(dtype=vec2),
-        conics: wp.array(dtype=vec3),
-        opacities: wp.array(dtype=scalar),
+        splats: wp.array(dtype=splat),
         colors: wp.array(dtype=vecD),
         backgrounds: wp.array(dtype=vecD),
         flatten_ids: wp.array(dtype=wp.int32),
@@ -74,7 +74,7 @@ def forward_kernel(scalar, channels: int):
         last = wp.int32(-1)
         for k in range(offsets[rng], offsets[rng + 1]):
             g = flatten_ids[k]
-            r = splat_alpha(means2d[g], conics[g], opacities[g], px, py, alpha_min, alpha_max)
+            r = splat_alpha(splats[k], px, py, alpha_min, alpha_max)
             alpha = r[0]
             if alpha < scalar(0.0):
                 continue

@@ -23,20 +23,20 @@ from .types import types_for
 def pixel_funcs(scalar):
     """``(splat_alpha, ends_pixel)`` for one precision.
 
-    ``splat_alpha(xy, conic, opacity, px, py, alpha_min, alpha_max) -> vec4(alpha, g, dx, dy)``
-    with ``g = exp(-sigma)``; ``alpha`` is -1 when the contribution is skipped.
+    ``splat_alpha(splat, px, py, alpha_min, alpha_max) -> vec4(alpha, g, dx, dy)`` for a packed
+    projected Gaussian ``splat = (x, y, a, b, c, opacity)``, with ``g = exp(-sigma)``; ``alpha`` is
+    -1 when the contribution is skipped.
     """
     t = types_for(scalar)
-    vec2, vec3, vec4 = t.vec2, t.vec3, t.vec4
+    vec4, splat = t.vec4, t.splat
 
     @wp.func
-    def splat_alpha(xy: vec2, conic: vec3, opacity: scalar, px: scalar, py: scalar,
-                    alpha_min: scalar, alpha_max: scalar):
-        dx = xy[0] - px
-        dy = xy[1] - py
-        sigma = scalar(0.5) * (conic[0] * dx * dx + conic[2] * dy * dy) + conic[1] * dx * dy
+    def splat_alpha(sp: splat, px: scalar, py: scalar, alpha_min: scalar, alpha_max: scalar):
+        dx = sp[0] - px
+        dy = sp[1] - py
+        sigma = scalar(0.5) * (sp[2] * dx * dx + sp[4] * dy * dy) + sp[3] * dx * dy
         g = wp.exp(-sigma)
-        alpha = wp.min(alpha_max, opacity * g)
+        alpha = wp.min(alpha_max, sp[5] * g)
         if sigma < scalar(0.0) or alpha < alpha_min:
             alpha = scalar(-1.0)
         return vec4(alpha, g, dx, dy)

@@ -8,7 +8,8 @@ import warp as wp
 
 @functools.lru_cache(maxsize=None)
 def types_for(scalar) -> SimpleNamespace:
-    """Namespace of ``scalar``, ``vec2``, ``vec3``, ``vec4``, ``mat22``, ``mat33``, ``mat44``, ``mat23``."""
+    """Namespace of ``scalar``, ``vec2``, ``vec3``, ``vec4``, ``mat22``, ``mat33``, ``mat44``, ``mat23``
+    and ``splat`` (a projected Gaussian packed as x, y, conic a, b, c, opacity)."""
     return SimpleNamespace(
         scalar=scalar,
         vec2=wp.types.vector(2, scalar),
@@ -18,6 +19,7 @@ def types_for(scalar) -> SimpleNamespace:
         mat33=wp.types.matrix((3, 3), scalar),
         mat44=wp.types.matrix((4, 4), scalar),
         mat23=wp.types.matrix((2, 3), scalar),
+        splat=wp.types.vector(6, scalar),  # one projected Gaussian: x, y, conic a, b, c, opacity
     )
 
 

@@ -230,9 +230,10 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
             "(radius_clip / RasterSettings.sigma_max)")
     starts = ends - counts
     depth_bits = depths.detach().reshape(-1).to(torch.float32).contiguous().view(torch.int32).to(torch.int64) & 0xFFFFFFFF
-    keys = torch.zeros(2 * max(n_isects, 1), dtype=torch.int64, device=dev)
-    values = torch.zeros(2 * max(n_isects, 1), dtype=torch.int32, device=dev)
-    gauss = torch.zeros(max(n_isects, 1), dtype=torch.int32, device=dev)
+    # every entry below n_isects is written by the kernel; the upper halves are the sort's scratch
+    keys = torch.empty(2 * max(n_isects, 1), dtype=torch.int64, device=dev)
+    values = torch.empty(2 * max(n_isects, 1), dtype=torch.int32, device=dev)
+    gauss = torch.empty(max(n_isects, 1), dtype=torch.int32, device=dev)
     L.launch(binning.write_kernel(s), C * N,
              [m2, rd, _wp(depth_bits.contiguous()), _wp(starts), N, tile_size, tile_width, tile_height],
              [_wp(keys), _wp(values), _wp(gauss)])
@@ -263,6 +264,13 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
 # ---------------------------------------------------------------------------------------------
 # blending
 # ---------------------------------------------------------------------------------------------
+def pack_splats(means2d: Tensor, conics: Tensor, opacities: Tensor, flatten_ids: Tensor) -> Tensor:
+    """``[M, 6]`` (x, y, conic a, b, c, opacity) of each sorted intersection, contiguous in the
+    order the blending kernels walk them."""
+    flat = torch.cat([means2d.detach(), conics.detach(), opacities.detach()[..., None]], dim=-1).reshape(-1, 6)
+    return flat.index_select(0, flatten_ids.long()).contiguous()
+
+
 class _Blend(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, colors, opacities, backgrounds, tiles, width, height, tile_size, settings,
@@ -273,28 +281,29 @@ class _Blend(torch.autograd.Function):
         T = types_for(s)
         vecD = channel_vector(s, D)
         th, tw = tiles["isect_offsets"].shape[1:]
-        out = torch.zeros(C, height, width, D, dtype=dt, device=dev)
-        out_T = torch.ones(C, height, width, dtype=dt, device=dev)
-        out_alpha = torch.zeros(C, height, width, 1, dtype=dt, device=dev)
-        last = torch.full((C, height, width), -1, dtype=torch.int32, device=dev)
+        # the kernel writes every pixel
+        out = torch.empty(C, height, width, D, dtype=dt, device=dev)
+        out_T = torch.empty(C, height, width, dtype=dt, device=dev)
+        out_alpha = torch.empty(C, height, width, 1, dtype=dt, device=dev)
+        last = torch.empty((C, height, width), dtype=torch.int32, device=dev)
         bg = backgrounds if backgrounds is not None else torch.zeros(C, D, dtype=dt, device=dev)
         colors = colors.contiguous()
         L = _Launcher(colors)
+        splats = pack_splats(means2d, conics, opacities, tiles["flatten_ids"])
         L.launch(blend_forward.forward_kernel(s, D), C * th * tw * tile_size * tile_size,
-                 [_wp(means2d.reshape(C * N, 2), T.vec2), _wp(conics.reshape(C * N, 3), T.vec3),
-                  _wp(opacities.reshape(C * N)), _wp(colors.reshape(C * N, D), vecD), _wp(bg, vecD),
+                 [_wp(splats, T.splat), _wp(colors.reshape(C * N, D), vecD), _wp(bg, vecD),
                   _wp(tiles["flatten_ids"]), _wp(tiles["offsets"]), width, height, tile_size, tw, th,
                   settings.alpha_min, settings.alpha_max, settings.t_min],
                  [_wp(out.reshape(-1, D), vecD), _wp(out_T.reshape(-1)), _wp(out_alpha.reshape(-1)),
                   _wp(last.reshape(-1))])
-        ctx.save_for_backward(means2d, conics, colors, opacities, bg, out_T, last)
+        ctx.save_for_backward(splats, colors, bg, out_T, last)
         ctx.tiles, ctx.geom, ctx.settings, ctx.det = tiles, (width, height, tile_size, tw, th), settings, deterministic
         ctx.has_bg = backgrounds is not None
         return out, out_alpha
 
     @staticmethod
     def backward(ctx, g_colors, g_alphas):
-        means2d, conics, colors, opacities, bg, out_T, last = ctx.saved_tensors
+        splats, colors, bg, out_T, last = ctx.saved_tensors
         width, height, tile_size, tw, th = ctx.geom
         tiles, st = ctx.tiles, ctx.settings
         C, N, D = colors.shape
@@ -306,8 +315,7 @@ class _Blend(torch.autograd.Function):
         g_alphas = torch.zeros(C, height, width, dtype=dt, device=dev) if g_alphas is None else g_alphas[..., 0].contiguous()
         M = tiles["n_isects"]
         L = _Launcher(colors)
-        common = [_wp(means2d.reshape(C * N, 2), T.vec2), _wp(conics.reshape(C * N, 3), T.vec3),
-                  _wp(opacities.reshape(C * N)), _wp(colors.reshape(C * N, D), vecD), _wp(bg, vecD),
+        common = [_wp(splats, T.splat), _wp(colors.reshape(C * N, D), vecD), _wp(bg, vecD),
                   _wp(tiles["flatten_ids"]), _wp(tiles["offsets"])]
         geom = [width, height, tile_size, tw, th, st.alpha_min, st.alpha_max]
         state = [_wp(out_T.reshape(-1)), _wp(last.reshape(-1)), _wp(g_colors.reshape(-1, D), vecD),
