@@ -113,8 +113,10 @@ def main() -> None:
                     row.update(ssg_det_fb=fbd)
                 if gsplat is not None:
                     gf, gfb, gimg = run_case(gsplat.rasterization, n, w, h, dev, args.repeats, packed=False)
+                    diff = (img - gimg).abs()
                     row.update(gs_f=gf, gs_fb=gfb, ratio_f=f / gf, ratio_fb=fb / gfb,
-                               maxdiff=float((img - gimg).abs().max()))
+                               maxdiff=float(diff.max()), meandiff=float(diff.mean()),
+                               over=float((diff > 1e-4).float().mean()))
             if not args.no_cpu and (n <= 10_000 and w * h <= 256 * 256):
                 f, fb, _ = run_case(ssgwarp.rasterization, n, w, h, torch.device("cpu"), max(2, args.repeats // 5))
                 row.update(cpu_f=f, cpu_fb=fb)
@@ -123,7 +125,8 @@ def main() -> None:
 
     cols = [("N", "N"), ("res", "resolution"), ("ssg_f", "ssgwarp CUDA fwd ms"), ("ssg_fb", "ssgwarp CUDA fwd+bwd ms"),
             ("gs_f", "gsplat fwd ms"), ("gs_fb", "gsplat fwd+bwd ms"), ("ratio_f", "fwd ratio"),
-            ("ratio_fb", "fwd+bwd ratio"), ("maxdiff", "max abs image diff"), ("ssg_det_fb", "deterministic fwd+bwd ms"),
+            ("ratio_fb", "fwd+bwd ratio"), ("maxdiff", "max abs image diff"), ("meandiff", "mean abs image diff"),
+            ("over", "share of values off by > 1e-4"), ("ssg_det_fb", "deterministic fwd+bwd ms"),
             ("cpu_f", "ssgwarp CPU fwd ms"), ("cpu_fb", "ssgwarp CPU fwd+bwd ms")]
     cols = [c for c in cols if any(c[0] in r for r in rows)]
 

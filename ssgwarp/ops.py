@@ -63,13 +63,26 @@ def _wp(t: Tensor, dtype=None, ndim: int = 1, ctype: bool = True):
     return wp.from_torch(t, dtype=dtype, return_ctype=ctype)
 
 
+_STREAMS: dict = {}
+
+
+def _warp_stream(device: torch.device):
+    """The Warp stream wrapping torch's current CUDA stream (wrappers cached per stream)."""
+    ts = torch.cuda.current_stream(device)
+    key = (ts.device_index, ts.cuda_stream)
+    ws = _STREAMS.get(key)
+    if ws is None:
+        ws = _STREAMS[key] = wp.stream_from_torch(ts)
+    return ws
+
+
 class _Launcher:
     """Runs launches on the Warp device/stream matching a torch tensor."""
 
     def __init__(self, like: Tensor):
         _init()
         self.device = _device(like)
-        self.stream = wp.stream_from_torch(like.device) if like.device.type == "cuda" else None
+        self.stream = _warp_stream(like.device) if like.device.type == "cuda" else None
 
     def launch(self, kernel, dim, inputs, outputs=(), adj_inputs=(), adj_outputs=(), adjoint=False,
                block_dim=None):
