@@ -1,0 +1,458 @@
+"""``ssgwarp demo``: the whole pipeline on an embedded procedural scene, with nothing to download.
+
+Stages (each through its module's Python API, all under ``OUT``):
+
+1. **data** — :mod:`ssgwarp.procedural` builds five objects on a ground plane as
+   Gaussians with known ids, renders them from a ring of cameras with
+   :func:`ssgwarp.rasterization` and writes a NeRF capture ``OUT/data``
+   (``transforms.json`` + ``images/``) and a style image ``OUT/style.png``.
+2. **reconstruct** — 3DGS from random initial points (:mod:`ssgwarp.reconstruct`) → ``OUT/scene``.
+3. **group** — mask-free Gaussian Grouping (:mod:`ssgwarp.grouping`) → ``OUT/scene/groups``;
+   the group maps are scored against the true object ids.
+4. **stylize** — key views, Stage 1 (diffusion; skipped when its weights are not on
+   this machine, and the summary says so) and Stage 2 (:mod:`ssgwarp.stylize`) → ``OUT/stylized``.
+5. **evaluate** — consistency, style/content losses and PSNR (:mod:`ssgwarp.evaluate`)
+   of the reconstruction and of the stylized scene → ``OUT/evaluation.md``.
+6. **sheet** — ``OUT/contact_sheet.png``: captured | reconstructed | groups | stylized, and the style.
+
+``OUT/summary.json`` holds the printed summary; ``OUT/demo.json`` the finished
+stages (``--resume`` skips them after a Ctrl-C). Existing outputs are never
+overwritten without ``--force``.
+"""
+from __future__ import annotations
+
+import logging
+import shutil
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Callable, Optional
+
+import torch
+
+from .errors import InputError, SsgwarpError
+
+OUTPUTS = ("demo.json", "data", "style.png", "scene", "stylized", "evaluation.md", "contact_sheet.png",
+           "summary.json")
+STAGES = ("data", "reconstruct", "group", "stylize", "evaluate", "sheet")
+FORMAT = "ssgwarp-demo/1"
+
+
+# ----------------------------------------------------------------------------- helpers
+def _resolve_device(device) -> torch.device:
+    if device is None or str(device) == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(device)
+
+
+def _size(size) -> tuple[str, "object"]:
+    from .procedural import SIZES
+
+    if not isinstance(size, str):
+        return "custom", size
+    if size not in SIZES:
+        raise InputError(f"--size {size}: use one of {', '.join(SIZES)}")
+    return size, SIZES[size]
+
+
+def _prepare_out(out: Path, force: bool, resume: bool, record: dict) -> dict:
+    """Check ``out`` (refuse to overwrite without ``force``); returns the stage record to continue."""
+    from .fileio import read_json
+
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out}: exists and is not a folder")
+    existing = [p for p in OUTPUTS if (out / p).exists()]
+    if resume and force:
+        raise InputError("--resume and --force exclude each other")
+    if existing and resume:
+        if not (out / "demo.json").is_file():
+            raise InputError(f"{out}: nothing to resume (no demo.json); pass --force to start over")
+        old = read_json(out / "demo.json")
+        if not isinstance(old, dict) or old.get("format") != FORMAT:
+            raise InputError(f"{out / 'demo.json'}: not a demo record; pass --force to start over")
+        if old.get("options") != record["options"]:
+            raise InputError(f"{out}: --resume with other options ({old.get('options')} before, "
+                             f"{record['options']} now); use the same ones or --force")
+        record["stages"] = dict(old.get("stages", {}))
+        return record
+    if existing and not force:
+        raise SsgwarpError(f"{out} already holds a demo run ({', '.join(existing)}); pass --force to overwrite "
+                           f"it or --resume to continue it")
+    for p in existing:  # --force: remove only what the demo writes
+        q = out / p
+        shutil.rmtree(q) if q.is_dir() else q.unlink()
+    return record
+
+
+def _weights_missing() -> list[str]:
+    """Stage 1 weight keys not found on this machine (no import of diffusers)."""
+    from . import weights
+    from .diffusion import WEIGHT_KEYS
+
+    return [k for k in WEIGHT_KEYS if weights.find(k) is None]
+
+
+def group_agreement(labels: torch.Tensor, objects: torch.Tensor, num_objects: int) -> dict:
+    """How well group maps ``labels [C,H,W]`` match the true object maps ``objects [C,H,W]`` (-1: background).
+
+    Over the pixels an object covers: ``purity`` = share of pixels whose group's majority
+    object is their own object; ``separated`` = objects whose majority group no other
+    object shares (the ground counts as an object).
+    """
+    lab = labels.reshape(-1).cpu().long()
+    obj = objects.reshape(-1).cpu().long()
+    keep = obj >= 0
+    lab, obj = lab[keep], obj[keep]
+    if lab.numel() == 0:
+        return {"purity": None, "separated": 0, "objects": num_objects, "pixels": 0}
+    k = int(lab.max()) + 1
+    table = torch.zeros(k, num_objects, dtype=torch.long)
+    table.index_put_((lab, obj), torch.ones_like(lab), accumulate=True)
+    purity = float(table.max(dim=1).values.sum()) / float(table.sum())
+    major = table.argmax(dim=0)                                    # the majority group of each object
+    present = table.sum(dim=0) > 0
+    sep = sum(1 for o in range(num_objects) if present[o]
+              and all(major[o] != major[p] for p in range(num_objects) if p != o and present[p]))
+    return {"purity": purity, "separated": int(sep), "objects": int(present.sum()), "pixels": int(table.sum()),
+            "majority_group": {int(o): int(major[o]) for o in range(num_objects) if present[o]}}
+
+
+def _contact_sheet(path: Path, rows: list[dict], style, title: str) -> Path:
+    """Rows of captured | reconstruction | groups | stylized, the style image on the right (matplotlib, Agg)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.gridspec import GridSpec
+
+    from .fileio import atomic_path
+
+    cols = ("captured", "reconstruction", "groups (mask-free)", "stylized")
+    n = len(rows)
+    h, w = rows[0]["captured"].shape[:2]
+    cell = 2.4
+    fig = plt.figure(figsize=(cell * 5.2, n * cell * h / w + 0.9), dpi=110)
+    gs = GridSpec(n, 5, figure=fig, wspace=0.04, hspace=0.16)
+    for i, r in enumerate(rows):
+        for j, key in enumerate(("captured", "reconstruction", "groups", "stylized")):
+            ax = fig.add_subplot(gs[i, j])
+            ax.imshow(r[key].detach().float().clamp(0, 1).cpu().numpy(), interpolation="nearest")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if i == 0:
+                ax.set_title(cols[j], fontsize=9)
+            if j == 0:
+                ax.set_ylabel(r["label"], fontsize=8)
+    ax = fig.add_subplot(gs[:, 4])
+    ax.imshow(style.detach().float().clamp(0, 1).cpu().numpy())
+    ax.set_title("style", fontsize=9)
+    ax.axis("off")
+    fig.suptitle(title, fontsize=9)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def _fmt(x, spec: str = ".4g", none: str = "n/a") -> str:
+    return none if x is None else format(x, spec)
+
+
+# ----------------------------------------------------------------------------- the demo
+def run_demo(out: str | Path = "ssgwarp-demo", size="default", *, device=None, seed: int = 0,
+             force: bool = False, resume: bool = False, progress: bool = True,
+             echo: Optional[Callable[[str], None]] = None) -> dict:
+    """Run the demo into ``out`` and return the summary (also written to ``out/summary.json``).
+
+    Args:
+        out: output folder (created; never overwritten without ``force``).
+        size: ``"small"`` (8 views 48x36, seconds), ``"default"`` (24 views 96x72, a few
+            minutes on 2 CPU cores) or a :class:`ssgwarp.procedural.DemoSize`.
+        device: torch device or ``"auto"``/None (the GPU when there is one).
+        seed: seeds every stage; a seed gives the same run.
+        force: overwrite an existing demo in ``out``. resume: continue one (after Ctrl-C).
+        progress: progress bars and stage messages. echo: where messages go (default print).
+    """
+    from . import procedural as P
+    from .fileio import read_image, write_image, write_json
+
+    say = echo or (lambda s: print(s, flush=True))
+    if not progress and echo is None:
+        say = lambda s: None  # noqa: E731
+    t_all = time.perf_counter()
+    name, sz = _size(size)
+    device = _resolve_device(device)
+    out = Path(out).expanduser()
+    record = {"format": FORMAT, "options": {"size": name, "seed": int(seed), **asdict(sz)}, "stages": {}}
+    record = _prepare_out(out, force, resume, record)
+    out.mkdir(parents=True, exist_ok=True)
+    stages: dict = record["stages"]
+
+    def done(stage: str, **info) -> None:
+        stages[stage] = {"done": True, **info}
+        write_json(out / "demo.json", record)
+
+    def header(i: int, stage: str, what: str) -> None:
+        say(f"[{i}/{len(STAGES)}] {stage}: {what}")
+
+    write_json(out / "demo.json", record)
+    times: dict[str, float] = {}
+    data_dir, scene_dir, styl_dir = out / "data", out / "scene", out / "stylized"
+
+    # -- 1. the procedural capture and style ----------------------------------------------------
+    gt = P.build_scene(sz.density, seed=seed)
+    cams = P.ring_cameras(sz.views, sz.width, sz.height)
+    header(1, "data", f"procedural scene ({len(gt)} Gaussians, objects: {', '.join(gt.names)}), "
+                      f"{sz.views} views {sz.width}x{sz.height}")
+    t0 = time.perf_counter()
+    gt_dev = P.ProceduralScene(gt.scene.to(device), gt.object_ids.to(device), gt.names)
+    images, objects = P.render_views(gt_dev, cams.to(device))
+    if not stages.get("data", {}).get("done"):
+        P.write_transforms_dataset(data_dir, images.cpu(), cams)
+        write_image(out / "style.png", P.style_image(192, 192, seed=seed))
+        done("data", seconds=time.perf_counter() - t0)
+    times["data"] = stages["data"]["seconds"]
+
+    # -- 2. reconstruct ---------------------------------------------------------------------------
+    from .datasets import load_dataset
+    from .reconstruct import Recipe, reconstruct
+
+    header(2, "reconstruct", f"3DGS from {sz.init_points} random points, {sz.reconstruct_iters} steps, "
+                             f"SH degree 0 (the colours do not depend on the view), device {device}")
+    if not stages.get("reconstruct", {}).get("done"):
+        t0 = time.perf_counter()
+        data = load_dataset(data_dir, num_random_points=sz.init_points, seed=seed)
+        it = sz.reconstruct_iters
+        every = max(10, it // 15)
+        recipe = Recipe(refine_start=every, refine_every=every, refine_stop=int(it * 0.6), reset_every=10 ** 9,
+                        prune_screen_px=0.0)
+        resume_rec = (scene_dir / "checkpoint.pt").is_file()
+        m = reconstruct(data_dir, scene_dir, iters=it, sh_degree=0, max_gaussians=sz.max_gaussians,
+                        device=device, seed=seed, recipe=recipe, checkpoint_every=max(50, it // 5),
+                        progress=progress, data=data, resume=resume_rec, force=not resume_rec)
+        done("reconstruct", seconds=time.perf_counter() - t0, gaussians=m["num_gaussians"], psnr=m["psnr"],
+             ssim=m["ssim"], iters=m["iters"], test_views=m["test_views"])
+    rec = stages["reconstruct"]
+    times["reconstruct"] = rec["seconds"]
+    say(f"      {rec['gaussians']} Gaussians, held-out PSNR {_fmt(rec['psnr'], '.2f')} dB "
+        f"over {rec['test_views']} views")
+
+    # -- 3. group (mask-free) ---------------------------------------------------------------------
+    from .grouping import GroupConfig, group_scene, load_groups, render_group_maps
+    from .ply import read_ply
+
+    header(3, "group", "mask-free Gaussian Grouping (spectral clustering of the Gaussians, then identities)")
+    if not stages.get("group", {}).get("done"):
+        t0 = time.perf_counter()
+        info = group_scene(scene_dir, masks=None, max_groups=8, config=GroupConfig(iters=sz.group_iters,
+                           checkpoint_every=max(25, sz.group_iters // 4)), device=device, seed=seed,
+                           progress=progress, resume=resume, force=resume)
+        scene = read_ply(scene_dir / "scene.ply", device=device)
+        gm = load_groups(scene_dir, device)
+        labels, _ = render_group_maps(scene, cams.to(device), gm.classifier)
+        agree = group_agreement(labels, objects, len(gt.names))
+        done("group", seconds=time.perf_counter() - t0, groups=info["num_groups"],
+             cross_view_agreement=info.get("reprojection_agreement", {}).get("mean"),
+             purity=agree["purity"], separated=agree["separated"], objects=agree["objects"])
+    grp = stages["group"]
+    times["group"] = grp["seconds"]
+    say(f"      K={grp['groups']} groups; they match the {grp['objects']} true objects with purity "
+        f"{_fmt(grp['purity'], '.3f')} ({grp['separated']} objects in a group of their own); "
+        f"cross-view agreement {_fmt(grp['cross_view_agreement'], '.3f')}")
+
+    # -- 4. key views, Stage 1, Stage 2 -----------------------------------------------------------
+    from .stylize import Stage2Config, StylizeOptions, stylize_run
+
+    missing = _weights_missing()
+    stage1_runs = not missing
+    header(4, "stylize", "key views -> Stage 1 (diffusion + CVSA) -> Stage 2 (instance-level style transfer)")
+    if not stage1_runs:
+        say(f"      Stage 1 will be skipped: no local weights for {', '.join(missing)} "
+            f"(see README: providing weights); Stage 2 then matches the style image directly")
+    if not stages.get("stylize", {}).get("done"):
+        t0 = time.perf_counter()
+        opts = StylizeOptions(keyviews=sz.keyviews, max_side=512 if stage1_runs else sz.max_side,
+                              path_frames=sz.path_frames, sheet_views=3)
+        s2 = Stage2Config(mode="ist", iters=sz.stylize_iters, lr=sz.stylize_lr,
+                          checkpoint_every=max(10, sz.stylize_iters // 5), seed=seed)
+        sm = stylize_run(scene_dir, out / "style.png", styl_dir, stage2=s2, opts=opts, device=device,
+                         resume=resume and styl_dir.exists(), force=not (resume and styl_dir.exists()),
+                         progress=progress)
+        done("stylize", seconds=time.perf_counter() - t0, stage1=sm["stage1"], stage1_missing=missing,
+             matching=sm["matching"], nnfm=_nnfm_history(styl_dir / "stage2.ckpt"),
+             substages={k: round(v, 3) for k, v in sm["seconds"].items()},
+             gram_style_loss=sm["gram_style_loss"], gram_style_loss_original=sm["gram_style_loss_original"],
+             content_loss=sm["content_loss"], extractor=sm["extractor"], keyviews=sm["keyviews"])
+    sty = stages["stylize"]
+    times["stylize"] = sty["seconds"]
+    say(f"      Stage 2 matched {sty['matching']}; Gram style loss {_fmt(sty['gram_style_loss_original'])} -> "
+        f"{_fmt(sty['gram_style_loss'])}, content loss {_fmt(sty['content_loss'])}")
+
+    # -- 5. evaluate ------------------------------------------------------------------------------
+    from .evaluate import EvalOptions, comparison_table, evaluate_run, load_models
+
+    header(5, "evaluate", "consistency (reprojection), Gram style / content losses, PSNR")
+    t0 = time.perf_counter()
+    eopts = EvalOptions(max_pairs=sz.eval_pairs, gap=max(2, sz.views // 3), save_pairs=1).validate()
+    extractor, raft, lpips, skipped = load_models(eopts, device)
+    ev_rec = evaluate_run(scene_dir, eopts, device, extractor=extractor, raft=raft, lpips=lpips, skipped=skipped)
+    ev_sty = evaluate_run(styl_dir, eopts, device, extractor=extractor, raft=raft, lpips=lpips, skipped=skipped)
+    from .fileio import atomic_path
+
+    with atomic_path(out / "evaluation.md") as tmp:
+        tmp.write_text(comparison_table([ev_rec, ev_sty]))
+    times["evaluate"] = time.perf_counter() - t0
+    done("evaluate", seconds=times["evaluate"])
+
+    def rmse(ev: dict, kind: str):
+        c = ev.get("consistency", {}).get("reprojection", {}).get(kind, {})
+        return c.get("rmse")
+
+    # -- 6. contact sheet -------------------------------------------------------------------------
+    from .palette import colorize_labels
+
+    header(6, "sheet", "contact sheet")
+    t0 = time.perf_counter()
+    rec_scene = read_ply(scene_dir / "scene.ply", device=device)
+    sty_scene = read_ply(styl_dir / "scene.ply", device=device)
+    gm = load_groups(scene_dir, device)
+    test = set(_test_ids(scene_dir))
+    rows_ids = sorted(test)[:3] if len(test) >= 3 else sorted({round(i * (sz.views - 1) / 3) for i in range(3)})
+    bg = torch.tensor(P.BACKGROUND, dtype=torch.float32, device=device)
+    rows = []
+    with torch.no_grad():
+        for i in rows_ids:
+            cam = cams[[i]].to(device)
+            r, alpha, _ = rec_scene.render(cam, backgrounds=bg[None])
+            s, _, _ = sty_scene.render(cam, backgrounds=bg[None])
+            lab, _ = render_group_maps(rec_scene, cam, gm.classifier)
+            groups = torch.from_numpy(colorize_labels(lab[0], gm.num_groups))
+            empty = alpha[0, ..., 0].cpu() < 0.5           # no surface there: shown light grey, not as a group
+            groups[empty] = 0.92
+            rows.append({"label": f"{cams.names[i]}{' (held out)' if i in test else ''}", "captured": images[i],
+                         "reconstruction": r[0, ..., :3], "stylized": s[0, ..., :3], "groups": groups})
+    style = torch.from_numpy(read_image(out / "style.png", 3))
+    title = (f"ssgwarp demo ({name}): {rec['gaussians']} Gaussians, PSNR {_fmt(rec['psnr'], '.2f')} dB, "
+             f"K={grp['groups']} groups, Stage 1 {'ran' if sty['stage1'].get('ran') else 'skipped (no weights)'}, "
+             f"Gram style loss {_fmt(sty['gram_style_loss_original'], '.3g')} -> {_fmt(sty['gram_style_loss'], '.3g')}")
+    sheet = _contact_sheet(out / "contact_sheet.png", rows, style, title)
+    times["sheet"] = time.perf_counter() - t0
+    done("sheet", seconds=times["sheet"])
+
+    total = time.perf_counter() - t_all
+    summary = {
+        "size": name, "views": sz.views, "resolution": [sz.width, sz.height], "device": str(device),
+        "seed": int(seed), "seconds": {k: round(v, 2) for k, v in times.items()}, "total_seconds": round(total, 2),
+        "stylize_substages": sty.get("substages"),
+        "true_gaussians": len(gt), "objects": list(gt.names),
+        "gaussians": rec["gaussians"], "psnr": rec["psnr"], "ssim": rec["ssim"],
+        "groups": grp["groups"], "group_purity": grp["purity"], "objects_separated": grp["separated"],
+        "cross_view_agreement": grp["cross_view_agreement"],
+        "stage1": sty["stage1"], "stage1_missing_weights": sty.get("stage1_missing", []),
+        "matching": sty["matching"], "extractor": sty["extractor"], "nnfm_style_loss": sty.get("nnfm"),
+        "gram_style_loss_original": sty["gram_style_loss_original"], "gram_style_loss": sty["gram_style_loss"],
+        "content_loss": sty["content_loss"],
+        "consistency_rmse": {"reconstruction": {"short": rmse(ev_rec, "short"), "long": rmse(ev_rec, "long")},
+                             "stylized": {"short": rmse(ev_sty, "short"), "long": rmse(ev_sty, "long")}},
+        "contact_sheet": str(sheet.resolve()),
+        "outputs": {"data": str(data_dir), "style": str(out / "style.png"), "reconstruction": str(scene_dir),
+                    "stylized": str(styl_dir), "evaluation": str(out / "evaluation.md")},
+    }
+    write_json(out / "summary.json", summary)
+    return summary
+
+
+def _nnfm_history(ckpt: Path) -> Optional[list[float]]:
+    """First and last Stage 2 style (NNFM) loss from the Stage 2 checkpoint's history, or None."""
+    try:
+        h = torch.load(ckpt, map_location="cpu", weights_only=False).get("history") or []
+        vals = [float(x["style"]) for x in h if "style" in x]
+        return [vals[0], vals[-1]] if vals else None
+    except Exception:  # the history is a convenience: a missing or changed checkpoint just drops the line
+        return None
+
+
+def _test_ids(scene_dir: Path) -> list[int]:
+    from .cameras import Cameras
+    from .fileio import read_json
+
+    names = Cameras.load(scene_dir / "cameras.json").names
+    test = read_json(scene_dir / "data.json").get("split", {}).get("test", [])
+    return [names.index(n) for n in test if n in names]
+
+
+def format_summary(s: dict) -> str:
+    """The summary as the lines ``ssgwarp demo`` prints."""
+    sec = s["seconds"]
+    sub = s.get("stylize_substages") or {}
+    st1 = s["stage1"]
+    if st1.get("ran"):
+        st1_line = f"ran (CVSA {'on' if st1.get('cvsa') else 'off'})"
+    elif s.get("stage1_missing_weights"):
+        st1_line = f"skipped: no local weights for {', '.join(s['stage1_missing_weights'])}"
+    else:
+        st1_line = f"skipped: {st1.get('reason', 'no weights')}"
+    nn = s.get("nnfm_style_loss")
+    nn_line = f", NNFM style loss {_fmt(nn[0])} -> {_fmt(nn[1])}" if nn else ""
+    c = s["consistency_rmse"]
+    lines = [
+        f"ssgwarp demo ({s['size']}: {s['views']} views {s['resolution'][0]}x{s['resolution'][1]}, "
+        f"device {s['device']}, seed {s['seed']}) finished in {s['total_seconds']:.1f} s",
+        f"  {'stage':<22}{'time':>9}",
+        f"  {'procedural data':<22}{sec.get('data', 0):>8.1f}s  {s['true_gaussians']} true Gaussians, "
+        f"{len(s['objects'])} objects",
+        f"  {'reconstruct':<22}{sec.get('reconstruct', 0):>8.1f}s  {s['gaussians']} Gaussians, held-out PSNR "
+        f"{_fmt(s['psnr'], '.2f')} dB, SSIM {_fmt(s['ssim'], '.3f')}",
+        f"  {'group (mask-free)':<22}{sec.get('group', 0):>8.1f}s  K={s['groups']}, purity vs true objects "
+        f"{_fmt(s['group_purity'], '.3f')}, {s['objects_separated']}/{len(s['objects'])} objects separated, "
+        f"cross-view agreement {_fmt(s['cross_view_agreement'], '.3f')}",
+        f"  {'  key views':<22}{sub.get('keyviews', 0):>8.1f}s",
+        f"  {'  Stage 1 (diffusion)':<22}{sub.get('stage1', 0):>8.1f}s  {st1_line}",
+        f"  {'  Stage 2 (IST)':<22}{sub.get('stage2', 0):>8.1f}s  matching {s['matching']}{nn_line}",
+        f"  {'  renders + metrics':<22}{sub.get('renders', 0) + sub.get('metrics', 0):>8.1f}s",
+        f"  {'evaluate':<22}{sec.get('evaluate', 0):>8.1f}s",
+        f"  {'contact sheet':<22}{sec.get('sheet', 0):>8.1f}s",
+        f"  Gram style loss {_fmt(s['gram_style_loss_original'])} -> {_fmt(s['gram_style_loss'])} "
+        f"(features {s['extractor']}), content loss {_fmt(s['content_loss'])}",
+        f"  consistency RMSE (reprojection, short/long range): reconstruction "
+        f"{_fmt(c['reconstruction']['short'], '.4f')}/{_fmt(c['reconstruction']['long'], '.4f')}, stylized "
+        f"{_fmt(c['stylized']['short'], '.4f')}/{_fmt(c['stylized']['long'], '.4f')}",
+        f"  evaluation table: {s['outputs']['evaluation']}",
+        f"contact sheet: {s['contact_sheet']}",
+    ]
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------- CLI
+def add_arguments(parser) -> None:
+    parser.add_argument("--out", type=Path, default=Path("ssgwarp-demo"), help="output folder (default ssgwarp-demo)")
+    parser.add_argument("--size", choices=("small", "default"), default="default",
+                        help="default: 24 views 96x72, a few minutes on 2 CPU cores; small: 8 views 48x36, "
+                             "well under a minute (what the tests run)")
+    parser.add_argument("--force", action="store_true", help="overwrite an existing demo in --out")
+    parser.add_argument("--resume", action="store_true", help="continue an interrupted demo in --out")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars or stage messages (summary only)")
+
+
+def _quiet_warp() -> None:
+    """Keep Warp's per-module load messages off the terminal (warp >= 1.10 uses ``config.log_level``)."""
+    try:
+        import warp as wp
+    except ImportError:
+        return
+    if hasattr(wp.config, "log_level") and hasattr(wp, "LOG_WARNING"):
+        wp.config.log_level = max(int(wp.config.log_level), int(wp.LOG_WARNING))
+    else:
+        wp.config.quiet = True
+
+
+def run(args) -> int:
+    logging.basicConfig(level=logging.WARNING, format="ssgwarp: %(message)s")
+    _quiet_warp()
+    s = run_demo(args.out, args.size, device=args.device, seed=args.seed, force=args.force, resume=args.resume,
+                 progress=not args.quiet)
+    print(format_summary(s), flush=True)
+    return 0
+
+
+__all__ = ["run_demo", "format_summary", "group_agreement", "add_arguments", "run", "OUTPUTS", "STAGES"]

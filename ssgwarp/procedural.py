@@ -1,0 +1,325 @@
+"""The embedded procedural scene and style image of ``ssgwarp demo`` (nothing is downloaded).
+
+The scene (world z up, units of about a metre) is made of Gaussians with known
+object ids:
+
+====  ===========  ===========================================================
+id    object       construction
+====  ===========  ===========================================================
+0     ground       a disc of flat Gaussians, two-tone checkerboard
+1     red sphere   Fibonacci points on a sphere
+2     blue box     a grid of points on the six faces of a cube, turned 30°
+3     green torus  a (u, v) grid on a torus lying on the ground
+4     yellow cone  rings on the side of an upright cone
+====  ===========  ===========================================================
+
+Colours carry a baked Lambertian shading (one sun plus ambient light) so the
+objects look solid from every side while staying view-independent (an SH
+degree 0 reconstruction can reproduce them). A ring of cameras at a fixed
+elevation looks at the centre. :func:`render_views` renders it with
+:func:`ssgwarp.rasterization`; :func:`write_transforms_dataset` writes a NeRF
+``transforms.json`` capture (camera-to-world in OpenGL axes: x right, y up,
+z back), which :func:`ssgwarp.datasets.load_dataset` reads like any other.
+
+:func:`style_image` paints the style: bold diagonal stripes and brush strokes
+of saturated colours on a warm paper background.
+
+Public API:
+    SIZES                                       -> the demo sizes ("small", "default")
+    build_scene(density, seed)                  -> ProceduralScene
+    ring_cameras(n, width, height, ...)         -> Cameras (OpenCV axes, world-to-camera)
+    render_views(scene, cameras, background)    -> (images [C,H,W,3], object ids [C,H,W])
+    write_transforms_dataset(folder, images, cameras, ...) -> Path of transforms.json
+    style_image(width, height, seed)            -> [H, W, 3] float32 numpy
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+import torch
+
+from .cameras import Cameras, intrinsics, look_at
+from .errors import InputError
+from .scene import GaussianScene, rgb_to_sh_dc
+
+OBJECT_NAMES = ("ground", "red sphere", "blue box", "green torus", "yellow cone")
+BACKGROUND = (1.0, 1.0, 1.0)
+# the OpenCV camera axes (x right, y down, z forward) -> OpenGL (x right, y up, z back) and back
+_CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+@dataclass(frozen=True)
+class DemoSize:
+    """One demo size: the capture (views, width x height) and the work done on it."""
+
+    views: int
+    width: int
+    height: int
+    density: float            # multiplies the number of ground-truth Gaussians
+    reconstruct_iters: int
+    init_points: int          # random initial points of the reconstruction
+    max_gaussians: int
+    group_iters: int
+    keyviews: int
+    max_side: int             # key-view (diffusion) resolution, longer side
+    stylize_iters: int
+    stylize_lr: float
+    path_frames: int
+    eval_pairs: int
+
+
+SIZES: dict[str, DemoSize] = {
+    "small": DemoSize(views=8, width=48, height=36, density=0.5, reconstruct_iters=150, init_points=600,
+                      max_gaussians=2500, group_iters=40, keyviews=2, max_side=48, stylize_iters=20,
+                      stylize_lr=0.05, path_frames=0, eval_pairs=4),
+    "default": DemoSize(views=24, width=96, height=72, density=1.0, reconstruct_iters=1000, init_points=2000,
+                        max_gaussians=6000, group_iters=150, keyviews=4, max_side=96, stylize_iters=200,
+                        stylize_lr=0.05, path_frames=24, eval_pairs=8),
+}
+
+
+@dataclass
+class ProceduralScene:
+    """The ground truth: ``scene`` (SH degree 0, no identities), ``object_ids [N]`` (index into ``names``)."""
+
+    scene: GaussianScene
+    object_ids: torch.Tensor
+    names: tuple[str, ...] = OBJECT_NAMES
+
+    def __len__(self) -> int:
+        return len(self.scene)
+
+    def counts(self) -> dict[str, int]:
+        c = torch.bincount(self.object_ids, minlength=len(self.names)).tolist()
+        return {n: int(k) for n, k in zip(self.names, c)}
+
+
+# ----------------------------------------------------------------------------- geometry
+def _shade(base: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Baked Lambert shading: ``base [N,3] * (ambient + diffuse * max(0, n . sun))``."""
+    sun = np.array([0.45, -0.35, 0.82])
+    sun /= np.linalg.norm(sun)
+    lam = np.clip(normals @ sun, 0.0, 1.0)
+    return np.clip(base * (0.45 + 0.6 * lam)[:, None], 0.0, 1.0)
+
+
+def _frame(normals: np.ndarray) -> np.ndarray:
+    """``[N, 4]`` wxyz quaternions rotating +z onto each unit normal (so flat Gaussians lie on the surface)."""
+    z = np.array([0.0, 0.0, 1.0])
+    n = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+    axis = np.cross(np.broadcast_to(z, n.shape), n)
+    s = np.linalg.norm(axis, axis=1)
+    c = n @ z
+    ang = np.arctan2(s, c)
+    axis = np.where(s[:, None] > 1e-9, axis / np.maximum(s, 1e-12)[:, None], np.array([1.0, 0.0, 0.0]))
+    q = np.concatenate([np.cos(ang / 2)[:, None], axis * np.sin(ang / 2)[:, None]], axis=1)
+    return q
+
+
+def _sphere(n: int, centre, radius: float):
+    i = np.arange(n) + 0.5
+    phi = np.arccos(1 - 2 * i / n)
+    theta = math.pi * (1 + 5 ** 0.5) * i
+    nrm = np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], 1)
+    return np.asarray(centre) + radius * nrm, nrm
+
+
+def _box(per_side: int, centre, half: float, yaw: float):
+    g = (np.arange(per_side) + 0.5) / per_side * 2 - 1
+    u, v = np.meshgrid(g, g, indexing="ij")
+    u, v = u.ravel(), v.ravel()
+    pts, nrm = [], []
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            p = np.zeros((u.size, 3))
+            others = [a for a in range(3) if a != axis]
+            p[:, axis] = sign
+            p[:, others[0]], p[:, others[1]] = u, v
+            nn = np.zeros((u.size, 3))
+            nn[:, axis] = sign
+            pts.append(p)
+            nrm.append(nn)
+    pts, nrm = np.concatenate(pts) * half, np.concatenate(nrm)
+    c, s = math.cos(yaw), math.sin(yaw)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return pts @ R.T + np.asarray(centre), nrm @ R.T
+
+
+def _torus(nu: int, nv: int, centre, major: float, minor: float):
+    u, v = np.meshgrid(np.arange(nu) / nu * 2 * math.pi, np.arange(nv) / nv * 2 * math.pi, indexing="ij")
+    u, v = u.ravel(), v.ravel()
+    nrm = np.stack([np.cos(v) * np.cos(u), np.cos(v) * np.sin(u), np.sin(v)], 1)
+    ring = np.stack([np.cos(u), np.sin(u), np.zeros_like(u)], 1) * major
+    return np.asarray(centre) + ring + minor * nrm, nrm
+
+
+def _cone(rings: int, per_ring: int, centre, radius: float, height: float):
+    t = (np.arange(rings) + 0.5) / rings                      # 0 at the base, 1 at the tip
+    a = np.arange(per_ring) / per_ring * 2 * math.pi
+    T, A = np.meshgrid(t, a, indexing="ij")
+    T, A = T.ravel(), A.ravel()
+    keep = np.random.default_rng(0).random(T.size) < (1 - T) + 0.15  # thinner towards the tip
+    T, A = T[keep], A[keep]
+    r = radius * (1 - T)
+    pts = np.stack([r * np.cos(A), r * np.sin(A), height * T], 1) + np.asarray(centre)
+    slope = radius / height
+    nrm = np.stack([np.cos(A), np.sin(A), np.full_like(A, slope)], 1)
+    return pts, nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
+
+
+def build_scene(density: float = 1.0, seed: int = 0) -> ProceduralScene:
+    """The ground-truth Gaussians (see the module docstring); ``density`` scales their number (~3000 at 1)."""
+    if not density > 0:
+        raise InputError(f"procedural scene: density must be > 0, got {density}")
+    rng = np.random.default_rng(seed)
+    d = math.sqrt(density)
+    parts = []   # (xyz, normals, base rgb, spacing, thickness, object id)
+
+    # ground: a disc of radius 2.2, checkerboard of 0.5 m squares
+    step = 0.11 / d
+    g = np.arange(-2.2, 2.2 + 1e-9, step)
+    X, Y = np.meshgrid(g, g, indexing="ij")
+    X, Y = X.ravel(), Y.ravel()
+    keep = X ** 2 + Y ** 2 <= 2.2 ** 2
+    X, Y = X[keep] + rng.normal(0, step * 0.1, keep.sum()), Y[keep] + rng.normal(0, step * 0.1, keep.sum())
+    xyz = np.stack([X, Y, np.zeros_like(X)], 1)
+    check = ((np.floor(X / 0.5) + np.floor(Y / 0.5)) % 2).astype(bool)
+    base = np.where(check[:, None], [0.80, 0.76, 0.66], [0.55, 0.52, 0.47])
+    parts.append((xyz, np.tile([0.0, 0.0, 1.0], (len(X), 1)), base, step * 0.75, 0.01, 0))
+
+    xyz, nrm = _sphere(max(60, int(420 * density)), (-0.75, -0.45, 0.5), 0.5)
+    parts.append((xyz, nrm, np.array([0.88, 0.16, 0.12]), 0.075 / d, 0.02, 1))
+
+    xyz, nrm = _box(max(5, int(round(9 * d))), (0.8, -0.5, 0.36), 0.36, math.radians(30))
+    parts.append((xyz, nrm, np.array([0.15, 0.32, 0.85]), 0.06 / d, 0.015, 2))
+
+    xyz, nrm = _torus(max(16, int(36 * d)), max(8, int(14 * d)), (0.2, 0.85, 0.16), 0.45, 0.16)
+    parts.append((xyz, nrm, np.array([0.18, 0.72, 0.25]), 0.055 / d, 0.02, 3))
+
+    xyz, nrm = _cone(max(6, int(12 * d)), max(14, int(30 * d)), (-0.95, 0.75, 0.0), 0.32, 0.85)
+    parts.append((xyz, nrm, np.array([0.95, 0.78, 0.12]), 0.06 / d, 0.02, 4))
+
+    means, quats, scales, rgbs, ids = [], [], [], [], []
+    for xyz, nrm, base, spacing, thick, oid in parts:
+        n = len(xyz)
+        base = np.broadcast_to(np.asarray(base, dtype=np.float64), (n, 3))
+        col = _shade(base, nrm) * (1.0 + rng.normal(0, 0.03, (n, 1)))
+        means.append(xyz)
+        quats.append(_frame(nrm))
+        scales.append(np.tile([spacing, spacing, thick], (n, 1)))
+        rgbs.append(np.clip(col, 0.0, 1.0))
+        ids.append(np.full(n, oid))
+    t = lambda a: torch.from_numpy(np.concatenate(a)).float()  # noqa: E731
+    rgb = t(rgbs)
+    n = rgb.shape[0]
+    scene = GaussianScene(t(means), torch.log(t(scales)), t(quats), torch.full((n,), 4.0), rgb_to_sh_dc(rgb))
+    return ProceduralScene(scene, torch.from_numpy(np.concatenate(ids)).long())
+
+
+def ring_cameras(n: int, width: int, height: int, *, radius: float = 4.2, elevation_deg: float = 28.0,
+                 fov_x_deg: float = 55.0, target: Sequence[float] = (0.0, 0.0, 0.35),
+                 names: Optional[Sequence[str]] = None) -> Cameras:
+    """``n`` cameras evenly spaced on a circle around the z axis, looking at ``target`` (OpenCV axes)."""
+    if n < 1 or width < 1 or height < 1:
+        raise InputError(f"ring_cameras: need n >= 1 and a positive size, got n={n}, {width}x{height}")
+    a = torch.arange(n, dtype=torch.float64) / n * 2 * math.pi
+    el = math.radians(elevation_deg)
+    eyes = torch.stack([radius * math.cos(el) * torch.cos(a), radius * math.cos(el) * torch.sin(a),
+                        torch.full_like(a, radius * math.sin(el))], 1)
+    tgt = torch.tensor(target, dtype=torch.float64).expand(n, 3)
+    vm = look_at(eyes + tgt, tgt, up=(0.0, 0.0, 1.0))
+    f = 0.5 * width / math.tan(math.radians(fov_x_deg) / 2)
+    K = intrinsics(f, f, width / 2.0, height / 2.0, n)
+    return Cameras(vm.float(), K, width, height, list(names) if names else [f"r_{i:03d}" for i in range(n)])
+
+
+@torch.no_grad()
+def render_views(gt: ProceduralScene, cameras: Cameras,
+                 background: Sequence[float] = BACKGROUND) -> tuple[torch.Tensor, torch.Tensor]:
+    """Render the ground truth: ``(images [C,H,W,3] in [0,1], object ids [C,H,W] long, -1 = background)``.
+
+    Colour and a one-hot of the object ids go through one pass of the rasterizer.
+    """
+    scene = gt.scene
+    k = len(gt.names)
+    onehot = torch.nn.functional.one_hot(gt.object_ids, k).to(scene.dtype)
+    bg = torch.zeros(len(cameras), 3 + k, dtype=scene.dtype, device=scene.device)
+    bg[:, :3] = torch.tensor(background, dtype=scene.dtype, device=scene.device)
+    out, alpha, _ = scene.render(cameras.to(scene.device), extra=onehot, backgrounds=bg)
+    images = out[..., :3].clamp(0.0, 1.0)
+    ids = out[..., 3:].argmax(dim=-1)
+    ids[alpha[..., 0] < 0.5] = -1
+    return images, ids
+
+
+def write_transforms_dataset(folder: str | Path, images: torch.Tensor, cameras: Cameras) -> Path:
+    """Write ``images [C,H,W,3]`` and ``cameras`` as a NeRF capture: ``folder/images/*.png`` + ``transforms.json``.
+
+    ``transform_matrix`` is camera-to-world in OpenGL axes (x right, y up, z back),
+    with ``fl_x fl_y cx cy w h`` and ``camera_angle_x``. Returns the JSON's path.
+    """
+    from .fileio import write_image, write_json
+
+    folder = Path(folder)
+    C, H, W = images.shape[:3]
+    if C != len(cameras) or (W, H) != (cameras.width, cameras.height):
+        raise InputError(f"write_transforms_dataset: {C} images of {W}x{H} for {len(cameras)} cameras of "
+                         f"{cameras.width}x{cameras.height}")
+    c2w = cameras.camtoworlds.double().cpu().numpy() @ _CV_TO_GL
+    K = cameras.Ks[0].double().cpu()
+    frames = []
+    for i, name in enumerate(cameras.names):
+        rel = f"images/{name}.png"
+        write_image(folder / rel, images[i])
+        frames.append({"file_path": rel, "transform_matrix": c2w[i].tolist()})
+    meta = {"camera_angle_x": 2.0 * math.atan(W / (2.0 * float(K[0, 0]))),
+            "fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]),
+            "w": int(W), "h": int(H), "frames": frames}
+    path = folder / "transforms.json"
+    write_json(path, meta)
+    return path
+
+
+def style_image(width: int = 192, height: int = 192, seed: int = 0) -> np.ndarray:
+    """``[H, W, 3]`` float32: bold strokes of saturated colours over diagonal stripes on warm paper."""
+    if width < 8 or height < 8:
+        raise InputError(f"style_image: size {width}x{height} too small (>= 8x8)")
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:height, 0:width].astype(np.float64)
+    img = np.empty((height, width, 3))
+    img[:] = (0.96, 0.90, 0.74)                                  # paper
+    colours = np.array([[0.86, 0.10, 0.12], [0.05, 0.22, 0.70], [0.98, 0.76, 0.05],
+                        [0.05, 0.55, 0.35], [0.10, 0.08, 0.10], [0.95, 0.45, 0.10]])
+    # diagonal stripes, two colours alternating with paper
+    period = max(6.0, width / 7.0)
+    band = np.floor((xx + yy) / period).astype(int)
+    stripe = ((xx + yy) % period) < period * 0.45
+    for c in (0, 1):
+        m = stripe & (band % 4 == 2 * c)
+        img[m] = colours[c]
+    # brush strokes: thick sinuous lines with a dark edge
+    for s in range(9):
+        col = colours[rng.integers(0, len(colours))]
+        x0, y0 = rng.uniform(0, width), rng.uniform(0, height)
+        ang = rng.uniform(0, math.pi)
+        length = rng.uniform(0.4, 0.9) * max(width, height)
+        thick = rng.uniform(0.03, 0.07) * min(width, height)
+        t = np.linspace(-0.5, 0.5, 200)[:, None]
+        wob = 0.08 * length * np.sin(t * rng.uniform(4, 9) + rng.uniform(0, 6))
+        px = x0 + t * length * math.cos(ang) - wob * math.sin(ang)
+        py = y0 + t * length * math.sin(ang) + wob * math.cos(ang)
+        # distance of every pixel to the polyline's sample points (coarse but fine at these sizes)
+        d = np.full((height, width), np.inf)
+        for k in range(0, 200, 4):
+            d = np.minimum(d, np.hypot(xx - px[k, 0], yy - py[k, 0]))
+        img[(d < thick) & (d >= thick * 0.75)] = colours[4] if s % 3 else col * 0.5
+        img[d < thick * 0.75] = col
+    return np.clip(img, 0.0, 1.0).astype(np.float32)
+
+
+__all__ = ["SIZES", "DemoSize", "OBJECT_NAMES", "BACKGROUND", "ProceduralScene", "build_scene", "ring_cameras",
+           "render_views", "write_transforms_dataset", "style_image"]

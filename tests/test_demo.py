@@ -1,0 +1,229 @@
+"""`ssgwarp demo` at its reduced size, and the procedural scene it is built on.
+
+The demo runs once (module fixture, through the CLI, ~15 s on one core); the tests read what it
+wrote: the NeRF capture reads back with the cameras it was rendered from (OpenGL axes), every stage
+wrote the run contract, the summary's numbers are what the stages measured, an existing demo is
+never overwritten without --force, and a demo interrupted by Ctrl-C resumes to the same scene.
+"""
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import io
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from ssgwarp import procedural as P
+
+WEIGHT_VARS = ("SSGWARP_WEIGHTS", "SSGWARP_SD15", "SSGWARP_CONTROLNET_DEPTH", "SSGWARP_IP_ADAPTER",
+               "SSGWARP_IMAGE_ENCODER", "SSGWARP_VGG16", "SSGWARP_RAFT", "SSGWARP_LPIPS")
+
+
+def _no_weights(mp: pytest.MonkeyPatch) -> None:
+    for v in WEIGHT_VARS:
+        mp.delenv(v, raising=False)
+
+
+def _main(argv):
+    from ssgwarp.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main([str(a) for a in argv])
+    return code, out.getvalue(), err.getvalue()
+
+
+def _digest(folder: Path) -> dict[str, str]:
+    return {str(p.relative_to(folder)): hashlib.sha1(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    """One small demo run through the CLI: (out folder, exit code, stdout, stderr)."""
+    out = tmp_path_factory.mktemp("demo") / "demo"
+    with pytest.MonkeyPatch.context() as mp:
+        _no_weights(mp)
+        code, stdout, stderr = _main(["demo", "--out", out, "--size", "small", "--quiet", "--device", "cpu"])
+    return out, code, stdout, stderr
+
+
+# ----------------------------------------------------------------------------- the demo
+def test_demo_runs_every_stage_and_prints_a_summary(demo):
+    out, code, stdout, stderr = demo
+    assert code == 0, stderr
+    summary = json.loads((out / "summary.json").read_text())
+    record = json.loads((out / "demo.json").read_text())
+    assert [s for s in record["stages"]] == ["data", "reconstruct", "group", "stylize", "evaluate", "sheet"]
+    assert all(v["done"] for v in record["stages"].values())
+    # the printed summary names every stage, Stage 1's skip and the contact sheet
+    for word in ("reconstruct", "group (mask-free)", "key views", "Stage 1 (diffusion)", "Stage 2 (IST)",
+                 "evaluate", "held-out PSNR", "Gram style loss", "consistency RMSE"):
+        assert word in stdout, word
+    assert "skipped: no local weights for sd15, controlnet_depth, ip_adapter, image_encoder" in stdout
+    assert summary["stage1"]["ran"] is False and "Stage 1 did not run" in summary["matching"]
+    last = stdout.strip().splitlines()[-1]
+    assert last == f"contact sheet: {summary['contact_sheet']}"
+    sheet = Path(summary["contact_sheet"])
+    assert sheet == (out / "contact_sheet.png").resolve() and sheet.is_file()
+    from ssgwarp.fileio import read_image
+
+    img = read_image(sheet, 3)
+    assert img.shape[1] > 600 and img.shape[0] > 300 and float(img.std()) > 0.1  # a picture, not a blank
+    # the numbers are the stages' own (read back from their files), and sensible
+    rec = json.loads((out / "scene" / "metrics.json").read_text())
+    sty = json.loads((out / "stylized" / "metrics.json").read_text())
+    groups = json.loads((out / "scene" / "groups" / "groups.json").read_text())
+    assert summary["gaussians"] == rec["num_gaussians"] and summary["psnr"] == rec["psnr"]
+    assert summary["psnr"] > 15.0                     # seen ~19 dB after 150 steps at 48x36
+    assert summary["groups"] == groups["num_groups"] >= 2
+    assert summary["gram_style_loss"] == sty["gram_style_loss"] and math.isfinite(summary["content_loss"])
+    assert 0.0 < summary["group_purity"] <= 1.0
+    c = summary["consistency_rmse"]
+    assert c["stylized"]["short"] == sty["evaluation"]["consistency"]["reprojection"]["short"]["rmse"]
+    assert all(0.0 <= c[r][k] < 0.5 for r in c for k in c[r])
+    assert set(summary["seconds"]) == {"data", "reconstruct", "group", "stylize", "evaluate", "sheet"}
+    assert (out / "evaluation.md").read_text().startswith("Evaluation")
+
+
+def test_demo_outputs_follow_the_run_contract(demo):
+    from ssgwarp.datasets import load_dataset, load_run
+    from ssgwarp.grouping import load_groups
+    from ssgwarp.ply import read_ply
+
+    out = demo[0]
+    size = P.SIZES["small"]
+    data = load_dataset(out / "data")
+    assert len(data) == size.views and (data.width, data.height) == (size.width, size.height)
+    scene, run = load_run(out / "scene", "cpu")
+    assert run.names == data.names and torch.equal(run.images, data.images)
+    gm = load_groups(out / "scene", "cpu")
+    assert scene.identities is not None and scene.identities.shape[1] == gm.dim
+    styled = read_ply(out / "stylized" / "scene.ply")
+    # Stage 2 changed colour only
+    assert torch.equal(styled.means, scene.means) and torch.equal(styled.identities, scene.identities)
+    assert not torch.equal(styled.sh_dc, scene.sh_dc)
+    from ssgwarp.fileio import read_image
+
+    style = read_image(out / "style.png", 3)
+    assert np.allclose(style, P.style_image(192, 192, seed=0), atol=1 / 255)
+
+
+def test_existing_demo_is_not_overwritten_without_force(demo, tmp_path):
+    out = demo[0]
+    before = _digest(out)
+    code, stdout, stderr = _main(["demo", "--out", out, "--size", "small", "--quiet", "--device", "cpu"])
+    assert code == 2 and "already holds a demo run" in stderr and "--force" in stderr
+    assert len(stderr.strip().splitlines()) == 1 and "Traceback" not in stderr
+    assert _digest(out) == before
+    # --resume with other options is refused too, before anything is written
+    code, _, stderr = _main(["demo", "--out", out, "--size", "default", "--resume", "--quiet", "--device", "cpu"])
+    assert code == 2 and "other options" in stderr and _digest(out) == before
+
+
+def test_force_removes_only_what_the_demo_writes(tmp_path):
+    from ssgwarp.demo import _prepare_out
+    from ssgwarp.errors import InputError, SsgwarpError
+
+    out = tmp_path / "o"
+    (out / "scene").mkdir(parents=True)
+    (out / "scene" / "scene.ply").write_text("old")
+    (out / "contact_sheet.png").write_text("old")
+    (out / "notes.txt").write_text("mine")
+    rec = {"format": "ssgwarp-demo/1", "options": {"size": "small"}, "stages": {}}
+    with pytest.raises(SsgwarpError, match="already holds a demo run"):
+        _prepare_out(out, force=False, resume=False, record=dict(rec))
+    with pytest.raises(InputError, match="nothing to resume"):
+        _prepare_out(out, force=False, resume=True, record=dict(rec))
+    with pytest.raises(InputError, match="exclude each other"):
+        _prepare_out(out, force=True, resume=True, record=dict(rec))
+    _prepare_out(out, force=True, resume=False, record=dict(rec))
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+
+
+def test_ctrl_c_in_a_demo_stage_resumes_to_the_uninterrupted_result(demo, tmp_path, monkeypatch):
+    """Ctrl-C during Stage 2: exit 130, finished stages kept; --resume gives the same stylized scene."""
+    import ssgwarp.stylize as st
+    from ssgwarp.ply import read_ply
+
+    _no_weights(monkeypatch)
+    calls = {"n": 0}
+    orig = st.deferred_backward
+
+    def interrupted(*a, **k):
+        calls["n"] += 1
+        if calls["n"] == 7:
+            raise KeyboardInterrupt
+        return orig(*a, **k)
+
+    monkeypatch.setattr(st, "deferred_backward", interrupted)
+    out = tmp_path / "demo"
+    argv = ["demo", "--out", out, "--size", "small", "--quiet", "--device", "cpu"]
+    code, _, stderr = _main(argv)
+    assert code == 130 and "interrupted" in stderr and "--resume" in stderr
+    stages = json.loads((out / "demo.json").read_text())["stages"]
+    assert set(stages) == {"data", "reconstruct", "group"}           # the finished stages are recorded
+    assert torch.load(out / "stylized" / "stage2.ckpt", weights_only=False)["step"] == 6
+    assert not (out / "summary.json").exists() and not (out / "stylized" / "scene.ply").exists()
+    monkeypatch.setattr(st, "deferred_backward", orig)
+    code, stdout, stderr = _main(argv + ["--resume"])
+    assert code == 0, stderr
+    a, b = read_ply(demo[0] / "stylized" / "scene.ply"), read_ply(out / "stylized" / "scene.ply")
+    for k, v in a.tensors().items():
+        assert torch.equal(v, b.tensors()[k]), k
+
+
+# ----------------------------------------------------------------------------- the procedural scene
+def test_transforms_capture_reads_back_with_the_cameras_it_was_rendered_from(tmp_path):
+    """OpenGL axes in transforms.json: the loader recovers the ring (OpenCV) and re-rendering the
+    ground truth from the loaded cameras reproduces the written images to 8-bit precision."""
+    from ssgwarp.datasets import load_dataset
+
+    gt = P.build_scene(0.3)
+    cams = P.ring_cameras(4, 40, 30)
+    images, objects = P.render_views(gt, cams)
+    path = P.write_transforms_dataset(tmp_path / "cap", images, cams)
+    meta = json.loads(path.read_text())
+    c2w_gl = torch.tensor(meta["frames"][1]["transform_matrix"], dtype=torch.float64)
+    # OpenGL: the camera looks down its -z axis, towards the ring's target
+    to_target = torch.tensor([0.0, 0.0, 0.35], dtype=torch.float64) - c2w_gl[:3, 3]
+    assert float(torch.nn.functional.cosine_similarity(-c2w_gl[:3, 2], to_target, dim=0)) > 0.999
+    data = load_dataset(tmp_path / "cap", split_every=0)
+    assert torch.allclose(data.cameras.viewmats, cams.viewmats, atol=1e-5)
+    assert torch.allclose(data.cameras.Ks, cams.Ks, atol=1e-5)
+    again, _ = P.render_views(gt, data.cameras)
+    assert float((again - data.images).abs().max()) <= 0.5 / 255 + 1e-4
+    # every view sees all five objects
+    for v in range(4):
+        assert set(objects[v].unique().tolist()) >= {0, 1, 2, 3, 4}
+
+
+def test_procedural_scene_and_style_image():
+    gt = P.build_scene(1.0)
+    counts = gt.counts()
+    assert list(counts) == list(P.OBJECT_NAMES) and min(counts.values()) > 100
+    assert gt.scene.sh_degree == 0 and gt.scene.identities is None        # only what the scene needs
+    assert len(P.build_scene(0.25)) < 0.4 * len(gt)
+    s0, s0b, s1 = P.style_image(64, 48, seed=0), P.style_image(64, 48, seed=0), P.style_image(64, 48, seed=1)
+    assert s0.shape == (48, 64, 3) and s0.dtype == np.float32 and np.array_equal(s0, s0b)
+    assert not np.array_equal(s0, s1) and 0.0 <= s0.min() and s0.max() <= 1.0
+    sat = s0.max(axis=2) - s0.min(axis=2)
+    assert (sat > 0.5).mean() > 0.2                                   # bold, saturated colour
+    assert len(np.unique((s0 * 255).astype(np.uint8).reshape(-1, 3), axis=0)) >= 5
+
+
+def test_group_agreement_scores():
+    from ssgwarp.demo import group_agreement
+
+    objects = torch.tensor([[[-1, 0, 0, 1], [2, 2, 1, 1]]])         # background, objects 0, 1, 2
+    same = torch.tensor([[[5, 0, 0, 1], [2, 2, 1, 1]]])
+    r = group_agreement(same, objects, 3)
+    assert r["purity"] == 1.0 and r["separated"] == 3 and r["objects"] == 3 and r["pixels"] == 7
+    merged = torch.tensor([[[5, 0, 0, 0], [2, 2, 0, 0]]])             # object 1 folded into object 0's group
+    r = group_agreement(merged, objects, 3)
+    assert r["separated"] == 1 and math.isclose(r["purity"], 5 / 7)
