@@ -126,7 +126,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except SsgwarpError as e:
         if debug:
             traceback.print_exc()
-        print(f"ssgwarp: error: {e}", file=sys.stderr)
+        print(f"ssgwarp: error: {_one_line(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("ssgwarp: interrupted; completed checkpoints are kept (rerun with --resume to continue)",
@@ -135,8 +135,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except (ValueError, FileNotFoundError, OSError) as e:
         if debug:
             traceback.print_exc()
-        print(f"ssgwarp: error: {e}", file=sys.stderr)
+        print(f"ssgwarp: error: {_one_line(e)}", file=sys.stderr)
         return 2
+
+
+def _one_line(e: BaseException) -> str:
+    """The error as one line (libraries' multi-line texts are folded; --debug shows everything)."""
+    return " ".join(str(e).split())
 
 
 if __name__ == "__main__":

@@ -451,6 +451,8 @@ def _load_llff(root: Path, images: str, max_images, width, background, num_rando
 
 def _intrinsics_from(meta: dict, w: int, h: int, where: str) -> tuple[float, float, float, float, np.ndarray]:
     """fx, fy, cx, cy at the JSON's own resolution (``meta['w'/'h']`` or the image's), distortion [4]."""
+    if not any(k in meta for k in ("fl_x", "fl_y", "camera_angle_x")):
+        raise InputError(f"{where}: no intrinsics (need camera_angle_x or fl_x/fl_y)")
     try:
         if "fl_x" in meta or "fl_y" in meta:
             fx = float(meta.get("fl_x", meta.get("fl_y")))
@@ -458,8 +460,6 @@ def _intrinsics_from(meta: dict, w: int, h: int, where: str) -> tuple[float, flo
         elif "camera_angle_x" in meta:
             fx = 0.5 * w / np.tan(0.5 * float(meta["camera_angle_x"]))
             fy = 0.5 * h / np.tan(0.5 * float(meta["camera_angle_y"])) if "camera_angle_y" in meta else fx
-        else:
-            raise InputError(f"{where}: no intrinsics (need camera_angle_x or fl_x/fl_y)")
         cx = float(meta.get("cx", w / 2.0))
         cy = float(meta.get("cy", h / 2.0))
         dist = np.array([float(meta.get(k, 0.0)) for k in ("k1", "k2", "p1", "p2")])

@@ -434,21 +434,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bars or stage messages (summary only)")
 
 
-def _quiet_warp() -> None:
-    """Keep Warp's per-module load messages off the terminal (warp >= 1.10 uses ``config.log_level``)."""
-    try:
-        import warp as wp
-    except ImportError:
-        return
-    if hasattr(wp.config, "log_level") and hasattr(wp, "LOG_WARNING"):
-        wp.config.log_level = max(int(wp.config.log_level), int(wp.LOG_WARNING))
-    else:
-        wp.config.quiet = True
-
-
 def run(args) -> int:
     logging.basicConfig(level=logging.WARNING, format="ssgwarp: %(message)s")
-    _quiet_warp()
     s = run_demo(args.out, args.size, device=args.device, seed=args.seed, force=args.force, resume=args.resume,
                  progress=not args.quiet)
     print(format_summary(s), flush=True)

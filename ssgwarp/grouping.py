@@ -469,6 +469,12 @@ def train_identities(scene: GaussianScene, cameras: Cameras, targets: Tensor, nu
                                      samples=config.reg_samples, max_points=config.reg_max_points)
                 loss = loss + config.reg_weight * reg
                 reg_v = float(reg.detach())
+            if not torch.isfinite(loss.detach()):
+                if ckpt is not None:  # the parameters are still those of the last good step
+                    _save_checkpoint(ckpt, done, identities, classifier, opt, snap[0], meta, history, snap[1])
+                raise SsgwarpError(f"grouping: the loss became {float(loss.detach())} at step {step + 1} of "
+                                   f"{config.iters}; the last good state is kept in the checkpoint (lower the "
+                                   "learning rate and rerun with --resume)")
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()

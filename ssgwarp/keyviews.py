@@ -370,6 +370,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--ids", type=str, default=None,
                         help="comma-separated camera indices to use instead of automatic selection, e.g. 0,5,9")
     parser.add_argument("--out", type=Path, default=None, help="output folder (default SCENE_DIR/keyviews)")
+    parser.add_argument("--force", action="store_true", help="overwrite an existing, non-empty --out")
     parser.add_argument("--max-side", type=int, default=512,
                         help="longer side of the diffusion resolution, a multiple of 8 (default 512)")
     parser.add_argument("--from-all", action="store_true",
@@ -379,9 +380,12 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     from .datasets import load_run   # written in parallel; imported lazily
 
+    from .fileio import claim_output_dir
+
     scene_dir = Path(args.scene_dir)
     device = args.device
     scene, data = load_run(scene_dir, device, load_images=False)  # key views are rendered: cameras suffice
+    out = Path(args.out) if args.out is not None else scene_dir / "keyviews"
     classifier = None
     if (scene_dir / "groups" / "classifier.pt").is_file():
         from .grouping import load_groups
@@ -392,7 +396,7 @@ def run(args) -> int:
     size = diffusion_size(cams.width, cams.height, args.max_side)
     background = getattr(data, "background", None)
     kv = render_keyviews(scene, cams, ids, size, classifier, background=background)
-    out = Path(args.out) if args.out is not None else scene_dir / "keyviews"
+    claim_output_dir(out, args.force)
     path = save_keyviews(kv, out)
     groups = f", {kv.num_groups} groups" if kv.groups is not None else ", no group classifier"
     print(f"key views {ids} ({', '.join(kv.cameras.names)}) at {size[0]}x{size[1]}{groups} -> {path.parent}")

@@ -26,7 +26,8 @@ REDUCED_ON_CPU = False
 def _init() -> None:
     global _INIT
     if not _INIT:
-        wp.config.quiet = True
+        # keep Warp's per-module "load ... (compiled)" lines off the terminal; warnings still show
+        wp.config.log_level = max(int(wp.config.log_level), int(wp.LOG_WARNING))
         wp.init()
         _INIT = True
 

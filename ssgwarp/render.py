@@ -15,6 +15,7 @@ import torch
 
 from .cameras import Cameras
 from .errors import InputError
+from .fileio import claim_output_dir
 
 log = logging.getLogger("ssgwarp.render")
 
@@ -185,6 +186,7 @@ def add_arguments(parser) -> None:
                         help="which of the run's cameras to render (default all; with --path: the path's key cameras)")
     parser.add_argument("--open", action="store_true", help="with --path: an open path instead of a loop")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--force", action="store_true", help="overwrite an existing, non-empty --out")
 
 
 def run(args) -> int:
@@ -195,11 +197,11 @@ def run(args) -> int:
     if not ids:
         raise InputError(f"{args.scene_dir}: the run has no {args.split} cameras")
     cams = data.cameras[ids]
+    if args.path is not None and args.path < 1:
+        raise InputError(f"--path must be >= 1, got {args.path}")
+    claim_output_dir(args.out, args.force)
     if args.path is not None:
-        if args.path < 1:
-            raise InputError(f"--path must be >= 1, got {args.path}")
         cams = smooth_path(cams, args.path, closed=not args.open)
-        args.out.mkdir(parents=True, exist_ok=True)
         cams.to("cpu").save(args.out / "path_cameras.json")
     paths = render_cameras(scene, cams, args.out, background=data.background, progress=not args.no_progress)
     print(f"{args.out}: {len(paths)} images")

@@ -48,7 +48,7 @@ import torch
 import torch.nn.functional as F
 
 from .cameras import Cameras
-from .errors import InputError, SsgwarpError
+from .errors import InputError, SsgwarpError, WeightsNotFound
 from .matching import DEFAULT_CHUNK, MatchTargets, downsample_labels
 from .scene import GaussianScene
 
@@ -398,9 +398,9 @@ def optimise(scene: GaussianScene, cameras: Cameras, cfg: Stage2Config, *,
                 save(done)
     except KeyboardInterrupt:
         save(done)  # the steps applied completely; resume continues after them
-        bar.close()
         raise
-    bar.close()
+    finally:
+        bar.close()
     seconds = elapsed + time.perf_counter() - t0
     out = scene.replace(**{n: p.detach().clone() for n, p in params.items()})
     if checkpoint is not None:
@@ -555,6 +555,17 @@ def contact_sheet(path: Path, originals: torch.Tensor, stylized: torch.Tensor, s
     return path
 
 
+def _check_explicit_stage1_paths(stage1) -> None:
+    """A Stage 1 weight path the user gave explicitly must exist (absent defaults just skip Stage 1)."""
+    from . import weights as W
+    from .diffusion import WEIGHT_KEYS
+
+    for key in WEIGHT_KEYS:
+        explicit = getattr(stage1, key, None)
+        if explicit and W.find(key, explicit) is None:
+            raise WeightsNotFound(W.message(key, explicit))
+
+
 def stylize_run(scene_dir: str | Path, style_path: str | Path, out: str | Path, *,
                 stage2: Optional[Stage2Config] = None, stage1=None, opts: Optional[StylizeOptions] = None,
                 device: torch.device | str = "cpu", resume: bool = False, force: bool = False,
@@ -587,6 +598,11 @@ def stylize_run(scene_dir: str | Path, style_path: str | Path, out: str | Path, 
     device = torch.device(device)
     style_np = read_image(style_path, 3)                       # InputError when missing / corrupt
     scene, data = load_run(scene_dir, device, load_images=False)
+    # weights first: a missing or corrupt file must fail before anything is written to OUT
+    extractor = load_extractor(opts.vgg16, device, opts.layers, kind=opts.extractor, seed=stage2.seed,
+                               config=opts.weights)
+    if stage1 is not None and stage2.mode != "global" and stage1_models is None:
+        _check_explicit_stage1_paths(stage1)
     state = _prepare_out(out, scene_dir, _signature(style_path, scene_dir, stage2, opts,
                                                     stage1 if stage2.mode != "global" else None), resume, force)
     times: dict[str, float] = {}
@@ -611,8 +627,6 @@ def stylize_run(scene_dir: str | Path, style_path: str | Path, out: str | Path, 
             gm = load_groups(scene_dir, device)
             classifier, num_groups = gm.classifier, gm.num_groups
 
-    extractor = load_extractor(opts.vgg16, device, opts.layers, kind=opts.extractor, seed=stage2.seed,
-                               config=opts.weights)
     _say(f"{len(scene)} Gaussians, {len(train_ids)} training views {cams.width}x{cams.height}, "
          f"{'%d groups' % num_groups if num_groups else 'no groups (one group)'}, features {extractor.name}, "
          f"device {device}", progress)
@@ -772,6 +786,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene_dir", type=Path, help="a reconstruction run (scene.ply, cameras.json, data.json; "
                                                 "groups/ when grouped)")
     p.add_argument("--style", type=Path, required=True, help="style image (PNG/JPG)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars or stage messages")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--mode", default="ist", choices=MODES,
                    help="ist: per-group matching to the stylized key views (default); finetune: fit the "
@@ -831,5 +846,5 @@ def run(args) -> int:
                           path_frames=args.path_frames, sheet_views=args.sheet_views, weights=weights)
     s1 = config_from_args(args) if args.mode != "global" else None
     stylize_run(args.scene_dir, args.style, args.out, stage2=s2, stage1=s1, opts=opts, device=args.device,
-                resume=args.resume, force=args.force)
+                resume=args.resume, force=args.force, progress=not args.quiet)
     return 0

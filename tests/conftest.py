@@ -22,6 +22,8 @@ def _release_vtk_objects():
     import gc
     import sys
 
-    if "pyvista" in sys.modules:
-        sys.modules["pyvista"].close_all()
+    pv = sys.modules.get("pyvista")
+    if pv is not None:
+        pv.close_all()
+        getattr(pv.plotting.plotter, "_ALL_PLOTTERS", {}).clear()
     gc.collect()

@@ -5,9 +5,6 @@ code 2 and one line on stderr (no traceback) and leave nothing half-written; a N
 optimisation is reported with its step and the last good checkpoint is kept; Ctrl-C keeps a
 checkpoint and ``--resume`` reaches the same scene as an uninterrupted seeded run; outputs are never
 overwritten without ``--force``; ``--help`` works everywhere and shows examples.
-
-Rows that fail today because of a known defect in another module are marked ``xfail(strict=True)``
-with the reason, so fixing the defect turns them into failures until the mark is removed.
 """
 from __future__ import annotations
 
@@ -112,15 +109,12 @@ def copy(src: Path, dst: Path) -> Path:
 
 
 # ----------------------------------------------------------------------------- images and poses
-MULTILINE_OIIO_ERROR = pytest.mark.xfail(
-    strict=True, reason="ssgwarp/fileio.py read_image puts OpenImageIO's multi-line error text into the message "
-                        "(two lines for a truncated PNG)")
 
 
 @pytest.mark.parametrize("damage, message", [
     ("missing", "missing"),
     ("corrupt", "cannot read image"),
-    pytest.param("truncated", "r_002.png", marks=MULTILINE_OIIO_ERROR),
+    pytest.param("truncated", "r_002.png"),
 ])
 def test_bad_image(world, tmp_path, capsys, damage, message):
     cap = copy(world.cap, tmp_path / "cap")
@@ -146,10 +140,7 @@ def _nerf_meta(path: Path) -> dict:
     ("transforms: not JSON", "not valid JSON"),
     ("transforms: NaN pose", "NaN/inf"),
     ("transforms: 2x2 pose", "wrong shape"),
-    pytest.param("transforms: no intrinsics", "no intrinsics", marks=pytest.mark.xfail(
-        strict=True, reason="ssgwarp/datasets.py _intrinsics_from raises InputError('no intrinsics') inside a "
-                            "try that catches ValueError (InputError is one), so the message says 'intrinsics "
-                            "are not numbers'")),
+    pytest.param("transforms: no intrinsics", "no intrinsics"),
 ])
 def test_bad_poses(world, tmp_path, capsys, damage, message):
     if damage.startswith("colmap"):
@@ -270,12 +261,6 @@ def test_bad_style_image(world, tmp_path, capsys, damage, message):
 
 
 # ----------------------------------------------------------------------------- weights
-STYLIZE_WRITES_RUN_JSON_FIRST = pytest.mark.xfail(
-    strict=True, reason="ssgwarp/stylize.py stylize_run writes OUT/run.json (_prepare_out) before "
-                        "load_extractor checks the VGG16 weights, so a weights error leaves OUT half-written")
-SD15_MISSING_IS_SILENT = pytest.mark.xfail(
-    strict=True, reason="ssgwarp/stylize.py + diffusion.missing_weights: an explicit --sd15 path that does not "
-                        "exist silently skips Stage 1 (exit 0) instead of failing like --vgg16 does")
 
 
 def _corrupt_weights(tmp_path: Path) -> Path:
@@ -288,14 +273,11 @@ def _corrupt_weights(tmp_path: Path) -> Path:
     pytest.param("evaluate --vgg missing", id="evaluate-vgg-missing"),
     pytest.param("evaluate --raft missing", id="evaluate-raft-missing"),
     pytest.param("evaluate --lpips missing", id="evaluate-lpips-missing"),
-    pytest.param("evaluate --vgg corrupt", id="evaluate-vgg-corrupt", marks=pytest.mark.xfail(
-        strict=True, reason="ssgwarp/features.py load_extractor puts torch.load's multi-line error text into "
-                            "the message")),
-    pytest.param("stylize --vgg16 missing", id="stylize-vgg16-missing", marks=STYLIZE_WRITES_RUN_JSON_FIRST),
-    pytest.param("stylize --vgg16 corrupt", id="stylize-vgg16-corrupt", marks=pytest.mark.xfail(
-        strict=True, reason="both defects: the multi-line load_extractor message and OUT/run.json written first")),
-    pytest.param("stylize --extractor vgg16", id="stylize-extractor-vgg16", marks=STYLIZE_WRITES_RUN_JSON_FIRST),
-    pytest.param("stylize --sd15 missing", id="stylize-sd15-missing", marks=SD15_MISSING_IS_SILENT),
+    pytest.param("evaluate --vgg corrupt", id="evaluate-vgg-corrupt"),
+    pytest.param("stylize --vgg16 missing", id="stylize-vgg16-missing"),
+    pytest.param("stylize --vgg16 corrupt", id="stylize-vgg16-corrupt"),
+    pytest.param("stylize --extractor vgg16", id="stylize-extractor-vgg16"),
+    pytest.param("stylize --sd15 missing", id="stylize-sd15-missing"),
 ])
 def test_bad_weights(world, tmp_path, capsys, row):
     run = copy(world.grouped, tmp_path / "run")
@@ -366,9 +348,6 @@ def test_nan_in_stylize_is_reported_with_the_step_and_keeps_the_checkpoint(world
     assert not (out / "scene.ply").exists() and not (out / "metrics.json").exists()
 
 
-@pytest.mark.xfail(strict=True, reason="ssgwarp/grouping.py train_identities does not check the loss for NaN: "
-                                       "the next render fails in the rasterizer's input check, without the step "
-                                       "or a checkpoint")
 def test_nan_in_grouping_is_reported_with_the_step(world, tmp_path, capsys, monkeypatch):
     import ssgwarp.grouping as G
 
@@ -383,7 +362,11 @@ def test_nan_in_grouping_is_reported_with_the_step(world, tmp_path, capsys, monk
     run = copy(world.run, tmp_path / "run")
     before = digest(run)
     fails(capsys, ["group", run, "--masks", "none", "--iters", "10", "--quiet", *FAST], "step 5")
-    assert digest(run) == before
+    after = digest(run)
+    # the run is untouched but for a checkpoint of the last good state (4 steps), for --resume
+    ckpt = after.pop("groups/checkpoint.pt", None)
+    assert after == before
+    assert ckpt is not None and torch.load(run / "groups" / "checkpoint.pt", weights_only=False)["step"] == 4
 
 
 # ----------------------------------------------------------------------------- Ctrl-C and --resume
@@ -479,16 +462,12 @@ def test_ctrl_c_in_stylize_then_resume_matches_an_uninterrupted_run(world, tmp_p
 
 
 # ----------------------------------------------------------------------------- --force
-RENDER_OVERWRITES = pytest.mark.xfail(strict=True, reason="ssgwarp/render.py run() writes into an existing --out "
-                                                          "without a check (it has no --force)")
-KEYVIEWS_OVERWRITES = pytest.mark.xfail(strict=True, reason="ssgwarp/keyviews.py run() overwrites an existing "
-                                                            "--out without a check (it has no --force)")
 
 
 @pytest.mark.parametrize("command", [
     "reconstruct", "group", "stylize",
-    pytest.param("render", marks=RENDER_OVERWRITES),
-    pytest.param("keyviews", marks=KEYVIEWS_OVERWRITES),
+    pytest.param("render"),
+    pytest.param("keyviews"),
 ])
 def test_outputs_are_never_overwritten_without_force(world, tmp_path, capsys, command):
     run = copy(world.grouped, tmp_path / "run")

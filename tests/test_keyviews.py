@@ -221,6 +221,8 @@ def test_cli_keyviews_on_a_run_directory(tmp_path):
     assert len(meta["ids"]) == 2 and all(i < 5 for i in meta["ids"])  # chosen among the training views
     assert meta["num_groups"] == 3 and (meta["width"], meta["height"]) == (64, 40)
     assert main(["keyviews", str(run), "--ids", "5,0", "--out", str(out), "--max-side", "64",
-                 "--device", "cpu"]) == 0
+                 "--device", "cpu"]) == 2                      # an existing output needs --force
+    assert main(["keyviews", str(run), "--ids", "5,0", "--out", str(out), "--max-side", "64",
+                 "--device", "cpu", "--force"]) == 0
     assert read_json(out / "keyviews.json")["ids"] == [5, 0]
     assert main(["keyviews", str(run), "--ids", "9", "--out", str(out), "--device", "cpu"]) == 2
