@@ -23,7 +23,7 @@ import functools
 
 import warp as wp
 
-from .pixel import pixel_funcs
+from .pixel import pixel_funcs, tile_pixel
 from .types import channel_vector, types_for
 
 
@@ -109,16 +109,11 @@ def backward_kernel(scalar, channels: int):
         v_opacities: wp.array(dtype=scalar),
         v_colors: wp.array(dtype=vecD),
     ):
-        tid = wp.tid()
-        tile_pixels = tile_size * tile_size
-        rng = tid // tile_pixels
-        local = tid - rng * tile_pixels
-        n_tiles = tile_width * tile_height
-        cam = rng // n_tiles
-        tile = rng - cam * n_tiles
-        tyi = tile // tile_width
-        x = (tile - tyi * tile_width) * tile_size + local % tile_size
-        y = tyi * tile_size + local // tile_size
+        p = tile_pixel(wp.tid(), tile_size, tile_width, tile_height)
+        rng = p[0]
+        cam = p[1]
+        x = p[2]
+        y = p[3]
         if x >= width or y >= height:
             return
         pix = (cam * height + y) * width + x
@@ -209,16 +204,11 @@ def reduced_backward_kernel(scalar, channels: int, to_slots: bool = False):
         slots: wp.array(dtype=wp.int32),
         v_packed: wp.array(dtype=vecG),
     ):
-        tid = wp.tid()
-        tile_pixels = tile_size * tile_size
-        rng = tid // tile_pixels
-        local = tid - rng * tile_pixels
-        n_tiles = tile_width * tile_height
-        cam = rng // n_tiles
-        tile = rng - cam * n_tiles
-        tyi = tile // tile_width
-        x = (tile - tyi * tile_width) * tile_size + local % tile_size
-        y = tyi * tile_size + local // tile_size
+        p = tile_pixel(wp.tid(), tile_size, tile_width, tile_height)
+        rng = p[0]
+        cam = p[1]
+        x = p[2]
+        y = p[3]
         last = int(-1)
         T_final = scalar(1.0)
         v_col = vecD()

@@ -22,7 +22,7 @@ import functools
 
 import warp as wp
 
-from .pixel import pixel_funcs
+from .pixel import pixel_funcs, tile_pixel
 from .types import channel_vector, types_for
 
 
@@ -54,16 +54,11 @@ def forward_kernel(scalar, channels: int):
         out_alpha: wp.array(dtype=scalar),
         last_ids: wp.array(dtype=wp.int32),
     ):
-        tid = wp.tid()
-        tile_pixels = tile_size * tile_size
-        rng = tid // tile_pixels
-        local = tid - rng * tile_pixels
-        n_tiles = tile_width * tile_height
-        cam = rng // n_tiles
-        tile = rng - cam * n_tiles
-        tyi = tile // tile_width
-        x = (tile - tyi * tile_width) * tile_size + local % tile_size
-        y = tyi * tile_size + local // tile_size
+        p = tile_pixel(wp.tid(), tile_size, tile_width, tile_height)
+        rng = p[0]
+        cam = p[1]
+        x = p[2]
+        y = p[3]
         if x >= width or y >= height:
             return
         px = scalar(x) + scalar(0.5)

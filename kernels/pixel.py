@@ -19,6 +19,22 @@ import warp as wp
 from .types import types_for
 
 
+@wp.func
+def tile_pixel(tid: int, tile_size: int, tile_width: int, tile_height: int):
+    """``vec4i(range, camera, x, y)`` of blending thread ``tid``: threads run tile by tile (the
+    ``tile_size^2`` threads of a tile are consecutive), ``range = camera * n_tiles + tile``."""
+    tile_pixels = tile_size * tile_size
+    rng = tid // tile_pixels
+    local = tid - rng * tile_pixels
+    n_tiles = tile_width * tile_height
+    cam = rng // n_tiles
+    tile = rng - cam * n_tiles
+    tyi = tile // tile_width
+    x = (tile - tyi * tile_width) * tile_size + local % tile_size
+    y = tyi * tile_size + local // tile_size
+    return wp.vec4i(rng, cam, x, y)
+
+
 @functools.lru_cache(maxsize=None)
 def pixel_funcs(scalar):
     """``(splat_alpha, ends_pixel)`` for one precision.
