@@ -74,7 +74,7 @@ class Cameras:
     @property
     def camtoworlds(self) -> torch.Tensor:
         """``[C, 4, 4]`` camera-to-world."""
-        return torch.linalg.inv(self.viewmats)
+        return torch.linalg.inv_ex(self.viewmats).inverse  # no singularity check: no device sync
 
     @property
     def centers(self) -> torch.Tensor:

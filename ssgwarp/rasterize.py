@@ -220,7 +220,8 @@ def rasterization(
                                                     width, height, **proj_kw)
 
     if sh_degree is not None:
-        campos = torch.linalg.inv(viewmats)[:, :3, 3]
+        # inv_ex: no singularity check, so no device synchronisation per call
+        campos = torch.linalg.inv_ex(viewmats).inverse[:, :3, 3]
         dirs = means[None] - campos[:, None]
         shs = colors if colors.ndim == 4 else colors[None].expand(C, -1, -1, -1)
         if backend == "torch":
