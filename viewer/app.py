@@ -569,16 +569,19 @@ _VIEWERS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 def build_plotter(scene: GaussianScene, **kwargs):
     """The ``pyvista.Plotter`` of :func:`build_viewer`; :func:`viewer_of` gives its :class:`Viewer` back."""
     viewer = build_viewer(scene, **kwargs)
-    _VIEWERS[viewer.plotter] = viewer
+    # a weak value too: a strong one would keep the key (its own plotter) alive forever; the
+    # viewer lives as long as the plotter through the key and picking callbacks it installed
+    _VIEWERS[viewer.plotter] = weakref.ref(viewer)
     return viewer.plotter
 
 
 def viewer_of(plotter) -> Viewer:
     """The :class:`Viewer` that :func:`build_plotter` made ``plotter`` for."""
-    try:
-        return _VIEWERS[plotter]
-    except KeyError:
-        raise ValueError("this plotter was not made by ssgwarp.viewer.build_plotter") from None
+    ref = _VIEWERS.get(plotter)
+    viewer = ref() if ref is not None else None
+    if viewer is None:
+        raise ValueError("this plotter was not made by ssgwarp.viewer.build_plotter")
+    return viewer
 
 
 def screenshot(scene: GaussianScene, path: str | Path | None = None, *, render_view=None, view=None,
