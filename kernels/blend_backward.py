@@ -12,11 +12,11 @@ then through ``alpha = opacity exp(-sigma)`` (no gradient where the clamp
 ``alpha_max`` is active) to opacity, conic and the screen mean. The gating
 (skip / end) is the same ``@wp.func`` the forward used (:mod:`.pixel`).
 
-Variants: :func:`backward_kernel` (one thread per pixel, atomic adds per
-Gaussian; the CPU path) and :func:`reduced_backward_kernel` (one block per
-tile, block-wide sums, one atomic per Gaussian and tile; the CUDA path, and
-with per-intersection slots plus :func:`gather_kernel` the deterministic
-option on both devices).
+One kernel, :func:`reduced_backward_kernel`: blocks of pixels of one tile walk
+the tile's Gaussians in lockstep and sum their gradients before one atomic add
+per Gaussian and block (on CPU the block width is 1: the plain per-pixel
+walk). With per-intersection slots plus :func:`gather_kernel` it is the
+deterministic option on both devices.
 """
 
 import functools
@@ -76,75 +76,6 @@ def layer_grad_func(scalar, channels: int):
 
 
 @functools.lru_cache(maxsize=None)
-def backward_kernel(scalar, channels: int):
-    """One thread per pixel walking its own layers back to front, atomic adds per Gaussian
-    (used on CPU, where threads run in turn: exact and deterministic)."""
-    t = types_for(scalar)
-    splat = t.splat
-    vec2, vec3 = t.vec2, t.vec3
-    vecD = channel_vector(scalar, channels)
-    layer_grad = layer_grad_func(scalar, channels)
-
-    # no FMA contraction: the gating in pixel.py must decide as in the forward pass
-    @wp.kernel(module="unique", module_options={"fuse_fp": False})
-    def blend_backward(
-        splats: wp.array(dtype=splat),
-        colors: wp.array(dtype=vecD),
-        backgrounds: wp.array(dtype=vecD),
-        flatten_ids: wp.array(dtype=wp.int32),
-        offsets: wp.array(dtype=wp.int32),
-        width: int,
-        height: int,
-        tile_size: int,
-        tile_width: int,
-        tile_height: int,
-        alpha_min: scalar,
-        alpha_max: scalar,
-        out_T: wp.array(dtype=scalar),
-        last_ids: wp.array(dtype=wp.int32),
-        v_out_colors: wp.array(dtype=vecD),
-        v_out_alphas: wp.array(dtype=scalar),
-        v_means2d: wp.array(dtype=vec2),
-        v_conics: wp.array(dtype=vec3),
-        v_opacities: wp.array(dtype=scalar),
-        v_colors: wp.array(dtype=vecD),
-    ):
-        p = tile_pixel(wp.tid(), tile_size, tile_width, tile_height)
-        rng = p[0]
-        cam = p[1]
-        x = p[2]
-        y = p[3]
-        if x >= width or y >= height:
-            return
-        pix = (cam * height + y) * width + x
-        T_final = out_T[pix]
-        v_col = v_out_colors[pix]
-        v_alpha_out = v_out_alphas[pix]
-        bg_term = T_final * wp.dot(backgrounds[cam], v_col)
-        px = scalar(x) + scalar(0.5)
-        py = scalar(y) + scalar(0.5)
-        T_next = T_final
-        S = vecD()
-        start = offsets[rng]
-        k = int(last_ids[pix])
-        while k >= start:
-            g = flatten_ids[k]
-            used, T, S2, v_xy, v_cn, v_op, v_c = layer_grad(
-                splats[k], colors[g], px, py, alpha_min, alpha_max,
-                T_next, S, v_col, v_alpha_out, T_final, bg_term)
-            if used != 0:
-                wp.atomic_add(v_colors, g, v_c)
-                wp.atomic_add(v_means2d, g, v_xy)
-                wp.atomic_add(v_conics, g, v_cn)
-                wp.atomic_add(v_opacities, g, v_op)
-                T_next = T
-                S = S2
-            k -= 1
-
-    return blend_backward
-
-
-@functools.lru_cache(maxsize=None)
 def gather_kernel(scalar, channels: int):
     """Sum each Gaussian's per-intersection gradient slots in a fixed order (deterministic)."""
     vecG = channel_vector(scalar, channels + 6)
@@ -168,7 +99,8 @@ def reduced_backward_kernel(scalar, channels: int, to_slots: bool = False):
     largest last index of its pixels), sums the pixels' gradients for each Gaussian with a
     block-wide tile reduction and adds the sum with one atomic per Gaussian and tile (instead of
     one per pixel). Gradients land packed as ``[xy(2), conic(3), opacity(1), colour(D)]``.
-    Launch with ``block_dim = tile_size^2`` (on CPU the block width is 1 and this is the per-pixel walk).
+    Launch with a ``block_dim`` that divides ``tile_size^2`` (blocks never straddle tiles); on CPU the
+    block width is 1 and this is the per-pixel walk.
 
     ``to_slots=True`` (the deterministic option) adds each block sum to the intersection's own slot
     ``slots[k]`` instead of the Gaussian's: on CUDA exactly one block writes a slot and the block
@@ -177,7 +109,6 @@ def reduced_backward_kernel(scalar, channels: int, to_slots: bool = False):
     """
     t = types_for(scalar)
     splat = t.splat
-    vec2, vec3 = t.vec2, t.vec3
     vecD = channel_vector(scalar, channels)
     vecG = channel_vector(scalar, channels + 6)
     layer_grad = layer_grad_func(scalar, channels)

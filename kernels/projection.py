@@ -31,7 +31,7 @@ RADIUS_LIMIT = 1073741824.0  # radii saturate here (2^30 px) so the int32 cast n
 @functools.lru_cache(maxsize=None)
 def projection_kernel(scalar, expanded: bool = False):
     t = types_for(scalar)
-    vec2, vec3, vec4, mat33, mat44, mat23, mat22 = t.vec2, t.vec3, t.vec4, t.mat33, t.mat44, t.mat23, t.mat22
+    vec2, vec3, vec4, mat33, mat44, mat23 = t.vec2, t.vec3, t.vec4, t.mat33, t.mat44, t.mat23
 
     @wp.func
     def quat_to_rotmat(q: vec4):

@@ -7,7 +7,6 @@ stream. float32 and float64 use the same kernel source, built per precision.
 from __future__ import annotations
 
 import math
-from typing import Optional
 
 import torch
 import warp as wp
@@ -18,9 +17,6 @@ from .kernels.types import channel_vector, types_for
 Tensor = torch.Tensor
 _INIT = False
 MAX_CHANNELS = 64
-# The block-reduced blending backward runs on CUDA; on CPU (block width 1) it equals the per-pixel
-# walk and only tests switch it on there, to hold its maths to the reference.
-REDUCED_ON_CPU = False
 
 
 def _init() -> None:
@@ -243,13 +239,13 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
             "sort; render fewer cameras per call, lower the resolution, raise tile_size, or cull large Gaussians "
             "(radius_clip / RasterSettings.sigma_max)")
     starts = ends - counts
-    depth_bits = depths.detach().reshape(-1).to(torch.float32).contiguous().view(torch.int32).to(torch.int64) & 0xFFFFFFFF
+    depth_bits = depths.detach().reshape(-1).to(torch.float32).view(torch.int32).to(torch.int64) & 0xFFFFFFFF
     # every entry below n_isects is written by the kernel; the upper halves are the sort's scratch
     keys = torch.empty(2 * max(n_isects, 1), dtype=torch.int64, device=dev)
     values = torch.empty(2 * max(n_isects, 1), dtype=torch.int32, device=dev)
     gauss = torch.empty(max(n_isects, 1), dtype=torch.int32, device=dev)
     L.launch(binning.write_kernel(s), C * N,
-             [m2, rd, _wp(depth_bits.contiguous()), _wp(starts), N, tile_size, tile_width, tile_height],
+             [m2, rd, _wp(depth_bits), _wp(starts), N, tile_size, tile_width, tile_height],
              [_wp(keys), _wp(values), _wp(gauss)])
     offsets = torch.zeros(n_ranges + 1, dtype=torch.int32, device=dev)
     if n_isects > 0:
@@ -336,41 +332,32 @@ class _Blend(torch.autograd.Function):
                  _wp(g_alphas.reshape(-1))]
         n_pix = C * th * tw * tile_size * tile_size
         vecG = channel_vector(s, D + 6)
-        if ctx.det or (dev.type == "cuda" or REDUCED_ON_CPU) and tile_size * tile_size <= 1024:
-            # blocks of pixels of one tile walk its Gaussians in lockstep and sum their pixels'
-            # gradients before one atomic add per Gaussian and block (32-pixel blocks: warp-level
-            # sums). Deterministic: one block per tile adds into the intersection's own slot (one
-            # add per slot on CUDA; blocks in turn on CPU), then the slots are summed per Gaussian
-            # in a fixed order.
-            if ctx.det and tile_size * tile_size > 1024:
-                raise ValueError("rasterization: deterministic=True needs tile_size <= 32")
-            rows = M if ctx.det else C * N
-            packed = torch.zeros(max(rows, 1), 6 + D, dtype=dt, device=dev)
-            L.launch(blend_backward.reduced_backward_kernel(s, D, bool(ctx.det)), n_pix,
-                     [*common, *geom, *state, _wp(tiles["perm"])], [_wp(packed, vecG)],
-                     block_dim=tile_size * tile_size if ctx.det else reduce_width(tile_size))
-            if ctx.det:
-                slots, packed = packed, torch.zeros(C * N, 6 + D, dtype=dt, device=dev)
-                counts = tiles["tiles_per_gauss"].reshape(-1).to(torch.int64)
-                L.launch(blend_backward.gather_kernel(s, D), C * N,
-                         [_wp(tiles["isect_ends"]), _wp(counts), _wp(slots, vecG)], [_wp(packed, vecG)])
-            v = [packed[:, 0:2], packed[:, 2:5], packed[:, 5], packed[:, 6:]]
-        else:
-            # one thread per pixel, atomic adds (on CPU threads run in turn: exact and deterministic)
-            v = [torch.zeros(C * N, 2, dtype=dt, device=dev), torch.zeros(C * N, 3, dtype=dt, device=dev),
-                 torch.zeros(C * N, dtype=dt, device=dev), torch.zeros(C * N, D, dtype=dt, device=dev)]
-            v_wp = [_wp(v[0], T.vec2), _wp(v[1], T.vec3), _wp(v[2]), _wp(v[3], vecD)]
-            L.launch(blend_backward.backward_kernel(s, D), n_pix, [*common, *geom, *state], v_wp)
+        # blocks of pixels of one tile walk its Gaussians in lockstep and sum their pixels' gradients
+        # before one atomic add per Gaussian and block (on CPU the block width is 1). Deterministic:
+        # one block per tile adds into the intersection's own slot (one add per slot on CUDA; blocks
+        # in turn on CPU), then the slots are summed per Gaussian in a fixed order.
+        det = bool(ctx.det)
+        if det and tile_size * tile_size > 1024:
+            raise ValueError("rasterization: deterministic=True needs tile_size <= 32")
+        packed = torch.zeros(max(M if det else C * N, 1), 6 + D, dtype=dt, device=dev)
+        L.launch(blend_backward.reduced_backward_kernel(s, D, det), n_pix,
+                 [*common, *geom, *state, _wp(tiles["perm"])], [_wp(packed, vecG)],
+                 block_dim=tile_size * tile_size if det else reduce_width(tile_size))
+        if det:
+            slots, packed = packed, torch.zeros(C * N, 6 + D, dtype=dt, device=dev)
+            counts = tiles["tiles_per_gauss"].reshape(-1).to(torch.int64)
+            L.launch(blend_backward.gather_kernel(s, D), C * N,
+                     [_wp(tiles["isect_ends"]), _wp(counts), _wp(slots, vecG)], [_wp(packed, vecG)])
+        v = [packed[:, 0:2], packed[:, 2:5], packed[:, 5], packed[:, 6:]]
         v_bg = (g_colors * out_T[..., None]).sum(dim=(1, 2)) if ctx.has_bg else None
         return (v[0].reshape(C, N, 2), v[1].reshape(C, N, 3), v[3].reshape(C, N, D), v[2].reshape(C, N),
                 v_bg, None, None, None, None, None, None)
 
 
 def reduce_width(tile_size: int) -> int:
-    """Pixels summed together before one atomic add: a 32-lane warp (its reduction needs no
-    block barrier) when the tile splits into warps, else the whole tile."""
-    pixels = tile_size * tile_size
-    return 32 if pixels % 32 == 0 else pixels
+    """Pixels summed together before one atomic add: a 32-lane warp (its reduction needs no block
+    barrier) when the tile splits into warps, else one row of the tile; either divides the tile."""
+    return 32 if (tile_size * tile_size) % 32 == 0 else tile_size
 
 
 def blend_warp(means2d, conics, colors, opacities, backgrounds, tiles, width, height, tile_size, settings,

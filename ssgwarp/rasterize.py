@@ -207,7 +207,7 @@ def rasterization(
         backend = "warp" if _warp_available() else "torch"
     if backend not in ("warp", "torch"):
         raise ValueError(f"rasterization: backend must be 'warp', 'torch' or 'auto', got {backend!r}")
-    C, N = viewmats.shape[0], means.shape[0]
+    C = viewmats.shape[0]
     antialiased = rasterize_mode == "antialiased"
     proj_kw = dict(near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip, eps2d=eps2d,
                    antialiased=antialiased, settings=settings)

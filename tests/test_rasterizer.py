@@ -163,13 +163,3 @@ def test_densification_gradient_in_meta():
         assert key in meta
     assert int(meta["tiles_per_gauss"].sum()) == meta["flatten_ids"].numel()
 
-
-def test_block_reduced_backward_matches_reference(monkeypatch):
-    """The CUDA backward (block-wide sums, one atomic per Gaussian and tile), run with block width 1."""
-    import ssgwarp.ops as ops
-
-    monkeypatch.setattr(ops, "REDUCED_ON_CPU", True)
-    params = make_scene(150, seed=12)
-    vm, K = make_cameras(2, 45, 37)
-    out = run_both(params, vm, K, 45, 37, backgrounds=torch.rand(2, 3, dtype=torch.float64))
-    assert_match(out, 1e-10, 1e-9)
