@@ -6,6 +6,7 @@ stream. float32 and float64 use the same kernel source, built per precision.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 
 import torch
@@ -250,12 +251,9 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
     offsets = torch.zeros(n_ranges + 1, dtype=torch.int32, device=dev)
     if n_isects > 0:
         end_bit = 32 + max(1, int(n_ranges).bit_length())
-        with wp.ScopedDevice(L.device):
-            if L.stream is not None:
-                with wp.ScopedStream(L.stream):
-                    wp.utils.radix_sort_pairs(_wp(keys, ctype=False), _wp(values, ctype=False), n_isects, 0, end_bit)
-            else:
-                wp.utils.radix_sort_pairs(_wp(keys, ctype=False), _wp(values, ctype=False), n_isects, 0, end_bit)
+        on_stream = wp.ScopedStream(L.stream) if L.stream is not None else contextlib.nullcontext()
+        with wp.ScopedDevice(L.device), on_stream:
+            wp.utils.radix_sort_pairs(_wp(keys, ctype=False), _wp(values, ctype=False), n_isects, 0, end_bit)
         L.launch(binning.offsets_kernel, n_isects, [_wp(keys), n_isects, n_ranges], [_wp(offsets)])
     keys, perm = keys[:n_isects], values[:n_isects]
     flatten_ids = gauss[:n_isects][perm.long()] if n_isects else gauss[:0]
