@@ -27,19 +27,18 @@ from .types import channel_vector, types_for
 
 
 @functools.lru_cache(maxsize=None)
-def forward_kernel(scalar, channels: int):
+def forward_kernel(scalar, channels: int, fast_math: bool = False):
     t = types_for(scalar)
     splat = t.splat
     vecD = channel_vector(scalar, channels)
     splat_alpha, ends_pixel = pixel_funcs(scalar)
 
     # no FMA contraction: the gating in pixel.py must decide identically in both passes
-    @wp.kernel(module="unique", module_options={"fuse_fp": False})
+    @wp.kernel(module="unique", module_options={"fuse_fp": False, "enable_backward": False, "fast_math": fast_math})
     def blend_forward(
         splats: wp.array(dtype=splat),
         colors: wp.array(dtype=vecD),
         backgrounds: wp.array(dtype=vecD),
-        flatten_ids: wp.array(dtype=wp.int32),
         offsets: wp.array(dtype=wp.int32),
         width: int,
         height: int,
@@ -68,7 +67,6 @@ def forward_kernel(scalar, channels: int):
         wsum = scalar(0.0)
         last = wp.int32(-1)
         for k in range(offsets[rng], offsets[rng + 1]):
-            g = flatten_ids[k]
             r = splat_alpha(splats[k], px, py, alpha_min, alpha_max)
             alpha = r[0]
             if alpha < scalar(0.0):
@@ -76,7 +74,7 @@ def forward_kernel(scalar, channels: int):
             if ends_pixel(T, alpha, t_min):
                 break
             w = alpha * T
-            acc = acc + colors[g] * w
+            acc = acc + colors[k] * w
             wsum = wsum + w
             T = T * (scalar(1.0) - alpha)
             last = wp.int32(k)

@@ -7,6 +7,7 @@ stream. float32 and float64 use the same kernel source, built per precision.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import math
 
 import torch
@@ -14,6 +15,11 @@ import warp as wp
 
 from .kernels import binning, blend_backward, blend_forward, projection, sh
 from .kernels.types import channel_vector, types_for
+
+try:  # the launch descriptor wp.from_torch(..., return_ctype=True) builds; made directly here
+    from warp._src.types import array_t as _array_t
+except ImportError:  # another Warp layout: go through wp.from_torch
+    _array_t = None
 
 Tensor = torch.Tensor
 _INIT = False
@@ -37,6 +43,12 @@ def _scalar(dtype: torch.dtype):
     raise ValueError(f"ssgwarp kernels support float32 and float64, got {dtype}")
 
 
+def _fast(settings, scalar) -> bool:
+    """Approximate exp/division in the blending kernels: float32 only (a CUDA compile option; the
+    CPU build ignores it)."""
+    return bool(settings.fast_math) and scalar == wp.float32
+
+
 def _device(t: Tensor) -> str:
     if t.device.type == "cuda":
         return f"cuda:{t.device.index if t.device.index is not None else torch.cuda.current_device()}"
@@ -48,8 +60,9 @@ def _device(t: Tensor) -> str:
 def _wp(t: Tensor, dtype=None, ndim: int = 1, ctype: bool = True):
     """Zero-copy ``ndim``-D Warp view of a tensor; ``dtype`` groups the trailing axes into vectors/matrices.
 
-    ``ctype=True`` returns the light launch descriptor (faster to build and to launch with);
-    ``ctype=False`` a full ``wp.array`` (needed by ``wp.utils``).
+    ``ctype=True`` returns the light launch descriptor, built directly from the tensor's pointer,
+    shape and strides (the cheapest launch argument); ``ctype=False`` a full ``wp.array`` (needed
+    by ``wp.utils``).
     """
     t = t.detach()
     if not t.is_contiguous():
@@ -58,7 +71,17 @@ def _wp(t: Tensor, dtype=None, ndim: int = 1, ctype: bool = True):
     lead = t.shape[: t.ndim - len(inner)]
     keep = tuple(lead[len(lead) - (ndim - 1):]) if ndim > 1 else ()
     t = t.reshape(-1, *keep, *inner)
-    return wp.from_torch(t, dtype=dtype, return_ctype=ctype)
+    if not ctype or _array_t is None:
+        return wp.from_torch(t, dtype=dtype, return_ctype=ctype)
+    scalar = dtype._type_ if dtype is not None else None
+    if scalar is not None and ctypes.sizeof(scalar) != t.element_size():
+        raise TypeError(f"internal: a {t.dtype} tensor passed as Warp {dtype}")
+    shape = tuple(t.shape[: t.ndim - len(inner)])
+    size = t.element_size()
+    strides = tuple(st * size for st in t.stride()[: len(shape)])
+    if not shape:
+        shape, strides = (1,), (size,)
+    return _array_t(t.data_ptr(), 0, len(shape), shape, strides)
 
 
 _STREAMS: dict = {}
@@ -211,13 +234,15 @@ def spherical_harmonics_warp(degree: int, dirs: Tensor, coeffs: Tensor) -> Tenso
 INT32_MAX = 2**31 - 1
 
 
-def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, tile_width: int, tile_height: int) -> dict:
+def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, tile_width: int, tile_height: int,
+              pending=None) -> dict:
     """Tile intersections of projected Gaussians, sorted by (camera, tile, depth).
 
     Returns ``tiles_per_gauss [C,N]``, ``isect_ids [M]`` (int64 keys), ``flatten_ids [M]`` (flat
     camera*N + Gaussian index per sorted intersection), ``isect_offsets [C,th,tw]`` and, for the
     backward, ``offsets [C*th*tw+1]``, ``perm [M]`` (pre-sort slot of each sorted intersection),
-    ``isect_ends [C*N]``.
+    ``isect_ends [C*N]``. ``pending``: ``(values, check)`` from deferred input validation, read
+    back with the intersection count and checked before anything else.
     """
     C, N = depths.shape
     s = _scalar(means2d.dtype)
@@ -233,7 +258,14 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
     counts = torch.zeros(C * N, dtype=torch.int64, device=dev)
     L.launch(binning.count_kernel(s), C * N, [m2, rd, tile_size, tile_width, tile_height], [_wp(counts)])
     ends = torch.cumsum(counts, 0)
-    n_isects = int(ends[-1]) if ends.numel() else 0
+    total = ends[-1:] if ends.numel() else torch.zeros(1, dtype=torch.int64, device=dev)
+    if pending is not None:
+        values, check = pending
+        host = torch.cat([total.to(torch.float64), values]).tolist()  # float64 holds counts < 2^53 exactly
+        check(host[1:])
+        n_isects = int(host[0])
+    else:
+        n_isects = int(total)
     if n_isects > INT32_MAX // 2:
         raise ValueError(
             f"rasterization: {n_isects:,} Gaussian-tile intersections exceed the {INT32_MAX // 2:,} one call can "
@@ -272,11 +304,13 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
 # ---------------------------------------------------------------------------------------------
 # blending
 # ---------------------------------------------------------------------------------------------
-def pack_splats(means2d: Tensor, conics: Tensor, opacities: Tensor, flatten_ids: Tensor) -> Tensor:
-    """``[M, 6]`` (x, y, conic a, b, c, opacity) of each sorted intersection, contiguous in the
-    order the blending kernels walk them."""
+def pack_splats(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, flatten_ids: Tensor):
+    """Per sorted intersection, contiguous in the order the blending kernels walk them:
+    ``splats [M, 6]`` (x, y, conic a, b, c, opacity) and ``colors [M, D]``."""
+    ids = flatten_ids.long()
     flat = torch.cat([means2d.detach(), conics.detach(), opacities.detach()[..., None]], dim=-1).reshape(-1, 6)
-    return flat.index_select(0, flatten_ids.long()).contiguous()
+    cols = colors.detach().reshape(-1, colors.shape[-1])
+    return flat.index_select(0, ids), cols.index_select(0, ids)
 
 
 class _Blend(torch.autograd.Function):
@@ -297,33 +331,33 @@ class _Blend(torch.autograd.Function):
         bg = backgrounds if backgrounds is not None else torch.zeros(C, D, dtype=dt, device=dev)
         colors = colors.contiguous()
         L = _Launcher(colors)
-        splats = pack_splats(means2d, conics, opacities, tiles["flatten_ids"])
-        L.launch(blend_forward.forward_kernel(s, D), C * th * tw * tile_size * tile_size,
-                 [_wp(splats, T.splat), _wp(colors.reshape(C * N, D), vecD), _wp(bg, vecD),
-                  _wp(tiles["flatten_ids"]), _wp(tiles["offsets"]), width, height, tile_size, tw, th,
+        splats, cols = pack_splats(means2d, conics, opacities, colors, tiles["flatten_ids"])
+        L.launch(blend_forward.forward_kernel(s, D, _fast(settings, s)), C * th * tw * tile_size * tile_size,
+                 [_wp(splats, T.splat), _wp(cols, vecD), _wp(bg, vecD), _wp(tiles["offsets"]), width, height, tile_size, tw, th,
                   settings.alpha_min, settings.alpha_max, settings.t_min],
                  [_wp(out.reshape(-1, D), vecD), _wp(out_T.reshape(-1)), _wp(out_alpha.reshape(-1)),
                   _wp(last.reshape(-1))])
-        ctx.save_for_backward(splats, colors, bg, out_T, last)
+        ctx.save_for_backward(splats, cols, bg, out_T, last)
+        ctx.n_gauss = N
         ctx.tiles, ctx.geom, ctx.settings, ctx.det = tiles, (width, height, tile_size, tw, th), settings, deterministic
         ctx.has_bg = backgrounds is not None
         return out, out_alpha
 
     @staticmethod
     def backward(ctx, g_colors, g_alphas):
-        splats, colors, bg, out_T, last = ctx.saved_tensors
+        splats, cols, bg, out_T, last = ctx.saved_tensors
         width, height, tile_size, tw, th = ctx.geom
         tiles, st = ctx.tiles, ctx.settings
-        C, N, D = colors.shape
-        dt, dev = colors.dtype, colors.device
+        C, N, D = bg.shape[0], ctx.n_gauss, cols.shape[-1]
+        dt, dev = cols.dtype, cols.device
         s = _scalar(dt)
         T = types_for(s)
         vecD = channel_vector(s, D)
         g_colors = torch.zeros(C, height, width, D, dtype=dt, device=dev) if g_colors is None else g_colors.contiguous()
         g_alphas = torch.zeros(C, height, width, dtype=dt, device=dev) if g_alphas is None else g_alphas[..., 0].contiguous()
         M = tiles["n_isects"]
-        L = _Launcher(colors)
-        common = [_wp(splats, T.splat), _wp(colors.reshape(C * N, D), vecD), _wp(bg, vecD),
+        L = _Launcher(cols)
+        common = [_wp(splats, T.splat), _wp(cols, vecD), _wp(bg, vecD),
                   _wp(tiles["flatten_ids"]), _wp(tiles["offsets"])]
         geom = [width, height, tile_size, tw, th, st.alpha_min, st.alpha_max]
         state = [_wp(out_T.reshape(-1)), _wp(last.reshape(-1)), _wp(g_colors.reshape(-1, D), vecD),
@@ -331,16 +365,18 @@ class _Blend(torch.autograd.Function):
         n_pix = C * th * tw * tile_size * tile_size
         vecG = channel_vector(s, D + 6)
         # blocks of pixels of one tile walk its Gaussians in lockstep and sum their pixels' gradients
-        # before one atomic add per Gaussian and block (on CPU the block width is 1). Deterministic:
-        # one block per tile adds into the intersection's own slot (one add per slot on CUDA; blocks
-        # in turn on CPU), then the slots are summed per Gaussian in a fixed order.
+        # before one atomic add per Gaussian: per warp with one block per tile where the tile splits
+        # into whole warps (and on CPU, one pixel per block), else per block of one tile row.
+        # Deterministic: one block per tile adds into the intersection's own slot (one add per slot
+        # on CUDA; blocks in turn on CPU), then the slots are summed per Gaussian in a fixed order.
         det = bool(ctx.det)
-        if det and tile_size * tile_size > 1024:
-            raise ValueError("rasterization: deterministic=True needs tile_size <= 32")
+        if det and tile_size * tile_size > 256:
+            # one block per tile: larger blocks run out of registers on CUDA
+            raise ValueError(f"rasterization: deterministic=True needs tile_size <= 16, got {tile_size}")
+        per_warp, block = backward_blocks(tile_size, det, L.stream is None)
         packed = torch.zeros(max(M if det else C * N, 1), 6 + D, dtype=dt, device=dev)
-        L.launch(blend_backward.reduced_backward_kernel(s, D, det), n_pix,
-                 [*common, *geom, *state, _wp(tiles["perm"])], [_wp(packed, vecG)],
-                 block_dim=tile_size * tile_size if det else reduce_width(tile_size))
+        L.launch(blend_backward.reduced_backward_kernel(s, D, det, per_warp, _fast(st, s)), n_pix,
+                 [*common, *geom, *state, _wp(tiles["perm"])], [_wp(packed, vecG)], block_dim=block)
         if det:
             slots, packed = packed, torch.zeros(C * N, 6 + D, dtype=dt, device=dev)
             counts = tiles["tiles_per_gauss"].reshape(-1).to(torch.int64)
@@ -352,10 +388,22 @@ class _Blend(torch.autograd.Function):
                 v_bg, None, None, None, None, None, None)
 
 
-def reduce_width(tile_size: int) -> int:
-    """Pixels summed together before one atomic add: a 32-lane warp (its reduction needs no block
-    barrier) when the tile splits into warps, else one row of the tile; either divides the tile."""
-    return 32 if (tile_size * tile_size) % 32 == 0 else tile_size
+def backward_blocks(tile_size: int, deterministic: bool, cpu: bool) -> tuple[bool, int]:
+    """``(per_warp, block_dim)`` of the blending backward launch.
+
+    Deterministic: one block per tile (a fixed-order block sum per intersection). Otherwise on CPU
+    one pixel per block; on CUDA one block per tile summed per warp when the tile splits into whole
+    warps (``tile_size^2`` a multiple of 32, at most 1024), else blocks of one tile row summed per
+    block (a warp would straddle two tiles)."""
+    pixels = tile_size * tile_size
+    if deterministic:
+        return False, pixels
+    if cpu:
+        return True, 1
+    if pixels % 32 == 0:
+        # the largest multiple of 32 up to 256 that divides the tile
+        return True, max(b for b in range(32, 257, 32) if pixels % b == 0)
+    return False, tile_size
 
 
 def blend_warp(means2d, conics, colors, opacities, backgrounds, tiles, width, height, tile_size, settings,

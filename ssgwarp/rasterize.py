@@ -12,6 +12,7 @@ rule shared by both in ``kernels/pixel.py``.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Literal, Optional
@@ -33,6 +34,11 @@ class RasterSettings:
     extent: ``"opacity"``: per-axis radius of ``min(sigma_max, sqrt(2 ln(opacity /
         alpha_min)))`` standard deviations (gsplat); ``"fixed"``: ``sigma_max``.
     sigma_max: the extent cap in standard deviations (gsplat: 3.33).
+    fast_math: CUDA float32 blending uses the GPU's approximate ``exp`` and division
+        (relative error ~1e-6 per layer; about 15% faster forward+backward at 1M Gaussians,
+        see docs/tradeoffs.md), as gsplat does; ``False``: IEEE ``expf`` and division. No
+        effect on the CPU or in float64. The forward and backward passes always share one
+        rule, so the gating decisions match either way.
     """
 
     alpha_min: float = 1.0 / 255.0
@@ -40,6 +46,7 @@ class RasterSettings:
     alpha_max: float = 0.999
     extent: Literal["opacity", "fixed"] = "opacity"
     sigma_max: float = 3.33
+    fast_math: bool = True
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.alpha_min < 1.0:
@@ -58,12 +65,12 @@ class RasterSettings:
         floor = T_MIN_FLOOR.get(dtype, 0.0)
         if self.t_min >= floor:
             return self
-        return RasterSettings(self.alpha_min, floor, self.alpha_max, self.extent, self.sigma_max)
+        return dataclasses.replace(self, t_min=floor)
 
     @classmethod
     def exact(cls, sigma_max: float = 3.33) -> "RasterSettings":
-        """No alpha threshold, no transmittance cut-off, no alpha clamp (gradient checks)."""
-        return cls(alpha_min=0.0, t_min=0.0, alpha_max=1.0, extent="fixed", sigma_max=sigma_max)
+        """No alpha threshold, no transmittance cut-off, no alpha clamp, IEEE maths (gradient checks)."""
+        return cls(alpha_min=0.0, t_min=0.0, alpha_max=1.0, extent="fixed", sigma_max=sigma_max, fast_math=False)
 
 
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
@@ -76,8 +83,17 @@ T_MIN_FLOOR = {torch.float32: 1e-20, torch.float64: 1e-200}
 
 
 def validate_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-                    sh_degree, backgrounds, render_mode, rasterize_mode, tile_size, near_plane=0.01) -> None:
-    """One cheap pass over the inputs; raises ValueError naming the bad argument."""
+                    sh_degree, backgrounds, render_mode, rasterize_mode, tile_size, near_plane=0.01,
+                    defer_values: bool = False):
+    """One cheap pass over the inputs; raises ValueError naming the bad argument.
+
+    Shapes, devices and dtypes are checked at once. The value checks (NaN/Inf, zero quaternions,
+    negative scales, opacities outside [0, 1], focal lengths) reduce each tensor on its device and
+    read the results back with one synchronisation; with ``defer_values=True`` that read is left
+    to the caller, which gets ``(values, check)``: a float64 device tensor and the function that
+    raises on its host copy (``check(values.tolist())``), so the read can share a
+    synchronisation the caller makes anyway.
+    """
     named = {"means": means, "quats": quats, "scales": scales, "opacities": opacities,
              "colors": colors, "viewmats": viewmats, "Ks": Ks}
     if backgrounds is not None:
@@ -129,18 +145,35 @@ def validate_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width
         raise ValueError(f"rasterization: near_plane must be > 0, got {near_plane}")
     if int(tile_size) <= 0 or int(tile_size) > 64:
         raise ValueError(f"rasterization: tile_size must be in 1..64, got {tile_size}")
-    # value checks: all flags computed on the device, read back with one synchronisation
-    checks = [(f"{name} has NaN/Inf values", ~torch.isfinite(t).all()) for name, t in named.items()]
-    checks += [
-        ("quats has zero quaternions (rotation undefined)", (quats.abs().sum(-1) == 0).any()),
-        ("scales has negative values (scales are linear, >= 0)", (scales < 0).any()),
-        ("opacities must lie in [0, 1] (apply a sigmoid to logits)", ((opacities < 0) | (opacities > 1)).any()),
-        ("Ks has non-positive focal lengths", (Ks[:, 0, 0] <= 0).any() | (Ks[:, 1, 1] <= 0).any()),
-    ]
-    failed = torch.stack([flag for _, flag in checks]).tolist()
-    for (message, _), bad in zip(checks, failed):
-        if bad:
-            raise ValueError(f"rasterization: {message}")
+    # value checks: one min/max pass per tensor on the device (min and max carry NaN and +-Inf)
+    names = list(named)
+    ranges = [torch.stack(torch.aminmax(named[n].detach())) if named[n].numel() else torch.zeros(2, dtype=dt, device=dev)
+              for n in names]
+    qnorm = quats.detach().abs().amax(dim=-1)  # exactly 0 only for a zero quaternion
+    ranges.append(torch.stack(torch.aminmax(qnorm)) if N else torch.ones(2, dtype=dt, device=dev))
+    ranges.append(torch.stack([Ks[:, 0, 0].detach().amin(), Ks[:, 1, 1].detach().amin()]) if C else
+                  torch.ones(2, dtype=dt, device=dev))
+    values = torch.stack(ranges).reshape(-1).to(torch.float64)
+
+    def check(host_values: list) -> None:
+        v = [host_values[i:i + 2] for i in range(0, len(host_values), 2)]
+        lo, hi = {n: r[0] for n, r in zip(names, v)}, {n: r[1] for n, r in zip(names, v)}
+        for n in names:
+            if not (math.isfinite(lo[n]) and math.isfinite(hi[n])):
+                raise ValueError(f"rasterization: {n} has NaN/Inf values")
+        if v[-2][0] == 0.0:
+            raise ValueError("rasterization: quats has zero quaternions (rotation undefined)")
+        if lo["scales"] < 0:
+            raise ValueError("rasterization: scales has negative values (scales are linear, >= 0)")
+        if lo["opacities"] < 0 or hi["opacities"] > 1:
+            raise ValueError("rasterization: opacities must lie in [0, 1] (apply a sigmoid to logits)")
+        if min(v[-1]) <= 0:
+            raise ValueError("rasterization: Ks has non-positive focal lengths")
+
+    if defer_values:
+        return values, check
+    check(values.tolist())
+    return None
 
 
 def rasterization(
@@ -183,7 +216,8 @@ def rasterization(
         compatibility; the layout is always the non-packed one ([C, N] per-camera arrays).
     Extra (keyword only):
         settings: :class:`RasterSettings` speed/accuracy knobs (default: gsplat's rules).
-        deterministic: bit-identical gradients from run to run on CUDA (slower backward).
+        deterministic: bit-identical gradients from run to run on CUDA (slower backward; needs
+            ``tile_size <= 16``).
         validate: check inputs for NaN/Inf, bad shapes, devices, dtypes, quaternions, scales,
             opacities (one cheap pass); ``False`` skips it.
         backend: ``"warp"`` (kernels), ``"torch"`` (dense reference) or ``"auto"`` (warp).
@@ -200,13 +234,17 @@ def rasterization(
     if absgrad:
         raise ValueError("rasterization: absgrad=True is not supported (use means2d.grad)")
     width, height, tile_size = int(width), int(height), int(tile_size)
-    if validate:
-        validate_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-                        sh_degree, backgrounds, render_mode, rasterize_mode, tile_size, near_plane)
     if backend == "auto":
         backend = "warp" if _warp_available() else "torch"
     if backend not in ("warp", "torch"):
         raise ValueError(f"rasterization: backend must be 'warp', 'torch' or 'auto', got {backend!r}")
+    pending = None
+    if validate:
+        # the Warp path reads the value checks back together with its intersection count (one
+        # synchronisation per call); nothing is allocated from the inputs' values before that
+        pending = validate_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+                                  sh_degree, backgrounds, render_mode, rasterize_mode, tile_size, near_plane,
+                                  defer_values=backend == "warp")
     C = viewmats.shape[0]
     antialiased = rasterize_mode == "antialiased"
     proj_kw = dict(near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip, eps2d=eps2d,
@@ -257,7 +295,7 @@ def rasterization(
     else:
         from .ops import bin_tiles, blend_warp
 
-        tiles = bin_tiles(means2d, radii, depths, tile_size, tile_width, tile_height)
+        tiles = bin_tiles(means2d, radii, depths, tile_size, tile_width, tile_height, pending=pending)
         meta.update(tiles)
         render_colors, render_alphas = blend_warp(
             means2d, conics, colors, opacs, backgrounds, tiles, width, height, tile_size, settings,

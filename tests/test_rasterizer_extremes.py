@@ -71,6 +71,36 @@ def test_deterministic_matches_default_and_repeats():
         assert torch.equal(a, b)
 
 
+def test_deterministic_needs_small_tiles():
+    params = make_scene(20, dtype=torch.float32, seed=2)
+    vm, K = make_cameras(1, 40, 32, dtype=torch.float32)
+    leaves = [p.clone().requires_grad_(True) for p in params]
+    img, alpha, _ = rasterization(*leaves, vm, K, 40, 32, tile_size=32, deterministic=True)
+    with pytest.raises(ValueError, match="tile_size <= 16"):
+        img.sum().backward()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="fast_math is a CUDA compile option")
+def test_fast_math_cuda_close_to_ieee():
+    params = [p.cuda() for p in make_scene(3000, dtype=torch.float32, seed=5, spread=0.3)]
+    vm, K = [t.cuda() for t in make_cameras(1, 128, 96, dtype=torch.float32)]
+    out = {}
+    for fast in (False, True):
+        leaves = [p.clone().requires_grad_(True) for p in params]
+        img, alpha, _ = rasterization(*leaves, vm, K, 128, 96, settings=RasterSettings(fast_math=fast))
+        img.sum().backward()
+        out[fast] = (img.detach(), leaves[0].grad)
+    diff = (out[True][0] - out[False][0]).abs().max().item()
+    assert 0 < diff < 1e-4  # approximate exp/division: different bits, same image
+    assert torch.allclose(out[True][1], out[False][1], rtol=1e-3, atol=1e-4)
+
+
+def test_fast_math_is_a_setting_and_exact_turns_it_off():
+    assert RasterSettings().fast_math is True
+    assert RasterSettings.exact().fast_math is False
+    assert RasterSettings(t_min=0.0).for_dtype(torch.float32).fast_math is True
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="bit-identity across runs matters on CUDA (atomics)")
 def test_deterministic_bit_identical_cuda():
     params = [p.cuda() for p in make_scene(5000, dtype=torch.float32, seed=3, spread=0.3)]
