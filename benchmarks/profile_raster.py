@@ -20,7 +20,8 @@ import torch
 from torch.profiler import ProfilerActivity, profile
 
 sys.path.insert(0, str(Path(__file__).parent))
-from raster import camera, make_scene, timed  # noqa: E402
+from raster import camera, make_scene  # noqa: E402
+from timing import timed  # noqa: E402
 
 import ssgwarp  # noqa: E402
 

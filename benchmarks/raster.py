@@ -15,12 +15,11 @@ from __future__ import annotations
 import argparse
 import datetime
 import math
-import statistics
-import time
 
 import torch
 
 import ssgwarp
+from timing import timed
 
 
 def make_scene(n: int, device, dtype=torch.float32, seed: int = 0):
@@ -38,23 +37,6 @@ def camera(width: int, height: int, device, dtype=torch.float32):
     f = 0.5 * width / math.tan(math.radians(30.0))
     K = torch.tensor([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]], dtype=dtype, device=device)[None]
     return torch.eye(4, dtype=dtype, device=device)[None], K
-
-
-def sync(device):
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
-def timed(fn, device, repeats: int):
-    fn()  # warm-up (compiles / JIT)
-    sync(device)
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        sync(device)
-        times.append((time.perf_counter() - t0) * 1e3)
-    return statistics.median(times)
 
 
 def run_case(raster, n, w, h, device, repeats, **kw):

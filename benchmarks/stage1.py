@@ -24,19 +24,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
-
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
-def smooth_views(K: int, H: int, W: int, seed: int = 0):
-    g = torch.Generator().manual_seed(seed)
-    yy, xx = torch.meshgrid(torch.linspace(0, 1, H), torch.linspace(0, 1, W), indexing="ij")
-    ph = torch.rand(K, 3, generator=g) * 6
-    rgb = 0.5 + 0.4 * torch.sin(3 * xx[None, ..., None] + 2 * yy[None, ..., None] + ph[:, None, None, :])
-    depth = 1.0 + xx[None] + 0.5 * yy[None] * torch.arange(1, K + 1).view(K, 1, 1)
-    return rgb.float(), depth.float()
+from ssgwarp.procedural import smooth_views  # noqa: E402
+from timing import sync  # noqa: E402
 
 
 def build(args, device):
@@ -50,7 +39,7 @@ def build(args, device):
     else:
         comps = random_stage1_components(args.arch, seed=0, device=device)
         models = assemble_stage1(comps, device, cfg.torch_dtype(device))
-    _sync(device)
+    sync(device)
     print(f"# models: {args.arch} on {device} ({models.dtype}), built in {time.perf_counter() - t:.1f} s")
     return models, cfg
 
@@ -91,10 +80,10 @@ def main(argv=None) -> int:
             torch.cuda.reset_peak_memory_stats(device)
         times = []
         for _ in range(max(1, args.repeat)):
-            _sync(device)
+            sync(device)
             t = time.perf_counter()
             stylize_views(models, rgb, depth, style, cfg)
-            _sync(device)
+            sync(device)
             times.append(time.perf_counter() - t)
         dt = sorted(times)[len(times) // 2]
         peak = torch.cuda.max_memory_allocated(device) / 2**30 if device.type == "cuda" else float("nan")

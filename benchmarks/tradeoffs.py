@@ -45,7 +45,6 @@ import datetime
 import json
 import math
 import platform
-import statistics
 import sys
 import time
 from dataclasses import dataclass, field, replace
@@ -73,6 +72,7 @@ except ImportError:
 from ssgwarp import RasterSettings  # noqa: E402
 from ssgwarp.cameras import Cameras, look_at  # noqa: E402
 from ssgwarp.scene import GaussianScene  # noqa: E402
+from timing import sync, timed  # noqa: E402
 
 
 # ----------------------------------------------------------------------------- scene and cameras
@@ -144,23 +144,6 @@ def raster_cases(scene_degree: int) -> list[Case]:
     return cases
 
 
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
-def _timed(fn, device: torch.device, repeats: int) -> float:
-    fn()                      # warm-up: kernel compilation for this configuration
-    _sync(device)
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        _sync(device)
-        ts.append((time.perf_counter() - t0) * 1e3)
-    return statistics.median(ts)
-
-
 def _inputs(scene: GaussianScene, cams: Cameras, device, dtype, degree: int, keep_idx: Optional[torch.Tensor]):
     s = scene if keep_idx is None else scene.subset(keep_idx)
     s = s.to(device=device, dtype=dtype)
@@ -194,8 +177,8 @@ def render_case(scene: GaussianScene, cams: Cameras, device: torch.device, case:
 
     out: dict[str, Any] = {}
     if time_it:
-        out["fwd_ms"] = _timed(fwd, device, repeats)
-        out["fwd_bwd_ms"] = _timed(fwd_bwd, device, repeats)
+        out["fwd_ms"] = timed(fwd, device, repeats)
+        out["fwd_bwd_ms"] = timed(fwd_bwd, device, repeats)
     else:
         fwd_bwd()
     img, alpha, _ = fwd()
@@ -278,8 +261,7 @@ def stylize_study(run_dir: Path, style: Path, out: Path, device: torch.device, i
     for knob, value, s2, opts in jobs:
         dst = out / "stylize_runs" / f"{knob.replace(' ', '_')}_{value}"
         try:
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
+            sync(device)
             t0 = time.perf_counter()
             m = stylize_run(run_dir, style, dst, stage2=s2, opts=opts, device=device, force=True, progress=False)
             total = time.perf_counter() - t0

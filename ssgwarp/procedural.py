@@ -31,6 +31,7 @@ Public API:
     render_views(scene, cameras, background)    -> (images [C,H,W,3], object ids [C,H,W])
     write_transforms_dataset(folder, images, cameras, ...) -> Path of transforms.json
     style_image(width, height, seed)            -> [H, W, 3] float32 numpy
+    smooth_views(K, H, W, seed)                 -> smooth synthetic key views (rgb [K,H,W,3], depth [K,H,W])
 """
 from __future__ import annotations
 
@@ -323,3 +324,15 @@ def style_image(width: int = 192, height: int = 192, seed: int = 0) -> np.ndarra
 
 __all__ = ["SIZES", "DemoSize", "OBJECT_NAMES", "BACKGROUND", "ProceduralScene", "build_scene", "ring_cameras",
            "render_views", "write_transforms_dataset", "style_image"]
+
+
+def smooth_views(K: int, H: int, W: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """``K`` smooth synthetic key views for Stage 1 runs without a scene (tests, benchmarks): ``rgb
+    [K, H, W, 3]`` in [0.1, 0.9], sine gradients with a random phase per view and channel, and
+    ``depth [K, H, W]`` >= 1, a ramp that steepens from view to view."""
+    g = torch.Generator().manual_seed(seed)
+    yy, xx = torch.meshgrid(torch.linspace(0, 1, H), torch.linspace(0, 1, W), indexing="ij")
+    ph = torch.rand(K, 3, generator=g) * 6
+    rgb = 0.5 + 0.4 * torch.sin(3 * xx[None, ..., None] + 2 * yy[None, ..., None] + ph[:, None, None, :])
+    depth = 1.0 + xx[None] + 0.5 * yy[None] * torch.arange(1, K + 1).view(K, 1, 1)
+    return rgb.float(), depth.float()

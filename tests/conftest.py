@@ -15,6 +15,30 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+@pytest.fixture
+def fail_on_call(monkeypatch):
+    """``fail_on_call(owner, name, n, how)`` replaces ``owner.name`` so that its ``n``-th call raises
+    ``KeyboardInterrupt`` before running (``how="interrupt"``, a Ctrl-C) or returns its result times
+    NaN (``how="nan"``, a diverging loss); returns the original, to put back with ``monkeypatch``."""
+
+    def install(owner, name: str, n: int, how: str):
+        if how not in ("interrupt", "nan"):
+            raise ValueError(f"fail_on_call: how must be 'interrupt' or 'nan', got {how!r}")
+        orig, calls = getattr(owner, name), {"n": 0}
+
+        def wrapper(*args, **kwargs):
+            calls["n"] += 1
+            if how == "interrupt" and calls["n"] == n:
+                raise KeyboardInterrupt
+            value = orig(*args, **kwargs)
+            return value * float("nan") if how == "nan" and calls["n"] == n else value
+
+        monkeypatch.setattr(owner, name, wrapper)
+        return orig
+
+    return install
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _release_vtk_objects():
     """Free pyvista/VTK objects before interpreter shutdown (their late __del__ prints noise)."""

@@ -306,17 +306,10 @@ def test_bad_weights(world, tmp_path, capsys, row):
 
 # ----------------------------------------------------------------------------- NaN during optimisation
 def test_nan_in_reconstruct_is_reported_with_the_step_and_keeps_the_checkpoint(world, tmp_path, capsys,
-                                                                                 monkeypatch):
+                                                                                 monkeypatch, fail_on_call):
     import ssgwarp.losses as L
 
-    orig, calls = L.l1, {"n": 0}
-
-    def l1(*a, **k):
-        calls["n"] += 1
-        v = orig(*a, **k)
-        return v * float("nan") if calls["n"] == 13 else v
-
-    monkeypatch.setattr(L, "l1", l1)
+    orig = fail_on_call(L, "l1", 13, "nan")
     out = tmp_path / "run"
     argv = ["reconstruct", world.cap, "--out", out, "--iters", "20", "--sh-degree", "0", "--checkpoint-every", "5",
             "--no-progress", *FAST]
@@ -329,17 +322,10 @@ def test_nan_in_reconstruct_is_reported_with_the_step_and_keeps_the_checkpoint(w
     assert json.loads((out / "metrics.json").read_text())["iters"] == 20
 
 
-def test_nan_in_stylize_is_reported_with_the_step_and_keeps_the_checkpoint(world, tmp_path, capsys, monkeypatch):
+def test_nan_in_stylize_is_reported_with_the_step_and_keeps_the_checkpoint(world, tmp_path, capsys, fail_on_call):
     import ssgwarp.stylize as st
 
-    orig, calls = st.ViewLoss.__call__, {"n": 0}
-
-    def call(self, image, view):
-        calls["n"] += 1
-        v = orig(self, image, view)
-        return v * float("nan") if calls["n"] == 8 else v
-
-    monkeypatch.setattr(st.ViewLoss, "__call__", call)
+    fail_on_call(st.ViewLoss, "__call__", 8, "nan")
     out = tmp_path / "styled"
     fails(capsys, ["stylize", world.grouped, "--style", world.style, "--out", out, "--iters", "12",
                    "--checkpoint-every", "3", "--path-frames", "0", "--max-side", "32", *FAST],
@@ -348,17 +334,10 @@ def test_nan_in_stylize_is_reported_with_the_step_and_keeps_the_checkpoint(world
     assert not (out / "scene.ply").exists() and not (out / "metrics.json").exists()
 
 
-def test_nan_in_grouping_is_reported_with_the_step(world, tmp_path, capsys, monkeypatch):
+def test_nan_in_grouping_is_reported_with_the_step(world, tmp_path, capsys, fail_on_call):
     import ssgwarp.grouping as G
 
-    orig, calls = G.mask_loss, {"n": 0}
-
-    def loss(*a, **k):
-        calls["n"] += 1
-        v = orig(*a, **k)
-        return v * float("nan") if calls["n"] == 5 else v
-
-    monkeypatch.setattr(G, "mask_loss", loss)
+    fail_on_call(G, "mask_loss", 5, "nan")
     run = copy(world.run, tmp_path / "run")
     before = digest(run)
     fails(capsys, ["group", run, "--masks", "none", "--iters", "10", "--quiet", *FAST], "step 5")
@@ -411,21 +390,14 @@ def test_ctrl_c_in_reconstruct_then_resume_matches_an_uninterrupted_run(world, t
     _same_scene(tmp_path / "a" / "scene.ply", tmp_path / "b" / "scene.ply")
 
 
-def test_ctrl_c_in_grouping_then_resume_matches_an_uninterrupted_run(world, tmp_path, capsys, monkeypatch):
+def test_ctrl_c_in_grouping_then_resume_matches_an_uninterrupted_run(world, tmp_path, capsys, monkeypatch,
+                                                                     fail_on_call):
     import ssgwarp.grouping as G
 
     a, b = copy(world.run, tmp_path / "a"), copy(world.run, tmp_path / "b")
     args = ["--masks", "none", "--iters", "14", "--quiet", *FAST]
     assert main(["group", str(a), *args]) == 0
-    orig, calls = G.mask_loss, {"n": 0}
-
-    def loss(*x, **k):
-        calls["n"] += 1
-        if calls["n"] == 6:
-            raise KeyboardInterrupt
-        return orig(*x, **k)
-
-    monkeypatch.setattr(G, "mask_loss", loss)
+    orig = fail_on_call(G, "mask_loss", 6, "interrupt")
     _interrupted(capsys, ["group", b, *args])
     assert (b / "groups" / "checkpoint.pt").is_file() and not (b / "groups" / "groups.json").exists()
     monkeypatch.setattr(G, "mask_loss", orig)
@@ -436,7 +408,8 @@ def test_ctrl_c_in_grouping_then_resume_matches_an_uninterrupted_run(world, tmp_
     assert all(torch.equal(ca[k], cb[k]) for k in ca)
 
 
-def test_ctrl_c_in_stylize_then_resume_matches_an_uninterrupted_run(world, tmp_path, capsys, monkeypatch):
+def test_ctrl_c_in_stylize_then_resume_matches_an_uninterrupted_run(world, tmp_path, capsys, monkeypatch,
+                                                                     fail_on_call):
     import ssgwarp.stylize as st
 
     def argv(out):
@@ -444,15 +417,7 @@ def test_ctrl_c_in_stylize_then_resume_matches_an_uninterrupted_run(world, tmp_p
                 "--checkpoint-every", "4", "--path-frames", "0", "--max-side", "32", *FAST]
 
     assert main([str(a) for a in argv(tmp_path / "a")]) == 0
-    orig, calls = st.deferred_backward, {"n": 0}
-
-    def backward(*x, **k):
-        calls["n"] += 1
-        if calls["n"] == 7:
-            raise KeyboardInterrupt
-        return orig(*x, **k)
-
-    monkeypatch.setattr(st, "deferred_backward", backward)
+    orig = fail_on_call(st, "deferred_backward", 7, "interrupt")
     _interrupted(capsys, argv(tmp_path / "b"))
     assert torch.load(tmp_path / "b" / "stage2.ckpt", weights_only=False)["step"] == 6
     assert not (tmp_path / "b" / "scene.ply").exists()

@@ -13,7 +13,7 @@ from ssgwarp.colmap import (MODEL_IDS, ColmapCamera, ColmapImage, ColmapPoints, 
                             rotmat_to_qvec, write_model_text)
 from ssgwarp.errors import InputError
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+from conftest import SHARED_DATA as DATA
 
 
 def _model():

@@ -19,17 +19,8 @@ from ssgwarp.datasets import SceneData, detect_format, load_dataset
 from ssgwarp.errors import InputError
 from ssgwarp.fileio import write_image
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+from conftest import SHARED_DATA as DATA
 needs = lambda name: pytest.mark.skipif(not (DATA / name).is_dir(), reason="shared data not present")  # noqa: E731
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """These tensors are tiny: one thread is faster, and immune to a busy machine's OpenMP spinning."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 def _look(eye, target, up=(0.0, 1.0, 0.0)):

@@ -146,22 +146,13 @@ def test_force_removes_only_what_the_demo_writes(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
 
 
-def test_ctrl_c_in_a_demo_stage_resumes_to_the_uninterrupted_result(demo, tmp_path, monkeypatch):
+def test_ctrl_c_in_a_demo_stage_resumes_to_the_uninterrupted_result(demo, tmp_path, monkeypatch, fail_on_call):
     """Ctrl-C during Stage 2: exit 130, finished stages kept; --resume gives the same stylized scene."""
     import ssgwarp.stylize as st
     from ssgwarp.ply import read_ply
 
     _no_weights(monkeypatch)
-    calls = {"n": 0}
-    orig = st.deferred_backward
-
-    def interrupted(*a, **k):
-        calls["n"] += 1
-        if calls["n"] == 7:
-            raise KeyboardInterrupt
-        return orig(*a, **k)
-
-    monkeypatch.setattr(st, "deferred_backward", interrupted)
+    orig = fail_on_call(st, "deferred_backward", 7, "interrupt")
     out = tmp_path / "demo"
     argv = ["demo", "--out", out, "--size", "small", "--quiet", "--device", "cpu"]
     code, _, stderr = _main(argv)

@@ -15,6 +15,7 @@ from ssgwarp.diffusion import (Stage1Config, assemble_stage1, ddim_denoise, ddim
                                save_sheet, schedule, set_ip_adapter_scales, stylize_keyviews, stylize_views)
 from ssgwarp.errors import InputError, WeightsNotFound  # noqa: E402
 from ssgwarp.keyviews import KeyViews  # noqa: E402
+from ssgwarp.procedural import smooth_views  # noqa: E402
 
 WEIGHT_ENV = ("SSGWARP_WEIGHTS", "SSGWARP_SD15", "SSGWARP_CONTROLNET_DEPTH", "SSGWARP_IP_ADAPTER",
               "SSGWARP_IMAGE_ENCODER")
@@ -31,15 +32,6 @@ def offline(monkeypatch):
 @pytest.fixture(scope="module")
 def models():
     return assemble_stage1(random_stage1_components("tiny", seed=0), "cpu")
-
-
-def smooth_views(K: int, H: int, W: int, seed: int = 0):
-    g = torch.Generator().manual_seed(seed)
-    yy, xx = torch.meshgrid(torch.linspace(0, 1, H), torch.linspace(0, 1, W), indexing="ij")
-    ph = torch.rand(K, 3, generator=g) * 6
-    rgb = 0.5 + 0.4 * torch.sin(3 * xx[None, ..., None] + 2 * yy[None, ..., None] + ph[:, None, None, :])
-    depth = 1.0 + xx[None] + 0.5 * yy[None] * torch.arange(1, K + 1).view(K, 1, 1)
-    return rgb.float(), depth.float()
 
 
 def keyviews_of(rgb, depth) -> KeyViews:

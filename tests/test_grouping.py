@@ -304,7 +304,7 @@ def test_cap_and_min_fraction():
 
 # -- determinism, interruption and resume ------------------------------------------------------------
 
-def test_deterministic_for_a_seed_and_resume_after_interrupt(tmp_path, synth, monkeypatch):
+def test_deterministic_for_a_seed_and_resume_after_interrupt(tmp_path, synth, monkeypatch, fail_on_call):
     import ssgwarp.grouping as grouping
     from ssgwarp.grouping import GroupConfig, train_identities
     from ssgwarp.pseudomasks import pseudo_masks
@@ -326,17 +326,8 @@ def test_deterministic_for_a_seed_and_resume_after_interrupt(tmp_path, synth, mo
         assert torch.equal(getattr(a[0], name), getattr(scene, name))
 
     # Ctrl-C at step 7 writes a checkpoint; resuming reproduces the uninterrupted run exactly
-    calls = {"n": 0}
-    real = grouping.mask_loss
-
-    def flaky(*args, **kw):
-        calls["n"] += 1
-        if calls["n"] == 8:
-            raise KeyboardInterrupt
-        return real(*args, **kw)
-
+    real = fail_on_call(grouping, "mask_loss", 8, "interrupt")
     ck = tmp_path / "checkpoint.pt"
-    monkeypatch.setattr(grouping, "mask_loss", flaky)
     with pytest.raises(KeyboardInterrupt):
         train_identities(scene, tc, m1, r1.num_groups, config=cfg, seed=3, progress=False, checkpoint_path=ck)
     monkeypatch.setattr(grouping, "mask_loss", real)

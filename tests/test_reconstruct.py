@@ -18,17 +18,8 @@ from ssgwarp.errors import SsgwarpError
 from ssgwarp.reconstruct import Recipe, Trainer
 from ssgwarp.scene import GaussianScene
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+from conftest import SHARED_DATA as DATA
 needs_fern = pytest.mark.skipif(not (DATA / "llff_fern").is_dir(), reason="shared data not present")
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """These tensors are tiny: one thread is faster, and immune to a busy machine's OpenMP spinning."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 @pytest.fixture(scope="module")
