@@ -1,10 +1,10 @@
-"""Block-wide votes for the blending kernels.
+"""Block and warp votes and sums for the blending backward (native CUDA snippets).
 
 On CUDA a block of the blending kernels is a group of pixels of one tile that
-walks the tile's Gaussians in lockstep; a vote lets the whole block skip work
-none of its pixels needs, and a warp-wide sum turns 32 pixels' gradients for
-one Gaussian into one atomic add. On the CPU a block is one thread and the vote is the
-thread's own flag.
+walks the tile's Gaussians in lockstep; a vote lets the whole block (or warp)
+skip work none of its pixels needs, and a warp-wide sum turns 32 pixels'
+gradients for one Gaussian into one atomic add per component. On the CPU a block
+is one thread: the vote is the thread's own flag and the sum its own value.
 """
 
 from typing import Any

@@ -329,7 +329,6 @@ class _Blend(torch.autograd.Function):
         out_alpha = torch.empty(C, height, width, 1, dtype=dt, device=dev)
         last = torch.empty((C, height, width), dtype=torch.int32, device=dev)
         bg = backgrounds if backgrounds is not None else torch.zeros(C, D, dtype=dt, device=dev)
-        colors = colors.contiguous()
         L = _Launcher(colors)
         splats, cols = pack_splats(means2d, conics, opacities, colors, tiles["flatten_ids"])
         L.launch(blend_forward.forward_kernel(s, D, _fast(settings, s)), C * th * tw * tile_size * tile_size,
@@ -392,9 +391,9 @@ def backward_blocks(tile_size: int, deterministic: bool, cpu: bool) -> tuple[boo
     """``(per_warp, block_dim)`` of the blending backward launch.
 
     Deterministic: one block per tile (a fixed-order block sum per intersection). Otherwise on CPU
-    one pixel per block; on CUDA one block per tile summed per warp when the tile splits into whole
-    warps (``tile_size^2`` a multiple of 32, at most 1024), else blocks of one tile row summed per
-    block (a warp would straddle two tiles)."""
+    one pixel per block; on CUDA, when the tile splits into whole warps (``tile_size^2`` a multiple
+    of 32), blocks of up to 256 pixels of one tile (the whole tile at tile_size 16) summed per warp,
+    else blocks of one tile row summed per block (a warp would straddle two tiles)."""
     pixels = tile_size * tile_size
     if deterministic:
         return False, pixels
