@@ -4,7 +4,10 @@ Scene (the issue's): N Gaussians with means ~ N(0, 2) around z = 8 in front of
 one camera (60 deg horizontal field of view), scales ~ U(0, 0.02), random
 quaternions, colours and opacities. For each (N, resolution): forward and
 forward+backward milliseconds (median of repeats, CUDA-synchronised), the
-ratio to gsplat, and the max absolute image difference against gsplat.
+ratio to gsplat, the image difference against gsplat, and how far each float32
+image is from the same scene rendered by ssgwarp in float64 under the same rules
+(the float32 rounding both renderers share: a contribution at the 1/255 alpha
+threshold can land on either side of it).
 
     python benchmarks/raster.py                    # all sizes, CUDA if present
     python benchmarks/raster.py --quick            # small sizes only (CPU smoke run)
@@ -93,12 +96,20 @@ def main() -> None:
                     _, fbd, _ = run_case(ssgwarp.rasterization, n, w, h, dev, max(3, args.repeats // 3),
                                          deterministic=True)
                     row.update(ssg_det_fb=fbd)
+                # the same scene and rules in float64: how far each float32 renderer is from it
+                params64 = [p.double() for p in make_scene(n, dev)]
+                vm64, K64 = camera(w, h, dev, torch.float64)
+                with torch.no_grad():
+                    img64 = ssgwarp.rasterization(*params64, vm64, K64, w, h)[0]
+                row.update(f64diff=float((img.double() - img64).abs().max()))
                 if gsplat is not None:
                     gf, gfb, gimg = run_case(gsplat.rasterization, n, w, h, dev, args.repeats, packed=False)
                     diff = (img - gimg).abs()
                     row.update(gs_f=gf, gs_fb=gfb, ratio_f=f / gf, ratio_fb=fb / gfb,
                                maxdiff=float(diff.max()), meandiff=float(diff.mean()),
-                               over=float((diff > 1e-4).float().mean()))
+                               over=float((diff > 1e-4).float().mean()),
+                               gs64diff=float((gimg.double() - img64).abs().max()))
+                del params64, img64
             if not args.no_cpu and (n <= 10_000 and w * h <= 256 * 256):
                 f, fb, _ = run_case(ssgwarp.rasterization, n, w, h, torch.device("cpu"), max(2, args.repeats // 5))
                 row.update(cpu_f=f, cpu_fb=fb)
@@ -108,7 +119,8 @@ def main() -> None:
     cols = [("N", "N"), ("res", "resolution"), ("ssg_f", "ssgwarp CUDA fwd ms"), ("ssg_fb", "ssgwarp CUDA fwd+bwd ms"),
             ("gs_f", "gsplat fwd ms"), ("gs_fb", "gsplat fwd+bwd ms"), ("ratio_f", "fwd ratio"),
             ("ratio_fb", "fwd+bwd ratio"), ("maxdiff", "max abs image diff"), ("meandiff", "mean abs image diff"),
-            ("over", "share of values off by > 1e-4"), ("ssg_det_fb", "deterministic fwd+bwd ms"),
+            ("over", "share of values off by > 1e-4"), ("f64diff", "ssgwarp max abs diff to float64"),
+            ("gs64diff", "gsplat max abs diff to float64"), ("ssg_det_fb", "deterministic fwd+bwd ms"),
             ("cpu_f", "ssgwarp CPU fwd ms"), ("cpu_fb", "ssgwarp CPU fwd+bwd ms")]
     cols = [c for c in cols if any(c[0] in r for r in rows)]
 

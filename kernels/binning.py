@@ -86,9 +86,14 @@ def write_kernel(scalar):
 
 
 @wp.kernel
-def offsets_kernel(keys: wp.array(dtype=wp.int64), n_isects: int, n_ranges: int, offsets: wp.array(dtype=wp.int32)):
-    """``offsets[r]`` = first sorted position of range r (= camera * n_tiles + tile)."""
+def offsets_kernel(keys: wp.array(dtype=wp.int64), perm: wp.array(dtype=wp.int32),
+                   gauss_of_isect: wp.array(dtype=wp.int32), n_isects: int, n_ranges: int,
+                   offsets: wp.array(dtype=wp.int32), flatten_ids: wp.array(dtype=wp.int32)):
+    """Per sorted intersection ``k``: ``flatten_ids[k]``, its Gaussian (``perm[k]`` is its slot
+    before the sort), and ``offsets[r]`` = first sorted position of range r (= camera * n_tiles +
+    tile)."""
     k = wp.tid()
+    flatten_ids[k] = gauss_of_isect[perm[k]]
     cur = wp.int32(keys[k] >> wp.int64(32))
     prev = wp.int32(-1)
     if k > 0:

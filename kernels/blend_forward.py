@@ -23,7 +23,30 @@ import functools
 import warp as wp
 
 from .pixel import pixel_funcs, tile_pixel
-from .types import channel_vector, types_for
+from .types import channel_vector, splat_at, types_for
+
+
+@functools.lru_cache(maxsize=None)
+def pack_kernel(scalar, channels: int):
+    """``splats[k]``, ``colors_sorted[k]``: the packed projected Gaussian (x, y, conic a, b, c,
+    opacity) and colour of sorted intersection ``k``, gathered once so the blending loops read
+    each intersection's data contiguously (inputs flat over camera x Gaussian)."""
+    t = types_for(scalar)
+    vec2, vec3, splat = t.vec2, t.vec3, t.splat
+    vecD = channel_vector(scalar, channels)
+
+    @wp.kernel(module="unique", module_options={"enable_backward": False})
+    def pack(flatten_ids: wp.array(dtype=wp.int32), means2d: wp.array(dtype=vec2), conics: wp.array(dtype=vec3),
+             opacities: wp.array(dtype=scalar), colors: wp.array(dtype=vecD),
+             splats: wp.array(dtype=splat), colors_sorted: wp.array(dtype=vecD)):
+        k = wp.tid()
+        g = int(flatten_ids[k])
+        m = means2d[g]
+        c = conics[g]
+        splats[k] = splat(m[0], m[1], c[0], c[1], c[2], opacities[g])
+        colors_sorted[k] = colors[g]
+
+    return pack
 
 
 @functools.lru_cache(maxsize=None)
@@ -67,7 +90,7 @@ def forward_kernel(scalar, channels: int, fast_math: bool = False):
         wsum = scalar(0.0)
         last = wp.int32(-1)
         for k in range(offsets[rng], offsets[rng + 1]):
-            r = splat_alpha(splats[k], px, py, alpha_min, alpha_max)
+            r = splat_alpha(splat_at(splats, k), px, py, alpha_min, alpha_max)
             alpha = r[0]
             if alpha < scalar(0.0):
                 continue

@@ -13,7 +13,7 @@ import math
 import torch
 import warp as wp
 
-from .kernels import binning, blend_backward, blend_forward, projection, sh
+from .kernels import binning, blend_backward, blend_forward, projection, sh, validate
 from .kernels.types import channel_vector, types_for
 
 try:  # the launch descriptor wp.from_torch(..., return_ctype=True) builds; made directly here
@@ -81,7 +81,9 @@ def _wp(t: Tensor, dtype=None, ndim: int = 1, ctype: bool = True):
     strides = tuple(st * size for st in t.stride()[: len(shape)])
     if not shape:
         shape, strides = (1,), (size,)
-    return _array_t(t.data_ptr(), 0, len(shape), shape, strides)
+    arr = _array_t(t.data_ptr(), 0, len(shape), shape, strides)
+    arr.tensor = t  # a contiguous copy made here must live until the launch has been queued
+    return arr
 
 
 _STREAMS: dict = {}
@@ -112,6 +114,23 @@ class _Launcher:
         wp.launch(kernel, dim=dim, inputs=list(inputs), outputs=list(outputs), adj_inputs=list(adj_inputs),
                   adj_outputs=list(adj_outputs), adjoint=adjoint, device=self.device, stream=self.stream,
                   record_tape=False, block_dim=block_dim)
+
+
+# ---------------------------------------------------------------------------------------------
+# input value checks
+# ---------------------------------------------------------------------------------------------
+def check_values(means, quats, scales, opacities, colors, viewmats, Ks, backgrounds=None) -> Tensor:
+    """Flags of the value checks of :mod:`.kernels.validate` (one kernel, no synchronisation):
+    an int64 tensor ``[N_FLAGS]`` on the inputs' device, non-zero where a check failed (slot ``i``
+    < 8: NaN/Inf in ``validate.INPUTS[i]``; then zero quaternion, negative scale, opacity outside
+    [0, 1], non-positive focal length). Shapes must already be consistent."""
+    flat = [t.detach().reshape(-1) for t in (means, quats, scales, opacities, colors, viewmats, Ks)]
+    flat.append(backgrounds.detach().reshape(-1) if backgrounds is not None else flat[0][:0])
+    flags = torch.zeros(validate.N_FLAGS, dtype=torch.int64, device=means.device)
+    kern = validate.check_kernel(_scalar(means.dtype))
+    _Launcher(means).launch(kern, max(t.numel() for t in flat),
+                            [*(_wp(t) for t in flat), means.shape[0], viewmats.shape[0]], [_wp(flags)])
+    return flags
 
 
 # ---------------------------------------------------------------------------------------------
@@ -241,7 +260,7 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
     Returns ``tiles_per_gauss [C,N]``, ``isect_ids [M]`` (int64 keys), ``flatten_ids [M]`` (flat
     camera*N + Gaussian index per sorted intersection), ``isect_offsets [C,th,tw]`` and, for the
     backward, ``offsets [C*th*tw+1]``, ``perm [M]`` (pre-sort slot of each sorted intersection),
-    ``isect_ends [C*N]``. ``pending``: ``(values, check)`` from deferred input validation, read
+    ``isect_ends [C*N]``. ``pending``: ``(flags, check)`` from deferred input validation, read
     back with the intersection count and checked before anything else.
     """
     C, N = depths.shape
@@ -261,7 +280,7 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
     total = ends[-1:] if ends.numel() else torch.zeros(1, dtype=torch.int64, device=dev)
     if pending is not None:
         values, check = pending
-        host = torch.cat([total.to(torch.float64), values]).tolist()  # float64 holds counts < 2^53 exactly
+        host = torch.cat([total, values]).tolist()
         check(host[1:])
         n_isects = int(host[0])
     else:
@@ -286,9 +305,11 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
         on_stream = wp.ScopedStream(L.stream) if L.stream is not None else contextlib.nullcontext()
         with wp.ScopedDevice(L.device), on_stream:
             wp.utils.radix_sort_pairs(_wp(keys, ctype=False), _wp(values, ctype=False), n_isects, 0, end_bit)
-        L.launch(binning.offsets_kernel, n_isects, [_wp(keys), n_isects, n_ranges], [_wp(offsets)])
+    flatten_ids = torch.empty(n_isects, dtype=torch.int32, device=dev)
+    if n_isects > 0:
+        L.launch(binning.offsets_kernel, n_isects, [_wp(keys), _wp(values), _wp(gauss), n_isects, n_ranges],
+                 [_wp(offsets), _wp(flatten_ids)])
     keys, perm = keys[:n_isects], values[:n_isects]
-    flatten_ids = gauss[:n_isects][perm.long()] if n_isects else gauss[:0]
     return {
         "tiles_per_gauss": counts.reshape(C, N).to(torch.int32),
         "isect_ids": keys,
@@ -306,11 +327,18 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
 # ---------------------------------------------------------------------------------------------
 def pack_splats(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, flatten_ids: Tensor):
     """Per sorted intersection, contiguous in the order the blending kernels walk them:
-    ``splats [M, 6]`` (x, y, conic a, b, c, opacity) and ``colors [M, D]``."""
-    ids = flatten_ids.long()
-    flat = torch.cat([means2d.detach(), conics.detach(), opacities.detach()[..., None]], dim=-1).reshape(-1, 6)
-    cols = colors.detach().reshape(-1, colors.shape[-1])
-    return flat.index_select(0, ids), cols.index_select(0, ids)
+    ``splats [M, 6]`` (x, y, conic a, b, c, opacity) and ``colors [M, D]`` (one gather kernel)."""
+    M, D = flatten_ids.shape[0], colors.shape[-1]
+    dt = means2d.dtype
+    s = _scalar(dt)
+    T = types_for(s)
+    vecD = channel_vector(s, D)
+    splats = torch.empty(M, 6, dtype=dt, device=means2d.device)
+    cols = torch.empty(M, D, dtype=dt, device=means2d.device)
+    _Launcher(means2d).launch(blend_forward.pack_kernel(s, D), M,
+                              [_wp(flatten_ids), _wp(means2d, T.vec2), _wp(conics, T.vec3), _wp(opacities),
+                               _wp(colors, vecD)], [_wp(splats, T.splat), _wp(cols, vecD)])
+    return splats, cols
 
 
 class _Blend(torch.autograd.Function):

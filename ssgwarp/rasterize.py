@@ -88,11 +88,11 @@ def validate_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width
     """One cheap pass over the inputs; raises ValueError naming the bad argument.
 
     Shapes, devices and dtypes are checked at once. The value checks (NaN/Inf, zero quaternions,
-    negative scales, opacities outside [0, 1], focal lengths) reduce each tensor on its device and
-    read the results back with one synchronisation; with ``defer_values=True`` that read is left
-    to the caller, which gets ``(values, check)``: a float64 device tensor and the function that
-    raises on its host copy (``check(values.tolist())``), so the read can share a
-    synchronisation the caller makes anyway.
+    negative scales, opacities outside [0, 1], focal lengths) run as one kernel over all inputs on
+    their device (:func:`ssgwarp.ops.check_values`), whose flags are read back with one
+    synchronisation; with ``defer_values=True`` that read is left to the caller, which gets
+    ``(flags, check)``: an int64 device tensor and the function that raises on its host copy
+    (``check(flags.tolist())``), so the read can share a synchronisation the caller makes anyway.
     """
     named = {"means": means, "quats": quats, "scales": scales, "opacities": opacities,
              "colors": colors, "viewmats": viewmats, "Ks": Ks}
@@ -145,29 +145,24 @@ def validate_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width
         raise ValueError(f"rasterization: near_plane must be > 0, got {near_plane}")
     if int(tile_size) <= 0 or int(tile_size) > 64:
         raise ValueError(f"rasterization: tile_size must be in 1..64, got {tile_size}")
-    # value checks: one min/max pass per tensor on the device (min and max carry NaN and +-Inf)
-    names = list(named)
-    ranges = [torch.stack(torch.aminmax(named[n].detach())) if named[n].numel() else torch.zeros(2, dtype=dt, device=dev)
-              for n in names]
-    qnorm = quats.detach().abs().amax(dim=-1)  # exactly 0 only for a zero quaternion
-    ranges.append(torch.stack(torch.aminmax(qnorm)) if N else torch.ones(2, dtype=dt, device=dev))
-    ranges.append(torch.stack([Ks[:, 0, 0].detach().amin(), Ks[:, 1, 1].detach().amin()]) if C else
-                  torch.ones(2, dtype=dt, device=dev))
-    values = torch.stack(ranges).reshape(-1).to(torch.float64)
+    # value checks: one kernel over all inputs sets a flag per failed check (read back below or,
+    # deferred, with the caller's synchronisation)
+    from .ops import check_values
+    from .kernels.validate import FOCAL, INPUTS, NEGATIVE_SCALE, OPACITY_RANGE, ZERO_QUAT
 
-    def check(host_values: list) -> None:
-        v = [host_values[i:i + 2] for i in range(0, len(host_values), 2)]
-        lo, hi = {n: r[0] for n, r in zip(names, v)}, {n: r[1] for n, r in zip(names, v)}
-        for n in names:
-            if not (math.isfinite(lo[n]) and math.isfinite(hi[n])):
+    values = check_values(means, quats, scales, opacities, colors, viewmats, Ks, backgrounds)
+
+    def check(flags: list) -> None:
+        for slot, n in enumerate(INPUTS):
+            if flags[slot]:
                 raise ValueError(f"rasterization: {n} has NaN/Inf values")
-        if v[-2][0] == 0.0:
+        if flags[ZERO_QUAT]:
             raise ValueError("rasterization: quats has zero quaternions (rotation undefined)")
-        if lo["scales"] < 0:
+        if flags[NEGATIVE_SCALE]:
             raise ValueError("rasterization: scales has negative values (scales are linear, >= 0)")
-        if lo["opacities"] < 0 or hi["opacities"] > 1:
+        if flags[OPACITY_RANGE]:
             raise ValueError("rasterization: opacities must lie in [0, 1] (apply a sigmoid to logits)")
-        if min(v[-1]) <= 0:
+        if flags[FOCAL]:
             raise ValueError("rasterization: Ks has non-positive focal lengths")
 
     if defer_values:

@@ -116,6 +116,30 @@ def test_deterministic_bit_identical_cuda():
         assert torch.equal(a, b)
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="the warp-level gradient sums run on CUDA only")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_cuda_warp_sums_every_channel_count(dtype):
+    """The CUDA backward sums each warp's gradients with a reduce-scatter whose layout depends on the
+    packed gradient length (6 + D rounded up to 8, 16, 32, 64 or 128): every layout against the
+    torch reference on the GPU, with two cameras and a tile that is not 16."""
+    for D in (1, 3, 19, 32, 64):
+        means, quats, scales, opac, _ = make_scene(300, dtype=dtype, seed=D)
+        colors = torch.rand(300, D, generator=torch.Generator().manual_seed(D), dtype=dtype)
+        params = [t.cuda() for t in (means, quats, scales, opac, colors)]
+        vm, K = [t.cuda() for t in make_cameras(2, 53, 41, dtype=dtype)]
+        grads, imgs = {}, {}
+        for backend in ("torch", "warp"):
+            leaves = [p.clone().requires_grad_(True) for p in params]
+            img, alpha, _ = rasterization(*leaves, vm, K, 53, 41, tile_size=8, backend=backend, settings=EXACT)
+            w = torch.linspace(-1, 1, img.numel(), dtype=dtype, device="cuda").reshape(img.shape)
+            ((img * w).sum() + alpha.sum()).backward()
+            imgs[backend], grads[backend] = img.detach(), [p.grad for p in leaves]
+        tol = 1e-12 if dtype == torch.float64 else 1e-4
+        assert (imgs["warp"] - imgs["torch"]).abs().max().item() < tol
+        for a, b in zip(grads["warp"], grads["torch"]):
+            assert (a - b).abs().max().item() <= tol * b.abs().max().item(), f"D={D}"
+
+
 # ------------------------------------------------------------------------------------------------
 # extremes: all outputs finite and equal to the reference
 # ------------------------------------------------------------------------------------------------
@@ -262,6 +286,58 @@ def test_bad_input_names_argument(arg, mutate, word):
     params[arg] = mutate(params[arg])
     with pytest.raises(ValueError, match=word):
         rasterization(*params, vm, K, 16, 16)
+
+
+def _set_last(t, value):
+    t = t.clone()
+    t.view(-1)[-1] = value
+    return t
+
+
+@pytest.mark.parametrize("backend", ["warp", "torch"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_value_checks_each_message(backend, dtype):
+    """Every value check fires with its own message, including for the very last element of the
+    largest input (SH coefficients), and exact boundary values (opacity 0 and 1, scale 0) pass."""
+    g = torch.Generator().manual_seed(0)
+    n = 7
+    means = torch.randn(n, 3, generator=g, dtype=dtype) * 0.3 + torch.tensor([0, 0, 3.0], dtype=dtype)
+    quats = torch.randn(n, 4, generator=g, dtype=dtype)
+    scales = torch.rand(n, 3, generator=g, dtype=dtype) * 0.1
+    opac = torch.rand(n, generator=g, dtype=dtype)
+    sh = torch.rand(n, 16, 3, generator=g, dtype=dtype)
+    vm, K = make_cameras(2, 16, 16, dtype=dtype)
+    bg = torch.rand(2, 3, generator=g, dtype=dtype)
+    good = dict(means=means, quats=quats, scales=scales, opacities=opac, colors=sh, viewmats=vm, Ks=K)
+
+    def run(**change):
+        args = {**good, **{k: v for k, v in change.items() if k != "backgrounds"}}
+        return rasterization(**args, width=16, height=16, sh_degree=3,
+                             backgrounds=change.get("backgrounds", bg), backend=backend)
+
+    edge_opac = opac.clone()
+    edge_opac[0], edge_opac[1] = 0.0, 1.0
+    edge_scales = scales.clone()
+    edge_scales[0] = 0.0
+    run(opacities=edge_opac, scales=edge_scales)  # boundary values are valid
+    cases = [
+        (dict(means=_set_last(means, float("nan"))), "means has NaN/Inf"),
+        (dict(quats=_set_last(quats, float("inf"))), "quats has NaN/Inf"),
+        (dict(scales=_set_last(scales, float("-inf"))), "scales has NaN/Inf"),
+        (dict(opacities=_set_last(opac, float("nan"))), "opacities has NaN/Inf"),
+        (dict(colors=_set_last(sh, float("nan"))), "colors has NaN/Inf"),
+        (dict(viewmats=_set_last(vm, float("inf"))), "viewmats has NaN/Inf"),
+        (dict(Ks=_set_last(K, float("nan"))), "Ks has NaN/Inf"),
+        (dict(backgrounds=_set_last(bg, float("nan"))), "backgrounds has NaN/Inf"),
+        (dict(quats=quats.index_fill(0, torch.tensor([n - 1]), 0.0)), "zero quaternions"),
+        (dict(scales=_set_last(scales, -1e-30)), "scales has negative"),
+        (dict(opacities=_set_last(opac, 1.0 + 1e-6)), r"opacities must lie in \[0, 1\]"),
+        (dict(opacities=_set_last(opac, -1e-30)), r"opacities must lie in \[0, 1\]"),
+        (dict(Ks=K.index_fill(0, torch.tensor([1]), 0.0)), "non-positive focal"),
+    ]
+    for change, message in cases:
+        with pytest.raises(ValueError, match=message):
+            run(**change)
 
 
 def test_bad_cameras_and_modes():
