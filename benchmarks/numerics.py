@@ -64,7 +64,10 @@ def main():
             params, (vm, K), (w, h) = stacked(), _front_camera(8, 8, f=8.0), (8, 8)
         else:
             params, (vm, K), (w, h) = _extreme_case(case), _front_camera(40, 30), (40, 30)
-        for name, st in (("default", RasterSettings()), ("exact", RasterSettings.exact())):
+        variants = [("default", RasterSettings()), ("exact", RasterSettings.exact())]
+        if case == "anisotropy":  # the covariance form is what matters here
+            variants.insert(1, ("default, covariance='factor'", RasterSettings(covariance="factor")))
+        for name, st in variants:
             ref_img, ref_g = render(params, vm, K, w, h, "torch", torch.float64, st)
             row = [text, name]
             for dt in (torch.float64, torch.float32):

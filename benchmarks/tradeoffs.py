@@ -7,7 +7,8 @@ rules ``RasterSettings()``, tile 16, the scene's full SH degree, all Gaussians):
     alpha_min        1/255 | 0            (skip faint contributions)
     t_min            1e-4 | 0             (transmittance cut-off)
     alpha_max        0.999 | 1            (alpha clamp)
-    fast_math        on | off             (CUDA float32 blending: approximate exp/division)
+    fast_math        on | off             (CUDA float32: approximate exp/log/division/sqrt)
+    covariance       gsplat | factor      (2D covariance as gsplat forms it, or cancellation-free)
     extent           opacity-aware | fixed 3.33 sigma
     tile_size        8 | 16 | 32
     sh_degree        0 | 1 | 2 | 3        (SH bands evaluated)
@@ -134,7 +135,8 @@ def raster_cases(scene_degree: int) -> list[Case]:
              Case("alpha_min", "0", settings=replace(d, alpha_min=0.0)),
              Case("t_min", "0", settings=replace(d, t_min=0.0)),
              Case("alpha_max", "1", settings=replace(d, alpha_max=1.0)),
-             Case("fast_math", "off (IEEE exp/division)", settings=replace(d, fast_math=False)),
+             Case("fast_math", "off (IEEE exp/log/division/sqrt)", settings=replace(d, fast_math=False)),
+             Case("covariance", "factor (cancellation-free)", settings=replace(d, covariance="factor")),
              Case("extent", "fixed 3.33 sigma", settings=replace(d, extent="fixed")),
              Case("tile_size", "8", tile_size=8),
              Case("tile_size", "32", tile_size=32)]

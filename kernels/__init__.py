@@ -8,6 +8,10 @@
 - :mod:`.binning`: tiles per Gaussian, 64-bit keys camera|tile|depth, per-tile ranges.
 - :mod:`.blend_forward` / :mod:`.blend_backward`: front-to-back blending of any
   number of channels and its hand-written reverse traversal.
+- :mod:`.block`: warp/block votes and warp-wide gradient sums (native CUDA snippets).
+- :mod:`.fmath`: fused multiply-add, unfused add and reciprocal square root with a
+  fixed rounding (so results do not depend on the compiler's contraction choices).
+- :mod:`.validate`: input value checks in one pass.
 
 Every kernel family is built by a factory for one scalar type (``wp.float32``
 or ``wp.float64``), so the same source serves both precisions. Adjoints of

@@ -22,6 +22,7 @@ import functools
 
 import warp as wp
 
+from .fmath import fma
 from .pixel import pixel_funcs, tile_pixel
 from .types import channel_vector, splat_at, types_for
 
@@ -97,12 +98,17 @@ def forward_kernel(scalar, channels: int, fast_math: bool = False):
             if ends_pixel(T, alpha, t_min):
                 break
             w = alpha * T
-            acc = acc + colors[k] * w
+            c = colors[k]
+            for d in range(wp.static(channels)):
+                acc[d] = fma(c[d], w, acc[d])  # rounded once per channel, as gsplat's nvcc build
             wsum = wsum + w
             T = T * (scalar(1.0) - alpha)
             last = wp.int32(k)
         pix = (cam * height + y) * width + x
-        out_colors[pix] = acc + backgrounds[cam] * T
+        bg = backgrounds[cam]
+        for d in range(wp.static(channels)):
+            acc[d] = fma(T, bg[d], acc[d])
+        out_colors[pix] = acc
         out_T[pix] = T
         out_alpha[pix] = wsum
         last_ids[pix] = last

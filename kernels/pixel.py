@@ -4,18 +4,25 @@ For a Gaussian with screen mean ``xy``, conic ``(a, b, c)`` and opacity ``o``,
 seen from pixel centre ``(px, py)``::
 
     dx, dy = xy - (px, py)
-    sigma  = 0.5 (a dx^2 + c dy^2) + b dx dy
+    sigma  = 0.5 (a dx^2 + c dy^2) + b dx dy      (one fused multiply-add, see below)
     alpha  = min(alpha_max, o exp(-sigma))
 
 The contribution is skipped when ``sigma < 0`` or ``alpha < alpha_min``.
 The transmittance cut-off (the Gaussian that would bring T to <= t_min ends
 the pixel unblended) is :func:`ends_pixel`.
+
+The blending kernels are compiled without floating-point contraction, so every
+rounding here is the one written: ``a dx^2 + c dy^2`` is the single fused
+multiply-add ``fma(a dx, dx, c dy dy)``, the contraction nvcc makes of gsplat's
+same expression, so a Gaussian at the alpha threshold is decided as gsplat
+decides it, and identically in the forward and backward passes.
 """
 
 import functools
 
 import warp as wp
 
+from .fmath import fma
 from .types import types_for
 
 
@@ -50,7 +57,7 @@ def pixel_funcs(scalar):
     def splat_alpha(sp: splat, px: scalar, py: scalar, alpha_min: scalar, alpha_max: scalar):
         dx = sp[0] - px
         dy = sp[1] - py
-        sigma = scalar(0.5) * (sp[2] * dx * dx + sp[4] * dy * dy) + sp[3] * dx * dy
+        sigma = scalar(0.5) * fma(sp[2] * dx, dx, sp[4] * dy * dy) + sp[3] * dx * dy
         g = wp.exp(-sigma)
         alpha = wp.min(alpha_max, sp[5] * g)
         if sigma < scalar(0.0) or alpha < alpha_min:

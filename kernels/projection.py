@@ -2,12 +2,21 @@
 
 EWA splatting as in gsplat 1.5.3: covariance ``R S S R^T`` from the (normalised)
 quaternion and scales, rotated into the camera, projected with the Jacobian of
-the perspective map whose x/y are clamped at 1.3x the field of view. The 2D
-covariance is formed from its factor ``A = J R_cam R_q S`` as ``A A^T``, its
-determinant as ``|A_0 x A_1|^2``: the same values as gsplat's ``J Sigma J^T`` in
-exact arithmetic, without its cancellation for very anisotropic Gaussians in
-float32 (docs/numerics.md). ``eps2d``
-is added to the 2D covariance; in antialiased mode the opacity is multiplied
+the perspective map whose x/y are clamped at 1.3x the field of view. Two ways to
+form the 2D covariance (``RasterSettings.covariance``):
+
+- ``"gsplat"`` (default): ``J (R_cam Sigma R_cam^T) J^T`` with ``Sigma = M M^T``,
+  ``M = R_q S``, its determinant as ``ad - bc``: gsplat's arithmetic operation for
+  operation (every matrix product summed in index order, zero terms included,
+  reciprocal square root for the quaternion norm), so that with the same
+  floating-point contraction and fast maths the projected Gaussians are the
+  same numbers as gsplat's, and so are the images. It loses the 2D covariance
+  of very anisotropic Gaussians in float32 (cancellation; docs/numerics.md).
+- ``"factor"``: from the factor ``A = J R_cam R_q S`` as ``A A^T``, its
+  determinant as ``|A_0 x A_1|^2`` (Binet-Cauchy): the same values in exact
+  arithmetic, no cancellation (anisotropy 1e6 in float32: 4e-6 instead of 1).
+
+``eps2d`` is added to the 2D covariance; in antialiased mode the opacity is multiplied
 by ``sqrt(det(cov) / det(cov + eps2d I))``. A Gaussian is culled (radii 0,
 other outputs 0) when its depth is outside [near, far], the blurred
 determinant is <= 0, its opacity is below ``alpha_min``, both radii are <=
@@ -20,35 +29,111 @@ pair to its own slot: no atomics, bit-identical gradients.
 """
 
 import functools
+from types import SimpleNamespace
 
 import warp as wp
 
+from .fmath import add_rn, fma, rsqrt
 from .types import types_for
 
 RADIUS_LIMIT = 1073741824.0  # radii saturate here (2^30 px) so the int32 cast never overflows
 
 
 @functools.lru_cache(maxsize=None)
-def projection_kernel(scalar, expanded: bool = False):
+def matrix_funcs(scalar, native_rsqrt: bool = False):
+    """The projection's small linear algebra for one precision, rounded operation for operation as
+    nvcc compiles gsplat's (glm's) versions (explicit fused multiply-adds, :mod:`.fmath`; measured
+    bit-identical on an H100): ``dot3``, ``mul33`` (``A B``), ``mul33_t``
+    (``A B^T``), ``quat_to_rotmat`` (normalised with ``rsqrt`` when ``native_rsqrt``) and
+    ``cov2d(J, Sigma_c)`` -> ``vec4(c00, c10, c01, c11)`` of ``(J Sigma_c) J^T`` with J's zero
+    entries multiplied out."""
     t = types_for(scalar)
-    vec2, vec3, vec4, mat33, mat44, mat23 = t.vec2, t.vec3, t.vec4, t.mat33, t.mat44, t.mat23
+    vec4, mat33, mat23 = t.vec4, t.mat33, t.mat23
+
+    @wp.func
+    def dot3(a0: scalar, a1: scalar, a2: scalar, b0: scalar, b1: scalar, b2: scalar):
+        # a0 b0 + a1 b1 + a2 b2 rounded as nvcc contracts it in gsplat's matrix products
+        return fma(a2, b2, fma(a0, b0, a1 * b1))
+
+    @wp.func
+    def mul33(A: mat33, B: mat33):
+        """``A B``, every entry summed in index order."""
+        return mat33(
+            dot3(A[0, 0], A[0, 1], A[0, 2], B[0, 0], B[1, 0], B[2, 0]),
+            dot3(A[0, 0], A[0, 1], A[0, 2], B[0, 1], B[1, 1], B[2, 1]),
+            dot3(A[0, 0], A[0, 1], A[0, 2], B[0, 2], B[1, 2], B[2, 2]),
+            dot3(A[1, 0], A[1, 1], A[1, 2], B[0, 0], B[1, 0], B[2, 0]),
+            dot3(A[1, 0], A[1, 1], A[1, 2], B[0, 1], B[1, 1], B[2, 1]),
+            dot3(A[1, 0], A[1, 1], A[1, 2], B[0, 2], B[1, 2], B[2, 2]),
+            dot3(A[2, 0], A[2, 1], A[2, 2], B[0, 0], B[1, 0], B[2, 0]),
+            dot3(A[2, 0], A[2, 1], A[2, 2], B[0, 1], B[1, 1], B[2, 1]),
+            dot3(A[2, 0], A[2, 1], A[2, 2], B[0, 2], B[1, 2], B[2, 2]),
+        )
+
+    @wp.func
+    def mul33_t(A: mat33, B: mat33):
+        """``A B^T`` (the transpose moves no bits)."""
+        return mul33(A, wp.transpose(B))
+
+    @wp.func
+    def inv_norm4(w: scalar, x: scalar, y: scalar, z: scalar):
+        n2 = fma(w, w, fma(z, z, fma(x, x, y * y)))
+        if wp.static(native_rsqrt):
+            return rsqrt(n2)
+        else:
+            return scalar(1.0) / wp.sqrt(n2)
 
     @wp.func
     def quat_to_rotmat(q: vec4):
-        qn = q / wp.length(q)
-        w = qn[0]
-        x = qn[1]
-        y = qn[2]
-        z = qn[3]
+        s = inv_norm4(q[0], q[1], q[2], q[3])
+        w = q[0] * s
+        x = q[1] * s
+        y = q[2] * s
+        z = q[3] * s
+        y2 = y * y
+        z2 = z * z
+        wx = w * x
+        wy = w * y
+        wz = w * z
         one = scalar(1.0)
         two = scalar(2.0)
+        # (2 s is exact, so 1 - 2 s rounds once however it is contracted)
         return mat33(
-            one - two * (y * y + z * z), two * (x * y - w * z), two * (x * z + w * y),
-            two * (x * y + w * z), one - two * (x * x + z * z), two * (y * z - w * x),
-            two * (x * z - w * y), two * (y * z + w * x), one - two * (x * x + y * y),
+            one - two * add_rn(y2, z2), two * fma(x, y, -wz), two * fma(x, z, wy),
+            two * fma(x, y, wz), one - two * fma(x, x, z2), two * fma(y, z, -wx),
+            two * fma(x, z, -wy), two * fma(y, z, wx), one - two * fma(x, x, y2),
         )
 
-    @wp.kernel(module="unique")
+    @wp.func
+    def cov2d(J: mat23, Sc: mat33):
+        T2 = mat23(
+            dot3(J[0, 0], J[0, 1], J[0, 2], Sc[0, 0], Sc[1, 0], Sc[2, 0]),
+            dot3(J[0, 0], J[0, 1], J[0, 2], Sc[0, 1], Sc[1, 1], Sc[2, 1]),
+            dot3(J[0, 0], J[0, 1], J[0, 2], Sc[0, 2], Sc[1, 2], Sc[2, 2]),
+            dot3(J[1, 0], J[1, 1], J[1, 2], Sc[0, 0], Sc[1, 0], Sc[2, 0]),
+            dot3(J[1, 0], J[1, 1], J[1, 2], Sc[0, 1], Sc[1, 1], Sc[2, 1]),
+            dot3(J[1, 0], J[1, 1], J[1, 2], Sc[0, 2], Sc[1, 2], Sc[2, 2]))
+        return vec4(dot3(T2[0, 0], T2[0, 1], T2[0, 2], J[0, 0], J[0, 1], J[0, 2]),
+                    dot3(T2[1, 0], T2[1, 1], T2[1, 2], J[0, 0], J[0, 1], J[0, 2]),
+                    dot3(T2[0, 0], T2[0, 1], T2[0, 2], J[1, 0], J[1, 1], J[1, 2]),
+                    dot3(T2[1, 0], T2[1, 1], T2[1, 2], J[1, 0], J[1, 1], J[1, 2]))
+
+    return SimpleNamespace(dot3=dot3, mul33=mul33, mul33_t=mul33_t, quat_to_rotmat=quat_to_rotmat, cov2d=cov2d)
+
+
+@functools.lru_cache(maxsize=None)
+def projection_kernel(scalar, expanded: bool = False, covariance: str = "gsplat", fast_math: bool = False):
+    """The projection kernel for one precision. ``covariance``: ``"gsplat"`` or ``"factor"`` (see
+    the module docstring); ``fast_math``: approximate division, square roots and logarithm
+    (float32 on CUDA, as gsplat compiles its kernels; then the quaternion norm uses ``rsqrtf``)."""
+    t = types_for(scalar)
+    vec2, vec3, vec4, mat33, mat44, mat23 = t.vec2, t.vec3, t.vec4, t.mat33, t.mat44, t.mat23
+    gsplat_form = covariance == "gsplat"
+    mf = matrix_funcs(scalar, fast_math and scalar == wp.float32)
+    dot3, mul33, mul33_t, quat_to_rotmat, cov2d = mf.dot3, mf.mul33, mf.mul33_t, mf.quat_to_rotmat, mf.cov2d
+
+
+    @wp.kernel(module="unique", module_options={"fast_math": fast_math})
     def project(
         means: wp.array(dtype=vec3),
         quats: wp.array(dtype=vec4),
@@ -81,16 +166,21 @@ def projection_kernel(scalar, expanded: bool = False):
             gi = i
             vi = i
         V = viewmats[vi]
-        R = mat33(V[0, 0], V[0, 1], V[0, 2], V[1, 0], V[1, 1], V[1, 2], V[2, 0], V[2, 1], V[2, 2])
-        tr = vec3(V[0, 3], V[1, 3], V[2, 3])
-        p = R @ means[gi] + tr
+        m = means[gi]
+        # world to camera: R p + t, products summed in index order
+        p = vec3(dot3(V[0, 0], V[0, 1], V[0, 2], m[0], m[1], m[2]) + V[0, 3],
+                 dot3(V[1, 0], V[1, 1], V[1, 2], m[0], m[1], m[2]) + V[1, 3],
+                 dot3(V[2, 0], V[2, 1], V[2, 2], m[0], m[1], m[2]) + V[2, 3])
         z = p[2]
         if z < near_plane or z > far_plane:
             return
+        R = mat33(V[0, 0], V[0, 1], V[0, 2], V[1, 0], V[1, 1], V[1, 2], V[2, 0], V[2, 1], V[2, 2])
 
         Rq = quat_to_rotmat(quats[gi])
         s = scales[gi]
-        M = Rq @ wp.diag(s)
+        M = mat33(Rq[0, 0] * s[0], Rq[0, 1] * s[1], Rq[0, 2] * s[2],
+                  Rq[1, 0] * s[0], Rq[1, 1] * s[1], Rq[1, 2] * s[2],
+                  Rq[2, 0] * s[0], Rq[2, 1] * s[1], Rq[2, 2] * s[2])
 
         K = Ks[c]
         fx = K[0, 0]
@@ -106,23 +196,45 @@ def projection_kernel(scalar, expanded: bool = False):
         lim_y_pos = (h - cy) / fy + scalar(0.3) * tan_fovy
         lim_y_neg = cy / fy + scalar(0.3) * tan_fovy
         rz = scalar(1.0) / z
+        rz2 = rz * rz
         tx = z * wp.min(lim_x_pos, wp.max(-lim_x_neg, p[0] * rz))
         ty = z * wp.min(lim_y_pos, wp.max(-lim_y_neg, p[1] * rz))
-        J = mat23(fx * rz, scalar(0.0), -fx * tx * rz * rz,
-                  scalar(0.0), fy * rz, -fy * ty * rz * rz)
-        # the 2D covariance from its 2x3 factor A = J R M: sums of squares, and its determinant as
-        # the squared cross product of A's rows (Binet-Cauchy), free of cancellation
-        A = J @ R @ M
-        r0 = vec3(A[0, 0], A[0, 1], A[0, 2])
-        r1 = vec3(A[1, 0], A[1, 1], A[1, 2])
-        a = wp.dot(r0, r0)
-        b = wp.dot(r0, r1)
-        cc = wp.dot(r1, r1)
-        cr = wp.cross(r0, r1)
-        det_orig = wp.dot(cr, cr)
-        det = det_orig + eps2d * (a + cc) + eps2d * eps2d
-        a = a + eps2d
-        cc = cc + eps2d
+        zero = scalar(0.0)
+        J = mat23(fx * rz, zero, -fx * tx * rz2,
+                  zero, fy * rz, -fy * ty * rz2)
+        a = zero
+        b = zero
+        cc = zero
+        det_orig = zero
+        det = zero
+        if wp.static(gsplat_form):
+            # gsplat's order: Sigma = M M^T, Sigma_c = (R Sigma) R^T, cov = (J Sigma_c) J^T with
+            # J's zero entries multiplied out, determinant a d - b c
+            Sc = mul33_t(mul33(R, mul33_t(M, M)), R)
+            cv = cov2d(J, Sc)
+            c00 = cv[0]
+            c10 = cv[1]
+            c01 = cv[2]
+            c11 = cv[3]
+            det_orig = fma(c00, c11, -(c10 * c01))
+            a = add_rn(c00, eps2d)
+            cc = add_rn(c11, eps2d)
+            b = c10
+            det = fma(a, cc, -(c10 * c01))
+        else:
+            # the 2D covariance from its 2x3 factor A = J R M: sums of squares, and its determinant
+            # as the squared cross product of A's rows (Binet-Cauchy), free of cancellation
+            A = J @ R @ M
+            r0 = vec3(A[0, 0], A[0, 1], A[0, 2])
+            r1 = vec3(A[1, 0], A[1, 1], A[1, 2])
+            a = wp.dot(r0, r0)
+            b = wp.dot(r0, r1)
+            cc = wp.dot(r1, r1)
+            cr = wp.cross(r0, r1)
+            det_orig = wp.dot(cr, cr)
+            det = det_orig + eps2d * (a + cc) + eps2d * eps2d
+            a = a + eps2d
+            cc = cc + eps2d
         if det <= scalar(0.0):
             return
         op = opacities[gi]
@@ -143,7 +255,8 @@ def projection_kernel(scalar, expanded: bool = False):
             return
         means2d[i] = vec2(mx, my)
         depths[i] = z
-        conics[i] = vec3(cc / det, -b / det, a / det)
+        inv_det = scalar(1.0) / det
+        conics[i] = vec3(cc * inv_det, -b * inv_det, a * inv_det)
         opac_out[i] = op
         radii[i] = wp.vec2i(int(rx), int(ry))
 

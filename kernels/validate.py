@@ -26,7 +26,7 @@ def flag_nonfinite(a: wp.array(dtype=wp.float32), i: int, slot: int, flags: wp.a
 
 
 @wp.func
-def flag_nonfinite(a: wp.array(dtype=wp.float64), i: int, slot: int, flags: wp.array(dtype=wp.int64)):
+def flag_nonfinite(a: wp.array(dtype=wp.float64), i: int, slot: int, flags: wp.array(dtype=wp.int64)):  # noqa: F811
     if i < a.shape[0]:
         if not wp.isfinite(a[i]):
             flags[slot] = wp.int64(1)

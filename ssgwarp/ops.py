@@ -44,8 +44,8 @@ def _scalar(dtype: torch.dtype):
 
 
 def _fast(settings, scalar) -> bool:
-    """Approximate exp/division in the blending kernels: float32 only (a CUDA compile option; the
-    CPU build ignores it)."""
+    """Fast maths (approximate exp, log, division, square roots) in the CUDA kernels: float32 only
+    (a CUDA compile option; the CPU build ignores it)."""
     return bool(settings.fast_math) and scalar == wp.float32
 
 
@@ -138,7 +138,7 @@ def check_values(means, quats, scales, opacities, colors, viewmats, Ks, backgrou
 # ---------------------------------------------------------------------------------------------
 class _Project(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, viewmats, Ks, params):
+    def forward(ctx, means, quats, scales, opacities, viewmats, Ks, params, variant):
         width, height, near, far, eps2d, radius_clip, alpha_min, sigma_max, opacity_extent, antialiased = params
         C, N = viewmats.shape[0], means.shape[0]
         dt, dev = means.dtype, means.device
@@ -151,12 +151,14 @@ class _Project(torch.autograd.Function):
         radii = torch.zeros(C, N, 2, dtype=torch.int32, device=dev)
         L = _Launcher(means)
         scal = [width, height, near, far, eps2d, radius_clip, alpha_min, sigma_max, opacity_extent, antialiased]
-        L.launch(projection.projection_kernel(s, False), (C, N),
+        covariance, fast = variant
+        fast = fast and s == wp.float32  # as _fast(): a float32 CUDA option
+        L.launch(projection.projection_kernel(s, False, covariance, fast), (C, N),
                  [_wp(means, T.vec3), _wp(quats, T.vec4), _wp(scales, T.vec3), _wp(opacities),
                   _wp(viewmats, T.mat44), _wp(Ks, T.mat33), N, *scal],
                  [_wp(means2d, T.vec2), _wp(depths), _wp(conics, T.vec3), _wp(opac), _wp(radii, wp.vec2i)])
         ctx.save_for_backward(means, quats, scales, opacities, viewmats, Ks, means2d, depths, conics, opac, radii)
-        ctx.scal = scal
+        ctx.scal, ctx.variant = scal, (covariance, fast)
         ctx.mark_non_differentiable(radii)
         return radii, means2d, depths, conics, opac
 
@@ -184,7 +186,7 @@ class _Project(torch.autograd.Function):
         else:
             ins = [means, quats, scales, opacities, viewmats]
         adj = [torch.zeros_like(t) for t in ins[:4]] + [torch.zeros_like(ins[4]) if need_vm else None]
-        kern = projection.projection_kernel(s, expanded)
+        kern = projection.projection_kernel(s, expanded, *ctx.variant)
         dtypes = [T.vec3, T.vec4, T.vec3, None, T.mat44]
         ins_wp = [_wp(t, d) for t, d in zip(ins, dtypes)]
         adj_wp = [None if t is None else _wp(t, d) for t, d in zip(adj, dtypes)]
@@ -197,7 +199,7 @@ class _Project(torch.autograd.Function):
             v_view = adj[4].reshape(C, N, 4, 4).sum(1) if need_vm else None
         else:
             v_means, v_quats, v_scales, v_opac, v_view = adj
-        return v_means, v_quats, v_scales, v_opac, v_view, None, None
+        return v_means, v_quats, v_scales, v_opac, v_view, None, None, None
 
 
 def project_warp(means, quats, scales, opacities, viewmats, Ks, width, height, *, near_plane=0.01,
@@ -206,7 +208,8 @@ def project_warp(means, quats, scales, opacities, viewmats, Ks, width, height, *
     params = (int(width), int(height), float(near_plane), float(far_plane), float(eps2d), float(radius_clip),
               float(settings.alpha_min), float(settings.sigma_max), int(settings.extent == "opacity"),
               int(bool(antialiased)))
-    return _Project.apply(means, quats, scales, opacities, viewmats, Ks, params)
+    return _Project.apply(means, quats, scales, opacities, viewmats, Ks, params,
+                          (settings.covariance, bool(settings.fast_math)))
 
 
 # ---------------------------------------------------------------------------------------------

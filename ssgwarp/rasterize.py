@@ -34,11 +34,15 @@ class RasterSettings:
     extent: ``"opacity"``: per-axis radius of ``min(sigma_max, sqrt(2 ln(opacity /
         alpha_min)))`` standard deviations (gsplat); ``"fixed"``: ``sigma_max``.
     sigma_max: the extent cap in standard deviations (gsplat: 3.33).
-    fast_math: CUDA float32 blending uses the GPU's approximate ``exp`` and division
-        (relative error ~1e-6 per layer; about 15% faster forward+backward at 1M Gaussians,
-        see docs/tradeoffs.md), as gsplat does; ``False``: IEEE ``expf`` and division. No
-        effect on the CPU or in float64. The forward and backward passes always share one
-        rule, so the gating decisions match either way.
+    fast_math: CUDA float32 kernels use the GPU's approximate ``exp``, ``log``, division and
+        square roots (relative error ~1e-6; see docs/tradeoffs.md), as gsplat compiles its
+        kernels; ``False``: IEEE maths. No effect on the CPU or in float64. The forward and
+        backward passes always share one rule, so the gating decisions match either way.
+    covariance: how the projection forms the 2D covariance. ``"gsplat"``: ``J Sigma J^T``
+        with gsplat's order of operations, so float32 CUDA images equal gsplat's; loses very
+        anisotropic Gaussians (ratio of scales beyond ~1e3) in float32 to cancellation.
+        ``"factor"``: from its 2x3 factor with a cancellation-free determinant (accurate at
+        anisotropy 1e6 in float32; docs/numerics.md). Same values in exact arithmetic.
     """
 
     alpha_min: float = 1.0 / 255.0
@@ -47,6 +51,7 @@ class RasterSettings:
     extent: Literal["opacity", "fixed"] = "opacity"
     sigma_max: float = 3.33
     fast_math: bool = True
+    covariance: Literal["gsplat", "factor"] = "gsplat"
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.alpha_min < 1.0:
@@ -57,6 +62,8 @@ class RasterSettings:
             raise ValueError(f"RasterSettings.alpha_max must be in (0, 1], got {self.alpha_max}")
         if self.extent not in ("opacity", "fixed"):
             raise ValueError(f"RasterSettings.extent must be 'opacity' or 'fixed', got {self.extent!r}")
+        if self.covariance not in ("gsplat", "factor"):
+            raise ValueError(f"RasterSettings.covariance must be 'gsplat' or 'factor', got {self.covariance!r}")
         if not self.sigma_max > 0.0:
             raise ValueError(f"RasterSettings.sigma_max must be > 0, got {self.sigma_max}")
 
@@ -69,8 +76,10 @@ class RasterSettings:
 
     @classmethod
     def exact(cls, sigma_max: float = 3.33) -> "RasterSettings":
-        """No alpha threshold, no transmittance cut-off, no alpha clamp, IEEE maths (gradient checks)."""
-        return cls(alpha_min=0.0, t_min=0.0, alpha_max=1.0, extent="fixed", sigma_max=sigma_max, fast_math=False)
+        """No alpha threshold, no transmittance cut-off, no alpha clamp, IEEE maths and the
+        cancellation-free covariance (gradient checks, extreme scenes)."""
+        return cls(alpha_min=0.0, t_min=0.0, alpha_max=1.0, extent="fixed", sigma_max=sigma_max, fast_math=False,
+                   covariance="factor")
 
 
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")

@@ -8,8 +8,10 @@ images; :func:`rasterization_reference` has the signature of
 
 Rules (gsplat 1.5.3 classic mode, with :class:`~ssgwarp.RasterSettings` knobs):
 - EWA projection, Jacobian clamped at 1.3x the field of view; the 2D covariance
-  is formed from its 2x3 factor ``J R M`` (``M = R_q S``) as ``A A^T`` with the
-  determinant as the squared cross product of A's rows (no cancellation);
+  is ``J (R M M^T R^T) J^T`` (``M = R_q S``) with determinant ``ad - bc``
+  (``covariance="gsplat"``), or formed from its 2x3 factor ``A = J R M`` as
+  ``A A^T`` with the determinant as the squared cross product of A's rows (no
+  cancellation; ``covariance="factor"``);
 - ``eps2d`` added to the 2D covariance (antialiased: opacity times
   ``sqrt(det(cov) / det(cov + eps2d I))``);
 - culled (radii 0, outputs 0): depth outside [near, far], blurred
@@ -91,16 +93,24 @@ def project_reference(means: Tensor, quats: Tensor, scales: Tensor, opacities: T
         fx / zs, zero, -fx * tx / (zs * zs),
         zero, fy / zs, -fy * ty / (zs * zs),
     ], dim=-1).reshape(C, N, 2, 3)
-    # 2D covariance J R M (J R M)^T from its 2x3 factor: sums of squares, and the determinant as
-    # the squared cross product of the rows (Binet-Cauchy), free of cancellation
-    A = J @ R @ M[None]                                  # [C,N,2,3]
-    r0, r1 = A[..., 0, :], A[..., 1, :]
     mean2d = torch.stack([fx * x / zs + cx, fy * y / zs + cy], dim=-1)
-
-    a, b, c = (r0 * r0).sum(-1), (r0 * r1).sum(-1), (r1 * r1).sum(-1)
-    det_orig = (torch.linalg.cross(r0, r1) ** 2).sum(-1)
-    det = det_orig + eps2d * (a + c) + eps2d * eps2d     # det of the covariance + eps2d I
-    a, c = a + eps2d, c + eps2d
+    if settings.covariance == "gsplat":
+        # J (R Sigma R^T) J^T with Sigma = M M^T, determinant a d - b c (gsplat's formula)
+        cov_c = R @ (M @ M.transpose(-1, -2))[None] @ R.transpose(-1, -2)
+        cov = J @ cov_c @ J.transpose(-1, -2)                # [C,N,2,2]
+        a, b, c = cov[..., 0, 0], cov[..., 1, 0], cov[..., 1, 1]
+        det_orig = a * c - b * cov[..., 0, 1]
+        a, c = a + eps2d, c + eps2d
+        det = a * c - b * cov[..., 0, 1]
+    else:
+        # 2D covariance J R M (J R M)^T from its 2x3 factor: sums of squares, and the determinant as
+        # the squared cross product of the rows (Binet-Cauchy), free of cancellation
+        A = J @ R @ M[None]                                  # [C,N,2,3]
+        r0, r1 = A[..., 0, :], A[..., 1, :]
+        a, b, c = (r0 * r0).sum(-1), (r0 * r1).sum(-1), (r1 * r1).sum(-1)
+        det_orig = (torch.linalg.cross(r0, r1) ** 2).sum(-1)
+        det = det_orig + eps2d * (a + c) + eps2d * eps2d     # det of the covariance + eps2d I
+        a, c = a + eps2d, c + eps2d
     valid = valid & (det > 0)
     dets = torch.where(valid, det, torch.ones_like(det))
     conic = torch.stack([c / dets, -b / dets, a / dets], dim=-1)

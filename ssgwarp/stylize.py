@@ -706,7 +706,7 @@ def stylize_run(scene_dir: str | Path, style_path: str | Path, out: str | Path, 
         matching = "global against the style image"
         if stage2.mode != "global":
             matching += f" (Stage 1 did not run: requested mode '{stage2.mode}' fell back)"
-            _say(f"Stage 1 did not run: Stage 2 matches against the style image globally", progress)
+            _say("Stage 1 did not run: Stage 2 matches against the style image globally", progress)
     run_cfg = stage2
     if stage2.mode == "finetune" and ft_images is None:   # no stylized key views to fit: global fallback
         run_cfg = dataclasses.replace(stage2, mode="global")

@@ -1,11 +1,8 @@
 """The Warp rasterizer against the pure-torch reference (the spec), images and every gradient."""
-import math
-
 import pytest
 import torch
 
-import ssgwarp
-from ssgwarp import RasterSettings, rasterization
+from ssgwarp import rasterization
 from ssgwarp.cameras import intrinsics, look_at
 
 
