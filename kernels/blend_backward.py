@@ -34,9 +34,9 @@ def layer_grad_func(scalar, channels: int):
     """``layer_grad(...)``: one layer of the reverse traversal of one pixel, without branches.
 
     Takes the gating's result for this pixel (``used``: whether the forward pass blended the
-    Gaussian here; ``alpha``, 0 where not used, so nothing changes; ``g = exp(-sigma)``, ``dx, dy``), the packed projected Gaussian,
-    its colour and the pixel's state after it (``T_next``: transmittance behind it, ``S``: colour
-    accumulated behind it). Returns ``(T, S', grad)`` with ``grad`` packed as
+    Gaussian here; ``alpha``, 0 where not used, so nothing changes; ``g = exp(-sigma)``; ``dx``,
+    ``dy``), the packed projected Gaussian, its colour and the pixel's state after it (``T_next``:
+    transmittance behind it, ``S``: colour accumulated behind it). Returns ``(T, S', grad)`` with ``grad`` packed as
     ``[xy(2), conic(3), opacity(1), colour(D)]`` (zero where not used). Branch-free, so a
     block's pixels run it in lockstep with no merging of per-pixel results afterwards.
     """
@@ -46,8 +46,9 @@ def layer_grad_func(scalar, channels: int):
     vecG = channel_vector(scalar, channels + 6)
 
     @wp.func
-    def layer_grad(sp: splat, c: vecD, used: bool, alpha: scalar, g: scalar, dx: scalar, dy: scalar, alpha_max: scalar,
-                   T_next: scalar, S: vecD, v_col: vecD, v_alpha_out: scalar, T_final: scalar, bg_term: scalar):
+    def layer_grad(sp: splat, c: vecD, used: bool, alpha: scalar, g: scalar, dx: scalar, dy: scalar,
+                   alpha_max: scalar, T_next: scalar, S: vecD, v_col: vecD, v_alpha_out: scalar, T_final: scalar,
+                   bg_term: scalar):
         inv = scalar(1.0) / (scalar(1.0) - alpha)
         T = T_next * inv
         w = alpha * T
