@@ -6,6 +6,7 @@ intersection count, and turned into errors on the host (``ssgwarp.rasterize``).
 """
 
 import functools
+from typing import Any
 
 import warp as wp
 
@@ -19,14 +20,8 @@ N_FLAGS = 12
 
 
 @wp.func
-def flag_nonfinite(a: wp.array(dtype=wp.float32), i: int, slot: int, flags: wp.array(dtype=wp.int64)):
-    if i < a.shape[0]:
-        if not wp.isfinite(a[i]):
-            flags[slot] = wp.int64(1)
-
-
-@wp.func
-def flag_nonfinite(a: wp.array(dtype=wp.float64), i: int, slot: int, flags: wp.array(dtype=wp.int64)):  # noqa: F811
+def flag_nonfinite(a: wp.array(dtype=Any), i: int, slot: int, flags: wp.array(dtype=wp.int64)):
+    """``flags[slot] = 1`` when ``a[i]`` exists and is NaN or infinite (float32 or float64)."""
     if i < a.shape[0]:
         if not wp.isfinite(a[i]):
             flags[slot] = wp.int64(1)

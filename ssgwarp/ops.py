@@ -151,14 +151,12 @@ class _Project(torch.autograd.Function):
         radii = torch.zeros(C, N, 2, dtype=torch.int32, device=dev)
         L = _Launcher(means)
         scal = [width, height, near, far, eps2d, radius_clip, alpha_min, sigma_max, opacity_extent, antialiased]
-        covariance, fast = variant
-        fast = fast and s == wp.float32  # as _fast(): a float32 CUDA option
-        L.launch(projection.projection_kernel(s, False, covariance, fast), (C, N),
+        L.launch(projection.projection_kernel(s, False, *variant), (C, N),
                  [_wp(means, T.vec3), _wp(quats, T.vec4), _wp(scales, T.vec3), _wp(opacities),
                   _wp(viewmats, T.mat44), _wp(Ks, T.mat33), N, *scal],
                  [_wp(means2d, T.vec2), _wp(depths), _wp(conics, T.vec3), _wp(opac), _wp(radii, wp.vec2i)])
         ctx.save_for_backward(means, quats, scales, opacities, viewmats, Ks, means2d, depths, conics, opac, radii)
-        ctx.scal, ctx.variant = scal, (covariance, fast)
+        ctx.scal, ctx.variant = scal, variant
         ctx.mark_non_differentiable(radii)
         return radii, means2d, depths, conics, opac
 
@@ -209,7 +207,7 @@ def project_warp(means, quats, scales, opacities, viewmats, Ks, width, height, *
               float(settings.alpha_min), float(settings.sigma_max), int(settings.extent == "opacity"),
               int(bool(antialiased)))
     return _Project.apply(means, quats, scales, opacities, viewmats, Ks, params,
-                          (settings.covariance, bool(settings.fast_math)))
+                          (settings.covariance, _fast(settings, _scalar(means.dtype))))
 
 
 # ---------------------------------------------------------------------------------------------
