@@ -224,8 +224,7 @@ def run_demo(out: str | Path = "ssgwarp-demo", size="default", *, device=None, s
         data = load_dataset(data_dir, num_random_points=sz.init_points, seed=seed)
         it = sz.reconstruct_iters
         every = max(10, it // 15)
-        recipe = Recipe(refine_start=every, refine_every=every, refine_stop=int(it * 0.6), reset_every=10 ** 9,
-                        prune_screen_px=0.0)
+        recipe = Recipe(refine_start=every, refine_every=every, refine_stop=int(it * 0.6), reset_every=0)
         resume_rec = (scene_dir / "checkpoint.pt").is_file()
         m = reconstruct(data_dir, scene_dir, iters=it, sh_degree=0, max_gaussians=sz.max_gaussians,
                         device=device, seed=seed, recipe=recipe, checkpoint_every=max(50, it // 5),
