@@ -44,7 +44,7 @@ from .errors import InputError
 
 # ----------------------------------------------------------------------------- schedule
 REFERENCE_ITERS = 30_000      # the run length the 3DGS / 3DGS-MCMC schedules were set for
-MIN_REFINE_EVERY = 10         # steps of statistics per refinement, at least
+MIN_REFINE_EVERY = 100        # steps between refinements, at least: new Gaussians need about that long to settle
 MIN_RESET_EVERY = 300         # an opacity reset needs a few hundred steps to recover (logits move ~lr per step)
 
 
@@ -74,11 +74,13 @@ def scaled_schedule(iters: int, *, refine_start: int, refine_stop: int, refine_e
     """The reference schedule (step counts at :data:`REFERENCE_ITERS`) scaled to a run of ``iters`` steps.
 
     Every step count is multiplied by ``iters / 30000``, with two floors so that short runs stay
-    sensible: refinements at least :data:`MIN_REFINE_EVERY` steps apart (each averages that many
-    views' gradients) and the first not before one interval of statistics; opacity resets at least
+    sensible: refinements at least :data:`MIN_REFINE_EVERY` steps apart, the first not before one
+    interval (clones and split children start with fresh Adam moments and need about a hundred
+    steps to settle; measured on lego at 100 px, 500 steps: refining every 10 steps from step 10
+    lost 7.7 dB against no densification, every 87 from 87 gained 0.4 dB); opacity resets at least
     :data:`MIN_RESET_EVERY` steps apart (a short run whose reset interval reaches ``refine_stop``
-    has no reset, and no size pruning, which starts after the first reset). At 30,000 steps this
-    is the reference itself.
+    has no reset, and no size pruning, which starts after the first reset). Longer runs stretch
+    every interval; at 30,000 steps this is the reference itself.
     """
     f = iters / REFERENCE_ITERS
     every = max(MIN_REFINE_EVERY, round(refine_every * f))

@@ -138,24 +138,25 @@ def _toy_scene(n=12):
 
 @pytest.mark.parametrize("strategy", ["default", "mcmc"])
 def test_a_short_run_densifies_on_the_scaled_schedule(strategy):
-    """40 steps, no schedule given: refinements every 10 steps from step 10 (the 30k schedule scaled, with
-    its floors); every tensor, the identities of a joint hook included, follows the count."""
+    """300 steps, no schedule given: refinements every 100 steps (the 30k schedule scaled, with its floors)
+    until half the run (default) or 5/6 of it (mcmc); every tensor, the identities of a joint hook
+    included, follows the count."""
     data = _toy_data()
     s0 = _toy_scene()
     hook = IdentityHook(5)
-    t = Trainer(data, scene=s0, iters=40, sh_degree=1, max_gaussians=13, hooks=[hook], progress=False,
+    t = Trainer(data, scene=s0, iters=300, sh_degree=1, max_gaussians=13, hooks=[hook], progress=False,
                 device="cpu", strategy=strategy)
-    assert (t.recipe.refine_start, t.recipe.refine_every) == (10, 10)
-    assert t.recipe.refine_stop == {"default": 20, "mcmc": 33}[strategy]
+    assert (t.recipe.refine_start, t.recipe.refine_every) == (100, 100)
+    assert t.recipe.refine_stop == {"default": 150, "mcmc": 250}[strategy]
     refines = []
-    for _ in range(40):
+    for _ in range(300):
         info = t.train_step()
         if "refine" in info:
             refines.append(t.step)
             did = info["refine"]
             assert all(p.shape[0] == t.num_gaussians for p in t.params.values())
             assert all(v.shape[0] == t.num_gaussians for v in t.gaussians.stats.values())
-    assert refines == ([10] if strategy == "default" else [10, 20, 30])
+    assert refines == ([100] if strategy == "default" else [100, 200])
     sc = t.final_scene()
     assert sc.identities.shape == (len(sc), 5) and sc.sh_rest.shape == (len(sc), 3, 3)
     if strategy == "mcmc":
@@ -290,18 +291,19 @@ def test_cli_mcmc_strategy_stays_within_its_budget(tmp_path, monkeypatch, capsys
         monkeypatch.delenv(var, raising=False)
     data_dir, out = tmp_path / "cap", tmp_path / "run"
     _write_tiny_colmap(data_dir)
-    args = ["reconstruct", str(data_dir), "--out", str(out), "--iters", "30", "--sh-degree", "0", "--no-progress",
+    args = ["reconstruct", str(data_dir), "--out", str(out), "--iters", "250", "--sh-degree", "0", "--no-progress",
             "--device", "cpu", "--strategy", "mcmc", "--max-gaussians", "70"]
     assert cli.main(args) == 0
     m = json.loads((out / "metrics.json").read_text())
-    # 60 COLMAP points, refinements at steps 10 and 20 (the scaled schedule): +3, +4 (ceil 5%)
+    # 60 COLMAP points, refinements at steps 100 and 200 (the scaled schedule): +3, +4 (ceil 5%)
     assert m["num_gaussians"] == 67 <= 70
-    assert m["densification"] == {"strategy": "mcmc", "max_gaussians": 70, "refine_start": 10, "refine_stop": 25,
-                                  "refine_every": 10, "reset_every": 0}
+    assert m["densification"] == {"strategy": "mcmc", "max_gaussians": 70, "refine_start": 100,
+                                  "refine_stop": 208, "refine_every": 100, "reset_every": 0}
     capsys.readouterr()
     assert cli.main(args[:-4] + ["--resume"]) == 2  # resuming with the other strategy: a one-line error
     err = capsys.readouterr().err
     assert "--strategy mcmc" in err and len(err.strip().splitlines()) == 1
     # a budget below the capture's point count: the initial points are subsampled to it
-    assert cli.main(args[:-1] + ["40", "--out", str(tmp_path / "run2")]) == 0
+    short = [("1" if a == "250" else a) for a in args[:-1]]
+    assert cli.main(short + ["40", "--out", str(tmp_path / "run2")]) == 0
     assert json.loads((tmp_path / "run2" / "metrics.json").read_text())["num_gaussians"] == 40

@@ -342,16 +342,17 @@ def test_schedule_scales_with_the_run_length():
     ref = scaled_schedule(REFERENCE_ITERS, **DefaultStrategy.reference)
     assert ref == {"refine_start": 500, "refine_stop": 15000, "refine_every": 100, "reset_every": 3000}
     assert scaled_schedule(7000, **DefaultStrategy.reference) == {
-        "refine_start": 117, "refine_stop": 3500, "refine_every": 23, "reset_every": 700}
+        "refine_start": 117, "refine_stop": 3500, "refine_every": 100, "reset_every": 700}
     short = Recipe().resolved(500, 3, "default")
-    assert (short.refine_start, short.refine_stop, short.refine_every, short.reset_every) == (10, 250, 10, 300)
+    assert (short.refine_start, short.refine_stop, short.refine_every, short.reset_every) == (100, 250, 100, 300)
     sched = Schedule(short.refine_start, short.refine_stop, short.refine_every, short.reset_every)
-    assert [t for t in range(501) if sched.refines_at(t)] == list(range(10, 250, 10))
+    assert [t for t in range(501) if sched.refines_at(t)] == [100, 200]
     assert not any(sched.resets_at(t) for t in range(501))  # a reset needs 300 steps to recover: none here
     mc = Recipe().resolved(500, 3, "mcmc")
-    assert (mc.refine_start, mc.refine_stop, mc.refine_every, mc.reset_every) == (10, 417, 10, 0)
+    assert (mc.refine_start, mc.refine_stop, mc.refine_every, mc.reset_every) == (100, 417, 100, 0)
     assert (mc.init_opacity, mc.init_scale, mc.opacity_reg, mc.scale_reg) == (0.5, 0.1, 0.01, 0.01)
-    assert Recipe().resolved(60000, 3).refine_stop == 30000
+    long = Recipe().resolved(60000, 3)  # longer runs stretch every interval
+    assert (long.refine_start, long.refine_stop, long.refine_every, long.reset_every) == (1000, 30000, 200, 6000)
     kept = Recipe(refine_start=3, refine_every=7).resolved(500, 3)  # given values are kept
     assert (kept.refine_start, kept.refine_every, kept.refine_stop) == (3, 7, 250)
     with pytest.raises(InputError, match="refine_every"):
