@@ -22,8 +22,8 @@ a Gaussian of a fixed *pixel* footprint is a finer Gaussian at a higher resoluti
 NDC gradient. The table says whether that holds in training.
 
     python benchmarks/densify.py                                        # GPU: 4 resolutions x 6 rules
-    python benchmarks/densify.py --rules 3dgs grad-x0.5 grad-x2 screen-20px --iters 2000
-    python benchmarks/densify.py --megapixels 0.005 0.01 --iters 40 --device cpu --rules 3dgs screen-20px  # smoke
+    python benchmarks/densify.py --megapixels 1 --rules 3dgs grad-x2 screen-20px no-world-prune --iters 1500
+    python benchmarks/densify.py --megapixels 0.005 0.01 --iters 120 --device cpu --rules 3dgs screen-20px  # smoke
 """
 from __future__ import annotations
 
@@ -111,7 +111,7 @@ def main(argv=None) -> int:
     p.add_argument("--megapixels", nargs="+", type=float, default=[0.2, 0.5, 1.0, 2.0])
     p.add_argument("--rules", nargs="+", choices=tuple(RULES), default=["3dgs", "grad-x0.5", "grad-x2", "screen-20px",
                                                                         "screen-0.15", "no-world-prune"])
-    p.add_argument("--iters", type=int, default=3000)
+    p.add_argument("--iters", type=int, default=2000)
     p.add_argument("--views", type=int, default=24)
     p.add_argument("--density", type=float, default=4.0, help="procedural scene density (4: ~11.6k Gaussians)")
     p.add_argument("--init-points", type=int, default=20000)

@@ -21,9 +21,10 @@ the same scene / backend / iters ended with (MCMC at an equal count). Prints mar
 backend pairs; strategy pairs; budget sweep) and writes them with the raw numbers to ``--out``.
 
     python benchmarks/reconstruct.py --scenes fern8 --backend ssgwarp gsplat --strategy default
-    python benchmarks/reconstruct.py --scenes fern8 cup lego --strategy default gsplat-default mcmc --match-default
-    python benchmarks/reconstruct.py --scenes fern4 --strategy mcmc --max-gaussians 50000 100000 300000 1000000
-    python benchmarks/reconstruct.py --scenes lego --iters 50 --device cpu --strategy default mcmc   # CPU smoke test
+    python benchmarks/reconstruct.py --scenes fern8 cup lego --strategy default gsplat-default --match-default
+    python benchmarks/reconstruct.py --scenes fern8 --strategy mcmc --max-gaussians 50000 100000 300000 1000000
+    python benchmarks/reconstruct.py --scenes PATH --iters 120 --device cpu --strategy default mcmc \
+        --random-points 2000                                                        # CPU smoke test
 
 Targets (issues 3, 14): held-out PSNR ssgwarp vs gsplat rasterizer within 0.2 dB, time within 1.5x;
 fern ``images_8`` 7k >= 25.2 dB; our default within 0.2 dB of gsplat's DefaultStrategy; MCMC at an
@@ -283,7 +284,8 @@ def main(argv=None) -> int:
                    help="initial points of captures without a point cloud (lego; default 100000, as the CLI)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="cuda")
-    p.add_argument("--out", type=Path, default=Path("benchmark-reconstruct"), help="folder for results.json / results.md")
+    p.add_argument("--out", type=Path, default=Path("benchmark-reconstruct"),
+                   help="folder for results.json / results.md")
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
     device = torch.device(a.device)

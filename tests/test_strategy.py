@@ -243,7 +243,8 @@ def test_gradient_statistics_by_hand():
 def _double_sum(o: float, n: int) -> tuple[float, float]:
     """The paper's eq. 9 as written: new opacity and the scale factor o / D."""
     q = 1.0 - (1.0 - o) ** (1.0 / n)
-    d = sum(math.comb(i - 1, k) * (-1) ** k * q ** (k + 1) / math.sqrt(k + 1) for i in range(1, n + 1) for k in range(i))
+    d = sum(math.comb(i - 1, k) * (-1) ** k * q ** (k + 1) / math.sqrt(k + 1)
+            for i in range(1, n + 1) for k in range(i))
     return q, o / d
 
 
