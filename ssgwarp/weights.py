@@ -25,6 +25,7 @@ class WeightSpec:
     expected: str       # what must be inside (for the error message)
     source: str         # public model name to get it from
     is_dir: bool = True
+    hub: Optional[str] = None   # Hugging Face repo id also looked up in the local Hugging Face cache
 
 
 SPECS: dict[str, WeightSpec] = {s.key: s for s in [
@@ -49,7 +50,24 @@ SPECS: dict[str, WeightSpec] = {s.key: s for s in [
     WeightSpec("lpips", "SSGWARP_LPIPS", "lpips_vgg.pth",
                "the LPIPS linear-layer weights for VGG (vgg.pth from the lpips package) next to vgg16.pth",
                "richzhang/PerceptualSimilarity (lpips/weights/v0.1/vgg.pth)", is_dir=False),
+    WeightSpec("sam", "SSGWARP_SAM", "sam-vit-base",
+               "a transformers SamModel folder: config.json and model.safetensors",
+               "facebook/sam-vit-base", hub="facebook/sam-vit-base"),
 ]}
+
+
+def hub_snapshot(repo_id: str) -> Optional[Path]:
+    """The snapshot folder of ``repo_id`` in the local Hugging Face cache (``HF_HUB_CACHE``, else
+    ``HF_HOME/hub``, else ``~/.cache/huggingface/hub``) that ``refs/main`` names, or None."""
+    root = os.environ.get("HF_HUB_CACHE") or os.path.join(
+        os.environ.get("HF_HOME") or os.path.join(os.path.expanduser("~"), ".cache", "huggingface"), "hub")
+    repo = Path(root).expanduser() / ("models--" + repo_id.replace("/", "--"))
+    try:
+        rev = (repo / "refs" / "main").read_text().strip()
+    except OSError:
+        return None
+    snap = repo / "snapshots" / rev
+    return snap if rev and snap.is_dir() else None
 
 
 def find(key: str, explicit: Optional[str | os.PathLike] = None,
@@ -69,6 +87,8 @@ def find(key: str, explicit: Optional[str | os.PathLike] = None,
         c = c.expanduser()
         if (c.is_dir() if spec.is_dir else c.is_file()):
             return c
+    if spec.hub and not explicit:
+        return hub_snapshot(spec.hub)
     return None
 
 
