@@ -92,7 +92,7 @@ class AssociationConfig:
     min_observed: int = 3
     contain: float = 0.6
     consensus: float = 0.5
-    background_vote: float = 0.5
+    background_vote: float = 0.25
     vote_k: int = 5
     alpha_min: float = 0.5
     share_min: float = 0.5
@@ -324,6 +324,12 @@ def associate(scene: GaussianScene, cameras: Cameras, label_maps: Tensor, *,
     need = torch.clamp(torch.ceil(cfg.observe_fraction * size.double()).long(), min=cfg.min_observed)
     observed = obs >= need[:, None]
     contained = observed & (best.double() >= cfg.contain * obs.double())
+    # purity of a mask: the share of its Gaussians that the other observing views keep in one mask
+    # (about 1 for a mask of one object or part; lower for a mask merging objects the others separate)
+    other = observed & (torch.arange(V, device=dev)[None] != view_of[:, None])
+    o_sum = torch.where(other, obs, torch.zeros_like(obs)).sum(dim=1).double()
+    purity = torch.where(o_sum > 0, torch.where(other, best, torch.zeros_like(best)).sum(dim=1).double()
+                         / o_sum.clamp_min(1), torch.ones_like(o_sum))
     cont = torch.where(contained, best_c, torch.full_like(best_c, -1))
 
     # candidate pairs: masks of different views sharing Gaussians, each pair once
@@ -350,8 +356,8 @@ def associate(scene: GaussianScene, cameras: Cameras, label_maps: Tensor, *,
         lv, sv = labels[v], share[v].double()
         on = lv >= 0
         if bool(on.any()):
-            inst = comp[lv[on] + offsets[v]] + 1
-            votes.index_put_((ar[on], inst), sv[on], accumulate=True)
+            g = lv[on] + offsets[v]
+            votes.index_put_((ar[on], comp[g] + 1), sv[on] * purity[g], accumulate=True)
         bgv = lv == UNLABELLED
         votes[bgv, 0] += cfg.background_vote
     has = votes.sum(dim=1) > 0

@@ -829,7 +829,8 @@ def group_scene(scene_dir: str | Path, *, masks: Optional[str | Path] = "auto", 
         k = ms.num_groups
         all_targets = ms.targets
         info.update({"method": "masks", "mask_dir": str(mask_dir), "mask_ids": ms.ids, "criterion": None,
-                     "kind": KINDS["segmenter" if made is not None else "masks"]})
+                     "kind": KINDS["segmenter" if made and made.get("source", {}).get("kind") == "segmenter"
+                                   else "masks"]})
         if made is not None:
             info["masks_record"] = {"source": made.get("source"), "num_instances": made.get("num_instances"),
                                     "ignore_id": made.get("ignore_id"), "record": str(mask_dir.parent / "masks.json")}
