@@ -81,6 +81,8 @@ class AssociationConfig:
     background_vote: weight of a view's vote for the background (the Gaussian is seen on
         unlabelled pixels); a view's vote for an instance weighs the Gaussian's share.
     vote_k: Gaussians without any vote take the majority label of this many nearest voters.
+    max_instances: at most this many instances are kept (those with the most Gaussians); the
+        Gaussians of the others join the background (254: 8-bit masks, Gaussian Grouping's 256 classes).
     alpha_min, share_min: rendering the final masks (see :func:`ssgwarp.pseudomasks.render_label_masks`).
     masks_per_pass: lifting renders at most this many mask channels per rasterizer pass.
     """
@@ -94,6 +96,7 @@ class AssociationConfig:
     consensus: float = 0.5
     background_vote: float = 0.25
     vote_k: int = 5
+    max_instances: int = 254
     alpha_min: float = 0.5
     share_min: float = 0.5
     masks_per_pass: int = 63
@@ -106,8 +109,8 @@ class AssociationConfig:
                 raise InputError(f"association: {name} must be in [0, 1], got {v}")
         if self.visible_weight < 0 or self.background_vote < 0:
             raise InputError("association: visible_weight and background_vote must be >= 0")
-        if self.min_observed < 1 or self.vote_k < 1 or self.masks_per_pass < 1:
-            raise InputError("association: min_observed, vote_k and masks_per_pass must be >= 1")
+        if min(self.min_observed, self.vote_k, self.masks_per_pass, self.max_instances) < 1:
+            raise InputError("association: min_observed, vote_k, masks_per_pass and max_instances must be >= 1")
         return self
 
 
@@ -349,24 +352,42 @@ def associate(scene: GaussianScene, cameras: Cameras, label_maps: Tensor, *,
     q = int(comp.max()) + 1 if total else 0
     n_clusters = q
 
-    # votes: per Gaussian, per view, for the instance of its mask (weighted by share) or background
-    votes = torch.zeros(n, q + 1, dtype=torch.float64, device=dev)
+    # votes: per Gaussian, per view, for the instance of its mask (its share x the mask's purity) or for
+    # the background; kept sparse (at most one vote per Gaussian and view)
     ar = torch.arange(n, device=dev)
+    gi, li, wi = [], [], []
     for v in range(V):
-        lv, sv = labels[v], share[v].double()
+        lv = labels[v]
         on = lv >= 0
-        if bool(on.any()):
-            g = lv[on] + offsets[v]
-            votes.index_put_((ar[on], comp[g] + 1), sv[on] * purity[g], accumulate=True)
-        bgv = lv == UNLABELLED
-        votes[bgv, 0] += cfg.background_vote
-    has = votes.sum(dim=1) > 0
-    lab = votes.argmax(dim=1)
+        g = lv[on] + offsets[v]
+        gi += [ar[on], ar[lv == UNLABELLED]]
+        li += [comp[g] + 1, torch.zeros(int((lv == UNLABELLED).sum()), dtype=torch.long, device=dev)]
+        wi += [share[v][on].double() * purity[g],
+               torch.full((int((lv == UNLABELLED).sum()),), float(cfg.background_vote), dtype=torch.float64,
+                          device=dev)]
+    key_v, inv = torch.unique(torch.cat(gi) * (q + 1) + torch.cat(li), return_inverse=True)
+    tot = torch.zeros(key_v.numel(), dtype=torch.float64, device=dev).index_add_(0, inv, torch.cat(wi))
+    pos = tot > 0
+    vg, vl, tot = key_v[pos] // (q + 1), key_v[pos] % (q + 1), tot[pos]
+    top = torch.zeros(n, dtype=torch.float64, device=dev).scatter_reduce_(0, vg, tot, reduce="amax")
+    win = tot >= top[vg]
+    lab = torch.full((n,), q + 1, dtype=torch.long, device=dev).scatter_reduce_(0, vg[win], vl[win], reduce="amin")
+    has = torch.zeros(n, dtype=torch.bool, device=dev)
+    has[vg] = True
+    lab[~has] = 0
+    # at most max_instances instances (the most Gaussians); the rest join the background
+    counts = torch.bincount(lab[has], minlength=q + 1)
+    counts[0] = 0
+    dropped_cap = max(0, int((counts > 0).sum()) - cfg.max_instances)
+    if dropped_cap:
+        keep = torch.zeros(q + 1, dtype=torch.bool, device=dev)
+        keep[torch.argsort(counts, descending=True, stable=True)[:cfg.max_instances]] = True
+        keep[0] = True
+        lab = torch.where(keep[lab], lab, torch.zeros_like(lab))
     if bool((~has).any()) and bool(has.any()):
         pts = scene.means.detach()
-        lab[~has] = _knn_vote(pts[~has].double(), pts[has].double(), lab[has], q + 1, cfg.vote_k)
-    elif not bool(has.any()):
-        lab[:] = 0
+        used, lab_c = torch.unique(lab[has], return_inverse=True)          # vote over the labels in use
+        lab[~has] = used[_knn_vote(pts[~has].double(), pts[has].double(), lab_c, used.numel(), cfg.vote_k)]
     # instances numbered by their number of Gaussians, largest first; those without Gaussians, or that
     # dominate no pixel of any view, vanish (their Gaussians join the background)
     rc = cameras if render_cameras is None else render_cameras
@@ -397,6 +418,7 @@ def associate(scene: GaussianScene, cameras: Cameras, label_maps: Tensor, *,
              "clusters": n_clusters,
              "instances": k, "gaussians_per_label": torch.bincount(lab, minlength=k + 1).tolist(),
              "gaussians_unseen": int((seen == 0).sum()), "gaussians_without_votes": int((~has).sum()),
+             "instances_over_cap": dropped_cap,
              "config": asdict(cfg)}
     return Association(labels=lab, num_instances=k, masks=masks, mask_instance=mask_instance, mask_ids=ids,
                        stats=stats)

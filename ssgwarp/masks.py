@@ -441,7 +441,7 @@ def make_masks(scene_dir: str | Path, *, sam: Optional[str | Path] = None, view_
     res = associate(scene, cams[train], per_view.to(device), config=acfg, render_cameras=cams, progress=progress)
     seconds["associate"] = time.perf_counter() - t0
     k = res.num_instances
-    bits = 8 if k + 1 <= 254 else 16
+    bits = 8 if k < 255 else 16
     ignore_id = (1 << bits) - 1
     if k + 1 > ignore_id:
         raise SsgwarpError(f"association found {k} instances, more than a 16-bit mask can hold")
