@@ -12,9 +12,11 @@ Training (as in Gaussian Grouping):
   ``reg_k`` nearest neighbours (by position) is averaged, divided by K and
   weighted by ``reg_weight``.
 
-Masks come from outside (``object_mask/<image stem>.png``, integer ids
-consistent across views) or, by default, from the scene itself
-(:mod:`ssgwarp.pseudomasks`). Training runs either as a stage on a
+Masks come from ``ssgwarp masks`` (:mod:`ssgwarp.masks`: Segment Anything
+instances associated across views, ``RUN/object_mask``), from outside
+(``object_mask/<image stem>.png``, integer ids consistent across views) or,
+without either, from the scene itself (:mod:`ssgwarp.pseudomasks`);
+``groups.json`` ``kind`` says which. Training runs either as a stage on a
 reconstructed scene with geometry frozen (only identities and classifier are
 optimised) or jointly with reconstruction (``--joint``, through
 :class:`GroupingHook`).
@@ -935,8 +937,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("scene_dir", type=Path, help="a reconstructed run (scene.ply, cameras.json, data.json)")
     parser.add_argument("--masks", default="auto",
                         help="folder of instance masks <image stem>.png (integer ids consistent across views); "
-                             "'auto' (default): <data_dir>/object_mask when it exists, else mask-free; "
-                             "'none': always mask-free")
+                             "'auto' (default): RUN/object_mask (from `ssgwarp masks`), else <data_dir>/object_mask, "
+                             "when it exists, else mask-free; 'none': always mask-free")
     parser.add_argument("--groups", type=int, default=None, metavar="K",
                         help="number of groups (default: from the masks, or chosen per scene when mask-free)")
     parser.add_argument("--max-groups", type=int, default=8, metavar="CAP",
