@@ -147,6 +147,8 @@ def load_sam(path: str | Path, device=None) -> SamSegmenter:
     path = Path(path)
     verbosity = tlog.get_verbosity()
     tlog.set_verbosity_error()
+    bars = tlog.is_progress_bar_enabled()
+    tlog.disable_progress_bar()
     try:
         model = SamModel.from_pretrained(str(path), local_files_only=True)
     except (OSError, ValueError, KeyError, RuntimeError) as e:
@@ -154,6 +156,8 @@ def load_sam(path: str | Path, device=None) -> SamSegmenter:
                          f"{str(e).splitlines()[0] if str(e) else e!r}") from None
     finally:
         tlog.set_verbosity(verbosity)
+        if bars:
+            tlog.enable_progress_bar()
     model = model.to(device if device is not None else "cpu").eval()
     mean, std = IMAGENET_MEAN, IMAGENET_STD
     pre = path / "preprocessor_config.json"
@@ -348,6 +352,12 @@ def _segment_views(scene_dir: Path, data, views: Sequence[int], sam: SamSegmente
 
     cams = data.cameras
     raw_dir = scene_dir / "sam_masks"
+    settings = {"weights": sam.source, "image_size": sam.image_size, "config": asdict(config),
+                "size": [cams.width, cams.height]}
+    if resume and (raw_dir / "settings.json").is_file() and read_json(raw_dir / "settings.json") != settings:
+        raise InputError(f"{raw_dir} was made with other settings or weights ({raw_dir / 'settings.json'}); "
+                         "rerun with the same ones, or with --force to start over")
+    write_json(raw_dir / "settings.json", settings)
     out = torch.full((len(views), cams.height, cams.width), -1, dtype=torch.long)
     info = []
     bar = tqdm(views, desc="segment anything", unit="view", disable=not progress)

@@ -272,10 +272,10 @@ def test_mask_filters_nms_and_painting():
     assert pts.tolist() == [[1.0, 0.5], [3.0, 0.5], [1.0, 1.5], [3.0, 1.5]]
 
 
-def test_masks_command_with_tiny_sam_from_hf_cache(truth, tmp_path, monkeypatch):
+def test_masks_command_with_tiny_sam_from_hf_cache(truth, tmp_path, monkeypatch, fail_on_call):
     """A tiny random SamModel saved with save_pretrained in a fake cache layout, found offline through
     HF_HOME: `ssgwarp masks` segments every training view (batched prompts), associates, writes the
-    layout; `--resume` reuses the segmented views; `group --joint` trains on the result."""
+    layout; after Ctrl-C `--resume` segments only the views left; `group --joint` trains on the result."""
     import ssgwarp.masks as M
     from ssgwarp.fileio import read_json
 
@@ -283,6 +283,15 @@ def test_masks_command_with_tiny_sam_from_hf_cache(truth, tmp_path, monkeypatch)
     run = write_run(tmp_path, gt.scene, cams, images)
     snap = _fake_hf_cache(tmp_path / "hf")
     _isolate_weights(monkeypatch, tmp_path / "hf")
+    argv = ["masks", run, "--points-per-side", "6", "--points-per-batch", "16", "--pred-iou-thresh", "0",
+            "--stability-thresh", "0", "--quiet", "--device", "cpu"]
+    # Ctrl-C while segmenting the third view: the two finished views are kept, nothing else is written
+    orig = fail_on_call(M, "generate_masks", 3, "interrupt")
+    code, _, err = _main(argv)
+    assert code == 130 and "--resume" in err
+    assert len(list((run / "sam_masks").glob("*.png"))) == 2
+    assert not (run / "object_mask").exists() and not (run / "masks.json").exists()
+    monkeypatch.setattr(M, "generate_masks", orig)
     calls = {"n": 0}
     real = M.SamSegmenter.decode
 
@@ -292,25 +301,26 @@ def test_masks_command_with_tiny_sam_from_hf_cache(truth, tmp_path, monkeypatch)
         return real(self, emb, points)
 
     monkeypatch.setattr(M.SamSegmenter, "decode", counting)
-    argv = ["masks", run, "--points-per-side", "6", "--points-per-batch", "16", "--pred-iou-thresh", "0",
-            "--stability-thresh", "0", "--quiet", "--device", "cpu"]
-    code, out, err = _main(argv)
+    code, out, err = _main(argv + ["--resume"])
     assert code == 0, err
     rec = read_json(run / "masks.json")
     train = rec["train_views"]
-    assert calls["n"] == len(train) * math.ceil(36 / 16)                  # 36 prompts per view, 3 batches
+    assert calls["n"] == (len(train) - 2) * math.ceil(36 / 16)            # 36 prompts per view, 3 batches
+    assert sum(bool(v.get("resumed")) for v in rec["segmented_views"]) == 2
     assert rec["source"]["kind"] == "segmenter" and Path(rec["source"]["weights"]) == snap
     assert rec["source"]["image_size"] == 64 and rec["num_instances"] >= 1
     assert all(v["masks"] >= 1 for v in rec["segmented_views"])
-    raw = sorted(p.name for p in (run / "sam_masks").iterdir())
+    raw = sorted(p.name for p in (run / "sam_masks").glob("*.png"))
     assert raw == sorted(f"{Path(n).stem}.png" for n in train)
     assert len(list((run / "object_mask").iterdir())) == len(cams)
     assert f"{rec['num_instances']} instances" in out
-    # --resume keeps the segmented views: the model is not run again
+    # a finished run resumes without segmenting again; other settings are refused
     monkeypatch.setattr(M.SamSegmenter, "decode", lambda *a: pytest.fail("re-segmented a finished view"))
     code, _, err = _main(argv + ["--resume"])
     assert code == 0, err
     assert read_json(run / "masks.json")["num_instances"] == rec["num_instances"]
+    code, _, err = _main([a if a != "6" else "5" for a in argv] + ["--resume"])
+    assert code == 2 and "other settings" in err
     # joint training with the reconstruction takes them too
     from ssgwarp.grouping import GroupConfig, group_scene
     from ssgwarp.reconstruct import Recipe
