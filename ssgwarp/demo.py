@@ -253,7 +253,11 @@ def run_demo(out: str | Path = "ssgwarp-demo", size="default", *, device=None, s
         if sam:
             from .masks import make_masks
 
-            make_masks(scene_dir, sam=sam, device=device, progress=progress, force=not resume, resume=resume)
+            made = make_masks(scene_dir, sam=sam, device=device, progress=progress, force=not resume,
+                              resume=resume)
+            if made["num_instances"] == 0:
+                say("      Segment Anything found no instances: grouping on mask-free clusters instead")
+                sam = None
         info = group_scene(scene_dir, masks="auto" if sam else None, max_groups=8,
                            config=GroupConfig(iters=sz.group_iters,
                            checkpoint_every=max(25, sz.group_iters // 4)), device=device, seed=seed,
