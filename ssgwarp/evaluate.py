@@ -549,7 +549,10 @@ def options_from_args(args: argparse.Namespace) -> EvalOptions:
 
 
 def load_models(opts: EvalOptions, device) -> tuple[Any, Any, Any, dict]:
-    """``(extractor, raft or None, lpips or None, skipped reasons)`` for ``opts``; never downloads."""
+    """``(extractor, raft or None, lpips or None, skipped reasons)`` for ``opts``.
+
+    Weights come through :mod:`ssgwarp.weights`: found, or downloaded on first use unless downloads are off.
+    """
     from . import metrics as M
     from .errors import WeightsNotFound
     from .features import load_extractor

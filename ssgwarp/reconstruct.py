@@ -655,16 +655,14 @@ def _to_cpu(obj):
 
 # ----------------------------------------------------------------------------- the stage
 def _lpips_model(device):
-    """LPIPS from local weights, or ``(None, reason)``."""
-    from . import weights
+    """LPIPS (found, or downloaded where allowed: :mod:`ssgwarp.weights`), or ``(None, reason)``."""
+    from .errors import WeightsNotFound
+    from .metrics import load_lpips
 
-    if weights.find("lpips") is None or weights.find("vgg16") is None:
-        return None, ("skipped: no local LPIPS weights (set SSGWARP_LPIPS and SSGWARP_VGG16, "
-                      "or put them under $SSGWARP_WEIGHTS)")
     try:
-        from .metrics import load_lpips
-
         return load_lpips(device=device), None
+    except WeightsNotFound as e:
+        return None, f"skipped: {e}"
     except Exception as e:  # weights present but unusable: report, do not fail the run
         return None, f"skipped: LPIPS weights could not be loaded ({str(e).splitlines()[0] if str(e) else e})"
 

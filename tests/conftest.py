@@ -51,3 +51,51 @@ def _release_vtk_objects():
         pv.close_all()
         getattr(pv.plotting.plotter, "_ALL_PLOTTERS", {}).clear()
     gc.collect()
+
+
+# ----------------------------------------------------------------------------- no weights, no network
+WEIGHT_ENV = ("SSGWARP_WEIGHTS", "SSGWARP_SD15", "SSGWARP_CONTROLNET_DEPTH", "SSGWARP_IP_ADAPTER",
+              "SSGWARP_IMAGE_ENCODER", "SSGWARP_VGG16", "SSGWARP_RAFT", "SSGWARP_LPIPS", "SSGWARP_SAM",
+              "HF_HUB_CACHE", "HUGGINGFACE_HUB_CACHE")
+
+
+class NetworkUsed(BaseException):
+    """Raised by any test that opens an internet connection (BaseException: no ``except Exception`` hides it)."""
+
+
+@pytest.fixture(scope="session")
+def _empty_caches(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("empty-weight-caches")
+
+
+@pytest.fixture(autouse=True)
+def _no_weights_no_network(monkeypatch, _empty_caches):
+    """Every test sees no pretrained weights (empty HF_HOME / TORCH_HOME, no SSGWARP_* paths), downloads off,
+    and fails loudly on a DNS lookup or connection to anything but this machine."""
+    import socket
+
+    from ssgwarp import weights
+
+    monkeypatch.setattr(weights, "_NETWORK_DOWN", None)    # per-process download state starts afresh
+    monkeypatch.setattr(weights, "_OFFLINE_FLAG", None)
+    for var in WEIGHT_ENV:
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setenv("HF_HOME", str(_empty_caches / "huggingface"))
+    monkeypatch.setenv("TORCH_HOME", str(_empty_caches / "torch"))
+    for var in ("SSGWARP_OFFLINE", "HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE"):
+        monkeypatch.setenv(var, "1")
+    local = ("localhost", "127.0.0.1", "::1", "", None)
+    real_getaddrinfo, real_connect = socket.getaddrinfo, socket.socket.connect
+
+    def getaddrinfo(host, *a, **kw):
+        if host not in local:
+            raise NetworkUsed(f"a test looked up {host!r}: tests must never touch the network")
+        return real_getaddrinfo(host, *a, **kw)
+
+    def connect(self, address):
+        if self.family in (socket.AF_INET, socket.AF_INET6) and address[0] not in local:
+            raise NetworkUsed(f"a test connected to {address!r}: tests must never touch the network")
+        return real_connect(self, address)
+
+    monkeypatch.setattr(socket, "getaddrinfo", getaddrinfo)
+    monkeypatch.setattr(socket.socket, "connect", connect)

@@ -8,8 +8,9 @@ import torch
 
 pytest.importorskip("diffusers")
 
+from fakeweights import random_stage1_components  # noqa: E402
 from ssgwarp.cvsa import CVSAProcessor, cvsa_enabled, cvsa_names, install_cvsa, remove_cvsa  # noqa: E402
-from ssgwarp.diffusion import assemble_stage1, random_stage1_components  # noqa: E402
+from ssgwarp.diffusion import assemble_stage1  # noqa: E402
 from ssgwarp.errors import InputError  # noqa: E402
 
 

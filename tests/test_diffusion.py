@@ -10,9 +10,10 @@ pytest.importorskip("diffusers")
 pytest.importorskip("transformers")
 
 from ssgwarp.cameras import Cameras, intrinsics, look_at  # noqa: E402
+from fakeweights import random_stage1_components, save_stage1  # noqa: E402
 from ssgwarp.diffusion import (Stage1Config, assemble_stage1, ddim_denoise, ddim_invert, ddim_step,  # noqa: E402
-                               depth_to_control, encode_latents, load_stage1, random_stage1_components,
-                               save_sheet, schedule, set_ip_adapter_scales, stylize_keyviews, stylize_views)
+                               depth_to_control, encode_latents, load_stage1, save_sheet, schedule,
+                               set_ip_adapter_scales, stylize_keyviews, stylize_views)
 from ssgwarp.errors import InputError, WeightsNotFound  # noqa: E402
 from ssgwarp.keyviews import KeyViews  # noqa: E402
 from ssgwarp.procedural import smooth_views  # noqa: E402
@@ -125,27 +126,9 @@ def test_depth_to_control():
     torch.testing.assert_close(depth_to_control(d2 * 10), depth_to_control(d2))
 
 
-def _save_tiny_layout(root, comps):
-    from safetensors.torch import save_file
-
-    sd = root / "sd15"
-    comps["unet"].save_pretrained(sd / "unet")
-    comps["vae"].save_pretrained(sd / "vae")
-    comps["scheduler"].save_pretrained(sd / "scheduler")
-    comps["text_encoder"].save_pretrained(sd / "text_encoder")
-    comps["tokenizer"].save_pretrained(sd / "tokenizer")
-    comps["controlnet"].save_pretrained(root / "controlnet")
-    comps["image_encoder"].save_pretrained(root / "image_encoder")
-    flat = {f"{part}.{k}": v.contiguous() for part in ("image_proj", "ip_adapter")
-            for k, v in comps["ip_state"][part].items()}
-    save_file(flat, str(root / "ip-adapter.safetensors"))
-
-
 def test_load_stage1_from_local_folders(tmp_path, models, monkeypatch):
-    _save_tiny_layout(tmp_path, random_stage1_components("tiny", seed=0))
-    cfg = Stage1Config(sd15=str(tmp_path / "sd15"), controlnet_depth=str(tmp_path / "controlnet"),
-                       ip_adapter=str(tmp_path / "ip-adapter.safetensors"),
-                       image_encoder=str(tmp_path / "image_encoder"), steps=2, progress=False)
+    saved = save_stage1(random_stage1_components("tiny", seed=0), tmp_path)
+    cfg = Stage1Config(**{k: str(v) for k, v in saved.items()}, steps=2, progress=False)
     loaded = load_stage1(cfg, "cpu")
     assert loaded.dtype == torch.float32 and loaded.has_ip_adapter
     ip = [n for n, p in loaded.unet.attn_processors.items() if type(p).__name__ == "IPAdapterAttnProcessor2_0"]
@@ -157,9 +140,9 @@ def test_load_stage1_from_local_folders(tmp_path, models, monkeypatch):
     # the same folders found through the environment variables
     from ssgwarp.diffusion import missing_weights
     assert len(missing_weights(Stage1Config())) == 4
-    for key, env in [("sd15", "SSGWARP_SD15"), ("controlnet", "SSGWARP_CONTROLNET_DEPTH"),
-                     ("ip-adapter.safetensors", "SSGWARP_IP_ADAPTER"), ("image_encoder", "SSGWARP_IMAGE_ENCODER")]:
-        monkeypatch.setenv(env, str(tmp_path / key))
+    for key, env in [("sd15", "SSGWARP_SD15"), ("controlnet_depth", "SSGWARP_CONTROLNET_DEPTH"),
+                     ("ip_adapter", "SSGWARP_IP_ADAPTER"), ("image_encoder", "SSGWARP_IMAGE_ENCODER")]:
+        monkeypatch.setenv(env, str(saved[key]))
     assert missing_weights(Stage1Config()) == []
     assert Stage1Config().torch_dtype("cpu") == torch.float32
     assert Stage1Config().torch_dtype("cuda") == torch.float16
