@@ -72,6 +72,7 @@ def test_ddim_steps_match_diffusers_schedulers(spacing):
                                        rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.slow  # 60 DDIM steps each way through the tiny UNet
 def test_inversion_reconstruction_error_falls_with_steps(models):
     """DDIM inversion then DDIM denoising (guidance 0, ControlNet on) reconstructs the latents."""
     from diffusers import DDIMScheduler

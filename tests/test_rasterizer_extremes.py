@@ -101,7 +101,9 @@ def test_fast_math_cuda_close_to_ieee():
         img.sum().backward()
         out[fast] = (img.detach(), leaves[0].grad)
     diff = (out[True][0] - out[False][0]).abs().max().item()
-    assert 0 < diff < 1e-4  # approximate exp/division: different bits, same image
+    # approximate exp/division: the same image within 1e-4 (whether any bit differs depends on the
+    # GPU and the compiler, so it is not asserted)
+    assert diff < 1e-4
     assert torch.allclose(out[True][1], out[False][1], rtol=1e-3, atol=1e-4)
 
 
