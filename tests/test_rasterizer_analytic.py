@@ -378,3 +378,15 @@ def test_transmittance_cut_off(case):
     img, alpha, _ = render(case, means, quats, scales, np.full(n, 0.85), cols, settings=RasterSettings(t_min=0.0))
     np.testing.assert_allclose(img[0, PY, PX], w[:4] + w[4], rtol=0, atol=t)
     assert alpha[0, PY, PX] == pytest.approx(1.0 - 0.15 ** 5, abs=t)
+
+
+def test_every_projection_entry_point_defaults_to_gsplats_eps2d():
+    """The public call and both projection functions default to gsplat's ``eps2d = 0.3`` (the public
+    call's default is measured from images above; the others must not drift from it)."""
+    import inspect
+
+    from ssgwarp.ops import project_warp
+    from ssgwarp.reference import project_reference
+
+    for fn in (rasterization, project_reference, project_warp):
+        assert inspect.signature(fn).parameters["eps2d"].default == 0.3, fn.__qualname__
