@@ -113,9 +113,10 @@ def test_default_path_matches_reference(device, variant, mode):
     ours = render_and_grads(params, vm, K, device, torch.float32, "warp", **dict(kw))
     assert ours[1].max() > 0.5 and (ours[1] == 0).any()       # a real scene: opaque and empty pixels
     # fast maths: exp, division and square roots within ~1e-6 relative (docs/tradeoffs.md); depth
-    # channels are ~5 in size
-    img_atol = 5e-5 if "D" in mode else 1e-5
-    compare(ours, ref, img_atol, 2e-3, 1e-5, 64, f"{device} {variant} {mode}")
+    # channels are ~5 in size. Measured on the CPU (IEEE float32): images 1.7e-6 (depth 6.9e-6),
+    # gradients 1e-5 relative per entry above the 64-roundoff floor.
+    img_atol = 1e-4 if "D" in mode else 2e-5
+    compare(ours, ref, img_atol, 5e-4, 1e-6, 64, f"{device} {variant} {mode}")
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -124,7 +125,7 @@ def test_deterministic_backward_matches_reference(device):
     kw = dict(backgrounds=torch.full((C, 3), 0.25, dtype=torch.float64))
     ref = render_and_grads(params, vm, K, device, torch.float32, "torch", **dict(kw))
     ours = render_and_grads(params, vm, K, device, torch.float32, "warp", deterministic=True, **dict(kw))
-    compare(ours, ref, 1e-5, 2e-3, 1e-5, 64, f"{device} deterministic")
+    compare(ours, ref, 2e-5, 5e-4, 1e-6, 64, f"{device} deterministic")
 
 
 @pytest.mark.parametrize("device", DEVICES)

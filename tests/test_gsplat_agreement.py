@@ -7,7 +7,7 @@ matrices, the backgrounds and the screen-space means, entry by entry.
 
 Tolerances: images 1e-5 (depth channels 5e-5; benchmarks/agreement.py measures ~1e-6 at 1M
 Gaussians, the last bit of the colour sums), projected Gaussians 1e-6 relative (measured
-bit-identical; conics relative to their trace), gradients 2e-3 relative per entry plus 64 float32
+bit-identical; conics relative to their trace), gradients 1e-3 relative per entry plus 64 float32
 roundoffs of the tensor's largest entry (both sum per-pixel terms with atomics, in different orders).
 The scene keeps every contribution 2e-4 (relative) away from the gating thresholds (test_cuda.py).
 """
@@ -67,5 +67,5 @@ def test_matches_gsplat(variant, mode):
     img_atol = 5e-5 if "D" in mode else 1e-5
     if theirs[2][-1] is None:      # a gsplat without a background gradient: compare the rest
         ours[2][-1] = None
-    compare(ours[:3], theirs[:3], img_atol, 2e-3, 1e-5, 64, f"gsplat {variant} {mode}")
+    compare(ours[:3], theirs[:3], img_atol, 1e-3, 1e-6, 64, f"gsplat {variant} {mode}")
     assert len(GRAD_NAMES) == len(ours[2])

@@ -152,7 +152,7 @@ def test_cuda_warp_sums_every_channel_count(dtype):
         assert_close_elementwise(imgs["warp"], imgs["torch"], 0.0, tol, f"image D={D}")
         # per entry: float32 sums in another order (warp shuffles, atomics) differ by ~eps * the sum
         # of the terms' magnitudes, which atol covers for entries near 0
-        rtol, atol = (1e-10, 1e-12) if dtype == torch.float64 else (1e-3, 1e-6)
+        rtol, atol = (1e-11, 0.0) if dtype == torch.float64 else (2e-4, 0.0)
         for name, a, b in zip(GRAD_NAMES, grads["warp"], grads["torch"]):
             assert_close_elementwise(a, b, rtol, atol, f"gradient of {name}, D={D}", ulps=64)
 
