@@ -73,10 +73,10 @@ def well_conditioned_scene(sh_degree, antialiased, first_seed=0):
 
 
 def render_and_grads(params, vm, K, device, dtype, backend, **kw):
-    leaves = [p.to(device, dtype).requires_grad_(True) for p in params]
-    vml = vm.to(device, dtype).requires_grad_(True)
+    leaves = [p.to(device, dtype, copy=True).requires_grad_(True) for p in params]  # fresh leaves per call
+    vml = vm.to(device, dtype, copy=True).requires_grad_(True)
     bg = kw.pop("backgrounds", None)
-    bgl = None if bg is None else bg.to(device, dtype).requires_grad_(True)
+    bgl = None if bg is None else bg.to(device, dtype, copy=True).requires_grad_(True)
     img, alpha, meta = rasterization(*leaves, vml, K.to(device, dtype), W, H, backgrounds=bgl, backend=backend, **kw)
     meta["means2d"].retain_grad()
     g = torch.Generator().manual_seed(1)

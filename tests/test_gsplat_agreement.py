@@ -28,9 +28,9 @@ def _gsplat():
 
 def render_and_grads(fn, params, vm, K, **kw):
     dev = torch.device("cuda")
-    leaves = [p.to(dev, torch.float32).requires_grad_(True) for p in params]
-    vml = vm.to(dev, torch.float32).requires_grad_(True)
-    bgl = kw.pop("backgrounds").to(dev, torch.float32).requires_grad_(True)
+    leaves = [p.to(dev, torch.float32, copy=True).requires_grad_(True) for p in params]
+    vml = vm.to(dev, torch.float32, copy=True).requires_grad_(True)
+    bgl = kw.pop("backgrounds").to(dev, torch.float32, copy=True).requires_grad_(True)
     img, alpha, meta = fn(*leaves, vml, K.to(dev, torch.float32), W, H, backgrounds=bgl, packed=False, **kw)
     meta["means2d"].retain_grad()
     g = torch.Generator().manual_seed(1)
