@@ -53,7 +53,8 @@ def gating_margin(params, vm, K, sh_degree, antialiased, settings=RasterSettings
         margins.append(((T - settings.t_min).abs() / settings.t_min).min().item())
     if sh_degree is not None:
         campos = torch.linalg.inv(vm)[:, :3, 3]
-        cols = spherical_harmonics(sh_degree, means[None] - campos[:, None], colors[None].expand(vm.shape[0], -1, -1, -1))
+        shs = colors[None].expand(vm.shape[0], -1, -1, -1)
+        cols = spherical_harmonics(sh_degree, means[None] - campos[:, None], shs)
         margins.append((cols + 0.5).abs().min().item())
     return min(margins)
 

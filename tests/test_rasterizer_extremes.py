@@ -70,7 +70,8 @@ def test_deterministic_and_default_backward_match_reference():
     params = make_scene(200, dtype=torch.float32, seed=2)
     vm, K = make_cameras(2, 40, 32, dtype=torch.float32)
     grads = {}
-    for name, kw in (("reference", dict(backend="torch")), ("default", {}), ("deterministic", dict(deterministic=True))):
+    variants = (("reference", dict(backend="torch")), ("default", {}), ("deterministic", dict(deterministic=True)))
+    for name, kw in variants:
         leaves = [p.clone().requires_grad_(True) for p in params]
         img, alpha, _ = rasterization(*leaves, vm, K, 40, 32, **kw)
         (img.sum() + 0.5 * alpha.sum()).backward()

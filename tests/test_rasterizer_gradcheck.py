@@ -28,7 +28,8 @@ def small_scene(n: int, seed: int):
     vm = torch.eye(4, dtype=F64)[None].clone()
     vm[0, :3, 3] = torch.tensor([0.3, -0.2, 0.1], dtype=F64)   # the camera centre is not the origin
     angle = 0.2                                                  # and the camera is turned about y
-    vm[0, 0, 0], vm[0, 0, 2], vm[0, 2, 0], vm[0, 2, 2] = math.cos(angle), math.sin(angle), -math.sin(angle), math.cos(angle)
+    c, s = math.cos(angle), math.sin(angle)
+    vm[0, 0, 0], vm[0, 0, 2], vm[0, 2, 0], vm[0, 2, 2] = c, s, -s, c
     vm[0, 2, 3] += 0.5
     K = intrinsics(8.0, 8.0, SIZE / 2, SIZE / 2, 1, dtype=F64)
     return g, [means, quats, scales, opac], vm, K
