@@ -7,6 +7,39 @@ torch.set_num_threads(1)  # the tests' tensors are tiny: threads cost more than 
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
+CUDA = torch.cuda.is_available()
+# marks of a test (or a parameter value) that needs CUDA: the GPU machine runs every such test with
+# ``python -m pytest -m cuda tests`` (docs/testing.md); elsewhere they skip
+CUDA_ONLY = [pytest.mark.cuda, pytest.mark.skipif(not CUDA, reason="needs a CUDA device")]
+
+
+def assert_close_elementwise(actual, expected, rtol: float, atol: float, name: str = "tensor",
+                             ulps: float = 0.0) -> None:
+    """Every entry within ``atol + rtol * |expected| + ulps * eps * max|expected|``.
+
+    Per entry, not relative to the tensor's largest entry, so small entries are checked too; ``ulps``
+    (units of roundoff of ``expected``'s dtype, times its largest entry) admits the rounding noise of
+    sums whose terms cancel: a gradient entry near 0 that sums terms as large as the largest entry
+    is only known to that precision. The message names the worst entry, its values and the bound.
+    """
+    actual, expected = torch.as_tensor(actual), torch.as_tensor(expected)
+    assert actual.shape == expected.shape, f"{name}: shape {tuple(actual.shape)} != {tuple(expected.shape)}"
+    eps = torch.finfo(expected.dtype).eps if expected.dtype.is_floating_point else 0.0
+    a, b = actual.detach().double().cpu(), expected.detach().double().cpu()
+    assert torch.isfinite(a).all(), f"{name}: non-finite values"
+    if a.numel() == 0:
+        return
+    floor = atol + ulps * eps * b.abs().max().item()
+    bound = floor + rtol * b.abs()
+    excess = (a - b).abs() - bound
+    worst = int(excess.reshape(-1).argmax())
+    if excess.reshape(-1)[worst] > 0:
+        idx = tuple(int(i) for i in torch.unravel_index(torch.tensor(worst), a.shape))
+        n_bad = int((excess > 0).sum())
+        raise AssertionError(f"{name}: {n_bad} of {a.numel()} entries off; worst at {idx}: {a[idx].item():.6e} vs "
+                             f"{b[idx].item():.6e} (|diff| {abs(a[idx] - b[idx]).item():.3e} > bound "
+                             f"{bound[idx].item():.3e} = {floor:.3e} + {rtol:g} * |expected|)")
+
 
 @pytest.fixture
 def shared_data() -> Path:
