@@ -173,14 +173,20 @@ class _Camera:
     grid: Optional[torch.Tensor] = None                        # [1, H, W, 2] grid_sample coordinates
 
 
-def _source_map(cam: _Camera, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Source pixel coordinates of undistorted-frame pixel positions ``(u, v)`` and the Jacobian sign test."""
+def _source_map(cam: _Camera, u: np.ndarray, v: np.ndarray, fold: bool = True):
+    """Source pixel coordinates of undistorted-frame pixel positions ``(u, v)``, and (``fold``) where the
+    lens map has not folded over (positive Jacobian determinant)."""
     fx, fy, cx, cy = cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2]
-    x, y = (u - cx) / fx, (v - cy) / fy
     if cam.lens is None or cam.lens.is_pinhole:
-        return u, v, np.ones(np.broadcast(u, v).shape, dtype=bool)
+        return u, v, np.ones(np.broadcast(u, v).shape, dtype=bool) if fold else None
+    x, y = (u - cx) / fx, (v - cy) / fy
     xd, yd = cam.lens.distort(x, y)
-    return xd * fx + cx, yd * fy + cy, cam.lens.jacobian_det(x, y) > 0
+    return xd * fx + cx, yd * fy + cy, cam.lens.jacobian_det(x, y) > 0 if fold else None
+
+
+def _inside(su: np.ndarray, sv: np.ndarray, W0: int, H0: int) -> np.ndarray:
+    """Positions among the source's pixel centres, where bilinear sampling reads only real pixels."""
+    return (su >= 0.5) & (su <= W0 - 0.5) & (sv >= 0.5) & (sv <= H0 - 0.5)
 
 
 def _search_box(cam: _Camera, W0: int, H0: int) -> tuple[int, int, int, int]:
@@ -223,7 +229,7 @@ def _valid_rows(cam: _Camera, W0: int, H0: int) -> tuple[int, np.ndarray, np.nda
         rows = np.arange(a, min(a + step, j1), dtype=np.float64) + 0.5
         u, v = np.broadcast_arrays(cols[None, :], rows[:, None])
         su, sv, fold_free = _source_map(cam, u, v)
-        ok = fold_free & (su >= 0.5) & (su <= W0 - 0.5) & (sv >= 0.5) & (sv <= H0 - 0.5)
+        ok = fold_free & _inside(su, sv, W0, H0)
         left = np.cumprod(ok[:, c::-1], axis=1).sum(axis=1)    # valid pixels from the centre column leftwards
         right = np.cumprod(ok[:, c:], axis=1).sum(axis=1)      # ... and rightwards (both count the centre)
         sl = slice(a - j0, a - j0 + len(rows))
@@ -297,12 +303,16 @@ class Undistortion:
         if cam.grid is None:
             (W0, H0), (W, H) = self.source_size, self.size
             x0, y0 = cam.crop
-            u, v = np.meshgrid(np.arange(W, dtype=np.float64) + x0 + 0.5, np.arange(H, dtype=np.float64) + y0 + 0.5)
-            su, sv, fold_free = _source_map(cam, u, v)
-            inside = fold_free & (su >= 0.5) & (su <= W0 - 0.5) & (sv >= 0.5) & (sv <= H0 - 0.5)
-            assert bool(inside.all()), "every output pixel of the crop has a source"
-            g = np.stack([2.0 * su / W0 - 1.0, 2.0 * sv / H0 - 1.0], axis=-1)
-            cam.grid = torch.from_numpy(g).float()[None]
+            cols = np.arange(W, dtype=np.float64) + x0 + 0.5
+            grid = torch.empty(1, H, W, 2)
+            step = max(1, _CHUNK // W)
+            for a in range(0, H, step):  # in blocks of rows: bounded memory on large images
+                rows = np.arange(a, min(a + step, H), dtype=np.float64) + y0 + 0.5
+                su, sv, _ = _source_map(cam, *np.broadcast_arrays(cols[None, :], rows[:, None]), fold=False)
+                assert bool(_inside(su, sv, W0, H0).all()), "every output pixel of the crop has a source"
+                grid[0, a:a + len(rows), :, 0] = torch.from_numpy(2.0 * su / W0 - 1.0)
+                grid[0, a:a + len(rows), :, 1] = torch.from_numpy(2.0 * sv / H0 - 1.0)
+            cam.grid = grid
         return cam.grid
 
     def __call__(self, i: int, image: torch.Tensor) -> torch.Tensor:
