@@ -158,7 +158,9 @@ def reduced_backward_kernel(scalar, channels: int, to_slots: bool = False, per_w
             T_final = out_T[pix]
             v_col = v_out_colors[pix]
             v_alpha_out = v_out_alphas[pix]
-        bg_term = T_final * wp.dot(backgrounds[cam], v_col)
+        bg_term = scalar(0.0)
+        if backgrounds.shape[0] > 0:  # (an absent background: a null array)
+            bg_term = T_final * wp.dot(backgrounds[cam], v_col)
         px = scalar(x) + scalar(0.5)
         py = scalar(y) + scalar(0.5)
         k = int(0)
