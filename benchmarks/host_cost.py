@@ -11,9 +11,10 @@ intersection count (on CUDA that read-back also waits for the GPU).
     python benchmarks/host_cost.py --out host.json --markdown host.md
 
 Per device and pass (forward under ``torch.no_grad()``; forward+backward of ``img.sum() +
-alpha.sum()``): the wall time per call (the fastest of several blocks of calls; CUDA synchronised after
+alpha.sum()``): the time per call (the fastest of several blocks of calls; CUDA synchronised after
 each block only, so queued GPU work overlaps the host as in a training loop; plus the median of
-calls synchronised one by one), and the split of a cProfile run into the categories below, scaled to the wall time (the
+calls synchronised one by one). On CUDA wall time; on the CPU the thread's CPU time, which leaves
+out the load of other processes on a shared machine., and the split of a cProfile run into the categories below, scaled to the wall time (the
 profiler slows Python down roughly uniformly; its shares are what it measures).
 """
 from __future__ import annotations
@@ -74,32 +75,40 @@ def scene(n: int, res: int, device: torch.device):
     return params, leaves, vm, K
 
 
+def clock(device):
+    """CUDA: wall time (the host also waits for the GPU). CPU: this thread's CPU time, which
+    leaves out the time other processes on a shared machine take (Warp's CPU kernels and torch,
+    with one thread, run in this thread)."""
+    return time.perf_counter if device.type == "cuda" else time.thread_time
+
+
 def measure(fn, device, calls: int, blocks: int) -> tuple[float, float]:
-    """(per-call microseconds with one synchronisation per block: the fastest block, as other load on
-    the machine only adds time; median per-call microseconds with one synchronisation per call)."""
+    """(per-call microseconds with one synchronisation per block: the fastest block; median
+    per-call microseconds with one synchronisation per call)."""
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    now = clock(device)
     for _ in range(max(20, calls // 10)):
         fn()
     sync()
     per_block = []
     for _ in range(blocks):
-        t0 = time.perf_counter()
+        t0 = now()
         for _ in range(calls):
             fn()
         sync()
-        per_block.append((time.perf_counter() - t0) / calls * 1e6)
+        per_block.append((now() - t0) / calls * 1e6)
     synced = []
     for _ in range(min(calls, 200)):
-        t0 = time.perf_counter()
+        t0 = now()
         fn()
         sync()
-        synced.append((time.perf_counter() - t0) * 1e6)
+        synced.append((now() - t0) * 1e6)
     return min(per_block), statistics.median(synced)
 
 
 def profile(fn, device, calls: int) -> dict:
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-    pr = cProfile.Profile()
+    pr = cProfile.Profile(clock(device))
     sync()
     pr.enable()
     for _ in range(calls):

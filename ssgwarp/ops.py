@@ -40,9 +40,8 @@ def _fast(settings, scalar) -> bool:
 
 
 def _c(t: Tensor) -> Tensor:
-    """``t`` detached and contiguous (no copy when it already is)."""
-    t = t.detach()
-    return t if t.is_contiguous() else t.contiguous()
+    """``t`` itself when contiguous, else a contiguous copy (outside autograd): what kernels read."""
+    return t if t.is_contiguous() else t.detach().contiguous()
 
 
 def _adj(g, inner: int, n: int):
@@ -71,11 +70,11 @@ def check_values(means, quats, scales, opacities, colors, viewmats, Ks, backgrou
         flat.append(_c(backgrounds))
     if flags is None:
         flags = torch.zeros(validate.N_FLAGS, dtype=torch.int64, device=means.device)
-    descs = [arr(t) for t in flat]
+    descs = [v for t in flat for v in arr(t)]
     if backgrounds is None:
-        descs.append(NULL)
+        descs += NULL
     L.launch(validate.check_kernel(_scalar(means.dtype)), max(t.numel() for t in flat),
-             [*descs, means.shape[0], viewmats.shape[0], arr(flags)], L.target(means))
+             [*descs, means.shape[0], viewmats.shape[0], *arr(flags)], L.target(means))
     return flags
 
 
@@ -105,15 +104,15 @@ class _Project(torch.autograd.Function):
         counts = torch.empty(C, N, dtype=torch.int32, device=dev) if cfg["tile_size"] > 0 else None
         outs = [means2d, depths, conics, opac, radii]
         kern = projection.projection_kernel(s, *cfg["variant"])
-        args = _project_args(ins, C, N) + cfg["scalars"] + [arr(means2d, 2), arr(depths), arr(conics, 3), arr(opac),
-                                                           arr(radii, 2), arr(counts) if counts is not None else NULL]
+        args = _project_args(ins, C, N) + cfg["scalars"] + [*arr(means2d, 2), *arr(depths), *arr(conics, 3), *arr(opac),
+                                                           *arr(radii, 2), *(arr(counts) if counts is not None else NULL)]
         L.launch(kern, (C, N), args, tg)
         colors = None
         if coeffs is not None:
             coeffs, campos = _c(coeffs), _c(campos)
             colors = torch.empty(C, N, 3, dtype=dt, device=dev)
             L.launch(sh.colour_kernel(s, cfg["sh_degree"]), (C, N),
-                     _colour_args(ins[0], campos, coeffs, radii, C, N) + [arr(colors, 3)], tg)
+                     _colour_args(ins[0], campos, coeffs, radii, C, N) + [*arr(colors, 3)], tg)
         ctx.save_for_backward(*ins, *outs, coeffs, campos)
         ctx.cfg = cfg
         ctx.mark_non_differentiable(*(t for t in (radii, counts) if t is not None))
@@ -146,23 +145,20 @@ class _Project(torch.autograd.Function):
             if need[7]:
                 v_campos = torch.zeros(C, N, 3, dtype=dt, device=dev)
             K = coeffs.shape[-2]
-            adj = [_grid(v_means, C, N, 3), _grid(v_campos, C, N, 3),
-                   NULL if v_coeffs is None else L.array_t(v_coeffs.data_ptr(), 0, 3, (C, N, K),
-                                                          (N * K * 3 * v_coeffs.element_size(), K * 3 * v_coeffs.element_size(),
-                                                           3 * v_coeffs.element_size())),
-                   NULL, g]
+            adj = [*_grid(v_means, C, N, 3), *_grid(v_campos, C, N, 3),
+                   *(NULL if v_coeffs is None else L.grid3(v_coeffs, C, N, K, 3, True)), *NULL, *g]
             # (array stores are not replayed in Warp's adjoints: the colour output is not needed)
             L.launch(sh.colour_kernel(s, cfg["sh_degree"]), (C, N),
-                     _colour_args(means, campos, coeffs, radii, C, N) + [NULL], tg, adj=adj)
+                     _colour_args(means, campos, coeffs, radii, C, N) + [*NULL], tg, adj=adj)
             del g_t
         grads = [_adj(g, k, C * N) for g, k in ((g_means2d, 2), (g_depths, 1), (g_conics, 3), (g_opac, 1))]
         if any(g[1] is not None for g in grads) and any(need[:5]):
             kern = projection.projection_kernel(s, *cfg["variant"])
             fwd = _project_args([means, quats, scales, opacities, viewmats, Ks], C, N) + cfg["scalars"] + \
-                [arr(means2d, 2), arr(depths), arr(conics, 3), arr(opac), arr(radii, 2), NULL]
-            adj = [_grid(v_means, C, N, 3), _grid(v_quats, C, N, 4), _grid(v_scales, C, N, 3), _grid(v_opac, C, N, 1),
-                   _grid(v_view, C, N, 16), NULL, *([0] * 2 + [0.0] * 6 + [0] * 5),
-                   *(g[0] for g in grads), NULL, NULL]
+                [*arr(means2d, 2), *arr(depths), *arr(conics, 3), *arr(opac), *arr(radii, 2), *NULL]
+            adj = [*_grid(v_means, C, N, 3), *_grid(v_quats, C, N, 4), *_grid(v_scales, C, N, 3), *_grid(v_opac, C, N, 1),
+                   *_grid(v_view, C, N, 16), *NULL, *([0] * 2 + [0.0] * 6 + [0] * 5),
+                   *(v for g in grads for v in g[0]), *NULL, *NULL]
             L.launch(kern, (C, N), fwd, tg, adj=adj)
         if C > 1:
             v_means, v_quats, v_scales, v_opac = (None if v is None else v.sum(0)
@@ -183,16 +179,15 @@ def _grid(t, C, N, inner):
 
 def _project_args(ins, C, N):
     means, quats, scales, opacities, viewmats, Ks = ins
-    return [L.grid(means, C, N, 3, False), L.grid(quats, C, N, 4, False), L.grid(scales, C, N, 3, False),
-            L.grid(opacities, C, N, 1, False), L.cams(viewmats, C, N, 16), arr(Ks, 9)]
+    return [*L.grid(means, C, N, 3, False), *L.grid(quats, C, N, 4, False), *L.grid(scales, C, N, 3, False),
+            *L.grid(opacities, C, N, 1, False), *L.cams(viewmats, C, N, 16), *arr(Ks, 9)]
 
 
 def _colour_args(means, campos, coeffs, radii, C, N):
     K = coeffs.shape[-2]
-    es = coeffs.element_size()
     per_cam = coeffs.ndim == 4
-    cf = L.array_t(coeffs.data_ptr(), 0, 3, (C, N, K), ((N * K * 3 * es) if per_cam else 0, K * 3 * es, 3 * es))
-    return [L.grid(means, C, N, 3, False), L.cams(campos, C, N, 3), cf, arr(radii, 2)]
+    return [*L.grid(means, C, N, 3, False), *L.cams(campos, C, N, 3), *L.grid3(coeffs, C, N, K, 3, per_cam),
+            *arr(radii, 2)]
 
 
 def project_warp(means, quats, scales, opacities, viewmats, Ks, width, height, *, near_plane=0.01,
@@ -228,7 +223,7 @@ class _SH(torch.autograd.Function):
         M, K = c.shape[0], c.shape[1]
         s = _scalar(dirs.dtype)
         out = torch.empty_like(d)
-        L.launch(sh.sh_kernel(s, degree), (1, M), [L.grid(d, 1, M, 3, True), _coeff_rows(c), arr(out, 3)], L.target(d))
+        L.launch(sh.sh_kernel(s, degree), (1, M), [*L.grid(d, 1, M, 3, True), *_coeff_rows(c), *arr(out, 3)], L.target(d))
         ctx.save_for_backward(d, c, out)
         ctx.degree, ctx.shape, ctx.cshape = degree, shape, coeffs.shape
         return out.reshape(*shape, 3)
@@ -240,15 +235,13 @@ class _SH(torch.autograd.Function):
         M = d.shape[0]
         vd, vc = torch.zeros_like(d), torch.zeros_like(c)
         ga, g = _adj(g, 3, M)
-        L.launch(sh.sh_kernel(s, ctx.degree), (1, M), [L.grid(d, 1, M, 3, True), _coeff_rows(c), arr(out, 3)],
-                 L.target(d), adj=[L.grid(vd, 1, M, 3, True), _coeff_rows(vc), ga])
+        L.launch(sh.sh_kernel(s, ctx.degree), (1, M), [*L.grid(d, 1, M, 3, True), *_coeff_rows(c), *arr(out, 3)],
+                 L.target(d), adj=[*L.grid(vd, 1, M, 3, True), *_coeff_rows(vc), *ga])
         return None, vd.reshape(*ctx.shape, 3), vc.reshape(ctx.cshape)
 
 
 def _coeff_rows(c):
-    M, K = c.shape[0], c.shape[1]
-    es = c.element_size()
-    return L.array_t(c.data_ptr(), 0, 3, (1, M, K), (0, K * 3 * es, 3 * es))
+    return L.grid3(c, 1, c.shape[0], c.shape[1], 3, False)
 
 
 def spherical_harmonics_warp(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
@@ -286,8 +279,8 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
     m2, rd, dp = _c(means2d), _c(radii), _c(depths)
     if counts is None:
         counts = torch.empty(C, N, dtype=torch.int32, device=dev)
-        L.launch(binning.count_kernel(s), CN, [arr(m2, 2), arr(rd, 2), tile_size, tile_width, tile_height,
-                                                arr(counts)], tg)
+        L.launch(binning.count_kernel(s), CN, [*arr(m2, 2), *arr(rd, 2), tile_size, tile_width, tile_height,
+                                                *arr(counts)], tg)
     n_flags = 0 if pending is None else pending[0].numel()
     if scan is None or scan.numel() != CN + n_flags:
         scan = torch.empty(CN + n_flags, dtype=torch.int64, device=dev)
@@ -315,12 +308,12 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
     values, gauss, flatten_ids, offsets = (ints[:2 * M], ints[2 * M:3 * M], ints[3 * M:3 * M + n_isects],
                                            ints[4 * M:])
     L.launch(binning.write_kernel(s), CN,
-             [arr(m2, 2), arr(rd, 2), arr(dp), arr(ends), arr(counts), N, tile_size, tile_width, tile_height,
-              arr(keys), arr(values), arr(gauss)], tg)
+             [*arr(m2, 2), *arr(rd, 2), *arr(dp), *arr(ends), *arr(counts), N, tile_size, tile_width, tile_height,
+              *arr(keys), *arr(values), *arr(gauss)], tg)
     if n_isects > 0:
         L.sort_pairs(keys, values, n_isects, 32 + max(1, int(n_ranges).bit_length()), tg)
-        L.launch(binning.offsets_kernel, n_isects, [arr(keys), arr(values), arr(gauss), n_isects, n_ranges,
-                                                    arr(offsets), L.at(flatten_ids.data_ptr(), n_isects, 4)], tg)
+        L.launch(binning.offsets_kernel, n_isects, [*arr(keys), *arr(values), *arr(gauss), n_isects, n_ranges,
+                                                    *arr(offsets), *L.at(flatten_ids.data_ptr(), n_isects, 4)], tg)
     else:
         offsets.zero_()
     return {
@@ -349,7 +342,7 @@ def pack_splats(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tens
     cols = torch.empty(M, D, dtype=dt, device=means2d.device)
     src = [_c(t) for t in (flatten_ids, means2d, conics, opacities, colors)]
     L.launch(blend_forward.pack_kernel(s, D), M,
-             [arr(src[0]), arr(src[1], 2), arr(src[2], 3), arr(src[3]), arr(src[4], D), arr(splats, 6), arr(cols, D)],
+             [*arr(src[0]), *arr(src[1], 2), *arr(src[2], 3), *arr(src[3]), *arr(src[4], D), *arr(splats, 6), *arr(cols, D)],
              L.target(means2d))
     return splats, cols
 
@@ -372,9 +365,9 @@ class _Blend(torch.autograd.Function):
         bg = _c(backgrounds) if backgrounds is not None else None
         splats, cols = pack_splats(means2d, conics, opacities, colors, tiles["flatten_ids"])
         L.launch(blend_forward.forward_kernel(s, D, _fast(settings, s)), C * th * tw * tile_size * tile_size,
-                 [arr(splats, 6), arr(cols, D), NULL if bg is None else arr(bg, D), arr(tiles["offsets"]), width,
+                 [*arr(splats, 6), *arr(cols, D), *(NULL if bg is None else arr(bg, D)), *arr(tiles["offsets"]), width,
                   height, tile_size, tw, th, settings.alpha_min, settings.alpha_max, settings.t_min,
-                  arr(out, D), arr(out_T), arr(out_alpha), arr(last)], tg)
+                  *arr(out, D), *arr(out_T), *arr(out_alpha), *arr(last)], tg)
         ctx.save_for_backward(splats, cols, bg, out_T, last)
         ctx.n_gauss, ctx.cshape = N, colors.shape
         ctx.tiles, ctx.geom, ctx.settings, ctx.det = tiles, (width, height, tile_size, tw, th), settings, deterministic
@@ -408,15 +401,15 @@ class _Blend(torch.autograd.Function):
         per_warp, block = backward_blocks(tile_size, det, tg.cpu)
         packed = torch.zeros(max(M if det else C * N, 1), 6 + D, dtype=dt, device=dev)
         L.launch(blend_backward.reduced_backward_kernel(s, D, det, per_warp, _fast(st, s)), n_pix,
-                 [arr(splats, 6), arr(cols, D), NULL if bg is None else arr(bg, D), arr(tiles["flatten_ids"]),
-                  arr(tiles["offsets"]), width, height, tile_size, tw, th, st.alpha_min, st.alpha_max,
-                  arr(out_T), arr(last), arr(g_colors, D), arr(g_alphas), arr(tiles["perm"]), arr(packed, 6 + D)],
+                 [*arr(splats, 6), *arr(cols, D), *(NULL if bg is None else arr(bg, D)), *arr(tiles["flatten_ids"]),
+                  *arr(tiles["offsets"]), width, height, tile_size, tw, th, st.alpha_min, st.alpha_max,
+                  *arr(out_T), *arr(last), *arr(g_colors, D), *arr(g_alphas), *arr(tiles["perm"]), *arr(packed, 6 + D)],
                  tg, block_dim=block)
         if det:
             slots = packed
             packed = torch.empty(C * N, 6 + D, dtype=dt, device=dev)
             L.launch(blend_backward.gather_kernel(s, D), C * N,
-                     [arr(tiles["isect_ends"]), arr(tiles["tiles_per_gauss"]), arr(slots, 6 + D), arr(packed, 6 + D)],
+                     [*arr(tiles["isect_ends"]), *arr(tiles["tiles_per_gauss"]), *arr(slots, 6 + D), *arr(packed, 6 + D)],
                      tg)
         v_colors = packed[:, 6:].view(C, N, D)
         if len(ctx.cshape) == 2:  # colours shared by the cameras
