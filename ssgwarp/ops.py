@@ -107,14 +107,15 @@ class _Project(torch.autograd.Function):
         args = _project_args(ins, C, N) + cfg["scalars"] + [*arr(means2d, 2), *arr(depths), *arr(conics, 3), *arr(opac),
                                                            *arr(radii, 2), *(arr(counts) if counts is not None else NULL)]
         L.launch(kern, (C, N), args, tg)
-        colors = None
+        colors = colour_args = None
         if coeffs is not None:
             coeffs, campos = _c(coeffs), _c(campos)
             colors = torch.empty(C, N, 3, dtype=dt, device=dev)
-            L.launch(sh.colour_kernel(s, cfg["sh_degree"]), (C, N),
-                     _colour_args(ins[0], campos, coeffs, radii, C, N) + [*arr(colors, 3)], tg)
+            colour_args = _colour_args(ins[0], campos, coeffs, radii, C, N)
+            L.launch(sh.colour_kernel(s, cfg["sh_degree"]), (C, N), colour_args + [*arr(colors, 3)], tg)
         ctx.save_for_backward(*ins, *outs, coeffs, campos)
-        ctx.cfg = cfg
+        # the backward launches read the same tensors (kept by ctx): their descriptors are kept too
+        ctx.cfg, ctx.args, ctx.colour_args = cfg, args, colour_args
         ctx.mark_non_differentiable(*(t for t in (radii, counts) if t is not None))
         return radii, means2d, depths, conics, opac, colors, counts
 
@@ -127,13 +128,9 @@ class _Project(torch.autograd.Function):
         dt, dev = means.dtype, means.device
         s = _scalar(dt)
         tg = L.target(means)
-        lead = (C, N) if C > 1 else (N,)  # one adjoint slot per (camera, Gaussian)
-
-        def slots(flag, *inner):
-            return torch.zeros(*lead, *inner, dtype=dt, device=dev) if flag else None
-
-        v_means = slots(need[0], 3)
-        v_quats, v_scales, v_opac = slots(need[1], 4), slots(need[2], 3), slots(need[3])
+        # one adjoint slot per (camera, Gaussian); the per-Gaussian gradients share one zeroed buffer
+        lead = (C, N) if C > 1 else (N,)
+        v_means, v_quats, v_scales, v_opac = _zeros_split([3, 4, 3, 1], need[:4], lead, dt, dev)
         v_view = torch.zeros(C, N, 4, 4, dtype=dt, device=dev) if need[4] else None
         v_coeffs = v_campos = None
         if g_colors is not None and coeffs is not None:
@@ -148,18 +145,13 @@ class _Project(torch.autograd.Function):
             adj = [*_grid(v_means, C, N, 3), *_grid(v_campos, C, N, 3),
                    *(NULL if v_coeffs is None else L.grid3(v_coeffs, C, N, K, 3, True)), *NULL, *g]
             # (array stores are not replayed in Warp's adjoints: the colour output is not needed)
-            L.launch(sh.colour_kernel(s, cfg["sh_degree"]), (C, N),
-                     _colour_args(means, campos, coeffs, radii, C, N) + [*NULL], tg, adj=adj)
+            L.launch(sh.colour_kernel(s, cfg["sh_degree"]), (C, N), ctx.colour_args + [*NULL], tg, adj=adj)
             del g_t
         grads = [_adj(g, k, C * N) for g, k in ((g_means2d, 2), (g_depths, 1), (g_conics, 3), (g_opac, 1))]
         if any(g[1] is not None for g in grads) and any(need[:5]):
-            kern = projection.projection_kernel(s, *cfg["variant"])
-            fwd = _project_args([means, quats, scales, opacities, viewmats, Ks], C, N) + cfg["scalars"] + \
-                [*arr(means2d, 2), *arr(depths), *arr(conics, 3), *arr(opac), *arr(radii, 2), *NULL]
             adj = [*_grid(v_means, C, N, 3), *_grid(v_quats, C, N, 4), *_grid(v_scales, C, N, 3), *_grid(v_opac, C, N, 1),
-                   *_grid(v_view, C, N, 16), *NULL, *([0] * 2 + [0.0] * 6 + [0] * 5),
-                   *(v for g in grads for v in g[0]), *NULL, *NULL]
-            L.launch(kern, (C, N), fwd, tg, adj=adj)
+                   *_grid(v_view, C, N, 16), *NULL, *_ADJ_SCALARS, *(v for g in grads for v in g[0]), *NULL, *NULL]
+            L.launch(projection.projection_kernel(s, *cfg["variant"]), (C, N), ctx.args, tg, adj=adj)
         if C > 1:
             v_means, v_quats, v_scales, v_opac = (None if v is None else v.sum(0)
                                                   for v in (v_means, v_quats, v_scales, v_opac))
@@ -170,6 +162,30 @@ class _Project(torch.autograd.Function):
         if v_campos is not None:
             v_campos = v_campos.sum(1)
         return v_means, v_quats, v_scales, v_opac, v_view, None, v_coeffs, v_campos, None
+
+
+# the adjoints of the projection's scalar parameters (ignored): width, height, six reals, five integers
+_ADJ_SCALARS = [0] * 2 + [0.0] * 6 + [0] * 5
+
+
+def _zeros_split(widths, wanted, lead, dt, dev):
+    """Zeroed ``[*lead, w]`` tensors for the wanted widths (None for the others), as contiguous
+    views of one buffer (one allocation and one fill)."""
+    n = 1
+    for d in lead:
+        n *= d
+    total = sum(w for w, on in zip(widths, wanted) if on)
+    if total == 0:
+        return [None] * len(widths)
+    buf = torch.zeros(n * total, dtype=dt, device=dev)
+    out, pos = [], 0
+    for w, on in zip(widths, wanted):
+        if on:
+            out.append(buf[pos:pos + n * w].view(*lead, w) if w > 1 else buf[pos:pos + n].view(*lead))
+            pos += n * w
+        else:
+            out.append(None)
+    return out
 
 
 def _grid(t, C, N, inner):
@@ -364,11 +380,16 @@ class _Blend(torch.autograd.Function):
         last = torch.empty(C, height, width, dtype=torch.int32, device=dev)
         bg = _c(backgrounds) if backgrounds is not None else None
         splats, cols = pack_splats(means2d, conics, opacities, colors, tiles["flatten_ids"])
+        a_splats, a_cols, a_bg, a_offsets = arr(splats, 6), arr(cols, D), NULL if bg is None else arr(bg, D), \
+            arr(tiles["offsets"])
+        a_T, a_last = arr(out_T), arr(last)
         L.launch(blend_forward.forward_kernel(s, D, _fast(settings, s)), C * th * tw * tile_size * tile_size,
-                 [*arr(splats, 6), *arr(cols, D), *(NULL if bg is None else arr(bg, D)), *arr(tiles["offsets"]), width,
-                  height, tile_size, tw, th, settings.alpha_min, settings.alpha_max, settings.t_min,
-                  *arr(out, D), *arr(out_T), *arr(out_alpha), *arr(last)], tg)
+                 [*a_splats, *a_cols, *a_bg, *a_offsets, width, height, tile_size, tw, th, settings.alpha_min,
+                  settings.alpha_max, settings.t_min, *arr(out, D), *a_T, *arr(out_alpha), *a_last], tg)
         ctx.save_for_backward(splats, cols, bg, out_T, last)
+        # the backward launch's leading arguments: the same tensors (kept by ctx)
+        ctx.args = [*a_splats, *a_cols, *a_bg, *arr(tiles["flatten_ids"]), *a_offsets, width, height, tile_size, tw,
+                    th, settings.alpha_min, settings.alpha_max, *a_T, *a_last]
         ctx.n_gauss, ctx.cshape = N, colors.shape
         ctx.tiles, ctx.geom, ctx.settings, ctx.det = tiles, (width, height, tile_size, tw, th), settings, deterministic
         return out, out_alpha
@@ -383,10 +404,9 @@ class _Blend(torch.autograd.Function):
         dt, dev = cols.dtype, cols.device
         s = _scalar(dt)
         tg = L.target(cols)
-        if g_colors is None:
-            g_colors = torch.zeros(C, height, width, D, dtype=dt, device=dev)
-        g_colors = _c(g_colors)
-        g_alphas = torch.zeros(C, height, width, dtype=dt, device=dev) if g_alphas is None else _c(g_alphas)
+        # an image without a gradient is passed as a null array (read as zeros)
+        g_colors = _c(g_colors) if g_colors is not None else None
+        g_alphas = _c(g_alphas) if g_alphas is not None else None
         M = tiles["n_isects"]
         n_pix = C * th * tw * tile_size * tile_size
         # blocks of pixels of one tile walk its Gaussians in lockstep and sum their pixels' gradients
@@ -401,9 +421,8 @@ class _Blend(torch.autograd.Function):
         per_warp, block = backward_blocks(tile_size, det, tg.cpu)
         packed = torch.zeros(max(M if det else C * N, 1), 6 + D, dtype=dt, device=dev)
         L.launch(blend_backward.reduced_backward_kernel(s, D, det, per_warp, _fast(st, s)), n_pix,
-                 [*arr(splats, 6), *arr(cols, D), *(NULL if bg is None else arr(bg, D)), *arr(tiles["flatten_ids"]),
-                  *arr(tiles["offsets"]), width, height, tile_size, tw, th, st.alpha_min, st.alpha_max,
-                  *arr(out_T), *arr(last), *arr(g_colors, D), *arr(g_alphas), *arr(tiles["perm"]), *arr(packed, 6 + D)],
+                 [*ctx.args, *(NULL if g_colors is None else arr(g_colors, D)),
+                  *(NULL if g_alphas is None else arr(g_alphas)), *arr(tiles["perm"]), *arr(packed, 6 + D)],
                  tg, block_dim=block)
         if det:
             slots = packed
@@ -414,7 +433,9 @@ class _Blend(torch.autograd.Function):
         v_colors = packed[:, 6:].view(C, N, D)
         if len(ctx.cshape) == 2:  # colours shared by the cameras
             v_colors = v_colors[0] if C == 1 else v_colors.sum(0)
-        v_bg = (g_colors * out_T[..., None]).sum(dim=(1, 2)) if bg is not None else None
+        v_bg = None
+        if bg is not None:
+            v_bg = (g_colors * out_T[..., None]).sum(dim=(1, 2)) if g_colors is not None else torch.zeros_like(bg)
         return (packed[:, 0:2].view(C, N, 2), packed[:, 2:5].view(C, N, 3), v_colors, packed[:, 5].view(C, N),
                 v_bg, None, None, None, None, None, None)
 
