@@ -146,6 +146,67 @@ def run_device(device: torch.device, args, raster, label: str) -> list[dict]:
     return rows
 
 
+def launch_paths(device: torch.device, launches: int) -> list[dict]:
+    """Host microseconds per launch of the projection kernel (25 parameters, 16 Gaussians) by three
+    routes: ``wp.launch`` with array descriptors (how ssgwarp launched before), Warp's recorded
+    launch (``wp.launch(..., record_cmd=True)``; every parameter set again with
+    ``Launch.set_param_at_index_from_ctype``, then ``Launch.launch()``), and ssgwarp's replay of the
+    recorded launch (``ssgwarp.launch``: the parameter block refilled by one ``struct.pack_into``)."""
+    import warp as wp
+
+    from ssgwarp import RasterSettings, launch as L, ops
+    from ssgwarp.kernels import projection
+
+    params, _, vm, K = scene(16, 16, device)
+    C, N = 1, params[0].shape[0]
+    cfg = ops._project_cfg(torch.float32, 16, 16, 0.01, 1e10, 0.0, 0.3, False, RasterSettings(), 16, 1, 1)
+    outs = [torch.empty(C, N, k, device=device) for k in (2, 1, 3, 1)] + \
+        [torch.empty(C, N, 2, dtype=torch.int32, device=device), torch.empty(C, N, dtype=torch.int32, device=device)]
+    ins = list(params[:4]) + [vm, K]
+
+    def flat():
+        return ops._project_args(ins, C, N) + cfg["scalars"] + [
+            *L.arr(outs[0], 2), *L.arr(outs[1]), *L.arr(outs[2], 3), *L.arr(outs[3]), *L.arr(outs[4], 2),
+            *L.arr(outs[5])]
+
+    kern = projection.projection_kernel(wp.float32, *cfg["variant"])
+    tg = L.target(params[0])
+    stream = L._stream(tg)
+
+    def warp_args():
+        vals, out, i = flat(), [], 0
+        for a in kern.adj.args:
+            if wp.types.is_array(a.type):
+                out.append(L._array_t(tuple(vals[i:i + 12])))
+                i += 12
+            else:
+                out.append(vals[i])
+                i += 1
+        return out
+
+    def via_wp_launch():
+        wp.launch(kern, dim=(C, N), inputs=warp_args(), device=tg.device, stream=stream, record_tape=False)
+
+    rec = wp.launch(kern, dim=(C, N), inputs=warp_args(), device=tg.device, record_tape=False, record_cmd=True)
+
+    def via_record_cmd():
+        for i, v in enumerate(warp_args()):
+            rec.set_param_at_index_from_ctype(i, v)
+        rec.launch(stream)
+
+    def via_ssgwarp():
+        L.launch(kern, (C, N), flat(), tg)
+
+    rows = []
+    for name, fn in (("wp.launch, array descriptors (before)", via_wp_launch),
+                     ("Warp recorded launch, parameters set again, Launch.launch()", via_record_cmd),
+                     ("ssgwarp.launch: recorded launch replayed from one packed buffer", via_ssgwarp)):
+        per_call, _ = measure(fn, device, launches, 3)
+        rows.append({"device": device.type, "route": name, "us_per_launch": per_call})
+        print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
 def table(rows: list[dict]) -> str:
     cats = [c for c, _ in CATEGORIES] + [OTHER]
     cats = [c for c in cats if any(c in r["split_us"] for r in rows)]
@@ -166,6 +227,8 @@ def main() -> None:
     ap.add_argument("--calls", type=int, default=500, help="calls per timed block")
     ap.add_argument("--blocks", type=int, default=5)
     ap.add_argument("--gsplat", action="store_true", help="also time gsplat.rasterization (CUDA)")
+    ap.add_argument("--launch-paths", action="store_true",
+                    help="also time one kernel launch by wp.launch, Warp's recorded launch and ssgwarp.launch")
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (1: host cost, not parallelism)")
     ap.add_argument("--out", default=None, help="raw rows as JSON")
     ap.add_argument("--markdown", default=None)
@@ -176,9 +239,11 @@ def main() -> None:
         devices.append(torch.device("cpu"))
     if args.device in ("all", "cuda") and torch.cuda.is_available():
         devices.append(torch.device("cuda"))
-    rows = []
+    rows, routes = [], []
     for dev in devices:
         rows += run_device(dev, args, ssgwarp.rasterization, "ssgwarp")
+        if args.launch_paths:
+            routes += launch_paths(dev, args.calls)
         if args.gsplat and dev.type == "cuda":
             import gsplat
 
@@ -187,11 +252,14 @@ def main() -> None:
             f"{torch.cuda.get_device_name() if torch.cuda.is_available() else 'no GPU'}; "
             f"{args.gaussians} Gaussians, {args.res}x{args.res}; torch threads {args.threads}")
     text = meta + "\n\n" + table(rows)
+    if routes:
+        text += "\n\n| device | launch route (projection kernel, 25 parameters) | µs per launch |\n|---|---|---|\n"
+        text += "\n".join(f"| {r['device']} | {r['route']} | {r['us_per_launch']:.1f} |" for r in routes)
     print(text)
     if args.markdown:
         Path(args.markdown).write_text(text + "\n")
     if args.out:
-        Path(args.out).write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+        Path(args.out).write_text(json.dumps({"meta": meta, "rows": rows, "launch_routes": routes}, indent=1))
     if not math.isfinite(sum(r["us_per_call"] for r in rows)):
         raise SystemExit(1)
 

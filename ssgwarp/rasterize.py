@@ -83,6 +83,13 @@ class RasterSettings:
 
 
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
+_DEFAULT_SETTINGS = RasterSettings()
+
+# tile size when the caller gives none, per device type: gsplat's 16 on CUDA (its layout, and the
+# fastest forward+backward there); 8 on the CPU, where a pixel walks its whole tile's list one
+# Gaussian at a time, so shorter lists win (measured 1.6-3x faster than 16; benchmarks/tile_size.py,
+# docs/tradeoffs.md). Under the default rules the image does not depend on the tile size.
+DEFAULT_TILE_SIZE = {"cuda": 16, "cpu": 8}
 
 # Pixels always end once the transmittance would fall to this floor, also with t_min = 0: layers
 # behind it add less than the precision resolves, and the backward pass rebuilds each layer's
@@ -208,7 +215,7 @@ def rasterization(
     eps2d: float = 0.3,
     sh_degree: Optional[int] = None,
     packed: bool = True,
-    tile_size: int = 16,
+    tile_size: Optional[int] = None,
     backgrounds: Optional[Tensor] = None,
     render_mode: str = "RGB",
     sparse_grad: bool = False,
@@ -228,8 +235,10 @@ def rasterization(
         with ``sh_degree``, ``viewmats [C,4,4]`` (world-to-camera), ``Ks [C,3,3]``, ``width``,
         ``height``, ``near_plane``, ``far_plane``, ``radius_clip``, ``eps2d``, ``backgrounds [C,D]``,
         ``render_mode`` (RGB, D, ED, RGB+D, RGB+ED), ``rasterize_mode`` (classic, antialiased),
-        ``tile_size``. ``packed``, ``sparse_grad`` and ``channel_chunk`` are accepted for
-        compatibility; the layout is always the non-packed one ([C, N] per-camera arrays).
+        ``tile_size`` (default: per device, :data:`DEFAULT_TILE_SIZE`: gsplat's 16 on CUDA, 8 on the
+        CPU, where shorter per-tile lists are about 1.8x faster; docs/tradeoffs.md). ``packed``,
+        ``sparse_grad`` and ``channel_chunk`` are accepted for compatibility; the layout is always the
+        non-packed one ([C, N] per-camera arrays).
     Extra (keyword only):
         settings: :class:`RasterSettings` speed/accuracy knobs (default: gsplat's rules).
         deterministic: bit-identical gradients from run to run on CUDA (slower backward; needs
@@ -246,9 +255,11 @@ def rasterization(
         ``flatten_ids``, ``isect_offsets [C,th,tw]``, ``tile_width``, ``tile_height``,
         ``width``, ``height``, ``tile_size``, ``n_cameras``, ``settings``.
     """
-    settings = (settings or RasterSettings()).for_dtype(means.dtype)
+    settings = (settings or _DEFAULT_SETTINGS).for_dtype(means.dtype)
     if absgrad:
         raise ValueError("rasterization: absgrad=True is not supported (use means2d.grad)")
+    if tile_size is None:
+        tile_size = DEFAULT_TILE_SIZE.get(means.device.type, 16)
     width, height, tile_size = int(width), int(height), int(tile_size)
     if backend == "auto":
         backend = "warp" if _warp_available() else "torch"
