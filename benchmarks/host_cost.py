@@ -61,6 +61,7 @@ def categorise(stats: pstats.Stats) -> dict:
     out: dict = {}
     for (fname, _line, func), (_cc, _nc, tt, _ct, _callers) in stats.stats.items():
         name = func.split(" of ")[0].replace("<method '", "").replace("<built-in method ", "").strip("'>")
+        name = name.rsplit(".", 1)[-1]  # torch.empty -> empty
         cat = next((c for c, pred in CATEGORIES if pred(fname, name)), OTHER)
         out[cat] = out.get(cat, 0.0) + tt
     return out
