@@ -6,11 +6,12 @@
 2. (host) 64-bit inclusive scan of the counts (``ends``).
 3. :func:`write_kernel`: one intersection per (Gaussian, tile) from slot ``ends - count`` on,
    with the 64-bit key ``(camera * n_tiles + tile) << 32 | depth bits`` (the depth's float32
-   bit pattern orders positive depths; camera-major like gsplat's keys), value = the
+   bit pattern orders positive depths; camera-major like gsplat's keys), value = the Gaussian
+   (so the sorted values are the flattened ids), or for the deterministic backward the
    intersection's own position (so the sort also yields the permutation).
 4. (host) Warp's stable radix sort of (key, value) pairs.
 5. :func:`offsets_kernel`: the start of each (camera, tile) range in the sorted
-   list, ``offsets[C * n_tiles] = n_isects``.
+   list, ``offsets[C * n_tiles] = n_isects`` (and with the permutation, the flattened ids).
 """
 
 import functools
@@ -99,13 +100,19 @@ def write_kernel(scalar):
         bits = depth_bits(depths[i])
         end = ends[i]
         k = end - wp.int64(cnt)
+        # values: the Gaussian itself (sorted, they are the flattened ids), or with gauss_of_isect
+        # given, the slot (sorted, the permutation; the Gaussian of each slot goes there)
+        slots = gauss_of_isect.shape[0] > 0
         for ty in range(b[1], b[3]):
             for tx in range(b[0], b[2]):
                 if k < end:  # never past this Gaussian's slots (the box is the one counted)
                     r = first_range + wp.int64(ty * tile_width + tx)
                     keys[k] = (r << wp.int64(32)) | bits
-                    values[k] = wp.int32(k)
-                    gauss_of_isect[k] = wp.int32(i)
+                    if slots:
+                        values[k] = wp.int32(k)
+                        gauss_of_isect[k] = wp.int32(i)
+                    else:
+                        values[k] = wp.int32(i)
                 k += wp.int64(1)
 
     return write_isects
@@ -115,11 +122,12 @@ def write_kernel(scalar):
 def offsets_kernel(keys: wp.array(dtype=wp.int64), perm: wp.array(dtype=wp.int32),
                    gauss_of_isect: wp.array(dtype=wp.int32), n_isects: int, n_ranges: int,
                    offsets: wp.array(dtype=wp.int32), flatten_ids: wp.array(dtype=wp.int32)):
-    """Per sorted intersection ``k``: ``flatten_ids[k]``, its Gaussian (``perm[k]`` is its slot
-    before the sort), and ``offsets[r]`` = first sorted position of range r (= camera * n_tiles +
-    tile)."""
+    """Per sorted intersection ``k``: ``offsets[r]`` = first sorted position of range r (= camera *
+    n_tiles + tile), and when ``gauss_of_isect`` is given, ``flatten_ids[k]``, its Gaussian
+    (``perm[k]`` is its slot before the sort)."""
     k = wp.tid()
-    flatten_ids[k] = gauss_of_isect[perm[k]]
+    if gauss_of_isect.shape[0] > 0:
+        flatten_ids[k] = gauss_of_isect[perm[k]]
     cur = wp.int32(keys[k] >> wp.int64(32))
     prev = wp.int32(-1)
     if k > 0:

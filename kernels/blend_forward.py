@@ -31,21 +31,25 @@ from .types import channel_vector, splat_at, types_for
 def pack_kernel(scalar, channels: int):
     """``splats[k]``, ``colors_sorted[k]``: the packed projected Gaussian (x, y, conic a, b, c,
     opacity) and colour of sorted intersection ``k``, gathered once so the blending loops read
-    each intersection's data contiguously (inputs flat over camera x Gaussian; colours either
-    the same for every camera, ``n_colors = N``, or per camera, ``n_colors = C * N``)."""
+    each intersection's data contiguously (inputs flat over camera x Gaussian; the splats from
+    ``packed`` when the projection packed them, else from means, conics and opacities; colours
+    either the same for every camera, ``n_colors = N``, or per camera, ``n_colors = C * N``)."""
     t = types_for(scalar)
     vec2, vec3, splat = t.vec2, t.vec3, t.splat
     vecD = channel_vector(scalar, channels)
 
     @wp.kernel(module="unique", module_options={"enable_backward": False})
-    def pack(flatten_ids: wp.array(dtype=wp.int32), means2d: wp.array(dtype=vec2), conics: wp.array(dtype=vec3),
-             opacities: wp.array(dtype=scalar), colors: wp.array(dtype=vecD),
+    def pack(flatten_ids: wp.array(dtype=wp.int32), packed: wp.array(dtype=splat), means2d: wp.array(dtype=vec2),
+             conics: wp.array(dtype=vec3), opacities: wp.array(dtype=scalar), colors: wp.array(dtype=vecD),
              splats: wp.array(dtype=splat), colors_sorted: wp.array(dtype=vecD)):
         k = wp.tid()
         g = int(flatten_ids[k])
-        m = means2d[g]
-        c = conics[g]
-        splats[k] = splat(m[0], m[1], c[0], c[1], c[2], opacities[g])
+        if packed.shape[0] > 0:  # the projection packed them already
+            splats[k] = packed[g]
+        else:
+            m = means2d[g]
+            c = conics[g]
+            splats[k] = splat(m[0], m[1], c[0], c[1], c[2], opacities[g])
         colors_sorted[k] = colors[g % colors.shape[0]]
 
     return pack

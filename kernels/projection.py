@@ -30,7 +30,10 @@ of a ``[C, N]`` buffer: one writer per slot, bit-identical gradients (with one
 camera the buffer is the gradient itself).
 
 With ``tile_size > 0`` the kernel also writes each Gaussian's number of
-intersected tiles (the binning's first step, :func:`.binning.tile_box_func`).
+intersected tiles (the binning's first step, :func:`.binning.tile_box_func`),
+and given a ``splats`` array, each visible Gaussian's screen mean, conic and
+opacity packed together (what the blending gathers per intersection: one load
+instead of three).
 Culled Gaussians get zeros in every output, so no output needs clearing first.
 """
 
@@ -135,7 +138,7 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
     square roots and logarithm (float32 on CUDA, as gsplat compiles its kernels; then the
     quaternion norm uses ``rsqrtf``)."""
     t = types_for(scalar)
-    vec2, vec3, vec4, mat33, mat44, mat23 = t.vec2, t.vec3, t.vec4, t.mat33, t.mat44, t.mat23
+    vec2, vec3, vec4, mat33, mat44, mat23, splat = t.vec2, t.vec3, t.vec4, t.mat33, t.mat44, t.mat23, t.splat
     gsplat_form = covariance == "gsplat"
     mf = matrix_funcs(scalar, fast_math and scalar == wp.float32)
     dot3, mul33, mul33_t, quat_to_rotmat, cov2d = mf.dot3, mf.mul33, mf.mul33_t, mf.quat_to_rotmat, mf.cov2d
@@ -180,6 +183,7 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
         opac_out: wp.array(dtype=scalar),
         radii: wp.array(dtype=wp.vec2i),
         counts: wp.array(dtype=wp.int32),
+        splats: wp.array(dtype=splat),
     ):
         c, n = wp.tid()
         i = c * means.shape[1] + n
@@ -279,8 +283,11 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
         means2d[i] = vec2(mx, my)
         depths[i] = z
         inv_det = scalar(1.0) / det
-        conics[i] = vec3(cc * inv_det, -b * inv_det, a * inv_det)
+        conic = vec3(cc * inv_det, -b * inv_det, a * inv_det)
+        conics[i] = conic
         opac_out[i] = op
+        if splats.shape[0] > 0:  # the same, packed for the blending's gather (visible Gaussians only)
+            splats[i] = splat(mx, my, conic[0], conic[1], conic[2], op)
         r = wp.vec2i(int(rx), int(ry))
         radii[i] = r
         if counts.shape[0] > 0:

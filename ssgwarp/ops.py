@@ -101,11 +101,15 @@ class _Project(torch.autograd.Function):
         conics = torch.empty(C, N, 3, dtype=dt, device=dev)
         opac = torch.empty(C, N, dtype=dt, device=dev)
         radii = torch.empty(C, N, 2, dtype=torch.int32, device=dev)
-        counts = torch.empty(C, N, dtype=torch.int32, device=dev) if cfg["tile_size"] > 0 else None
+        counts = splats = None
+        if cfg["tile_size"] > 0:  # (rendering follows: tile counts and packed splats for the binning and blending)
+            counts = torch.empty(C, N, dtype=torch.int32, device=dev)
+            splats = torch.empty(C, N, 6, dtype=dt, device=dev)
         outs = [means2d, depths, conics, opac, radii]
         kern = projection.projection_kernel(s, *cfg["variant"])
         args = _project_args(ins, C, N) + cfg["scalars"] + [*arr(means2d, 2), *arr(depths), *arr(conics, 3), *arr(opac),
-                                                           *arr(radii, 2), *(arr(counts) if counts is not None else NULL)]
+                                                           *arr(radii, 2), *(arr(counts) if counts is not None else NULL),
+                                                           *(arr(splats, 6) if splats is not None else NULL)]
         L.launch(kern, (C, N), args, tg)
         colors = colour_args = None
         if coeffs is not None:
@@ -116,11 +120,11 @@ class _Project(torch.autograd.Function):
         ctx.save_for_backward(*ins, *outs, coeffs, campos)
         # the backward launches read the same tensors (kept by ctx): their descriptors are kept too
         ctx.cfg, ctx.args, ctx.colour_args = cfg, args, colour_args
-        ctx.mark_non_differentiable(*(t for t in (radii, counts) if t is not None))
-        return radii, means2d, depths, conics, opac, colors, counts
+        ctx.mark_non_differentiable(*(t for t in (radii, counts, splats) if t is not None))
+        return radii, means2d, depths, conics, opac, colors, counts, splats
 
     @staticmethod
-    def backward(ctx, _g_radii, g_means2d, g_depths, g_conics, g_opac, g_colors, _g_counts):
+    def backward(ctx, _g_radii, g_means2d, g_depths, g_conics, g_opac, g_colors, _g_counts, _g_splats):
         means, quats, scales, opacities, viewmats, Ks, means2d, depths, conics, opac, radii, coeffs, campos = \
             ctx.saved_tensors
         cfg, need = ctx.cfg, ctx.needs_input_grad
@@ -150,7 +154,8 @@ class _Project(torch.autograd.Function):
         grads = [_adj(g, k, C * N) for g, k in ((g_means2d, 2), (g_depths, 1), (g_conics, 3), (g_opac, 1))]
         if any(g[1] is not None for g in grads) and any(need[:5]):
             adj = [*_grid(v_means, C, N, 3), *_grid(v_quats, C, N, 4), *_grid(v_scales, C, N, 3), *_grid(v_opac, C, N, 1),
-                   *_grid(v_view, C, N, 16), *NULL, *_ADJ_SCALARS, *(v for g in grads for v in g[0]), *NULL, *NULL]
+                   *_grid(v_view, C, N, 16), *NULL, *_ADJ_SCALARS, *(v for g in grads for v in g[0]), *NULL, *NULL,
+                   *NULL]
             L.launch(projection.projection_kernel(s, *cfg["variant"]), (C, N), ctx.args, tg, adj=adj)
         if C > 1:
             v_means, v_quats, v_scales, v_opac = (None if v is None else v.sum(0)
@@ -210,8 +215,8 @@ def project_warp(means, quats, scales, opacities, viewmats, Ks, width, height, *
                  far_plane=1e10, radius_clip=0.0, eps2d=0.3, antialiased=False, settings=None):
     """Warp version of :func:`ssgwarp.reference.project_reference` (same outputs)."""
     cfg = _project_cfg(means.dtype, width, height, near_plane, far_plane, radius_clip, eps2d, antialiased, settings)
-    radii, means2d, depths, conics, opac, _, _ = _Project.apply(means, quats, scales, opacities, viewmats, Ks,
-                                                                None, None, cfg)
+    radii, means2d, depths, conics, opac, _, _, _ = _Project.apply(means, quats, scales, opacities, viewmats, Ks,
+                                                                   None, None, cfg)
     return radii, means2d, depths, conics, opac
 
 
@@ -269,19 +274,21 @@ def spherical_harmonics_warp(degree: int, dirs: Tensor, coeffs: Tensor) -> Tenso
 # tile binning
 # ---------------------------------------------------------------------------------------------
 def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, tile_width: int, tile_height: int,
-              pending=None, counts: Tensor | None = None, scan: Tensor | None = None) -> dict:
+              pending=None, counts: Tensor | None = None, scan: Tensor | None = None, keep_perm: bool = True) -> dict:
     """Tile intersections of projected Gaussians, sorted by (camera, tile, depth).
 
     Returns ``tiles_per_gauss [C,N]`` (int32), ``isect_ids [M]`` (int64 keys), ``flatten_ids [M]``
     (flat camera*N + Gaussian index per sorted intersection), ``isect_offsets [C,th,tw]`` and, for
     the backward, ``offsets [C*th*tw+1]``, ``perm [M]`` (pre-sort slot of each sorted
-    intersection), ``isect_ends [C*N]`` (int64 inclusive scan of the counts).
+    intersection; the deterministic backward's slots; None unless ``keep_perm``), ``isect_ends
+    [C*N]`` (int64 inclusive scan of the counts).
 
     ``counts``: the tile counts when already known (the projection writes them), else counted
     here. ``scan``: an int64 tensor ``[C*N + N_FLAGS]`` to hold the scan, whose tail holds the
     input checks' flags; ``pending``: ``(flags, check)`` from deferred input validation. The
     intersection count and the flags are read back together (the one synchronisation) and the
-    flags checked before anything else.
+    flags checked before anything else. Without ``keep_perm`` the sort carries the Gaussian ids
+    themselves (as gsplat's does), so the sorted values are the flattened ids.
     """
     C, N = depths.shape
     s = _scalar(means2d.dtype)
@@ -318,18 +325,24 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
             "(radius_clip / RasterSettings.sigma_max)")
     M = max(n_isects, 1)
     # every entry below n_isects is written by the kernel; the upper halves are the sort's scratch.
-    # One int32 buffer: sort values (2M) | Gaussian of each pre-sort slot (M) | flatten ids (M) | offsets
+    # One int32 buffer: sort values (2M) | offsets, and with keep_perm also the Gaussian of each
+    # pre-sort slot (M) and the flatten ids (M)
     keys = torch.empty(2 * M, dtype=torch.int64, device=dev)
-    ints = torch.empty(4 * M + n_ranges + 1, dtype=torch.int32, device=dev)
-    values, gauss, flatten_ids, offsets = (ints[:2 * M], ints[2 * M:3 * M], ints[3 * M:3 * M + n_isects],
-                                           ints[4 * M:])
+    extra = 2 * M if keep_perm else 0
+    ints = torch.empty(2 * M + extra + n_ranges + 1, dtype=torch.int32, device=dev)
+    values, offsets = ints[:2 * M], ints[2 * M + extra:]
+    if keep_perm:
+        gauss, flatten_ids = ints[2 * M:3 * M], ints[3 * M:3 * M + n_isects]
+        a_gauss, a_flat = arr(gauss), L.at(flatten_ids.data_ptr(), n_isects, 4)
+    else:
+        flatten_ids, a_gauss, a_flat = values[:n_isects], NULL, NULL
     L.launch(binning.write_kernel(s), CN,
              [*arr(m2, 2), *arr(rd, 2), *arr(dp), *arr(ends), *arr(counts), N, tile_size, tile_width, tile_height,
-              *arr(keys), *arr(values), *arr(gauss)], tg)
+              *arr(keys), *arr(values), *a_gauss], tg)
     if n_isects > 0:
         L.sort_pairs(keys, values, n_isects, 32 + max(1, int(n_ranges).bit_length()), tg)
-        L.launch(binning.offsets_kernel, n_isects, [*arr(keys), *arr(values), *arr(gauss), n_isects, n_ranges,
-                                                    *arr(offsets), *L.at(flatten_ids.data_ptr(), n_isects, 4)], tg)
+        L.launch(binning.offsets_kernel, n_isects, [*arr(keys), *arr(values), *a_gauss, n_isects, n_ranges,
+                                                    *arr(offsets), *a_flat], tg)
     else:
         offsets.zero_()
     return {
@@ -338,7 +351,7 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
         "flatten_ids": flatten_ids,
         "isect_offsets": offsets[:-1].view(C, tile_height, tile_width),
         "offsets": offsets,
-        "perm": values[:n_isects],
+        "perm": values[:n_isects] if keep_perm else None,
         "isect_ends": ends,
         "n_isects": n_isects,
     }
@@ -347,10 +360,12 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
 # ---------------------------------------------------------------------------------------------
 # blending
 # ---------------------------------------------------------------------------------------------
-def pack_splats(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, flatten_ids: Tensor):
+def pack_splats(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, flatten_ids: Tensor,
+                packed: Tensor | None = None):
     """Per sorted intersection, contiguous in the order the blending kernels walk them:
     ``splats [M, 6]`` (x, y, conic a, b, c, opacity) and ``colors [M, D]`` (one gather kernel;
-    ``colors`` is ``[C, N, D]`` or, the same for every camera, ``[N, D]``)."""
+    ``colors`` is ``[C, N, D]`` or, the same for every camera, ``[N, D]``; ``packed [C, N, 6]``:
+    the projection's packed splats, read instead of the three arrays)."""
     M, D = flatten_ids.shape[0], colors.shape[-1]
     dt = means2d.dtype
     s = _scalar(dt)
@@ -358,15 +373,15 @@ def pack_splats(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tens
     cols = torch.empty(M, D, dtype=dt, device=means2d.device)
     src = [_c(t) for t in (flatten_ids, means2d, conics, opacities, colors)]
     L.launch(blend_forward.pack_kernel(s, D), M,
-             [*arr(src[0]), *arr(src[1], 2), *arr(src[2], 3), *arr(src[3]), *arr(src[4], D), *arr(splats, 6), *arr(cols, D)],
-             L.target(means2d))
+             [*arr(src[0]), *(NULL if packed is None else arr(packed, 6)), *arr(src[1], 2), *arr(src[2], 3),
+              *arr(src[3]), *arr(src[4], D), *arr(splats, 6), *arr(cols, D)], L.target(means2d))
     return splats, cols
 
 
 class _Blend(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, colors, opacities, backgrounds, tiles, width, height, tile_size, settings,
-                deterministic):
+                deterministic, packed):
         C, N = means2d.shape[:2]
         D = colors.shape[-1]
         dt, dev = colors.dtype, colors.device
@@ -379,7 +394,7 @@ class _Blend(torch.autograd.Function):
         out_T = torch.empty(C, height, width, dtype=dt, device=dev)
         last = torch.empty(C, height, width, dtype=torch.int32, device=dev)
         bg = _c(backgrounds) if backgrounds is not None else None
-        splats, cols = pack_splats(means2d, conics, opacities, colors, tiles["flatten_ids"])
+        splats, cols = pack_splats(means2d, conics, opacities, colors, tiles["flatten_ids"], packed)
         a_splats, a_cols, a_bg, a_offsets = arr(splats, 6), arr(cols, D), NULL if bg is None else arr(bg, D), \
             arr(tiles["offsets"])
         a_T, a_last = arr(out_T), arr(last)
@@ -422,7 +437,8 @@ class _Blend(torch.autograd.Function):
         packed = torch.zeros(max(M if det else C * N, 1), 6 + D, dtype=dt, device=dev)
         L.launch(blend_backward.reduced_backward_kernel(s, D, det, per_warp, _fast(st, s)), n_pix,
                  [*ctx.args, *(NULL if g_colors is None else arr(g_colors, D)),
-                  *(NULL if g_alphas is None else arr(g_alphas)), *arr(tiles["perm"]), *arr(packed, 6 + D)],
+                  *(NULL if g_alphas is None else arr(g_alphas)), *(arr(tiles["perm"]) if det else NULL),
+                  *arr(packed, 6 + D)],
                  tg, block_dim=block)
         if det:
             slots = packed
@@ -437,7 +453,7 @@ class _Blend(torch.autograd.Function):
         if bg is not None:
             v_bg = (g_colors * out_T[..., None]).sum(dim=(1, 2)) if g_colors is not None else torch.zeros_like(bg)
         return (packed[:, 0:2].view(C, N, 2), packed[:, 2:5].view(C, N, 3), v_colors, packed[:, 5].view(C, N),
-                v_bg, None, None, None, None, None, None)
+                v_bg, None, None, None, None, None, None, None)
 
 
 def backward_blocks(tile_size: int, deterministic: bool, cpu: bool) -> tuple[bool, int]:
@@ -459,15 +475,16 @@ def backward_blocks(tile_size: int, deterministic: bool, cpu: bool) -> tuple[boo
 
 
 def blend_warp(means2d, conics, colors, opacities, backgrounds, tiles, width, height, tile_size, settings,
-               deterministic=False):
+               deterministic=False, packed=None):
     """Front-to-back blending in Warp: ``colors [C,N,D]`` (or ``[N,D]``, the same for every
-    camera) → ``(image [C,H,W,D], alpha [C,H,W,1])``."""
+    camera) → ``(image [C,H,W,D], alpha [C,H,W,1])``. ``packed``: the projection's packed splats
+    (the same values as means2d, conics and opacities; read instead of them)."""
     D = colors.shape[-1]
     if D > MAX_CHANNELS:
         chunks = [blend_warp(means2d, conics, colors[..., i:i + MAX_CHANNELS], opacities,
                              None if backgrounds is None else backgrounds[..., i:i + MAX_CHANNELS],
-                             tiles, width, height, tile_size, settings, deterministic)
+                             tiles, width, height, tile_size, settings, deterministic, packed)
                   for i in range(0, D, MAX_CHANNELS)]
         return torch.cat([c[0] for c in chunks], dim=-1), chunks[0][1]
     return _Blend.apply(means2d, conics, colors, opacities, backgrounds, tiles, width, height, tile_size,
-                        settings, deterministic)
+                        settings, deterministic, packed)

@@ -354,7 +354,7 @@ def _rasterize_warp(means, quats, scales, opacities, colors, viewmats, Ks, width
         # inv_ex: no singularity check, so no device synchronisation per call
         campos = torch.linalg.inv_ex(viewmats).inverse[:, :3, 3]
         coeffs = colors
-    radii, means2d, depths, conics, opacs, sh_colors, counts = ops._Project.apply(
+    radii, means2d, depths, conics, opacs, sh_colors, counts, packed = ops._Project.apply(
         means, quats, scales, opacities, viewmats, Ks, coeffs, campos, cfg)
     if sh_colors is not None:
         colors = sh_colors
@@ -365,10 +365,10 @@ def _rasterize_warp(means, quats, scales, opacities, colors, viewmats, Ks, width
         "tile_size": tile_size, "n_cameras": C, "settings": settings, "backend": "warp",
     }
     tiles = ops.bin_tiles(means2d, radii, depths, tile_size, tile_width, tile_height, pending=pending, counts=counts,
-                          scan=scan)
+                          scan=scan, keep_perm=deterministic)
     meta.update(tiles)
     render_colors, render_alphas = ops.blend_warp(means2d, conics, colors, opacs, backgrounds, tiles, width, height,
-                                                  tile_size, settings, deterministic=deterministic)
+                                                  tile_size, settings, deterministic=deterministic, packed=packed)
     return _expected_depth(render_colors, render_alphas, render_mode), render_alphas, meta
 def _warp_available() -> bool:
     try:
