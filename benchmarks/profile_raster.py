@@ -51,7 +51,8 @@ def run(name, raster, n, w, h, iters, host_rows, kernel_rows=14):
                 fn()
             torch.cuda.synchronize()
         ka = prof.key_averages()
-        gpu = sum(e.self_device_time_total for e in ka) / iters / 1e3
+        # kernels, memsets and copies only (torch ops also carry their kernels' time)
+        gpu = sum(e.self_device_time_total for e in ka if str(e.device_type).endswith("CUDA")) / iters / 1e3
         print(f"--- {name} {label}: wall {wall:.2f} ms, GPU kernel time {gpu:.2f} ms per call "
               f"(the rest: GPU idle, waiting for the host)")
         print(ka.table(sort_by="self_device_time_total", row_limit=kernel_rows, max_name_column_width=60))
