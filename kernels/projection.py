@@ -29,8 +29,11 @@ no copies), so the adjoint writes each (camera, Gaussian) pair into its own slot
 of a ``[C, N]`` buffer: one writer per slot, bit-identical gradients (with one
 camera the buffer is the gradient itself).
 
-With ``tile_size > 0`` the kernel also writes each Gaussian's number of
-intersected tiles (the binning's first step, :func:`.binning.tile_box_func`),
+Given a ``flags`` array the kernel also runs the input value checks on the values
+it loads (:func:`.validate.inputs_check_func`; colour rows and backgrounds are read
+for them). With ``tile_size > 0`` it writes each Gaussian's number of intersected
+tiles (the binning's first step, :func:`.binning.tile_box_func`; also as int64
+into ``ends``, which the binning scans in place),
 and given a ``splats`` array, each visible Gaussian's screen mean, conic and
 opacity packed together (what the blending gathers per intersection: one load
 instead of three).
@@ -45,6 +48,7 @@ import warp as wp
 from .binning import tile_box_func
 from .fmath import add_rn, fma, rsqrt
 from .types import types_for
+from .validate import inputs_check_func
 
 RADIUS_LIMIT = 1073741824.0  # radii saturate here (2^30 px) so the int32 cast never overflows
 
@@ -143,10 +147,12 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
     mf = matrix_funcs(scalar, fast_math and scalar == wp.float32)
     dot3, mul33, mul33_t, quat_to_rotmat, cov2d = mf.dot3, mf.mul33, mf.mul33_t, mf.quat_to_rotmat, mf.cov2d
     tile_box = tile_box_func(scalar)
+    check_inputs = inputs_check_func(scalar)
 
     @wp.func
     def cull(i: int, means2d: wp.array(dtype=vec2), depths: wp.array(dtype=scalar), conics: wp.array(dtype=vec3),
-             opac_out: wp.array(dtype=scalar), radii: wp.array(dtype=wp.vec2i), counts: wp.array(dtype=wp.int32)):
+             opac_out: wp.array(dtype=scalar), radii: wp.array(dtype=wp.vec2i), counts: wp.array(dtype=wp.int32),
+             ends: wp.array(dtype=wp.int64)):
         """Zeros in every output of a culled Gaussian."""
         means2d[i] = vec2()
         depths[i] = scalar(0.0)
@@ -155,6 +161,8 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
         radii[i] = wp.vec2i(0, 0)
         if counts.shape[0] > 0:
             counts[i] = 0
+        if ends.shape[0] > 0:
+            ends[i] = wp.int64(0)
 
     @wp.kernel(module="unique", module_options={"fast_math": fast_math})
     def project(
@@ -177,25 +185,35 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
         tile_size: int,
         tile_width: int,
         tile_height: int,
+        colors: wp.array(dtype=scalar),
+        color_row: int,
+        colors_per_camera: int,
+        backgrounds: wp.array(dtype=scalar),
+        background_row: int,
+        flags: wp.array(dtype=wp.int64),
         means2d: wp.array(dtype=vec2),
         depths: wp.array(dtype=scalar),
         conics: wp.array(dtype=vec3),
         opac_out: wp.array(dtype=scalar),
         radii: wp.array(dtype=wp.vec2i),
         counts: wp.array(dtype=wp.int32),
+        ends: wp.array(dtype=wp.int64),
         splats: wp.array(dtype=splat),
     ):
         c, n = wp.tid()
         i = c * means.shape[1] + n
         V = viewmats[c, n]
         m = means[c, n]
+        if flags.shape[0] > 0:  # the input value checks, on the values loaded here
+            check_inputs(c, n, i, m, quats[c, n], scales[c, n], opacities[c, n], V, Ks[c], colors, color_row,
+                         colors_per_camera, backgrounds, background_row, flags)
         # world to camera: R p + t, products summed in index order
         p = vec3(dot3(V[0, 0], V[0, 1], V[0, 2], m[0], m[1], m[2]) + V[0, 3],
                  dot3(V[1, 0], V[1, 1], V[1, 2], m[0], m[1], m[2]) + V[1, 3],
                  dot3(V[2, 0], V[2, 1], V[2, 2], m[0], m[1], m[2]) + V[2, 3])
         z = p[2]
         if z < near_plane or z > far_plane:
-            cull(i, means2d, depths, conics, opac_out, radii, counts)
+            cull(i, means2d, depths, conics, opac_out, radii, counts, ends)
             return
         R = mat33(V[0, 0], V[0, 1], V[0, 2], V[1, 0], V[1, 1], V[1, 2], V[2, 0], V[2, 1], V[2, 2])
 
@@ -259,13 +277,13 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
             a = a + eps2d
             cc = cc + eps2d
         if det <= scalar(0.0):
-            cull(i, means2d, depths, conics, opac_out, radii, counts)
+            cull(i, means2d, depths, conics, opac_out, radii, counts, ends)
             return
         op = opacities[c, n]
         if antialiased != 0:
             op = op * wp.sqrt(wp.max(scalar(0.0), det_orig / det))
         if op < alpha_min:
-            cull(i, means2d, depths, conics, opac_out, radii, counts)
+            cull(i, means2d, depths, conics, opac_out, radii, counts, ends)
             return
         ext = sigma_max
         if opacity_extent != 0 and alpha_min > scalar(0.0):
@@ -273,12 +291,12 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
         rx = wp.min(wp.ceil(ext * wp.sqrt(a)), scalar(RADIUS_LIMIT))
         ry = wp.min(wp.ceil(ext * wp.sqrt(cc)), scalar(RADIUS_LIMIT))
         if rx <= radius_clip and ry <= radius_clip:
-            cull(i, means2d, depths, conics, opac_out, radii, counts)
+            cull(i, means2d, depths, conics, opac_out, radii, counts, ends)
             return
         mx = fx * p[0] * rz + cx
         my = fy * p[1] * rz + cy
         if mx + rx <= scalar(0.0) or mx - rx >= w or my + ry <= scalar(0.0) or my - ry >= h:
-            cull(i, means2d, depths, conics, opac_out, radii, counts)
+            cull(i, means2d, depths, conics, opac_out, radii, counts, ends)
             return
         means2d[i] = vec2(mx, my)
         depths[i] = z
@@ -292,6 +310,9 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
         radii[i] = r
         if counts.shape[0] > 0:
             box = tile_box(vec2(mx, my), r, tile_size, tile_width, tile_height)
-            counts[i] = (box[2] - box[0]) * (box[3] - box[1])
+            cnt = (box[2] - box[0]) * (box[3] - box[1])
+            counts[i] = cnt
+            if ends.shape[0] > 0:  # (int64, scanned in place into the intersection ends)
+                ends[i] = wp.int64(cnt)
 
     return project

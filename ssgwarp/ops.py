@@ -82,15 +82,20 @@ def check_values(means, quats, scales, opacities, colors, viewmats, Ks, backgrou
 # projection (+ tile counts, + SH colours)
 # ---------------------------------------------------------------------------------------------
 class _Project(torch.autograd.Function):
-    """``(radii, means2d, depths, conics, opacities, colors, counts)`` of N Gaussians in C cameras.
+    """``(radii, means2d, depths, conics, opacities, colors, counts, splats)`` of N Gaussians in C
+    cameras.
 
     ``colors [C, N, 3]`` (SH colour, ``+ 0.5`` clamped, 0 where culled) when ``coeffs`` is given,
-    else None; ``counts [C, N]`` (int32 tiles per Gaussian) when ``cfg["tile_size"] > 0``, else
-    None. Backward: the SH adjoint then the projection adjoint, both into per-(camera, Gaussian)
-    slots when C > 1 (summed here in a fixed order), straight into the gradients when C = 1."""
+    else None; ``counts [C, N]`` (int32 tiles per Gaussian) and ``splats [C, N, 6]`` (the
+    blending's packed splats) when ``cfg["tile_size"] > 0``, else None. ``extra`` (or None):
+    ``flags`` (int64 ``[N_FLAGS]``, zeroed) to run the input value checks in the projection, with
+    the ``colors`` and ``backgrounds`` they also cover; ``ends`` (int64 ``[C*N]``) to receive the
+    tile counts for the binning's in-place scan. Backward: the SH adjoint then the projection
+    adjoint, both into per-(camera, Gaussian) slots when C > 1 (summed here in a fixed order),
+    straight into the gradients when C = 1."""
 
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, viewmats, Ks, coeffs, campos, cfg):
+    def forward(ctx, means, quats, scales, opacities, viewmats, Ks, coeffs, campos, cfg, extra):
         C, N = viewmats.shape[0], means.shape[0]
         dt, dev = means.dtype, means.device
         s = _scalar(dt)
@@ -107,10 +112,14 @@ class _Project(torch.autograd.Function):
             splats = torch.empty(C, N, 6, dtype=dt, device=dev)
         outs = [means2d, depths, conics, opac, radii]
         kern = projection.projection_kernel(s, *cfg["variant"])
-        args = _project_args(ins, C, N) + cfg["scalars"] + [*arr(means2d, 2), *arr(depths), *arr(conics, 3), *arr(opac),
-                                                           *arr(radii, 2), *(arr(counts) if counts is not None else NULL),
-                                                           *(arr(splats, 6) if splats is not None else NULL)]
-        L.launch(kern, (C, N), args, tg)
+        head = _project_args(ins, C, N) + cfg["scalars"]
+        tail = [*arr(means2d, 2), *arr(depths), *arr(conics, 3), *arr(opac), *arr(radii, 2)]
+        checks, keep = _check_args(extra, C, N)
+        ends = None if extra is None else extra.get("ends")
+        L.launch(kern, (C, N), head + checks + tail + [*(arr(counts) if counts is not None else NULL),
+                                                       *(arr(ends) if ends is not None else NULL),
+                                                       *(arr(splats, 6) if splats is not None else NULL)], tg)
+        del keep  # (contiguous copies made for the checks: needed until the launch is queued)
         colors = colour_args = None
         if coeffs is not None:
             coeffs, campos = _c(coeffs), _c(campos)
@@ -119,7 +128,8 @@ class _Project(torch.autograd.Function):
             L.launch(sh.colour_kernel(s, cfg["sh_degree"]), (C, N), colour_args + [*arr(colors, 3)], tg)
         ctx.save_for_backward(*ins, *outs, coeffs, campos)
         # the backward launches read the same tensors (kept by ctx): their descriptors are kept too
-        ctx.cfg, ctx.args, ctx.colour_args = cfg, args, colour_args
+        # (without the checks, and without the tile counts and ends, which the binning has scanned)
+        ctx.cfg, ctx.args, ctx.colour_args = cfg, head + _NO_CHECKS + tail + [*NULL, *NULL, *NULL], colour_args
         ctx.mark_non_differentiable(*(t for t in (radii, counts, splats) if t is not None))
         return radii, means2d, depths, conics, opac, colors, counts, splats
 
@@ -154,8 +164,8 @@ class _Project(torch.autograd.Function):
         grads = [_adj(g, k, C * N) for g, k in ((g_means2d, 2), (g_depths, 1), (g_conics, 3), (g_opac, 1))]
         if any(g[1] is not None for g in grads) and any(need[:5]):
             adj = [*_grid(v_means, C, N, 3), *_grid(v_quats, C, N, 4), *_grid(v_scales, C, N, 3), *_grid(v_opac, C, N, 1),
-                   *_grid(v_view, C, N, 16), *NULL, *_ADJ_SCALARS, *(v for g in grads for v in g[0]), *NULL, *NULL,
-                   *NULL]
+                   *_grid(v_view, C, N, 16), *NULL, *_ADJ_SCALARS, *_NO_CHECKS, *(v for g in grads for v in g[0]),
+                   *NULL, *NULL, *NULL, *NULL]
             L.launch(projection.projection_kernel(s, *cfg["variant"]), (C, N), ctx.args, tg, adj=adj)
         if C > 1:
             v_means, v_quats, v_scales, v_opac = (None if v is None else v.sum(0)
@@ -166,11 +176,27 @@ class _Project(torch.autograd.Function):
             v_view = v_view.sum(1)
         if v_campos is not None:
             v_campos = v_campos.sum(1)
-        return v_means, v_quats, v_scales, v_opac, v_view, None, v_coeffs, v_campos, None
+        return v_means, v_quats, v_scales, v_opac, v_view, None, v_coeffs, v_campos, None, None
 
 
 # the adjoints of the projection's scalar parameters (ignored): width, height, six reals, five integers
 _ADJ_SCALARS = [0] * 2 + [0.0] * 6 + [0] * 5
+# the projection's check parameters when it runs no checks: colours, row, per camera, backgrounds, row, flags
+_NO_CHECKS = [*NULL, 0, 0, *NULL, 0, *NULL]
+
+
+def _check_args(extra, C, N):
+    """``(flat arguments, tensors to keep alive)`` of the projection's input checks (none without
+    ``extra["flags"]``): the colours read flat in rows (per camera or shared), the backgrounds."""
+    if extra is None or extra.get("flags") is None:
+        return _NO_CHECKS, ()
+    colors, bg = _c(extra["colors"]), extra.get("backgrounds")
+    per_cam = colors.shape[0] == C and colors.ndim == (4 if extra.get("sh") else 3)
+    row = colors.numel() // (C * N if per_cam else N) if N else 0
+    bg = _c(bg) if bg is not None else None
+    args = [*arr(colors), row, int(per_cam), *(arr(bg) if bg is not None else NULL),
+            bg.shape[-1] if bg is not None else 0, *arr(extra["flags"])]
+    return args, (colors, bg)
 
 
 def _zeros_split(widths, wanted, lead, dt, dev):
@@ -216,7 +242,7 @@ def project_warp(means, quats, scales, opacities, viewmats, Ks, width, height, *
     """Warp version of :func:`ssgwarp.reference.project_reference` (same outputs)."""
     cfg = _project_cfg(means.dtype, width, height, near_plane, far_plane, radius_clip, eps2d, antialiased, settings)
     radii, means2d, depths, conics, opac, _, _, _ = _Project.apply(means, quats, scales, opacities, viewmats, Ks,
-                                                                   None, None, cfg)
+                                                                   None, None, cfg, None)
     return radii, means2d, depths, conics, opac
 
 
@@ -274,7 +300,8 @@ def spherical_harmonics_warp(degree: int, dirs: Tensor, coeffs: Tensor) -> Tenso
 # tile binning
 # ---------------------------------------------------------------------------------------------
 def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, tile_width: int, tile_height: int,
-              pending=None, counts: Tensor | None = None, scan: Tensor | None = None, keep_perm: bool = True) -> dict:
+              pending=None, counts: Tensor | None = None, scan: Tensor | None = None, keep_perm: bool = True,
+              counts_in_scan: bool = False) -> dict:
     """Tile intersections of projected Gaussians, sorted by (camera, tile, depth).
 
     Returns ``tiles_per_gauss [C,N]`` (int32), ``isect_ids [M]`` (int64 keys), ``flatten_ids [M]``
@@ -285,7 +312,9 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
 
     ``counts``: the tile counts when already known (the projection writes them), else counted
     here. ``scan``: an int64 tensor ``[C*N + N_FLAGS]`` to hold the scan, whose tail holds the
-    input checks' flags; ``pending``: ``(flags, check)`` from deferred input validation. The
+    input checks' flags, and with ``counts_in_scan`` whose head already holds the counts (the
+    projection wrote them; scanned in place); ``pending``: ``(flags, check)`` from deferred input
+    validation. The
     intersection count and the flags are read back together (the one synchronisation) and the
     flags checked before anything else. Without ``keep_perm`` the sort carries the Gaussian ids
     themselves (as gsplat's does), so the sorted values are the flattened ids.
@@ -306,12 +335,15 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
                                                 *arr(counts)], tg)
     n_flags = 0 if pending is None else pending[0].numel()
     if scan is None or scan.numel() != CN + n_flags:
-        scan = torch.empty(CN + n_flags, dtype=torch.int64, device=dev)
+        scan, counts_in_scan = torch.empty(CN + n_flags, dtype=torch.int64, device=dev), False
         if n_flags:
             scan[CN:] = pending[0]
     ends = scan[:CN]
-    if CN:
+    if CN and counts_in_scan:
+        ends.cumsum_(0)
+    elif CN:
         torch.cumsum(counts.view(-1), 0, dtype=torch.int64, out=ends)
+    if CN:
         host = scan[CN - 1:].tolist()
     else:
         host = [0] + (scan.tolist() if n_flags else [])

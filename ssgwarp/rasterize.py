@@ -334,18 +334,26 @@ def _rasterize_warp(means, quats, scales, opacities, colors, viewmats, Ks, width
     from . import ops
     from .kernels.validate import N_FLAGS
 
-    scan = pending = None
+    pending = None
     if validate:
         check_shapes(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds,
                      render_mode, rasterize_mode, tile_size, near_plane)
     C, N = viewmats.shape[0], means.shape[0]
+    CN = C * N
     tile_width, tile_height = -(-width // tile_size), -(-height // tile_size)
+    # the projection writes each Gaussian's tile count into the head of ``scan`` (scanned there in
+    # place into the intersection ends) and the value checks their flags into its tail, so the
+    # intersection count and the flags come back in one read: one synchronisation per call, and
+    # nothing is allocated from the inputs' values before it
+    scan = torch.empty(CN + (N_FLAGS if validate else 0), dtype=torch.int64, device=means.device)
+    extra = {"ends": scan[:CN]}
     if validate:
-        # the value checks' flags land behind the scan of the tile counts, so the intersection count and
-        # the flags come back in one read (one synchronisation per call); nothing is allocated from the
-        # inputs' values before that
-        scan = torch.zeros(C * N + N_FLAGS, dtype=torch.int64, device=means.device)
-        flags = ops.check_values(means, quats, scales, opacities, colors, viewmats, Ks, backgrounds, scan[C * N:])
+        flags = scan[CN:]
+        flags.zero_()
+        if CN:  # the projection runs the checks on the values it loads
+            extra.update(flags=flags, colors=colors, backgrounds=backgrounds, sh=sh_degree is not None)
+        else:  # nothing to project: the checks on their own
+            ops.check_values(means, quats, scales, opacities, colors, viewmats, Ks, backgrounds, flags)
         pending = (flags, raise_for_flags)
     cfg = ops._project_cfg(means.dtype, width, height, near_plane, far_plane, radius_clip, eps2d,
                            rasterize_mode == "antialiased", settings, tile_size, tile_width, tile_height, sh_degree)
@@ -355,7 +363,7 @@ def _rasterize_warp(means, quats, scales, opacities, colors, viewmats, Ks, width
         campos = torch.linalg.inv_ex(viewmats).inverse[:, :3, 3]
         coeffs = colors
     radii, means2d, depths, conics, opacs, sh_colors, counts, packed = ops._Project.apply(
-        means, quats, scales, opacities, viewmats, Ks, coeffs, campos, cfg)
+        means, quats, scales, opacities, viewmats, Ks, coeffs, campos, cfg, extra)
     if sh_colors is not None:
         colors = sh_colors
     colors, backgrounds = _mode_channels(colors, depths, backgrounds, render_mode, C)
@@ -365,7 +373,7 @@ def _rasterize_warp(means, quats, scales, opacities, colors, viewmats, Ks, width
         "tile_size": tile_size, "n_cameras": C, "settings": settings, "backend": "warp",
     }
     tiles = ops.bin_tiles(means2d, radii, depths, tile_size, tile_width, tile_height, pending=pending, counts=counts,
-                          scan=scan, keep_perm=deterministic)
+                          scan=scan, keep_perm=deterministic, counts_in_scan=True)
     meta.update(tiles)
     render_colors, render_alphas = ops.blend_warp(means2d, conics, colors, opacs, backgrounds, tiles, width, height,
                                                   tile_size, settings, deterministic=deterministic, packed=packed)

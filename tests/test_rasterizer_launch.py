@@ -187,3 +187,47 @@ def test_tile_size_default_per_device():
     img16, alpha16, meta16 = rasterization(*params, vm, K, 40, 30, tile_size=16)
     assert meta16["tile_size"] == 16
     assert torch.equal(img, img16) and torch.equal(alpha, alpha16)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("per_camera", [False, True])
+def test_value_checks_in_the_projection(device, per_camera):
+    """The value checks run inside the projection kernel (compiled with fast maths on CUDA): each
+    failure is caught, in the last Gaussian, the last camera, per-camera colours and backgrounds."""
+    dtype = torch.float32
+    g = torch.Generator().manual_seed(0)
+    n, c = 9, 3
+    means = (torch.randn(n, 3, generator=g) * 0.3 + torch.tensor([0, 0, 3.0])).to(device)
+    quats, scales = torch.randn(n, 4, generator=g).to(device), (torch.rand(n, 3, generator=g) * 0.1).to(device)
+    opac = torch.rand(n, generator=g).to(device)
+    colors = torch.rand(*((c,) if per_camera else ()), n, 4, generator=g).to(device)
+    vm, K = (t.to(device=device, dtype=dtype) for t in make_cameras(c, 16, 16, dtype=dtype))
+    bg = torch.rand(c, 4, generator=g).to(device)
+    good = dict(means=means, quats=quats, scales=scales, opacities=opac, colors=colors, viewmats=vm, Ks=K)
+
+    def last(t, v):
+        t = t.clone()
+        t.view(-1)[-1] = v
+        return t
+
+    rasterization(**good, width=16, height=16, backgrounds=bg)
+    cases = [(dict(means=last(means, float("nan"))), "means has NaN/Inf"),
+             (dict(quats=last(quats, float("inf"))), "quats has NaN/Inf"),
+             (dict(scales=last(scales, float("-inf"))), "scales has NaN/Inf"),
+             (dict(opacities=last(opac, float("nan"))), "opacities has NaN/Inf"),
+             (dict(colors=last(colors, float("nan"))), "colors has NaN/Inf"),
+             (dict(viewmats=last(vm, float("inf"))), "viewmats has NaN/Inf"),
+             (dict(Ks=last(K, float("nan"))), "Ks has NaN/Inf"),
+             (dict(quats=quats.index_fill(0, torch.tensor([n - 1], device=device), 0.0)), "zero quaternions"),
+             (dict(scales=last(scales, -1e-30)), "scales has negative"),
+             (dict(opacities=last(opac, 1.0 + 1e-6)), r"opacities must lie in \[0, 1\]"),
+             (dict(Ks=K.index_fill(0, torch.tensor([c - 1], device=device), 0.0)), "non-positive focal")]
+    for change, message in cases:
+        with pytest.raises(ValueError, match=message):
+            rasterization(**{**good, **change}, width=16, height=16, backgrounds=bg)
+    with pytest.raises(ValueError, match="backgrounds has NaN/Inf"):
+        rasterization(**good, width=16, height=16, backgrounds=last(bg, float("nan")))
+    # no Gaussians to project: the checks still run on the cameras
+    empty = [t[:0] for t in (means, quats, scales, opac)] + [colors[..., :0, :]]
+    with pytest.raises(ValueError, match="Ks has NaN/Inf"):
+        rasterization(*empty, vm, last(K, float("nan")), 16, 16)
