@@ -124,7 +124,8 @@ def profile(fn, device, calls: int) -> dict:
 def run_device(device: torch.device, args, raster, label: str) -> list[dict]:
     params, leaves, vm, K = scene(args.gaussians, args.res, device)
     w = h = args.res
-    kw = {} if label != "gsplat" else {"packed": False}
+    # gsplat's layout and tile size on both devices, so every library and version does the same work
+    kw = {"tile_size": 16} if label != "gsplat" else {"packed": False, "tile_size": 16}
 
     def fwd():
         with torch.no_grad():

@@ -5,7 +5,9 @@ the cameras (60 deg horizontal field of view), scales ~ U(0, 0.02), random
 quaternions and opacities; colours U(0, 1), or SH coefficients (degree 3: DC
 term U(0, 1) / C0, higher bands N(0, 0.1)); one camera at the origin or four
 (translated by +-0.5 in x and y). For each case: forward and forward+backward
-milliseconds (median of repeats, CUDA-synchronised), the ratio to gsplat, the
+milliseconds (median of repeats, CUDA-synchronised; on CUDA ssgwarp and gsplat
+are timed in turns, after a warm-up that brings the GPU's clocks up, so that
+drift affects both alike), the ratio to gsplat, the
 image difference against gsplat, and how far each float32 image is from the
 same scene rendered by ssgwarp in float64 under the same rules (the float32
 rounding both renderers share: a contribution at the 1/255 alpha threshold can
@@ -21,11 +23,13 @@ from __future__ import annotations
 import argparse
 import datetime
 import math
+import statistics
+import time
 
 import torch
 
 import ssgwarp
-from timing import timed
+from timing import sync, timed
 
 
 C0 = 0.28209479177387814
@@ -62,7 +66,8 @@ def camera(width: int, height: int, device, dtype=torch.float32, cameras: int = 
     return vm, K[None].repeat(cameras, 1, 1)
 
 
-def run_case(raster, n, w, h, device, repeats, sh_degree=None, cameras=1, **kw):
+def closures(raster, n, w, h, device, sh_degree=None, cameras=1, **kw):
+    """``(fwd, fwd_bwd)`` of one renderer on the case's scene."""
     params = make_scene(n, device, sh_degree=sh_degree)
     vm, K = camera(w, h, device, cameras=cameras)
     leaves = [p.clone().requires_grad_(True) for p in params]
@@ -79,10 +84,42 @@ def run_case(raster, n, w, h, device, repeats, sh_degree=None, cameras=1, **kw):
         img, alpha, _ = raster(*leaves, vm, K, w, h, **kw)
         (img.sum() + alpha.sum()).backward()
 
+    return fwd, fwd_bwd
+
+
+def run_case(raster, n, w, h, device, repeats, sh_degree=None, cameras=1, **kw):
+    fwd, fwd_bwd = closures(raster, n, w, h, device, sh_degree, cameras, **kw)
     t_f = timed(fwd, device, repeats)
     t_fb = timed(fwd_bwd, device, repeats)
     img = fwd()[0]
     return t_f, t_fb, img
+
+
+def interleaved(fns: dict, device, repeats: int, rounds: int = 4) -> dict:
+    """Median milliseconds of each function, timed in turns (``rounds`` rounds of
+    ``repeats / rounds`` synchronised calls each) so that a drifting GPU clock or host load
+    affects all of them alike."""
+    for fn in fns.values():
+        fn()
+    sync(device)
+    out = {k: [] for k in fns}
+    for _ in range(rounds):
+        for k, fn in fns.items():
+            for _ in range(max(1, repeats // rounds)):
+                t0 = time.perf_counter()
+                fn()
+                sync(device)
+                out[k].append((time.perf_counter() - t0) * 1e3)
+    return {k: statistics.median(v) for k, v in out.items()}
+
+
+def warm_gpu(seconds: float = 1.0) -> None:
+    """Busy the GPU for a moment so its clocks are up before the first timing."""
+    x = torch.randn(4096, 4096, device="cuda")
+    t0 = time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        x = (x @ x).clamp_(-1, 1)
+    torch.cuda.synchronize()
 
 
 def main() -> None:
@@ -111,7 +148,15 @@ def main() -> None:
         case = dict(sh_degree=deg, cameras=cams)
         if cuda:
             dev = torch.device("cuda")
-            f, fb, img = run_case(ssgwarp.rasterization, n, w, h, dev, args.repeats, packed=False, **case)
+            if not rows:
+                warm_gpu()
+            # ssgwarp and gsplat timed in turns on the same scene
+            fns = dict(zip(("ssg_f", "ssg_fb"), closures(ssgwarp.rasterization, n, w, h, dev, packed=False, **case)))
+            if gsplat is not None:
+                fns.update(zip(("gs_f", "gs_fb"), closures(gsplat.rasterization, n, w, h, dev, packed=False, **case)))
+            t = interleaved(fns, dev, args.repeats)
+            f, fb = t["ssg_f"], t["ssg_fb"]
+            img = fns["ssg_f"]()[0]
             row.update(ssg_f=f, ssg_fb=fb)
             if args.deterministic:
                 _, fbd, _ = run_case(ssgwarp.rasterization, n, w, h, dev, max(3, args.repeats // 3),
@@ -124,13 +169,13 @@ def main() -> None:
                 img64 = ssgwarp.rasterization(*params64, vm64, K64, w, h, sh_degree=deg)[0]
             row.update(f64diff=float((img.double() - img64).abs().max()))
             if gsplat is not None:
-                gf, gfb, gimg = run_case(gsplat.rasterization, n, w, h, dev, args.repeats, packed=False, **case)
+                gf, gfb, gimg = t["gs_f"], t["gs_fb"], fns["gs_f"]()[0]
                 diff = (img - gimg).abs()
                 row.update(gs_f=gf, gs_fb=gfb, ratio_f=f / gf, ratio_fb=fb / gfb,
                            maxdiff=float(diff.max()), meandiff=float(diff.mean()),
                            over=float((diff > 1e-4).float().mean()),
                            gs64diff=float((gimg.double() - img64).abs().max()))
-            del params64, img64
+            del params64, img64, fns
         if not args.no_cpu and n * cams <= args.cpu_max:
             f, fb, _ = run_case(ssgwarp.rasterization, n, w, h, torch.device("cpu"), max(2, args.repeats // 5),
                                 **case)

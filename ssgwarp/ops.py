@@ -164,8 +164,8 @@ class _Project(torch.autograd.Function):
         grads = [_adj(g, k, C * N) for g, k in ((g_means2d, 2), (g_depths, 1), (g_conics, 3), (g_opac, 1))]
         if any(g[1] is not None for g in grads) and any(need[:5]):
             adj = [*_grid(v_means, C, N, 3), *_grid(v_quats, C, N, 4), *_grid(v_scales, C, N, 3), *_grid(v_opac, C, N, 1),
-                   *_grid(v_view, C, N, 16), *NULL, *_ADJ_SCALARS, *_NO_CHECKS, *(v for g in grads for v in g[0]),
-                   *NULL, *NULL, *NULL, *NULL]
+                   *_grid(v_view, C, N, 16), *NULL, *_ADJ_SCALARS, *_NO_CHECKS, *grads[0][0], *grads[1][0],
+                   *grads[2][0], *grads[3][0], *NULL, *NULL, *NULL, *NULL]
             L.launch(projection.projection_kernel(s, *cfg["variant"]), (C, N), ctx.args, tg, adj=adj)
         if C > 1:
             v_means, v_quats, v_scales, v_opac = (None if v is None else v.sum(0)
