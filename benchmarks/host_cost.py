@@ -149,7 +149,7 @@ def run_device(device: torch.device, args, raster, label: str) -> list[dict]:
 
 
 def launch_paths(device: torch.device, launches: int) -> list[dict]:
-    """Host microseconds per launch of the projection kernel (25 parameters, 16 Gaussians) by three
+    """Host microseconds per launch of the projection kernel (its 33 parameters, 16 Gaussians) by three
     routes: ``wp.launch`` with array descriptors (how ssgwarp launched before), Warp's recorded
     launch (``wp.launch(..., record_cmd=True)``; every parameter set again with
     ``Launch.set_param_at_index_from_ctype``, then ``Launch.launch()``), and ssgwarp's replay of the
@@ -163,13 +163,14 @@ def launch_paths(device: torch.device, launches: int) -> list[dict]:
     C, N = 1, params[0].shape[0]
     cfg = ops._project_cfg(torch.float32, 16, 16, 0.01, 1e10, 0.0, 0.3, False, RasterSettings(), 16, 1, 1)
     outs = [torch.empty(C, N, k, device=device) for k in (2, 1, 3, 1)] + \
-        [torch.empty(C, N, 2, dtype=torch.int32, device=device), torch.empty(C, N, dtype=torch.int32, device=device)]
+        [torch.empty(C, N, 2, dtype=torch.int32, device=device), torch.empty(C, N, dtype=torch.int32, device=device),
+         torch.empty(C, N, dtype=torch.int64, device=device), torch.empty(C, N, 6, device=device)]
     ins = list(params[:4]) + [vm, K]
 
-    def flat():
-        return ops._project_args(ins, C, N) + cfg["scalars"] + [
+    def flat():  # the projection kernel's parameters (no input checks)
+        return ops._project_args(ins, C, N) + cfg["scalars"] + ops._NO_CHECKS + [
             *L.arr(outs[0], 2), *L.arr(outs[1]), *L.arr(outs[2], 3), *L.arr(outs[3]), *L.arr(outs[4], 2),
-            *L.arr(outs[5])]
+            *L.arr(outs[5]), *L.arr(outs[6]), *L.arr(outs[7], 6)]
 
     kern = projection.projection_kernel(wp.float32, *cfg["variant"])
     tg = L.target(params[0])
@@ -204,7 +205,8 @@ def launch_paths(device: torch.device, launches: int) -> list[dict]:
                      ("Warp recorded launch, parameters set again, Launch.launch()", via_record_cmd),
                      ("ssgwarp.launch: recorded launch replayed from one packed buffer", via_ssgwarp)):
         per_call, _ = measure(fn, device, launches, 3)
-        rows.append({"device": device.type, "route": name, "us_per_launch": per_call})
+        rows.append({"device": device.type, "route": name, "us_per_launch": per_call,
+                     "parameters": len(kern.adj.args)})
         print(json.dumps(rows[-1]), flush=True)
     return rows
 
@@ -255,7 +257,8 @@ def main() -> None:
             f"{args.gaussians} Gaussians, {args.res}x{args.res}; torch threads {args.threads}")
     text = meta + "\n\n" + table(rows)
     if routes:
-        text += "\n\n| device | launch route (projection kernel, 25 parameters) | µs per launch |\n|---|---|---|\n"
+        text += (f"\n\n| device | launch route (projection kernel, {routes[0]['parameters']} parameters) | µs per launch |"
+                 "\n|---|---|---|\n")
         text += "\n".join(f"| {r['device']} | {r['route']} | {r['us_per_launch']:.1f} |" for r in routes)
     print(text)
     if args.markdown:

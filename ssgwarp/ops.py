@@ -403,10 +403,14 @@ def pack_splats(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tens
     s = _scalar(dt)
     splats = torch.empty(M, 6, dtype=dt, device=means2d.device)
     cols = torch.empty(M, D, dtype=dt, device=means2d.device)
-    src = [_c(t) for t in (flatten_ids, means2d, conics, opacities, colors)]
+    if packed is None:
+        gauss = [*arr(_c(means2d), 2), *arr(_c(conics), 3), *arr(_c(opacities))]
+    else:  # (the three arrays are not read)
+        gauss = [*NULL, *NULL, *NULL]
+    ids, cs = _c(flatten_ids), _c(colors)
     L.launch(blend_forward.pack_kernel(s, D), M,
-             [*arr(src[0]), *(NULL if packed is None else arr(packed, 6)), *arr(src[1], 2), *arr(src[2], 3),
-              *arr(src[3]), *arr(src[4], D), *arr(splats, 6), *arr(cols, D)], L.target(means2d))
+             [*arr(ids), *(NULL if packed is None else arr(packed, 6)), *gauss, *arr(cs, D), *arr(splats, 6),
+              *arr(cols, D)], L.target(means2d))
     return splats, cols
 
 
