@@ -33,9 +33,24 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from ssgwarp.fileio import atomic_path  # noqa: E402
-from ssgwarp.masks import MaskConfig, load_sam, make_masks, random_sam_model  # noqa: E402
+from ssgwarp.masks import MaskConfig, load_sam, make_masks  # noqa: E402
 
 DEFAULT_DATA = ROOT.parent / "shared" / "data" / "llff_fern"
+
+
+def save_random_sam(size: str, folder: Path) -> None:
+    """A random-weight SamModel in ``folder`` (``save_pretrained``): ``SamConfig()`` is ViT-B
+    (``facebook/sam-vit-base``'s sizes); ``tiny`` is the tests' 64 px model (CPU checks)."""
+    if size == "tiny":
+        sys.path.insert(0, str(ROOT / "tests"))
+        from fakeweights import save_tiny_sam
+
+        save_tiny_sam(folder)
+        return
+    from transformers import SamConfig, SamModel
+
+    torch.manual_seed(0)
+    SamModel(SamConfig()).save_pretrained(folder)
 
 
 def build_run(args, work: Path, device: torch.device) -> Path:
@@ -73,7 +88,7 @@ def main() -> None:
 
     sam_dir = args.work / f"sam-{args.size}"
     if not (sam_dir / "config.json").is_file():
-        random_sam_model(args.size, seed=0).save_pretrained(sam_dir)
+        save_random_sam(args.size, sam_dir)
     t0 = time.perf_counter()
     sam = load_sam(sam_dir, device)
     load_s = time.perf_counter() - t0

@@ -12,7 +12,8 @@ Stages (each through its module's Python API, all under ``OUT``):
    machine, else on mask-free clusters; the summary says which (``group_kind``). The group maps are
    scored against the true object ids.
 4. **stylize** — key views, Stage 1 (diffusion; skipped when its weights are not on
-   this machine, and the summary says so) and Stage 2 (:mod:`ssgwarp.stylize`) → ``OUT/stylized``.
+   this machine, and the summary says so: the demo downloads nothing, ``ssgwarp weights
+   --download stage1`` fetches them) and Stage 2 (:mod:`ssgwarp.stylize`) → ``OUT/stylized``.
 5. **evaluate** — consistency, style/content losses and PSNR (:mod:`ssgwarp.evaluate`)
    of the reconstruction and of the stylized scene → ``OUT/evaluation.md``.
 6. **sheet** — ``OUT/contact_sheet.png``: captured | reconstructed | groups | stylized, and the style.
@@ -32,6 +33,7 @@ from typing import Callable, Optional
 
 import torch
 
+from . import weights as W
 from .errors import InputError, SsgwarpError
 
 OUTPUTS = ("demo.json", "data", "style.png", "scene", "stylized", "evaluation.md", "contact_sheet.png",
@@ -88,10 +90,9 @@ def _prepare_out(out: Path, force: bool, resume: bool, record: dict) -> dict:
 
 def _weights_missing() -> list[str]:
     """Stage 1 weight keys not found on this machine (no import of diffusers)."""
-    from . import weights
     from .diffusion import WEIGHT_KEYS
 
-    return [k for k in WEIGHT_KEYS if weights.find(k) is None]
+    return [k for k in WEIGHT_KEYS if W.find(k) is None]
 
 
 def group_agreement(labels: torch.Tensor, objects: torch.Tensor, num_objects: int) -> dict:
@@ -161,6 +162,7 @@ def _fmt(x, spec: str = ".4g", none: str = "n/a") -> str:
 
 
 # ----------------------------------------------------------------------------- the demo
+@W.offline("ssgwarp demo downloads nothing")
 def run_demo(out: str | Path = "ssgwarp-demo", size="default", *, device=None, seed: int = 0,
              force: bool = False, resume: bool = False, progress: bool = True,
              echo: Optional[Callable[[str], None]] = None) -> dict:
@@ -283,7 +285,7 @@ def run_demo(out: str | Path = "ssgwarp-demo", size="default", *, device=None, s
     header(4, "stylize", "key views -> Stage 1 (diffusion + CVSA) -> Stage 2 (instance-level style transfer)")
     if not stage1_runs:
         say(f"      Stage 1 will be skipped: no local weights for {', '.join(missing)} "
-            f"(see README: providing weights); Stage 2 then matches the style image directly")
+            f"(`ssgwarp weights --download stage1` fetches them); Stage 2 then matches the style image directly")
     if not stages.get("stylize", {}).get("done"):
         t0 = time.perf_counter()
         opts = StylizeOptions(keyviews=sz.keyviews, max_side=512 if stage1_runs else sz.max_side,

@@ -1,8 +1,8 @@
 """Instance masks for every training view (``ssgwarp masks``): Segment Anything, then cross-view association.
 
 1. **Segment** each training view with the Segment Anything model (``transformers``
-   ``SamModel``; weights ``facebook/sam-vit-base`` through the Hugging Face cache, or
-   ``--sam PATH``): the image is embedded once, a regular grid of
+   ``SamModel``; weights ``facebook/sam-vit-base`` resolved by :mod:`ssgwarp.weights`: ``--sam
+   PATH``, ``SSGWARP_SAM``, the Hugging Face cache, a download on first use unless offline): the image is embedded once, a regular grid of
    ``points_per_side``² point prompts is decoded in batches of ``points_per_batch``
    (three candidate masks per point), candidates are kept when their predicted IoU
    exceeds ``pred_iou_thresh`` and their stability score (the IoU of the mask
@@ -25,7 +25,6 @@
 Public API:
     MaskConfig, SamSegmenter
     load_sam(path, device)                           -> SamSegmenter
-    random_sam_model(size, seed)                     -> transformers SamModel (random weights; tests, benchmarks)
     point_grid(n, width, height)                     -> [n*n, 2] prompt points in pixels
     stability_scores(logits, threshold, offset)      -> [M]
     select_masks(logits, iou, config)                -> (kept logits, scores)
@@ -45,14 +44,13 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .errors import InputError, SsgwarpError, WeightsNotFound
+from .errors import InputError, SsgwarpError
 from .fileio import atomic_path, read_json, write_json
 
 Tensor = torch.Tensor
 FORMAT = "ssgwarp-masks-1"
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
-SAM_HUB_ID = "facebook/sam-vit-base"
 
 
 @dataclass(frozen=True)
@@ -152,8 +150,9 @@ def load_sam(path: str | Path, device=None) -> SamSegmenter:
     try:
         model = SamModel.from_pretrained(str(path), local_files_only=True)
     except (OSError, ValueError, KeyError, RuntimeError) as e:
-        raise InputError(f"cannot load the Segment Anything model from {path}: "
-                         f"{str(e).splitlines()[0] if str(e) else e!r}") from None
+        from . import weights
+
+        raise weights.load_error("sam", path, e) from None
     finally:
         tlog.set_verbosity(verbosity)
         if bars:
@@ -167,26 +166,6 @@ def load_sam(path: str | Path, device=None) -> SamSegmenter:
         std = tuple(float(v) for v in cfg.get("image_std", std))
     return SamSegmenter(model=model, image_size=int(model.config.vision_config.image_size), mean=mean, std=std,
                         source=str(path))
-
-
-def random_sam_model(size: str = "tiny", seed: int = 0):
-    """A ``SamModel`` with random weights: ``"vit-b"`` (``SamConfig()`` defaults: ViT-B image encoder at
-    1024², for timing) or ``"tiny"`` (a 2-layer encoder at 64², for tests)."""
-    from transformers import SamConfig, SamModel
-
-    torch.manual_seed(seed)
-    if size == "vit-b":
-        cfg = SamConfig()
-    elif size == "tiny":
-        cfg = SamConfig(
-            vision_config=dict(hidden_size=32, output_channels=16, num_hidden_layers=2, num_attention_heads=2,
-                               image_size=64, patch_size=16, window_size=2, global_attn_indexes=[1],
-                               num_pos_feats=8, mlp_dim=64),
-            prompt_encoder_config=dict(hidden_size=16, image_size=64, patch_size=16, mask_input_channels=4),
-            mask_decoder_config=dict(hidden_size=16, mlp_dim=32, num_attention_heads=2, iou_head_hidden_dim=16))
-    else:
-        raise InputError(f"random_sam_model: size must be 'tiny' or 'vit-b', got {size!r}")
-    return SamModel(cfg).eval()
 
 
 # -- automatic mask generation -----------------------------------------------------------------------
@@ -328,21 +307,6 @@ def _stem(name: str) -> str:
 
 # -- the command on a run --------------------------------------------------------------------------------
 
-SAM_MISSING = ("no Segment Anything weights ({sam}): run `ssgwarp weights --download sam` to fetch "
-               f"{SAM_HUB_ID} into the Hugging Face cache, or pass --sam PATH (a transformers SamModel folder)")
-
-
-def find_sam(explicit: Optional[str | Path] = None, config: Optional[dict] = None) -> Path:
-    """The Segment Anything weights' folder (``weights.find("sam", ...)``), or a one-line WeightsNotFound."""
-    from . import weights
-
-    path = weights.find("sam", explicit, config)
-    if path is None:
-        what = f"{explicit} not found" if explicit else f"{SAM_HUB_ID} is not in the Hugging Face cache"
-        raise WeightsNotFound(SAM_MISSING.format(sam=what))
-    return path
-
-
 def _segment_views(scene_dir: Path, data, views: Sequence[int], sam: SamSegmenter, config: MaskConfig,
                    resume: bool, progress: bool) -> tuple[Tensor, list[dict]]:
     """SAM label maps of ``views`` (``[V, H, W]`` long, -1 uncovered), each saved to ``sam_masks/`` when done."""
@@ -391,11 +355,13 @@ def make_masks(scene_dir: str | Path, *, sam: Optional[str | Path] = None, view_
     """Instance masks for the run ``scene_dir`` (what ``ssgwarp masks`` runs); returns the ``masks.json`` record.
 
     Args:
-        sam: explicit Segment Anything folder (else ``weights.find("sam")``: env, config, HF cache).
+        sam: explicit Segment Anything folder (else ``weights.require("sam")``: config, env, Hugging Face
+            cache, a download unless offline; missing: one line naming ``ssgwarp weights --download sam``).
         view_masks: a folder of per-view masks ``<image stem>.png`` to associate instead of running SAM.
         association: :class:`ssgwarp.association.AssociationConfig`.
         segmenter: an already loaded :class:`SamSegmenter` (skips the weights lookup).
     """
+    from . import weights
     from .association import AssociationConfig, associate
     from .datasets import load_run
     from .grouping import load_masks
@@ -415,7 +381,7 @@ def make_masks(scene_dir: str | Path, *, sam: Optional[str | Path] = None, view_
     seconds: dict[str, float] = {}
     if view_masks is None:
         seg = segmenter if segmenter is not None else None
-        src = seg.source if seg is not None else str(find_sam(sam, weights_config))  # fail before any work
+        src = seg.source if seg is not None else str(weights.require("sam", sam, weights_config))  # before any work
     t0 = time.perf_counter()
     scene, data = load_run(scene_dir, device, data_dir=data_dir, load_images=view_masks is None)
     cams = data.cameras
@@ -501,8 +467,9 @@ def add_arguments(parser) -> None:
     d = MaskConfig()
     parser.add_argument("scene_dir", type=Path, help="a reconstructed run (scene.ply, cameras.json, data.json)")
     parser.add_argument("--sam", type=Path, default=None, metavar="PATH",
-                        help=f"Segment Anything weights: a transformers SamModel folder (default: {SAM_HUB_ID} "
-                             "from the Hugging Face cache, $SSGWARP_SAM or $SSGWARP_WEIGHTS/sam-vit-base)")
+                        help="Segment Anything weights: a transformers SamModel folder (default: $SSGWARP_SAM, "
+                             "$SSGWARP_WEIGHTS/sam-vit-base, or facebook/sam-vit-base from the Hugging Face cache, "
+                             "downloaded on first use unless offline; `ssgwarp weights --download sam`)")
     parser.add_argument("--view-masks", type=Path, default=None, metavar="DIR",
                         help="associate these per-view masks (<image stem>.png, ids need not agree between views) "
                              "instead of running Segment Anything")

@@ -21,13 +21,12 @@ import torch
 from ssgwarp import procedural as P
 
 WEIGHT_VARS = ("SSGWARP_WEIGHTS", "SSGWARP_SD15", "SSGWARP_CONTROLNET_DEPTH", "SSGWARP_IP_ADAPTER",
-               "SSGWARP_IMAGE_ENCODER", "SSGWARP_VGG16", "SSGWARP_RAFT", "SSGWARP_LPIPS", "SSGWARP_SAM")
+               "SSGWARP_IMAGE_ENCODER", "SSGWARP_VGG16", "SSGWARP_RAFT", "SSGWARP_LPIPS")
 
 
 def _no_weights(mp: pytest.MonkeyPatch) -> None:
     for v in WEIGHT_VARS:
         mp.delenv(v, raising=False)
-    mp.setenv("HF_HUB_CACHE", "/nonexistent/ssgwarp-test-hf-cache")     # no Segment Anything in a user's cache
 
 
 def _main(argv):
@@ -55,6 +54,7 @@ def demo(tmp_path_factory):
 
 
 # ----------------------------------------------------------------------------- the demo
+@pytest.mark.slow  # the demo fixture runs the whole pipeline once (~30 s on 2 cores)
 def test_demo_runs_every_stage_and_prints_a_summary(demo):
     out, code, stdout, stderr = demo
     assert code == 0, stderr
@@ -95,6 +95,7 @@ def test_demo_runs_every_stage_and_prints_a_summary(demo):
     assert (out / "evaluation.md").read_text().startswith("Evaluation")
 
 
+@pytest.mark.slow  # the demo fixture runs the whole pipeline once (~30 s on 2 cores)
 def test_demo_outputs_follow_the_run_contract(demo):
     from ssgwarp.datasets import load_dataset, load_run
     from ssgwarp.grouping import load_groups
@@ -118,6 +119,7 @@ def test_demo_outputs_follow_the_run_contract(demo):
     assert np.allclose(style, P.style_image(192, 192, seed=0), atol=1 / 255)
 
 
+@pytest.mark.slow  # the demo fixture runs the whole pipeline once (~30 s on 2 cores)
 def test_existing_demo_is_not_overwritten_without_force(demo, tmp_path):
     out = demo[0]
     before = _digest(out)
@@ -150,6 +152,7 @@ def test_force_removes_only_what_the_demo_writes(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
 
 
+@pytest.mark.slow  # runs the demo again, interrupted and resumed (~20 s)
 def test_ctrl_c_in_a_demo_stage_resumes_to_the_uninterrupted_result(demo, tmp_path, monkeypatch, fail_on_call):
     """Ctrl-C during Stage 2: exit 130, finished stages kept; --resume gives the same stylized scene."""
     import ssgwarp.stylize as st

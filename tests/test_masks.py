@@ -226,22 +226,15 @@ def test_masks_command_associates_given_view_masks_and_group_trains_on_them(trut
 
 # ----------------------------------------------------------------------------- Segment Anything
 
-def _fake_hf_cache(root: Path, rev: str = "0123abcd") -> Path:
-    """A Hugging Face cache holding a tiny random SamModel as facebook/sam-vit-base (real layout)."""
-    from ssgwarp.masks import random_sam_model
+def _fake_hf_cache(hf_home: Path) -> Path:
+    """A Hugging Face cache (real layout: blobs, snapshot links, refs/main) under ``hf_home/hub`` holding a
+    tiny random SamModel as facebook/sam-vit-base. Returns the snapshot folder."""
+    from fakeweights import _tree, hf_cache_entry, save_tiny_sam
 
-    repo = root / "hub" / "models--facebook--sam-vit-base"
-    random_sam_model("tiny", seed=0).save_pretrained(repo / "snapshots" / rev)
-    (repo / "refs").mkdir(parents=True)
-    (repo / "refs" / "main").write_text(rev)
-    return repo / "snapshots" / rev
+    from ssgwarp.weights import SPECS
 
-
-def _isolate_weights(mp: pytest.MonkeyPatch, hf_home: Path) -> None:
-    for v in ("SSGWARP_WEIGHTS", "SSGWARP_SAM", "HF_HUB_CACHE"):
-        mp.delenv(v, raising=False)
-    mp.setenv("HF_HOME", str(hf_home))
-    mp.setenv("HF_HUB_OFFLINE", "1")
+    saved = save_tiny_sam(hf_home.parent / "tiny_sam", seed=0)
+    return hf_cache_entry(hf_home / "hub", SPECS["sam"].repo, _tree(saved))
 
 
 def test_mask_filters_nms_and_painting():
@@ -273,8 +266,8 @@ def test_mask_filters_nms_and_painting():
 
 
 def test_masks_command_with_tiny_sam_from_hf_cache(truth, tmp_path, monkeypatch, fail_on_call):
-    """A tiny random SamModel saved with save_pretrained in a fake cache layout, found offline through
-    HF_HOME: `ssgwarp masks` segments every training view (batched prompts), associates, writes the
+    """A tiny random SamModel saved with save_pretrained in the Hugging Face cache layout, found offline
+    through HF_HOME: `ssgwarp masks` segments every training view (batched prompts), associates, writes the
     layout; after Ctrl-C `--resume` segments only the views left; `group --joint` trains on the result."""
     import ssgwarp.masks as M
     from ssgwarp.fileio import read_json
@@ -282,7 +275,7 @@ def test_masks_command_with_tiny_sam_from_hf_cache(truth, tmp_path, monkeypatch,
     gt, cams, images, objects = truth
     run = write_run(tmp_path, gt.scene, cams, images)
     snap = _fake_hf_cache(tmp_path / "hf")
-    _isolate_weights(monkeypatch, tmp_path / "hf")
+    monkeypatch.setenv("HF_HOME", str(tmp_path / "hf"))        # offline, no other weights: conftest
     argv = ["masks", run, "--points-per-side", "6", "--points-per-batch", "16", "--pred-iou-thresh", "0",
             "--stability-thresh", "0", "--quiet", "--device", "cpu"]
     # Ctrl-C while segmenting the third view: the two finished views are kept, nothing else is written
@@ -334,13 +327,12 @@ def test_masks_command_with_tiny_sam_from_hf_cache(truth, tmp_path, monkeypatch,
 def test_missing_sam_weights_is_one_line_naming_the_fetch_command(truth, tmp_path, monkeypatch):
     gt, cams, images, _ = truth
     run = write_run(tmp_path, gt.scene, cams, images)
-    _isolate_weights(monkeypatch, tmp_path / "empty_hf")
-    code, _, err = _main(["masks", run, "--quiet"])
+    code, _, err = _main(["masks", run, "--quiet"])          # conftest: empty caches, downloads off
     assert code == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err
-    assert "ssgwarp weights --download sam" in err and "--sam PATH" in err
+    assert "ssgwarp weights --download sam" in err and "--sam" in err and "SSGWARP_SAM" in err
     assert not (run / "object_mask").exists() and not (run / "masks.json").exists()
     code, _, err = _main(["masks", run, "--sam", tmp_path / "nowhere", "--quiet"])
-    assert code == 2 and str(tmp_path / "nowhere") in err and "--sam PATH" in err
+    assert code == 2 and str(tmp_path / "nowhere") in err and "does not exist" in err
 
 
 # ----------------------------------------------------------------------------- mask-free groups
