@@ -2,7 +2,7 @@
 
 The 3D Gaussian Splatting recipe (Kerbl et al. 2023), one view per step:
 
-* loss ``(1 - 0.2) L1 + 0.2 D-SSIM`` (:mod:`ssgwarp.losses`);
+* loss ``(1 - 0.2) L1 + 0.2 (1 - SSIM)`` (:func:`ssgwarp.losses.photometric`);
 * Adam (eps 1e-15), one parameter group per scene tensor with its own learning
   rate; the position rate decays exponentially from ``1.6e-4`` to ``1.6e-6``
   times the scene extent over the run;
@@ -72,6 +72,7 @@ class Recipe:
     lr_identities: float = 2.5e-3
     adam_eps: float = 1e-15
     lambda_dssim: float = 0.2
+    dssim_scale: float = 1.0           # multiplies the D-SSIM term; 0.5: the halved (1 - SSIM) / 2 of old runs
     sh_interval: Optional[int] = None
     # -- densification (ssgwarp.strategy) --
     refine_start: Optional[int] = None   # first refinement (30k reference: 500)
@@ -326,7 +327,7 @@ class Trainer:
 
     def train_step(self) -> dict:
         """One optimisation step (``self.step`` counts completed steps)."""
-        from .losses import dssim, l1
+        from .losses import photometric
 
         r = self.recipe
         vi = self._next_view()
@@ -350,7 +351,7 @@ class Trainer:
         if self.strategy.uses_means2d_grad and means2d.requires_grad:
             means2d.retain_grad()
         img = out[..., :3]
-        loss = (1.0 - r.lambda_dssim) * l1(img, gt) + r.lambda_dssim * dssim(img, gt)
+        loss = photometric(img, gt, r.lambda_dssim, r.dssim_scale)
         reg = self.strategy.regularizer(self.gaussians)
         if reg is not None:
             loss = loss + reg
@@ -590,16 +591,14 @@ def _to_cpu(obj):
 
 # ----------------------------------------------------------------------------- the stage
 def _lpips_model(device):
-    """LPIPS from local weights, or ``(None, reason)``."""
-    from . import weights
+    """LPIPS (found, or downloaded where allowed: :mod:`ssgwarp.weights`), or ``(None, reason)``."""
+    from .errors import WeightsNotFound
+    from .metrics import load_lpips
 
-    if weights.find("lpips") is None or weights.find("vgg16") is None:
-        return None, ("skipped: no local LPIPS weights (set SSGWARP_LPIPS and SSGWARP_VGG16, "
-                      "or put them under $SSGWARP_WEIGHTS)")
     try:
-        from .metrics import load_lpips
-
         return load_lpips(device=device), None
+    except WeightsNotFound as e:
+        return None, f"skipped: {e}"
     except Exception as e:  # weights present but unusable: report, do not fail the run
         return None, f"skipped: LPIPS weights could not be loaded ({str(e).splitlines()[0] if str(e) else e})"
 
@@ -674,6 +673,7 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
         "seed": seed,
         "device": str(device),
         "resolution": [data.width, data.height],
+        **data.metric_frame,
         "per_view": ev["per_view"],
     }
     r = trainer.recipe
