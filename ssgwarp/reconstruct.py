@@ -58,8 +58,8 @@ class Recipe:
     degree; the refine schedule (``refine_start``, ``refine_stop``, ``refine_every``,
     ``reset_every``) is the strategy's reference schedule at 30,000 steps scaled to ``iters``
     (:func:`ssgwarp.strategy.scaled_schedule`); ``init_opacity``, ``init_scale``,
-    ``opacity_reg`` and ``scale_reg`` are the strategy's (default: 0.1, 1, 0, 0; mcmc: 0.5,
-    0.1, 0.01, 0.01).
+    ``opacity_reg`` and ``scale_reg`` are the strategy's (default: 0.1, 1, 0, 0, and 0.5, 0.1
+    for a scene started from random points; mcmc: 0.5, 0.1, 0.01, 0.01).
     """
 
     lr_means: float = 1.6e-4           # times the scene extent
@@ -96,14 +96,16 @@ class Recipe:
     init_max_points: Optional[int] = None  # subsample the initial points (None: all)
     identity_init_std: float = 0.1
 
-    def resolved(self, iters: int, sh_degree: int, strategy="default") -> "Recipe":
-        """The recipe with every None field set for a run of ``iters`` steps with ``strategy``."""
+    def resolved(self, iters: int, sh_degree: int, strategy="default", random_init: bool = False) -> "Recipe":
+        """The recipe with every None field set for a run of ``iters`` steps with ``strategy``
+        (``random_init``: the initial scene comes from random points)."""
         from .strategy import make_strategy
 
         r = self
         if r.sh_interval is None:
             r = replace(r, sh_interval=max(1, min(1000, iters // (2 * max(1, sh_degree)))))
-        fill = {k: v for k, v in make_strategy(strategy).defaults(iters).items() if getattr(r, k) is None}
+        fill = {k: v for k, v in make_strategy(strategy).defaults(iters, random_init).items()
+                if getattr(r, k) is None}
         r = replace(r, **fill)
         if r.reset_every is None:
             r = replace(r, reset_every=0)
@@ -197,7 +199,8 @@ class Trainer:
         self.sh_degree = int(sh_degree)
         self.max_gaussians = int(max_gaussians)
         self.strategy = make_strategy(strategy)
-        self.recipe = (recipe or Recipe()).resolved(self.iters, self.sh_degree, self.strategy)
+        random_init = scene is None and getattr(data, "points_source", "") == "random"
+        self.recipe = (recipe or Recipe()).resolved(self.iters, self.sh_degree, self.strategy, random_init)
         self.hooks = list(hooks)
         self.checkpoint_path = Path(checkpoint_path) if checkpoint_path is not None else None
         self.checkpoint_every = int(checkpoint_every)

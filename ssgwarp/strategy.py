@@ -190,6 +190,8 @@ class Strategy:
     budgeted = False            # max_gaussians is a budget the initial scene must fit in
     reference = {"refine_start": REFERENCE_ITERS, "refine_stop": 0, "refine_every": REFERENCE_ITERS}
     recipe_defaults = {"init_opacity": 0.1, "init_scale": 1.0, "opacity_reg": 0.0, "scale_reg": 0.0}
+    # initial Gaussians from random points (a capture without a point cloud): small and half opaque
+    random_init_defaults = {"init_opacity": 0.5, "init_scale": 0.1}
 
     def __init__(self):
         self.recipe = None
@@ -198,10 +200,12 @@ class Strategy:
         self.schedule = Schedule(0, 0, 1)
         self.generator: Optional[torch.Generator] = None
 
-    def defaults(self, iters: int) -> dict:
+    def defaults(self, iters: int, random_init: bool = False) -> dict:
         """Recipe values this strategy resolves when the recipe leaves them None: the schedule
-        scaled to ``iters`` (:func:`scaled_schedule`) and its initialisation / regulariser weights."""
-        return {**scaled_schedule(iters, **self.reference), **self.recipe_defaults}
+        scaled to ``iters`` (:func:`scaled_schedule`) and its initialisation / regulariser weights
+        (``random_init``: the scene starts from random points, not a reconstructed point cloud)."""
+        return {**scaled_schedule(iters, **self.reference), **self.recipe_defaults,
+                **(self.random_init_defaults if random_init else {})}
 
     def setup(self, gaussians: GaussianParams, *, recipe, extent: float, max_gaussians: int, seed: int) -> None:
         """Bind to a run (``recipe`` already resolved); register per-Gaussian statistics in ``gaussians.stats``."""
