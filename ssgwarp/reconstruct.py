@@ -58,8 +58,9 @@ class Recipe:
     degree; the refine schedule (``refine_start``, ``refine_stop``, ``refine_every``,
     ``reset_every``) is the strategy's reference schedule at 30,000 steps scaled to ``iters``
     (:func:`ssgwarp.strategy.scaled_schedule`); ``init_opacity``, ``init_scale``,
-    ``opacity_reg`` and ``scale_reg`` are the strategy's (default: 0.1, 1, 0, 0, and 0.5, 0.1
-    for a scene started from random points; mcmc: 0.5, 0.1, 0.01, 0.01).
+    ``opacity_reg`` and ``scale_reg`` are the strategy's (default: 0.1, 1, 0, 0, the scale
+    thinned for a dense cloud of random points by :func:`ssgwarp.strategy.random_init_scale`;
+    mcmc: 0.5, 0.1, 0.01, 0.01).
     """
 
     lr_means: float = 1.6e-4           # times the scene extent
@@ -96,9 +97,9 @@ class Recipe:
     init_max_points: Optional[int] = None  # subsample the initial points (None: all)
     identity_init_std: float = 0.1
 
-    def resolved(self, iters: int, sh_degree: int, strategy="default", random_init: bool = False) -> "Recipe":
+    def resolved(self, iters: int, sh_degree: int, strategy="default", random_init: Optional[int] = None) -> "Recipe":
         """The recipe with every None field set for a run of ``iters`` steps with ``strategy``
-        (``random_init``: the initial scene comes from random points)."""
+        (``random_init``: the number of initial points when they are random, not a point cloud)."""
         from .strategy import make_strategy
 
         r = self
@@ -199,8 +200,11 @@ class Trainer:
         self.sh_degree = int(sh_degree)
         self.max_gaussians = int(max_gaussians)
         self.strategy = make_strategy(strategy)
-        random_init = scene is None and getattr(data, "points_source", "") == "random"
-        self.recipe = (recipe or Recipe()).resolved(self.iters, self.sh_degree, self.strategy, random_init)
+        recipe = recipe or Recipe()
+        random_init = None
+        if scene is None and getattr(data, "points_source", "") == "random" and data.points is not None:
+            random_init = self._initial_count(len(data.points[0]), recipe)
+        self.recipe = recipe.resolved(self.iters, self.sh_degree, self.strategy, random_init)
         self.hooks = list(hooks)
         self.checkpoint_path = Path(checkpoint_path) if checkpoint_path is not None else None
         self.checkpoint_every = int(checkpoint_every)
@@ -249,10 +253,8 @@ class Trainer:
             raise InputError("the capture has no initial points (and none were generated); pass a scene")
         xyz, rgb = self.data.points
         xyz, rgb = xyz.float().cpu(), rgb.float().cpu()
-        m = self.recipe.init_max_points
-        if self.strategy.budgeted:  # the budget holds from the start
-            m = self.max_gaussians if m is None else min(m, self.max_gaussians)
-        if m is not None and len(xyz) > m:
+        m = self._initial_count(len(xyz), self.recipe)
+        if len(xyz) > m:
             g = torch.Generator().manual_seed(self.seed + 3)
             idx = torch.randperm(len(xyz), generator=g)[:m].sort().values
             xyz, rgb = xyz[idx], rgb[idx]
@@ -264,6 +266,12 @@ class Trainer:
         scale = knn_mean_distance(xyz, k=3).clamp_min(1e-7) * self.recipe.init_scale
         return GaussianScene.from_points(xyz, rgb.to(self.device), sh_degree=0,
                                          opacity=self.recipe.init_opacity, scale=scale)
+
+    def _initial_count(self, n: int, recipe: Recipe) -> int:
+        """How many of ``n`` capture points start the scene (``init_max_points``; the budget of a budgeted strategy)."""
+        if recipe.init_max_points is not None:
+            n = min(n, recipe.init_max_points)
+        return min(n, self.max_gaussians) if self.strategy.budgeted else n
 
     def _lr(self, name: str) -> float:
         r = self.recipe

@@ -46,6 +46,21 @@ from .errors import InputError
 REFERENCE_ITERS = 30_000      # the run length the 3DGS / 3DGS-MCMC schedules were set for
 MIN_REFINE_EVERY = 100        # steps between refinements, at least: new Gaussians need about that long to settle
 MIN_RESET_EVERY = 300         # an opacity reset needs a few hundred steps to recover (logits move ~lr per step)
+RANDOM_INIT_POINTS = 1000     # random initial clouds denser than this start with smaller Gaussians (random_init_scale)
+
+
+def random_init_scale(n_points: int) -> float:
+    """Initial scale (times the 3-nearest-neighbour distance) of ``n_points`` random points.
+
+    Random points fill the cameras' view, and Gaussians as wide as their neighbour distance
+    make a fog whose optical depth along a ray grows as ``N^(1/3)`` (density ``N / V`` times
+    cross-section ``(V / N)^(2/3)`` times depth ``V^(1/3)``); a thick fog takes a short run all
+    its steps to clear. Scaling the widths by ``(1000 / N)^(1/6)`` keeps the fog of any denser
+    cloud at that of 1,000 points. Measured (held-out PSNR): lego, 100k random points, 500
+    steps: 15.36 dB at scale 1, 25.41 dB at 0.46 (this rule), 25.48 dB at 0.3; the demo's
+    600-point scene, 150 steps: 18.8 dB at scale 1 (the rule leaves it), 15.4 dB at 0.46.
+    """
+    return min(1.0, (RANDOM_INIT_POINTS / max(1, int(n_points))) ** (1.0 / 6.0))
 
 
 @dataclass(frozen=True)
@@ -190,8 +205,6 @@ class Strategy:
     budgeted = False            # max_gaussians is a budget the initial scene must fit in
     reference = {"refine_start": REFERENCE_ITERS, "refine_stop": 0, "refine_every": REFERENCE_ITERS}
     recipe_defaults = {"init_opacity": 0.1, "init_scale": 1.0, "opacity_reg": 0.0, "scale_reg": 0.0}
-    # initial Gaussians from random points (a capture without a point cloud): small and half opaque
-    random_init_defaults = {"init_opacity": 0.5, "init_scale": 0.1}
 
     def __init__(self):
         self.recipe = None
@@ -200,12 +213,12 @@ class Strategy:
         self.schedule = Schedule(0, 0, 1)
         self.generator: Optional[torch.Generator] = None
 
-    def defaults(self, iters: int, random_init: bool = False) -> dict:
+    def defaults(self, iters: int, random_init: Optional[int] = None) -> dict:
         """Recipe values this strategy resolves when the recipe leaves them None: the schedule
-        scaled to ``iters`` (:func:`scaled_schedule`) and its initialisation / regulariser weights
-        (``random_init``: the scene starts from random points, not a reconstructed point cloud)."""
-        return {**scaled_schedule(iters, **self.reference), **self.recipe_defaults,
-                **(self.random_init_defaults if random_init else {})}
+        scaled to ``iters`` (:func:`scaled_schedule`) and its initialisation / regulariser weights.
+        ``random_init``: the number of initial points when they are random (no point cloud)."""
+        return {**scaled_schedule(iters, **self.reference), **self.recipe_defaults}
+
 
     def setup(self, gaussians: GaussianParams, *, recipe, extent: float, max_gaussians: int, seed: int) -> None:
         """Bind to a run (``recipe`` already resolved); register per-Gaussian statistics in ``gaussians.stats``."""
@@ -263,6 +276,12 @@ class DefaultStrategy(Strategy):
     name = "default"
     uses_means2d_grad = True
     reference = {"refine_start": 500, "refine_stop": 15_000, "refine_every": 100, "reset_every": 3000}
+
+    def defaults(self, iters: int, random_init: Optional[int] = None) -> dict:
+        out = super().defaults(iters, random_init)
+        if random_init:  # the 3DGS start, thinned for dense random clouds
+            out["init_scale"] = random_init_scale(random_init)
+        return out
 
     def setup(self, gaussians, *, recipe, extent, max_gaussians, seed) -> None:
         super().setup(gaussians, recipe=recipe, extent=extent, max_gaussians=max_gaussians, seed=seed)

@@ -352,11 +352,13 @@ def test_schedule_scales_with_the_run_length():
     mc = Recipe().resolved(500, 3, "mcmc")
     assert (mc.refine_start, mc.refine_stop, mc.refine_every, mc.reset_every) == (100, 417, 100, 0)
     assert (mc.init_opacity, mc.init_scale, mc.opacity_reg, mc.scale_reg) == (0.5, 0.1, 0.01, 0.01)
-    # the default strategy starts SfM points as 3DGS does and random points small and half opaque
+    # the default strategy starts as 3DGS does; a dense random cloud with narrower Gaussians
     assert (short.init_opacity, short.init_scale, short.opacity_reg) == (0.1, 1.0, 0.0)
-    rnd = Recipe().resolved(500, 3, "default", random_init=True)
-    assert (rnd.init_opacity, rnd.init_scale, rnd.opacity_reg) == (0.5, 0.1, 0.0)
-    assert Recipe(init_scale=2.0).resolved(500, 3, "default", random_init=True).init_scale == 2.0
+    rnd = Recipe().resolved(500, 3, "default", random_init=100_000)
+    assert rnd.init_opacity == 0.1 and math.isclose(rnd.init_scale, 0.01 ** (1 / 6)) and rnd.opacity_reg == 0.0
+    assert Recipe().resolved(500, 3, "default", random_init=600).init_scale == 1.0   # sparse: the 3DGS start
+    assert Recipe(init_scale=2.0).resolved(500, 3, "default", random_init=100_000).init_scale == 2.0
+    assert Recipe().resolved(500, 3, "mcmc", random_init=100_000).init_scale == 0.1
     long = Recipe().resolved(60000, 3)  # longer runs stretch every interval
     assert (long.refine_start, long.refine_stop, long.refine_every, long.reset_every) == (1000, 30000, 200, 6000)
     kept = Recipe(refine_start=3, refine_every=7).resolved(500, 3)  # given values are kept
