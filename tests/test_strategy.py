@@ -355,8 +355,8 @@ def test_schedule_scales_with_the_run_length():
     # the default strategy starts as 3DGS does; a dense random cloud with narrower Gaussians
     assert (short.init_opacity, short.init_scale, short.opacity_reg) == (0.1, 1.0, 0.0)
     rnd = Recipe().resolved(500, 3, "default", random_init=100_000)
-    assert rnd.init_opacity == 0.1 and math.isclose(rnd.init_scale, 0.01 ** (1 / 6)) and rnd.opacity_reg == 0.0
-    assert Recipe().resolved(500, 3, "default", random_init=600).init_scale == 1.0   # sparse: the 3DGS start
+    assert rnd.init_opacity == 0.1 and math.isclose(rnd.init_scale, 0.02 ** (1 / 6)) and rnd.opacity_reg == 0.0
+    assert Recipe().resolved(500, 3, "default", random_init=2000).init_scale == 1.0   # sparse: the 3DGS start
     assert Recipe(init_scale=2.0).resolved(500, 3, "default", random_init=100_000).init_scale == 2.0
     assert Recipe().resolved(500, 3, "mcmc", random_init=100_000).init_scale == 0.1
     long = Recipe().resolved(60000, 3)  # longer runs stretch every interval
