@@ -17,6 +17,7 @@ import traceback
 from pathlib import Path
 from typing import Optional, Sequence
 
+from . import weights
 from .errors import SsgwarpError
 
 # name -> (module, one-line help, examples)
@@ -131,8 +132,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             return 0
         seed_everything(args.seed)
         args.device = resolve_device(args.device)
-        from . import weights
-
         with weights.offline("--offline") if args.offline else contextlib.nullcontext():
             return int(module.run(args) or 0)
     except SsgwarpError as e:

@@ -31,6 +31,8 @@ from typing import Optional
 import numpy as np
 
 from .errors import InputError
+from .fileio import atomic_path
+from .lens import Lens
 
 # model id -> (name, number of parameters), as in COLMAP's camera model list
 MODELS: dict[int, tuple[str, int]] = {
@@ -83,8 +85,6 @@ class ColmapCamera:
     @property
     def lens(self):
         """The distortion as a :class:`ssgwarp.lens.Lens` (None for the pinhole models)."""
-        from .lens import Lens
-
         if self.model in ("SIMPLE_PINHOLE", "PINHOLE"):
             return None
         if self.model not in SUPPORTED:
@@ -484,8 +484,6 @@ def read_model(folder: str | Path, points: bool = True) -> ColmapModel:
 def write_model_text(folder: str | Path, cameras: dict[int, ColmapCamera], images: dict[int, ColmapImage],
                      points: Optional[ColmapPoints] = None) -> None:
     """Write a model in COLMAP's text format (atomically, file by file)."""
-    from .fileio import atomic_path
-
     folder = Path(folder)
     lines = ["# Camera list: CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"]
     for c in cameras.values():

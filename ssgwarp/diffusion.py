@@ -45,7 +45,11 @@ from typing import Any, Mapping, Optional, Sequence
 import numpy as np
 import torch
 
+from . import weights as W
+from .cvsa import cvsa_enabled
 from .errors import InputError, SsgwarpError, WeightsNotFound
+from .fileio import read_image
+from .imaging import save_sheet  # noqa: F401 (re-exported: part of this module's API)
 
 __all__ = ["Stage1Config", "Stage1Models", "load_stage1", "assemble_stage1", "load_ip_adapter",
            "read_ip_adapter", "set_ip_adapter_scales", "depth_to_control", "clip_preprocess", "schedule",
@@ -165,8 +169,6 @@ def missing_weights(cfg: Stage1Config, download: Optional[bool] = None) -> list[
     downloaded into the Hugging Face cache unless downloads are off (``download=False``,
     ``--offline``, ``HF_HUB_OFFLINE=1``, ...) or an explicit path is wrong.
     """
-    from . import weights as W
-
     found = {k: W.find(k, getattr(cfg, k), cfg.weights) for k in WEIGHT_KEYS}
     out = [W.message(k, getattr(cfg, k)) for k in WEIGHT_KEYS if found[k] is None and getattr(cfg, k)]
     if out:         # a wrong explicit path: report, fetch nothing
@@ -186,8 +188,6 @@ def missing_weights(cfg: Stage1Config, download: Optional[bool] = None) -> list[
 
 
 def _paths(cfg: Stage1Config) -> dict[str, Path]:
-    from . import weights as W
-
     missing = missing_weights(cfg)
     if missing:
         raise WeightsNotFound("Stage 1 needs local weights: " + " | ".join(missing))
@@ -204,8 +204,6 @@ def load_stage1(cfg: Stage1Config, device) -> Stage1Models:
     """
     from diffusers import AutoencoderKL, ControlNetModel, DDIMScheduler, UNet2DConditionModel
     from transformers import CLIPTextModel, CLIPTokenizer, CLIPVisionModelWithProjection
-
-    from . import weights as W
 
     cfg.validate()
     p = _paths(cfg)
@@ -515,8 +513,6 @@ def ddim_denoise(models: Stage1Models, latents: torch.Tensor, sched: tuple, text
     the K views of each half share self-attention on ``cvsa_blocks``.
     ``eta > 0`` draws noise from ``generator`` (CPU) for reproducibility.
     """
-    from .cvsa import cvsa_enabled
-
     ts, alphas, a_final = sched
     K = latents.shape[0]
     w = float(guidance)
@@ -546,7 +542,6 @@ def ddim_denoise(models: Stage1Models, latents: torch.Tensor, sched: tuple, text
 # -- Stage 1 ---------------------------------------------------------------------------------------
 def _style_tensor(style) -> torch.Tensor:
     if isinstance(style, (str, Path)):
-        from .fileio import read_image
         style = read_image(style, 3)
     t = torch.as_tensor(np.asarray(style) if not isinstance(style, torch.Tensor) else style).float()
     if t.ndim != 3 or t.shape[-1] < 3:
@@ -604,32 +599,6 @@ def stylize_keyviews(keyviews, style_image, cfg: Stage1Config, device, models: O
                   "(no stylized key views).", file=sys.stderr)
             return None
     return stylize_views(models, keyviews.rgb, keyviews.depth, style_image, cfg, alpha=keyviews.alpha)
-
-
-def save_sheet(original, stylized, path: str | Path, gap: int = 4) -> Path:
-    """Side-by-side sheet, one row per view: original | stylized (white gaps), written atomically."""
-    from .fileio import write_image
-
-    def np_(x):
-        x = x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
-        return np.clip(x.astype(np.float32), 0.0, 1.0)
-
-    a, b = np_(original), np_(stylized)
-    if a.ndim == 3:
-        a, b = a[None], b[None]
-    if a.shape[0] != b.shape[0]:
-        raise InputError(f"save_sheet: {a.shape[0]} originals but {b.shape[0]} stylized views")
-    H, W = a.shape[1], a.shape[2]
-    if b.shape[1:3] != (H, W):
-        from .keyviews import _resize
-        b = _resize(torch.from_numpy(b), W, H).numpy()
-    rows = []
-    for i in range(a.shape[0]):
-        g = np.ones((H, gap, 3), np.float32)
-        rows.append(np.concatenate([a[i, ..., :3], g, b[i, ..., :3]], axis=1))
-        if i + 1 < a.shape[0]:
-            rows.append(np.ones((gap, 2 * W + gap, 3), np.float32))
-    return write_image(path, np.concatenate(rows, axis=0))
 
 
 # -- CLI helpers (used by `ssgwarp stylize`) ----------------------------------------------------------

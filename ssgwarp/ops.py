@@ -17,7 +17,6 @@ import warp as wp
 
 from . import launch as L
 from .kernels import binning, blend_backward, blend_forward, projection, sh, validate
-from .kernels.types import channel_vector, types_for
 from .launch import NULL, arr, rows
 
 Tensor = torch.Tensor
@@ -267,7 +266,7 @@ class _SH(torch.autograd.Function):
         shape = dirs.shape[:-1]
         d = _c(dirs).reshape(-1, 3)
         c = _c(coeffs).reshape(d.shape[0], -1, 3)
-        M, K = c.shape[0], c.shape[1]
+        M = c.shape[0]
         s = _scalar(dirs.dtype)
         out = torch.empty_like(d)
         L.launch(sh.sh_kernel(s, degree), (1, M), [*L.grid(d, 1, M, 3, True), *_coeff_rows(c), *arr(out, 3)], L.target(d))

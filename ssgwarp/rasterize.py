@@ -12,7 +12,6 @@ rule shared by both in ``kernels/pixel.py``.
 """
 from __future__ import annotations
 
-import math
 from typing import Optional
 
 import torch

@@ -14,8 +14,12 @@ import numpy as np
 import torch
 
 from .cameras import Cameras
+from .colmap import rotmat_to_qvec
+from .datasets import load_run
 from .errors import InputError
-from .fileio import claim_output_dir
+from .fileio import claim_output_dir, write_image
+from .reconstruct import render_views
+from .reference import quat_to_rotmat
 
 log = logging.getLogger("ssgwarp.render")
 
@@ -23,14 +27,10 @@ log = logging.getLogger("ssgwarp.render")
 # ----------------------------------------------------------------------------- rotations
 def _rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
     """wxyz quaternions ``[C, 4]`` of rotation matrices ``[C, 3, 3]`` (float64)."""
-    from .colmap import rotmat_to_qvec
-
     return torch.from_numpy(np.stack([rotmat_to_qvec(r) for r in R.cpu().numpy()]))
 
 
 def _quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
-    from .reference import quat_to_rotmat
-
     return quat_to_rotmat(q)
 
 
@@ -162,9 +162,6 @@ def render_cameras(scene, cameras: Cameras, out_dir: str | Path, *, background=(
     """Render ``scene`` from each camera to ``out_dir/<name>.png``. Returns the written paths."""
     from tqdm import tqdm
 
-    from .fileio import write_image
-    from .reconstruct import render_views
-
     out_dir = Path(out_dir)
     names = names or list(cameras.names)
     cams = cameras.to(scene.device)
@@ -190,8 +187,6 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from .datasets import load_run
-
     scene, data = load_run(args.scene_dir, args.device, load_images=False)
     ids = data.split(args.split)
     if not ids:

@@ -14,6 +14,8 @@ import torch
 
 from .cameras import Cameras
 from .errors import InputError
+from .rasterize import rasterization
+from .sh import spherical_harmonics
 
 SH_C0 = 0.28209479177387814
 
@@ -176,9 +178,6 @@ class GaussianScene:
         blending pass. ``kwargs`` are passed on (``render_mode``,
         ``backgrounds``, knobs...). Returns ``(colors [C,H,W,D], alphas [C,H,W,1], meta)``.
         """
-        from .rasterize import rasterization
-        from .sh import spherical_harmonics
-
         deg = self.sh_degree if sh_degree is None else min(sh_degree, self.sh_degree)
         C = len(cameras)
         parts = []

@@ -305,7 +305,7 @@ def test_cap_and_min_fraction():
 # -- determinism, interruption and resume ------------------------------------------------------------
 
 def test_deterministic_for_a_seed_and_resume_after_interrupt(tmp_path, synth, monkeypatch, fail_on_call):
-    import ssgwarp.grouping as grouping
+    import ssgwarp.grouping_train as grouping  # (the training loop calls mask_loss there)
     from ssgwarp.grouping import GroupConfig, train_identities
     from ssgwarp.pseudomasks import pseudo_masks
 
