@@ -45,11 +45,7 @@ import numpy as np
 import torch
 
 from .cameras import Cameras
-from .colmap import _pick, find_model, read_cameras, read_model, read_points3d
 from .errors import InputError
-from .fileio import read_image, read_json
-from .lens import Lens, plan_undistortion
-from .ply import read_ply
 
 log = logging.getLogger("ssgwarp.datasets")
 
@@ -170,6 +166,8 @@ def _as_path(p) -> Path:
 
 def detect_format(path: str | Path) -> str:
     """``"transforms"``, ``"colmap"`` or ``"llff"`` for a data folder (InputError if none fits)."""
+    from .colmap import find_model
+
     path = _as_path(path)
     if not path.exists():
         raise InputError(f"{path}: data folder not found")
@@ -236,6 +234,9 @@ def _load_images(paths: Sequence[Path], background, width: Optional[int],
     resolution, before any resize). Returns ``(images [C, H, W, 3], Ks [C, 3, 3] float64 of those
     images, the undistortion record or None)``.
     """
+    from .fileio import read_image
+    from .lens import plan_undistortion
+
     from tqdm import tqdm
 
     if width is not None and width <= 0:
@@ -369,6 +370,8 @@ def focus_point(cameras: Cameras) -> torch.Tensor:
 
 # ----------------------------------------------------------------------------- formats
 def _load_colmap(root: Path, images: str, max_images, width, background, **_):
+    from .colmap import find_model, read_model
+
     model = read_model(find_model(root))
     if not model.images:
         raise InputError(f"{model.path}: the COLMAP model has no registered images")
@@ -409,6 +412,8 @@ def _load_colmap(root: Path, images: str, max_images, width, background, **_):
 
 
 def _load_llff(root: Path, images: str, max_images, width, background, num_random_points, seed, **_):
+    from .colmap import find_model, read_cameras, read_points3d, _pick
+
     pb_path = root / "poses_bounds.npy"
     try:
         pb = np.load(pb_path, allow_pickle=False)
@@ -499,6 +504,8 @@ _TRANSFORMS_MODELS = ("OPENCV", "OPENCV_FISHEYE", "PINHOLE", "SIMPLE_PINHOLE")
 def _transforms_lens(meta: dict, where: str):
     """The lens of a transforms.json camera: ``k1 k2 k3 p1 p2`` (OpenCV, k3 the r^6 term), or with
     instant-ngp's ``is_fisheye`` / nerfstudio's ``camera_model: OPENCV_FISHEYE`` the fisheye ``k1..k4``."""
+    from .lens import Lens
+
     model = str(meta.get("camera_model", "")).upper()
     if model and model not in _TRANSFORMS_MODELS:
         raise InputError(f"{where}: camera_model {meta['camera_model']} is not supported (supported: "
@@ -524,6 +531,8 @@ def _transforms_lens(meta: dict, where: str):
 
 
 def _load_transforms(root: Path, images: str, max_images, width, background, num_random_points, seed, **_):
+    from .fileio import read_json
+
     if (root / "transforms.json").is_file():
         sources = [(root / "transforms.json", False)]
     else:
@@ -675,6 +684,9 @@ def load_run(scene_dir: str | Path, device=None, *, data_dir: Optional[str | Pat
     reloaded from the capture (``data_dir`` overrides the recorded folder, e.g. after
     moving it). With ``load_images=False`` the images are left black (cameras only).
     """
+    from .fileio import read_json
+    from .ply import read_ply
+
     scene_dir = _as_path(scene_dir)
     if not scene_dir.is_dir():
         raise InputError(f"{scene_dir}: run folder not found")
