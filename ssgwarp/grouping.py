@@ -56,13 +56,15 @@ from .errors import InputError, SsgwarpError
 from .fileio import atomic_path, read_json, write_image, write_json
 from .grouping_agreement import neighbour_pairs, plot_training, reprojection_agreement
 from .grouping_masks import MaskSet, find_mask, load_masks, read_id_image, resize_nearest
-from .grouping_model import (DEFAULT_DIM, FORMAT, GroupConfig, GroupModel, gaussian_groups, group_labels, init_identities,
-                             knn_indices, load_groups, make_classifier, mask_loss, regularizer_3d, render_group_maps)
+from .geometry import knn_indices
+from .grouping_model import (DEFAULT_DIM, FORMAT, GroupConfig, GroupModel, gaussian_groups, group_labels,
+                             init_identities, load_groups, make_classifier, mask_loss, regularizer_3d,
+                             render_group_maps)
 from .grouping_train import GroupingHook, train_identities
 from .masks import read_record
 from .palette import colorize_labels
 from .ply import read_ply, write_ply
-from .pseudomasks import ClusterConfig, IGNORE, pseudo_masks
+from .pseudomasks import IGNORE, ClusterConfig, pseudo_masks
 from .scene import GaussianScene
 
 Tensor = torch.Tensor

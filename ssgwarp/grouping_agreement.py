@@ -15,6 +15,7 @@ import torch
 
 from .cameras import Cameras
 from .fileio import atomic_path
+from .geometry import project, unproject
 from .scene import GaussianScene
 
 Tensor = torch.Tensor
@@ -61,22 +62,11 @@ def reprojection_agreement(scene: GaussianScene, cameras: Cameras, labels: Tenso
             d, a, _ = scene.render(cams[i], render_mode="ED")
             depth[i], alpha[i] = d[0, ..., 0], a[0, ..., 0]
     H, W = cams.height, cams.width
-    ys, xs = torch.meshgrid(torch.arange(H, device=dev, dtype=dt), torch.arange(W, device=dev, dtype=dt),
-                            indexing="ij")
     out, tot_agree, tot = [], 0, 0
     for a, b in pairs:
-        Ka, Kb = cams.Ks[a], cams.Ks[b]
-        da = depth[a]
-        ok = alpha[a] >= alpha_min
-        x = (xs + 0.5 - Ka[0, 2]) / Ka[0, 0] * da
-        y = (ys + 0.5 - Ka[1, 2]) / Ka[1, 1] * da
-        pc = torch.stack([x, y, da, torch.ones_like(da)], dim=-1)                 # [H,W,4] camera a
-        pw = pc @ cams.camtoworlds[a].T
-        pb = pw @ cams.viewmats[b].T
-        zb = pb[..., 2]
-        ub = Kb[0, 0] * pb[..., 0] / zb.clamp_min(1e-9) + Kb[0, 2]
-        vb = Kb[1, 1] * pb[..., 1] / zb.clamp_min(1e-9) + Kb[1, 2]
-        ok = ok & (zb > 1e-6) & (ub >= 0) & (ub < W) & (vb >= 0) & (vb < H)
+        uv, zb = project(unproject(depth[a], cams.Ks[a], cams.viewmats[a]), cams.viewmats[b], cams.Ks[b])
+        ub, vb = uv[..., 0], uv[..., 1]
+        ok = (alpha[a] >= alpha_min) & (zb > 1e-6) & (ub >= 0) & (ub < W) & (vb >= 0) & (vb < H)
         ui = ub.floor().long().clamp(0, W - 1)
         vi = vb.floor().long().clamp(0, H - 1)
         db = depth[b][vi, ui]

@@ -22,6 +22,7 @@ from tqdm.auto import tqdm
 from .cameras import Cameras
 from .errors import InputError
 from .fileio import read_json
+from .geometry import knn_indices
 from .scene import GaussianScene
 
 Tensor = torch.Tensor
@@ -157,29 +158,6 @@ def mask_loss(logits: Tensor, targets: Tensor, num_groups: int) -> Tensor:
         return flat_l.sum() * 0.0
     ce = F.cross_entropy(flat_l[valid], flat_t[valid])
     return ce / math.log(num_groups) if num_groups > 1 else ce
-
-
-def knn_indices(queries: Tensor, points: Tensor, k: int, *, exclude: Optional[Tensor] = None,
-                chunk: int = 65536) -> Tensor:
-    """``[M, k]`` indices into ``points [P, 3]`` of each query's k nearest points.
-
-    ``exclude [M]`` (an index into ``points`` per query, e.g. the query itself)
-    is never returned. Exact, chunked over the points.
-    """
-    M, P = queries.shape[0], points.shape[0]
-    k = min(k, P - (1 if exclude is not None else 0))
-    best_d = torch.full((M, 0), float("inf"), dtype=queries.dtype, device=queries.device)
-    best_i = torch.zeros((M, 0), dtype=torch.long, device=queries.device)
-    for s in range(0, P, chunk):
-        d = torch.cdist(queries, points[s:s + chunk])
-        idx = torch.arange(s, s + d.shape[1], device=queries.device)[None].expand(M, -1)
-        if exclude is not None:
-            d = d.masked_fill(idx == exclude[:, None], float("inf"))
-        d = torch.cat([best_d, d], dim=1)
-        idx = torch.cat([best_i, idx], dim=1)
-        top = d.topk(min(k, d.shape[1]), dim=1, largest=False)
-        best_d, best_i = top.values, idx.gather(1, top.indices)
-    return best_i
 
 
 def regularizer_3d(identities: Tensor, means: Tensor, classifier: torch.nn.Linear, *,

@@ -33,22 +33,12 @@ from typing import Optional
 
 import torch
 
+from .geometry import quat_to_rotmat
 from .settings import INPUTS, RasterSettings, check_shapes, raise_for_flags, resolve_arguments
 from .sh import spherical_harmonics
 
 Tensor = torch.Tensor
 RADIUS_LIMIT = 1073741824.0  # radii saturate at 2^30 px (as kernels/projection.py)
-
-
-def quat_to_rotmat(quats: Tensor) -> Tensor:
-    """``[..., 3, 3]`` rotation of wxyz quaternions ``[..., 4]`` (normalised inside)."""
-    q = quats / torch.linalg.vector_norm(quats, dim=-1, keepdim=True)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=-1).reshape(q.shape[:-1] + (3, 3))
 
 
 def extent_sigmas(opacities: Tensor, settings: RasterSettings) -> Tensor:

@@ -147,7 +147,7 @@ def test_mask_loss_and_3d_regulariser():
 
     pts = torch.rand(200, 3, generator=g)
     q = torch.arange(0, 200, 7)
-    nn_idx = knn_indices(pts[q], pts, 5, exclude=q, chunk=64)
+    nn_idx = knn_indices(pts[q], pts, 5, exclude=q, block=len(q) * 64)  # blocks of 64 points
     d = torch.cdist(pts[q], pts)
     d[torch.arange(len(q)), q] = float("inf")
     assert torch.equal(nn_idx.sort(1).values, d.topk(5, largest=False).indices.sort(1).values)
