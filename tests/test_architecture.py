@@ -24,7 +24,7 @@ OVERSIZED_MODULES = {
     "ssgwarp/reconstruct.py", "ssgwarp/stylize.py", "ssgwarp/weights.py", "viewer/app.py",
 }
 OVERSIZED_FUNCTIONS = {
-    "ssgwarp/association.py:associate", "ssgwarp/demo.py:run_demo", "ssgwarp/stylize.py:stylize_run",
+    "ssgwarp/demo.py:run_demo", "ssgwarp/stylize.py:stylize_run",
     # the projection kernel (and its factory) in one piece: its maths shared with the adjoint Warp generates
     "kernels/projection.py:projection_kernel", "kernels/projection.py:project",
 }
