@@ -187,7 +187,10 @@ def launch_paths(device: torch.device, launches: int) -> list[dict]:
 
     def via_record_cmd():
         for i, v in enumerate(warp_args()):
-            rec.set_param_at_index_from_ctype(i, v)
+            if wp.types.is_struct(v):  # (a parameter block: Warp packs it)
+                rec.set_param_at_index(i, v)
+            else:
+                rec.set_param_at_index_from_ctype(i, v)
         rec.launch(stream)
 
     def via_ssgwarp():
