@@ -282,11 +282,13 @@ def run_demo(out: str | Path = "ssgwarp-demo", size="default", *, device=None, s
              matching=sm["matching"], nnfm=_nnfm_history(styl_dir / "stage2.ckpt"),
              substages={k: round(v, 3) for k, v in sm["seconds"].items()},
              gram_style_loss=sm["gram_style_loss"], gram_style_loss_original=sm["gram_style_loss_original"],
+             style_distance=sm["style_distance"], style_distance_original=sm["style_distance_original"],
              content_loss=sm["content_loss"], extractor=sm["extractor"], keyviews=sm["keyviews"])
     sty = stages["stylize"]
     times["stylize"] = sty["seconds"]
-    say(f"      Stage 2 matched {sty['matching']}; Gram style loss {_fmt(sty['gram_style_loss_original'])} -> "
-        f"{_fmt(sty['gram_style_loss'])}, content loss {_fmt(sty['content_loss'])}")
+    say(f"      Stage 2 matched {sty['matching']}; {_distances(sty)}; Gram style loss "
+        f"{_fmt(sty['gram_style_loss_original'])} -> {_fmt(sty['gram_style_loss'])}, content loss "
+        f"{_fmt(sty['content_loss'])}")
 
     # -- 5. evaluate ------------------------------------------------------------------------------
     from .evaluate import EvalOptions, comparison_table, evaluate_run, load_models
@@ -334,7 +336,7 @@ def run_demo(out: str | Path = "ssgwarp-demo", size="default", *, device=None, s
     style = torch.from_numpy(read_image(out / "style.png", 3))
     title = (f"ssgwarp demo ({name}): {rec['gaussians']} Gaussians, PSNR {_fmt(rec['psnr'], '.2f')} dB, "
              f"K={grp['groups']} groups, Stage 1 {'ran' if sty['stage1'].get('ran') else 'skipped (no weights)'}, "
-             f"Gram style loss {_fmt(sty['gram_style_loss_original'], '.3g')} -> {_fmt(sty['gram_style_loss'], '.3g')}")
+             f"{_distances(sty)}")
     sheet = _contact_sheet(out / "contact_sheet.png", rows, style, title)
     times["sheet"] = time.perf_counter() - t0
     done("sheet", seconds=times["sheet"])
@@ -351,6 +353,7 @@ def run_demo(out: str | Path = "ssgwarp-demo", size="default", *, device=None, s
         "stage1": sty["stage1"], "stage1_missing_weights": sty.get("stage1_missing", []),
         "matching": sty["matching"], "extractor": sty["extractor"], "nnfm_style_loss": sty.get("nnfm"),
         "gram_style_loss_original": sty["gram_style_loss_original"], "gram_style_loss": sty["gram_style_loss"],
+        "style_distance_original": sty.get("style_distance_original"), "style_distance": sty.get("style_distance"),
         "content_loss": sty["content_loss"],
         "consistency_rmse": {"reconstruction": {"short": rmse(ev_rec, "short"), "long": rmse(ev_rec, "long")},
                              "stylized": {"short": rmse(ev_sty, "short"), "long": rmse(ev_sty, "long")}},
@@ -360,6 +363,15 @@ def run_demo(out: str | Path = "ssgwarp-demo", size="default", *, device=None, s
     }
     write_json(out / "summary.json", summary)
     return summary
+
+
+def _distances(d: dict) -> str:
+    """'style distance colour a -> b, texture c -> d' (weight-free, lower = closer), or '' when absent."""
+    b, a = d.get("style_distance_original") or {}, d.get("style_distance") or {}
+    if not a:
+        return "style distance n/a"
+    return (f"style distance colour {_fmt(b.get('color'), '.3g')} -> {_fmt(a.get('color'), '.3g')}, "
+            f"texture {_fmt(b.get('texture'), '.3g')} -> {_fmt(a.get('texture'), '.3g')}")
 
 
 def _nnfm_history(ckpt: Path) -> Optional[list[float]]:
@@ -412,8 +424,8 @@ def format_summary(s: dict) -> str:
         f"  {'  renders + metrics':<22}{sub.get('renders', 0) + sub.get('metrics', 0):>8.1f}s",
         f"  {'evaluate':<22}{sec.get('evaluate', 0):>8.1f}s",
         f"  {'contact sheet':<22}{sec.get('sheet', 0):>8.1f}s",
-        f"  Gram style loss {_fmt(s['gram_style_loss_original'])} -> {_fmt(s['gram_style_loss'])} "
-        f"(features {s['extractor']}), content loss {_fmt(s['content_loss'])}",
+        f"  {_distances(s)}; Gram style loss {_fmt(s['gram_style_loss_original'])} -> "
+        f"{_fmt(s['gram_style_loss'])} (features {s['extractor']}), content loss {_fmt(s['content_loss'])}",
         f"  consistency RMSE (reprojection, short/long range): reconstruction "
         f"{_fmt(c['reconstruction']['short'], '.4f')}/{_fmt(c['reconstruction']['long'], '.4f')}, stylized "
         f"{_fmt(c['stylized']['short'], '.4f')}/{_fmt(c['stylized']['long'], '.4f')}",
