@@ -105,7 +105,7 @@ class Stage2Config:
     style_loss: str = "auto"
     sw_projections: int = 64
     color_transfer: str = "both"
-    color_max_gain: float = 4.0
+    color_max_gain: float = 1.3
     sh_rest: str = "keep"
     free_opacity: bool = False
     label_mode: str = "majority"
@@ -329,7 +329,7 @@ def finetune_loss(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 def transfer_colors(scene: GaussianScene, cameras: Cameras, target: torch.Tensor, *,
                     labels: Optional[torch.Tensor] = None,
                     target_labels: Optional[torch.Tensor] = None, assign: Optional[torch.Tensor] = None,
-                    num_groups: Optional[int] = None, min_pixels: int = 64, max_gain: float = 4.0
+                    num_groups: Optional[int] = None, min_pixels: int = 64, max_gain: float = 1.3
                     ) -> tuple[GaussianScene, dict]:
     """ARF's colour transfer of ``scene``: its renders from ``cameras`` get the colour mean and
     covariance of ``target [V, H, W, 3]`` (the style image or the stylized key views), by one linear
