@@ -4,7 +4,8 @@ Models:
   --arch tiny   random tiny SD-style models (default; runs anywhere in seconds)
   --arch sd15   the SD1.5 / ControlNet / CLIP ViT-L text / ViT-H image encoder architectures with
                 random weights (real compute cost, no weights needed; GPU advised)
-  --arch real   the real weights, found like `ssgwarp stylize` finds them (flags / env / $SSGWARP_WEIGHTS)
+  --arch real   the real weights, found like `ssgwarp stylize` finds them (flags / env / $SSGWARP_WEIGHTS /
+                the Hugging Face cache; fetch them first with `ssgwarp weights --download stage1`)
 
 Each row runs the whole Stage 1 (VAE encode, DDIM inversion, CFG denoising with CVSA, decode) once
 after a warm-up and prints total seconds, seconds per key view and peak GPU memory.
@@ -21,6 +22,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))   # fakeweights: random-weight models
 
 import torch  # noqa: E402
 
@@ -29,7 +31,8 @@ from timing import sync  # noqa: E402
 
 
 def build(args, device):
-    from ssgwarp.diffusion import Stage1Config, assemble_stage1, load_stage1, random_stage1_components
+    from fakeweights import random_stage1_components
+    from ssgwarp.diffusion import Stage1Config, assemble_stage1, load_stage1
 
     cfg = Stage1Config(sd15=args.sd15, controlnet_depth=args.controlnet_depth, ip_adapter=args.ip_adapter,
                        image_encoder=args.image_encoder, dtype=args.dtype, progress=False)

@@ -12,7 +12,7 @@ and reported as such. ``--synthetic N`` builds a stand-in scene (N Gaussians
 sampled around fern's sparse COLMAP points, 8 groups by k-means on position)
 so Stage 2 can be timed at realistic size without a 7k-iteration
 reconstruction. ``--random-stage1 sd15`` runs Stage 1 on randomly initialised
-SD1.5-size models (``ssgwarp.diffusion.random_stage1_components``): the times
+SD1.5-size models (``tests/fakeweights.py``: ``random_stage1_components``): the times
 are those of the real models, the images are noise — so Stage 2 then times
 IST's per-group matching against 4 key views. Results: a markdown table on
 stdout and ``OUT/benchmark.json``.
@@ -30,6 +30,7 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))   # fakeweights: random-weight Stage 1 models
 DATA = ROOT.parent / "shared" / "data"
 
 
@@ -121,7 +122,8 @@ def main() -> int:
                 prep["group"] = time.perf_counter() - t1
     models, s1 = None, None
     if args.random_stage1:
-        from ssgwarp.diffusion import Stage1Config, assemble_stage1, random_stage1_components
+        from fakeweights import random_stage1_components
+        from ssgwarp.diffusion import Stage1Config, assemble_stage1
 
         t0 = time.perf_counter()
         dtype = torch.float16 if device.type == "cuda" else torch.float32

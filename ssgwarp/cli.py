@@ -7,6 +7,7 @@ this file only wires them up and turns user errors into one line + exit code 2
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import json
 import os
@@ -24,8 +25,10 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
              "ssgwarp demo --out ssgwarp-demo"),
     "reconstruct": ("ssgwarp.reconstruct", "3DGS reconstruction of a capture (COLMAP, LLFF, transforms.json)",
                     "ssgwarp reconstruct data/fern --images images_8 --out runs/fern --iters 7000"),
+    "masks": ("ssgwarp.masks", "instance masks of every training view (Segment Anything), associated across views",
+              "ssgwarp masks runs/fern [--sam PATH]"),
     "group": ("ssgwarp.grouping", "Gaussian Grouping: identity encodings and groups (from masks or mask-free)",
-              "ssgwarp group runs/fern [--masks data/fern/object_mask] [--groups 8]"),
+              "ssgwarp group runs/fern [--masks runs/fern/object_mask] [--groups 8]"),
     "keyviews": ("ssgwarp.keyviews", "choose key views and render their RGB, depth and group maps",
                  "ssgwarp keyviews runs/fern --keyviews 4 --out runs/fern/keyviews"),
     "stylize": ("ssgwarp.stylize", "key views, Stage 1 (diffusion + CVSA) and Stage 2 (instance-level style transfer)",
@@ -36,6 +39,9 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
              "ssgwarp view runs/fern/scene.ply --color group --screenshot shot.png"),
     "render": ("ssgwarp.render", "render a scene along its cameras or a smooth path",
                "ssgwarp render runs/fern --out runs/fern/renders [--path]"),
+    "weights": ("ssgwarp.weights", "pretrained models: where each is found (or missing), size, licence; "
+                "--download fetches them into the Hugging Face / torch hub caches",
+                "ssgwarp weights --download stage1 vgg16"),
 }
 
 
@@ -45,6 +51,9 @@ def add_common(p: argparse.ArgumentParser) -> None:
     g.add_argument("--seed", type=int, default=0, help="random seed (runs are repeatable for a seed)")
     g.add_argument("--config", type=Path, default=None,
                    help="JSON file of option defaults (keys are option names, e.g. {\"iters\": 3000})")
+    g.add_argument("--offline", action="store_true",
+                   help="never download pretrained weights (as HF_HUB_OFFLINE=1 / SSGWARP_OFFLINE=1); "
+                        "stages that can run without them do")
     g.add_argument("--debug", action="store_true", help="show tracebacks")
 
 
@@ -122,7 +131,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             return 0
         seed_everything(args.seed)
         args.device = resolve_device(args.device)
-        return int(module.run(args) or 0)
+        from . import weights
+
+        with weights.offline("--offline") if args.offline else contextlib.nullcontext():
+            return int(module.run(args) or 0)
     except SsgwarpError as e:
         if debug:
             traceback.print_exc()

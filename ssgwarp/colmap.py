@@ -12,7 +12,11 @@ z forward (the same as ours). Pixel centres are at integer + 0.5.
 Camera models handled (others are rejected with a clear error):
 ``SIMPLE_PINHOLE (f, cx, cy)``, ``PINHOLE (fx, fy, cx, cy)``,
 ``SIMPLE_RADIAL (f, cx, cy, k)``, ``RADIAL (f, cx, cy, k1, k2)``,
-``OPENCV (fx, fy, cx, cy, k1, k2, p1, p2)``.
+``OPENCV (fx, fy, cx, cy, k1, k2, p1, p2)``,
+``FULL_OPENCV (fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6)``,
+``OPENCV_FISHEYE (fx, fy, cx, cy, k1, k2, k3, k4)``,
+``SIMPLE_RADIAL_FISHEYE (f, cx, cy, k)``, ``RADIAL_FISHEYE (f, cx, cy, k1, k2)``;
+:attr:`ColmapCamera.lens` gives the distortion as a :class:`ssgwarp.lens.Lens`.
 
 Every malformed input (truncated file, bad counts, unknown model, unparsable
 text) raises :class:`~ssgwarp.errors.InputError` naming the file.
@@ -43,7 +47,9 @@ MODELS: dict[int, tuple[str, int]] = {
     10: ("THIN_PRISM_FISHEYE", 12),
 }
 MODEL_IDS = {name: mid for mid, (name, _) in MODELS.items()}
-SUPPORTED = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+_ONE_FOCAL = ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE")
+_TWO_FOCALS = ("PINHOLE", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE")
+SUPPORTED = _ONE_FOCAL + _TWO_FOCALS
 
 
 @dataclass
@@ -56,36 +62,39 @@ class ColmapCamera:
     height: int
     params: np.ndarray  # float64 [num_params]
 
+    def _unsupported(self) -> InputError:
+        return InputError(f"COLMAP camera {self.id}: model {self.model} is not supported (supported: "
+                          f"{', '.join(SUPPORTED)}); undistort the images with colmap image_undistorter and load "
+                          f"its output")
+
     @property
     def K(self) -> np.ndarray:
         """``[3, 3]`` pinhole intrinsics (float64)."""
         p = self.params
-        if self.model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
+        if self.model in _ONE_FOCAL:
             fx = fy = p[0]
             cx, cy = p[1], p[2]
-        elif self.model in ("PINHOLE", "OPENCV"):
+        elif self.model in _TWO_FOCALS:
             fx, fy, cx, cy = p[:4]
         else:
-            raise InputError(f"COLMAP camera {self.id}: model {self.model} is not supported "
-                             f"(supported: {', '.join(SUPPORTED)}); undistort the model with colmap image_undistorter")
+            raise self._unsupported()
         return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=np.float64)
 
     @property
-    def distortion(self) -> np.ndarray:
-        """OpenCV distortion coefficients ``[k1, k2, p1, p2]`` (zeros for pinhole models)."""
-        p = self.params
-        d = np.zeros(4, dtype=np.float64)
-        if self.model == "SIMPLE_RADIAL":
-            d[0] = p[3]
-        elif self.model == "RADIAL":
-            d[0], d[1] = p[3], p[4]
-        elif self.model == "OPENCV":
-            d[:] = p[4:8]
-        return d
+    def lens(self):
+        """The distortion as a :class:`ssgwarp.lens.Lens` (None for the pinhole models)."""
+        from .lens import Lens
+
+        if self.model in ("SIMPLE_PINHOLE", "PINHOLE"):
+            return None
+        if self.model not in SUPPORTED:
+            raise self._unsupported()
+        return Lens(self.model, tuple(self.params[3 if self.model in _ONE_FOCAL else 4:]))
 
     @property
     def is_distorted(self) -> bool:
-        return bool(np.any(self.distortion != 0.0))
+        lens = self.lens
+        return lens is not None and not lens.is_pinhole
 
 
 @dataclass

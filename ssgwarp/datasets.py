@@ -10,14 +10,14 @@ Layouts, checked in this order:
 
 * ``transforms.json`` or ``transforms_train.json`` (NeRF synthetic, instant-ngp):
   ``camera_angle_x`` (and optional ``camera_angle_y``) or ``fl_x/fl_y/cx/cy``
-  (top level or per frame), optional ``k1 k2 p1 p2``; ``transform_matrix`` is
+  (top level or per frame), optional ``k1 k2 k3 p1 p2`` (or fisheye ``k1..k4`` with
+  ``is_fisheye`` / ``camera_model: OPENCV_FISHEYE``); ``transform_matrix`` is
   camera-to-world in OpenGL axes (x right, y up, z back) and is converted.
   RGBA images are composited over ``background``. ``transforms_test.json``,
   when present, provides the held-out views (the dataset's own split).
 * COLMAP: ``sparse/0`` (or ``sparse``, or the folder itself) with
   ``cameras`` and ``images`` (``.bin`` or ``.txt``); ``points3D`` gives the
-  initial points. Distorted models (SIMPLE_RADIAL, RADIAL, OPENCV) are
-  undistorted with kornia at load time.
+  initial points. Every distorted model of :mod:`ssgwarp.lens` is supported.
 * LLFF: ``poses_bounds.npy`` ``[N, 17]``: camera-to-world 3x4 in
   [down, right, back] axes, a column ``[H, W, focal]`` at full capture
   resolution (the focal is scaled to the loaded width) and near/far bounds.
@@ -26,6 +26,12 @@ Layouts, checked in this order:
   holds a single distorted camera with the poses' focal, its distortion is
   removed too.
 
+Distorted images become pinhole images in which every pixel has a source
+(:func:`ssgwarp.lens.plan_undistortion`: the largest crop of the undistorted
+frame, focal lengths kept, one size for all cameras), at the image folder's own
+resolution and before any ``width`` resize; ``SceneData.undistortion`` (and
+``data.json``) record what was done.
+
 All image I/O goes through :mod:`ssgwarp.fileio` (OpenImageIO).
 """
 from __future__ import annotations
@@ -33,7 +39,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 import torch
@@ -63,7 +69,8 @@ class SceneData:
         background: RGB the images were composited on (and that renders should use).
         data_dir, image_dir: where the capture and its images live.
         format: "colmap", "llff" or "transforms".
-        undistorted: True when the images were undistorted at load time.
+        undistortion: what lens undistortion did (:meth:`ssgwarp.lens.Undistortion.record`: per camera
+            its lens, crop box and intrinsics before/after), or None when the capture has no distortion.
         options: the :func:`load_dataset` options that reproduce this data (for ``data.json``).
     """
 
@@ -80,7 +87,7 @@ class SceneData:
     data_dir: Optional[Path] = None
     image_dir: Optional[str] = None
     format: str = ""
-    undistorted: bool = False
+    undistortion: Optional[dict] = None
     options: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -93,6 +100,21 @@ class SceneData:
 
     def __len__(self) -> int:
         return len(self.cameras)
+
+    @property
+    def undistorted(self) -> bool:
+        """True when the images were undistorted (and cropped) at load time."""
+        return self.undistortion is not None
+
+    @property
+    def metric_frame(self) -> dict:
+        """Which image frame metrics on these images are computed in (for ``metrics.json``)."""
+        if self.undistortion is None:
+            return {"metric_frame": "as-captured", "metric_size": [self.width, self.height]}
+        u = self.undistortion
+        return {"metric_frame": "undistorted-crop", "metric_size": [self.width, self.height],
+                "metric_crop": {"source_size": u["source_size"], "size": u["size"], "resized_to": u.get("resized_to"),
+                                "crops": [c["crop"] for c in u["cameras"]]}}
 
     @property
     def device(self) -> torch.device:
@@ -202,17 +224,29 @@ def _evenly(n: int, k: Optional[int]) -> list[int]:
     return sorted(set(np.linspace(0, n - 1, k).round().astype(int).tolist()))
 
 
-def _load_images(paths: Sequence[Path], background, width: Optional[int]) -> tuple[torch.Tensor, int, int, int, int]:
-    """Read, composite RGBA and resize. Returns ``(images [C,H,W,3], H, W, H0, W0)`` (H0/W0: file size)."""
+def _load_images(paths: Sequence[Path], background, width: Optional[int],
+                 intrinsics: Callable) -> tuple[torch.Tensor, torch.Tensor, Optional[dict]]:
+    """Read, composite RGBA, remove lens distortion and resize, one image at a time.
+
+    ``intrinsics(w0, h0)`` gives, for files of ``w0`` x ``h0`` pixels, ``(Ks [C, 3, 3] float64,
+    lenses [C] (:class:`~ssgwarp.lens.Lens` or None), labels [C] (each image's camera, for errors))``.
+    Distorted images become the pinhole crop of :func:`ssgwarp.lens.plan_undistortion` (at the files'
+    resolution, before any resize). Returns ``(images [C, H, W, 3], Ks [C, 3, 3] float64 of those
+    images, the undistortion record or None)``.
+    """
     from .fileio import read_image
+    from .lens import plan_undistortion
 
     from tqdm import tqdm
 
+    if width is not None and width <= 0:
+        raise InputError(f"width must be positive, got {width}")
     out = []
-    size0 = None
+    size0 = plan = Ks = None
+    h = w = hu = wu = 0
     bg = np.asarray(background, dtype=np.float32).reshape(1, 1, 3)
     it = tqdm(paths, desc="loading images", unit="img", leave=False, disable=len(paths) < 16)
-    for p in it:
+    for i, p in enumerate(it):
         img = read_image(p)
         if img.shape[2] == 1 or img.shape[2] == 2:
             img = np.concatenate([np.repeat(img[..., :1], 3, axis=2), img[..., 1:]], axis=2)
@@ -223,20 +257,34 @@ def _load_images(paths: Sequence[Path], background, width: Optional[int]) -> tup
         img = np.clip(img[..., :3], 0.0, 1.0)
         if size0 is None:
             size0 = img.shape[:2]
+            h0, w0 = size0
+            Ks, lenses, labels = intrinsics(w0, h0)
+            plan = plan_undistortion(Ks, lenses, w0, h0, labels)
+            if plan is not None:
+                Ks = plan.Ks
+                models = sorted({c.lens.model for c in plan.cameras if c.lens is not None})
+                log.info("undistorting %d images (%s) into a %dx%d pinhole crop of the %dx%d images "
+                         "(every pixel has a source)", len(paths), "/".join(models), *plan.size, w0, h0)
+            wu, hu = plan.size if plan is not None else (w0, h0)
+            w, h = (width, max(1, int(round(hu * width / wu)))) if width is not None else (wu, hu)
         elif img.shape[:2] != size0:
             raise InputError(f"{p}: image size {img.shape[1]}x{img.shape[0]} differs from the others "
                              f"({size0[1]}x{size0[0]}); all images of a capture must have one size")
-        out.append(torch.from_numpy(np.ascontiguousarray(img, dtype=np.float32)))
+        t = torch.from_numpy(np.ascontiguousarray(img, dtype=np.float32))
+        if plan is not None:
+            t = plan(i, t)
+        if (h, w) != (hu, wu):
+            t = resize_images(t[None], h, w)[0]
+        out.append(t)
     if not out:
         raise InputError("no images to load")
-    imgs = torch.stack(out)
-    h0, w0 = size0
-    if width is not None and width != w0:
-        if width <= 0:
-            raise InputError(f"width must be positive, got {width}")
-        h = max(1, int(round(h0 * width / w0)))
-        imgs = resize_images(imgs, h, width)
-    return imgs, imgs.shape[1], imgs.shape[2], h0, w0
+    Ks = np.array(Ks, dtype=np.float64)
+    Ks[:, 0, :] *= w / wu
+    Ks[:, 1, :] *= h / hu
+    record = None
+    if plan is not None:
+        record = {**plan.record(), "resized_to": [w, h] if (w, h) != (wu, hu) else None}
+    return torch.stack(out), torch.from_numpy(Ks), record
 
 
 def resize_images(images: torch.Tensor, height: int, width: int) -> torch.Tensor:
@@ -248,25 +296,6 @@ def resize_images(images: torch.Tensor, height: int, width: int) -> torch.Tensor
     else:
         x = torch.nn.functional.interpolate(x, size=(height, width), mode="bilinear", align_corners=False)
     return x.permute(0, 2, 3, 1).clamp(0.0, 1.0).contiguous()
-
-
-def undistort(images: torch.Tensor, Ks: torch.Tensor, dist: torch.Tensor) -> torch.Tensor:
-    """Remove lens distortion with kornia.
-
-    ``images [C, H, W, 3]``, ``Ks [C, 3, 3]`` (pixel centres at +0.5, our
-    convention), ``dist [C, 4]`` OpenCV ``k1 k2 p1 p2``. The undistorted images
-    keep the same intrinsics.
-    """
-    from kornia.geometry.calibration import undistort_image
-
-    K = Ks.to(torch.float32).clone()
-    K[:, 0, 2] -= 0.5  # kornia puts pixel centres on integer coordinates
-    K[:, 1, 2] -= 0.5
-    x = images.permute(0, 3, 1, 2).contiguous()
-    out = []
-    for i in range(x.shape[0]):  # one at a time: bounded memory on big captures
-        out.append(undistort_image(x[i:i + 1], K[i:i + 1], dist[i:i + 1].to(torch.float32)))
-    return torch.cat(out).permute(0, 2, 3, 1).clamp(0.0, 1.0).contiguous()
 
 
 def _split(n: int, split_every: int, test_mask: Optional[Sequence[bool]] = None) -> tuple[list[int], list[int]]:
@@ -355,25 +384,22 @@ def _load_colmap(root: Path, images: str, max_images, width, background, **_):
         (missing.append(im.name) if p is None else paths.append(p))
     if missing:
         raise _missing_error(missing, folder, f"{model.path}/images")
-    imgs, h, w, h0, w0 = _load_images(paths, background, width)
-    Ks, dists = [], []
-    for im in ims:
-        cam = model.cameras[im.camera_id]
-        K = cam.K.copy()
-        K[0] *= w / cam.width
-        K[1] *= h / cam.height
-        Ks.append(K)
-        dists.append(cam.distortion)
+    cam_of = [model.cameras[im.camera_id] for im in ims]
+    cam_file = next((p for p in (model.path / "cameras.bin", model.path / "cameras.txt") if p.is_file()), model.path)
+
+    def intrinsics(w0, h0):
+        Ks = []
+        for cam in cam_of:
+            K = cam.K.copy()
+            K[0] *= w0 / cam.width
+            K[1] *= h0 / cam.height
+            Ks.append(K)
+        return np.stack(Ks), [c.lens for c in cam_of], [f"{cam_file}: camera {c.id}" for c in cam_of]
+
+    imgs, Ks, undist = _load_images(paths, background, width, intrinsics)
     viewmats = np.stack([im.viewmat for im in ims])
     names = [str(p.relative_to(folder)) for p in paths]
-    cams = Cameras(torch.from_numpy(viewmats).float(), torch.from_numpy(np.stack(Ks)).float(), w, h, names)
-    undistorted = False
-    dist = np.stack(dists)
-    if np.any(dist != 0):
-        models = sorted({model.cameras[im.camera_id].model for im in ims})
-        log.warning("undistorting %d images (COLMAP model %s) with kornia", len(ims), "/".join(models))
-        imgs = undistort(imgs, cams.Ks, torch.from_numpy(dist))
-        undistorted = True
+    cams = Cameras(torch.from_numpy(viewmats).float(), Ks.float(), imgs.shape[2], imgs.shape[1], names)
     pts = None
     src = "none"
     near = far = None
@@ -382,7 +408,7 @@ def _load_colmap(root: Path, images: str, max_images, width, background, **_):
         src = "colmap"
         near, far = _depth_range(model.points.xyz, viewmats)
     return dict(cameras=cams, images=imgs, names=names, points=pts, points_source=src, near=near, far=far,
-                image_dir=folder.name, undistorted=undistorted)
+                image_dir=folder.name, undistortion=undist)
 
 
 def _load_llff(root: Path, images: str, max_images, width, background, num_random_points, seed, **_):
@@ -409,32 +435,35 @@ def _load_llff(root: Path, images: str, max_images, width, background, num_rando
     poses = pb[:, :15].reshape(-1, 3, 5)
     bounds = pb[:, 15:17]
     h_full, w_full, focal = poses[0, 0, 4], poses[0, 1, 4], poses[:, 2, 4]
-    imgs, h, w, h0, w0 = _load_images([folder / f for f in files], background, width)
-    # [down, right, back] -> [right, down, forward]
-    c2w = np.concatenate([poses[:, :, 1:2], poses[:, :, 0:1], -poses[:, :, 2:3], poses[:, :, 3:4]], axis=2)
-    viewmats = _viewmats_from_c2w(c2w)
-    f = focal * (w / w_full)
-    fy = focal * (h / h_full)
-    Ks = torch.zeros(len(files), 3, 3, dtype=torch.float64)
-    Ks[:, 0, 0] = torch.from_numpy(f)
-    Ks[:, 1, 1] = torch.from_numpy(fy)
-    Ks[:, 0, 2] = w / 2.0
-    Ks[:, 1, 2] = h / 2.0
-    Ks[:, 2, 2] = 1.0
-    cams = Cameras(viewmats.float(), Ks.float(), w, h, files)
-
-    undistorted = False
+    # the lens: a single distorted camera in sparse/0 whose focal is the poses' (same capture, same resolution)
+    lens, label = None, str(pb_path)
     model = find_model(root)
     cam_file = _pick(root / "sparse" / "0", "cameras") or (model and _pick(model, "cameras"))
     if cam_file:
         ccams = read_cameras(cam_file)
         if len(ccams) == 1:
             cc = next(iter(ccams.values()))
-            if cc.is_distorted and abs(cc.K[0, 0] - focal[0]) <= 0.01 * focal[0]:
-                log.warning("undistorting %d images (COLMAP model %s from %s) with kornia",
-                            len(files), cc.model, cam_file)
-                imgs = undistort(imgs, cams.Ks, torch.from_numpy(np.tile(cc.distortion, (len(files), 1))))
-                undistorted = True
+            if cc.model not in ("SIMPLE_PINHOLE", "PINHOLE"):
+                if abs(cc.K[0, 0] * w_full / cc.width - focal[0]) <= 0.01 * focal[0]:
+                    lens, label = cc.lens, f"{pb_path} with the lens of {cam_file}: camera {cc.id}"
+                else:
+                    log.warning("%s: camera %d (%s) has another focal length than %s; its distortion is not "
+                                "removed", cam_file, cc.id, cc.model, pb_path.name)
+
+    def intrinsics(w0, h0):
+        Ks = np.zeros((len(files), 3, 3))
+        Ks[:, 0, 0] = focal * (w0 / w_full)
+        Ks[:, 1, 1] = focal * (h0 / h_full)
+        Ks[:, 0, 2] = w0 / 2.0
+        Ks[:, 1, 2] = h0 / 2.0
+        Ks[:, 2, 2] = 1.0
+        return Ks, [lens] * len(files), [label] * len(files)
+
+    imgs, Ks, undist = _load_images([folder / f for f in files], background, width, intrinsics)
+    # [down, right, back] -> [right, down, forward]
+    c2w = np.concatenate([poses[:, :, 1:2], poses[:, :, 0:1], -poses[:, :, 2:3], poses[:, :, 3:4]], axis=2)
+    viewmats = _viewmats_from_c2w(c2w)
+    cams = Cameras(viewmats.float(), Ks.float(), imgs.shape[2], imgs.shape[1], files)
 
     near, far = float(bounds.min()), float(bounds.max())
     pts_file = _pick(root / "sparse" / "0", "points3D")
@@ -446,11 +475,11 @@ def _load_llff(root: Path, images: str, max_images, width, background, num_rando
         pts = random_points_in_frusta(cams, imgs, bounds[:, 0], bounds[:, 1], num_random_points, seed)
         src = "random"
     return dict(cameras=cams, images=imgs, names=files, points=pts, points_source=src, near=near, far=far,
-                image_dir=folder.name, undistorted=undistorted)
+                image_dir=folder.name, undistortion=undist)
 
 
-def _intrinsics_from(meta: dict, w: int, h: int, where: str) -> tuple[float, float, float, float, np.ndarray]:
-    """fx, fy, cx, cy at the JSON's own resolution (``meta['w'/'h']`` or the image's), distortion [4]."""
+def _intrinsics_from(meta: dict, w: int, h: int, where: str) -> tuple[float, float, float, float]:
+    """fx, fy, cx, cy at the JSON's own resolution (``meta['w'/'h']`` or the image's)."""
     if not any(k in meta for k in ("fl_x", "fl_y", "camera_angle_x")):
         raise InputError(f"{where}: no intrinsics (need camera_angle_x or fl_x/fl_y)")
     try:
@@ -462,12 +491,43 @@ def _intrinsics_from(meta: dict, w: int, h: int, where: str) -> tuple[float, flo
             fy = 0.5 * h / np.tan(0.5 * float(meta["camera_angle_y"])) if "camera_angle_y" in meta else fx
         cx = float(meta.get("cx", w / 2.0))
         cy = float(meta.get("cy", h / 2.0))
-        dist = np.array([float(meta.get(k, 0.0)) for k in ("k1", "k2", "p1", "p2")])
     except (TypeError, ValueError):
         raise InputError(f"{where}: intrinsics are not numbers") from None
     if not (np.isfinite([fx, fy, cx, cy]).all() and fx > 0 and fy > 0):
         raise InputError(f"{where}: invalid intrinsics fx={fx} fy={fy}")
-    return fx, fy, cx, cy, dist
+    return fx, fy, cx, cy
+
+
+_TRANSFORMS_MODELS = ("OPENCV", "OPENCV_FISHEYE", "PINHOLE", "SIMPLE_PINHOLE")
+
+
+def _transforms_lens(meta: dict, where: str):
+    """The lens of a transforms.json camera: ``k1 k2 k3 p1 p2`` (OpenCV, k3 the r^6 term), or with
+    instant-ngp's ``is_fisheye`` / nerfstudio's ``camera_model: OPENCV_FISHEYE`` the fisheye ``k1..k4``."""
+    from .lens import Lens
+
+    model = str(meta.get("camera_model", "")).upper()
+    if model and model not in _TRANSFORMS_MODELS:
+        raise InputError(f"{where}: camera_model {meta['camera_model']} is not supported (supported: "
+                         f"{', '.join(_TRANSFORMS_MODELS)}); convert the capture to pinhole images first")
+    flag = meta.get("is_fisheye", False)
+    fisheye = model == "OPENCV_FISHEYE" or (flag.strip().lower() in ("1", "true") if isinstance(flag, str)
+                                            else bool(flag))
+    try:
+        k1, k2, k3, k4, p1, p2 = (float(meta.get(k, 0.0)) for k in ("k1", "k2", "k3", "k4", "p1", "p2"))
+    except (TypeError, ValueError):
+        raise InputError(f"{where}: distortion coefficients are not numbers") from None
+    if fisheye:
+        if p1 or p2:
+            raise InputError(f"{where}: a fisheye camera (is_fisheye / OPENCV_FISHEYE) takes k1 k2 k3 k4, "
+                             f"not p1 p2 (got p1={p1:g} p2={p2:g})")
+        return Lens("OPENCV_FISHEYE", (k1, k2, k3, k4))
+    if k4:
+        raise InputError(f"{where}: k4={k4:g} without is_fisheye: k4 belongs to the fisheye model (set "
+                         f"\"is_fisheye\": true or \"camera_model\": \"OPENCV_FISHEYE\") or is not supported")
+    if k3:
+        return Lens("FULL_OPENCV", (k1, k2, p1, p2, k3, 0.0, 0.0, 0.0))
+    return Lens("OPENCV", (k1, k2, p1, p2))
 
 
 def _load_transforms(root: Path, images: str, max_images, width, background, num_random_points, seed, **_):
@@ -511,29 +571,29 @@ def _load_transforms(root: Path, images: str, max_images, width, background, num
         c2w.append(m[:3, :4])
     if missing:
         raise _missing_error(missing, root, ", ".join(sorted({m[0].name for m in metas})))
-    imgs, h, w, h0, w0 = _load_images(paths, background, width)
+    cams_meta = []
+    for fr, (jpath, meta), p in zip(frames, metas, paths):
+        merged = {**meta, **{k: v for k, v in fr.items() if k not in ("file_path", "transform_matrix")}}
+        where = f"{jpath}: frame {p.relative_to(root)}"
+        cams_meta.append((merged, where, _transforms_lens(merged, where)))
+
+    def intrinsics(w0, h0):
+        Ks = []
+        for merged, where, _ in cams_meta:
+            jw, jh = int(merged.get("w", w0)), int(merged.get("h", h0))
+            fx, fy, cx, cy = _intrinsics_from(merged, jw, jh, where)
+            sx, sy = w0 / jw, h0 / jh
+            Ks.append([[fx * sx, 0.0, cx * sx], [0.0, fy * sy, cy * sy], [0.0, 0.0, 1.0]])
+        return np.array(Ks), [c[2] for c in cams_meta], [c[1] for c in cams_meta]
+
+    imgs, Ks, undist = _load_images(paths, background, width, intrinsics)
     c2w = np.stack(c2w)
     c2w4 = np.tile(np.eye(4), (len(c2w), 1, 1))
     c2w4[:, :3, :4] = c2w
     c2w4 = c2w4 @ _GL_TO_CV
     viewmats = _viewmats_from_c2w(c2w4[:, :3, :4])
-    Ks, dists = [], []
-    for fr, (jpath, meta) in zip(frames, metas):
-        merged = {**meta, **{k: v for k, v in fr.items() if k not in ("file_path", "transform_matrix")}}
-        jw = int(merged.get("w", w0))
-        jh = int(merged.get("h", h0))
-        fx, fy, cx, cy, dist = _intrinsics_from(merged, jw, jh, str(jpath))
-        sx, sy = w / jw, h / jh
-        Ks.append([[fx * sx, 0.0, cx * sx], [0.0, fy * sy, cy * sy], [0.0, 0.0, 1.0]])
-        dists.append(dist)
     names = [str(p.relative_to(root)) for p in paths]
-    cams = Cameras(viewmats.float(), torch.tensor(Ks, dtype=torch.float32), w, h, names)
-    undistorted = False
-    dist = np.stack(dists)
-    if np.any(dist != 0):
-        log.warning("undistorting %d images (k1 k2 p1 p2 from the transforms file) with kornia", len(paths))
-        imgs = undistort(imgs, cams.Ks, torch.from_numpy(dist))
-        undistorted = True
+    cams = Cameras(viewmats.float(), Ks.float(), imgs.shape[2], imgs.shape[1], names)
     # no point cloud: random points in a cube around the point the cameras look at
     centre = focus_point(cams)
     radius = float((cams.centers.double().cpu() - centre).norm(dim=1).mean())
@@ -544,7 +604,7 @@ def _load_transforms(root: Path, images: str, max_images, width, background, num
     near, far = max(radius - half * 3 ** 0.5, 1e-3 * radius), radius + half * 3 ** 0.5
     test_mask = is_test if any(is_test) else None
     return dict(cameras=cams, images=imgs, names=names, points=(xyz, rgb), points_source="random", near=near,
-                far=far, image_dir=str(Path(names[0]).parent), undistorted=undistorted, test_mask=test_mask)
+                far=far, image_dir=str(Path(names[0]).parent), undistortion=undist, test_mask=test_mask)
 
 
 _LOADERS = {"colmap": _load_colmap, "llff": _load_llff, "transforms": _load_transforms}
@@ -565,7 +625,8 @@ def load_dataset(path: str | Path, images: str = "images", split_every: int = 8,
         background: RGB that RGBA images are composited on.
         max_images: keep at most this many images, evenly spaced (None: all).
         device: where the tensors go (default CPU).
-        width: resize the images to this width (height keeps the aspect ratio).
+        width: resize the images to this width (height keeps the aspect ratio), after any
+            undistortion: the returned images are ``width`` pixels wide.
         num_random_points: initial points when the capture has no point cloud.
         seed: seed of those random points.
         format: force ``"colmap"``, ``"llff"`` or ``"transforms"`` instead of detecting.
@@ -605,6 +666,7 @@ def data_json(data: SceneData, **extra) -> dict:
         "split": {"train": [data.names[i] for i in data.train_ids], "test": [data.names[i] for i in data.test_ids]},
         "background": list(data.background),
         "undistorted": data.undistorted,
+        "undistortion": data.undistortion,
         "near": data.near,
         "far": data.far,
         "points_source": data.points_source,
@@ -648,7 +710,7 @@ def load_run(scene_dir: str | Path, device=None, *, data_dir: Optional[str | Pat
     points = None
     images = torch.zeros(len(cams), cams.height, cams.width, 3)
     data_root = _as_path(src) if src else None
-    undistorted = bool(meta.get("undistorted", False))
+    undistortion = meta.get("undistortion")
     if load_images:
         if data_root is None or not data_root.is_dir():
             raise InputError(f"{scene_dir / 'data.json'}: capture folder {src} not found "
@@ -665,13 +727,17 @@ def load_run(scene_dir: str | Path, device=None, *, data_dir: Optional[str | Pat
             raise _missing_error(missing, data_root, f"{scene_dir / 'cameras.json'}")
         sel = [pos[n] for n in cams.names]
         images = data.images[sel]
-        if images.shape[1:3] != (cams.height, cams.width):
-            images = resize_images(images, cams.height, cams.width)
-        points, undistorted = data.points, data.undistorted
+        if (data.width, data.height) != (cams.width, cams.height) or not torch.allclose(
+                data.cameras.Ks[sel].double(), cams.Ks.double(), rtol=0.0, atol=1e-2):
+            raise InputError(f"{data_root} now loads as {data.width}x{data.height} images with other intrinsics "
+                             f"than the run's {scene_dir / 'cameras.json'} ({cams.width}x{cams.height}): the run was "
+                             f"made from other data or by an ssgwarp that did not crop undistorted images; run "
+                             f"`ssgwarp reconstruct` again")
+        points, undistortion = data.points, data.undistortion
     out = SceneData(cameras=cams, images=images, names=list(cams.names), train_ids=train, test_ids=test,
                     points=points, points_source=meta.get("points_source", "none"), near=meta.get("near"),
                     far=meta.get("far"), background=bg, data_dir=data_root, image_dir=meta.get("images"),
-                    format=meta.get("format", ""), undistorted=undistorted, options=meta.get("load_options", {}))
+                    format=meta.get("format", ""), undistortion=undistortion, options=meta.get("load_options", {}))
     if device is not None:
         scene, out = scene.to(device), out.to(device)
     return scene, out

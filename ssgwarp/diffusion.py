@@ -20,13 +20,17 @@ use the same timesteps and the same cumulative alphas, so with guidance 0 and
 no CVSA, denoising undoes the inversion up to the DDIM discretisation error
 (measured in tests/test_diffusion.py and docs/stage1.md).
 
-Weights come only from local folders (:mod:`ssgwarp.weights`; nothing is
-downloaded): ``sd15`` (diffusers layout: unet/, vae/, scheduler/,
-text_encoder/, tokenizer/), ``controlnet_depth`` (diffusers ControlNet folder),
-``ip_adapter`` (``ip-adapter_sd15.safetensors`` or ``.bin``) and
-``image_encoder`` (transformers CLIPVisionModelWithProjection folder). Without
-them :func:`stylize_keyviews` prints a notice and returns None: Stage 2 then
-matches against the style image globally.
+Weights (:mod:`ssgwarp.weights`): ``sd15`` (diffusers layout: unet/, vae/,
+scheduler/, text_encoder/, tokenizer/; ``stable-diffusion-v1-5/stable-diffusion-v1-5``),
+``controlnet_depth`` (diffusers ControlNet folder; ``lllyasviel/control_v11f1p_sd15_depth``),
+``ip_adapter`` (``ip-adapter_sd15.safetensors`` or ``.bin``; ``h94/IP-Adapter``) and
+``image_encoder`` (transformers CLIPVisionModelWithProjection folder;
+``h94/IP-Adapter`` ``models/image_encoder``), from explicit paths, the config,
+the environment, ``$SSGWARP_WEIGHTS`` or the Hugging Face cache, and downloaded
+into that cache on first use unless downloads are off. Without them
+:func:`stylize_keyviews` prints a notice and returns None: Stage 2 then matches
+against the style image globally. Random-weight stand-ins for tests and
+benchmarks live in ``tests/fakeweights.py``.
 
 diffusers and transformers are imported inside functions (heavy imports).
 """
@@ -46,13 +50,10 @@ from .errors import InputError, SsgwarpError, WeightsNotFound
 __all__ = ["Stage1Config", "Stage1Models", "load_stage1", "assemble_stage1", "load_ip_adapter",
            "read_ip_adapter", "set_ip_adapter_scales", "depth_to_control", "clip_preprocess", "schedule",
            "ddim_step", "encode_latents", "decode_latents", "predict_noise", "ddim_invert", "ddim_denoise",
-           "stylize_views", "stylize_keyviews", "save_sheet", "random_stage1_components",
-           "random_ip_adapter_state", "add_stage1_arguments", "config_from_args", "missing_weights"]
+           "stylize_views", "stylize_keyviews", "save_sheet", "add_stage1_arguments", "config_from_args",
+           "missing_weights"]
 
 WEIGHT_KEYS = ("sd15", "controlnet_depth", "ip_adapter", "image_encoder")
-# files that must be inside each diffusers / transformers folder
-_SD15_FILES = ("unet/config.json", "vae/config.json", "scheduler/scheduler_config.json",
-               "text_encoder/config.json", "tokenizer")
 CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)
 CLIP_STD = (0.26862954, 0.26130258, 0.27577711)
 
@@ -156,24 +157,31 @@ class Stage1Models:
         return self.image_encoder(px).image_embeds.to(self.dtype)
 
 
-def missing_weights(cfg: Stage1Config) -> list[str]:
-    """One message per missing weight (empty when all are present)."""
+def missing_weights(cfg: Stage1Config, download: Optional[bool] = None) -> list[str]:
+    """One message per Stage 1 model that is neither on this machine nor fetched now (empty: all present).
+
+    Models are found as :mod:`ssgwarp.weights` finds them (explicit path, config,
+    environment, ``$SSGWARP_WEIGHTS``, the Hugging Face cache); a missing one is
+    downloaded into the Hugging Face cache unless downloads are off (``download=False``,
+    ``--offline``, ``HF_HUB_OFFLINE=1``, ...) or an explicit path is wrong.
+    """
     from . import weights as W
 
-    out = []
+    found = {k: W.find(k, getattr(cfg, k), cfg.weights) for k in WEIGHT_KEYS}
+    out = [W.message(k, getattr(cfg, k)) for k in WEIGHT_KEYS if found[k] is None and getattr(cfg, k)]
+    if out:         # a wrong explicit path: report, fetch nothing
+        return out + [W.message(k) for k in WEIGHT_KEYS if found[k] is None and not getattr(cfg, k)]
     for key in WEIGHT_KEYS:
-        explicit = getattr(cfg, key)
-        p = W.find(key, explicit, cfg.weights)
-        if p is None:
-            out.append(W.message(key, explicit))
-            continue
-        need = []
-        if key == "sd15":
-            need = [f for f in _SD15_FILES if not (p / f).exists()]
-        elif key in ("controlnet_depth", "image_encoder"):
-            need = [f for f in ("config.json",) if not (p / f).exists()]
+        if found[key] is None:
+            try:
+                found[key] = W.require(key, None, cfg.weights, download=download)
+            except WeightsNotFound as e:
+                out.append(str(e))
+                continue
+        spec = W.SPECS[key]
+        need = [f for f in spec.required if not (found[key] / f).exists()]
         if need:
-            out.append(f"{p} lacks {', '.join(need)}: {W.SPECS[key].expected} (from '{W.SPECS[key].source}')")
+            out.append(f"{found[key]} lacks {', '.join(need)}: {spec.expected} (from '{spec.source}')")
     return out
 
 
@@ -187,34 +195,44 @@ def _paths(cfg: Stage1Config) -> dict[str, Path]:
 
 
 def load_stage1(cfg: Stage1Config, device) -> Stage1Models:
-    """Load the Stage 1 modules from local folders (``local_files_only=True``).
+    """Load the Stage 1 modules (``local_files_only=True``) from the paths :mod:`ssgwarp.weights` resolves.
 
-    Raises :class:`WeightsNotFound` listing every missing piece when weights are absent.
+    Missing models are downloaded first where allowed (:func:`missing_weights`).
+    Raises :class:`WeightsNotFound` listing every missing piece when weights are
+    absent, and :class:`~ssgwarp.errors.InputError` naming the file and how to
+    fetch it again when one is truncated or corrupt.
     """
     from diffusers import AutoencoderKL, ControlNetModel, DDIMScheduler, UNet2DConditionModel
     from transformers import CLIPTextModel, CLIPTokenizer, CLIPVisionModelWithProjection
 
+    from . import weights as W
+
     cfg.validate()
     p = _paths(cfg)
-    sd = str(p["sd15"])
 
-    def load(what, fn, *a, **kw):
+    def load(key, what, fn, path, subfolder=None):
         try:
-            return fn(*a, local_files_only=True, **kw)
-        except (OSError, ValueError, KeyError, RuntimeError) as e:
-            raise SsgwarpError(f"cannot load {what} from {a[0]}: {str(e).splitlines()[0] if str(e) else e!r}"
-                               ) from None
+            if fn is read_ip_adapter:
+                return fn(path)
+            kw = {"subfolder": subfolder} if subfolder else {}
+            return fn(str(path), local_files_only=True, **kw)
+        except SsgwarpError:
+            raise
+        except Exception as e:  # truncated / corrupt / wrong files (OSError, SafetensorError, ValueError, ...)
+            raise W.load_error(key, Path(path) / (subfolder or ""), e, what) from None
 
+    sd = p["sd15"]
     comps = dict(
-        unet=load("the SD1.5 UNet", UNet2DConditionModel.from_pretrained, sd, subfolder="unet"),
-        vae=load("the SD1.5 VAE", AutoencoderKL.from_pretrained, sd, subfolder="vae"),
-        scheduler=load("the scheduler config", DDIMScheduler.from_pretrained, sd, subfolder="scheduler"),
-        text_encoder=load("the CLIP text encoder", CLIPTextModel.from_pretrained, sd, subfolder="text_encoder"),
-        tokenizer=load("the CLIP tokenizer", CLIPTokenizer.from_pretrained, sd, subfolder="tokenizer"),
-        controlnet=load("the depth ControlNet", ControlNetModel.from_pretrained, str(p["controlnet_depth"])),
-        image_encoder=load("the IP-Adapter image encoder", CLIPVisionModelWithProjection.from_pretrained,
-                           str(p["image_encoder"])),
-        ip_state=read_ip_adapter(p["ip_adapter"]),
+        unet=load("sd15", "the SD1.5 UNet", UNet2DConditionModel.from_pretrained, sd, "unet"),
+        vae=load("sd15", "the SD1.5 VAE", AutoencoderKL.from_pretrained, sd, "vae"),
+        scheduler=load("sd15", "the scheduler config", DDIMScheduler.from_pretrained, sd, "scheduler"),
+        text_encoder=load("sd15", "the CLIP text encoder", CLIPTextModel.from_pretrained, sd, "text_encoder"),
+        tokenizer=load("sd15", "the CLIP tokenizer", CLIPTokenizer.from_pretrained, sd, "tokenizer"),
+        controlnet=load("controlnet_depth", "the depth ControlNet", ControlNetModel.from_pretrained,
+                        p["controlnet_depth"]),
+        image_encoder=load("image_encoder", "the IP-Adapter image encoder",
+                           CLIPVisionModelWithProjection.from_pretrained, p["image_encoder"]),
+        ip_state=load("ip_adapter", "the IP-Adapter weights", read_ip_adapter, p["ip_adapter"]),
     )
     return assemble_stage1(comps, device, cfg.torch_dtype(device))
 
@@ -614,128 +632,18 @@ def save_sheet(original, stylized, path: str | Path, gap: int = 4) -> Path:
     return write_image(path, np.concatenate(rows, axis=0))
 
 
-# -- random-weight models (tests, benchmarks) ---------------------------------------------------------
-def _tiny_tokenizer():
-    from transformers import CLIPTokenizer
-
-    vocab = {"<|startoftext|>": 0, "<|endoftext|>": 1}
-    for c in "abcdefghijklmnopqrstuvwxyz":
-        vocab[c] = len(vocab)
-    for c in "abcdefghijklmnopqrstuvwxyz":
-        vocab[c + "</w>"] = len(vocab)
-    return CLIPTokenizer(vocab=vocab, merges=[])
-
-
-def random_stage1_components(arch: str = "tiny", seed: int = 0, device="cpu") -> dict:
-    """Randomly initialised Stage 1 modules (no weights, no network) for tests and benchmarks.
-
-    ``arch="tiny"``: a 2-level UNet (32, 64 channels, attention in every block),
-    a VAE with the SD factor 8, 1-layer CLIP encoders; runs on a CPU core in
-    milliseconds. ``arch="sd15"``: the SD1.5 / ControlNet / ViT-L text / ViT-H
-    image-encoder architectures at full size (timings only). The ControlNet's
-    zero-initialised output convolutions get small random weights so the depth
-    condition has an effect. ``ip_state`` is a random IP-Adapter state dict.
-    """
-    from diffusers import AutoencoderKL, ControlNetModel, DDIMScheduler, UNet2DConditionModel
-    from transformers import CLIPTextConfig, CLIPTextModel, CLIPVisionConfig, CLIPVisionModelWithProjection
-
-    torch.manual_seed(seed)
-    with torch.device(device):
-        if arch == "tiny":
-            unet = UNet2DConditionModel(
-                sample_size=8, in_channels=4, out_channels=4, block_out_channels=(32, 64), layers_per_block=1,
-                down_block_types=("CrossAttnDownBlock2D", "CrossAttnDownBlock2D"),
-                up_block_types=("CrossAttnUpBlock2D", "CrossAttnUpBlock2D"),
-                cross_attention_dim=32, attention_head_dim=8, norm_num_groups=32)
-            # scaling_factor 3: latents of roughly unit spread, as SD1.5's 0.18215 gives its VAE
-            vae = AutoencoderKL(in_channels=3, out_channels=3, block_out_channels=(8, 16, 16, 16),
-                                down_block_types=("DownEncoderBlock2D",) * 4,
-                                up_block_types=("UpDecoderBlock2D",) * 4, latent_channels=4,
-                                norm_num_groups=8, layers_per_block=1, sample_size=64, scaling_factor=3.0)
-            controlnet = ControlNetModel.from_unet(unet, conditioning_embedding_out_channels=(8, 8, 16, 16))
-            tokenizer = _tiny_tokenizer()
-            text_encoder = CLIPTextModel(CLIPTextConfig(
-                vocab_size=len(tokenizer.get_vocab()), hidden_size=32, intermediate_size=37, num_hidden_layers=1,
-                num_attention_heads=4, max_position_embeddings=77, bos_token_id=0, eos_token_id=1,
-                pad_token_id=1))
-            image_encoder = CLIPVisionModelWithProjection(CLIPVisionConfig(
-                hidden_size=32, intermediate_size=37, num_hidden_layers=1, num_attention_heads=4, image_size=32,
-                patch_size=8, projection_dim=16))
-        elif arch == "sd15":
-            unet = UNet2DConditionModel(
-                sample_size=64, cross_attention_dim=768, attention_head_dim=8,
-                block_out_channels=(320, 640, 1280, 1280), layers_per_block=2,
-                down_block_types=("CrossAttnDownBlock2D",) * 3 + ("DownBlock2D",),
-                up_block_types=("UpBlock2D",) + ("CrossAttnUpBlock2D",) * 3)
-            vae = AutoencoderKL(in_channels=3, out_channels=3, block_out_channels=(128, 256, 512, 512),
-                                down_block_types=("DownEncoderBlock2D",) * 4,
-                                up_block_types=("UpDecoderBlock2D",) * 4, latent_channels=4,
-                                layers_per_block=2, sample_size=512)
-            controlnet = ControlNetModel.from_unet(unet)
-            tokenizer = _tiny_tokenizer()   # timings only: token ids are padded to 77 anyway
-            text_encoder = CLIPTextModel(CLIPTextConfig(
-                vocab_size=49408, hidden_size=768, intermediate_size=3072, num_hidden_layers=12,
-                num_attention_heads=12, max_position_embeddings=77, hidden_act="quick_gelu",
-                projection_dim=768, bos_token_id=0, eos_token_id=1, pad_token_id=1))
-            image_encoder = CLIPVisionModelWithProjection(CLIPVisionConfig(
-                hidden_size=1280, intermediate_size=5120, num_hidden_layers=32, num_attention_heads=16,
-                image_size=224, patch_size=14, projection_dim=1024, hidden_act="gelu"))
-        else:
-            raise InputError(f"unknown random architecture '{arch}' (tiny or sd15)")
-        g = torch.Generator(device="cpu").manual_seed(seed + 1)
-        if arch == "tiny":
-            # a random UNet amplifies input changes ~4x; a trained noise predictor is far gentler. Scaling
-            # the output keeps the tiny model in the regime where DDIM inversion is meaningful.
-            with torch.no_grad():
-                unet.conv_out.weight.mul_(0.1)
-                unet.conv_out.bias.mul_(0.1)
-        for mod in [controlnet.controlnet_down_blocks, controlnet.controlnet_mid_block,
-                    controlnet.controlnet_cond_embedding.conv_out]:
-            for p in mod.parameters():
-                p.data.copy_(torch.randn(p.shape, generator=g, device="cpu") * 0.02)
-    scheduler = DDIMScheduler(beta_start=0.00085, beta_end=0.012, beta_schedule="scaled_linear",
-                              clip_sample=False, set_alpha_to_one=False, steps_offset=1)
-    ip_state = random_ip_adapter_state(unet, image_encoder.config.projection_dim, seed=seed + 2)
-    return dict(unet=unet, vae=vae, controlnet=controlnet, scheduler=scheduler, text_encoder=text_encoder,
-                tokenizer=tokenizer, image_encoder=image_encoder, ip_state=ip_state)
-
-
-def random_ip_adapter_state(unet, image_embed_dim: int, seed: int = 0, num_tokens: int = 4) -> dict:
-    """A random IP-Adapter (SD1.5 layout) state dict for ``unet``: ``image_proj.proj/norm`` and
-    ``ip_adapter.{2i+1}.to_k_ip/to_v_ip`` for the i-th cross-attention layer."""
-    g = torch.Generator().manual_seed(seed)
-    cross = int(unet.config.cross_attention_dim)
-    image_proj = {
-        "proj.weight": torch.randn(num_tokens * cross, image_embed_dim, generator=g) / math.sqrt(image_embed_dim),
-        "proj.bias": torch.zeros(num_tokens * cross),
-        "norm.weight": torch.ones(cross), "norm.bias": torch.zeros(cross),
-    }
-    ip = {}
-    boc = list(unet.config.block_out_channels)
-    key_id = 1
-    for name in unet.attn_processors:
-        if name.endswith("attn1.processor"):
-            continue
-        if name.startswith("mid_block"):
-            hidden = boc[-1]
-        elif name.startswith("up_blocks"):
-            hidden = list(reversed(boc))[int(name.split(".")[1])]
-        else:
-            hidden = boc[int(name.split(".")[1])]
-        ip[f"{key_id}.to_k_ip.weight"] = torch.randn(hidden, cross, generator=g) / math.sqrt(cross)
-        ip[f"{key_id}.to_v_ip.weight"] = torch.randn(hidden, cross, generator=g) / math.sqrt(cross)
-        key_id += 2
-    return {"image_proj": image_proj, "ip_adapter": ip}
-
-
 # -- CLI helpers (used by `ssgwarp stylize`) ----------------------------------------------------------
 def add_stage1_arguments(parser) -> None:
     """Stage 1 options for a subcommand's parser (weights paths, steps, guidance, IP-Adapter, CVSA)."""
     g = parser.add_argument_group("Stage 1 (diffusion key views)")
-    g.add_argument("--sd15", default=None, help="SD1.5 diffusers folder (or SSGWARP_SD15 / $SSGWARP_WEIGHTS)")
-    g.add_argument("--controlnet-depth", default=None, help="depth ControlNet diffusers folder")
-    g.add_argument("--ip-adapter", default=None, help="ip-adapter_sd15.safetensors")
-    g.add_argument("--image-encoder", default=None, help="IP-Adapter CLIP image encoder folder")
+    g.add_argument("--sd15", default=None,
+                   help="SD1.5 diffusers folder (default: SSGWARP_SD15, $SSGWARP_WEIGHTS, the Hugging Face cache, "
+                        "else downloaded; see `ssgwarp weights`)")
+    g.add_argument("--controlnet-depth", default=None, help="depth ControlNet diffusers folder (default: found "
+                                                            "or downloaded like --sd15)")
+    g.add_argument("--ip-adapter", default=None, help="ip-adapter_sd15.safetensors (default: found or downloaded)")
+    g.add_argument("--image-encoder", default=None,
+                   help="IP-Adapter CLIP image encoder folder (default: found or downloaded)")
     g.add_argument("--prompt", default="", help="style prompt (the style image goes through IP-Adapter)")
     g.add_argument("--negative-prompt", default="", help="negative prompt")
     g.add_argument("--steps", type=int, default=50, help="DDIM steps for inversion and denoising (default 50)")

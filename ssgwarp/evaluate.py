@@ -408,7 +408,8 @@ def evaluate_run(run_dir: str | Path, opts: EvalOptions, device: torch.device | 
 
         q = reconstruction_quality(renders, targets)
         qd: dict[str, Any] = {"split": qsplit, "views": len(qids),
-                              "psnr": sum(q["psnr"]) / len(q["psnr"]), "ssim": sum(q["ssim"]) / len(q["ssim"])}
+                              "psnr": sum(q["psnr"]) / len(q["psnr"]), "ssim": sum(q["ssim"]) / len(q["ssim"]),
+                              "metric_frame": data.metric_frame["metric_frame"]}
         if lpips is not None:
             with torch.no_grad():
                 vals = [float(lpips(r.permute(2, 0, 1)[None], t.permute(2, 0, 1)[None])[0])
@@ -601,7 +602,10 @@ def options_from_args(args: argparse.Namespace) -> EvalOptions:
 
 
 def load_models(opts: EvalOptions, device) -> tuple[Any, Any, Any, dict]:
-    """``(extractor, raft or None, lpips or None, skipped reasons)`` for ``opts``; never downloads."""
+    """``(extractor, raft or None, lpips or None, skipped reasons)`` for ``opts``.
+
+    Weights come through :mod:`ssgwarp.weights`: found, or downloaded on first use unless downloads are off.
+    """
     from . import metrics as M
     from .errors import WeightsNotFound
     from .features import load_extractor

@@ -251,12 +251,13 @@ def load_extractor(vgg_weights: Optional[str | os.PathLike] = None, device: torc
                    config: Optional[dict] = None, normalize: bool = True) -> FeatureExtractor:
     """The feature extractor to use, frozen and on ``device``.
 
-    ``kind``: ``"auto"`` (VGG16 when weights are found through
-    ``ssgwarp.weights.find("vgg16", vgg_weights, config)``, else the random
-    extractor), ``"vgg16"`` (weights required: raises
-    :class:`~ssgwarp.errors.WeightsNotFound` otherwise) or ``"random"``.
-    ``layers`` applies to VGG16 (default the conv3 block); ``seed`` to the
-    random extractor. Never downloads anything.
+    ``kind``: ``"auto"`` (VGG16 when :mod:`ssgwarp.weights` finds or downloads
+    the torchvision weights — explicit path, ``config``, ``SSGWARP_VGG16``,
+    ``$SSGWARP_WEIGHTS``, the torch hub cache, else a download unless downloads
+    are off — else the random extractor; a failed download says so in one line),
+    ``"vgg16"`` (weights required: raises :class:`~ssgwarp.errors.WeightsNotFound`
+    otherwise) or ``"random"``. ``layers`` applies to VGG16 (default the conv3
+    block); ``seed`` to the random extractor.
     """
     from . import weights
 
@@ -266,16 +267,17 @@ def load_extractor(vgg_weights: Optional[str | os.PathLike] = None, device: torc
     if kind == "vgg16":
         path = weights.require("vgg16", vgg_weights, config)
     elif kind == "auto":
-        path = weights.find("vgg16", vgg_weights, config)
-        if path is None and vgg_weights:
+        if vgg_weights and weights.find("vgg16", vgg_weights, config) is None:
             # an explicit path that does not exist is a user error, not a silent fallback
             raise InputError(weights.message("vgg16", vgg_weights))
+        path = weights.obtain("vgg16", vgg_weights, config,
+                              instead="features come from the weight-free random multi-scale extractor")
     if path is not None:
         ext = VGG16Features(layers, normalize=normalize)
         try:
             state = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as e:  # corrupt / wrong file
-            raise InputError(f"{path}: cannot load VGG16 state dict ({e})") from None
+        except Exception as e:  # truncated / corrupt / wrong file
+            raise weights.load_error("vgg16", path, e, "VGG16 state dict") from None
         ext.load_torchvision(state)
     else:
         ext = RandomMultiScale(seed=seed, normalize=normalize)

@@ -20,8 +20,18 @@ def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11) -> torch.Tensor:
 
 
 def dssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Structural dissimilarity ``(1 - SSIM) / 2`` as used by the 3DGS loss."""
-    return (1.0 - ssim(a, b)) / 2.0
+    """The D-SSIM term of the 3DGS loss: ``1 - SSIM`` (0 for equal images, up to 2)."""
+    return 1.0 - ssim(a, b)
+
+
+def photometric(a: torch.Tensor, b: torch.Tensor, lambda_dssim: float = 0.2,
+                dssim_scale: float = 1.0) -> torch.Tensor:
+    """The 3DGS photometric loss ``(1 - lambda) L1 + lambda (1 - SSIM)`` (Kerbl et al. 2023, lambda 0.2).
+
+    ``dssim_scale`` multiplies the D-SSIM term: 0.5 reproduces the loss ssgwarp trained with before
+    (``(1 - SSIM) / 2``), for comparisons only.
+    """
+    return (1.0 - lambda_dssim) * l1(a, b) + (lambda_dssim * dssim_scale) * dssim(a, b)
 
 
 def psnr(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

@@ -15,7 +15,7 @@ Two warps are provided:
   softmax splatting (Niklaus & Liu 2020; importance metric from brightness
   constancy), masking occlusions by a forward-backward flow check. The flow
   comes from RAFT (:class:`RAFTLarge`, torchvision ``raft_large`` state-dict
-  layout, local weights only) to match the published protocol, or from the
+  layout; weights through :mod:`ssgwarp.weights`) to match the published protocol, or from the
   geometry (:func:`reprojection_flow`).
 
 Errors on the mask are :func:`masked_rmse` (images in [0, 1]) and, when LPIPS
@@ -338,7 +338,7 @@ def consistency_pairs(num_views: int, kind: str = "short", gap: int = 7,
 
 
 # ----------------------------------------------------------------------------------------------
-# LPIPS (VGG variant), from local weights only
+# LPIPS (VGG variant); weights through ssgwarp.weights
 # ----------------------------------------------------------------------------------------------
 LPIPS_TAPS = (3, 8, 15, 22, 29)            # relu1_2, relu2_2, relu3_3, relu4_3, relu5_3 in VGG16.features
 LPIPS_CHANNELS = (64, 128, 256, 512, 512)
@@ -401,24 +401,29 @@ class LPIPS(nn.Module):
 
 def load_lpips(lpips_weights: Optional[str | os.PathLike] = None, vgg_weights: Optional[str | os.PathLike] = None,
                device: torch.device | str = "cpu", config: Optional[Mapping[str, str]] = None) -> LPIPS:
-    """LPIPS from local files (``ssgwarp.weights`` keys ``lpips`` and ``vgg16``); raises WeightsNotFound."""
+    """LPIPS from the ``ssgwarp.weights`` keys ``lpips`` (the lpips package's ``vgg.pth``) and ``vgg16``.
+
+    Found or downloaded as :func:`ssgwarp.weights.require` does; raises WeightsNotFound.
+    """
     from . import weights
 
     lin_path = weights.require("lpips", lpips_weights, config)
     vgg_path = weights.require("vgg16", vgg_weights, config)
-    try:
-        vgg_state = torch.load(vgg_path, map_location="cpu", weights_only=True)
-        lin_state = torch.load(lin_path, map_location="cpu", weights_only=True)
-    except Exception as e:  # corrupt / wrong file
-        raise InputError(f"cannot load LPIPS weights ({lin_path}, {vgg_path}): {e}") from None
-    model = LPIPS().load(vgg_state, lin_state)
+    states = []
+    for key, path in (("vgg16", vgg_path), ("lpips", lin_path)):
+        try:
+            states.append(torch.load(path, map_location="cpu", weights_only=True))
+        except Exception as e:  # truncated / corrupt / wrong file
+            raise weights.load_error(key, path, e, "LPIPS weights" if key == "lpips" else "VGG16 state dict"
+                                     ) from None
+    model = LPIPS().load(*states)
     for p in model.parameters():
         p.requires_grad_(False)
     return model.eval().to(device)
 
 
 # ----------------------------------------------------------------------------------------------
-# RAFT (large), written to torchvision's raft_large state-dict layout; local weights only
+# RAFT (large), written to torchvision's raft_large state-dict layout; weights through ssgwarp.weights
 # ----------------------------------------------------------------------------------------------
 def _conv_block(cin: int, cout: int, k, stride: int = 1, norm: Optional[str] = None, relu: bool = True,
                 padding=None) -> nn.Sequential:
@@ -611,10 +616,11 @@ class RAFTLarge(nn.Module):
 
 def load_raft(raft_weights: Optional[str | os.PathLike] = None, device: torch.device | str = "cpu",
               config: Optional[Mapping[str, str]] = None) -> RAFTLarge:
-    """RAFT-large from a local torchvision state dict (``ssgwarp.weights`` key ``raft``); never downloads.
+    """RAFT-large from the torchvision state dict (``ssgwarp.weights`` key ``raft``: found, or downloaded
+    into the torch hub cache unless downloads are off).
 
-    Raises :class:`~ssgwarp.errors.WeightsNotFound` when no weights are configured
-    and :class:`~ssgwarp.errors.InputError` when the file is not a raft_large state dict.
+    Raises :class:`~ssgwarp.errors.WeightsNotFound` when the weights are neither here nor fetched,
+    and :class:`~ssgwarp.errors.InputError` when the file is truncated, corrupt or not a raft_large state dict.
     """
     from . import weights
 
@@ -622,7 +628,7 @@ def load_raft(raft_weights: Optional[str | os.PathLike] = None, device: torch.de
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:
-        raise InputError(f"{path}: cannot load RAFT state dict ({e})") from None
+        raise weights.load_error("raft", path, e, "RAFT state dict") from None
     if isinstance(state, dict) and "state_dict" in state and isinstance(state["state_dict"], dict):
         state = state["state_dict"]
     model = RAFTLarge()

@@ -318,10 +318,10 @@ class ViewLoss:
 
 
 def finetune_loss(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """``0.8 L1 + 0.2 D-SSIM`` between ``[H,W,3]`` images (the 3DGS photometric loss)."""
-    from .losses import dssim
+    """``0.8 L1 + 0.2 (1 - SSIM)`` between ``[H,W,3]`` images (the 3DGS photometric loss)."""
+    from .losses import photometric
 
-    return 0.8 * (image - target).abs().mean() + 0.2 * dssim(image[None], target[None])
+    return photometric(image[None], target[None])
 
 
 # ----------------------------------------------------------------------------- colour transfer

@@ -7,6 +7,39 @@ torch.set_num_threads(1)  # the tests' tensors are tiny: threads cost more than 
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
+CUDA = torch.cuda.is_available()
+# marks of a test (or a parameter value) that needs CUDA: the GPU machine runs every such test with
+# ``python -m pytest -m cuda tests`` (docs/testing.md); elsewhere they skip
+CUDA_ONLY = [pytest.mark.cuda, pytest.mark.skipif(not CUDA, reason="needs a CUDA device")]
+
+
+def assert_close_elementwise(actual, expected, rtol: float, atol: float, name: str = "tensor",
+                             ulps: float = 0.0) -> None:
+    """Every entry within ``atol + rtol * |expected| + ulps * eps * max|expected|``.
+
+    Per entry, not relative to the tensor's largest entry, so small entries are checked too; ``ulps``
+    (units of roundoff of ``expected``'s dtype, times its largest entry) admits the rounding noise of
+    sums whose terms cancel: a gradient entry near 0 that sums terms as large as the largest entry
+    is only known to that precision. The message names the worst entry, its values and the bound.
+    """
+    actual, expected = torch.as_tensor(actual), torch.as_tensor(expected)
+    assert actual.shape == expected.shape, f"{name}: shape {tuple(actual.shape)} != {tuple(expected.shape)}"
+    eps = torch.finfo(expected.dtype).eps if expected.dtype.is_floating_point else 0.0
+    a, b = actual.detach().double().cpu(), expected.detach().double().cpu()
+    assert torch.isfinite(a).all(), f"{name}: non-finite values"
+    if a.numel() == 0:
+        return
+    floor = atol + ulps * eps * b.abs().max().item()
+    bound = floor + rtol * b.abs()
+    excess = (a - b).abs() - bound
+    worst = int(excess.reshape(-1).argmax())
+    if excess.reshape(-1)[worst] > 0:
+        idx = tuple(int(i) for i in torch.unravel_index(torch.tensor(worst), a.shape))
+        n_bad = int((excess > 0).sum())
+        raise AssertionError(f"{name}: {n_bad} of {a.numel()} entries off; worst at {idx}: {a[idx].item():.6e} vs "
+                             f"{b[idx].item():.6e} (|diff| {abs(a[idx] - b[idx]).item():.3e} > bound "
+                             f"{bound[idx].item():.3e} = {floor:.3e} + {rtol:g} * |expected|)")
+
 
 @pytest.fixture
 def shared_data() -> Path:
@@ -51,3 +84,51 @@ def _release_vtk_objects():
         pv.close_all()
         getattr(pv.plotting.plotter, "_ALL_PLOTTERS", {}).clear()
     gc.collect()
+
+
+# ----------------------------------------------------------------------------- no weights, no network
+WEIGHT_ENV = ("SSGWARP_WEIGHTS", "SSGWARP_SD15", "SSGWARP_CONTROLNET_DEPTH", "SSGWARP_IP_ADAPTER",
+              "SSGWARP_IMAGE_ENCODER", "SSGWARP_VGG16", "SSGWARP_RAFT", "SSGWARP_LPIPS", "SSGWARP_SAM",
+              "HF_HUB_CACHE", "HUGGINGFACE_HUB_CACHE")
+
+
+class NetworkUsed(BaseException):
+    """Raised by any test that opens an internet connection (BaseException: no ``except Exception`` hides it)."""
+
+
+@pytest.fixture(scope="session")
+def _empty_caches(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("empty-weight-caches")
+
+
+@pytest.fixture(autouse=True)
+def _no_weights_no_network(monkeypatch, _empty_caches):
+    """Every test sees no pretrained weights (empty HF_HOME / TORCH_HOME, no SSGWARP_* paths), downloads off,
+    and fails loudly on a DNS lookup or connection to anything but this machine."""
+    import socket
+
+    from ssgwarp import weights
+
+    monkeypatch.setattr(weights, "_NETWORK_DOWN", None)    # per-process download state starts afresh
+    monkeypatch.setattr(weights, "_OFFLINE_FLAG", None)
+    for var in WEIGHT_ENV:
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setenv("HF_HOME", str(_empty_caches / "huggingface"))
+    monkeypatch.setenv("TORCH_HOME", str(_empty_caches / "torch"))
+    for var in ("SSGWARP_OFFLINE", "HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE"):
+        monkeypatch.setenv(var, "1")
+    local = ("localhost", "127.0.0.1", "::1", "", None)
+    real_getaddrinfo, real_connect = socket.getaddrinfo, socket.socket.connect
+
+    def getaddrinfo(host, *a, **kw):
+        if host not in local:
+            raise NetworkUsed(f"a test looked up {host!r}: tests must never touch the network")
+        return real_getaddrinfo(host, *a, **kw)
+
+    def connect(self, address):
+        if self.family in (socket.AF_INET, socket.AF_INET6) and address[0] not in local:
+            raise NetworkUsed(f"a test connected to {address!r}: tests must never touch the network")
+        return real_connect(self, address)
+
+    monkeypatch.setattr(socket, "getaddrinfo", getaddrinfo)
+    monkeypatch.setattr(socket.socket, "connect", connect)

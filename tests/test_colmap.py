@@ -88,9 +88,11 @@ def test_text_and_binary_round_trip(tmp_path):
     # intrinsics and distortion per model
     assert mt.cameras[1].K.tolist() == [[50.0, 0.0, 31.5], [0.0, 52.0, 24.25], [0.0, 0.0, 1.0]]
     assert not mt.cameras[1].is_distorted and not mt.cameras[2].is_distorted
-    assert mt.cameras[3].distortion.tolist() == [0.05, 0.0, 0.0, 0.0]
-    assert mt.cameras[4].distortion.tolist() == [0.05, -0.01, 0.0, 0.0]
-    assert mt.cameras[5].distortion.tolist() == [0.05, -0.01, 0.001, -0.002]
+    assert mt.cameras[1].lens is None and mt.cameras[2].lens is None
+    assert (mt.cameras[3].lens.model, mt.cameras[3].lens.params) == ("SIMPLE_RADIAL", (0.05,))
+    assert (mt.cameras[4].lens.model, mt.cameras[4].lens.params) == ("RADIAL", (0.05, -0.01))
+    assert (mt.cameras[5].lens.model, mt.cameras[5].lens.params) == ("OPENCV", (0.05, -0.01, 0.001, -0.002))
+    assert mt.cameras[5].K.tolist() == [[50.0, 0.0, 32.0], [0.0, 51.0, 24.0], [0.0, 0.0, 1.0]]
     # the model folder is found from the capture root
     (tmp_path / "cap" / "sparse" / "0").mkdir(parents=True)
     _write_binary(tmp_path / "cap" / "sparse" / "0", cams, images, pts)
@@ -158,9 +160,14 @@ def test_corrupt_text(tmp_path):
 
 
 def test_unsupported_model_is_reported(tmp_path):
-    cam = ColmapCamera(1, "OPENCV_FISHEYE", 10, 10, np.ones(8))
-    with pytest.raises(InputError, match="OPENCV_FISHEYE is not supported"):
+    cam = ColmapCamera(1, "FOV", 10, 10, np.ones(5))
+    with pytest.raises(InputError, match="FOV is not supported"):
         cam.K
+    with pytest.raises(InputError, match="FOV is not supported"):
+        cam.lens
+    fish = ColmapCamera(2, "OPENCV_FISHEYE", 10, 10, np.arange(1.0, 9.0))
+    assert fish.K.tolist() == [[1.0, 0.0, 3.0], [0.0, 2.0, 4.0], [0.0, 0.0, 1.0]]
+    assert (fish.lens.model, fish.lens.params) == ("OPENCV_FISHEYE", (5.0, 6.0, 7.0, 8.0)) and fish.is_distorted
 
 
 @pytest.mark.skipif(not (DATA / "colmap_cup").is_dir(), reason="shared data not present")

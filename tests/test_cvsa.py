@@ -8,8 +8,9 @@ import torch
 
 pytest.importorskip("diffusers")
 
+from fakeweights import random_stage1_components  # noqa: E402
 from ssgwarp.cvsa import CVSAProcessor, cvsa_enabled, cvsa_names, install_cvsa, remove_cvsa  # noqa: E402
-from ssgwarp.diffusion import assemble_stage1, random_stage1_components  # noqa: E402
+from ssgwarp.diffusion import assemble_stage1  # noqa: E402
 from ssgwarp.errors import InputError  # noqa: E402
 
 
@@ -147,8 +148,43 @@ def test_batch_must_hold_whole_groups(models):
     attn.set_processor(CVSAProcessor(3))
     try:
         with pytest.raises(ValueError, match="multiple of num_views"):
-            attn(torch.randn(4, 5, attn.to_q.in_features))
+            attn(torch.randn(4, 5, attn.to_q.in_features, generator=torch.Generator().manual_seed(6)))
     finally:
         attn.set_processor(base)
     with pytest.raises(InputError):
         CVSAProcessor(0)
+
+
+def test_guided_denoising_shares_attention_within_each_cfg_half_only(models):
+    """Stage 1's denoising step with guidance and CVSA equals the step computed from each CFG half
+    alone (CVSA over the K unconditional views, and over the K conditional views); attention across
+    both halves (one group of 2K views) gives a step 20x further away than the tolerance, so a CVSA
+    that mixes the halves cannot pass. One trailing step from t = 999 amplifies the noise estimate
+    (x0 = (x - sqrt(1 - a) eps) / sqrt(a), a = 0.005)."""
+    from diffusers import DDIMScheduler
+
+    from ssgwarp.diffusion import ddim_denoise, ddim_step, predict_noise, schedule
+
+    K, w, blocks = 2, 3.0, ("mid_block", "up_blocks.0", "up_blocks.1")
+    g = torch.Generator().manual_seed(5)
+    x = torch.randn(K, 4, 8, 8, generator=g)
+    control = torch.rand(K, 3, 8 * models.vae_scale_factor, 8 * models.vae_scale_factor, generator=g)
+    text_u = models.encode_prompt(["", ""])
+    text_c = models.encode_prompt(["a painting", "a painting"])
+    dim = models.image_encoder.config.projection_dim
+    img_u, img_c = torch.zeros(K, dim), torch.randn(K, dim, generator=g)
+    sched = schedule(DDIMScheduler.from_config(models.scheduler.config, timestep_spacing="trailing"), 1)
+    ts, alphas, a_final = sched
+    assert ts == [999]
+    got = ddim_denoise(models, x, sched, text_u, text_c, img_u, img_c, control, guidance=w, cvsa=True,
+                       cvsa_blocks=blocks)
+    with cvsa_enabled(models.unet, K, blocks):
+        eu = predict_noise(models, x, ts[0], text_u, img_u, control)
+        ec = predict_noise(models, x, ts[0], text_c, img_c, control)
+    expect = ddim_step(x, eu + w * (ec - eu), alphas[0], a_final)
+    torch.testing.assert_close(got, expect, atol=5e-4, rtol=0)
+    with cvsa_enabled(models.unet, 2 * K, blocks):                  # the fault: one group of 2K views
+        mu, mc = predict_noise(models, torch.cat([x, x]), ts[0], torch.cat([text_u, text_c]),
+                               torch.cat([img_u, img_c]), torch.cat([control, control])).chunk(2)
+    mixed = ddim_step(x, mu + w * (mc - mu), alphas[0], a_final)
+    assert (mixed - expect).abs().max() > 20 * 5e-4

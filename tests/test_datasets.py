@@ -1,13 +1,11 @@
 """Loaders: COLMAP (text, written here; binary, shared data), LLFF and transforms.json.
 
 Checks the camera conventions against hand-built poses, intrinsics scaling to the
-loaded resolution, RGBA compositing, lens undistortion against an analytic pattern,
-the every-8th split, errors that name what is missing, and -- on the shared real
+loaded resolution, RGBA compositing (lens undistortion: test_lens.py), the every-8th split, errors that name what is missing, and -- on the shared real
 captures -- that the sparse points land on pixels of their own colour."""
 from __future__ import annotations
 
 import json
-import logging
 from pathlib import Path
 
 import numpy as np
@@ -83,44 +81,6 @@ def test_colmap_images_n_folder_and_missing_images(tmp_path):
     (tmp_path / "images_2" / "view_07.png").unlink()
     with pytest.raises(InputError, match=r"2 image\(s\) referenced by .* are missing .*view_03\.jpg, view_07\.jpg"):
         load_dataset(tmp_path, images="images_2")
-
-
-def _pattern(xn, yn):
-    return np.stack([0.5 + 0.35 * np.sin(5 * xn) * np.cos(4 * yn), 0.5 + 0.35 * np.cos(6 * xn + 1),
-                     0.5 + 0.35 * np.sin(7 * yn + 0.5)], axis=-1).astype(np.float32)
-
-
-def _distort(x, y, k1, k2, p1, p2):
-    r2 = x * x + y * y
-    rad = 1 + k1 * r2 + k2 * r2 * r2
-    return x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x), y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-
-
-def test_opencv_distortion_is_removed(tmp_path, caplog):
-    """A distorted capture of an analytic pattern comes out as the pattern seen by a pinhole camera."""
-    w, h, f, cx, cy = 64, 48, 40.0, 32.0, 24.0
-    dist = (0.12, -0.03, 0.004, -0.003)
-    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    xd, yd = (u - cx) / f, (v - cy) / f
-    xu, yu = xd.copy(), yd.copy()
-    for _ in range(50):  # invert the distortion by fixed-point iteration
-        dx, dy = _distort(xu, yu, *dist)
-        xu, yu = xu - (dx - xd), yu - (dy - yd)
-    raw = _pattern(xu, yu)
-    cams = {1: ColmapCamera(1, "OPENCV", w, h, np.array([f, f, cx, cy, *dist]))}
-    V = _look([0, 0, -3], [0, 0, 0])
-    images = {1: ColmapImage(1, rotmat_to_qvec(V[:3, :3]), V[:3, 3], 1, "a.exr")}
-    write_image(tmp_path / "images" / "a.exr", raw)
-    write_model_text(tmp_path / "sparse" / "0", cams, images)
-    with caplog.at_level(logging.INFO, logger="ssgwarp.datasets"):
-        d = load_dataset(tmp_path)
-    assert d.undistorted and "undistorting 1 images (COLMAP model OPENCV) with kornia" in caplog.text
-    assert d.points is None and d.points_source == "none"
-    want = _pattern(xd, yd)
-    inner = (slice(6, h - 6), slice(6, w - 6))
-    err = np.abs(d.images[0].numpy() - want)[inner].mean()
-    err_raw = np.abs(raw - want)[inner].mean()
-    assert err < 0.004 and err_raw > 5 * err, (err, err_raw)
 
 
 # ----------------------------------------------------------------------------- LLFF
@@ -278,10 +238,12 @@ def _color_agreement(d: SceneData, views) -> tuple[float, float]:
 @needs("llff_fern")
 def test_llff_fern():
     d = load_dataset(DATA / "llff_fern", images="images_8", width=252)
-    assert d.format == "llff" and len(d) == 20 and (d.width, d.height) == (252, 189)
+    # sparse/0/cameras.bin is SIMPLE_RADIAL with the poses' focal: the 504x378 images become a 498x372
+    # pinhole crop (focal kept), then resized to 252 wide
+    assert d.format == "llff" and len(d) == 20 and (d.width, d.height) == (252, 188)
     assert d.test_ids == [0, 8, 16] and len(d.train_ids) == 17
-    assert abs(float(d.cameras.Ks[0, 0, 0]) - 3260.526 * 252 / 4032) < 1e-2
-    assert d.undistorted  # sparse/0/cameras.bin is SIMPLE_RADIAL with the poses' focal
+    assert d.undistorted and d.undistortion["size"] == [498, 372] and d.undistortion["resized_to"] == [252, 188]
+    assert abs(float(d.cameras.Ks[0, 0, 0]) - 3260.526 * 504 / 4032 * 252 / 498) < 1e-2
     assert d.points_source == "colmap" and len(d.points[0]) == 10091
     err, base = _color_agreement(d, range(0, 20, 4))
     assert err < 0.6 * base, (err, base)

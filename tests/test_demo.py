@@ -54,6 +54,7 @@ def demo(tmp_path_factory):
 
 
 # ----------------------------------------------------------------------------- the demo
+@pytest.mark.slow  # the demo fixture runs the whole pipeline once (~30 s on 2 cores)
 def test_demo_runs_every_stage_and_prints_a_summary(demo):
     out, code, stdout, stderr = demo
     assert code == 0, stderr
@@ -62,7 +63,7 @@ def test_demo_runs_every_stage_and_prints_a_summary(demo):
     assert [s for s in record["stages"]] == ["data", "reconstruct", "group", "stylize", "evaluate", "sheet"]
     assert all(v["done"] for v in record["stages"].values())
     # the printed summary names every stage, Stage 1's skip and the contact sheet
-    for word in ("reconstruct", "group (mask-free)", "key views", "Stage 1 (diffusion)", "Stage 2 (IST)",
+    for word in ("reconstruct", "mask-free clusters", "key views", "Stage 1 (diffusion)", "Stage 2 (IST)",
                  "evaluate", "held-out PSNR", "Gram style loss", "consistency RMSE"):
         assert word in stdout, word
     assert "skipped: no local weights for sd15, controlnet_depth, ip_adapter, image_encoder" in stdout
@@ -82,6 +83,9 @@ def test_demo_runs_every_stage_and_prints_a_summary(demo):
     assert summary["gaussians"] == rec["num_gaussians"] and summary["psnr"] == rec["psnr"]
     assert summary["psnr"] > 15.0                     # seen ~19 dB after 150 steps at 48x36
     assert summary["groups"] == groups["num_groups"] >= 2
+    # no Segment Anything weights here: the groups are mask-free clusters, and the summary says so
+    assert summary["group_kind"] == groups["kind"] == "mask-free clusters"
+    assert 0 <= summary["objects_separated"] <= 5
     assert summary["gram_style_loss"] == sty["gram_style_loss"] and math.isfinite(summary["content_loss"])
     assert 0.0 < summary["group_purity"] <= 1.0
     c = summary["consistency_rmse"]
@@ -91,6 +95,7 @@ def test_demo_runs_every_stage_and_prints_a_summary(demo):
     assert (out / "evaluation.md").read_text().startswith("Evaluation")
 
 
+@pytest.mark.slow  # the demo fixture runs the whole pipeline once (~30 s on 2 cores)
 def test_demo_outputs_follow_the_run_contract(demo):
     from ssgwarp.datasets import load_dataset, load_run
     from ssgwarp.grouping import load_groups
@@ -114,6 +119,7 @@ def test_demo_outputs_follow_the_run_contract(demo):
     assert np.allclose(style, P.style_image(192, 192, seed=0), atol=1 / 255)
 
 
+@pytest.mark.slow  # the demo fixture runs the whole pipeline once (~30 s on 2 cores)
 def test_existing_demo_is_not_overwritten_without_force(demo, tmp_path):
     out = demo[0]
     before = _digest(out)
@@ -146,6 +152,7 @@ def test_force_removes_only_what_the_demo_writes(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
 
 
+@pytest.mark.slow  # runs the demo again, interrupted and resumed (~20 s)
 def test_ctrl_c_in_a_demo_stage_resumes_to_the_uninterrupted_result(demo, tmp_path, monkeypatch, fail_on_call):
     """Ctrl-C during Stage 2: exit 130, finished stages kept; --resume gives the same stylized scene."""
     import ssgwarp.stylize as st

@@ -223,15 +223,18 @@ def test_gram_and_content_losses_by_hand():
 
 
 def test_style_is_resized_keeping_aspect():
-    s = torch.rand(40, 80, 3)
+    s = torch.rand(40, 80, 3, generator=torch.Generator().manual_seed(0))
     assert M.fit_style(s, 24, 32).shape == (1, 3, 24, 48)
 
 
 def test_reconstruction_quality():
     g = torch.Generator().manual_seed(1)
     t = torch.rand(2, 16, 16, 3, generator=g)
-    q = M.reconstruction_quality(t, t)
-    assert q["ssim"][0] == pytest.approx(1.0, abs=1e-5)
+    # constant images: SSIM = (2ab + C1) / (a^2 + b^2 + C1), C1 = 0.01^2 (no variance terms)
+    a, b = torch.full((1, 16, 16, 3), 0.3), torch.full((1, 16, 16, 3), 0.6)
+    q = M.reconstruction_quality(a, b)
+    assert q["ssim"][0] == pytest.approx((2 * 0.18 + 1e-4) / (0.09 + 0.36 + 1e-4), abs=1e-5)
+    assert q["psnr"][0] == pytest.approx(-10 * math.log10(0.09), rel=1e-5)
     q = M.reconstruction_quality((t + 0.1).clamp(0, 1), t)
     mse = float((((t + 0.1).clamp(0, 1) - t) ** 2)[0].mean())
     assert q["psnr"][0] == pytest.approx(-10 * math.log10(mse), rel=1e-4)

@@ -7,7 +7,8 @@ import torch
 from ssgwarp import RasterSettings, rasterization
 from ssgwarp.cameras import intrinsics
 
-from test_rasterizer import assert_match, make_cameras, make_scene, run_both
+from conftest import assert_close_elementwise
+from test_rasterizer import GRAD_NAMES, assert_match, make_cameras, make_scene, run_both
 
 EXACT = RasterSettings.exact()
 
@@ -61,19 +62,23 @@ def test_gradcheck_deterministic_backward():
                                     eps=1e-6, atol=1e-6, rtol=1e-4)
 
 
-def test_deterministic_matches_default_and_repeats():
+def test_deterministic_and_default_backward_match_reference():
+    """Both backward variants (per-warp sums, and the deterministic per-intersection slots summed in a
+    fixed order) give the reference's gradients entry by entry. (Run-to-run bit identity is a CUDA
+    property, where atomics reorder sums: test_deterministic_bit_identical_cuda; on the CPU every run
+    is serial, so repeating a CPU run proves nothing.)"""
     params = make_scene(200, dtype=torch.float32, seed=2)
     vm, K = make_cameras(2, 40, 32, dtype=torch.float32)
-    grads = []
-    for det in (False, True, True):
+    grads = {}
+    variants = (("reference", dict(backend="torch")), ("default", {}), ("deterministic", dict(deterministic=True)))
+    for name, kw in variants:
         leaves = [p.clone().requires_grad_(True) for p in params]
-        img, alpha, _ = rasterization(*leaves, vm, K, 40, 32, deterministic=det)
+        img, alpha, _ = rasterization(*leaves, vm, K, 40, 32, **kw)
         (img.sum() + 0.5 * alpha.sum()).backward()
-        grads.append([p.grad for p in leaves])
-    for a, b in zip(grads[0], grads[1]):
-        assert torch.allclose(a, b, rtol=1e-4, atol=1e-5)
-    for a, b in zip(grads[1], grads[2]):
-        assert torch.equal(a, b)
+        grads[name] = [p.grad for p in leaves]
+    for variant in ("default", "deterministic"):
+        for pname, a, b in zip(GRAD_NAMES, grads[variant], grads["reference"]):
+            assert_close_elementwise(a, b, 2e-4, 1e-6, f"{variant} gradient of {pname}", ulps=16)
 
 
 def test_deterministic_needs_small_tiles():
@@ -85,6 +90,7 @@ def test_deterministic_needs_small_tiles():
         img.sum().backward()
 
 
+@pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="fast_math is a CUDA compile option")
 def test_fast_math_cuda_close_to_ieee():
     params = [p.cuda() for p in make_scene(3000, dtype=torch.float32, seed=5, spread=0.3)]
@@ -96,7 +102,9 @@ def test_fast_math_cuda_close_to_ieee():
         img.sum().backward()
         out[fast] = (img.detach(), leaves[0].grad)
     diff = (out[True][0] - out[False][0]).abs().max().item()
-    assert 0 < diff < 1e-4  # approximate exp/division: different bits, same image
+    # approximate exp/division: the same image within 1e-4 (whether any bit differs depends on the
+    # GPU and the compiler, so it is not asserted)
+    assert diff < 1e-4
     assert torch.allclose(out[True][1], out[False][1], rtol=1e-3, atol=1e-4)
 
 
@@ -106,6 +114,7 @@ def test_fast_math_is_a_setting_and_exact_turns_it_off():
     assert RasterSettings(t_min=0.0).for_dtype(torch.float32).fast_math is True
 
 
+@pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="bit-identity across runs matters on CUDA (atomics)")
 def test_deterministic_bit_identical_cuda():
     params = [p.cuda() for p in make_scene(5000, dtype=torch.float32, seed=3, spread=0.3)]
@@ -121,6 +130,7 @@ def test_deterministic_bit_identical_cuda():
         assert torch.equal(a, b)
 
 
+@pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="the warp-level gradient sums run on CUDA only")
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_cuda_warp_sums_every_channel_count(dtype):
@@ -140,9 +150,12 @@ def test_cuda_warp_sums_every_channel_count(dtype):
             ((img * w).sum() + alpha.sum()).backward()
             imgs[backend], grads[backend] = img.detach(), [p.grad for p in leaves]
         tol = 1e-12 if dtype == torch.float64 else 1e-4
-        assert (imgs["warp"] - imgs["torch"]).abs().max().item() < tol
-        for a, b in zip(grads["warp"], grads["torch"]):
-            assert (a - b).abs().max().item() <= tol * b.abs().max().item(), f"D={D}"
+        assert_close_elementwise(imgs["warp"], imgs["torch"], 0.0, tol, f"image D={D}")
+        # per entry: float32 sums in another order (warp shuffles, atomics) differ by ~eps * the sum
+        # of the terms' magnitudes, which atol covers for entries near 0
+        rtol, atol = (1e-11, 0.0) if dtype == torch.float64 else (2e-4, 0.0)
+        for name, a, b in zip(GRAD_NAMES, grads["warp"], grads["torch"]):
+            assert_close_elementwise(a, b, rtol, atol, f"gradient of {name}, D={D}", ulps=64)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -237,12 +250,14 @@ def test_thousands_of_layers_on_one_pixel():
         for d in out.values():
             d[2].append(torch.zeros(1))
         assert_match(out, 1e-10, 1e-8)
-    # float32: same thing, looser (T is rebuilt by division through thousands of layers)
+    # float32: same thing, looser (T is rebuilt by division through thousands of layers: the
+    # backward's rounding error grows with the layer count, measured ~700 roundoffs of the largest
+    # entry on the viewmats gradient, a sum over all 5000 layers)
     p32 = [t.float() for t in (means, quats, scales, opac, colors)]
     out = run_both(p32, vm.float(), K.float(), 8, 8)
     for d in out.values():
         d[2].append(torch.zeros(1))
-    assert_match(out, 1e-5, 1e-3, floor=1e-6)
+    assert_match(out, 1e-5, 1e-3, atol_grad=1e-6, ulps=2048)
 
 
 def test_empty_and_many_cameras():

@@ -350,7 +350,8 @@ def test_stylize_with_tiny_stage1_runs_ist_on_the_stylized_key_views(tmp_path, m
     import json
 
     pytest.importorskip("diffusers")
-    from ssgwarp.diffusion import Stage1Config, assemble_stage1, random_stage1_components
+    from fakeweights import random_stage1_components
+    from ssgwarp.diffusion import Stage1Config, assemble_stage1
     from ssgwarp.keyviews import load_keyviews
 
     for var in ("SSGWARP_WEIGHTS", "SSGWARP_SD15"):

@@ -1,0 +1,43 @@
+"""``--config`` precedence: a flag on the command line beats the config file, which beats the
+option's default (the stage's ``run`` is replaced by one that records the parsed arguments)."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+import ssgwarp.render
+from ssgwarp.cli import main
+
+
+@pytest.fixture
+def parsed(monkeypatch):
+    seen = {}
+
+    def fake_run(args):
+        seen.update(vars(args))
+        return 0
+
+    monkeypatch.setattr(ssgwarp.render, "run", fake_run)
+    return seen
+
+
+def test_flag_beats_config_beats_default(tmp_path, parsed):
+    cfg = tmp_path / "cfg.json"
+    cfg.write_text(json.dumps({"split": "test", "path": 7, "seed": 11, "no-progress": True}))
+    assert main(["render", str(tmp_path / "run"), "--out", str(tmp_path / "o"), "--device", "cpu",
+                 "--config", str(cfg), "--split", "train"]) == 0
+    assert parsed["split"] == "train"          # the flag wins over the config's "test"
+    assert parsed["path"] == 7                 # the config wins over the default (None)
+    assert parsed["seed"] == 11                # also for the common options
+    assert parsed["no_progress"] is True       # keys may be spelled with dashes
+    assert parsed["open"] is False             # neither: the default
+    parsed.clear()
+    # the flag placed before --config wins as well
+    assert main(["render", str(tmp_path / "run"), "--out", str(tmp_path / "o"), "--seed", "3", "--device", "cpu",
+                 "--config", str(cfg)]) == 0
+    assert parsed["seed"] == 3 and parsed["split"] == "test"
+    parsed.clear()
+    # without --config: the defaults
+    assert main(["render", str(tmp_path / "run"), "--out", str(tmp_path / "o"), "--device", "cpu"]) == 0
+    assert parsed["split"] == "all" and parsed["path"] is None and parsed["seed"] == 0

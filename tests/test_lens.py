@@ -1,0 +1,477 @@
+"""Lens undistortion into a pinhole crop in which every pixel has a source.
+
+Each test builds a distorted capture on disk in its real format (COLMAP text/binary, transforms.json,
+LLFF + sparse/0/cameras.bin): a smooth pattern P(x, y) is fixed on the *undistorted* normalised image
+plane and every source pixel centre gets the value of P at its undistorted position (inverted here with
+this file's own forward maps, written independently of ``ssgwarp.lens``). Loading must give:
+
+(a) pinhole intrinsics that keep the focal length, one size for all images, the record in
+    ``SceneData.undistortion``;
+(b) images equal to P seen through the returned pinhole camera, to interpolation accuracy: bilinear
+    resampling of a function with |f''| <= ~25 (P's second derivatives, normalised units) at a source
+    pixel pitch of 1/60 (1/f; up to ~2.5x that in a fisheye's corners) errs by at most
+    h^2/8 * (|f_xx| + |f_yy|) ~ 0.002 (<= 0.012 in the fisheye's corners), plus 8-bit PNG quantisation
+    (<= 0.002): we require max |error| <= 0.02 over *every* pixel and mean <= 0.004. P stays in
+    [0.2, 0.8], so a zero-filled pixel errs by >= 0.2 and fails;
+(c) no pixel without a source: every output pixel centre, pushed through the forward distortion,
+    lands inside the source's pixel centres [0.5, W - 0.5] x [0.5, H - 0.5] (so bilinear sampling
+    never reads padding or extrapolates), and the crop is tight (widening any side by one pixel
+    would take in a pixel without a source);
+(d) clear errors for a distortion too strong for a usable crop and for unsupported models;
+(e) ``images_N`` levels with consistently scaled intrinsics.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from ssgwarp.colmap import MODEL_IDS, ColmapCamera, ColmapImage, ColmapPoints, rotmat_to_qvec, write_model_text
+from ssgwarp.datasets import data_json, load_dataset, load_run
+from ssgwarp.errors import InputError
+from ssgwarp.fileio import write_image
+
+from conftest import SHARED_DATA
+
+DATA = SHARED_DATA if SHARED_DATA.is_dir() else Path("/work/shared/data")  # a worktree's checkout: the shared copy
+
+W0, H0, F = 80, 60, 60.0
+FISHEYES = ("OPENCV_FISHEYE", "RADIAL_FISHEYE", "SIMPLE_RADIAL_FISHEYE")
+NAMES = {"SIMPLE_RADIAL": ("k1",), "RADIAL": ("k1", "k2"), "OPENCV": ("k1", "k2", "p1", "p2"),
+         "FULL_OPENCV": ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")}
+# moderate distortions of every kind: pincushion, barrel, tangential, rational, fisheye
+LENSES = {
+    "SIMPLE_RADIAL": (0.08,),
+    "RADIAL": (-0.12, 0.02),
+    "OPENCV": (0.05, -0.01, 0.004, -0.003),
+    "FULL_OPENCV": (0.1, 0.01, 0.002, 0.001, -0.005, 0.05, 0.0, 0.001),
+    "OPENCV_FISHEYE": (0.05, 0.01, -0.002, 0.0005),
+    "RADIAL_FISHEYE": (-0.03, 0.004),
+    "SIMPLE_RADIAL_FISHEYE": (0.04,),
+}
+MAX_ERR, MEAN_ERR = 0.02, 0.004
+
+
+# ----------------------------------------------------------------------------- independent lens maths
+def _forward(model, p, x, y):
+    """Distorted normalised coordinates (COLMAP / OpenCV formulas)."""
+    if model in FISHEYES:
+        k = list(p) + [0.0] * (4 - len(p))
+        r = np.sqrt(x * x + y * y)
+        th = np.arctan(r)
+        thd = th * (1 + k[0] * th ** 2 + k[1] * th ** 4 + k[2] * th ** 6 + k[3] * th ** 8)
+        s = np.divide(thd, r, out=np.ones_like(r), where=r > 0)
+        return x * s, y * s
+    c = dict(zip(NAMES[model], p))
+    g = lambda n: c.get(n, 0.0)  # noqa: E731
+    r2 = x * x + y * y
+    radial = (1 + g("k1") * r2 + g("k2") * r2 ** 2 + g("k3") * r2 ** 3) / (1 + g("k4") * r2 + g("k5") * r2 ** 2
+                                                                           + g("k6") * r2 ** 3)
+    return (x * radial + 2 * g("p1") * x * y + g("p2") * (r2 + 2 * x * x),
+            y * radial + g("p1") * (r2 + 2 * y * y) + 2 * g("p2") * x * y)
+
+
+def _inverse(model, p, xd, yd):
+    """Undistorted coordinates: 1-D Newton on theta for fisheyes, fixed-point iteration otherwise; the
+    residual is checked so the captures are exact."""
+    if model in FISHEYES:
+        k = list(p) + [0.0] * (4 - len(p))
+        rd = np.sqrt(xd * xd + yd * yd)
+        th = rd.copy()
+        for _ in range(50):
+            t2 = th * th
+            f = th * (1 + k[0] * t2 + k[1] * t2 ** 2 + k[2] * t2 ** 3 + k[3] * t2 ** 4) - rd
+            df = 1 + 3 * k[0] * t2 + 5 * k[1] * t2 ** 2 + 7 * k[2] * t2 ** 3 + 9 * k[3] * t2 ** 4
+            th = th - f / df
+        s = np.divide(np.tan(th), rd, out=np.ones_like(rd), where=rd > 0)
+        x, y = xd * s, yd * s
+    else:
+        x, y = xd.copy(), yd.copy()
+        for _ in range(200):
+            fx, fy = _forward(model, p, x, y)
+            x, y = x + (xd - fx), y + (yd - fy)
+    fx, fy = _forward(model, p, x, y)
+    assert np.abs(fx - xd).max() < 1e-9 and np.abs(fy - yd).max() < 1e-9
+    return x, y
+
+
+def _pattern(x, y):
+    return np.stack([0.5 + 0.2 * np.sin(6 * x + 1) * np.cos(5 * y) + 0.1 * np.cos(4 * x - 7 * y),
+                     0.5 + 0.3 * np.cos(5 * x + 3 * y),
+                     0.5 + 0.3 * np.sin(7 * y - 2 * x + 0.5)], axis=-1).astype(np.float32)
+
+
+def _distorted_image(model, p, K, w, h):
+    """What a camera ``K`` (w x h) with the lens ``(model, p)`` records of the pattern."""
+    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    xd, yd = (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
+    if model in ("PINHOLE", "SIMPLE_PINHOLE"):
+        return _pattern(xd, yd)
+    return _pattern(*_inverse(model, p, xd, yd))
+
+
+def _check_image(img, K_out, model, p, K_src, w0, h0, check_tight=True):
+    """(b) content against the pattern, (c) every pixel has a source and the crop is tight."""
+    img = img.double().numpy()
+    K_out = K_out.double().numpy()
+    h, w = img.shape[:2]
+    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    x, y = (u - K_out[0, 2]) / K_out[0, 0], (v - K_out[1, 2]) / K_out[1, 1]
+    err = np.abs(img - _pattern(x, y))
+    assert err.max() <= MAX_ERR and err.mean() <= MEAN_ERR, (model, err.max(), err.mean())
+    assert img.min() >= 0.2 - MAX_ERR  # no zero-filled pixel anywhere
+
+    def source(uu, vv):
+        xx, yy = (uu - K_out[0, 2]) / K_out[0, 0], (vv - K_out[1, 2]) / K_out[1, 1]
+        if model not in ("PINHOLE", "SIMPLE_PINHOLE"):
+            xx, yy = _forward(model, p, xx, yy)
+        su, sv = xx * K_src[0, 0] + K_src[0, 2], yy * K_src[1, 1] + K_src[1, 2]
+        return (su >= 0.5 - 1e-6) & (su <= w0 - 0.5 + 1e-6) & (sv >= 0.5 - 1e-6) & (sv <= h0 - 0.5 + 1e-6)
+
+    assert source(u, v).all(), model
+    if check_tight:  # one more column / row on any side takes in a pixel without a source
+        cols, rows = np.arange(w) + 0.5, np.arange(h) + 0.5
+        for uu, vv in ((np.full(h, -0.5), rows), (np.full(h, w + 0.5), rows),
+                       (cols, np.full(w, -0.5)), (cols, np.full(w, h + 0.5))):
+            assert not source(uu, vv).all(), model
+
+
+# ----------------------------------------------------------------------------- capture writers
+def _look(eye):
+    from ssgwarp.cameras import look_at
+
+    return look_at(torch.tensor([eye], dtype=torch.float64), torch.zeros(1, 3, dtype=torch.float64),
+                   (0.0, -1.0, 0.0))[0].numpy()
+
+
+def _cameras_bin(path: Path, cams: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    b = struct.pack("<Q", len(cams))
+    for c in cams.values():
+        b += struct.pack("<iiQQ", c.id, MODEL_IDS[c.model], c.width, c.height) + c.params.astype("<f8").tobytes()
+    path.write_bytes(b)
+
+
+def _colmap_params(model, p, f=F, cx=W0 / 2, cy=H0 / 2):
+    one = model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "FOV")
+    return np.array(([f, cx, cy] if one else [f, f * 1.01, cx, cy]) + list(p), dtype=np.float64)
+
+
+def _colmap_capture(root: Path, cams: dict, n=4, folder="images", render=True, binary=False):
+    """COLMAP capture: ``cams`` maps camera id -> (model, params); image i uses camera 1 + i % len(cams)."""
+    ccams = {cid: ColmapCamera(cid, m, W0, H0, _colmap_params(m, p)) for cid, (m, p) in cams.items()}
+    images = {}
+    for i in range(n):
+        cid = 1 + i % len(cams)
+        V = _look([0.4 * i - 0.6, 0.1, -3.0])
+        images[i + 1] = ColmapImage(i + 1, rotmat_to_qvec(V[:3, :3]), V[:3, 3], cid, f"v{i}.png")
+        m, p = cams[cid]
+        img = _distorted_image(m, p, ccams[cid].K, W0, H0) if render else np.full((H0, W0, 3), 0.5, np.float32)
+        write_image(root / folder / f"v{i}.png", img)
+    rng = np.random.default_rng(0)
+    pts = ColmapPoints(np.arange(30), rng.normal(size=(30, 3)) * 0.4, rng.integers(0, 255, (30, 3)).astype(np.uint8),
+                       np.zeros(30), np.zeros(30, np.int64))
+    write_model_text(root / "sparse" / "0", ccams, images, pts)
+    if binary:
+        (root / "sparse" / "0" / "cameras.txt").unlink()
+        _cameras_bin(root / "sparse" / "0" / "cameras.bin", ccams)
+    return ccams
+
+
+# ----------------------------------------------------------------------------- COLMAP, every model
+@pytest.mark.parametrize("model", list(LENSES))
+def test_colmap_models_undistort_into_a_pinhole_crop(tmp_path, model, caplog):
+    p = LENSES[model]
+    ccams = _colmap_capture(tmp_path, {1: (model, p)}, binary=model == "OPENCV")
+    with caplog.at_level(logging.INFO, logger="ssgwarp.datasets"):
+        d = load_dataset(tmp_path, split_every=0)
+    K_src = ccams[1].K
+    assert d.undistorted and f"undistorting 4 images ({model}) into a {d.width}x{d.height} pinhole crop" in caplog.text
+    # (a) the focal lengths are kept, the principal point moves with the crop, every view shares K here
+    assert torch.allclose(d.cameras.Ks[:, 0, 0].double(), torch.tensor(K_src[0, 0], dtype=torch.float64))
+    assert torch.allclose(d.cameras.Ks[:, 1, 1].double(), torch.tensor(K_src[1, 1], dtype=torch.float64))
+    rec = d.undistortion
+    (cam,) = rec["cameras"]
+    assert cam["model"] == model and list(cam["params"].values()) == list(p) and cam["images"] == 4
+    assert rec["source_size"] == [W0, H0] and rec["size"] == [d.width, d.height] and rec["resized_to"] is None
+    x0, y0, x1, y1 = cam["crop"]
+    assert (x1 - x0, y1 - y0) == (d.width, d.height) and rec["area"] >= 0.5
+    assert np.allclose(cam["K"], d.cameras.Ks[0].double().numpy(), atol=1e-4)
+    assert np.allclose(cam["K_source"], K_src)
+    assert np.allclose(cam["K"][0][2], K_src[0, 2] - x0) and np.allclose(cam["K"][1][2], K_src[1, 2] - y0)
+    # (b), (c) on every image
+    for i in range(len(d)):
+        _check_image(d.images[i], d.cameras.Ks[i], model, p, K_src, W0, H0)
+    # the record goes into data.json as JSON
+    assert json.loads(json.dumps(data_json(d)))["undistortion"]["cameras"][0]["crop"] == [x0, y0, x1, y1]
+
+
+def test_pincushion_crops_and_barrel_grows():
+    """Which way the crop goes: a pincushion lens (k > 0) keeps less than the source frame, a barrel lens
+    (k < 0) at least as many pixels (its undistorted frame is larger), with the same focal length."""
+    from ssgwarp.lens import Lens, plan_undistortion
+
+    K = np.array([[F, 0, W0 / 2], [0, F, H0 / 2], [0, 0, 1.0]])[None]
+    pin = plan_undistortion(K, [Lens("SIMPLE_RADIAL", (0.08,))], W0, H0, ["c"])
+    bar = plan_undistortion(K, [Lens("SIMPLE_RADIAL", (-0.08,))], W0, H0, ["c"])
+    assert pin.size[0] < W0 and pin.size[1] < H0
+    assert bar.size[0] * bar.size[1] > W0 * H0 and min(bar.size[0] - W0, bar.size[1] - H0) >= 0
+    assert plan_undistortion(K, [Lens("RADIAL", (0.0, 0.0))], W0, H0, ["c"]) is None  # nothing to do
+
+
+def test_mixed_cameras_share_one_size(tmp_path):
+    """A pinhole camera and a distorted one: one output size; the pinhole images are exact crops."""
+    p = LENSES["OPENCV"]
+    ccams = _colmap_capture(tmp_path, {1: ("PINHOLE", ()), 2: ("OPENCV", p)}, n=4)
+    d = load_dataset(tmp_path, split_every=0)
+    rec = d.undistortion
+    assert len(rec["cameras"]) == 2 and rec["size"] == [d.width, d.height]
+    by_model = {c["model"]: c for c in rec["cameras"]}
+    assert set(by_model) == {"PINHOLE", "OPENCV"}
+    from ssgwarp.fileio import read_image
+
+    for i, name in enumerate(d.names):
+        cid = 1 + int(name[1]) % 2
+        m, pp = ("PINHOLE", ()) if cid == 1 else ("OPENCV", p)
+        _check_image(d.images[i], d.cameras.Ks[i], m, pp, ccams[cid].K, W0, H0, check_tight=False)
+        if cid == 1:
+            x0, y0, x1, y1 = by_model["PINHOLE"]["crop"]
+            src = torch.from_numpy(read_image(tmp_path / "images" / name))
+            assert torch.equal(d.images[i], src[y0:y1, x0:x1])
+
+
+def test_width_resizes_after_undistortion(tmp_path):
+    _colmap_capture(tmp_path, {1: ("OPENCV", LENSES["OPENCV"])})
+    full = load_dataset(tmp_path)
+    d = load_dataset(tmp_path, width=50)
+    h = round(full.height * 50 / full.width)
+    assert (d.width, d.height) == (50, h) and d.undistortion["resized_to"] == [50, h]
+    K = full.cameras.Ks[0].double().clone()
+    K[0] *= 50 / full.width
+    K[1] *= h / full.height
+    assert torch.allclose(d.cameras.Ks[0].double(), K, atol=1e-4)
+    assert d.images.min() >= 0.15  # still no zero-filled pixel
+
+
+# ----------------------------------------------------------------------------- transforms.json
+def _transforms_capture(root: Path, meta: dict, per_frame=None, n=4):
+    frames = []
+    for i in range(n):
+        V = _look([0.4 * i - 0.6, 0.1, -3.0])
+        c2w_gl = np.linalg.inv(V) @ np.diag([1.0, -1.0, -1.0, 1.0])
+        fr = {"file_path": f"images/f{i}.png", "transform_matrix": c2w_gl.tolist(), **((per_frame or {}).get(i, {}))}
+        frames.append(fr)
+        m = {**meta, **fr}
+        s = W0 / m.get("w", W0)
+        K = np.array([[m["fl_x"] * s, 0, m["cx"] * s], [0, m["fl_y"] * s, m["cy"] * s], [0, 0, 1.0]])
+        if m.get("is_fisheye"):
+            model, p = "OPENCV_FISHEYE", tuple(m.get(k, 0.0) for k in ("k1", "k2", "k3", "k4"))
+        else:
+            model, p = "FULL_OPENCV", tuple(m.get(k, 0.0) for k in ("k1", "k2", "p1", "p2", "k3")) + (0.0,) * 3
+        write_image(root / "images" / f"f{i}.png", _distorted_image(model, p, K, W0, H0))
+    (root / "transforms.json").write_text(json.dumps({**meta, "frames": frames}))
+
+
+def test_transforms_opencv_k1_k2_k3_p1_p2(tmp_path):
+    # intrinsics given for a 2x larger capture (w, h), images at 80x60
+    meta = {"fl_x": 2 * F, "fl_y": 2 * F * 1.01, "cx": W0 + 1.0, "cy": H0 - 1.0, "w": 2 * W0, "h": 2 * H0,
+            "k1": 0.06, "k2": -0.01, "k3": 0.002, "p1": 0.003, "p2": -0.002}
+    _transforms_capture(tmp_path, meta)
+    d = load_dataset(tmp_path, split_every=0, num_random_points=10)
+    (cam,) = d.undistortion["cameras"]
+    assert cam["model"] == "FULL_OPENCV" and cam["params"]["k3"] == 0.002 and cam["params"]["p1"] == 0.003
+    K_src = np.array([[F, 0, W0 / 2 + 0.5], [0, F * 1.01, H0 / 2 - 0.5], [0, 0, 1]])
+    assert np.allclose(cam["K_source"], K_src)
+    p = (0.06, -0.01, 0.003, -0.002, 0.002, 0.0, 0.0, 0.0)
+    for i in range(len(d)):
+        _check_image(d.images[i], d.cameras.Ks[i], "FULL_OPENCV", p, K_src, W0, H0)
+
+
+def test_transforms_fisheye_with_per_frame_intrinsics(tmp_path):
+    meta = {"fl_x": F, "fl_y": F, "cx": W0 / 2, "cy": H0 / 2, "is_fisheye": True,
+            "k1": 0.05, "k2": 0.01, "k3": 0.0, "k4": 0.0}
+    per = {1: {"fl_x": F * 1.05, "fl_y": F * 1.05, "cx": W0 / 2 + 2}, 3: {"k1": 0.02}}
+    _transforms_capture(tmp_path, meta, per)
+    d = load_dataset(tmp_path, split_every=0, num_random_points=10)
+    rec = d.undistortion
+    assert {c["model"] for c in rec["cameras"]} == {"OPENCV_FISHEYE"} and len(rec["cameras"]) == 3
+    assert sum(c["images"] for c in rec["cameras"]) == 4
+    for i in range(len(d)):
+        m = {**meta, **per.get(i, {})}
+        K_src = np.array([[m["fl_x"], 0, m["cx"]], [0, m["fl_y"], m["cy"]], [0, 0, 1]])
+        p = tuple(m[k] for k in ("k1", "k2", "k3", "k4"))
+        assert np.isclose(float(d.cameras.Ks[i, 0, 0]), m["fl_x"])  # each frame keeps its focal length
+        _check_image(d.images[i], d.cameras.Ks[i], "OPENCV_FISHEYE", p, K_src, W0, H0, check_tight=False)
+    # nerfstudio's spelling of the same camera
+    raw = json.loads((tmp_path / "transforms.json").read_text())
+    raw.pop("is_fisheye")
+    raw["camera_model"] = "OPENCV_FISHEYE"
+    (tmp_path / "transforms.json").write_text(json.dumps(raw))
+    d2 = load_dataset(tmp_path, split_every=0, num_random_points=10)
+    assert torch.equal(d2.images, d.images) and torch.equal(d2.cameras.Ks, d.cameras.Ks)
+
+
+def test_transforms_lens_errors(tmp_path):
+    meta = {"fl_x": F, "fl_y": F, "cx": W0 / 2, "cy": H0 / 2, "k1": 0.05}
+    _transforms_capture(tmp_path, meta, n=2)
+    raw = json.loads((tmp_path / "transforms.json").read_text())
+    (tmp_path / "transforms.json").write_text(json.dumps({**raw, "camera_model": "EQUIRECTANGULAR"}))
+    with pytest.raises(InputError, match="camera_model EQUIRECTANGULAR is not supported"):
+        load_dataset(tmp_path)
+    (tmp_path / "transforms.json").write_text(json.dumps({**raw, "k4": 0.01}))
+    with pytest.raises(InputError, match="k4=0.01 without is_fisheye"):
+        load_dataset(tmp_path)
+    (tmp_path / "transforms.json").write_text(json.dumps({**raw, "is_fisheye": True, "p1": 0.01}))
+    with pytest.raises(InputError, match="fisheye camera .* takes k1 k2 k3 k4, not p1 p2"):
+        load_dataset(tmp_path)
+
+
+# ----------------------------------------------------------------------------- LLFF, images_N levels
+def _llff_capture(root: Path, model, p, full=(320, 240), focal=240.0, levels=(2, 4), n=4):
+    rows = []
+    for i in range(n):
+        c2w = np.linalg.inv(_look([0.3 * i - 0.45, 0.05 * i, -4.0]))
+        x, y, z, t = c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3]
+        pose = np.stack([y, x, -z, t, [full[1], full[0], focal]], axis=1)
+        rows.append(np.concatenate([pose.ravel(), [2.0, 6.0]]))
+    np.save(root / "poses_bounds.npy", np.array(rows))
+    cam = ColmapCamera(1, model, full[0], full[1], _colmap_params(model, p, focal, full[0] / 2, full[1] / 2))
+    _cameras_bin(root / "sparse" / "0" / "cameras.bin", {1: cam})
+    for s in levels:
+        w, h = full[0] // s, full[1] // s
+        K = np.array([[focal / s, 0, w / 2], [0, focal / s, h / 2], [0, 0, 1]])
+        img = _distorted_image(model, p, K, w, h)
+        for i in range(n):
+            write_image(root / f"images_{s}" / f"IMG_{i:03d}.png", img)
+
+
+@pytest.mark.parametrize("model", ["SIMPLE_RADIAL", "OPENCV_FISHEYE"])
+def test_llff_distorted_sparse_camera_at_every_level(tmp_path, model):
+    p = LENSES[model]
+    _llff_capture(tmp_path, model, p)
+    d2 = load_dataset(tmp_path, images="images_2", num_random_points=50)
+    d4 = load_dataset(tmp_path, images="images_4", num_random_points=50)
+    for d, s in ((d2, 2), (d4, 4)):
+        assert d.undistortion["cameras"][0]["model"] == model and d.undistortion["source_size"] == [320 // s, 240 // s]
+        K_src = np.array([[240.0 / s, 0, 160 / s], [0, 240.0 / s, 120 / s], [0, 0, 1]])
+        for i in (0, len(d) - 1):
+            _check_image(d.images[i], d.cameras.Ks[i], model, p, K_src, 320 // s, 240 // s)
+        # random initial points are drawn in the undistorted cameras' frusta
+        assert d.points_source == "random" and torch.isfinite(d.points[0]).all()
+    # (e) one lens at two resolutions: the same crop, scaled (to the pixel)
+    K2, K4 = d2.cameras.Ks[0].double(), d4.cameras.Ks[0].double()
+    assert torch.equal(K2[0, 0], 2 * K4[0, 0]) and torch.equal(K2[1, 1], 2 * K4[1, 1])
+    assert abs(float(K2[0, 2] - 2 * K4[0, 2])) <= 1.5 and abs(float(K2[1, 2] - 2 * K4[1, 2])) <= 1.5
+    assert abs(d2.width - 2 * d4.width) <= 2 and abs(d2.height - 2 * d4.height) <= 2
+
+
+def test_llff_sparse_camera_with_another_focal_is_not_used(tmp_path, caplog):
+    _llff_capture(tmp_path, "SIMPLE_RADIAL", (0.05,), levels=(4,))
+    cam = ColmapCamera(1, "SIMPLE_RADIAL", 320, 240, np.array([300.0, 160, 120, 0.05]))
+    _cameras_bin(tmp_path / "sparse" / "0" / "cameras.bin", {1: cam})
+    with caplog.at_level(logging.WARNING, logger="ssgwarp.datasets"):
+        d = load_dataset(tmp_path, images="images_4", num_random_points=10)
+    assert not d.undistorted and (d.width, d.height) == (80, 60) and "its distortion is not removed" in caplog.text
+
+
+# ----------------------------------------------------------------------------- errors
+def test_too_strong_distortion_is_refused_naming_the_camera(tmp_path):
+    _colmap_capture(tmp_path / "pin", {1: ("SIMPLE_RADIAL", (2.0,))}, render=False)
+    with pytest.raises(InputError, match=r"cameras.txt: camera 1 \(SIMPLE_RADIAL k=2\): lens distortion too "
+                                         r"strong for a pinhole crop: .* covers \d+% of the 80x60 image \(at "
+                                         r"least 50% needed\); check the calibration"):
+        load_dataset(tmp_path / "pin")
+    _colmap_capture(tmp_path / "bar", {1: ("RADIAL", (-1.5, 0.0))}, render=False, binary=True)
+    with pytest.raises(InputError, match=r"cameras.bin: camera 1 \(RADIAL k1=-1.5 k2=0\): lens distortion too strong"):
+        load_dataset(tmp_path / "bar")
+
+
+@pytest.mark.parametrize("model", ["FOV", "THIN_PRISM_FISHEYE"])
+def test_unsupported_models_are_named(tmp_path, model):
+    n = {"FOV": 1, "THIN_PRISM_FISHEYE": 8}[model]
+    _colmap_capture(tmp_path, {1: ("SIMPLE_RADIAL", (0.0,))}, render=False)
+    txt = tmp_path / "sparse" / "0" / "cameras.txt"
+    pars = " ".join(["60", "60", "40", "30"] + ["0.01"] * n) if model != "FOV" else "60 60 40 30 0.5"
+    txt.write_text(f"1 {model} {W0} {H0} {pars}\n")
+    with pytest.raises(InputError, match=f"COLMAP camera 1: model {model} is not supported .*colmap image_undistorter"):
+        load_dataset(tmp_path)
+
+
+# ----------------------------------------------------------------------------- runs
+def test_run_files_carry_the_crop_and_load_run_reproduces_it(tmp_path):
+    from ssgwarp.fileio import write_json
+    from ssgwarp.ply import write_ply
+    from ssgwarp.scene import GaussianScene
+
+    cap, run = tmp_path / "cap", tmp_path / "run"
+    _colmap_capture(cap, {1: ("OPENCV", LENSES["OPENCV"])}, n=5)
+    d = load_dataset(cap, split_every=2, width=60)
+    write_ply(run / "scene.ply", GaussianScene.from_points(d.points[0], d.points[1], sh_degree=0))
+    d.cameras.save(run / "cameras.json")
+    write_json(run / "data.json", data_json(d))
+    meta = json.loads((run / "data.json").read_text())
+    assert meta["undistorted"] and meta["undistortion"]["cameras"][0]["model"] == "OPENCV"
+    assert meta["undistortion"]["resized_to"] == [d.width, d.height] and (meta["width"], meta["height"]) == (60, d.height)
+    _, back = load_run(run)
+    assert torch.equal(back.images, d.images) and torch.equal(back.cameras.Ks, d.cameras.Ks)
+    assert back.undistortion == meta["undistortion"] and back.metric_frame == d.metric_frame
+    _, cams_only = load_run(run, load_images=False)
+    assert cams_only.undistorted and (cams_only.width, cams_only.height) == (d.width, d.height)
+    # a run whose cameras are not what the capture loads as (e.g. made before the crop): refused
+    cj = json.loads((run / "cameras.json").read_text())
+    for c in cj["cameras"]:
+        c["K"][0][2] += 3.0
+    (run / "cameras.json").write_text(json.dumps(cj))
+    with pytest.raises(InputError, match="now loads as .* with other intrinsics than the run's .*cameras.json"):
+        load_run(run)
+
+
+def test_reconstruct_metrics_say_which_frame(tmp_path, monkeypatch):
+    from ssgwarp.reconstruct import reconstruct
+
+    for var in ("SSGWARP_LPIPS", "SSGWARP_VGG16", "SSGWARP_WEIGHTS"):
+        monkeypatch.delenv(var, raising=False)
+    _colmap_capture(tmp_path / "cap", {1: ("SIMPLE_RADIAL", LENSES["SIMPLE_RADIAL"])}, n=4)
+    m = reconstruct(tmp_path / "cap", tmp_path / "run", iters=2, sh_degree=0, split_every=2, device="cpu",
+                    progress=False, checkpoint_every=0)
+    meta = json.loads((tmp_path / "run" / "data.json").read_text())
+    on_disk = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert m["metric_frame"] == on_disk["metric_frame"] == "undistorted-crop"
+    assert on_disk["metric_size"] == [meta["width"], meta["height"]] == on_disk["resolution"]
+    assert on_disk["metric_crop"]["crops"] == [meta["undistortion"]["cameras"][0]["crop"]]
+    _colmap_capture(tmp_path / "pin", {1: ("PINHOLE", ())}, n=4)
+    m = reconstruct(tmp_path / "pin", tmp_path / "run2", iters=1, sh_degree=0, split_every=2, device="cpu",
+                    progress=False, checkpoint_every=0)
+    assert m["metric_frame"] == "as-captured" and "metric_crop" not in m
+
+
+# ----------------------------------------------------------------------------- the real capture
+@pytest.mark.skipif(not (DATA / "llff_fern").is_dir(), reason="shared data not present")
+def test_fern_every_pixel_is_an_interpolation_of_real_pixels():
+    """fern (SIMPLE_RADIAL, k = 0.0197): each loaded pixel is the bilinear interpolation of the source
+    image at its distorted position (recomputed here), and that position is inside the source."""
+    from ssgwarp.colmap import read_cameras
+    from ssgwarp.fileio import read_image
+
+    (cam,) = read_cameras(DATA / "llff_fern" / "sparse" / "0" / "cameras.bin").values()
+    d = load_dataset(DATA / "llff_fern", images="images_8", max_images=3, split_every=0)
+    assert (d.width, d.height) == (498, 372) and d.undistortion["cameras"][0]["crop"] == [3, 3, 501, 375]
+    src = read_image(DATA / "llff_fern" / "images_8" / d.names[1]).astype(np.float64)
+    h0, w0 = src.shape[:2]
+    f = cam.params[0] * w0 / cam.width
+    K = d.cameras.Ks[1].double().numpy()
+    assert np.isclose(K[0, 0], f, rtol=1e-6)
+    v, u = np.mgrid[0:d.height, 0:d.width] + 0.5
+    x, y = _forward("SIMPLE_RADIAL", (cam.params[3],), (u - K[0, 2]) / f, (v - K[1, 2]) / f)
+    su, sv = x * f + w0 / 2 - 0.5, y * f + h0 / 2 - 0.5  # in pixel-index units
+    assert su.min() >= 0 and sv.min() >= 0 and su.max() <= w0 - 1 and sv.max() <= h0 - 1
+    i0, j0 = np.minimum(np.floor(su).astype(int), w0 - 2), np.minimum(np.floor(sv).astype(int), h0 - 2)
+    a, b = (su - i0)[..., None], (sv - j0)[..., None]
+    want = ((1 - a) * (1 - b) * src[j0, i0] + a * (1 - b) * src[j0, i0 + 1] + (1 - a) * b * src[j0 + 1, i0]
+            + a * b * src[j0 + 1, i0 + 1])
+    assert np.abs(d.images[1].numpy() - want).max() < 1e-4
