@@ -116,7 +116,7 @@ def test_transfer_colors_on_a_rendered_scene_per_group_and_global():
     labels = object_labels(scene, obj, cams)                 # 0, 1 objects, 2 background
     # global: against a style image of warm colours (no colour is pushed below 0, where renders clamp)
     style = _cloud(400, [0.6, 0.5, 0.4], [[0.04, 0, 0], [0.02, 0.03, 0], [0.0, 0.01, 0.03]], 5).reshape(1, 20, 20, 3)
-    out, info = st.transfer_colors(scene, cams, style)
+    out, info = st.transfer_colors(scene, cams, style, max_gain=4.0)     # a cap that this map stays under
     assert float(sh_dc_to_rgb(out.sh_dc).min()) > 0
     assert info["per_group"] is False
     col, alpha, _ = out.render(cams)
@@ -126,13 +126,18 @@ def test_transfer_colors_on_a_rendered_scene_per_group_and_global():
     # covariance: up to the eps regularisation of the (nearly rank-2) source covariance
     torch.testing.assert_close(stats.cov, target_stats.cov, atol=0.05 * float(target_stats.cov.diagonal().max()), rtol=0.05)
 
+    # the default cap (Stage 2's --color-max-gain 1.3) limits the stretch of every colour direction
+    _, info_d = st.transfer_colors(scene, cams, style)
+    gains = torch.linalg.eigvalsh(torch.tensor(info_d["transform"]["A"], dtype=torch.float64))
+    assert float(gains.max()) == pytest.approx(1.3, abs=1e-5), gains      # this map wants more: capped
+
     # per group: object 0 -> red, object 1 is absent from the target views -> the global map
     target = torch.zeros(1, *labels.shape[1:], 3, dtype=torch.float64)
     tlab = torch.full(labels.shape[1:], 2)[None]
     target[0, :, :] = torch.tensor([0.9, 0.1, 0.1], dtype=torch.float64)
     tlab[0, labels[0] == 0] = 0                               # target view 0 shows object 0 only (as red)
     out_g, info_g = st.transfer_colors(scene, cams[[0]], target, labels=labels[[0]], target_labels=tlab,
-                                       assign=obj, num_groups=2)
+                                       assign=obj, num_groups=2, max_gain=4.0)
     assert info_g["per_group"] and info_g["how"] == ["group", "global"]
     c0 = out_g.base_colors[obj == 0].mean(0)
     assert c0[0] > 0.7 and c0[1] < 0.25 and c0[2] < 0.25, c0
