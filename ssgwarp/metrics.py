@@ -962,7 +962,6 @@ class StyleDistance:
             texture.append(sum(per) / len(per) if per else float("nan"))
         return {"color": torch.tensor(color, dtype=torch.float64), "texture": torch.tensor(texture, dtype=torch.float64)}
 
-
     def mean(self, images: Tensor, alphas: Optional[Tensor] = None) -> dict[str, Optional[float]]:
         """``{"color", "texture"}`` averaged over the views (views without scene pixels skipped; None if none)."""
         out = {}
