@@ -101,7 +101,7 @@ class FeatureExtractor(nn.Module):
     """Base class: ``extractor(images [B,3,H,W] in [0,1]) -> list of [B,C_l,h_l,w_l]``.
 
     Attributes:
-        name: what ran, e.g. ``"vgg16:conv3"`` or ``"random-multiscale:seed0"``.
+        name: what ran, e.g. ``"vgg16:conv3"`` or ``"random-multiscale:seed0,c128s2"``.
         strides: the downsampling factor of each returned layer.
     Parameters are frozen (``requires_grad=False``), but the call is
     differentiable with respect to the images.
