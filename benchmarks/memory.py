@@ -8,7 +8,8 @@ them, two training steps (the second measured). Reported per configuration:
 * ``persistent``: the bytes of the scene's tensors, their gradients and Adam moments, counted
   from the tensors themselves (exact on any device);
 * ``intersections``: Gaussian-tile intersections of the step's views (``meta["n_isects"]``);
-* on CUDA, ``workspace``: the step's peak allocated memory minus what was allocated before it.
+* on CUDA, ``workspace``: the step's peak allocated memory minus what was allocated before it and
+  minus the gradients (counted in ``persistent``).
 
 On CUDA the workspace is then fitted (least squares) as ``a x (views x N) + b x intersections +
 c x pixels``: ``a`` bytes per (camera, Gaussian), ``b`` per intersection, ``c`` per pixel (per
@@ -46,21 +47,15 @@ def tensor_bytes(trainer) -> dict:
     return {"params": params, "grads": params, "adam": adam, "stats": stats}
 
 
+_SCENES: dict = {}
+
+
 def measure(data, n: int, batch: int, device: torch.device) -> dict:
     from ssgwarp.reconstruct import Recipe, Trainer
-    from ssgwarp.scene import GaussianScene
 
-    xyz, rgb = data.points
-    g = torch.Generator().manual_seed(0)
-    reps = -(-n // len(xyz))
-    spread = (xyz.max(0).values - xyz.min(0).values) * 0.002
-    pts = (xyz.repeat(reps, 1) + torch.randn(reps * len(xyz), 3, generator=g) * spread)[:n]
-    cols = rgb.repeat(reps, 1)[:n]
-    from ssgwarp.scene import knn_mean_distance
-
-    scale = knn_mean_distance(pts.to(device), k=3).clamp_min(1e-7).cpu()
-    scene = GaussianScene.from_points(pts, cols, sh_degree=3, opacity=0.1, scale=scale)
-    t = Trainer(data, scene=scene, iters=10**6, sh_degree=3, device=device, progress=False, batch_size=batch,
+    if n not in _SCENES:  # (the same scene at every width and batch)
+        _SCENES[n] = make_scene(data, n, device)
+    t = Trainer(data, scene=_SCENES[n], iters=10**6, sh_degree=3, device=device, progress=False, batch_size=batch,
                 recipe=Recipe(refine_start=10**7, refine_stop=10**7, batch_scaling="none"))
     seen = {}
     observe = t.strategy.observe
@@ -72,7 +67,7 @@ def measure(data, n: int, batch: int, device: torch.device) -> dict:
     t.train_step()  # (Adam state allocated)
     if device.type == "cuda":
         torch.cuda.synchronize(device)
-        before = torch.cuda.memory_allocated(device)
+        before = torch.cuda.memory_allocated(device)  # (gradients are freed between steps)
         torch.cuda.reset_peak_memory_stats(device)
     t.train_step()
     row = {"gaussians": n, "views": batch, "width": data.width, "height": data.height,
@@ -80,9 +75,23 @@ def measure(data, n: int, batch: int, device: torch.device) -> dict:
     row["persistent"] = row["params"] + row["grads"] + row["adam"] + row["stats"]
     if device.type == "cuda":
         torch.cuda.synchronize(device)
-        row["workspace"] = torch.cuda.max_memory_allocated(device) - before
+        row["workspace"] = torch.cuda.max_memory_allocated(device) - before - row["grads"]
     del t
     return row
+
+
+def make_scene(data, n: int, device: torch.device):
+    """``n`` Gaussians: the capture's points replicated with jitter, 3DGS initial widths (3-NN distance)."""
+    from ssgwarp.scene import GaussianScene, knn_mean_distance
+
+    xyz, rgb = data.points
+    g = torch.Generator().manual_seed(0)
+    reps = -(-n // len(xyz))
+    spread = (xyz.max(0).values - xyz.min(0).values) * 0.002
+    pts = (xyz.repeat(reps, 1) + torch.randn(reps * len(xyz), 3, generator=g) * spread)[:n]
+    cols = rgb.repeat(reps, 1)[:n]
+    scale = knn_mean_distance(pts.to(device), k=3).clamp_min(1e-7).cpu()
+    return GaussianScene.from_points(pts, cols, sh_degree=3, opacity=0.1, scale=scale)
 
 
 def fit(rows: list) -> dict:
