@@ -140,8 +140,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f"ssgwarp: error: {_one_line(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("ssgwarp: interrupted; completed checkpoints are kept (rerun with --resume to continue)",
-              file=sys.stderr)
+        if os.environ.get("RANK", "0") == "0":  # (under torchrun: said once, by the main process)
+            print("ssgwarp: interrupted; completed checkpoints are kept (rerun with --resume to continue)",
+                  file=sys.stderr)
         return 130
     except (ValueError, FileNotFoundError, OSError) as e:
         if debug:
