@@ -7,7 +7,7 @@ them, two training steps (the second measured). Reported per configuration:
 
 * ``persistent``: the bytes of the scene's tensors, their gradients and Adam moments, counted
   from the tensors themselves (exact on any device);
-* ``intersections``: Gaussian-tile intersections of the step's views (``meta["n_isects"]``);
+* ``intersections``: Gaussian-tile intersections of the step's views (the length of ``meta["isect_ids"]``);
 * on CUDA, ``workspace``: the step's peak allocated memory minus what was allocated before it and
   minus the gradients (counted in ``persistent``).
 
@@ -61,7 +61,7 @@ def measure(data, n: int, batch: int, device: torch.device) -> dict:
     observe = t.strategy.observe
 
     def counting(gaussians, meta):
-        seen["isects"] = int(meta["n_isects"])
+        seen["isects"] = int(meta["isect_ids"].numel())
         observe(gaussians, meta)
     t.strategy.observe = counting
     t.train_step()  # (Adam state allocated)
