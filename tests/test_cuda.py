@@ -81,21 +81,26 @@ def render_and_grads(params, vm, K, device, dtype, backend, **kw):
     img, alpha, meta = rasterization(*leaves, vml, K.to(device, dtype), W, H, backgrounds=bgl, backend=backend, **kw)
     meta["means2d"].retain_grad()
     g = torch.Generator().manual_seed(1)
-    wi = torch.randn(img.shape, generator=g, dtype=torch.float64).to(device, dtype)
-    wa = torch.randn(alpha.shape, generator=g, dtype=torch.float64).to(device, dtype)
+    # float32 weights in every dtype: a float64 run differentiates the same loss as a float32 one
+    wi = torch.randn(img.shape, generator=g, dtype=torch.float64).float().to(device, dtype)
+    wa = torch.randn(alpha.shape, generator=g, dtype=torch.float64).float().to(device, dtype)
     ((img * wi).sum() + (alpha * wa).sum()).backward()
     grads = [p.grad for p in leaves] + [vml.grad, meta["means2d"].grad, None if bgl is None else bgl.grad]
     return img.detach(), alpha.detach(), grads
 
 
-def compare(ours, ref, img_atol, rtol, atol, ulps, what):
-    assert_close_elementwise(ours[0], ref[0], 0.0, img_atol, f"{what}: image")
-    assert_close_elementwise(ours[1], ref[1], 0.0, img_atol, f"{what}: alpha")
-    for name, a, b in zip(GRAD_NAMES, ours[2], ref[2]):
+def compare(ours, ref, img_atol, rtol, atol, ulps, what, truth=None):
+    """``ours`` against ``ref`` (image, alpha, gradients), per entry; with ``truth`` (the same triple,
+    computed more precisely), an entry may also pass by being no farther from the truth than ``ref``'s
+    is, plus the bound (:func:`conftest.assert_close_elementwise`)."""
+    t = (None, None, [None] * len(ref[2])) if truth is None else truth
+    assert_close_elementwise(ours[0], ref[0], 0.0, img_atol, f"{what}: image", truth=t[0])
+    assert_close_elementwise(ours[1], ref[1], 0.0, img_atol, f"{what}: alpha", truth=t[1])
+    for name, a, b, tg in zip(GRAD_NAMES, ours[2], ref[2], t[2]):
         if a is None or b is None:
             assert (a is None or not a.any()) and (b is None or not b.any()), f"{what}: {name}"
             continue
-        assert_close_elementwise(a, b, rtol, atol, f"{what}: gradient of {name}", ulps=ulps)
+        assert_close_elementwise(a, b, rtol, atol, f"{what}: gradient of {name}", ulps=ulps, truth=tg)
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -148,3 +153,17 @@ def test_scene_selection_avoids_threshold_ties():
     tie[0][0] = 0.0                 # at the point the cameras look at
     tie[3][0] = 1.0 / 255.0
     assert gating_margin(tie, vm, K, None, False) < 1e-9
+
+
+def test_truth_admits_only_the_side_nearer_to_it():
+    """With a truth, a disagreement beyond the bound passes only where ``expected`` is the farther one."""
+    truth = torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)
+    expected = torch.tensor([1.0, 2.1, 3.0], dtype=torch.float32)      # entry 1 off by 0.1
+    assert_close_elementwise(torch.tensor([1.0, 2.0, 3.0]), expected, 1e-3, 1e-6, "ours exact", truth=truth)
+    assert_close_elementwise(torch.tensor([1.0, 1.95, 3.0]), expected, 1e-3, 1e-6, "ours nearer", truth=truth)
+    with pytest.raises(AssertionError, match="ours farther.*1 of 3 entries off; worst at \\(1,\\).*truth 2"):
+        assert_close_elementwise(torch.tensor([1.0, 1.85, 3.0]), expected, 1e-3, 1e-6, "ours farther", truth=truth)
+    with pytest.raises(AssertionError, match="worst at \\(2,\\)"):    # the plain bound still holds where they agree
+        assert_close_elementwise(torch.tensor([1.0, 2.1, 3.01]), expected, 1e-3, 1e-6, "bound", truth=truth)
+    with pytest.raises(AssertionError, match="1 of 3 entries off"):   # no truth: the plain check
+        assert_close_elementwise(torch.tensor([1.0, 1.95, 3.0]), expected, 1e-3, 1e-6, "plain")
