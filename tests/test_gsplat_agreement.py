@@ -31,8 +31,7 @@ import pytest
 import torch
 
 from conftest import CUDA_ONLY, assert_close_elementwise
-from test_cuda import GRAD_NAMES, H, W, compare, well_conditioned_scene
-from test_cuda import render_and_grads as reference_render_and_grads
+from test_cuda import GRAD_NAMES, H, W, compare, float64_truth, well_conditioned_scene
 
 pytestmark = CUDA_ONLY
 
@@ -82,10 +81,6 @@ def test_matches_gsplat(variant, mode):
     img_atol = 5e-5 if "D" in mode else 1e-5
     if theirs[2][-1] is None:      # a gsplat without a background gradient: compare the rest
         ours[2][-1] = None
-    # the float64 truth of the same problem: the float32-rounded inputs, differentiated in float64
-    rounded = lambda t: t.float().double()
-    kw["backgrounds"] = rounded(kw["backgrounds"])
-    truth = reference_render_and_grads([rounded(p) for p in params], rounded(vm), rounded(K), "cpu", torch.float64,
-                                       "torch", **dict(kw))
+    truth = float64_truth(params, vm, K, **dict(kw))
     compare(ours[:3], theirs[:3], img_atol, 1e-3, 1e-6, 64, f"gsplat {variant} {mode}", truth=truth)
     assert len(GRAD_NAMES) == len(ours[2])
