@@ -14,13 +14,19 @@ CUDA_ONLY = [pytest.mark.cuda, pytest.mark.skipif(not CUDA, reason="needs a CUDA
 
 
 def assert_close_elementwise(actual, expected, rtol: float, atol: float, name: str = "tensor",
-                             ulps: float = 0.0) -> None:
+                             ulps: float = 0.0, truth=None) -> None:
     """Every entry within ``atol + rtol * |expected| + ulps * eps * max|expected|``.
 
     Per entry, not relative to the tensor's largest entry, so small entries are checked too; ``ulps``
     (units of roundoff of ``expected``'s dtype, times its largest entry) admits the rounding noise of
     sums whose terms cancel: a gradient entry near 0 that sums terms as large as the largest entry
     is only known to that precision. The message names the worst entry, its values and the bound.
+
+    With ``truth`` (a more precise computation of the same quantity, e.g. float64), ``expected`` is
+    itself an approximation, and an entry passes when ``actual`` is no farther from the truth than
+    ``expected`` is, plus the bound: ``|actual - truth| <= |expected - truth| + bound``. That admits
+    every entry the plain check admits (triangle inequality) and, beyond it, only disagreements where
+    ``expected`` carries the larger error.
     """
     actual, expected = torch.as_tensor(actual), torch.as_tensor(expected)
     assert actual.shape == expected.shape, f"{name}: shape {tuple(actual.shape)} != {tuple(expected.shape)}"
@@ -31,14 +37,22 @@ def assert_close_elementwise(actual, expected, rtol: float, atol: float, name: s
         return
     floor = atol + ulps * eps * b.abs().max().item()
     bound = floor + rtol * b.abs()
-    excess = (a - b).abs() - bound
+    if truth is None:
+        excess = (a - b).abs() - bound
+    else:
+        t = torch.as_tensor(truth).detach().double().cpu()
+        assert t.shape == a.shape, f"{name}: truth's shape {tuple(t.shape)} != {tuple(a.shape)}"
+        excess = (a - t).abs() - (b - t).abs() - bound
     worst = int(excess.reshape(-1).argmax())
     if excess.reshape(-1)[worst] > 0:
         idx = tuple(int(i) for i in torch.unravel_index(torch.tensor(worst), a.shape))
         n_bad = int((excess > 0).sum())
         raise AssertionError(f"{name}: {n_bad} of {a.numel()} entries off; worst at {idx}: {a[idx].item():.6e} vs "
                              f"{b[idx].item():.6e} (|diff| {abs(a[idx] - b[idx]).item():.3e} > bound "
-                             f"{bound[idx].item():.3e} = {floor:.3e} + {rtol:g} * |expected|)")
+                             f"{bound[idx].item():.3e} = {floor:.3e} + {rtol:g} * |expected|)"
+                             + ("" if truth is None else f"; truth {t[idx].item():.6e}: |actual - truth| "
+                                f"{abs(a[idx] - t[idx]).item():.3e} > |expected - truth| {abs(b[idx] - t[idx]).item():.3e}"
+                                " + bound"))
 
 
 @pytest.fixture

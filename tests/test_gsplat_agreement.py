@@ -10,6 +10,20 @@ Gaussians, the last bit of the colour sums), projected Gaussians 1e-6 relative (
 bit-identical; conics relative to their trace), gradients 1e-3 relative per entry plus 64 float32
 roundoffs of the tensor's largest entry (both sum per-pixel terms with atomics, in different orders).
 The scene keeps every contribution 2e-4 (relative) away from the gating thresholds (test_cuda.py).
+
+gsplat is float32 too, so it is an approximation, not the truth. The truth is the torch reference
+(the spec; test_cuda.py checks our float64 kernels against it to rounding) in float64 on the CPU, fed
+the same float32-rounded inputs and loss weights, and an entry beyond the bound of gsplat's still
+passes when ours is no farther from the float64 value than gsplat's is, plus the bound (``truth`` in
+conftest.assert_close_elementwise). This matters in the expected-depth modes: both renderers divide
+the blended depth by the alpha (ED = D / alpha) in torch, so a pixel's loss weight w reaches the
+rasterizer's backward as w / alpha on the depth channel and -w ED / alpha on the alpha, and where
+alpha is small (~4e-3 here) the two paths cancel: in this scene they give quats (180, 1) -45.1 and
++44.9, means (19, 1) -249.9 and +247.7 (ED only, float64). A float32 error of ~1e-6 relative in
+those terms is ~1e-4 absolute, beyond the 1e-3 relative bound of a result of ~1e-2. On the H100
+(2026-11-23), float64 truth / ours / gsplat: ED quats (180, 1) 1.48322e-2 / 1.48394e-2 / 1.47100e-2,
+ED means (19, 1) 2.31744e-3 / 2.34103e-3 / 1.79875e-3, RGB+ED quats (19, 2) -2.03115e-2 /
+-2.03092e-2 / -2.04286e-2: ours within 2.4e-5 of the truth (as on the CPU), gsplat 1.2e-4 to 5.2e-4.
 """
 from __future__ import annotations
 
@@ -17,7 +31,7 @@ import pytest
 import torch
 
 from conftest import CUDA_ONLY, assert_close_elementwise
-from test_cuda import GRAD_NAMES, H, W, compare, well_conditioned_scene
+from test_cuda import GRAD_NAMES, H, W, compare, float64_truth, well_conditioned_scene
 
 pytestmark = CUDA_ONLY
 
@@ -67,5 +81,6 @@ def test_matches_gsplat(variant, mode):
     img_atol = 5e-5 if "D" in mode else 1e-5
     if theirs[2][-1] is None:      # a gsplat without a background gradient: compare the rest
         ours[2][-1] = None
-    compare(ours[:3], theirs[:3], img_atol, 1e-3, 1e-6, 64, f"gsplat {variant} {mode}")
+    truth = float64_truth(params, vm, K, **dict(kw))
+    compare(ours[:3], theirs[:3], img_atol, 1e-3, 1e-6, 64, f"gsplat {variant} {mode}", truth=truth)
     assert len(GRAD_NAMES) == len(ours[2])
