@@ -230,7 +230,8 @@ def group_scene(scene_dir: str | Path, *, masks: Optional[str | Path] = "auto", 
         if made is not None and ignore_id is None:
             ignore_id = made.get("ignore_id")
         ms = load_masks(mask_dir, cams.names, cams.width, cams.height, num_groups=num_groups, ignore_id=ignore_id,
-                        required=[i in set(run.train_ids) for i in range(len(cams))])
+                        required=[i in set(run.train_ids) for i in range(len(cams))],
+                        undistortion=None if made is not None else run.data.get("undistortion"))
         k = ms.num_groups
         all_targets = ms.targets
         info.update({"method": "masks", "mask_dir": str(mask_dir), "mask_ids": ms.ids, "criterion": None,

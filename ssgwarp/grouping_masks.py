@@ -15,6 +15,7 @@ import OpenImageIO as oiio
 import torch
 
 from .errors import InputError
+from .lens import undistort_labels
 from .pseudomasks import IGNORE
 
 Tensor = torch.Tensor
@@ -78,14 +79,33 @@ def find_mask(mask_dir: Path, name: str) -> Optional[Path]:
     return None
 
 
+def _in_source_frame(shape, record: dict, width: int, height: int, tol: float) -> bool:
+    """Whether a mask of ``shape`` is in the distorted source's frame rather than the training crop's."""
+    h, w = shape[:2]
+    W0, H0 = record["source_size"]
+    if (w, h) == (W0, H0):
+        return True
+    same_source = abs((w / h) / (W0 / H0) - 1.0) <= tol
+    same_crop = abs((w / h) / (width / height) - 1.0) <= tol
+    return same_source and not same_crop
+
+
 def load_masks(mask_dir: str | Path, names: Sequence[str], width: int, height: int, *,
                num_groups: Optional[int] = None, ignore_id: Optional[int] = None,
-               required: Optional[Sequence[bool]] = None, aspect_tol: float = 0.02) -> MaskSet:
+               required: Optional[Sequence[bool]] = None, aspect_tol: float = 0.02,
+               undistortion: Optional[dict] = None) -> MaskSet:
     """Load Gaussian Grouping's ``object_mask/<image stem>.png`` for each of ``names``.
 
     Masks are resized by nearest neighbour to ``width`` x ``height``; their ids
     (all values but ``ignore_id``) are made compact in sorted order. K is the
     number of distinct ids unless ``num_groups`` is given.
+
+    ``undistortion`` (``data.json``'s record of a distorted capture, whose images were undistorted
+    into a pinhole crop): masks drawn on the original images (the source's size, or its aspect when
+    that differs from the crop's) are brought into the crop through the same lens map
+    (:func:`ssgwarp.lens.undistort_labels`), so that no mask pixel lies where the image has no
+    source; masks already in the crop's frame (``ssgwarp masks`` writes those) are taken as they are.
+    ``names[i]`` is image i of the capture (the record's image numbering).
 
     ``required[i]`` False lets image i have no mask (its targets are all
     ``IGNORE``). Raises InputError for: a missing folder, a required mask
@@ -107,6 +127,8 @@ def load_masks(mask_dir: str | Path, names: Sequence[str], width: int, height: i
             files.append("")
             continue
         ids = read_id_image(p)
+        if undistortion is not None and _in_source_frame(ids.shape, undistortion, width, height, aspect_tol):
+            ids = undistort_labels(undistortion, len(raw), ids, what=str(p))
         h, w = ids.shape
         if abs((w / h) / (width / height) - 1.0) > aspect_tol:
             raise InputError(f"{p}: mask is {w}x{h} (aspect {w / h:.3f}) but image '{name}' is trained at "

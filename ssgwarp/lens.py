@@ -340,12 +340,54 @@ class Undistortion:
             K[0, 2] -= x0
             K[1, 2] -= y0
             cams.append({
-                "camera": cam.label, "images": len(cam.images),
+                "camera": cam.label, "images": len(cam.images), "image_ids": [int(i) for i in cam.images],
                 **(cam.lens.to_json() if cam.lens is not None else {"model": "PINHOLE", "params": {}}),
                 "K_source": cam.K.tolist(), "crop": [int(x0), int(y0), int(x0 + W), int(y0 + H)], "K": K.tolist(),
             })
         return {"method": "pinhole crop: every pixel has a source (alpha = 0), bilinear resampling",
                 "source_size": [W0, H0], "size": [W, H], "area": round(W * H / (W0 * H0), 4), "cameras": cams}
+
+
+def undistort_labels(record: dict, i: int, labels: np.ndarray, what: str = "mask") -> np.ndarray:
+    """Integer label image ``labels [h, w]`` of source image ``i`` (in the frame of the distorted source,
+    at its size or any size of the same aspect), brought into the run's undistorted pinhole crop by
+    nearest-neighbour sampling with the lens map of ``record`` (an :meth:`Undistortion.record`, as
+    ``data.json``'s ``undistortion``), then to its ``resized_to`` size when there is one.
+
+    Used for masks drawn on the original images (Gaussian Grouping's ``object_mask/``, a tracker's
+    output): every output pixel takes the label of the source pixel its colour came from, so masks and
+    images stay registered and no mask pixel lies outside the source."""
+    (W0, H0), (W, H) = record["source_size"], record["size"]
+    cams = record["cameras"]
+    cam = None
+    for c in cams:
+        if "image_ids" in c and i in c["image_ids"]:
+            cam = c
+    if cam is None:
+        if len(cams) != 1:
+            raise InputError(f"{what}: the run's undistortion record does not say which camera image {i} used "
+                             f"(a run made by an older ssgwarp); run `ssgwarp reconstruct` again")
+        cam = cams[0]
+    h, w = labels.shape[:2]
+    if abs((w / h) / (W0 / H0) - 1.0) > 0.02:
+        raise InputError(f"{what}: {w}x{h} does not have the aspect of the capture's {W0}x{H0} images")
+    names = MODELS[cam["model"]] if cam["model"] in MODELS else ()
+    lens = None if cam["model"] == "PINHOLE" else Lens(cam["model"], tuple(cam["params"][k] for k in names))
+    x0, y0 = cam["crop"][:2]
+    u = np.arange(W, dtype=np.float64) + x0 + 0.5
+    v = np.arange(H, dtype=np.float64) + y0 + 0.5
+    su, sv, _ = _source_map(_Camera(np.asarray(cam["K_source"], dtype=np.float64), lens, cam["camera"]),
+                            *np.broadcast_arrays(u[None, :], v[:, None]), fold=False)
+    cols = np.clip(np.floor(su * (w / W0)).astype(np.int64), 0, w - 1)
+    rows = np.clip(np.floor(sv * (h / H0)).astype(np.int64), 0, h - 1)
+    out = labels[rows, cols]
+    size = record.get("resized_to")
+    if size is not None and tuple(size) != (W, H):
+        ws, hs = size
+        r = np.minimum(((np.arange(hs) + 0.5) * H / hs).astype(np.int64), H - 1)
+        c = np.minimum(((np.arange(ws) + 0.5) * W / ws).astype(np.int64), W - 1)
+        out = out[r[:, None], c[None, :]]
+    return np.ascontiguousarray(out)
 
 
 def plan_undistortion(Ks: np.ndarray, lenses: Sequence[Optional[Lens]], width: int, height: int,

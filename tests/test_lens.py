@@ -475,3 +475,64 @@ def test_fern_every_pixel_is_an_interpolation_of_real_pixels():
     want = ((1 - a) * (1 - b) * src[j0, i0] + a * (1 - b) * src[j0, i0 + 1] + (1 - a) * b * src[j0 + 1, i0]
             + a * b * src[j0 + 1, i0 + 1])
     assert np.abs(d.images[1].numpy() - want).max() < 1e-4
+
+
+# ----------------------------------------------------------------------------- masks drawn on the source images
+def _coordinate_images(root: Path, n: int) -> None:
+    """Overwrite the capture's images with their own pixel coordinates: R = x / W0, G = y / H0 (centres)."""
+    x = (np.arange(W0) + 0.5) / W0
+    y = (np.arange(H0) + 0.5) / H0
+    img = np.stack(np.broadcast_arrays(x[None, :], y[:, None], np.zeros((H0, W0))), axis=-1).astype(np.float32)
+    for i in range(n):
+        write_image(root / "images" / f"v{i}.png", img)
+
+
+@pytest.mark.parametrize("width", [None, 50])
+def test_source_frame_labels_follow_their_images_into_the_crop(tmp_path, width):
+    """A label image of the distorted source (each pixel labelled with its own index) undistorted by
+    ``undistort_labels`` names, at every output pixel, the source pixel the image's colour came from
+    (within half a pixel plus the 8-bit rounding), for two cameras with different lenses and at a
+    mask resolution half the image's."""
+    from ssgwarp.lens import undistort_labels
+
+    _colmap_capture(tmp_path, {1: ("OPENCV", LENSES["OPENCV"]), 2: ("RADIAL", LENSES["RADIAL"])}, n=4)
+    _coordinate_images(tmp_path, 4)
+    d = load_dataset(tmp_path, split_every=0, width=width)
+    rec = d.undistortion
+    assert [c["image_ids"] for c in rec["cameras"]] == [[0, 2], [1, 3]]
+    labels = (np.arange(H0)[:, None] * W0 + np.arange(W0)[None, :]).astype(np.int64)
+    half = labels[::2, ::2] // W0 // 2 * (W0 // 2) + labels[::2, ::2] % W0 // 2  # the same at half size
+    for i in range(4):
+        out = undistort_labels(rec, i, labels)
+        assert out.shape == (d.height, d.width)
+        img = d.images[i].numpy()
+        tol = (1.0 if width else 0.5) + 255 / 255 * 0.4  # half a pixel (a resize: one), 8-bit colour
+        assert np.abs((out % W0 + 0.5) - img[..., 0] * W0).max() <= tol
+        assert np.abs((out // W0 + 0.5) - img[..., 1] * H0).max() <= tol
+        small = undistort_labels(rec, i, half)
+        assert np.abs((small % (W0 // 2) + 0.5) * 2 - img[..., 0] * W0).max() <= 2 * tol
+    with pytest.raises(InputError, match="aspect"):
+        undistort_labels(rec, 0, labels[:, :40])
+
+
+def test_group_masks_of_the_source_frame_are_undistorted(tmp_path):
+    """``load_masks`` with the run's undistortion record: a mask at the source size (one id per source
+    column band) comes out in the crop's frame, equal to ``undistort_labels`` of it; a mask already at
+    the crop's size is taken as it is."""
+    from ssgwarp.grouping_masks import load_masks
+    from ssgwarp.lens import undistort_labels
+
+    _colmap_capture(tmp_path, {1: ("SIMPLE_RADIAL", (0.08,))}, n=2)
+    d = load_dataset(tmp_path, split_every=0)
+    rec = d.undistortion
+    bands = np.broadcast_to((np.arange(W0) // 20)[None, :], (H0, W0)).astype(np.uint8)  # ids 0..3
+    masks = tmp_path / "object_mask"
+    write_image(masks / "v0.png", bands[..., None].astype(np.float32) / 255.0)
+    crop_mask = np.broadcast_to((np.arange(d.width) * 4 // d.width)[None, :], (d.height, d.width)).astype(np.uint8)
+    write_image(masks / "v1.png", crop_mask[..., None].astype(np.float32) / 255.0)
+    ms = load_masks(masks, ["v0.png", "v1.png"], d.width, d.height, undistortion=rec)
+    assert ms.ids == [0, 1, 2, 3]
+    assert torch.equal(ms.targets[0], torch.from_numpy(undistort_labels(rec, 0, bands.astype(np.int64))))
+    assert torch.equal(ms.targets[1], torch.from_numpy(crop_mask.astype(np.int64)))
+    # the crop of a pincushion lens is smaller than the source: band edges move inwards, not copied
+    assert not torch.equal(ms.targets[0], torch.from_numpy((np.arange(d.width) // 20)[None, :].repeat(d.height, 0)))
