@@ -122,6 +122,7 @@ def test_json_round_trip(tmp_path):
     cams.save(tmp_path / "cameras.json")
     raw = json.loads((tmp_path / "cameras.json").read_text())
     assert (raw["width"], raw["height"]) == (40, 30) and [c["name"] for c in raw["cameras"]] == ["c0", "c1", "c2"]
+    assert raw["convention"].startswith("opencv:") and "world-to-camera" in raw["convention"]  # says its axes
     assert raw["cameras"][1]["K"] == cams.Ks[1].double().tolist()
     assert raw["cameras"][2]["viewmat"] == cams.viewmats[2].double().tolist()
     back = Cameras.load(tmp_path / "cameras.json")

@@ -475,3 +475,129 @@ def test_fern_every_pixel_is_an_interpolation_of_real_pixels():
     want = ((1 - a) * (1 - b) * src[j0, i0] + a * (1 - b) * src[j0, i0 + 1] + (1 - a) * b * src[j0 + 1, i0]
             + a * b * src[j0 + 1, i0 + 1])
     assert np.abs(d.images[1].numpy() - want).max() < 1e-4
+
+
+# ----------------------------------------------------------------------------- the lens maths, unit by unit
+def _grid_points():
+    g = np.random.default_rng(7)
+    x, y = g.uniform(-0.6, 0.6, 200), g.uniform(-0.45, 0.45, 200)
+    return np.concatenate([[0.0, 0.3, 0.0], x]), np.concatenate([[0.0, 0.0, -0.2], y])  # the centre and the axes
+
+
+@pytest.mark.parametrize("model", list(LENSES))
+def test_lens_distort_matches_the_formulas(model):
+    from ssgwarp.lens import Lens
+
+    x, y = _grid_points()
+    got = Lens(model, LENSES[model]).distort(x, y)
+    want = _forward(model, LENSES[model], x, y)
+    assert np.abs(got[0] - want[0]).max() < 1e-13 and np.abs(got[1] - want[1]).max() < 1e-13
+    assert got[0][0] == 0.0 and got[1][0] == 0.0  # the principal point stays (the fisheye's r = 0 case too)
+
+
+def test_rational_model_is_undefined_where_its_denominator_is_not_positive():
+    from ssgwarp.lens import Lens
+
+    # FULL_OPENCV denominator 1 + k4 r^2: zero at r = 1 for k4 = -1, negative beyond
+    lens = Lens("FULL_OPENCV", (0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0))
+    xd, yd = lens.distort(np.array([1.0, 0.0, 1.2, 0.5]), np.array([0.0, 1.0, 0.0, 0.0]))
+    assert np.isnan(xd[:3]).all() and np.isnan(yd[:3]).all()
+    assert xd[3] == pytest.approx(0.5 / (1 - 0.25)) and yd[3] == 0.0
+
+
+@pytest.mark.parametrize("model, p", [("SIMPLE_RADIAL", (0.3,)), ("RADIAL", (-0.2, 0.05)),
+                                      ("OPENCV_FISHEYE", (0.05, 0.01, -0.002, 0.0005))])
+def test_jacobian_determinant_of_radial_maps(model, p):
+    """A radial map p -> p rho(r) / r has Jacobian determinant (rho / r) rho'(r)."""
+    from ssgwarp.lens import Lens
+
+    x, y = _grid_points()
+    x, y = x[3:], y[3:]
+    r = np.hypot(x, y)
+    if model in FISHEYES:
+        k = list(p)
+        th = np.arctan(r)
+        rho = th * (1 + k[0] * th ** 2 + k[1] * th ** 4 + k[2] * th ** 6 + k[3] * th ** 8)
+        drho = (1 + 3 * k[0] * th ** 2 + 5 * k[1] * th ** 4 + 7 * k[2] * th ** 6 + 9 * k[3] * th ** 8) / (1 + r * r)
+    else:
+        k1, k2 = (list(p) + [0.0])[:2]
+        rho = r * (1 + k1 * r ** 2 + k2 * r ** 4)
+        drho = 1 + 3 * k1 * r ** 2 + 5 * k2 * r ** 4
+    want = rho / r * drho
+    got = Lens(model, p).jacobian_det(x, y)
+    assert np.abs(got - want).max() < 1e-6
+
+
+def test_undistort_inverts_distort_before_the_fold_and_is_nan_beyond_reach():
+    from ssgwarp.lens import Lens
+
+    x, y = _grid_points()
+    for model, p in LENSES.items():
+        lens = Lens(model, p)
+        bx, by = lens.undistort(*lens.distort(x, y))
+        assert np.abs(bx - x).max() < 1e-9 and np.abs(by - y).max() < 1e-9, model
+    # barrel k = -0.5: rho = r - r^3 / 2 folds at r^2 = 2/3 (largest rho ~0.544); rho = 0.5 has two preimages,
+    # r = (sqrt(5) - 1) / 2 before the fold and 1 beyond it; 0.7 has none
+    lens = Lens("SIMPLE_RADIAL", (-0.5,))
+    ux, uy = lens.undistort(np.array([0.5, 0.0, 0.7, 0.0]), np.array([0.0, -0.5, 0.0, 0.56]))
+    assert ux[0] == pytest.approx((5 ** 0.5 - 1) / 2, abs=1e-9) and uy[0] == 0.0
+    assert uy[1] == pytest.approx(-(5 ** 0.5 - 1) / 2, abs=1e-9) and ux[1] == 0.0
+    assert np.isnan(ux[2:]).all() and np.isnan(uy[2:]).all()
+
+
+def test_lens_validation_and_description():
+    from ssgwarp.lens import Lens
+
+    with pytest.raises(InputError, match=r"lens model FOV is not supported \(supported: SIMPLE_RADIAL, RADIAL, "):
+        Lens("FOV", (0.1,))
+    with pytest.raises(InputError, match=r"lens model RADIAL takes 2 coefficients \(k1 k2\), got 3"):
+        Lens("RADIAL", (0.1, 0.2, 0.3))
+    with pytest.raises(InputError, match=r"lens model OPENCV: non-finite coefficients \[0.1, nan, 0.0, 0.0\]"):
+        Lens("OPENCV", (0.1, float("nan"), 0, 0))
+    lens = Lens("OPENCV", (0.1, -0.02, 1, 0))
+    assert lens.params == (0.1, -0.02, 1.0, 0.0) and all(type(v) is float for v in lens.params)
+    assert lens.describe() == "OPENCV k1=0.1 k2=-0.02 p1=1 p2=0"
+    assert lens.to_json() == {"model": "OPENCV", "params": {"k1": 0.1, "k2": -0.02, "p1": 1.0, "p2": 0.0}}
+    assert Lens("RADIAL", (0.0, 0.0)).is_pinhole and not Lens("RADIAL", (0.0, 1e-9)).is_pinhole
+    assert not Lens("SIMPLE_RADIAL_FISHEYE", (0.0,)).is_pinhole  # an equidistant fisheye is no pinhole
+
+
+def test_widest_rectangle_of_row_runs():
+    from ssgwarp.lens import _widest
+
+    L, R = np.array([2, 1, 0, 3]), np.array([5, 6, 8, 4])
+    # h = 1: row 2 (8 wide); h = 2: rows 1-2 (min R 6 - max L 1); h = 3: rows 0-2 (5 - 2); h = 4: 4 - 3
+    assert _widest(L, R).tolist() == [8, 5, 3, 1]
+
+
+def test_crop_is_centred_on_the_principal_point_and_records_itself():
+    from ssgwarp.lens import Lens, plan_undistortion
+
+    K = np.array([[F, 0, W0 / 2], [0, F, H0 / 2], [0, 0, 1.0]])
+    plan = plan_undistortion(K[None], [Lens("SIMPLE_RADIAL", (0.08,))], W0, H0, ["cam"])
+    (W, H), (x0, y0) = plan.size, plan.cameras[0].crop
+    assert (x0 + W / 2, y0 + H / 2) == (W0 / 2, H0 / 2)
+    assert np.allclose(plan.Ks[0], [[F, 0, W0 / 2 - x0], [0, F, H0 / 2 - y0], [0, 0, 1]])
+    rec = plan.record()
+    assert rec["source_size"] == [W0, H0] and rec["size"] == [W, H] and rec["area"] == round(W * H / (W0 * H0), 4)
+    assert rec["cameras"][0]["crop"] == [x0, y0, x0 + W, y0 + H] and rec["cameras"][0]["camera"] == "cam"
+    # an image of another size is refused
+    with pytest.raises(InputError, match=rf"image 0: size 40x30, expected {W0}x{H0}"):
+        plan(0, torch.zeros(30, 40, 3))
+    # a constant image stays constant: every output pixel interpolates real pixels (none reads padding)
+    out = plan(0, torch.full((H0, W0, 3), 0.25))
+    assert out.shape == (H, W, 3) and torch.allclose(out, torch.full_like(out, 0.25))
+
+
+def test_bad_principal_points_are_refused():
+    from ssgwarp.lens import Lens, plan_undistortion
+
+    barrel = Lens("SIMPLE_RADIAL", (-0.3,))
+    K = np.array([[F, 0, -5.0], [0, F, H0 / 2], [0, 0, 1.0]])
+    with pytest.raises(InputError, match=r"cam: the principal point \(-5.0, 30.0\) is outside the 80x60 image; "
+                                         r"check the intrinsics"):
+        plan_undistortion(K[None], [Lens("SIMPLE_RADIAL", (0.08,))], W0, H0, ["cam"])
+    K = np.array([[F, 0, 0.3], [0, F, H0 / 2], [0, 0, 1.0]])  # its pixel maps left of the first pixel centre
+    with pytest.raises(InputError, match=r"cam: the principal point does not map inside the 80x60 image through "
+                                         r"the lens \(SIMPLE_RADIAL k=-0.3\)"):
+        plan_undistortion(K[None], [barrel], W0, H0, ["cam"])
