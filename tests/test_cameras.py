@@ -94,6 +94,12 @@ def test_selection(idx, want):
     assert torch.equal(sub.viewmats, cams.viewmats[want]) and torch.equal(sub.Ks, cams.Ks[want])
 
 
+def test_empty_selection():
+    none = _cams(4)[torch.zeros(4, dtype=torch.bool)]  # e.g. a capture without test views
+    assert len(none) == 0 and none.names == [] and none.viewmats.shape == (0, 4, 4) and none.Ks.shape == (0, 3, 3)
+    assert len(_cams(4)[[]]) == 0
+
+
 def test_to_changes_dtype_and_keeps_everything_else():
     cams = _cams(2)
     d = cams.to(dtype=torch.float64)
@@ -101,6 +107,10 @@ def test_to_changes_dtype_and_keeps_everything_else():
     assert torch.equal(d.viewmats, cams.viewmats.double()) and torch.equal(d.Ks, cams.Ks.double())
     assert d.names == cams.names and d.names is not cams.names and (d.width, d.height) == (40, 30)
     assert d.to("cpu").device == torch.device("cpu")
+    # both tensors move (the meta device stands in for a GPU on a machine without one)
+    m = cams.to("meta")
+    assert m.viewmats.device.type == m.Ks.device.type == "meta" and m.device.type == "meta"
+    assert m.viewmats.dtype == torch.float32 and m[[1]].names == ["c1"] and m[[1]].viewmats.device.type == "meta"
 
 
 def test_rescaled_scales_each_row_of_K():
