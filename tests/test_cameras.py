@@ -32,7 +32,7 @@ def test_look_at_matches_hand_derived_matrices():
 def test_look_at_puts_the_target_on_the_optical_axis_with_y_down():
     eyes = torch.tensor([[1.0, 2.0, -2.0], [-2.0, 1.0, 1.5], [0.5, -3.0, 0.2]], dtype=torch.float64)
     targets = torch.tensor([[0.2, 0.1, 0.0], [0.0, 0.5, -0.3], [1.0, 0.0, 0.0]], dtype=torch.float64)
-    V = look_at(eyes, targets, up=(0.0, 0.0, 1.0))
+    V = look_at(eyes, targets.tolist(), up=(0.0, 0.0, 1.0))  # lists of floats are taken in float64 too
     R, t = V[:, :3, :3], V[:, :3, 3]
     assert torch.allclose(R @ R.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(3, 3, 3), atol=1e-12)
     assert torch.allclose(torch.linalg.det(R), torch.ones(3, dtype=torch.float64))
