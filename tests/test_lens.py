@@ -601,3 +601,20 @@ def test_bad_principal_points_are_refused():
     with pytest.raises(InputError, match=r"cam: the principal point does not map inside the 80x60 image through "
                                          r"the lens \(SIMPLE_RADIAL k=-0.3\)"):
         plan_undistortion(K[None], [barrel], W0, H0, ["cam"])
+
+
+def test_blockwise_scans_give_what_one_block_gives(monkeypatch):
+    """The valid-region scan and the sampling grid work in blocks of rows (bounded memory on large images):
+    blocks of a few rows, not dividing the image height, give the same crop and grid as one block."""
+    import ssgwarp.lens as lens_mod
+    from ssgwarp.lens import Lens, plan_undistortion
+
+    K = np.array([[F, 0, W0 / 2 + 1.3], [0, F, H0 / 2 - 0.7], [0, 0, 1.0]])[None]
+    lens = Lens("OPENCV_FISHEYE", LENSES["OPENCV_FISHEYE"])
+    one = plan_undistortion(K, [lens], W0, H0, ["c"])
+    grid = one.grid(0).clone()
+    assert one.size[1] > 7 and grid.shape == (1, one.size[1], one.size[0], 2)
+    monkeypatch.setattr(lens_mod, "_CHUNK", 7 * W0 + 3)   # 5 to 7 rows a block
+    few = plan_undistortion(K, [lens], W0, H0, ["c"])
+    assert few.size == one.size and np.array_equal(few.Ks, one.Ks) and few.cameras[0].crop == one.cameras[0].crop
+    assert torch.equal(few.grid(0), grid)
