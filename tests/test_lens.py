@@ -618,3 +618,20 @@ def test_blockwise_scans_give_what_one_block_gives(monkeypatch):
     few = plan_undistortion(K, [lens], W0, H0, ["c"])
     assert few.size == one.size and np.array_equal(few.Ks, one.Ks) and few.cameras[0].crop == one.cameras[0].crop
     assert torch.equal(few.grid(0), grid)
+
+
+def test_a_smaller_common_window_is_placed_nearest_each_principal_point():
+    """With one size for all cameras, a camera whose region is larger than the window has room to place it:
+    the window goes where its centre is nearest the principal point, clamped to the region (here pinhole
+    cameras, whose region is the whole 80x60 image, beside a pincushion camera whose crop is 72x54)."""
+    from ssgwarp.lens import Lens, plan_undistortion
+
+    pp = [(40.0, 30.0), (41.7, 28.2), (20.0, 50.0), (70.0, 3.0)]
+    Ks = np.stack([np.array([[F, 0, cx], [0, F, cy], [0, 0, 1]]) for cx, cy in pp])
+    plan = plan_undistortion(Ks, [Lens("SIMPLE_RADIAL", (0.2,)), None, None, None], W0, H0, list("abcd"))
+    assert plan.size == (72, 54)
+    # x0 = round(cx - 36) and y0 = round(cy - 27), each clamped to [0, 80 - 72] x [0, 60 - 54]
+    assert [c.crop for c in plan.cameras] == [(4, 3), (6, 1), (0, 6), (8, 0)]
+    assert np.allclose(plan.Ks[:, :2, 2], [[36.0, 27.0], [35.7, 27.2], [20.0, 44.0], [62.0, 3.0]])
+    img = torch.arange(H0 * W0, dtype=torch.float32).reshape(H0, W0, 1)
+    assert torch.equal(plan(2, img), img[6:60, 0:72])  # a pinhole image is a plain crop
