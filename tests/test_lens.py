@@ -587,6 +587,8 @@ def test_crop_is_centred_on_the_principal_point_and_records_itself():
     # a constant image stays constant: every output pixel interpolates real pixels (none reads padding)
     out = plan(0, torch.full((H0, W0, 3), 0.25))
     assert out.shape == (H, W, 3) and torch.allclose(out, torch.full_like(out, 0.25))
+    # the grid follows the image to its device (the meta device stands in for a GPU)
+    assert plan(0, torch.zeros(H0, W0, 3, device="meta")).device.type == "meta"
 
 
 def test_bad_principal_points_are_refused():
