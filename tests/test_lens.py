@@ -637,3 +637,59 @@ def test_a_smaller_common_window_is_placed_nearest_each_principal_point():
     assert np.allclose(plan.Ks[:, :2, 2], [[36.0, 27.0], [35.7, 27.2], [20.0, 44.0], [62.0, 3.0]])
     img = torch.arange(H0 * W0, dtype=torch.float32).reshape(H0, W0, 1)
     assert torch.equal(plan(2, img), img[6:60, 0:72])  # a pinhole image is a plain crop
+
+
+def _assert_valid_and_tight(plan, i, model, p, K_src, tight=True):
+    """(c) on a plan alone: every pixel centre of image ``i``'s crop maps (this file's forward map) inside the
+    source's pixel centres, and (``tight``) one more column or row on any side would not."""
+    (W, H), K = plan.size, plan.Ks[i]
+
+    def inside(u, v):
+        x, y = (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
+        if model is not None:
+            x, y = _forward(model, p, x, y)
+        su, sv = x * K_src[0, 0] + K_src[0, 2], y * K_src[1, 1] + K_src[1, 2]
+        return (su >= 0.5 - 1e-9) & (su <= W0 - 0.5 + 1e-9) & (sv >= 0.5 - 1e-9) & (sv <= H0 - 0.5 + 1e-9)
+
+    u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    assert inside(u, v).all(), (model, K_src)
+    if not tight:
+        return
+    cols, rows = np.arange(W) + 0.5, np.arange(H) + 0.5
+    for uu, vv in ((np.full(H, -0.5), rows), (np.full(H, W + 0.5), rows), (cols, np.full(W, -0.5)),
+                   (cols, np.full(W, H + 0.5))):
+        assert not inside(uu, vv).all(), (model, K_src)
+
+
+WIDE, NARROW = (26.0, 23.0, 38.3, 33.1), (120.0, 130.0, 41.0, 27.0)
+
+
+@pytest.mark.parametrize("model, p, intr", [
+    ("SIMPLE_RADIAL", (0.02,), WIDE), ("RADIAL", (-0.03, 0.002), WIDE), ("OPENCV", (0.01, 0.0, 0.002, -0.001), WIDE),
+    ("SIMPLE_RADIAL", (0.3,), NARROW), ("RADIAL", (-0.5, 0.1), NARROW), ("OPENCV", (0.2, 0.0, 0.004, -0.003), NARROW),
+    ("OPENCV_FISHEYE", (0.4, 0.0, 0.0, 0.0), NARROW),
+])
+def test_crop_is_valid_and_tight_for_wide_and_narrow_non_square_cameras(model, p, intr):
+    """Wide (focal below the principal point's coordinates) and narrow cameras, non-square pixels and an
+    off-centre principal point: the crop keeps its focal lengths and is valid and tight. (A wide fisheye's
+    region reaches the 2x search limit, COLMAP's max_scale, so its crop is not tight: left out.)"""
+    from ssgwarp.lens import Lens, plan_undistortion
+
+    fx, fy, cx, cy = intr
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    plan = plan_undistortion(K[None], [Lens(model, p)], W0, H0, ["c"], min_area=0.3)
+    assert plan.Ks[0, 0, 0] == fx and plan.Ks[0, 1, 1] == fy
+    _assert_valid_and_tight(plan, 0, model, p, K)
+
+
+def test_pinhole_beside_a_barrel_lens_keeps_its_whole_image():
+    """A barrel lens's region is larger than its source: beside a pinhole camera the common size is the
+    pinhole camera's whole image (its first and last pixel centres are valid sources), placed at (0, 0)."""
+    from ssgwarp.lens import Lens, plan_undistortion
+
+    K = np.array([[F, 0, W0 / 2], [0, F, H0 / 2], [0, 0, 1.0]])
+    barrel = Lens("SIMPLE_RADIAL", (-0.08,))
+    plan = plan_undistortion(np.stack([K, K]), [None, barrel], W0, H0, ["pin", "bar"])
+    assert plan.size == (W0, H0) and plan.cameras[0].crop == (0, 0)
+    _assert_valid_and_tight(plan, 0, None, (), K)
+    _assert_valid_and_tight(plan, 1, "SIMPLE_RADIAL", (-0.08,), K, tight=False)
