@@ -637,6 +637,10 @@ def test_a_smaller_common_window_is_placed_nearest_each_principal_point():
     assert np.allclose(plan.Ks[:, :2, 2], [[36.0, 27.0], [35.7, 27.2], [20.0, 44.0], [62.0, 3.0]])
     img = torch.arange(H0 * W0, dtype=torch.float32).reshape(H0, W0, 1)
     assert torch.equal(plan(2, img), img[6:60, 0:72])  # a pinhole image is a plain crop
+    rec = plan.record()
+    assert rec["method"].startswith("pinhole crop: every pixel has a source")
+    assert [(c["model"], c["params"], c["crop"]) for c in rec["cameras"][1:]] == [
+        ("PINHOLE", {}, [6, 1, 78, 55]), ("PINHOLE", {}, [0, 6, 72, 60]), ("PINHOLE", {}, [8, 0, 80, 54])]
 
 
 def _assert_valid_and_tight(plan, i, model, p, K_src, tight=True):
