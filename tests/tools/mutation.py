@@ -1,25 +1,26 @@
 """Mutation testing of ssgwarp's modules with mutmut 3 (a manual yardstick, not part of CI).
 
     pip install "mutmut>=3.8,<4"
-    python tests/tools/mutation.py                      # the modules of MODULES, one after the other
-    python tests/tools/mutation.py losses lens          # some of them
+    python tests/tools/mutation.py                      # the "data" suite: losses, cameras, lens, datasets
+    python tests/tools/mutation.py losses lens          # some modules (each runs in its suite)
+    python tests/tools/mutation.py rasterize ops        # the "op" suite (the Python side of the rasterizer)
     python tests/tools/mutation.py datasets --functions _split _evenly "SceneData.*"   # some functions of one
     python tests/tools/mutation.py --retest lens        # run the survivors again (after adding tests)
-    python tests/tools/mutation.py --report             # only the table of the results already in mutants/
-    python tests/tools/mutation.py --report --survivors # ... and the diff of every surviving mutant
+    python tests/tools/mutation.py --report --survivors # the table of the results so far, and every survivor's diff
 
-mutmut's settings (which files, which tests) are ``[tool.mutmut]`` in pyproject.toml; it copies the
-package to ``mutants/`` (git-ignored) and writes each mutant's result there, so an interrupted run goes
-on where it stopped, and a run after a change re-tests only what changed. Each module runs as
-``nice -n 15 mutmut run --max-children 1 "ssgwarp.<module>*"`` (low priority, one worker: the machine
-is shared). Per mutant, mutmut runs only the selected tests that call the mutated function, and stops
-at the first failure.
+Each suite (:data:`SUITES`: modules and the tests that exercise them) runs in its own copy of the
+repository, ``.mutation/<suite>/`` (git-ignored; tracked and untracked non-ignored files, re-copied
+when changed), whose ``pyproject.toml`` gets the suite's ``[tool.mutmut]`` settings. mutmut copies
+the package to ``mutants/`` there and keeps each mutant's result, so an interrupted run goes on where
+it stopped and a later run re-tests only what changed. Each module runs as ``nice -n 15 mutmut run
+--max-children 1 "ssgwarp.<module>*"`` (low priority, one worker: the machine is shared). Per mutant,
+mutmut runs only the suite's tests that call the mutated function, and stops at the first failure.
 
 The table is markdown (docs/testing.md keeps the last one): per module the number of mutants, how many
 were killed (a test failed), survived (every test passed), timed out (the tests hung: counted as
 detected) or had no test calling the function, or were not checked (a run limited to some functions);
-the score is ``(killed + timeout) / (mutants - not checked)``.
-``--out FILE`` also writes the counts and the survivors' names as JSON.
+the score is ``(killed + timeout) / (mutants - not checked)``. ``--out FILE`` also writes the counts
+and the survivors' names as JSON.
 """
 from __future__ import annotations
 
@@ -34,11 +35,52 @@ from collections import Counter
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
-# the modules in [tool.mutmut] only_mutate, in the order they are run
-MODULES = ("losses", "cameras", "lens", "datasets", "matching", "rasterize", "ops")
+WORK = ROOT / ".mutation"
+# suite -> the modules it mutates (in the order they run) and the tests run against them
+SUITES = {
+    "data": (("losses", "cameras", "lens", "datasets"),
+             ("tests/test_losses.py", "tests/test_quality_measures.py", "tests/test_cameras.py", "tests/test_lens.py",
+              "tests/test_datasets.py", "tests/test_colmap.py")),
+    "op": (("rasterize", "ops"),
+           ("tests/test_rasterizer.py", "tests/test_rasterizer_analytic.py", "tests/test_rasterizer_options.py",
+            "tests/test_rasterizer_extremes.py", "tests/test_rasterizer_gradcheck.py", "tests/test_cuda.py")),
+    "matching": (("matching",), ("tests/test_stylize.py",)),
+}
+SUITE_OF = {m: s for s, (mods, _) in SUITES.items() for m in mods}
 # mutmut's exit codes (mutmut/stats.py)
 STATUS = {1: "killed", 3: "killed", 0: "survived", 36: "timeout", -24: "timeout", 24: "timeout", 152: "timeout",
           255: "timeout", 5: "no tests", 33: "no tests", 34: "skipped", 37: "type check", None: "not checked"}
+
+
+def _mutmut_settings(suite: str) -> str:
+    mods, tests = SUITES[suite]
+    return "\n".join([
+        "", "[tool.mutmut]  # written by tests/tools/mutation.py",
+        'source_paths = ["ssgwarp/"]',
+        f"only_mutate = {json.dumps([f'ssgwarp/{m}.py' for m in mods])}",
+        f"pytest_add_cli_args_test_selection = {json.dumps(list(tests))}",
+        'pytest_add_cli_args = ["-p", "no:cacheprovider", "-q"]',
+        'process_isolation = "forkserver"', ""])
+
+
+def prepare(suite: str) -> Path:
+    """``.mutation/<suite>/``: the repository's files (copied when changed, times kept, so that mutmut's
+    cache of unchanged modules stays valid) and the suite's mutmut settings in its pyproject.toml."""
+    where = WORK / suite
+    listed = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard", "-z"], cwd=ROOT,
+                            capture_output=True, check=True).stdout.decode().split("\0")
+    for rel in filter(None, listed):
+        src, dst = ROOT / rel, where / rel
+        if not src.is_file() or rel == "pyproject.toml":
+            continue
+        if not dst.is_file() or (dst.stat().st_mtime, dst.stat().st_size) != (src.stat().st_mtime, src.stat().st_size):
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(src, dst)
+    text = (ROOT / "pyproject.toml").read_text() + _mutmut_settings(suite)
+    dst = where / "pyproject.toml"
+    if not dst.is_file() or dst.read_text() != text:
+        dst.write_text(text)
+    return where
 
 
 def _mangled(module: str, function: str) -> str:
@@ -49,7 +91,7 @@ def _mangled(module: str, function: str) -> str:
 
 def results(module: str) -> dict[str, str]:
     """``mutant name -> status`` of ``ssgwarp/<module>.py`` from mutmut's record (empty if never run)."""
-    meta = ROOT / "mutants" / "ssgwarp" / f"{module}.py.meta"
+    meta = WORK / SUITE_OF[module] / "mutants" / "ssgwarp" / f"{module}.py.meta"
     if not meta.is_file():
         return {}
     codes = json.loads(meta.read_text())["exit_code_by_key"]
@@ -61,8 +103,9 @@ def row(module: str) -> dict:
     c = Counter(r.values())
     n = len(r)
     detected = c["killed"] + c["timeout"]
-    return {"module": module, "file": f"ssgwarp/{module}.py", "mutants": n, "killed": c["killed"], "survived": c["survived"],
-            "timeout": c["timeout"], "no_tests": c["no tests"], "not_checked": c["not checked"],
+    return {"module": module, "file": f"ssgwarp/{module}.py", "mutants": n, "killed": c["killed"],
+            "survived": c["survived"], "timeout": c["timeout"], "no_tests": c["no tests"],
+            "not_checked": c["not checked"],
             "other": n - sum(c[k] for k in ("killed", "survived", "timeout", "no tests", "not checked")),
             "score": detected / (n - c["not checked"]) if n > c["not checked"] else float("nan"),
             "survivors": sorted(k for k, v in r.items() if v in ("survived", "no tests", "suspicious"))}
@@ -79,43 +122,44 @@ def table(rows: list[dict], date: str) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("modules", nargs="*", help=f"modules of ssgwarp to mutate (default: {' '.join(MODULES)})")
+    ap.add_argument("modules", nargs="*", help=f"modules of ssgwarp to mutate, among {', '.join(SUITE_OF)} "
+                                               f"(default: those of the data suite)")
     ap.add_argument("--functions", nargs="+", metavar="NAME",
                     help="only these functions of the (one) module: names as in the source, methods as Class.method, "
                          "shell-style wildcards allowed")
     ap.add_argument("--retest", action="store_true", help="run only the surviving mutants again")
-    ap.add_argument("--report", action="store_true", help="only print the table of the results in mutants/")
+    ap.add_argument("--report", action="store_true", help="only print the table of the results so far")
     ap.add_argument("--survivors", action="store_true", help="print the diff of every surviving mutant")
     ap.add_argument("--out", type=Path, help="write the counts and survivors as JSON here")
     args = ap.parse_args(argv)
-    modules = args.modules or list(MODULES)
-    unknown = [m for m in modules if m not in MODULES]
+    modules = args.modules or list(SUITES["data"][0])
+    unknown = [m for m in modules if m not in SUITE_OF]
     if unknown:
-        ap.error(f"unknown module(s) {unknown}: choose among {', '.join(MODULES)} (pyproject [tool.mutmut])")
+        ap.error(f"unknown module(s) {unknown}: choose among {', '.join(SUITE_OF)}")
+    if args.functions and len(modules) != 1:
+        ap.error("--functions needs exactly one module")
     mutmut = shutil.which("mutmut")
     if mutmut is None:
         print('mutmut not found: pip install "mutmut>=3.8,<4"', file=sys.stderr)
         return 2
-    if args.functions and len(modules) != 1:
-        ap.error("--functions needs exactly one module")
     if not args.report:
         for m in modules:
             patterns = [f"ssgwarp.{m}*"] if not args.functions else [_mangled(m, f) for f in args.functions]
             if args.retest:
-                patterns = [n for n in row(m)["survivors"] if not args.functions
-                            or any(fnmatch.fnmatchcase(n, p) for p in patterns)]
+                patterns = [n for n in row(m)["survivors"] if any(fnmatch.fnmatchcase(n, p) for p in patterns)]
                 if not patterns:
                     continue
             cmd = ["nice", "-n", "15", mutmut, "run", "--max-children", "1", *patterns]
-            print("+", " ".join(cmd), flush=True)
-            subprocess.run(cmd, cwd=ROOT, check=False)   # a survivor is not an error: the table says it
+            print(f"+ (in .mutation/{SUITE_OF[m]}) {' '.join(cmd[:7])} ... ({len(patterns)} patterns)", flush=True)
+            subprocess.run(cmd, cwd=prepare(SUITE_OF[m]), check=False)   # survivors are no error: the table says
     date = datetime.date.today().isoformat()
     rows = [row(m) for m in modules]
     print(table(rows, date))
     if args.survivors:
         for r in rows:
             for name in r["survivors"]:
-                out = subprocess.run([mutmut, "show", name], cwd=ROOT, capture_output=True, text=True).stdout
+                out = subprocess.run([mutmut, "show", name], cwd=WORK / SUITE_OF[r["module"]], capture_output=True,
+                                     text=True).stdout
                 diff = [ln for ln in out.splitlines() if ln[:1] in "-+" and not ln.startswith(("---", "+++"))]
                 print(f"\n{name} ({results(r['module'])[name]})\n" + "\n".join(diff))
     if args.out:
