@@ -697,3 +697,26 @@ def test_pinhole_beside_a_barrel_lens_keeps_its_whole_image():
     assert plan.size == (W0, H0) and plan.cameras[0].crop == (0, 0)
     _assert_valid_and_tight(plan, 0, None, (), K)
     _assert_valid_and_tight(plan, 1, "SIMPLE_RADIAL", (-0.08,), K, tight=False)
+
+
+def test_principal_point_on_the_first_pixel_column():
+    """The valid runs are counted from the principal point's column: with the principal point inside the first
+    pixel column (cx = 1.0), the region starts at that column and the crop is still valid and tight."""
+    from ssgwarp.lens import Lens, plan_undistortion
+
+    K = np.array([[F, 0, 1.0], [0, F, H0 / 2], [0, 0, 1.0]])
+    plan = plan_undistortion(K[None], [Lens("SIMPLE_RADIAL", (0.05,))], W0, H0, ["c"], min_area=0.3)
+    assert plan.cameras[0].crop[0] == 1 and plan.Ks[0, 0, 2] == 0.0
+    _assert_valid_and_tight(plan, 0, "SIMPLE_RADIAL", (0.05,), K)
+
+
+def test_a_wide_fisheye_is_cut_at_twice_the_source_size():
+    """A fisheye of focal 20 px on an 80x60 image sees past 90 degrees in the corners: its undistorted frame
+    is unbounded, and the search stops at the source size beyond each side of the principal point (COLMAP's
+    max_scale 2): the crop is that whole 160x120 frame, every pixel still with a source."""
+    from ssgwarp.lens import Lens, plan_undistortion
+
+    K = np.array([[20.0, 0, 40.0], [0, 20.0, 30.0], [0, 0, 1.0]])
+    plan = plan_undistortion(K[None], [Lens("OPENCV_FISHEYE", (0.02, 0.0, 0.0, 0.0))], W0, H0, ["c"])
+    assert plan.size == (2 * W0, 2 * H0) and plan.cameras[0].crop == (-W0 // 2, -H0 // 2)
+    _assert_valid_and_tight(plan, 0, "OPENCV_FISHEYE", (0.02, 0.0, 0.0, 0.0), K, tight=False)
