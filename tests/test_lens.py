@@ -539,6 +539,9 @@ def test_undistort_inverts_distort_before_the_fold_and_is_nan_beyond_reach():
     # barrel k = -0.5: rho = r - r^3 / 2 folds at r^2 = 2/3 (largest rho ~0.544); rho = 0.5 has two preimages,
     # r = (sqrt(5) - 1) / 2 before the fold and 1 beyond it; 0.7 has none
     lens = Lens("SIMPLE_RADIAL", (-0.5,))
+    t = np.linspace(0.05, 0.75, 15) / 2 ** 0.5  # up the diagonal, to r = 0.75 (near the fold at 0.816)
+    bx, by = lens.undistort(*lens.distort(t, t))
+    assert np.abs(bx - t).max() < 1e-9 and np.abs(by - t).max() < 1e-9
     ux, uy = lens.undistort(np.array([0.5, 0.0, 0.7, 0.0]), np.array([0.0, -0.5, 0.0, 0.56]))
     assert ux[0] == pytest.approx((5 ** 0.5 - 1) / 2, abs=1e-9) and uy[0] == 0.0
     assert uy[1] == pytest.approx(-(5 ** 0.5 - 1) / 2, abs=1e-9) and ux[1] == 0.0
