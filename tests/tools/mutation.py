@@ -5,7 +5,7 @@
     python tests/tools/mutation.py losses lens          # some modules (each runs in its suite)
     python tests/tools/mutation.py rasterize ops        # the "op" suite (the Python side of the rasterizer)
     python tests/tools/mutation.py datasets --functions _split _evenly "SceneData.*"   # some functions of one
-    python tests/tools/mutation.py --retest lens        # run the survivors again (after adding tests)
+    python tests/tools/mutation.py --retest lens        # the survivors and timeouts again (after adding tests)
     python tests/tools/mutation.py --report --survivors # the table of the results so far, and every survivor's diff
 
 Each suite (:data:`SUITES`: modules and the tests that exercise them) runs in its own copy of the
@@ -60,7 +60,10 @@ def _mutmut_settings(suite: str) -> str:
         f"only_mutate = {json.dumps([f'ssgwarp/{m}.py' for m in mods])}",
         f"pytest_add_cli_args_test_selection = {json.dumps(list(tests))}",
         'pytest_add_cli_args = ["-p", "no:cacheprovider", "-q"]',
-        'process_isolation = "forkserver"', ""])
+        'process_isolation = "forkserver"',
+        # a mutant times out after (estimated test time + 10 s) x 15 of wall time (mutmut's constant, 1 s, is too
+        # short on a loaded machine: pytest's start-up in the forked worker alone can take it)
+        "timeout_constant = 10.0", ""])
 
 
 def prepare(suite: str) -> Path:
@@ -108,7 +111,8 @@ def row(module: str) -> dict:
             "not_checked": c["not checked"],
             "other": n - sum(c[k] for k in ("killed", "survived", "timeout", "no tests", "not checked")),
             "score": detected / (n - c["not checked"]) if n > c["not checked"] else float("nan"),
-            "survivors": sorted(k for k, v in r.items() if v in ("survived", "no tests", "suspicious"))}
+            "survivors": sorted(k for k, v in r.items() if v in ("survived", "no tests", "suspicious")),
+            "timeouts": sorted(k for k, v in r.items() if v == "timeout")}
 
 
 def table(rows: list[dict], date: str) -> str:
@@ -127,7 +131,7 @@ def main(argv=None) -> int:
     ap.add_argument("--functions", nargs="+", metavar="NAME",
                     help="only these functions of the (one) module: names as in the source, methods as Class.method, "
                          "shell-style wildcards allowed")
-    ap.add_argument("--retest", action="store_true", help="run only the surviving mutants again")
+    ap.add_argument("--retest", action="store_true", help="run only the surviving and timed-out mutants again")
     ap.add_argument("--report", action="store_true", help="only print the table of the results so far")
     ap.add_argument("--survivors", action="store_true", help="print the diff of every surviving mutant")
     ap.add_argument("--out", type=Path, help="write the counts and survivors as JSON here")
@@ -146,7 +150,8 @@ def main(argv=None) -> int:
         for m in modules:
             patterns = [f"ssgwarp.{m}*"] if not args.functions else [_mangled(m, f) for f in args.functions]
             if args.retest:
-                patterns = [n for n in row(m)["survivors"] if any(fnmatch.fnmatchcase(n, p) for p in patterns)]
+                again = row(m)["survivors"] + row(m)["timeouts"]   # a timeout may be the machine's load: run it again
+                patterns = [n for n in again if any(fnmatch.fnmatchcase(n, p) for p in patterns)]
                 if not patterns:
                     continue
             cmd = ["nice", "-n", "15", mutmut, "run", "--max-children", "1", *patterns]
