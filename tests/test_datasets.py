@@ -392,7 +392,9 @@ def test_transforms_intrinsics_variants_and_errors():
         _intrinsics_from({"fl_x": "wide"}, 40, 30, "where")
     with pytest.raises(InputError, match="^where: intrinsics are not numbers$"):
         _intrinsics_from({"fl_x": 20.0, "cx": [1]}, 40, 30, "where")
-    for bad in ({"fl_x": 0.0}, {"fl_x": 10.0, "fl_y": -1.0}, {"fl_x": float("inf")}, {"fl_x": 10.0, "cy": float("nan")}):
+    assert _intrinsics_from({"fl_x": 0.5, "fl_y": 0.25}, 40, 30, "w")[:2] == (0.5, 0.25)  # any positive focal
+    for bad in ({"fl_x": 0.0}, {"fl_x": 0.0, "fl_y": 10.0}, {"fl_x": 10.0, "fl_y": 0.0}, {"fl_x": 10.0, "fl_y": -1.0},
+                {"fl_x": float("inf")}, {"fl_x": 10.0, "cy": float("nan")}):
         with pytest.raises(InputError, match="^where: invalid intrinsics fx="):
             _intrinsics_from(bad, 40, 30, "where")
 
