@@ -723,3 +723,16 @@ def test_a_wide_fisheye_is_cut_at_twice_the_source_size():
     plan = plan_undistortion(K[None], [Lens("OPENCV_FISHEYE", (0.02, 0.0, 0.0, 0.0))], W0, H0, ["c"])
     assert plan.size == (2 * W0, 2 * H0) and plan.cameras[0].crop == (-W0 // 2, -H0 // 2)
     _assert_valid_and_tight(plan, 0, "OPENCV_FISHEYE", (0.02, 0.0, 0.0, 0.0), K, tight=False)
+
+
+def test_min_area_is_inclusive_and_the_refusal_names_the_covered_share():
+    from ssgwarp.lens import Lens, plan_undistortion
+
+    K = np.array([[F, 0, W0 / 2], [0, F, H0 / 2], [0, 0, 1.0]])[None]
+    lens = Lens("SIMPLE_RADIAL", (0.4,))
+    plan = plan_undistortion(K, [lens], W0, H0, ["c"], min_area=0.1)
+    share = plan.size[0] * plan.size[1] / (W0 * H0)
+    assert plan_undistortion(K, [lens], W0, H0, ["c"], min_area=share).size == plan.size  # exactly enough
+    with pytest.raises(InputError, match=rf"c \(SIMPLE_RADIAL k=0.4\): .* covers {share:.0%} of the 80x60 image "
+                                         rf"\(at least 60% needed\)"):
+        plan_undistortion(K, [lens], W0, H0, ["c"], min_area=0.6)
