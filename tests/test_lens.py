@@ -733,6 +733,7 @@ def test_min_area_is_inclusive_and_the_refusal_names_the_covered_share():
     plan = plan_undistortion(K, [lens], W0, H0, ["c"], min_area=0.1)
     share = plan.size[0] * plan.size[1] / (W0 * H0)
     assert plan_undistortion(K, [lens], W0, H0, ["c"], min_area=share).size == plan.size  # exactly enough
+    assert 0.5 < share < 0.9
     with pytest.raises(InputError, match=rf"c \(SIMPLE_RADIAL k=0.4\): .* covers {share:.0%} of the 80x60 image "
-                                         rf"\(at least 60% needed\)"):
-        plan_undistortion(K, [lens], W0, H0, ["c"], min_area=0.6)
+                                         rf"\(at least 95% needed\)"):
+        plan_undistortion(K, [lens], W0, H0, ["c"], min_area=0.95)
