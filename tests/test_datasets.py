@@ -302,6 +302,13 @@ def test_resize_images_by_hand():
     big = resize_images(two, 2, 4)
     assert torch.allclose(big[0, :, :, 1], torch.tensor([0.0, 0.25, 0.75, 1.0]).expand(2, 4), atol=1e-6)
     assert big.is_contiguous() and resize_images(row, 2, 4).equal(row)  # same size: unchanged
+    # one side kept, the other shrunk: antialiased along the shrunk side (either side)
+    assert torch.allclose(resize_images(row, 2, 2)[0, :, :, 0], torch.tensor([1 / 7, 6 / 7]).expand(2, 2), atol=1e-6)
+    col = row.transpose(1, 2).expand(1, 4, 4, 3).contiguous()   # [0, 0, 1, 1] down each column, 4 wide
+    assert torch.allclose(resize_images(col, 2, 4)[0, :, 1, 2], torch.tensor([1 / 7, 6 / 7]), atol=1e-6)
+    # one side grown, the other shrunk: plain bilinear (4 -> 2 samples at 0.5 and 2.5: [0, 1])
+    mixed = resize_images(row, 3, 2)
+    assert mixed.shape == (1, 3, 2, 3) and torch.allclose(mixed[0, :, :, 0], torch.tensor([0.0, 1.0]).expand(3, 2))
 
 
 def test_viewmats_from_c2w_and_the_focus_point():
@@ -314,7 +321,7 @@ def test_viewmats_from_c2w_and_the_focus_point():
     assert back.dtype == torch.float64 and torch.allclose(back, torch.from_numpy(V), atol=1e-12)
     bad = np.linalg.inv(V)[:, :3, :4].copy()
     bad[1, 0, 3] = np.nan
-    with pytest.raises(InputError, match="camera poses contain NaN/inf values"):
+    with pytest.raises(InputError, match="^camera poses contain NaN/inf values$"):
         _viewmats_from_c2w(bad)
     cams = Cameras(torch.from_numpy(V).float(), intrinsics(10.0, 10.0, 5.0, 5.0, 3), 10, 10)
     assert torch.allclose(focus_point(cams), torch.tensor([0.2, -0.1, 0.3], dtype=torch.float64), atol=1e-5)
@@ -340,6 +347,7 @@ def test_depth_range_percentiles_of_points_in_front():
     assert _depth_range(xyz, V2) == (pytest.approx(11.999), pytest.approx(1009.001))
     assert _depth_range(behind, V) == (None, None) and _depth_range(np.zeros((0, 3)), V) == (None, None)
     assert _depth_range(None, V) == (None, None)
+    assert _depth_range(np.array([[0.1, 0.0, 3.0]]), V) == (pytest.approx(3.0), pytest.approx(3.0))  # one point
     # more than 20000 points: a seeded sample of them, still close
     many = np.stack([np.zeros(30000), np.zeros(30000), np.linspace(1.0, 2.0, 30000)], axis=1)
     n, f = _depth_range(many, V)
