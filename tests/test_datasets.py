@@ -304,7 +304,7 @@ def test_resize_images_by_hand():
     assert big.is_contiguous() and resize_images(row, 2, 4).equal(row)  # same size: unchanged
     # one side kept, the other shrunk: antialiased along the shrunk side (either side)
     assert torch.allclose(resize_images(row, 2, 2)[0, :, :, 0], torch.tensor([1 / 7, 6 / 7]).expand(2, 2), atol=1e-6)
-    col = row.transpose(1, 2).expand(1, 4, 4, 3).contiguous()   # [0, 0, 1, 1] down each column, 4 wide
+    col = row[:, :1].transpose(1, 2).expand(1, 4, 4, 3).contiguous()   # [0, 0, 1, 1] down each column, 4 wide
     assert torch.allclose(resize_images(col, 2, 4)[0, :, 1, 2], torch.tensor([1 / 7, 6 / 7]), atol=1e-6)
     # one side grown, the other shrunk: plain bilinear (4 -> 2 samples at 0.5 and 2.5: [0, 1])
     mixed = resize_images(row, 3, 2)
