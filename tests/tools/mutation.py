@@ -147,13 +147,16 @@ def main(argv=None) -> int:
         print('mutmut not found: pip install "mutmut>=3.8,<4"', file=sys.stderr)
         return 2
     if not args.report:
-        for m in modules:
+        todo = {}
+        for m in modules:   # all chosen before any run: a run may reset earlier verdicts (e.g. timeouts)
             patterns = [f"ssgwarp.{m}*"] if not args.functions else [_mangled(m, f) for f in args.functions]
             if args.retest:
                 again = row(m)["survivors"] + row(m)["timeouts"]   # a timeout may be the machine's load: run it again
                 patterns = [n for n in again if any(fnmatch.fnmatchcase(n, p) for p in patterns)]
-                if not patterns:
-                    continue
+            todo[m] = patterns
+        for m, patterns in todo.items():
+            if not patterns:
+                continue
             cmd = ["nice", "-n", "15", mutmut, "run", "--max-children", "1", *patterns]
             print(f"+ (in .mutation/{SUITE_OF[m]}) {' '.join(cmd[:7])} ... ({len(patterns)} patterns)", flush=True)
             subprocess.run(cmd, cwd=prepare(SUITE_OF[m]), check=False)   # survivors are no error: the table says
