@@ -338,7 +338,7 @@ def test_depth_range_percentiles_of_points_in_front():
     V = np.eye(4)[None]
     z = np.arange(1.0, 1001.0)
     xyz = np.stack([np.zeros_like(z), np.zeros_like(z), z], axis=1)
-    behind = np.array([[0.0, 0.0, -5.0], [0.0, 0.0, -2000.0]])
+    behind = np.array([[0.0, 0.0, -5.0], [0.0, 0.0, -2000.0], [1.0, 0.0, 0.0]])  # the last in the camera's plane
     # numpy's linear percentiles of 1..1000: 0.1% -> 1 + 0.001 * 999, 99.9% -> 1 + 0.999 * 999
     near, far = _depth_range(np.concatenate([xyz, behind]), V)
     assert near == pytest.approx(1.999) and far == pytest.approx(999.001)
