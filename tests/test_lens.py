@@ -737,3 +737,15 @@ def test_min_area_is_inclusive_and_the_refusal_names_the_covered_share():
     with pytest.raises(InputError, match=rf"c \(SIMPLE_RADIAL k=0.4\): .* covers {share:.0%} of the 80x60 image "
                                          rf"\(at least 95% needed\)"):
         plan_undistortion(K, [lens], W0, H0, ["c"], min_area=0.95)
+
+
+def test_cameras_a_fraction_of_a_pixel_apart_stay_apart():
+    from ssgwarp.lens import Lens, plan_undistortion
+
+    K = np.array([[F, 0, W0 / 2], [0, F, H0 / 2], [0, 0, 1.0]])
+    K2 = K.copy()
+    K2[0, 2] += 0.3
+    lens = Lens("SIMPLE_RADIAL", (0.08,))
+    plan = plan_undistortion(np.stack([K, K2, K]), [lens, lens, lens], W0, H0, ["a", "b", "a"])
+    assert len(plan.cameras) == 2 and [c.images for c in plan.cameras] == [[0, 2], [1]]
+    assert plan.Ks[1, 0, 2] == pytest.approx(W0 / 2 + 0.3 - plan.cameras[1].crop[0])
