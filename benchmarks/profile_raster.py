@@ -3,9 +3,10 @@
     python benchmarks/profile_raster.py                  # 10k @ 256x256 and 1M @ 1920x1080
     python benchmarks/profile_raster.py --cases 1000000x1920x1080 --no-gsplat
 
-For each case and library: the wall time of forward and forward+backward, a torch.profiler table of the
-GPU kernels of a few forward+backward iterations (sorted by GPU time), and the Python functions with the
-most host time in the forward (cProfile).
+For each case and library: the wall time of forward and forward+backward, for each of them the GPU kernel
+time per call (torch.profiler; wall minus kernel time is where the GPU waits for the host) and a table of
+the kernels and ops (sorted by GPU time), and the Python functions with the most host time in the
+forward (cProfile).
 """
 from __future__ import annotations
 
@@ -26,7 +27,7 @@ from timing import timed  # noqa: E402
 import ssgwarp  # noqa: E402
 
 
-def run(name, raster, n, w, h, iters, host_rows):
+def run(name, raster, n, w, h, iters, host_rows, kernel_rows=14):
     dev = torch.device("cuda")
     params = make_scene(n, dev)
     vm, K = camera(w, h, dev)
@@ -44,11 +45,17 @@ def run(name, raster, n, w, h, iters, host_rows):
 
     t_f, t_fb = timed(fwd, dev, 10), timed(fwd_bwd, dev, 10)
     print(f"\n=== {name}: N={n:,} {w}x{h}: fwd {t_f:.2f} ms, fwd+bwd {t_fb:.2f} ms")
-    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
-        for _ in range(iters):
-            fwd_bwd()
-        torch.cuda.synchronize()
-    print(prof.key_averages().table(sort_by="device_time_total", row_limit=18, max_name_column_width=60))
+    for label, fn, wall in (("forward", fwd, t_f), ("forward+backward", fwd_bwd, t_fb)):
+        with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+            for _ in range(iters):
+                fn()
+            torch.cuda.synchronize()
+        ka = prof.key_averages()
+        # kernels, memsets and copies only (torch ops also carry their kernels' time)
+        gpu = sum(e.self_device_time_total for e in ka if str(e.device_type).endswith("CUDA")) / iters / 1e3
+        print(f"--- {name} {label}: wall {wall:.2f} ms, GPU kernel time {gpu:.2f} ms per call "
+              f"(the rest: GPU idle, waiting for the host)")
+        print(ka.table(sort_by="self_device_time_total", row_limit=kernel_rows, max_name_column_width=60))
     pr = cProfile.Profile()
     torch.cuda.synchronize()
     pr.enable()

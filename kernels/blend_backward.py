@@ -156,9 +156,14 @@ def reduced_backward_kernel(scalar, channels: int, to_slots: bool = False, per_w
             pix = (cam * height + y) * width + x
             last = int(last_ids[pix])
             T_final = out_T[pix]
-            v_col = v_out_colors[pix]
-            v_alpha_out = v_out_alphas[pix]
-        bg_term = T_final * wp.dot(backgrounds[cam], v_col)
+            # (an image without a gradient comes as a null array: zeros)
+            if v_out_colors.shape[0] > 0:
+                v_col = v_out_colors[pix]
+            if v_out_alphas.shape[0] > 0:
+                v_alpha_out = v_out_alphas[pix]
+        bg_term = scalar(0.0)
+        if backgrounds.shape[0] > 0:  # (an absent background: a null array)
+            bg_term = T_final * wp.dot(backgrounds[cam], v_col)
         px = scalar(x) + scalar(0.5)
         py = scalar(y) + scalar(0.5)
         k = int(0)

@@ -31,21 +31,26 @@ from .types import channel_vector, splat_at, types_for
 def pack_kernel(scalar, channels: int):
     """``splats[k]``, ``colors_sorted[k]``: the packed projected Gaussian (x, y, conic a, b, c,
     opacity) and colour of sorted intersection ``k``, gathered once so the blending loops read
-    each intersection's data contiguously (inputs flat over camera x Gaussian)."""
+    each intersection's data contiguously (inputs flat over camera x Gaussian; the splats from
+    ``packed`` when the projection packed them, else from means, conics and opacities; colours
+    either the same for every camera, ``n_colors = N``, or per camera, ``n_colors = C * N``)."""
     t = types_for(scalar)
     vec2, vec3, splat = t.vec2, t.vec3, t.splat
     vecD = channel_vector(scalar, channels)
 
     @wp.kernel(module="unique", module_options={"enable_backward": False})
-    def pack(flatten_ids: wp.array(dtype=wp.int32), means2d: wp.array(dtype=vec2), conics: wp.array(dtype=vec3),
-             opacities: wp.array(dtype=scalar), colors: wp.array(dtype=vecD),
+    def pack(flatten_ids: wp.array(dtype=wp.int32), packed: wp.array(dtype=splat), means2d: wp.array(dtype=vec2),
+             conics: wp.array(dtype=vec3), opacities: wp.array(dtype=scalar), colors: wp.array(dtype=vecD),
              splats: wp.array(dtype=splat), colors_sorted: wp.array(dtype=vecD)):
         k = wp.tid()
         g = int(flatten_ids[k])
-        m = means2d[g]
-        c = conics[g]
-        splats[k] = splat(m[0], m[1], c[0], c[1], c[2], opacities[g])
-        colors_sorted[k] = colors[g]
+        if packed.shape[0] > 0:  # the projection packed them already
+            splats[k] = packed[g]
+        else:
+            m = means2d[g]
+            c = conics[g]
+            splats[k] = splat(m[0], m[1], c[0], c[1], c[2], opacities[g])
+        colors_sorted[k] = colors[g % colors.shape[0]]
 
     return pack
 
@@ -105,9 +110,10 @@ def forward_kernel(scalar, channels: int, fast_math: bool = False):
             T = T * (scalar(1.0) - alpha)
             last = wp.int32(k)
         pix = (cam * height + y) * width + x
-        bg = backgrounds[cam]
-        for d in range(wp.static(channels)):
-            acc[d] = fma(T, bg[d], acc[d])
+        if backgrounds.shape[0] > 0:  # (an absent background: a null array)
+            bg = backgrounds[cam]
+            for d in range(wp.static(channels)):
+                acc[d] = fma(T, bg[d], acc[d])
         out_colors[pix] = acc
         out_T[pix] = T
         out_alpha[pix] = wsum

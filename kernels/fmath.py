@@ -4,6 +4,7 @@ through them).
 
 - :func:`fma`: ``a b + c`` rounded once.
 - :func:`add_rn`: ``a + b``, never fused with a product feeding it.
+- :func:`div_rn`: ``a / b`` correctly rounded, also in kernels compiled with fast maths.
 - :func:`rsqrt`: the GPU's reciprocal square root (float32; ``1 / sqrt`` on the CPU).
 
 The projection (gsplat form) and the per-pixel rule use them to reproduce, operation for
@@ -58,6 +59,31 @@ def add_rn(a: wp.float32, b: wp.float32) -> wp.float32:
 @wp.func_native(_ADD.format(rn="__dadd_rn"), _ADD_ADJ)
 def add_rn(a: wp.float64, b: wp.float64) -> wp.float64:  # noqa: F811 (the float64 overload)
     """``a + b`` rounded on its own (not contracted with a product that feeds it)."""
+    ...
+
+
+_DIV = """
+#if defined(__CUDA_ARCH__)
+return {rn}(a, b);
+#else
+return a / b;
+#endif
+"""
+_DIV_ADJ = """
+adj_a += adj_ret / b;
+adj_b -= adj_ret * a / (b * b);
+"""
+
+
+@wp.func_native(_DIV.format(rn="__fdiv_rn"), _DIV_ADJ)
+def div_rn(a: wp.float32, b: wp.float32) -> wp.float32:
+    """``a / b`` correctly rounded (IEEE), whatever the kernel's fast-maths option."""
+    ...
+
+
+@wp.func_native(_DIV.format(rn="__ddiv_rn"), _DIV_ADJ)
+def div_rn(a: wp.float64, b: wp.float64) -> wp.float64:  # noqa: F811 (the float64 overload)
+    """``a / b`` correctly rounded (IEEE)."""
     ...
 
 

@@ -22,10 +22,22 @@ other outputs 0) when its depth is outside [near, far], the blurred
 determinant is <= 0, its opacity is below ``alpha_min``, both radii are <=
 ``radius_clip``, or its extent box is off-screen.
 
-The kernel is differentiable by Warp's generated adjoint. With
-``expanded=True`` every per-Gaussian input and the view matrix are read at the
-flat (camera, Gaussian) index, so the adjoint writes each (camera, Gaussian)
-pair to its own slot: no atomics, bit-identical gradients.
+The kernel is differentiable by Warp's generated adjoint. Per-Gaussian inputs
+and the view matrices are read through 2-D ``[camera, Gaussian]`` arrays (camera
+stride 0 for the Gaussians' inputs, Gaussian stride 0 for the view matrices:
+no copies), so the adjoint writes each (camera, Gaussian) pair into its own slot
+of a ``[C, N]`` buffer: one writer per slot, bit-identical gradients (with one
+camera the buffer is the gradient itself).
+
+Given a ``flags`` array the kernel also runs the input value checks on the values
+it loads (:func:`.validate.inputs_check_func`; colour rows and backgrounds are read
+for them). With ``tile_size > 0`` it writes each Gaussian's number of intersected
+tiles (the binning's first step, :func:`.binning.tile_box_func`; also as int64
+into ``ends``, which the binning scans in place),
+and given a ``splats`` array, each visible Gaussian's screen mean, conic and
+opacity packed together (what the blending gathers per intersection: one load
+instead of three).
+Culled Gaussians get zeros in every output, so no output needs clearing first.
 """
 
 import functools
@@ -33,8 +45,10 @@ from types import SimpleNamespace
 
 import warp as wp
 
+from .binning import tile_box_func
 from .fmath import add_rn, fma, rsqrt
 from .types import types_for
+from .validate import inputs_check_func
 
 RADIUS_LIMIT = 1073741824.0  # radii saturate here (2^30 px) so the int32 cast never overflows
 
@@ -122,26 +136,42 @@ def matrix_funcs(scalar, native_rsqrt: bool = False):
 
 
 @functools.lru_cache(maxsize=None)
-def projection_kernel(scalar, expanded: bool = False, covariance: str = "gsplat", fast_math: bool = False):
-    """The projection kernel for one precision. ``covariance``: ``"gsplat"`` or ``"factor"`` (see
-    the module docstring); ``fast_math``: approximate division, square roots and logarithm
-    (float32 on CUDA, as gsplat compiles its kernels; then the quaternion norm uses ``rsqrtf``)."""
+def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = False):
+    """The projection kernel for one precision, launched over ``(C, N)``. ``covariance``:
+    ``"gsplat"`` or ``"factor"`` (see the module docstring); ``fast_math``: approximate division,
+    square roots and logarithm (float32 on CUDA, as gsplat compiles its kernels; then the
+    quaternion norm uses ``rsqrtf``)."""
     t = types_for(scalar)
-    vec2, vec3, vec4, mat33, mat44, mat23 = t.vec2, t.vec3, t.vec4, t.mat33, t.mat44, t.mat23
+    vec2, vec3, vec4, mat33, mat44, mat23, splat = t.vec2, t.vec3, t.vec4, t.mat33, t.mat44, t.mat23, t.splat
     gsplat_form = covariance == "gsplat"
     mf = matrix_funcs(scalar, fast_math and scalar == wp.float32)
     dot3, mul33, mul33_t, quat_to_rotmat, cov2d = mf.dot3, mf.mul33, mf.mul33_t, mf.quat_to_rotmat, mf.cov2d
+    tile_box = tile_box_func(scalar)
+    check_inputs = inputs_check_func(scalar)
 
+    @wp.func
+    def cull(i: int, means2d: wp.array(dtype=vec2), depths: wp.array(dtype=scalar), conics: wp.array(dtype=vec3),
+             opac_out: wp.array(dtype=scalar), radii: wp.array(dtype=wp.vec2i), counts: wp.array(dtype=wp.int32),
+             ends: wp.array(dtype=wp.int64)):
+        """Zeros in every output of a culled Gaussian."""
+        means2d[i] = vec2()
+        depths[i] = scalar(0.0)
+        conics[i] = vec3()
+        opac_out[i] = scalar(0.0)
+        radii[i] = wp.vec2i(0, 0)
+        if counts.shape[0] > 0:
+            counts[i] = 0
+        if ends.shape[0] > 0:
+            ends[i] = wp.int64(0)
 
     @wp.kernel(module="unique", module_options={"fast_math": fast_math})
     def project(
-        means: wp.array(dtype=vec3),
-        quats: wp.array(dtype=vec4),
-        scales: wp.array(dtype=vec3),
-        opacities: wp.array(dtype=scalar),
-        viewmats: wp.array(dtype=mat44),
+        means: wp.array2d(dtype=vec3),
+        quats: wp.array2d(dtype=vec4),
+        scales: wp.array2d(dtype=vec3),
+        opacities: wp.array2d(dtype=scalar),
+        viewmats: wp.array2d(dtype=mat44),
         Ks: wp.array(dtype=mat33),
-        n_gauss: int,
         width: int,
         height: int,
         near_plane: scalar,
@@ -152,32 +182,43 @@ def projection_kernel(scalar, expanded: bool = False, covariance: str = "gsplat"
         sigma_max: scalar,
         opacity_extent: int,
         antialiased: int,
+        tile_size: int,
+        tile_width: int,
+        tile_height: int,
+        colors: wp.array(dtype=scalar),
+        color_row: int,
+        colors_per_camera: int,
+        backgrounds: wp.array(dtype=scalar),
+        background_row: int,
+        flags: wp.array(dtype=wp.int64),
         means2d: wp.array(dtype=vec2),
         depths: wp.array(dtype=scalar),
         conics: wp.array(dtype=vec3),
         opac_out: wp.array(dtype=scalar),
         radii: wp.array(dtype=wp.vec2i),
+        counts: wp.array(dtype=wp.int32),
+        ends: wp.array(dtype=wp.int64),
+        splats: wp.array(dtype=splat),
     ):
         c, n = wp.tid()
-        i = c * n_gauss + n
-        gi = n
-        vi = c
-        if wp.static(expanded):
-            gi = i
-            vi = i
-        V = viewmats[vi]
-        m = means[gi]
+        i = c * means.shape[1] + n
+        V = viewmats[c, n]
+        m = means[c, n]
+        if flags.shape[0] > 0:  # the input value checks, on the values loaded here
+            check_inputs(c, n, i, m, quats[c, n], scales[c, n], opacities[c, n], V, Ks[c], colors, color_row,
+                         colors_per_camera, backgrounds, background_row, flags)
         # world to camera: R p + t, products summed in index order
         p = vec3(dot3(V[0, 0], V[0, 1], V[0, 2], m[0], m[1], m[2]) + V[0, 3],
                  dot3(V[1, 0], V[1, 1], V[1, 2], m[0], m[1], m[2]) + V[1, 3],
                  dot3(V[2, 0], V[2, 1], V[2, 2], m[0], m[1], m[2]) + V[2, 3])
         z = p[2]
         if z < near_plane or z > far_plane:
+            cull(i, means2d, depths, conics, opac_out, radii, counts, ends)
             return
         R = mat33(V[0, 0], V[0, 1], V[0, 2], V[1, 0], V[1, 1], V[1, 2], V[2, 0], V[2, 1], V[2, 2])
 
-        Rq = quat_to_rotmat(quats[gi])
-        s = scales[gi]
+        Rq = quat_to_rotmat(quats[c, n])
+        s = scales[c, n]
         M = mat33(Rq[0, 0] * s[0], Rq[0, 1] * s[1], Rq[0, 2] * s[2],
                   Rq[1, 0] * s[0], Rq[1, 1] * s[1], Rq[1, 2] * s[2],
                   Rq[2, 0] * s[0], Rq[2, 1] * s[1], Rq[2, 2] * s[2])
@@ -236,11 +277,13 @@ def projection_kernel(scalar, expanded: bool = False, covariance: str = "gsplat"
             a = a + eps2d
             cc = cc + eps2d
         if det <= scalar(0.0):
+            cull(i, means2d, depths, conics, opac_out, radii, counts, ends)
             return
-        op = opacities[gi]
+        op = opacities[c, n]
         if antialiased != 0:
             op = op * wp.sqrt(wp.max(scalar(0.0), det_orig / det))
         if op < alpha_min:
+            cull(i, means2d, depths, conics, opac_out, radii, counts, ends)
             return
         ext = sigma_max
         if opacity_extent != 0 and alpha_min > scalar(0.0):
@@ -248,16 +291,28 @@ def projection_kernel(scalar, expanded: bool = False, covariance: str = "gsplat"
         rx = wp.min(wp.ceil(ext * wp.sqrt(a)), scalar(RADIUS_LIMIT))
         ry = wp.min(wp.ceil(ext * wp.sqrt(cc)), scalar(RADIUS_LIMIT))
         if rx <= radius_clip and ry <= radius_clip:
+            cull(i, means2d, depths, conics, opac_out, radii, counts, ends)
             return
         mx = fx * p[0] * rz + cx
         my = fy * p[1] * rz + cy
         if mx + rx <= scalar(0.0) or mx - rx >= w or my + ry <= scalar(0.0) or my - ry >= h:
+            cull(i, means2d, depths, conics, opac_out, radii, counts, ends)
             return
         means2d[i] = vec2(mx, my)
         depths[i] = z
         inv_det = scalar(1.0) / det
-        conics[i] = vec3(cc * inv_det, -b * inv_det, a * inv_det)
+        conic = vec3(cc * inv_det, -b * inv_det, a * inv_det)
+        conics[i] = conic
         opac_out[i] = op
-        radii[i] = wp.vec2i(int(rx), int(ry))
+        if splats.shape[0] > 0:  # the same, packed for the blending's gather (visible Gaussians only)
+            splats[i] = splat(mx, my, conic[0], conic[1], conic[2], op)
+        r = wp.vec2i(int(rx), int(ry))
+        radii[i] = r
+        if counts.shape[0] > 0:
+            box = tile_box(vec2(mx, my), r, tile_size, tile_width, tile_height)
+            cnt = (box[2] - box[0]) * (box[3] - box[1])
+            counts[i] = cnt
+            if ends.shape[0] > 0:  # (int64, scanned in place into the intersection ends)
+                ends[i] = wp.int64(cnt)
 
     return project

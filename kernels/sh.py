@@ -1,8 +1,13 @@
-"""Spherical-harmonics colour (degrees 0..3, the 3DGS real basis), one thread per (camera, Gaussian).
+"""Spherical-harmonics colour (degrees 0..3, the 3DGS real basis).
 
-``colors[i] = sum_k basis_k(normalize(dirs[i])) * coeffs[i, k]``; the caller
-adds 0.5 and clamps at 0. Differentiable by Warp's generated adjoint (with
-respect to the coefficients and the directions).
+``sh_eval`` sums ``basis_k(normalize(dir)) * coeffs[k]`` (one ``@wp.func``, used by both
+kernels): :func:`sh_kernel` evaluates it for given directions; :func:`colour_kernel` is the
+rasterizer's colour step, one thread per (camera, Gaussian): the direction from the camera
+centre to the Gaussian, the SH sum, ``+ 0.5`` clamped at 0, and 0 for Gaussians the projection
+culled (gsplat's rule). Both are differentiable by Warp's generated adjoint (with respect to the
+coefficients and the directions, or the means and camera centres). Inputs are read through 2-D
+``[camera, Gaussian]`` arrays (stride 0 over what is shared), so the adjoint writes one slot per
+pair (see :mod:`.projection`).
 """
 
 import functools
@@ -19,36 +24,75 @@ C30, C31, C32, C33, C34, C35, C36 = (-0.5900435899266435, 2.890611442640554, -0.
 
 
 @functools.lru_cache(maxsize=None)
-def sh_kernel(scalar, degree: int):
-    t = types_for(scalar)
-    vec3 = t.vec3
+def sh_eval_func(scalar, degree: int):
+    """``sh_eval(d, coeffs, c, n)``: the SH colour for direction ``d`` (any length) from the
+    coefficients ``coeffs[c, n, :]`` of a ``[C, N, K]`` array."""
+    vec3 = types_for(scalar).vec3
 
-    @wp.kernel(module="unique")
-    def eval_sh(dirs: wp.array(dtype=vec3), coeffs: wp.array2d(dtype=vec3), colors: wp.array(dtype=vec3)):
-        i = wp.tid()
-        d = dirs[i]
-        d = d / wp.max(wp.length(d), scalar(1e-30))
-        x = d[0]
-        y = d[1]
-        z = d[2]
-        out = scalar(C0) * coeffs[i, 0]
+    @wp.func
+    def sh_eval(d: vec3, coeffs: wp.array3d(dtype=vec3), c: int, n: int):
+        u = d / wp.max(wp.length(d), scalar(1e-30))
+        x = u[0]
+        y = u[1]
+        z = u[2]
+        out = scalar(C0) * coeffs[c, n, 0]
         if wp.static(degree >= 1):
-            out = out - scalar(C1) * y * coeffs[i, 1] + scalar(C1) * z * coeffs[i, 2] - scalar(C1) * x * coeffs[i, 3]
+            out = (out - scalar(C1) * y * coeffs[c, n, 1] + scalar(C1) * z * coeffs[c, n, 2]
+                   - scalar(C1) * x * coeffs[c, n, 3])
         if wp.static(degree >= 2):
             xx = x * x
             yy = y * y
             zz = z * z
-            out = (out + scalar(C20) * x * y * coeffs[i, 4] + scalar(C21) * y * z * coeffs[i, 5]
-                   + scalar(C22) * (scalar(2.0) * zz - xx - yy) * coeffs[i, 6]
-                   + scalar(C23) * x * z * coeffs[i, 7] + scalar(C24) * (xx - yy) * coeffs[i, 8])
+            out = (out + scalar(C20) * x * y * coeffs[c, n, 4] + scalar(C21) * y * z * coeffs[c, n, 5]
+                   + scalar(C22) * (scalar(2.0) * zz - xx - yy) * coeffs[c, n, 6]
+                   + scalar(C23) * x * z * coeffs[c, n, 7] + scalar(C24) * (xx - yy) * coeffs[c, n, 8])
             if wp.static(degree >= 3):
-                out = (out + scalar(C30) * y * (scalar(3.0) * xx - yy) * coeffs[i, 9]
-                       + scalar(C31) * x * y * z * coeffs[i, 10]
-                       + scalar(C32) * y * (scalar(4.0) * zz - xx - yy) * coeffs[i, 11]
-                       + scalar(C33) * z * (scalar(2.0) * zz - scalar(3.0) * xx - scalar(3.0) * yy) * coeffs[i, 12]
-                       + scalar(C34) * x * (scalar(4.0) * zz - xx - yy) * coeffs[i, 13]
-                       + scalar(C35) * z * (xx - yy) * coeffs[i, 14]
-                       + scalar(C36) * x * (xx - scalar(3.0) * yy) * coeffs[i, 15])
-        colors[i] = out
+                out = (out + scalar(C30) * y * (scalar(3.0) * xx - yy) * coeffs[c, n, 9]
+                       + scalar(C31) * x * y * z * coeffs[c, n, 10]
+                       + scalar(C32) * y * (scalar(4.0) * zz - xx - yy) * coeffs[c, n, 11]
+                       + scalar(C33) * z * (scalar(2.0) * zz - scalar(3.0) * xx - scalar(3.0) * yy) * coeffs[c, n, 12]
+                       + scalar(C34) * x * (scalar(4.0) * zz - xx - yy) * coeffs[c, n, 13]
+                       + scalar(C35) * z * (xx - yy) * coeffs[c, n, 14]
+                       + scalar(C36) * x * (xx - scalar(3.0) * yy) * coeffs[c, n, 15])
+        return out
+
+    return sh_eval
+
+
+@functools.lru_cache(maxsize=None)
+def sh_kernel(scalar, degree: int):
+    """``eval_sh(dirs [1, M], coeffs [1, M, K], colors [M])``: plain SH evaluation."""
+    vec3 = types_for(scalar).vec3
+    sh_eval = sh_eval_func(scalar, degree)
+
+    @wp.kernel(module="unique")
+    def eval_sh(dirs: wp.array2d(dtype=vec3), coeffs: wp.array3d(dtype=vec3), colors: wp.array(dtype=vec3)):
+        c, n = wp.tid()
+        colors[n] = sh_eval(dirs[c, n], coeffs, c, n)
 
     return eval_sh
+
+
+@functools.lru_cache(maxsize=None)
+def colour_kernel(scalar, degree: int):
+    """``sh_colour(means [C, N], campos [C, N], coeffs [C, N, K], radii [C*N], colors [C*N])``,
+    launched over ``(C, N)``: ``max(sh(means - campos) + 0.5, 0)``, 0 where culled (radii 0)."""
+    vec3 = types_for(scalar).vec3
+    sh_eval = sh_eval_func(scalar, degree)
+
+    @wp.kernel(module="unique")
+    def sh_colour(means: wp.array2d(dtype=vec3), campos: wp.array2d(dtype=vec3), coeffs: wp.array3d(dtype=vec3),
+                  radii: wp.array(dtype=wp.vec2i), colors: wp.array(dtype=vec3)):
+        c, n = wp.tid()
+        i = c * means.shape[1] + n
+        r = radii[i]
+        if r[0] <= 0 or r[1] <= 0:
+            colors[i] = vec3()
+            return
+        v = sh_eval(means[c, n] - campos[c, n], coeffs, c, n) + vec3(scalar(0.5), scalar(0.5), scalar(0.5))
+        zero = scalar(0.0)
+        # the clamp as torch's clamp_min(0) differentiates it: the gradient passes where v >= 0
+        colors[i] = vec3(wp.where(v[0] >= zero, v[0], zero), wp.where(v[1] >= zero, v[1], zero),
+                         wp.where(v[2] >= zero, v[2], zero))
+
+    return sh_colour

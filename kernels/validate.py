@@ -1,14 +1,20 @@
-"""Input value checks in one pass: one thread per element index, every input read flat.
-
-Each check that fails sets its own flag (a plain store of 1: threads that find the same
-problem write the same value). The flags are read back once, together with the
+"""Input value checks: each check that fails sets its own flag (a plain store of 1: threads that
+find the same problem write the same value). The flags are read back once, together with the
 intersection count, and turned into errors on the host (``ssgwarp.rasterize``).
+
+Two forms of the same checks: :func:`inputs_check_func`, called by the projection kernel on the
+values it loads anyway (the rasterizer's path: no pass of its own), and :func:`check_kernel`, one
+thread per element index with every input read flat (for calls that do not project: no
+Gaussians, the torch backend). Finiteness is tested on the bit pattern (:func:`finite`), so it
+holds in kernels compiled with fast maths too.
 """
 
 import functools
 from typing import Any
 
 import warp as wp
+
+from .types import types_for
 
 # flag slots: 0..7 NaN/Inf in the input of that position in INPUTS, then the range checks
 INPUTS = ("means", "quats", "scales", "opacities", "colors", "viewmats", "Ks", "backgrounds")
@@ -17,6 +23,96 @@ NEGATIVE_SCALE = wp.constant(9)
 OPACITY_RANGE = wp.constant(10)
 FOCAL = wp.constant(11)
 N_FLAGS = 12
+
+
+_FINITE32 = """
+#if defined(__CUDA_ARCH__)
+return (__float_as_uint(x) & 0x7f800000u) != 0x7f800000u;
+#else
+union { float f; unsigned int u; } v;
+v.f = x;
+return (v.u & 0x7f800000u) != 0x7f800000u;
+#endif
+"""
+_FINITE64 = """
+#if defined(__CUDA_ARCH__)
+return (__double_as_longlong(x) & 0x7ff0000000000000ll) != 0x7ff0000000000000ll;
+#else
+union { double f; unsigned long long u; } v;
+v.f = x;
+return (v.u & 0x7ff0000000000000ull) != 0x7ff0000000000000ull;
+#endif
+"""
+
+
+@wp.func_native(_FINITE32)
+def finite(x: wp.float32) -> bool:
+    """Neither NaN nor infinite (from the exponent bits: fast maths cannot assume it away)."""
+    ...
+
+
+@wp.func_native(_FINITE64)
+def finite(x: wp.float64) -> bool:  # noqa: F811 (the float64 overload)
+    """Neither NaN nor infinite (from the exponent bits)."""
+    ...
+
+
+@functools.lru_cache(maxsize=None)
+def inputs_check_func(scalar):
+    """``check_inputs(c, n, i, mean, quat, scale, opacity, viewmat, K, colors, row, per_camera,
+    backgrounds, bg_row, flags)``: the value checks of Gaussian ``n`` seen from camera ``c``
+    (flat index ``i``), from values the projection has loaded: the Gaussian's own inputs once
+    (camera 0), its colour row (``row`` values of the flat ``colors``, per camera or shared), and
+    camera ``c``'s view matrix, intrinsics and background row once (Gaussian 0)."""
+    t = types_for(scalar)
+    vec3, vec4, mat33, mat44 = t.vec3, t.vec4, t.mat33, t.mat44
+
+    @wp.func
+    def check_inputs(c: int, n: int, i: int, m: vec3, q: vec4, s: vec3, o: scalar, V: mat44, K: mat33,
+                     colors: wp.array(dtype=scalar), row: int, per_camera: int,
+                     backgrounds: wp.array(dtype=scalar), bg_row: int, flags: wp.array(dtype=wp.int64)):
+        one = wp.int64(1)
+        zero = scalar(0.0)
+        if c == 0:
+            for j in range(3):
+                if not finite(m[j]):
+                    flags[0] = one
+                if not finite(s[j]):
+                    flags[2] = one
+                if s[j] < zero:
+                    flags[NEGATIVE_SCALE] = one
+            for j in range(4):
+                if not finite(q[j]):
+                    flags[1] = one
+            if q[0] == zero and q[1] == zero and q[2] == zero and q[3] == zero:
+                flags[ZERO_QUAT] = one
+            if not finite(o):
+                flags[3] = one
+            if o < zero or o > scalar(1.0):
+                flags[OPACITY_RANGE] = one
+        if c == 0 or per_camera != 0:
+            base = n * row
+            if per_camera != 0:
+                base = i * row
+            for j in range(row):
+                if not finite(colors[base + j]):
+                    flags[4] = one
+        if n == 0:
+            for r in range(4):
+                for col in range(4):
+                    if not finite(V[r, col]):
+                        flags[5] = one
+            for r in range(3):
+                for col in range(3):
+                    if not finite(K[r, col]):
+                        flags[6] = one
+            if K[0, 0] <= zero or K[1, 1] <= zero:
+                flags[FOCAL] = one
+            for j in range(bg_row):
+                if not finite(backgrounds[c * bg_row + j]):
+                    flags[7] = one
+
+    return check_inputs
 
 
 @wp.func

@@ -7,8 +7,10 @@ Stages (each through its module's Python API, all under ``OUT``):
    :func:`ssgwarp.rasterization` and writes a NeRF capture ``OUT/data``
    (``transforms.json`` + ``images/``) and a style image ``OUT/style.png``.
 2. **reconstruct** — 3DGS from random initial points (:mod:`ssgwarp.reconstruct`) → ``OUT/scene``.
-3. **group** — mask-free Gaussian Grouping (:mod:`ssgwarp.grouping`) → ``OUT/scene/groups``;
-   the group maps are scored against the true object ids.
+3. **group** — Gaussian Grouping (:mod:`ssgwarp.grouping`) → ``OUT/scene/groups``: on Segment
+   Anything instances associated across views (:mod:`ssgwarp.masks`) when its weights are on this
+   machine, else on mask-free clusters; the summary says which (``group_kind``). The group maps are
+   scored against the true object ids.
 4. **stylize** — key views, Stage 1 (diffusion; skipped when its weights are not on
    this machine, and the summary says so: the demo downloads nothing, ``ssgwarp weights
    --download stage1`` fetches them) and Stage 2 (:mod:`ssgwarp.stylize`) → ``OUT/stylized``.
@@ -118,7 +120,7 @@ def group_agreement(labels: torch.Tensor, objects: torch.Tensor, num_objects: in
             "majority_group": {int(o): int(major[o]) for o in range(num_objects) if present[o]}}
 
 
-def _contact_sheet(path: Path, rows: list[dict], style, title: str) -> Path:
+def _contact_sheet(path: Path, rows: list[dict], style, title: str, groups_kind: str = "mask-free clusters") -> Path:
     """Rows of captured | reconstruction | groups | stylized, the style image on the right (matplotlib, Agg)."""
     import matplotlib
 
@@ -128,7 +130,7 @@ def _contact_sheet(path: Path, rows: list[dict], style, title: str) -> Path:
 
     from .fileio import atomic_path
 
-    cols = ("captured", "reconstruction", "groups (mask-free)", "stylized")
+    cols = ("captured", "reconstruction", f"groups ({groups_kind})", "stylized")
     n = len(rows)
     h, w = rows[0]["captured"].shape[:2]
     cell = 2.4
@@ -226,8 +228,7 @@ def run_demo(out: str | Path = "ssgwarp-demo", size="default", *, device=None, s
         data = load_dataset(data_dir, num_random_points=sz.init_points, seed=seed)
         it = sz.reconstruct_iters
         every = max(10, it // 15)
-        recipe = Recipe(refine_start=every, refine_every=every, refine_stop=int(it * 0.6), reset_every=10 ** 9,
-                        prune_screen_px=0.0)
+        recipe = Recipe(refine_start=every, refine_every=every, refine_stop=int(it * 0.6), reset_every=0)
         resume_rec = (scene_dir / "checkpoint.pt").is_file()
         m = reconstruct(data_dir, scene_dir, iters=it, sh_degree=0, max_gaussians=sz.max_gaussians,
                         device=device, seed=seed, recipe=recipe, checkpoint_every=max(50, it // 5),
@@ -239,26 +240,39 @@ def run_demo(out: str | Path = "ssgwarp-demo", size="default", *, device=None, s
     say(f"      {rec['gaussians']} Gaussians, held-out PSNR {_fmt(rec['psnr'], '.2f')} dB "
         f"over {rec['test_views']} views")
 
-    # -- 3. group (mask-free) ---------------------------------------------------------------------
+    # -- 3. group: segmenter instances when SAM's weights are here, else mask-free clusters ----------
+    from . import weights
     from .grouping import GroupConfig, group_scene, load_groups, render_group_maps
     from .ply import read_ply
 
-    header(3, "group", "mask-free Gaussian Grouping (spectral clustering of the Gaussians, then identities)")
+    sam = weights.find("sam")
+    header(3, "group", "Gaussian Grouping on " + ("Segment Anything instances associated across views" if sam else
+                       "mask-free clusters (spectral clustering of the Gaussians on the captured colour; no "
+                       "Segment Anything weights here)"))
     if not stages.get("group", {}).get("done"):
         t0 = time.perf_counter()
-        info = group_scene(scene_dir, masks=None, max_groups=8, config=GroupConfig(iters=sz.group_iters,
+        if sam:
+            from .masks import make_masks
+
+            made = make_masks(scene_dir, sam=sam, device=device, progress=progress, force=not resume,
+                              resume=resume)
+            if made["num_instances"] == 0:
+                say("      Segment Anything found no instances: grouping on mask-free clusters instead")
+                sam = None
+        info = group_scene(scene_dir, masks="auto" if sam else None, max_groups=8,
+                           config=GroupConfig(iters=sz.group_iters,
                            checkpoint_every=max(25, sz.group_iters // 4)), device=device, seed=seed,
                            progress=progress, resume=resume, force=resume)
         scene = read_ply(scene_dir / "scene.ply", device=device)
         gm = load_groups(scene_dir, device)
         labels, _ = render_group_maps(scene, cams.to(device), gm.classifier)
         agree = group_agreement(labels, objects, len(gt.names))
-        done("group", seconds=time.perf_counter() - t0, groups=info["num_groups"],
+        done("group", seconds=time.perf_counter() - t0, groups=info["num_groups"], kind=info["kind"],
              cross_view_agreement=info.get("reprojection_agreement", {}).get("mean"),
              purity=agree["purity"], separated=agree["separated"], objects=agree["objects"])
     grp = stages["group"]
     times["group"] = grp["seconds"]
-    say(f"      K={grp['groups']} groups; they match the {grp['objects']} true objects with purity "
+    say(f"      K={grp['groups']} groups ({grp.get('kind')}); they match the {grp['objects']} true objects with purity "
         f"{_fmt(grp['purity'], '.3f')} ({grp['separated']} objects in a group of their own); "
         f"cross-view agreement {_fmt(grp['cross_view_agreement'], '.3f')}")
 
@@ -337,7 +351,7 @@ def run_demo(out: str | Path = "ssgwarp-demo", size="default", *, device=None, s
     title = (f"ssgwarp demo ({name}): {rec['gaussians']} Gaussians, PSNR {_fmt(rec['psnr'], '.2f')} dB, "
              f"K={grp['groups']} groups, Stage 1 {'ran' if sty['stage1'].get('ran') else 'skipped (no weights)'}, "
              f"Gram style loss {_fmt(sty['gram_style_loss_original'], '.3g')} -> {_fmt(sty['gram_style_loss'], '.3g')}")
-    sheet = _contact_sheet(out / "contact_sheet.png", rows, style, title)
+    sheet = _contact_sheet(out / "contact_sheet.png", rows, style, title, grp.get("kind", "mask-free clusters"))
     times["sheet"] = time.perf_counter() - t0
     done("sheet", seconds=times["sheet"])
 
@@ -348,7 +362,8 @@ def run_demo(out: str | Path = "ssgwarp-demo", size="default", *, device=None, s
         "stylize_substages": sty.get("substages"),
         "true_gaussians": len(gt), "objects": list(gt.names),
         "gaussians": rec["gaussians"], "psnr": rec["psnr"], "ssim": rec["ssim"],
-        "groups": grp["groups"], "group_purity": grp["purity"], "objects_separated": grp["separated"],
+        "groups": grp["groups"], "group_kind": grp.get("kind"), "group_purity": grp["purity"],
+        "objects_separated": grp["separated"],
         "cross_view_agreement": grp["cross_view_agreement"],
         "stage1": sty["stage1"], "stage1_missing_weights": sty.get("stage1_missing", []),
         "matching": sty["matching"], "extractor": sty["extractor"], "nnfm_style_loss": sty.get("nnfm"),
@@ -405,7 +420,7 @@ def format_summary(s: dict) -> str:
         f"{len(s['objects'])} objects",
         f"  {'reconstruct':<22}{sec.get('reconstruct', 0):>8.1f}s  {s['gaussians']} Gaussians, held-out PSNR "
         f"{_fmt(s['psnr'], '.2f')} dB, SSIM {_fmt(s['ssim'], '.3f')}",
-        f"  {'group (mask-free)':<22}{sec.get('group', 0):>8.1f}s  K={s['groups']}, purity vs true objects "
+        f"  {'group':<22}{sec.get('group', 0):>8.1f}s  K={s['groups']} {s.get('group_kind')}, purity vs true objects "
         f"{_fmt(s['group_purity'], '.3f')}, {s['objects_separated']}/{len(s['objects'])} objects separated, "
         f"cross-view agreement {_fmt(s['cross_view_agreement'], '.3f')}",
         f"  {'  key views':<22}{sub.get('keyviews', 0):>8.1f}s",

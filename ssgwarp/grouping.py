@@ -12,9 +12,11 @@ Training (as in Gaussian Grouping):
   ``reg_k`` nearest neighbours (by position) is averaged, divided by K and
   weighted by ``reg_weight``.
 
-Masks come from outside (``object_mask/<image stem>.png``, integer ids
-consistent across views) or, by default, from the scene itself
-(:mod:`ssgwarp.pseudomasks`). Training runs either as a stage on a
+Masks come from ``ssgwarp masks`` (:mod:`ssgwarp.masks`: Segment Anything
+instances associated across views, ``RUN/object_mask``), from outside
+(``object_mask/<image stem>.png``, integer ids consistent across views) or,
+without either, from the scene itself (:mod:`ssgwarp.pseudomasks`);
+``groups.json`` ``kind`` says which. Training runs either as a stage on a
 reconstructed scene with geometry frozen (only identities and classifier are
 optimised) or jointly with reconstruction (``--joint``, through
 :class:`GroupingHook`).
@@ -54,6 +56,8 @@ from .scene import GaussianScene
 Tensor = torch.Tensor
 DEFAULT_DIM = 16
 FORMAT = "ssgwarp-groups-1"
+# which kind of groups a run used (groups.json "kind")
+KINDS = {"segmenter": "segmenter instances", "masks": "given masks", "mask-free": "mask-free clusters"}
 
 
 # -- configuration and the model -------------------------------------------------------
@@ -667,14 +671,31 @@ def _read_run(scene_dir: Path) -> RunInfo:
 
 
 def _resolve_masks(masks: Optional[str | Path], run: RunInfo) -> Optional[Path]:
-    """``None``/"none" → mask-free; "auto" → ``<data_dir>/object_mask`` when it exists; else the folder given."""
+    """``None``/"none" → mask-free; "auto" → ``RUN/object_mask`` (``ssgwarp masks``), else
+    ``<data_dir>/object_mask``, when it exists; else the folder given."""
     if masks is None or str(masks).lower() == "none":
         return None
     if str(masks).lower() == "auto":
         dd = run.data.get("data_dir")
-        cand = Path(dd) / "object_mask" if dd else None
-        return cand if cand is not None and cand.is_dir() else None
+        for cand in (run.scene_dir / "object_mask", Path(dd) / "object_mask" if dd else None):
+            if cand is not None and cand.is_dir():
+                return cand
+        return None
     return Path(masks)
+
+
+def _train_images(scene_dir: Path, run: RunInfo, device) -> Optional[Tensor]:
+    """The run's training images ``[T, H, W, 3]`` (reloaded from its capture), or None when the capture
+    cannot be read (the mask-free path then clusters on the Gaussians' own colours, and says so)."""
+    from .datasets import load_run
+
+    try:
+        _, data = load_run(scene_dir)
+    except (InputError, OSError):
+        return None
+    if data.cameras.names != run.cameras.names:
+        return None
+    return data.images[run.train_ids].to(device)
 
 
 def _coverage(labels: Tensor, k: int) -> list[float]:
@@ -800,24 +821,35 @@ def group_scene(scene_dir: str | Path, *, masks: Optional[str | Path] = "auto", 
                   "train_ids": run.train_ids, "test_ids": run.test_ids,
                   "config": asdict(config)}
     if mask_dir is not None:
+        from .masks import read_record
+
+        made = read_record(mask_dir)        # written by `ssgwarp masks`: instances associated across views
+        if made is not None and ignore_id is None:
+            ignore_id = made.get("ignore_id")
         ms = load_masks(mask_dir, cams.names, cams.width, cams.height, num_groups=num_groups, ignore_id=ignore_id,
                         required=[i in set(run.train_ids) for i in range(len(cams))])
         k = ms.num_groups
         all_targets = ms.targets
-        info.update({"method": "masks", "mask_dir": str(mask_dir), "mask_ids": ms.ids, "criterion": None})
+        info.update({"method": "masks", "mask_dir": str(mask_dir), "mask_ids": ms.ids, "criterion": None,
+                     "kind": KINDS["segmenter" if made and made.get("source", {}).get("kind") == "segmenter"
+                                   else "masks"]})
+        if made is not None:
+            info["masks_record"] = {"source": made.get("source"), "num_instances": made.get("num_instances"),
+                                    "ignore_id": made.get("ignore_id"), "record": str(mask_dir.parent / "masks.json")}
     else:
         ccfg = cluster if cluster is not None else ClusterConfig(max_groups=max_groups)
         if cluster is not None and cluster.max_groups != max_groups:
             ccfg = ClusterConfig(**{**asdict(cluster), "max_groups": max_groups})
+        images = _train_images(scene_dir, run, device) if ccfg.colour == "images" else None
         masks_train, res = pseudo_masks(scene, train_cams, num_groups=num_groups, config=ccfg, seed=seed,
-                                        progress=progress)
+                                        images=images, progress=progress)
         k = res.num_groups
         all_targets = torch.full((len(cams), cams.height, cams.width), IGNORE, dtype=torch.long)
         all_targets[run.train_ids] = masks_train.cpu()
         crit = dict(res.criterion)
         crit["values"] = {int(a): float(b) for a, b in crit.get("values", {}).items()}
         info.update({"method": "mask-free (spectral clustering of the Gaussians on position, colour, shape; "
-                               "K by log-eigengap)",
+                               "K by log-eigengap)", "kind": KINDS["mask-free"],
                      "criterion": crit, "cluster_config": asdict(ccfg)})
     info["num_groups"] = k
     info["K"] = k
@@ -905,8 +937,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("scene_dir", type=Path, help="a reconstructed run (scene.ply, cameras.json, data.json)")
     parser.add_argument("--masks", default="auto",
                         help="folder of instance masks <image stem>.png (integer ids consistent across views); "
-                             "'auto' (default): <data_dir>/object_mask when it exists, else mask-free; "
-                             "'none': always mask-free")
+                             "'auto' (default): RUN/object_mask (from `ssgwarp masks`), else <data_dir>/object_mask, "
+                             "when it exists, else mask-free; 'none': always mask-free")
     parser.add_argument("--groups", type=int, default=None, metavar="K",
                         help="number of groups (default: from the masks, or chosen per scene when mask-free)")
     parser.add_argument("--max-groups", type=int, default=8, metavar="CAP",
@@ -938,7 +970,7 @@ def run(args) -> int:
                        reconstruct_kwargs=rk)
     ra = info.get("reprojection_agreement", {}).get("mean")
     acc = info.get("train_mask_accuracy")
-    print(f"grouped {args.scene_dir}: K={info['num_groups']} ({info['method']}); "
+    print(f"grouped {args.scene_dir}: K={info['num_groups']} {info['kind']} ({info['method']}); "
           f"mask accuracy {acc if acc is None else f'{acc:.3f}'}; "
           f"cross-view agreement {ra if ra is None else f'{ra:.3f}'}; "
           f"wrote {Path(args.scene_dir) / 'groups'}")

@@ -1,38 +1,28 @@
 """Torch autograd ops over the Warp kernels (``ssgwarp.kernels``).
 
-Tensors are shared with Warp zero-copy (``wp.from_torch``); CPU tensors run on
-Warp's CPU device, CUDA tensors on the same CUDA device and on torch's current
+Tensors are shared with Warp zero-copy: launch arguments are Warp array descriptors built from
+a tensor's pointer (:mod:`ssgwarp.launch`), and launches replay a recorded Warp launch; CPU
+tensors run on Warp's CPU device, CUDA tensors on the same CUDA device and on torch's current
 stream. float32 and float64 use the same kernel source, built per precision.
+
+:func:`rasterize_warp` is the rasterizer's Warp path: two autograd ops (:class:`_Project`:
+projection, tile counts and SH colours; :class:`_Blend`: blending) around the tile binning,
+with one device synchronisation per call (the intersection count, read back together with the
+input checks' flags).
 """
 from __future__ import annotations
-
-import contextlib
-import ctypes
-import math
 
 import torch
 import warp as wp
 
+from . import launch as L
 from .kernels import binning, blend_backward, blend_forward, projection, sh, validate
 from .kernels.types import channel_vector, types_for
-
-try:  # the launch descriptor wp.from_torch(..., return_ctype=True) builds; made directly here
-    from warp._src.types import array_t as _array_t
-except ImportError:  # another Warp layout: go through wp.from_torch
-    _array_t = None
+from .launch import NULL, arr, rows
 
 Tensor = torch.Tensor
-_INIT = False
 MAX_CHANNELS = 64
-
-
-def _init() -> None:
-    global _INIT
-    if not _INIT:
-        # keep Warp's per-module "load ... (compiled)" lines off the terminal; warnings still show
-        wp.config.log_level = max(int(wp.config.log_level), int(wp.LOG_WARNING))
-        wp.init()
-        _INIT = True
+INT32_MAX = 2**31 - 1
 
 
 def _scalar(dtype: torch.dtype):
@@ -49,165 +39,223 @@ def _fast(settings, scalar) -> bool:
     return bool(settings.fast_math) and scalar == wp.float32
 
 
-def _device(t: Tensor) -> str:
-    if t.device.type == "cuda":
-        return f"cuda:{t.device.index if t.device.index is not None else torch.cuda.current_device()}"
-    if t.device.type == "cpu":
-        return "cpu"
-    raise ValueError(f"ssgwarp kernels run on CPU or CUDA tensors, got {t.device}")
+def _c(t: Tensor) -> Tensor:
+    """``t`` itself when contiguous, else a contiguous copy (outside autograd): what kernels read."""
+    return t if t.is_contiguous() else t.detach().contiguous()
 
 
-def _wp(t: Tensor, dtype=None, ndim: int = 1, ctype: bool = True):
-    """Zero-copy ``ndim``-D Warp view of a tensor; ``dtype`` groups the trailing axes into vectors/matrices.
-
-    ``ctype=True`` returns the light launch descriptor, built directly from the tensor's pointer,
-    shape and strides (the cheapest launch argument); ``ctype=False`` a full ``wp.array`` (needed
-    by ``wp.utils``).
-    """
-    t = t.detach()
-    if not t.is_contiguous():
-        t = t.contiguous()
-    inner = tuple(getattr(dtype, "_shape_", ())) if dtype is not None else ()
-    lead = t.shape[: t.ndim - len(inner)]
-    keep = tuple(lead[len(lead) - (ndim - 1):]) if ndim > 1 else ()
-    t = t.reshape(-1, *keep, *inner)
-    if not ctype or _array_t is None:
-        return wp.from_torch(t, dtype=dtype, return_ctype=ctype)
-    scalar = dtype._type_ if dtype is not None else None
-    if scalar is not None and ctypes.sizeof(scalar) != t.element_size():
-        raise TypeError(f"internal: a {t.dtype} tensor passed as Warp {dtype}")
-    shape = tuple(t.shape[: t.ndim - len(inner)])
-    size = t.element_size()
-    strides = tuple(st * size for st in t.stride()[: len(shape)])
-    if not shape:
-        shape, strides = (1,), (size,)
-    arr = _array_t(t.data_ptr(), 0, len(shape), shape, strides)
-    arr.tensor = t  # a contiguous copy made here must live until the launch has been queued
-    return arr
-
-
-_STREAMS: dict = {}
-
-
-def _warp_stream(device: torch.device):
-    """The Warp stream wrapping torch's current CUDA stream (wrappers cached per stream)."""
-    ts = torch.cuda.current_stream(device)
-    key = (ts.device_index, ts.cuda_stream)
-    ws = _STREAMS.get(key)
-    if ws is None:
-        ws = _STREAMS[key] = wp.stream_from_torch(ts)
-    return ws
-
-
-class _Launcher:
-    """Runs launches on the Warp device/stream matching a torch tensor."""
-
-    def __init__(self, like: Tensor):
-        _init()
-        self.device = _device(like)
-        self.stream = _warp_stream(like.device) if like.device.type == "cuda" else None
-
-    def launch(self, kernel, dim, inputs, outputs=(), adj_inputs=(), adj_outputs=(), adjoint=False,
-               block_dim=None):
-        if (isinstance(dim, int) and dim == 0) or (not isinstance(dim, int) and math.prod(dim) == 0):
-            return
-        wp.launch(kernel, dim=dim, inputs=list(inputs), outputs=list(outputs), adj_inputs=list(adj_inputs),
-                  adj_outputs=list(adj_outputs), adjoint=adjoint, device=self.device, stream=self.stream,
-                  record_tape=False, block_dim=block_dim)
+def _adj(g, inner: int, n: int):
+    """``(descriptor, tensor)`` of an incoming gradient read as ``n`` rows of ``inner`` values
+    (row-strided views, e.g. column blocks of the blending's packed gradients, are read in place);
+    :data:`NULL` when there is none."""
+    if g is None:
+        return NULL, None
+    g = g.detach().reshape(n, inner) if inner > 1 else g.detach().reshape(n, 1)
+    if g.stride(1) != 1 and inner > 1:
+        g = g.contiguous()
+    return rows(g, inner), g
 
 
 # ---------------------------------------------------------------------------------------------
 # input value checks
 # ---------------------------------------------------------------------------------------------
-def check_values(means, quats, scales, opacities, colors, viewmats, Ks, backgrounds=None) -> Tensor:
+def check_values(means, quats, scales, opacities, colors, viewmats, Ks, backgrounds=None, flags=None) -> Tensor:
     """Flags of the value checks of :mod:`.kernels.validate` (one kernel, no synchronisation):
     an int64 tensor ``[N_FLAGS]`` on the inputs' device, non-zero where a check failed (slot ``i``
     < 8: NaN/Inf in ``validate.INPUTS[i]``; then zero quaternion, negative scale, opacity outside
-    [0, 1], non-positive focal length). Shapes must already be consistent."""
-    flat = [t.detach().reshape(-1) for t in (means, quats, scales, opacities, colors, viewmats, Ks)]
-    flat.append(backgrounds.detach().reshape(-1) if backgrounds is not None else flat[0][:0])
-    flags = torch.zeros(validate.N_FLAGS, dtype=torch.int64, device=means.device)
-    kern = validate.check_kernel(_scalar(means.dtype))
-    _Launcher(means).launch(kern, max(t.numel() for t in flat),
-                            [*(_wp(t) for t in flat), means.shape[0], viewmats.shape[0]], [_wp(flags)])
+    [0, 1], non-positive focal length). Shapes must already be consistent. ``flags``: a zeroed
+    int64 tensor ``[N_FLAGS]`` to write into (else one is made)."""
+    flat = [_c(t) for t in (means, quats, scales, opacities, colors, viewmats, Ks)]
+    if backgrounds is not None:
+        flat.append(_c(backgrounds))
+    if flags is None:
+        flags = torch.zeros(validate.N_FLAGS, dtype=torch.int64, device=means.device)
+    descs = [v for t in flat for v in arr(t)]
+    if backgrounds is None:
+        descs += NULL
+    L.launch(validate.check_kernel(_scalar(means.dtype)), max(t.numel() for t in flat),
+             [*descs, means.shape[0], viewmats.shape[0], *arr(flags)], L.target(means))
     return flags
 
 
 # ---------------------------------------------------------------------------------------------
-# projection
+# projection (+ tile counts, + SH colours)
 # ---------------------------------------------------------------------------------------------
 class _Project(torch.autograd.Function):
+    """``(radii, means2d, depths, conics, opacities, colors, counts, splats)`` of N Gaussians in C
+    cameras.
+
+    ``colors [C, N, 3]`` (SH colour, ``+ 0.5`` clamped, 0 where culled) when ``coeffs`` is given,
+    else None; ``counts [C, N]`` (int32 tiles per Gaussian) and ``splats [C, N, 6]`` (the
+    blending's packed splats) when ``cfg["tile_size"] > 0``, else None. ``extra`` (or None):
+    ``flags`` (int64 ``[N_FLAGS]``, zeroed) to run the input value checks in the projection, with
+    the ``colors`` and ``backgrounds`` they also cover; ``ends`` (int64 ``[C*N]``) to receive the
+    tile counts for the binning's in-place scan. Backward: the SH adjoint then the projection
+    adjoint, both into per-(camera, Gaussian) slots when C > 1 (summed here in a fixed order),
+    straight into the gradients when C = 1."""
+
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, viewmats, Ks, params, variant):
-        width, height, near, far, eps2d, radius_clip, alpha_min, sigma_max, opacity_extent, antialiased = params
+    def forward(ctx, means, quats, scales, opacities, viewmats, Ks, coeffs, campos, cfg, extra):
         C, N = viewmats.shape[0], means.shape[0]
         dt, dev = means.dtype, means.device
         s = _scalar(dt)
-        T = types_for(s)
-        means2d = torch.zeros(C, N, 2, dtype=dt, device=dev)
-        depths = torch.zeros(C, N, dtype=dt, device=dev)
-        conics = torch.zeros(C, N, 3, dtype=dt, device=dev)
-        opac = torch.zeros(C, N, dtype=dt, device=dev)
-        radii = torch.zeros(C, N, 2, dtype=torch.int32, device=dev)
-        L = _Launcher(means)
-        scal = [width, height, near, far, eps2d, radius_clip, alpha_min, sigma_max, opacity_extent, antialiased]
-        L.launch(projection.projection_kernel(s, False, *variant), (C, N),
-                 [_wp(means, T.vec3), _wp(quats, T.vec4), _wp(scales, T.vec3), _wp(opacities),
-                  _wp(viewmats, T.mat44), _wp(Ks, T.mat33), N, *scal],
-                 [_wp(means2d, T.vec2), _wp(depths), _wp(conics, T.vec3), _wp(opac), _wp(radii, wp.vec2i)])
-        ctx.save_for_backward(means, quats, scales, opacities, viewmats, Ks, means2d, depths, conics, opac, radii)
-        ctx.scal, ctx.variant = scal, variant
-        ctx.mark_non_differentiable(radii)
-        return radii, means2d, depths, conics, opac
+        tg = L.target(means)
+        ins = [_c(t) for t in (means, quats, scales, opacities, viewmats, Ks)]
+        means2d = torch.empty(C, N, 2, dtype=dt, device=dev)
+        depths = torch.empty(C, N, dtype=dt, device=dev)
+        conics = torch.empty(C, N, 3, dtype=dt, device=dev)
+        opac = torch.empty(C, N, dtype=dt, device=dev)
+        radii = torch.empty(C, N, 2, dtype=torch.int32, device=dev)
+        counts = splats = None
+        if cfg["tile_size"] > 0:  # (rendering follows: tile counts and packed splats for the binning and blending)
+            counts = torch.empty(C, N, dtype=torch.int32, device=dev)
+            splats = torch.empty(C, N, 6, dtype=dt, device=dev)
+        outs = [means2d, depths, conics, opac, radii]
+        kern = projection.projection_kernel(s, *cfg["variant"])
+        head = _project_args(ins, C, N) + cfg["scalars"]
+        tail = [*arr(means2d, 2), *arr(depths), *arr(conics, 3), *arr(opac), *arr(radii, 2)]
+        checks, keep = _check_args(extra, C, N)
+        ends = None if extra is None else extra.get("ends")
+        L.launch(kern, (C, N), head + checks + tail + [*(arr(counts) if counts is not None else NULL),
+                                                       *(arr(ends) if ends is not None else NULL),
+                                                       *(arr(splats, 6) if splats is not None else NULL)], tg)
+        del keep  # (contiguous copies made for the checks: needed until the launch is queued)
+        colors = colour_args = None
+        if coeffs is not None:
+            coeffs, campos = _c(coeffs), _c(campos)
+            colors = torch.empty(C, N, 3, dtype=dt, device=dev)
+            colour_args = _colour_args(ins[0], campos, coeffs, radii, C, N)
+            L.launch(sh.colour_kernel(s, cfg["sh_degree"]), (C, N), colour_args + [*arr(colors, 3)], tg)
+        ctx.save_for_backward(*ins, *outs, coeffs, campos)
+        # the backward launches read the same tensors (kept by ctx): their descriptors are kept too
+        # (without the checks, and without the tile counts and ends, which the binning has scanned)
+        ctx.cfg, ctx.args, ctx.colour_args = cfg, head + _NO_CHECKS + tail + [*NULL, *NULL, *NULL], colour_args
+        ctx.mark_non_differentiable(*(t for t in (radii, counts, splats) if t is not None))
+        return radii, means2d, depths, conics, opac, colors, counts, splats
 
     @staticmethod
-    def backward(ctx, _g_radii, g_means2d, g_depths, g_conics, g_opac):
-        means, quats, scales, opacities, viewmats, Ks, means2d, depths, conics, opac, radii = ctx.saved_tensors
+    def backward(ctx, _g_radii, g_means2d, g_depths, g_conics, g_opac, g_colors, _g_counts, _g_splats):
+        means, quats, scales, opacities, viewmats, Ks, means2d, depths, conics, opac, radii, coeffs, campos = \
+            ctx.saved_tensors
+        cfg, need = ctx.cfg, ctx.needs_input_grad
         C, N = viewmats.shape[0], means.shape[0]
-        s = _scalar(means.dtype)
-        T = types_for(s)
-        L = _Launcher(means)
-        zeros = lambda t: torch.zeros_like(t)  # noqa: E731
-        g = [x if x is not None else zeros(y) for x, y in
-             ((g_means2d, means2d), (g_depths, depths), (g_conics, conics), (g_opac, opac))]
-        g = [x.contiguous() for x in g]
-        # Each thread writes its own adjoint slot: per Gaussian when C == 1, else per
-        # (camera, Gaussian) pair ("expanded", summed over cameras by torch). No two threads share
-        # an adjoint address, so the result is deterministic and free of atomic contention. The
-        # view matrices' adjoint is kept per pair as well, and only when asked for.
-        need_vm = ctx.needs_input_grad[4]
-        expanded = C > 1 or need_vm
-        if expanded:
-            ex = lambda t: t[None].expand(C, *t.shape).reshape(C * N, *t.shape[1:]).contiguous()  # noqa: E731
-            ins = [ex(means), ex(quats), ex(scales), ex(opacities),
-                   viewmats[:, None].expand(C, N, 4, 4).reshape(C * N, 4, 4).contiguous()]
+        dt, dev = means.dtype, means.device
+        s = _scalar(dt)
+        tg = L.target(means)
+        # one adjoint slot per (camera, Gaussian); the per-Gaussian gradients share one zeroed buffer
+        lead = (C, N) if C > 1 else (N,)
+        v_means, v_quats, v_scales, v_opac = _zeros_split([3, 4, 3, 1], need[:4], lead, dt, dev)
+        v_view = torch.zeros(C, N, 4, 4, dtype=dt, device=dev) if need[4] else None
+        v_coeffs = v_campos = None
+        if g_colors is not None and coeffs is not None:
+            g, g_t = _adj(g_colors, 3, C * N)
+            per_cam = coeffs.ndim == 4
+            if need[6]:
+                v_coeffs = torch.zeros(C, *coeffs.shape[-3:], dtype=dt, device=dev) if (C > 1 and not per_cam) \
+                    else torch.zeros_like(coeffs)
+            if need[7]:
+                v_campos = torch.zeros(C, N, 3, dtype=dt, device=dev)
+            K = coeffs.shape[-2]
+            adj = [*_grid(v_means, C, N, 3), *_grid(v_campos, C, N, 3),
+                   *(NULL if v_coeffs is None else L.grid3(v_coeffs, C, N, K, 3, True)), *NULL, *g]
+            # (array stores are not replayed in Warp's adjoints: the colour output is not needed)
+            L.launch(sh.colour_kernel(s, cfg["sh_degree"]), (C, N), ctx.colour_args + [*NULL], tg, adj=adj)
+            del g_t
+        grads = [_adj(g, k, C * N) for g, k in ((g_means2d, 2), (g_depths, 1), (g_conics, 3), (g_opac, 1))]
+        if any(g[1] is not None for g in grads) and any(need[:5]):
+            adj = [*_grid(v_means, C, N, 3), *_grid(v_quats, C, N, 4), *_grid(v_scales, C, N, 3), *_grid(v_opac, C, N, 1),
+                   *_grid(v_view, C, N, 16), *NULL, *_ADJ_SCALARS, *_NO_CHECKS, *grads[0][0], *grads[1][0],
+                   *grads[2][0], *grads[3][0], *NULL, *NULL, *NULL, *NULL]
+            L.launch(projection.projection_kernel(s, *cfg["variant"]), (C, N), ctx.args, tg, adj=adj)
+        if C > 1:
+            v_means, v_quats, v_scales, v_opac = (None if v is None else v.sum(0)
+                                                  for v in (v_means, v_quats, v_scales, v_opac))
+            if v_coeffs is not None and coeffs.ndim == 3:
+                v_coeffs = v_coeffs.sum(0)
+        if v_view is not None:
+            v_view = v_view.sum(1)
+        if v_campos is not None:
+            v_campos = v_campos.sum(1)
+        return v_means, v_quats, v_scales, v_opac, v_view, None, v_coeffs, v_campos, None, None
+
+
+# the adjoints of the projection's scalar parameters (ignored): width, height, six reals, five integers
+_ADJ_SCALARS = [0] * 2 + [0.0] * 6 + [0] * 5
+# the projection's check parameters when it runs no checks: colours, row, per camera, backgrounds, row, flags
+_NO_CHECKS = [*NULL, 0, 0, *NULL, 0, *NULL]
+
+
+def _check_args(extra, C, N):
+    """``(flat arguments, tensors to keep alive)`` of the projection's input checks (none without
+    ``extra["flags"]``): the colours read flat in rows (per camera or shared), the backgrounds."""
+    if extra is None or extra.get("flags") is None:
+        return _NO_CHECKS, ()
+    colors, bg = _c(extra["colors"]), extra.get("backgrounds")
+    per_cam = colors.shape[0] == C and colors.ndim == (4 if extra.get("sh") else 3)
+    row = colors.numel() // (C * N if per_cam else N) if N else 0
+    bg = _c(bg) if bg is not None else None
+    args = [*arr(colors), row, int(per_cam), *(arr(bg) if bg is not None else NULL),
+            bg.shape[-1] if bg is not None else 0, *arr(extra["flags"])]
+    return args, (colors, bg)
+
+
+def _zeros_split(widths, wanted, lead, dt, dev):
+    """Zeroed ``[*lead, w]`` tensors for the wanted widths (None for the others), as contiguous
+    views of one buffer (one allocation and one fill)."""
+    n = 1
+    for d in lead:
+        n *= d
+    total = sum(w for w, on in zip(widths, wanted) if on)
+    if total == 0:
+        return [None] * len(widths)
+    buf = torch.zeros(n * total, dtype=dt, device=dev)
+    out, pos = [], 0
+    for w, on in zip(widths, wanted):
+        if on:
+            out.append(buf[pos:pos + n * w].view(*lead, w) if w > 1 else buf[pos:pos + n].view(*lead))
+            pos += n * w
         else:
-            ins = [means, quats, scales, opacities, viewmats]
-        adj = [torch.zeros_like(t) for t in ins[:4]] + [torch.zeros_like(ins[4]) if need_vm else None]
-        kern = projection.projection_kernel(s, expanded, *ctx.variant)
-        dtypes = [T.vec3, T.vec4, T.vec3, None, T.mat44]
-        ins_wp = [_wp(t, d) for t, d in zip(ins, dtypes)]
-        adj_wp = [None if t is None else _wp(t, d) for t, d in zip(adj, dtypes)]
-        outs = [_wp(means2d, T.vec2), _wp(depths), _wp(conics, T.vec3), _wp(opac), _wp(radii, wp.vec2i)]
-        adj_outs = [_wp(g[0], T.vec2), _wp(g[1]), _wp(g[2], T.vec3), _wp(g[3]), None]
-        L.launch(kern, (C, N), [*ins_wp, _wp(Ks, T.mat33), N, *ctx.scal], outs,
-                 [*adj_wp, None, 0, *([0] * 2 + [0.0] * 6 + [0] * 2)], adj_outs, adjoint=True)
-        if expanded:
-            v_means, v_quats, v_scales, v_opac = (a.reshape(C, N, *a.shape[1:]).sum(0) for a in adj[:4])
-            v_view = adj[4].reshape(C, N, 4, 4).sum(1) if need_vm else None
-        else:
-            v_means, v_quats, v_scales, v_opac, v_view = adj
-        return v_means, v_quats, v_scales, v_opac, v_view, None, None, None
+            out.append(None)
+    return out
+
+
+def _grid(t, C, N, inner):
+    """Adjoint slots ``[C, N]`` (or ``[N]`` with one camera) as a 2-D descriptor; NULL if absent."""
+    return NULL if t is None else L.grid(t, C, N, inner, True)
+
+
+def _project_args(ins, C, N):
+    means, quats, scales, opacities, viewmats, Ks = ins
+    return [*L.grid(means, C, N, 3, False), *L.grid(quats, C, N, 4, False), *L.grid(scales, C, N, 3, False),
+            *L.grid(opacities, C, N, 1, False), *L.cams(viewmats, C, N, 16), *arr(Ks, 9)]
+
+
+def _colour_args(means, campos, coeffs, radii, C, N):
+    K = coeffs.shape[-2]
+    per_cam = coeffs.ndim == 4
+    return [*L.grid(means, C, N, 3, False), *L.cams(campos, C, N, 3), *L.grid3(coeffs, C, N, K, 3, per_cam),
+            *arr(radii, 2)]
 
 
 def project_warp(means, quats, scales, opacities, viewmats, Ks, width, height, *, near_plane=0.01,
                  far_plane=1e10, radius_clip=0.0, eps2d=0.3, antialiased=False, settings=None):
     """Warp version of :func:`ssgwarp.reference.project_reference` (same outputs)."""
-    params = (int(width), int(height), float(near_plane), float(far_plane), float(eps2d), float(radius_clip),
-              float(settings.alpha_min), float(settings.sigma_max), int(settings.extent == "opacity"),
-              int(bool(antialiased)))
-    return _Project.apply(means, quats, scales, opacities, viewmats, Ks, params,
-                          (settings.covariance, _fast(settings, _scalar(means.dtype))))
+    cfg = _project_cfg(means.dtype, width, height, near_plane, far_plane, radius_clip, eps2d, antialiased, settings)
+    radii, means2d, depths, conics, opac, _, _, _ = _Project.apply(means, quats, scales, opacities, viewmats, Ks,
+                                                                   None, None, cfg, None)
+    return radii, means2d, depths, conics, opac
+
+
+def _project_cfg(dtype, width, height, near_plane, far_plane, radius_clip, eps2d, antialiased, settings,
+                 tile_size=0, tile_width=0, tile_height=0, sh_degree=None) -> dict:
+    return {
+        "scalars": [int(width), int(height), float(near_plane), float(far_plane), float(eps2d), float(radius_clip),
+                    float(settings.alpha_min), float(settings.sigma_max), int(settings.extent == "opacity"),
+                    int(bool(antialiased)), int(tile_size), int(tile_width), int(tile_height)],
+        "variant": (settings.covariance, _fast(settings, _scalar(dtype))),
+        "tile_size": int(tile_size),
+        "sh_degree": sh_degree,
+    }
 
 
 # ---------------------------------------------------------------------------------------------
@@ -217,13 +265,12 @@ class _SH(torch.autograd.Function):
     @staticmethod
     def forward(ctx, degree, dirs, coeffs):
         shape = dirs.shape[:-1]
-        K = (degree + 1) ** 2
-        d = dirs.reshape(-1, 3).contiguous()
-        c = coeffs[..., :K, :].reshape(-1, K, 3).contiguous()
+        d = _c(dirs).reshape(-1, 3)
+        c = _c(coeffs).reshape(d.shape[0], -1, 3)
+        M, K = c.shape[0], c.shape[1]
         s = _scalar(dirs.dtype)
-        T = types_for(s)
         out = torch.empty_like(d)
-        _Launcher(dirs).launch(sh.sh_kernel(s, degree), d.shape[0], [_wp(d, T.vec3), _wp(c, T.vec3, 2)], [_wp(out, T.vec3)])
+        L.launch(sh.sh_kernel(s, degree), (1, M), [*L.grid(d, 1, M, 3, True), *_coeff_rows(c), *arr(out, 3)], L.target(d))
         ctx.save_for_backward(d, c, out)
         ctx.degree, ctx.shape, ctx.cshape = degree, shape, coeffs.shape
         return out.reshape(*shape, 3)
@@ -232,15 +279,16 @@ class _SH(torch.autograd.Function):
     def backward(ctx, g):
         d, c, out = ctx.saved_tensors
         s = _scalar(d.dtype)
-        T = types_for(s)
+        M = d.shape[0]
         vd, vc = torch.zeros_like(d), torch.zeros_like(c)
-        g = g.reshape(-1, 3).contiguous()
-        _Launcher(d).launch(sh.sh_kernel(s, ctx.degree), d.shape[0], [_wp(d, T.vec3), _wp(c, T.vec3, 2)],
-                            [_wp(out, T.vec3)], [_wp(vd, T.vec3), _wp(vc, T.vec3, 2)], [_wp(g, T.vec3)], adjoint=True)
-        K = c.shape[1]
-        v_coeffs = torch.zeros(ctx.cshape, dtype=d.dtype, device=d.device)
-        v_coeffs[..., :K, :] = vc.reshape(*ctx.shape, K, 3)
-        return None, vd.reshape(*ctx.shape, 3), v_coeffs
+        ga, g = _adj(g, 3, M)
+        L.launch(sh.sh_kernel(s, ctx.degree), (1, M), [*L.grid(d, 1, M, 3, True), *_coeff_rows(c), *arr(out, 3)],
+                 L.target(d), adj=[*L.grid(vd, 1, M, 3, True), *_coeff_rows(vc), *ga])
+        return None, vd.reshape(*ctx.shape, 3), vc.reshape(ctx.cshape)
+
+
+def _coeff_rows(c):
+    return L.grid3(c, 1, c.shape[0], c.shape[1], 3, False)
 
 
 def spherical_harmonics_warp(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
@@ -251,73 +299,91 @@ def spherical_harmonics_warp(degree: int, dirs: Tensor, coeffs: Tensor) -> Tenso
 # ---------------------------------------------------------------------------------------------
 # tile binning
 # ---------------------------------------------------------------------------------------------
-INT32_MAX = 2**31 - 1
-
-
 def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, tile_width: int, tile_height: int,
-              pending=None) -> dict:
+              pending=None, counts: Tensor | None = None, scan: Tensor | None = None, keep_perm: bool = True,
+              counts_in_scan: bool = False) -> dict:
     """Tile intersections of projected Gaussians, sorted by (camera, tile, depth).
 
-    Returns ``tiles_per_gauss [C,N]``, ``isect_ids [M]`` (int64 keys), ``flatten_ids [M]`` (flat
-    camera*N + Gaussian index per sorted intersection), ``isect_offsets [C,th,tw]`` and, for the
-    backward, ``offsets [C*th*tw+1]``, ``perm [M]`` (pre-sort slot of each sorted intersection),
-    ``isect_ends [C*N]``. ``pending``: ``(flags, check)`` from deferred input validation, read
-    back with the intersection count and checked before anything else.
+    Returns ``tiles_per_gauss [C,N]`` (int32), ``isect_ids [M]`` (int64 keys), ``flatten_ids [M]``
+    (flat camera*N + Gaussian index per sorted intersection), ``isect_offsets [C,th,tw]`` and, for
+    the backward, ``offsets [C*th*tw+1]``, ``perm [M]`` (pre-sort slot of each sorted
+    intersection; the deterministic backward's slots; None unless ``keep_perm``), ``isect_ends
+    [C*N]`` (int64 inclusive scan of the counts).
+
+    ``counts``: the tile counts when already known (the projection writes them), else counted
+    here. ``scan``: an int64 tensor ``[C*N + N_FLAGS]`` to hold the scan, whose tail holds the
+    input checks' flags, and with ``counts_in_scan`` whose head already holds the counts (the
+    projection wrote them; scanned in place); ``pending``: ``(flags, check)`` from deferred input
+    validation. The
+    intersection count and the flags are read back together (the one synchronisation) and the
+    flags checked before anything else. Without ``keep_perm`` the sort carries the Gaussian ids
+    themselves (as gsplat's does), so the sorted values are the flattened ids.
     """
     C, N = depths.shape
     s = _scalar(means2d.dtype)
-    T = types_for(s)
     dev = means2d.device
-    L = _Launcher(means2d)
+    tg = L.target(means2d)
     n_ranges = C * tile_width * tile_height
     if n_ranges >= INT32_MAX:
         raise ValueError(f"rasterization: {C} cameras x {tile_width * tile_height} tiles exceed the 2^31 tile "
                          "ranges one call can index; render fewer cameras per call or use a larger tile_size")
-    m2 = _wp(means2d.reshape(C * N, 2), T.vec2)
-    rd = _wp(radii.reshape(C * N, 2), wp.vec2i)
-    counts = torch.zeros(C * N, dtype=torch.int64, device=dev)
-    L.launch(binning.count_kernel(s), C * N, [m2, rd, tile_size, tile_width, tile_height], [_wp(counts)])
-    ends = torch.cumsum(counts, 0)
-    total = ends[-1:] if ends.numel() else torch.zeros(1, dtype=torch.int64, device=dev)
-    if pending is not None:
-        values, check = pending
-        host = torch.cat([total, values]).tolist()
-        check(host[1:])
-        n_isects = int(host[0])
+    CN = C * N
+    m2, rd, dp = _c(means2d), _c(radii), _c(depths)
+    if counts is None:
+        counts = torch.empty(C, N, dtype=torch.int32, device=dev)
+        L.launch(binning.count_kernel(s), CN, [*arr(m2, 2), *arr(rd, 2), tile_size, tile_width, tile_height,
+                                                *arr(counts)], tg)
+    n_flags = 0 if pending is None else pending[0].numel()
+    if scan is None or scan.numel() != CN + n_flags:
+        scan, counts_in_scan = torch.empty(CN + n_flags, dtype=torch.int64, device=dev), False
+        if n_flags:
+            scan[CN:] = pending[0]
+    ends = scan[:CN]
+    if CN and counts_in_scan:
+        ends.cumsum_(0)
+    elif CN:
+        torch.cumsum(counts.view(-1), 0, dtype=torch.int64, out=ends)
+    if CN:
+        host = scan[CN - 1:].tolist()
     else:
-        n_isects = int(total)
+        host = [0] + (scan.tolist() if n_flags else [])
+    if pending is not None:
+        pending[1](host[1:])
+    n_isects = int(host[0])
     if n_isects > INT32_MAX // 2:
         raise ValueError(
             f"rasterization: {n_isects:,} Gaussian-tile intersections exceed the {INT32_MAX // 2:,} one call can "
             "sort; render fewer cameras per call, lower the resolution, raise tile_size, or cull large Gaussians "
             "(radius_clip / RasterSettings.sigma_max)")
-    starts = ends - counts
-    depth_bits = depths.detach().reshape(-1).to(torch.float32).view(torch.int32).to(torch.int64) & 0xFFFFFFFF
-    # every entry below n_isects is written by the kernel; the upper halves are the sort's scratch
-    keys = torch.empty(2 * max(n_isects, 1), dtype=torch.int64, device=dev)
-    values = torch.empty(2 * max(n_isects, 1), dtype=torch.int32, device=dev)
-    gauss = torch.empty(max(n_isects, 1), dtype=torch.int32, device=dev)
-    L.launch(binning.write_kernel(s), C * N,
-             [m2, rd, _wp(depth_bits), _wp(starts), N, tile_size, tile_width, tile_height],
-             [_wp(keys), _wp(values), _wp(gauss)])
-    offsets = torch.zeros(n_ranges + 1, dtype=torch.int32, device=dev)
+    M = max(n_isects, 1)
+    # every entry below n_isects is written by the kernel; the upper halves are the sort's scratch.
+    # One int32 buffer: sort values (2M) | offsets, and with keep_perm also the Gaussian of each
+    # pre-sort slot (M) and the flatten ids (M)
+    keys = torch.empty(2 * M, dtype=torch.int64, device=dev)
+    extra = 2 * M if keep_perm else 0
+    ints = torch.empty(2 * M + extra + n_ranges + 1, dtype=torch.int32, device=dev)
+    values, offsets = ints[:2 * M], ints[2 * M + extra:]
+    if keep_perm:
+        gauss, flatten_ids = ints[2 * M:3 * M], ints[3 * M:3 * M + n_isects]
+        a_gauss, a_flat = arr(gauss), L.at(flatten_ids.data_ptr(), n_isects, 4)
+    else:
+        flatten_ids, a_gauss, a_flat = values[:n_isects], NULL, NULL
+    L.launch(binning.write_kernel(s), CN,
+             [*arr(m2, 2), *arr(rd, 2), *arr(dp), *arr(ends), *arr(counts), N, tile_size, tile_width, tile_height,
+              *arr(keys), *arr(values), *a_gauss], tg)
     if n_isects > 0:
-        end_bit = 32 + max(1, int(n_ranges).bit_length())
-        on_stream = wp.ScopedStream(L.stream) if L.stream is not None else contextlib.nullcontext()
-        with wp.ScopedDevice(L.device), on_stream:
-            wp.utils.radix_sort_pairs(_wp(keys, ctype=False), _wp(values, ctype=False), n_isects, 0, end_bit)
-    flatten_ids = torch.empty(n_isects, dtype=torch.int32, device=dev)
-    if n_isects > 0:
-        L.launch(binning.offsets_kernel, n_isects, [_wp(keys), _wp(values), _wp(gauss), n_isects, n_ranges],
-                 [_wp(offsets), _wp(flatten_ids)])
-    keys, perm = keys[:n_isects], values[:n_isects]
+        L.sort_pairs(keys, values, n_isects, 32 + max(1, int(n_ranges).bit_length()), tg)
+        L.launch(binning.offsets_kernel, n_isects, [*arr(keys), *arr(values), *a_gauss, n_isects, n_ranges,
+                                                    *arr(offsets), *a_flat], tg)
+    else:
+        offsets.zero_()
     return {
-        "tiles_per_gauss": counts.reshape(C, N).to(torch.int32),
-        "isect_ids": keys,
+        "tiles_per_gauss": counts,
+        "isect_ids": keys[:n_isects],
         "flatten_ids": flatten_ids,
-        "isect_offsets": offsets[:-1].reshape(C, tile_height, tile_width),
+        "isect_offsets": offsets[:-1].view(C, tile_height, tile_width),
         "offsets": offsets,
-        "perm": perm,
+        "perm": values[:n_isects] if keep_perm else None,
         "isect_ends": ends,
         "n_isects": n_isects,
     }
@@ -326,49 +392,57 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
 # ---------------------------------------------------------------------------------------------
 # blending
 # ---------------------------------------------------------------------------------------------
-def pack_splats(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, flatten_ids: Tensor):
+def pack_splats(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, flatten_ids: Tensor,
+                packed: Tensor | None = None):
     """Per sorted intersection, contiguous in the order the blending kernels walk them:
-    ``splats [M, 6]`` (x, y, conic a, b, c, opacity) and ``colors [M, D]`` (one gather kernel)."""
+    ``splats [M, 6]`` (x, y, conic a, b, c, opacity) and ``colors [M, D]`` (one gather kernel;
+    ``colors`` is ``[C, N, D]`` or, the same for every camera, ``[N, D]``; ``packed [C, N, 6]``:
+    the projection's packed splats, read instead of the three arrays)."""
     M, D = flatten_ids.shape[0], colors.shape[-1]
     dt = means2d.dtype
     s = _scalar(dt)
-    T = types_for(s)
-    vecD = channel_vector(s, D)
     splats = torch.empty(M, 6, dtype=dt, device=means2d.device)
     cols = torch.empty(M, D, dtype=dt, device=means2d.device)
-    _Launcher(means2d).launch(blend_forward.pack_kernel(s, D), M,
-                              [_wp(flatten_ids), _wp(means2d, T.vec2), _wp(conics, T.vec3), _wp(opacities),
-                               _wp(colors, vecD)], [_wp(splats, T.splat), _wp(cols, vecD)])
+    if packed is None:
+        gauss = [*arr(_c(means2d), 2), *arr(_c(conics), 3), *arr(_c(opacities))]
+    else:  # (the three arrays are not read)
+        gauss = [*NULL, *NULL, *NULL]
+    ids, cs = _c(flatten_ids), _c(colors)
+    L.launch(blend_forward.pack_kernel(s, D), M,
+             [*arr(ids), *(NULL if packed is None else arr(packed, 6)), *gauss, *arr(cs, D), *arr(splats, 6),
+              *arr(cols, D)], L.target(means2d))
     return splats, cols
 
 
 class _Blend(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, colors, opacities, backgrounds, tiles, width, height, tile_size, settings,
-                deterministic):
-        C, N, D = colors.shape
+                deterministic, packed):
+        C, N = means2d.shape[:2]
+        D = colors.shape[-1]
         dt, dev = colors.dtype, colors.device
         s = _scalar(dt)
-        T = types_for(s)
-        vecD = channel_vector(s, D)
         th, tw = tiles["isect_offsets"].shape[1:]
+        tg = L.target(colors)
         # the kernel writes every pixel
         out = torch.empty(C, height, width, D, dtype=dt, device=dev)
-        out_T = torch.empty(C, height, width, dtype=dt, device=dev)
         out_alpha = torch.empty(C, height, width, 1, dtype=dt, device=dev)
-        last = torch.empty((C, height, width), dtype=torch.int32, device=dev)
-        bg = backgrounds if backgrounds is not None else torch.zeros(C, D, dtype=dt, device=dev)
-        L = _Launcher(colors)
-        splats, cols = pack_splats(means2d, conics, opacities, colors, tiles["flatten_ids"])
+        out_T = torch.empty(C, height, width, dtype=dt, device=dev)
+        last = torch.empty(C, height, width, dtype=torch.int32, device=dev)
+        bg = _c(backgrounds) if backgrounds is not None else None
+        splats, cols = pack_splats(means2d, conics, opacities, colors, tiles["flatten_ids"], packed)
+        a_splats, a_cols, a_bg, a_offsets = arr(splats, 6), arr(cols, D), NULL if bg is None else arr(bg, D), \
+            arr(tiles["offsets"])
+        a_T, a_last = arr(out_T), arr(last)
         L.launch(blend_forward.forward_kernel(s, D, _fast(settings, s)), C * th * tw * tile_size * tile_size,
-                 [_wp(splats, T.splat), _wp(cols, vecD), _wp(bg, vecD), _wp(tiles["offsets"]), width, height, tile_size, tw, th,
-                  settings.alpha_min, settings.alpha_max, settings.t_min],
-                 [_wp(out.reshape(-1, D), vecD), _wp(out_T.reshape(-1)), _wp(out_alpha.reshape(-1)),
-                  _wp(last.reshape(-1))])
+                 [*a_splats, *a_cols, *a_bg, *a_offsets, width, height, tile_size, tw, th, settings.alpha_min,
+                  settings.alpha_max, settings.t_min, *arr(out, D), *a_T, *arr(out_alpha), *a_last], tg)
         ctx.save_for_backward(splats, cols, bg, out_T, last)
-        ctx.n_gauss = N
+        # the backward launch's leading arguments: the same tensors (kept by ctx)
+        ctx.args = [*a_splats, *a_cols, *a_bg, *arr(tiles["flatten_ids"]), *a_offsets, width, height, tile_size, tw,
+                    th, settings.alpha_min, settings.alpha_max, *a_T, *a_last]
+        ctx.n_gauss, ctx.cshape = N, colors.shape
         ctx.tiles, ctx.geom, ctx.settings, ctx.det = tiles, (width, height, tile_size, tw, th), settings, deterministic
-        ctx.has_bg = backgrounds is not None
         return out, out_alpha
 
     @staticmethod
@@ -376,22 +450,16 @@ class _Blend(torch.autograd.Function):
         splats, cols, bg, out_T, last = ctx.saved_tensors
         width, height, tile_size, tw, th = ctx.geom
         tiles, st = ctx.tiles, ctx.settings
-        C, N, D = bg.shape[0], ctx.n_gauss, cols.shape[-1]
+        N, D = ctx.n_gauss, cols.shape[-1]
+        C = out_T.shape[0]
         dt, dev = cols.dtype, cols.device
         s = _scalar(dt)
-        T = types_for(s)
-        vecD = channel_vector(s, D)
-        g_colors = torch.zeros(C, height, width, D, dtype=dt, device=dev) if g_colors is None else g_colors.contiguous()
-        g_alphas = torch.zeros(C, height, width, dtype=dt, device=dev) if g_alphas is None else g_alphas[..., 0].contiguous()
+        tg = L.target(cols)
+        # an image without a gradient is passed as a null array (read as zeros)
+        g_colors = _c(g_colors) if g_colors is not None else None
+        g_alphas = _c(g_alphas) if g_alphas is not None else None
         M = tiles["n_isects"]
-        L = _Launcher(cols)
-        common = [_wp(splats, T.splat), _wp(cols, vecD), _wp(bg, vecD),
-                  _wp(tiles["flatten_ids"]), _wp(tiles["offsets"])]
-        geom = [width, height, tile_size, tw, th, st.alpha_min, st.alpha_max]
-        state = [_wp(out_T.reshape(-1)), _wp(last.reshape(-1)), _wp(g_colors.reshape(-1, D), vecD),
-                 _wp(g_alphas.reshape(-1))]
         n_pix = C * th * tw * tile_size * tile_size
-        vecG = channel_vector(s, D + 6)
         # blocks of pixels of one tile walk its Gaussians in lockstep and sum their pixels' gradients
         # before one atomic add per Gaussian: per warp with one block per tile where the tile splits
         # into whole warps (and on CPU, one pixel per block), else per block of one tile row.
@@ -401,19 +469,27 @@ class _Blend(torch.autograd.Function):
         if det and tile_size * tile_size > 256:
             # one block per tile: larger blocks run out of registers on CUDA
             raise ValueError(f"rasterization: deterministic=True needs tile_size <= 16, got {tile_size}")
-        per_warp, block = backward_blocks(tile_size, det, L.stream is None)
+        per_warp, block = backward_blocks(tile_size, det, tg.cpu)
         packed = torch.zeros(max(M if det else C * N, 1), 6 + D, dtype=dt, device=dev)
         L.launch(blend_backward.reduced_backward_kernel(s, D, det, per_warp, _fast(st, s)), n_pix,
-                 [*common, *geom, *state, _wp(tiles["perm"])], [_wp(packed, vecG)], block_dim=block)
+                 [*ctx.args, *(NULL if g_colors is None else arr(g_colors, D)),
+                  *(NULL if g_alphas is None else arr(g_alphas)), *(arr(tiles["perm"]) if det else NULL),
+                  *arr(packed, 6 + D)],
+                 tg, block_dim=block)
         if det:
-            slots, packed = packed, torch.zeros(C * N, 6 + D, dtype=dt, device=dev)
-            counts = tiles["tiles_per_gauss"].reshape(-1).to(torch.int64)
+            slots = packed
+            packed = torch.empty(C * N, 6 + D, dtype=dt, device=dev)
             L.launch(blend_backward.gather_kernel(s, D), C * N,
-                     [_wp(tiles["isect_ends"]), _wp(counts), _wp(slots, vecG)], [_wp(packed, vecG)])
-        v = [packed[:, 0:2], packed[:, 2:5], packed[:, 5], packed[:, 6:]]
-        v_bg = (g_colors * out_T[..., None]).sum(dim=(1, 2)) if ctx.has_bg else None
-        return (v[0].reshape(C, N, 2), v[1].reshape(C, N, 3), v[3].reshape(C, N, D), v[2].reshape(C, N),
-                v_bg, None, None, None, None, None, None)
+                     [*arr(tiles["isect_ends"]), *arr(tiles["tiles_per_gauss"]), *arr(slots, 6 + D), *arr(packed, 6 + D)],
+                     tg)
+        v_colors = packed[:, 6:].view(C, N, D)
+        if len(ctx.cshape) == 2:  # colours shared by the cameras
+            v_colors = v_colors[0] if C == 1 else v_colors.sum(0)
+        v_bg = None
+        if bg is not None:
+            v_bg = (g_colors * out_T[..., None]).sum(dim=(1, 2)) if g_colors is not None else torch.zeros_like(bg)
+        return (packed[:, 0:2].view(C, N, 2), packed[:, 2:5].view(C, N, 3), v_colors, packed[:, 5].view(C, N),
+                v_bg, None, None, None, None, None, None, None)
 
 
 def backward_blocks(tile_size: int, deterministic: bool, cpu: bool) -> tuple[bool, int]:
@@ -435,14 +511,16 @@ def backward_blocks(tile_size: int, deterministic: bool, cpu: bool) -> tuple[boo
 
 
 def blend_warp(means2d, conics, colors, opacities, backgrounds, tiles, width, height, tile_size, settings,
-               deterministic=False):
-    """Front-to-back blending in Warp: ``colors [C,N,D]`` → ``(image [C,H,W,D], alpha [C,H,W,1])``."""
+               deterministic=False, packed=None):
+    """Front-to-back blending in Warp: ``colors [C,N,D]`` (or ``[N,D]``, the same for every
+    camera) → ``(image [C,H,W,D], alpha [C,H,W,1])``. ``packed``: the projection's packed splats
+    (the same values as means2d, conics and opacities; read instead of them)."""
     D = colors.shape[-1]
     if D > MAX_CHANNELS:
         chunks = [blend_warp(means2d, conics, colors[..., i:i + MAX_CHANNELS], opacities,
                              None if backgrounds is None else backgrounds[..., i:i + MAX_CHANNELS],
-                             tiles, width, height, tile_size, settings, deterministic)
+                             tiles, width, height, tile_size, settings, deterministic, packed)
                   for i in range(0, D, MAX_CHANNELS)]
         return torch.cat([c[0] for c in chunks], dim=-1), chunks[0][1]
     return _Blend.apply(means2d, conics, colors, opacities, backgrounds, tiles, width, height, tile_size,
-                        settings, deterministic)
+                        settings, deterministic, packed)

@@ -2,7 +2,11 @@
 
 No pretrained segmentation model is used. The Gaussians are partitioned in 3D
 by spectral clustering of a k-nearest-neighbour graph built on their position,
-colour and shape; the number of groups K is chosen per scene by the largest
+colour and shape. The colour is the training images' colour lifted onto each
+Gaussian through its blending weights (:func:`lift_colours`), not the
+Gaussian's own colour: a reconstruction's colours are noisy where Gaussians
+overlap and compensate for each other, the images are not. The number of
+groups K is chosen per scene by the largest
 (log-)eigengap of the graph Laplacian over K = 2..cap, and groups too small to
 matter are merged into their nearest neighbour. The hard per-Gaussian labels
 are then rendered into every training view through the rasterizer (one
@@ -12,13 +16,15 @@ barely covers, or where no label dominates, are marked ``IGNORE``.
 
 Public API:
     ClusterConfig, ClusterResult
-    gaussian_features(scene, weights)             -> [N, 9] clustering features
+    gaussian_sums(scene, camera, signal)          -> [N, D] per-Gaussian blending-weighted sums of a per-pixel signal
+    lift_colours(scene, cameras, images)          -> (weight [N], colour [N, 3]) of the images under each Gaussian
+    gaussian_features(scene, weights, colours=)   -> [N, 9] clustering features
     significant_gaussians(scene, cameras)         -> [N] bool (opaque enough and seen)
     kmeans(x, k, generator=...)                   -> (centroids, labels, inertia)
     affinity_graph(x), spectral_embedding(w, n)   -> the graph and its Laplacian spectrum
-    cluster_gaussians(scene, cameras, ...)        -> ClusterResult (labels per Gaussian, K, criterion)
+    cluster_gaussians(scene, cameras, images=)    -> ClusterResult (labels per Gaussian, K, criterion)
     render_label_masks(scene, cameras, labels, k) -> [C, H, W] long masks (IGNORE = -1)
-    pseudo_masks(scene, cameras, ...)             -> (masks, ClusterResult)
+    pseudo_masks(scene, cameras, images=...)      -> (masks, ClusterResult)
 """
 from __future__ import annotations
 
@@ -41,6 +47,9 @@ class ClusterConfig:
     """Knobs of the mask-free path (defaults documented in docs/grouping.md).
 
     weights: feature weights (position, colour, shape).
+    colour: "images": the colour feature is the training images' colour lifted onto the
+        Gaussians (when images are given; Gaussians no view sees keep their own);
+        "gaussians": the Gaussians' own degree-0 colour.
     max_groups, min_groups: the range of K the eigengap criterion considers.
     gap_floor: eigenvalues below ``gap_floor`` times the (cap+1)-th one count as
         zero in the log-eigengap.
@@ -59,6 +68,7 @@ class ClusterConfig:
     """
 
     weights: tuple[float, float, float] = (0.25, 1.0, 0.1)
+    colour: str = "images"
     max_groups: int = 8
     min_groups: int = 2
     gap_floor: float = 0.01
@@ -90,6 +100,47 @@ class ClusterResult:
     criterion: dict = field(default_factory=dict)
 
 
+# -- lifting image signals onto the Gaussians ---------------------------------------
+
+def gaussian_sums(scene: GaussianScene, camera: Cameras, signal: Tensor, **raster_kwargs) -> Tensor:
+    """``[N, D]``: for each Gaussian, ``sum_p w_i(p) signal[p]`` over the pixels of one camera, where
+    ``w_i(p) = T_i(p) alpha_i(p)`` is its blending weight at pixel p.
+
+    The rasterizer blends D channels of zeros; the gradient of ``sum_p signal[p] . image[p]`` with
+    respect to those channel values is exactly these sums (one forward and one backward pass).
+    ``signal [H, W, D]``; a channel of ones gives each Gaussian's total weight in the view (in pixels).
+    """
+    geom = scene.replace(identities=None).map(torch.Tensor.detach)
+    x = torch.zeros(len(geom), signal.shape[-1], dtype=geom.dtype, device=geom.device, requires_grad=True)
+    with torch.enable_grad():
+        img, _, _ = geom.render(camera.to(geom.device), rgb=False, extra=x, **raster_kwargs)
+        (w,) = torch.autograd.grad(img[0], x, grad_outputs=signal.to(img.device, img.dtype))
+    return w.detach()
+
+
+def lift_colours(scene: GaussianScene, cameras: Cameras, images: Tensor, *,
+                 progress: bool = False) -> tuple[Tensor, Tensor]:
+    """The captured colour under each Gaussian: ``(weight [N], colour [N, 3])``.
+
+    ``weight`` is the Gaussian's blending weight summed over all pixels of all views (0 for a
+    Gaussian no view sees); ``colour`` the weight-averaged colour of ``images [C, H, W, 3]`` there
+    (the Gaussian's own degree-0 colour where the weight is 0).
+    """
+    from tqdm.auto import tqdm
+
+    if images.shape[:3] != (len(cameras), cameras.height, cameras.width):
+        raise InputError(f"lift_colours: images {tuple(images.shape)} for {len(cameras)} cameras of "
+                         f"{cameras.width}x{cameras.height}")
+    acc = torch.zeros(len(scene), 4, dtype=torch.float64, device=scene.device)
+    for c in tqdm(range(len(cameras)), desc="lift colours", unit="view", leave=False, disable=not progress):
+        img = images[c, ..., :3].to(scene.device, scene.dtype)
+        acc += gaussian_sums(scene, cameras[c], torch.cat([torch.ones_like(img[..., :1]), img], -1)).double()
+    w = acc[:, 0]
+    seen = w > 1e-9
+    col = torch.where(seen[:, None], acc[:, 1:] / w.clamp_min(1e-9)[:, None], scene.base_colors.detach().double())
+    return w.to(scene.dtype), col.to(scene.dtype)
+
+
 # -- features -------------------------------------------------------------------
 
 def _rgb_to_lab(rgb: Tensor) -> Tensor:
@@ -101,13 +152,13 @@ def _rgb_to_lab(rgb: Tensor) -> Tensor:
 
 
 def gaussian_features(scene: GaussianScene, weights: Sequence[float] = (0.25, 1.0, 0.1),
-                      reference: Optional[Tensor] = None) -> Tensor:
+                      reference: Optional[Tensor] = None, colours: Optional[Tensor] = None) -> Tensor:
     """``[N, 9]`` features for clustering: position (3), colour (3), shape (3).
 
     - position: centred on the median and divided by the mean 5-95 percentile
       span of the ``reference`` Gaussians (bool ``[N]``, default all), clamped
       to [-1, 1] so far-away outliers cannot dominate;
-    - colour: CIE Lab of the degree-0 colour, divided by 100;
+    - colour: CIE Lab of ``colours [N, 3]`` (default the degree-0 colour), divided by 100;
     - shape: the sorted log-scales minus their median over the reference set
       (size and anisotropy).
 
@@ -131,7 +182,7 @@ def gaussian_features(scene: GaussianScene, weights: Sequence[float] = (0.25, 1.
         span = torch.ones((), dtype=xyz.dtype, device=xyz.device)
     span = span if float(span) > 0 else torch.ones_like(span)
     pos = ((xyz - med) / span).clamp(-1.0, 1.0)
-    col = _rgb_to_lab(scene.base_colors.detach()) / 100.0
+    col = _rgb_to_lab(scene.base_colors.detach() if colours is None else colours.to(xyz)) / 100.0
     ls = scene.log_scales.detach().sort(dim=1, descending=True).values
     shape = ls - ls[ref].median(dim=0).values
     return torch.cat([w_pos * pos, w_col * col, w_shape * shape], dim=1)
@@ -279,12 +330,14 @@ def spectral_embedding(w: Tensor, n: int) -> tuple[Tensor, Tensor]:
 
 def cluster_gaussians(scene: GaussianScene, cameras: Optional[Cameras] = None, *,
                       num_groups: Optional[int] = None, config: ClusterConfig = ClusterConfig(),
-                      seed: int = 0) -> ClusterResult:
+                      seed: int = 0, images: Optional[Tensor] = None, progress: bool = False) -> ClusterResult:
     """Partition the Gaussians into groups by spectral clustering (see docs/grouping.md).
 
     1. Draw at most ``config.samples`` significant Gaussians (opaque enough and
        seen by a camera) and build a kNN affinity graph on their features
-       (:func:`gaussian_features`, :func:`affinity_graph`).
+       (:func:`gaussian_features`, :func:`affinity_graph`); with ``images`` (``[C, H, W, 3]``
+       of ``cameras``) and ``config.colour == "images"`` the colour feature is the images'
+       colour lifted onto the Gaussians (:func:`lift_colours`).
     2. K: given (``num_groups``), or the largest eigengap
        ``lambda_{K+1} - lambda_K`` of the normalised graph Laplacian over
        ``K = config.min_groups..config.max_groups``.
@@ -301,8 +354,12 @@ def cluster_gaussians(scene: GaussianScene, cameras: Optional[Cameras] = None, *
     if n == 0:
         raise InputError("mask-free grouping: the scene has no Gaussians")
     gen = torch.Generator().manual_seed(int(seed))
+    if config.colour not in ("images", "gaussians"):
+        raise InputError(f"ClusterConfig.colour must be 'images' or 'gaussians', got {config.colour!r}")
     sig = significant_gaussians(scene, cameras, config.min_opacity)
-    feats = gaussian_features(scene, config.weights, reference=sig).double()
+    lifted = config.colour == "images" and images is not None and cameras is not None
+    colours = lift_colours(scene, cameras, images, progress=progress)[1] if lifted else None
+    feats = gaussian_features(scene, config.weights, reference=sig, colours=colours).double()
     sig_idx = torch.nonzero(sig).flatten()
     samp = _subsample(sig_idx, config.samples, gen)
     xs = feats[samp]
@@ -310,6 +367,8 @@ def cluster_gaussians(scene: GaussianScene, cameras: Optional[Cameras] = None, *
     criterion: dict = {"name": "eigengap", "method": "spectral clustering of a kNN graph on position, colour, shape",
                        "features": {"position": config.weights[0], "colour": config.weights[1],
                                     "shape": config.weights[2]},
+                       "colour": ("the training images' colour under each Gaussian (lifted through its blending "
+                                  "weights)" if lifted else "the Gaussians' own colour"),
                        "significant_gaussians": int(sig.sum()), "sampled": int(m)}
     if num_groups is not None:
         if int(num_groups) < 1:
@@ -411,10 +470,13 @@ def render_label_masks(scene: GaussianScene, cameras: Cameras, labels: Tensor, n
 
 
 def pseudo_masks(scene: GaussianScene, cameras: Cameras, *, num_groups: Optional[int] = None,
-                 config: ClusterConfig = ClusterConfig(), seed: int = 0,
+                 config: ClusterConfig = ClusterConfig(), seed: int = 0, images: Optional[Tensor] = None,
                  progress: bool = False) -> tuple[Tensor, ClusterResult]:
-    """Cluster the scene and render the labels into ``cameras``: ``(masks [C,H,W] long, ClusterResult)``."""
-    res = cluster_gaussians(scene, cameras, num_groups=num_groups, config=config, seed=seed)
+    """Cluster the scene and render the labels into ``cameras``: ``(masks [C,H,W] long, ClusterResult)``.
+
+    ``images [C, H, W, 3]``: the captured views of ``cameras`` (their colour is lifted onto the Gaussians)."""
+    res = cluster_gaussians(scene, cameras, num_groups=num_groups, config=config, seed=seed, images=images,
+                            progress=progress)
     masks = render_label_masks(scene, cameras, res.labels, res.num_groups, alpha_min=config.alpha_min,
                                share_min=config.share_min, progress=progress)
     valid = masks >= 0

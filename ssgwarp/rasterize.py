@@ -83,6 +83,13 @@ class RasterSettings:
 
 
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
+_DEFAULT_SETTINGS = RasterSettings()
+
+# tile size when the caller gives none, per device type: gsplat's 16 on CUDA (its layout, and the
+# fastest forward+backward there); 8 on the CPU, where a pixel walks its whole tile's list one
+# Gaussian at a time, so shorter lists win (measured 1.6-3x faster than 16; benchmarks/tile_size.py,
+# docs/tradeoffs.md). Under the default rules the image does not depend on the tile size.
+DEFAULT_TILE_SIZE = {"cuda": 16, "cpu": 8}
 
 # Pixels always end once the transmittance would fall to this floor, also with t_min = 0: layers
 # behind it add less than the precision resolves, and the backward pass rebuilds each layer's
@@ -93,16 +100,52 @@ T_MIN_FLOOR = {torch.float32: 1e-20, torch.float64: 1e-200}
 
 def validate_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
                     sh_degree, backgrounds, render_mode, rasterize_mode, tile_size, near_plane=0.01,
-                    defer_values: bool = False):
+                    defer_values: bool = False, flags=None):
     """One cheap pass over the inputs; raises ValueError naming the bad argument.
 
-    Shapes, devices and dtypes are checked at once. The value checks (NaN/Inf, zero quaternions,
-    negative scales, opacities outside [0, 1], focal lengths) run as one kernel over all inputs on
-    their device (:func:`ssgwarp.ops.check_values`), whose flags are read back with one
-    synchronisation; with ``defer_values=True`` that read is left to the caller, which gets
-    ``(flags, check)``: an int64 device tensor and the function that raises on its host copy
-    (``check(flags.tolist())``), so the read can share a synchronisation the caller makes anyway.
+    Shapes, devices and dtypes are checked at once (:func:`check_shapes`). The value checks
+    (NaN/Inf, zero quaternions, negative scales, opacities outside [0, 1], focal lengths) run as
+    one kernel over all inputs on their device (:func:`ssgwarp.ops.check_values`), whose flags are
+    read back with one synchronisation; with ``defer_values=True`` that read is left to the
+    caller, which gets ``(flags, check)``: an int64 device tensor and the function that raises on
+    its host copy (``check(flags.tolist())``, :func:`raise_for_flags`), so the read can share a
+    synchronisation the caller makes anyway; ``flags``: a zeroed int64 tensor ``[N_FLAGS]`` for
+    the kernel to write into (else one is made).
     """
+    check_shapes(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds,
+                 render_mode, rasterize_mode, tile_size, near_plane)
+    from .ops import check_values
+
+    values = check_values(means, quats, scales, opacities, colors, viewmats, Ks, backgrounds, flags)
+    if defer_values:
+        return values, raise_for_flags
+    raise_for_flags(values.tolist())
+    return None
+
+
+def raise_for_flags(flags: list) -> None:
+    """Raise the ValueError of the first failed value check (``flags``: the host copy of the
+    flags of :func:`ssgwarp.ops.check_values`)."""
+    from .kernels.validate import FOCAL, INPUTS, NEGATIVE_SCALE, OPACITY_RANGE, ZERO_QUAT
+
+    if not any(flags):
+        return
+    for slot, n in enumerate(INPUTS):
+        if flags[slot]:
+            raise ValueError(f"rasterization: {n} has NaN/Inf values")
+    if flags[ZERO_QUAT]:
+        raise ValueError("rasterization: quats has zero quaternions (rotation undefined)")
+    if flags[NEGATIVE_SCALE]:
+        raise ValueError("rasterization: scales has negative values (scales are linear, >= 0)")
+    if flags[OPACITY_RANGE]:
+        raise ValueError("rasterization: opacities must lie in [0, 1] (apply a sigmoid to logits)")
+    if flags[FOCAL]:
+        raise ValueError("rasterization: Ks has non-positive focal lengths")
+
+
+def check_shapes(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds,
+                 render_mode, rasterize_mode, tile_size, near_plane=0.01) -> None:
+    """The shape, device, dtype and argument checks of :func:`validate_inputs` (host only)."""
     named = {"means": means, "quats": quats, "scales": scales, "opacities": opacities,
              "colors": colors, "viewmats": viewmats, "Ks": Ks}
     if backgrounds is not None:
@@ -154,30 +197,6 @@ def validate_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width
         raise ValueError(f"rasterization: near_plane must be > 0, got {near_plane}")
     if int(tile_size) <= 0 or int(tile_size) > 64:
         raise ValueError(f"rasterization: tile_size must be in 1..64, got {tile_size}")
-    # value checks: one kernel over all inputs sets a flag per failed check (read back below or,
-    # deferred, with the caller's synchronisation)
-    from .ops import check_values
-    from .kernels.validate import FOCAL, INPUTS, NEGATIVE_SCALE, OPACITY_RANGE, ZERO_QUAT
-
-    values = check_values(means, quats, scales, opacities, colors, viewmats, Ks, backgrounds)
-
-    def check(flags: list) -> None:
-        for slot, n in enumerate(INPUTS):
-            if flags[slot]:
-                raise ValueError(f"rasterization: {n} has NaN/Inf values")
-        if flags[ZERO_QUAT]:
-            raise ValueError("rasterization: quats has zero quaternions (rotation undefined)")
-        if flags[NEGATIVE_SCALE]:
-            raise ValueError("rasterization: scales has negative values (scales are linear, >= 0)")
-        if flags[OPACITY_RANGE]:
-            raise ValueError("rasterization: opacities must lie in [0, 1] (apply a sigmoid to logits)")
-        if flags[FOCAL]:
-            raise ValueError("rasterization: Ks has non-positive focal lengths")
-
-    if defer_values:
-        return values, check
-    check(values.tolist())
-    return None
 
 
 def rasterization(
@@ -196,7 +215,7 @@ def rasterization(
     eps2d: float = 0.3,
     sh_degree: Optional[int] = None,
     packed: bool = True,
-    tile_size: int = 16,
+    tile_size: Optional[int] = None,
     backgrounds: Optional[Tensor] = None,
     render_mode: str = "RGB",
     sparse_grad: bool = False,
@@ -216,8 +235,10 @@ def rasterization(
         with ``sh_degree``, ``viewmats [C,4,4]`` (world-to-camera), ``Ks [C,3,3]``, ``width``,
         ``height``, ``near_plane``, ``far_plane``, ``radius_clip``, ``eps2d``, ``backgrounds [C,D]``,
         ``render_mode`` (RGB, D, ED, RGB+D, RGB+ED), ``rasterize_mode`` (classic, antialiased),
-        ``tile_size``. ``packed``, ``sparse_grad`` and ``channel_chunk`` are accepted for
-        compatibility; the layout is always the non-packed one ([C, N] per-camera arrays).
+        ``tile_size`` (default: per device, :data:`DEFAULT_TILE_SIZE`: gsplat's 16 on CUDA, 8 on the
+        CPU, where shorter per-tile lists are about 1.8x faster; docs/tradeoffs.md). ``packed``,
+        ``sparse_grad`` and ``channel_chunk`` are accepted for compatibility; the layout is always the
+        non-packed one ([C, N] per-camera arrays).
     Extra (keyword only):
         settings: :class:`RasterSettings` speed/accuracy knobs (default: gsplat's rules).
         deterministic: bit-identical gradients from run to run on CUDA (slower backward; needs
@@ -234,49 +255,60 @@ def rasterization(
         ``flatten_ids``, ``isect_offsets [C,th,tw]``, ``tile_width``, ``tile_height``,
         ``width``, ``height``, ``tile_size``, ``n_cameras``, ``settings``.
     """
-    settings = (settings or RasterSettings()).for_dtype(means.dtype)
+    settings = (settings or _DEFAULT_SETTINGS).for_dtype(means.dtype)
     if absgrad:
         raise ValueError("rasterization: absgrad=True is not supported (use means2d.grad)")
+    if tile_size is None:
+        tile_size = DEFAULT_TILE_SIZE.get(means.device.type, 16)
     width, height, tile_size = int(width), int(height), int(tile_size)
     if backend == "auto":
         backend = "warp" if _warp_available() else "torch"
     if backend not in ("warp", "torch"):
         raise ValueError(f"rasterization: backend must be 'warp', 'torch' or 'auto', got {backend!r}")
-    pending = None
+    if backend == "warp":
+        return _rasterize_warp(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane,
+                               far_plane, radius_clip, eps2d, sh_degree, tile_size, backgrounds, render_mode,
+                               rasterize_mode, settings, deterministic, validate)
     if validate:
-        # the Warp path reads the value checks back together with its intersection count (one
-        # synchronisation per call); nothing is allocated from the inputs' values before that
-        pending = validate_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-                                  sh_degree, backgrounds, render_mode, rasterize_mode, tile_size, near_plane,
-                                  defer_values=backend == "warp")
+        validate_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree,
+                        backgrounds, render_mode, rasterize_mode, tile_size, near_plane)
     C = viewmats.shape[0]
     antialiased = rasterize_mode == "antialiased"
-    proj_kw = dict(near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip, eps2d=eps2d,
-                   antialiased=antialiased, settings=settings)
+    from .reference import blend_reference, project_reference
 
-    if backend == "torch":
-        from .reference import project_reference as project
-    else:
-        from .ops import project_warp as project
-    radii, means2d, depths, conics, opacs = project(means, quats, scales, opacities, viewmats, Ks,
-                                                    width, height, **proj_kw)
-
+    radii, means2d, depths, conics, opacs = project_reference(
+        means, quats, scales, opacities, viewmats, Ks, width, height, near_plane=near_plane, far_plane=far_plane,
+        radius_clip=radius_clip, eps2d=eps2d, antialiased=antialiased, settings=settings)
     if sh_degree is not None:
+        from .sh import spherical_harmonics
+
         # inv_ex: no singularity check, so no device synchronisation per call
         campos = torch.linalg.inv_ex(viewmats).inverse[:, :3, 3]
         dirs = means[None] - campos[:, None]
         shs = colors if colors.ndim == 4 else colors[None].expand(C, -1, -1, -1)
-        if backend == "torch":
-            from .sh import spherical_harmonics
-        else:
-            from .ops import spherical_harmonics_warp as spherical_harmonics
         visible = (radii > 0).all(dim=-1)
         cols = spherical_harmonics(sh_degree, dirs, shs)
         colors = torch.where(visible[..., None], torch.clamp_min(cols + 0.5, 0.0), 0.0)
     elif colors.ndim == 2:
         colors = colors[None].expand(C, -1, -1)
+    colors, backgrounds = _mode_channels(colors, depths, backgrounds, render_mode, C)
+    tile_width, tile_height = math.ceil(width / tile_size), math.ceil(height / tile_size)
+    meta = {
+        "radii": radii, "means2d": means2d, "depths": depths, "conics": conics, "opacities": opacs,
+        "tile_width": tile_width, "tile_height": tile_height, "width": width, "height": height,
+        "tile_size": tile_size, "n_cameras": C, "settings": settings, "backend": backend,
+    }
+    render_colors, render_alphas = blend_reference(
+        means2d, conics, colors, opacs, radii, depths, width, height, tile_size, backgrounds, settings)
+    return _expected_depth(render_colors, render_alphas, render_mode), render_alphas, meta
 
+
+def _mode_channels(colors, depths, backgrounds, render_mode, C):
+    """The blended channels of a render mode: colours, depth, or colours then depth (and the
+    background of each)."""
     if render_mode in ("RGB+D", "RGB+ED"):
+        if colors.ndim == 2:
+            colors = colors[None].expand(C, -1, -1)
         colors = torch.cat([colors, depths[..., None]], dim=-1)
         if backgrounds is not None:
             backgrounds = torch.cat([backgrounds, torch.zeros_like(backgrounds[:, :1])], dim=-1)
@@ -284,33 +316,68 @@ def rasterization(
         colors = depths[..., None]
         if backgrounds is not None:
             backgrounds = torch.zeros_like(backgrounds[:, :1])
+    return colors, backgrounds
 
-    tile_width, tile_height = math.ceil(width / tile_size), math.ceil(height / tile_size)
-    meta = {
-        "radii": radii, "means2d": means2d, "depths": depths, "conics": conics, "opacities": opacs,
-        "tile_width": tile_width, "tile_height": tile_height, "width": width, "height": height,
-        "tile_size": tile_size, "n_cameras": C, "settings": settings, "backend": backend,
-    }
-    if backend == "torch":
-        from .reference import blend_reference
 
-        render_colors, render_alphas = blend_reference(
-            means2d, conics, colors, opacs, radii, depths, width, height, tile_size, backgrounds, settings)
-    else:
-        from .ops import bin_tiles, blend_warp
-
-        tiles = bin_tiles(means2d, radii, depths, tile_size, tile_width, tile_height, pending=pending)
-        meta.update(tiles)
-        render_colors, render_alphas = blend_warp(
-            means2d, conics, colors, opacs, backgrounds, tiles, width, height, tile_size, settings,
-            deterministic=deterministic)
-
+def _expected_depth(render_colors, render_alphas, render_mode):
     if render_mode in ("ED", "RGB+ED"):
         render_colors = torch.cat(
             [render_colors[..., :-1], render_colors[..., -1:] / render_alphas.clamp(min=1e-10)], dim=-1)
-    return render_colors, render_alphas, meta
+    return render_colors
 
 
+def _rasterize_warp(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane, far_plane,
+                    radius_clip, eps2d, sh_degree, tile_size, backgrounds, render_mode, rasterize_mode, settings,
+                    deterministic, validate):
+    """The Warp path: value checks, projection (+ tile counts, + SH colours), binning with the one
+    read-back, blending (:mod:`ssgwarp.ops`)."""
+    from . import ops
+    from .kernels.validate import N_FLAGS
+
+    pending = None
+    if validate:
+        check_shapes(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds,
+                     render_mode, rasterize_mode, tile_size, near_plane)
+    C, N = viewmats.shape[0], means.shape[0]
+    CN = C * N
+    tile_width, tile_height = -(-width // tile_size), -(-height // tile_size)
+    # the projection writes each Gaussian's tile count into the head of ``scan`` (scanned there in
+    # place into the intersection ends) and the value checks their flags into its tail, so the
+    # intersection count and the flags come back in one read: one synchronisation per call, and
+    # nothing is allocated from the inputs' values before it
+    scan = torch.empty(CN + (N_FLAGS if validate else 0), dtype=torch.int64, device=means.device)
+    extra = {"ends": scan[:CN]}
+    if validate:
+        flags = scan[CN:]
+        flags.zero_()
+        if CN:  # the projection runs the checks on the values it loads
+            extra.update(flags=flags, colors=colors, backgrounds=backgrounds, sh=sh_degree is not None)
+        else:  # nothing to project: the checks on their own
+            ops.check_values(means, quats, scales, opacities, colors, viewmats, Ks, backgrounds, flags)
+        pending = (flags, raise_for_flags)
+    cfg = ops._project_cfg(means.dtype, width, height, near_plane, far_plane, radius_clip, eps2d,
+                           rasterize_mode == "antialiased", settings, tile_size, tile_width, tile_height, sh_degree)
+    coeffs = campos = None
+    if sh_degree is not None:
+        # inv_ex: no singularity check, so no device synchronisation per call
+        campos = torch.linalg.inv_ex(viewmats).inverse[:, :3, 3]
+        coeffs = colors
+    radii, means2d, depths, conics, opacs, sh_colors, counts, packed = ops._Project.apply(
+        means, quats, scales, opacities, viewmats, Ks, coeffs, campos, cfg, extra)
+    if sh_colors is not None:
+        colors = sh_colors
+    colors, backgrounds = _mode_channels(colors, depths, backgrounds, render_mode, C)
+    meta = {
+        "radii": radii, "means2d": means2d, "depths": depths, "conics": conics, "opacities": opacs,
+        "tile_width": tile_width, "tile_height": tile_height, "width": width, "height": height,
+        "tile_size": tile_size, "n_cameras": C, "settings": settings, "backend": "warp",
+    }
+    tiles = ops.bin_tiles(means2d, radii, depths, tile_size, tile_width, tile_height, pending=pending, counts=counts,
+                          scan=scan, keep_perm=deterministic, counts_in_scan=True)
+    meta.update(tiles)
+    render_colors, render_alphas = ops.blend_warp(means2d, conics, colors, opacs, backgrounds, tiles, width, height,
+                                                  tile_size, settings, deterministic=deterministic, packed=packed)
+    return _expected_depth(render_colors, render_alphas, render_mode), render_alphas, meta
 def _warp_available() -> bool:
     try:
         from . import ops  # noqa: F401

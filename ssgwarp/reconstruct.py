@@ -6,17 +6,16 @@ The 3D Gaussian Splatting recipe (Kerbl et al. 2023), one view per step:
 * Adam (eps 1e-15), one parameter group per scene tensor with its own learning
   rate; the position rate decays exponentially from ``1.6e-4`` to ``1.6e-6``
   times the scene extent over the run;
-* densification every 100 steps from step 500 until ``refine_stop``: Gaussians
-  whose mean screen-space positional gradient (``meta["means2d"].grad``, in NDC
-  units) exceeds ``2e-4`` are cloned when small (max scale <= 1% of the extent)
-  and split in two when large; pruning of nearly transparent (opacity < 0.005)
-  and, after the first opacity reset, too large Gaussians; opacity reset to
-  0.01 every 3000 steps; at most ``max_gaussians`` Gaussians (the highest
-  gradients win when the cap bites);
+* densification by a strategy (:mod:`ssgwarp.strategy`): ``"default"``, the 3DGS
+  rules (clone / split by the view-space positional gradient in NDC units, prune
+  by opacity and size, opacity reset; at most ``max_gaussians`` Gaussians), or
+  ``"mcmc"``, 3DGS-MCMC (relocation of dead Gaussians, growth up to the budget
+  ``max_gaussians``, opacity-gated position noise, opacity and scale
+  regularisers); its schedule scales with the run's length;
 * SH degree raised by one every ``sh_interval`` steps up to ``sh_degree``.
 
 Densification works on every tensor the scene holds (identity encodings
-included), so Gaussian Grouping can train jointly through ``hooks``.
+included) and its Adam state, so Gaussian Grouping can train jointly through ``hooks``.
 
 Runs are seeded and repeatable (views, split samples and initial identities
 come from dedicated generators), checkpoint atomically to ``OUT/checkpoint.pt``
@@ -52,10 +51,16 @@ OUTPUTS = ("scene.ply", "cameras.json", "data.json", "metrics.json")
 
 @dataclass
 class Recipe:
-    """Training knobs; defaults are the 3DGS paper's. Step counts are absolute.
+    """Training knobs; defaults are the 3DGS paper's (3DGS-MCMC's where the strategy says so).
 
-    ``refine_stop`` None means ``min(15000, iters // 2)``; ``sh_interval`` None means
-    ``min(1000, iters // (2 * sh_degree))`` so short runs still reach their degree.
+    Step counts are absolute. Fields left None are resolved for the run by :meth:`resolved`:
+    ``sh_interval`` is ``min(1000, iters // (2 * sh_degree))`` so short runs still reach their
+    degree; the refine schedule (``refine_start``, ``refine_stop``, ``refine_every``,
+    ``reset_every``) is the strategy's reference schedule at 30,000 steps scaled to ``iters``
+    (:func:`ssgwarp.strategy.scaled_schedule`); ``init_opacity``, ``init_scale``,
+    ``opacity_reg`` and ``scale_reg`` are the strategy's (default: 0.1, 1, 0, 0, the scale
+    thinned for a dense cloud of random points by :func:`ssgwarp.strategy.random_init_scale`;
+    mcmc: 0.5, 0.1, 0.01, 0.01).
     """
 
     lr_means: float = 1.6e-4           # times the scene extent
@@ -70,27 +75,46 @@ class Recipe:
     lambda_dssim: float = 0.2
     dssim_scale: float = 1.0           # multiplies the D-SSIM term; 0.5: the halved (1 - SSIM) / 2 of old runs
     sh_interval: Optional[int] = None
-    refine_start: int = 500
-    refine_stop: Optional[int] = None
-    refine_every: int = 100
-    grad_threshold: float = 2e-4       # NDC units (gsplat / INRIA convention)
+    # -- densification (ssgwarp.strategy) --
+    refine_start: Optional[int] = None   # first refinement (30k reference: 500)
+    refine_stop: Optional[int] = None    # no refinement from this step on (default 15000, mcmc 25000 at 30k)
+    refine_every: Optional[int] = None   # steps between refinements (30k reference: 100; at least 10)
+    reset_every: Optional[int] = None    # default: opacity reset interval (30k: 3000; at least 300); 0: none
+    grad_threshold: float = 2e-4       # mean view-space positional gradient, NDC units (gsplat / INRIA)
     percent_dense: float = 0.01        # clone if max scale <= this x extent, else split
     split_factor: float = 1.6          # children scales = parent / split_factor
-    prune_opacity: float = 0.005
-    reset_every: int = 3000
+    prune_opacity: float = 0.005       # default: pruned below it; mcmc: dead (relocated) at or below it
     reset_opacity: float = 0.01
     prune_world: float = 0.1           # prune when max scale > this x extent (after the first reset)
-    prune_screen_px: float = 20.0      # prune when the 2D radius exceeded this (after the first reset); 0: off
-    init_opacity: float = 0.1
+    prune_screen: float = 0.0          # prune when the screen radius exceeded this fraction of max(W, H)
+                                       # (after the first reset); 0: off
+    mcmc_growth: float = 0.05          # mcmc: Gaussians added per refinement, fraction of the count
+    noise_lr: float = 5e5              # mcmc: position noise scale (times the position learning rate)
+    opacity_reg: Optional[float] = None  # weight of mean(opacity) in the loss
+    scale_reg: Optional[float] = None    # weight of mean(scale / extent) in the loss
+    init_opacity: Optional[float] = None
+    init_scale: Optional[float] = None   # initial scale: this x the mean distance to the 3 nearest points
     init_max_points: Optional[int] = None  # subsample the initial points (None: all)
     identity_init_std: float = 0.1
 
-    def resolved(self, iters: int, sh_degree: int) -> "Recipe":
+    def resolved(self, iters: int, sh_degree: int, strategy="default", random_init: Optional[int] = None) -> "Recipe":
+        """The recipe with every None field set for a run of ``iters`` steps with ``strategy``
+        (``random_init``: the number of initial points when they are random, not a point cloud)."""
+        from .strategy import make_strategy
+
         r = self
-        if r.refine_stop is None:
-            r = replace(r, refine_stop=min(15000, iters // 2))
         if r.sh_interval is None:
             r = replace(r, sh_interval=max(1, min(1000, iters // (2 * max(1, sh_degree)))))
+        fill = {k: v for k, v in make_strategy(strategy).defaults(iters, random_init).items()
+                if getattr(r, k) is None}
+        r = replace(r, **fill)
+        if r.reset_every is None:
+            r = replace(r, reset_every=0)
+        for k in ("refine_every", "sh_interval"):
+            if getattr(r, k) < 1:
+                raise InputError(f"Recipe.{k} must be >= 1, got {getattr(r, k)}")
+        if r.reset_every < 0 or r.refine_start < 0:
+            raise InputError("Recipe.reset_every and Recipe.refine_start must be >= 0")
         return r
 
 
@@ -136,8 +160,9 @@ class Trainer:
         scene: initial scene (default: from ``data.points``).
         iters: total number of steps.
         sh_degree: final SH degree (0..3).
-        max_gaussians: cap on the number of Gaussians.
+        max_gaussians: cap on the number of Gaussians (the budget of the mcmc strategy).
         recipe: :class:`Recipe`.
+        strategy: ``"default"`` or ``"mcmc"`` (or a :class:`ssgwarp.strategy.Strategy`).
         hooks: objects with ``parameters() -> list[param-group dicts]`` and
             ``loss(step, view_index, identity_render [H,W,E]) -> Tensor``. When a hook
             is present and the scene has identities, identities are rendered in the
@@ -157,7 +182,10 @@ class Trainer:
                  max_gaussians: int = 1_000_000, recipe: Optional[Recipe] = None, hooks: Sequence = (),
                  identity_dim: Optional[int] = None, checkpoint_path: Optional[str | Path] = None,
                  checkpoint_every: int = 500, rasterize: Optional[Callable] = None,
-                 raster_kwargs: Optional[dict] = None, device=None, seed: int = 0, progress: bool = True):
+                 raster_kwargs: Optional[dict] = None, device=None, seed: int = 0, progress: bool = True,
+                 strategy="default"):
+        from .strategy import make_strategy
+
         if iters < 1:
             raise InputError(f"iters must be >= 1, got {iters}")
         if not 0 <= sh_degree <= 3:
@@ -171,7 +199,12 @@ class Trainer:
         self.iters = int(iters)
         self.sh_degree = int(sh_degree)
         self.max_gaussians = int(max_gaussians)
-        self.recipe = (recipe or Recipe()).resolved(self.iters, self.sh_degree)
+        self.strategy = make_strategy(strategy)
+        recipe = recipe or Recipe()
+        random_init = None
+        if scene is None and getattr(data, "points_source", "") == "random" and data.points is not None:
+            random_init = self._initial_count(len(data.points[0]), recipe)
+        self.recipe = recipe.resolved(self.iters, self.sh_degree, self.strategy, random_init)
         self.hooks = list(hooks)
         self.checkpoint_path = Path(checkpoint_path) if checkpoint_path is not None else None
         self.checkpoint_every = int(checkpoint_every)
@@ -189,7 +222,6 @@ class Trainer:
         self.history: list[dict] = []
 
         self.view_gen = torch.Generator().manual_seed(self.seed)
-        self.split_gen = torch.Generator().manual_seed(self.seed + 1)
         self._queue: list[int] = []
         self._bg: dict[int, torch.Tensor] = {}
 
@@ -202,11 +234,15 @@ class Trainer:
             ids = torch.randn(len(scene), int(identity_dim), generator=g) * self.recipe.identity_init_std
             scene = scene.replace(identities=ids.to(scene.device, scene.dtype))
         scene = scene.to(self.device, torch.float32)
+        if self.strategy.budgeted and len(scene) > self.max_gaussians:
+            raise InputError(f"the initial scene has {len(scene)} Gaussians, more than the budget of "
+                             f"{self.max_gaussians} (--max-gaussians) of the {self.strategy.name} strategy")
         if self.hooks and scene.identities is None:
             log.warning("hooks given but the scene has no identity encodings (pass identity_dim): "
                         "their losses are not used")
         self._build_optimizer(scene)
-        self._reset_stats()
+        self.strategy.setup(self.gaussians, recipe=self.recipe, extent=self.extent,
+                            max_gaussians=self.max_gaussians, seed=self.seed)
         for h in self.hooks:
             if hasattr(h, "scene_fn"):
                 h.scene_fn = lambda: self.scene
@@ -217,15 +253,25 @@ class Trainer:
             raise InputError("the capture has no initial points (and none were generated); pass a scene")
         xyz, rgb = self.data.points
         xyz, rgb = xyz.float().cpu(), rgb.float().cpu()
-        m = self.recipe.init_max_points
-        if m is not None and len(xyz) > m:
+        m = self._initial_count(len(xyz), self.recipe)
+        if len(xyz) > m:
             g = torch.Generator().manual_seed(self.seed + 3)
             idx = torch.randperm(len(xyz), generator=g)[:m].sort().values
             xyz, rgb = xyz[idx], rgb[idx]
         if len(xyz) == 0:
             raise InputError("the capture has an empty point cloud")
-        return GaussianScene.from_points(xyz.to(self.device), rgb.to(self.device), sh_degree=0,
-                                         opacity=self.recipe.init_opacity)
+        from .scene import knn_mean_distance
+
+        xyz = xyz.to(self.device)
+        scale = knn_mean_distance(xyz, k=3).clamp_min(1e-7) * self.recipe.init_scale
+        return GaussianScene.from_points(xyz, rgb.to(self.device), sh_degree=0,
+                                         opacity=self.recipe.init_opacity, scale=scale)
+
+    def _initial_count(self, n: int, recipe: Recipe) -> int:
+        """How many of ``n`` capture points start the scene (``init_max_points``; the budget of a budgeted strategy)."""
+        if recipe.init_max_points is not None:
+            n = min(n, recipe.init_max_points)
+        return min(n, self.max_gaussians) if self.strategy.budgeted else n
 
     def _lr(self, name: str) -> float:
         r = self.recipe
@@ -234,11 +280,11 @@ class Trainer:
                 "identities": r.lr_identities}[name]
 
     def _build_optimizer(self, scene: GaussianScene) -> None:
-        self.params: dict[str, torch.nn.Parameter] = {
-            k: torch.nn.Parameter(v.detach().clone().contiguous()) for k, v in scene.tensors().items()}
-        groups = [{"params": [p], "lr": self._lr(k), "name": k} for k, p in self.params.items()]
-        self.opt = torch.optim.Adam(groups, eps=self.recipe.adam_eps)
-        self._groups = {g["name"]: g for g in self.opt.param_groups}
+        from .strategy import GaussianParams
+
+        params = {k: torch.nn.Parameter(v.detach().clone().contiguous()) for k, v in scene.tensors().items()}
+        groups = [{"params": [p], "lr": self._lr(k), "name": k} for k, p in params.items()]
+        self.gaussians = GaussianParams(params, torch.optim.Adam(groups, eps=self.recipe.adam_eps))
         hook_groups = []
         for h in self.hooks:
             hook_groups.extend(h.parameters())
@@ -249,11 +295,14 @@ class Trainer:
             return []
         return [p for g in self.hook_opt.param_groups for p in g["params"]]
 
-    def _reset_stats(self) -> None:
-        n = len(self.params["means"])
-        self.grad2d = torch.zeros(n, device=self.device)
-        self.count = torch.zeros(n, device=self.device)
-        self.max_radii = torch.zeros(n, device=self.device)
+    @property
+    def params(self) -> dict[str, torch.nn.Parameter]:
+        """The scene's tensors (live parameters), by :class:`GaussianScene` field name."""
+        return self.gaussians.params
+
+    @property
+    def opt(self) -> torch.optim.Optimizer:
+        return self.gaussians.opt
 
     @property
     def num_gaussians(self) -> int:
@@ -274,103 +323,6 @@ class Trainer:
         """A detached copy of the scene."""
         return self.scene.detach()
 
-    # -- parameter surgery (generic over every tensor the scene holds) -----------------------------
-    def _set(self, name: str, value: torch.Tensor, state_fn: Callable[[torch.Tensor], torch.Tensor]) -> None:
-        group = self._groups[name]
-        old = group["params"][0]
-        st = self.opt.state.pop(old, None)
-        p = torch.nn.Parameter(value.detach().contiguous())
-        group["params"][0] = p
-        if st is not None:
-            self.opt.state[p] = {k: (state_fn(v) if torch.is_tensor(v) and v.shape == old.shape else v)
-                                 for k, v in st.items()}
-        self.params[name] = p
-
-    def _keep(self, mask: torch.Tensor) -> None:
-        for name in list(self.params):
-            self._set(name, self.params[name].data[mask], lambda s: s[mask])
-        self.grad2d, self.count, self.max_radii = self.grad2d[mask], self.count[mask], self.max_radii[mask]
-
-    def _append(self, new: dict[str, torch.Tensor]) -> None:
-        k = next(iter(new.values())).shape[0]
-        for name in list(self.params):
-            t = new[name]
-
-            def grow(s: torch.Tensor, k=k) -> torch.Tensor:
-                return torch.cat([s, torch.zeros((k,) + tuple(s.shape[1:]), dtype=s.dtype, device=s.device)])
-            self._set(name, torch.cat([self.params[name].data, t]), grow)
-        z = torch.zeros(k, device=self.device)
-        self.grad2d, self.count, self.max_radii = (torch.cat([self.grad2d, z]), torch.cat([self.count, z]),
-                                                   torch.cat([self.max_radii, z]))
-
-    @torch.no_grad()
-    def _refine(self) -> dict:
-        r = self.recipe
-        n0 = self.num_gaussians
-        avg = self.grad2d / self.count.clamp_min(1.0)
-        high = (avg >= r.grad_threshold) & (self.count > 0)
-        max_scale = torch.exp(self.params["log_scales"].data).max(dim=1).values
-        small = max_scale <= r.percent_dense * self.extent
-        budget = max(0, self.max_gaussians - n0)
-        if int(high.sum()) > budget:  # the cap: keep the highest gradients
-            idx = torch.nonzero(high)[:, 0]
-            top = idx[avg[idx].argsort(descending=True, stable=True)[:budget]]
-            high = torch.zeros_like(high)
-            high[top] = True
-        clone = high & small
-        split = high & ~small
-        n_clone, n_split = int(clone.sum()), int(split.sum())
-        if n_clone:
-            self._append({k: v.data[clone] for k, v in self.params.items()})
-        if n_split:
-            pad = torch.zeros(self.num_gaussians - n0, dtype=torch.bool, device=self.device)
-            sel = torch.cat([split, pad])
-            children = self._split_children(sel)
-            self._append(children)
-            keep = torch.ones(self.num_gaussians, dtype=torch.bool, device=self.device)
-            keep[: sel.shape[0]] = ~sel
-            self._keep(keep)
-        # prune
-        opac = torch.sigmoid(self.params["logit_opacities"].data)
-        prune = opac < r.prune_opacity
-        if self.step > r.reset_every:
-            big = torch.exp(self.params["log_scales"].data).max(dim=1).values > r.prune_world * self.extent
-            if r.prune_screen_px > 0:
-                big |= self.max_radii > r.prune_screen_px
-            prune |= big
-        n_prune = int(prune.sum())
-        if n_prune and n_prune < self.num_gaussians:
-            self._keep(~prune)
-        else:
-            n_prune = 0
-        self._reset_stats()
-        return {"clone": n_clone, "split": n_split, "prune": n_prune}
-
-    def _split_children(self, sel: torch.Tensor) -> dict[str, torch.Tensor]:
-        from .reference import quat_to_rotmat
-
-        p = {k: v.data[sel] for k, v in self.params.items()}
-        m = int(sel.sum())
-        scales = torch.exp(p["log_scales"])
-        noise = torch.randn(2, m, 3, generator=self.split_gen).to(self.device)
-        R = quat_to_rotmat(p["quats"])
-        offsets = torch.einsum("nij,bnj->bni", R, noise * scales[None])
-        out = {}
-        for k, v in p.items():
-            if k == "means":
-                out[k] = (v[None] + offsets).reshape(2 * m, 3)
-            elif k == "log_scales":
-                out[k] = (v - math.log(self.recipe.split_factor)).repeat(2, 1)
-            else:
-                out[k] = v.repeat((2,) + (1,) * (v.ndim - 1))
-        return out
-
-    @torch.no_grad()
-    def _reset_opacity(self) -> None:
-        cap = math.log(self.recipe.reset_opacity / (1.0 - self.recipe.reset_opacity))
-        v = self.params["logit_opacities"].data.clamp_max(cap)
-        self._set("logit_opacities", v, torch.zeros_like)
-
     # -- training -------------------------------------------------------------------------------
     def _next_view(self) -> int:
         if not self._queue:
@@ -382,7 +334,7 @@ class Trainer:
         r = self.recipe
         t = min(1.0, self.step / max(1, self.iters))
         lr0, lr1 = r.lr_means * self.extent, r.lr_means_final * self.extent
-        self._groups["means"]["lr"] = math.exp(math.log(lr0) * (1 - t) + math.log(lr1) * t)
+        self.gaussians.groups["means"]["lr"] = math.exp(math.log(lr0) * (1 - t) + math.log(lr1) * t)
 
     def train_step(self) -> dict:
         """One optimisation step (``self.step`` counts completed steps)."""
@@ -407,10 +359,13 @@ class Trainer:
                 self._diverged(str(e))
             raise
         means2d = meta["means2d"]
-        if means2d.requires_grad:
+        if self.strategy.uses_means2d_grad and means2d.requires_grad:
             means2d.retain_grad()
         img = out[..., :3]
         loss = photometric(img, gt, r.lambda_dssim, r.dssim_scale)
+        reg = self.strategy.regularizer(self.gaussians)
+        if reg is not None:
+            loss = loss + reg
         hook_losses = []
         if with_ids:
             for h in self.hooks:
@@ -419,8 +374,7 @@ class Trainer:
         if not bool(torch.isfinite(total)):
             self._diverged("the loss is NaN/inf")
         total.backward()
-        with torch.no_grad():
-            self._accumulate(meta, cam.width, cam.height)
+        self.strategy.observe(self.gaussians, meta)
         self.opt.step()
         self.opt.zero_grad(set_to_none=True)
         if self.hook_opt is not None:
@@ -428,26 +382,8 @@ class Trainer:
             self.hook_opt.zero_grad(set_to_none=True)
         self.step += 1
         info = {"loss": total.detach(), "mse": ((img.detach().clamp(0, 1) - gt) ** 2).mean()}
-        step = self.step
-        if r.refine_start <= step < r.refine_stop and step % r.refine_every == 0:
-            info["refine"] = self._refine()
-        if step < r.refine_stop and step % r.reset_every == 0:
-            self._reset_opacity()
+        info.update(self.strategy.step(self.gaussians, self.step, self.gaussians.groups["means"]["lr"]))
         return info
-
-    def _accumulate(self, meta: dict, width: int, height: int) -> None:
-        g = meta["means2d"].grad
-        if g is None:
-            return
-        radii = meta["radii"]
-        vis = (radii > 0).all(dim=-1) if radii.ndim == 3 else radii > 0          # [C, N]
-        c = g.shape[0]
-        scale = torch.tensor([width / 2.0 * c, height / 2.0 * c], device=g.device, dtype=g.dtype)
-        norms = (g * scale).norm(dim=-1)                                          # [C, N]
-        self.grad2d += (norms * vis).sum(dim=0).to(self.grad2d.dtype)
-        self.count += vis.sum(dim=0).to(self.count.dtype)
-        rmax = (radii.max(dim=-1).values if radii.ndim == 3 else radii).to(self.max_radii.dtype)
-        self.max_radii = torch.maximum(self.max_radii, rmax.max(dim=0).values)
 
     def _diverged(self, why: str) -> None:
         where = (f"the last good checkpoint (step {self.last_checkpoint_step}) is kept at {self.checkpoint_path}"
@@ -518,7 +454,7 @@ class Trainer:
                "numpy": [npst[0], torch.from_numpy(npst[1].astype(np.int64)), int(npst[2]), int(npst[3]),
                          float(npst[4])],
                "python": random.getstate(),
-               "view": self.view_gen.get_state(), "split": self.split_gen.get_state()}
+               "view": self.view_gen.get_state(), "split": self.strategy.generator_state()}
         if torch.cuda.is_available():
             rng["cuda"] = torch.cuda.get_rng_state_all()
         return {
@@ -530,12 +466,13 @@ class Trainer:
             "seed": self.seed,
             "elapsed": self.elapsed,
             "recipe": asdict(self.recipe),
+            "strategy": self.strategy.name,
             "names": list(self.data.names),
             "params": {k: v.detach().cpu() for k, v in self.params.items()},
             "optimizer": _to_cpu(self.opt.state_dict()),
             "hook_params": [p.detach().cpu() for p in self._hook_params()],
             "hook_optimizer": _to_cpu(self.hook_opt.state_dict()) if self.hook_opt is not None else None,
-            "stats": {"grad2d": self.grad2d.cpu(), "count": self.count.cpu(), "max_radii": self.max_radii.cpu()},
+            "stats": {k: v.detach().cpu() for k, v in self.gaussians.stats.items()},
             "queue": list(self._queue),
             "rng": rng,
             "history": self.history[-1000:],
@@ -562,13 +499,25 @@ class Trainer:
         if int(st["sh_degree"]) != self.sh_degree:
             raise InputError(f"the checkpoint has SH degree {st['sh_degree']}, not {self.sh_degree}; "
                              f"pass --sh-degree {st['sh_degree']} to resume it")
+        kind = st.get("strategy", "default")
+        if kind != self.strategy.name:
+            raise InputError(f"the checkpoint was trained with --strategy {kind}, not {self.strategy.name}; "
+                             f"pass --strategy {kind} to resume it")
         saved = set(st["params"])
         if saved != set(self.params):
             raise InputError(f"the checkpoint holds {sorted(saved)}, this run {sorted(self.params)}")
         scene = GaussianScene(**{k: v for k, v in st["params"].items()}, sh_degree=self.sh_degree)
         self._build_optimizer(scene.to(self.device))
-        self.opt.load_state_dict(st["optimizer"])
-        self._groups = {g["name"]: g for g in self.opt.param_groups}  # load_state_dict makes new group dicts
+        self.opt.load_state_dict(st["optimizer"])  # (new group dicts: GaussianParams looks them up by name)
+        self.strategy.setup(self.gaussians, recipe=self.recipe, extent=self.extent,
+                            max_gaussians=self.max_gaussians, seed=self.seed)
+        # statistics this run keeps (a checkpoint may hold more, e.g. screen radii of a run that pruned by them)
+        stats = {k: v.to(self.device) for k, v in st["stats"].items() if k in self.gaussians.stats}
+        if set(stats) != set(self.gaussians.stats):
+            raise InputError(f"the checkpoint's densification statistics ({sorted(stats)}) do not match this "
+                             f"run's ({sorted(self.gaussians.stats)}): it was written with other densification "
+                             f"settings; use --force to start over")
+        self.gaussians.stats = stats
         hp = self._hook_params()
         if len(hp) != len(st["hook_params"]):
             raise InputError("the checkpoint's hook parameters do not match this run's hooks")
@@ -577,9 +526,6 @@ class Trainer:
                 p.copy_(v.to(p.device))
         if self.hook_opt is not None and st["hook_optimizer"] is not None:
             self.hook_opt.load_state_dict(st["hook_optimizer"])
-        self.grad2d = st["stats"]["grad2d"].to(self.device)
-        self.count = st["stats"]["count"].to(self.device)
-        self.max_radii = st["stats"]["max_radii"].to(self.device)
         self.step = int(st["step"])
         self.elapsed = float(st.get("elapsed", 0.0))
         self._queue = list(st["queue"])
@@ -589,7 +535,7 @@ class Trainer:
         np.random.set_state((kind, keys.numpy().astype(np.uint32), pos, has_gauss, cached))
         random.setstate(rng["python"])
         self.view_gen.set_state(rng["view"])
-        self.split_gen.set_state(rng["split"])
+        self.strategy.set_generator_state(rng["split"])
         if "cuda" in rng and torch.cuda.is_available():
             torch.cuda.set_rng_state_all(rng["cuda"])
         self.history = list(st.get("history", []))
@@ -675,7 +621,7 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
                 background: Optional[Sequence[float]] = None, recipe: Optional[Recipe] = None,
                 checkpoint_every: int = 500, num_random_points: int = 100_000,
                 rasterize: Optional[Callable] = None, raster_kwargs: Optional[dict] = None,
-                progress: bool = True, data=None) -> dict:
+                progress: bool = True, data=None, strategy="default") -> dict:
     """Reconstruct the capture in ``data_dir`` into the run folder ``out`` (what the CLI runs).
 
     Writes ``out/scene.ply``, ``cameras.json``, ``data.json``, ``metrics.json`` (and keeps
@@ -705,7 +651,7 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
     trainer = Trainer(data, iters=iters, sh_degree=sh_degree, max_gaussians=max_gaussians, recipe=recipe,
                       hooks=hooks, identity_dim=identity_dim, checkpoint_path=ckpt,
                       checkpoint_every=checkpoint_every, rasterize=rasterize, raster_kwargs=raster_kwargs,
-                      device=device, seed=seed, progress=progress)
+                      device=device, seed=seed, progress=progress, strategy=strategy)
     if resume and ckpt.is_file() and not force:
         trainer.load_checkpoint(ckpt)
         if trainer.step >= iters:
@@ -741,6 +687,10 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
         **data.metric_frame,
         "per_view": ev["per_view"],
     }
+    r = trainer.recipe
+    metrics["densification"] = {"strategy": trainer.strategy.name, "max_gaussians": trainer.max_gaussians,
+                                "refine_start": r.refine_start, "refine_stop": r.refine_stop,
+                                "refine_every": r.refine_every, "reset_every": r.reset_every}
     if ev["views"] == 0:
         metrics["note"] = "no held-out views (split_every=0 or a single image): PSNR/SSIM not measured"
     if lpips_note:
@@ -779,7 +729,12 @@ def add_arguments(parser) -> None:
     parser.add_argument("--images", default="images", help="image sub-folder, e.g. images_4 or images_8 (default images)")
     parser.add_argument("--width", type=int, default=None, help="resize images to this width (default: as loaded)")
     parser.add_argument("--sh-degree", type=int, default=3, help="final SH degree 0..3 (default 3)")
-    parser.add_argument("--max-gaussians", type=int, default=1_000_000, help="cap on the number of Gaussians")
+    parser.add_argument("--strategy", choices=("default", "mcmc"), default="default",
+                        help="densification: default (3DGS: clone/split/prune, opacity reset) or mcmc "
+                             "(3DGS-MCMC: relocation, a fixed budget of --max-gaussians, position noise)")
+    parser.add_argument("--max-gaussians", type=int, default=1_000_000,
+                        help="cap on the number of Gaussians; with --strategy mcmc the budget it grows to "
+                             "(default 1000000)")
     parser.add_argument("--split-every", type=int, default=8,
                         help="hold out every N-th image for testing (default 8, the LLFF convention; 0: none)")
     parser.add_argument("--max-images", type=int, default=None, help="use at most this many images (evenly spaced)")
@@ -801,7 +756,8 @@ def run(args) -> int:
                     max_gaussians=args.max_gaussians, resume=args.resume, force=args.force, device=args.device,
                     seed=args.seed, split_every=args.split_every, width=args.width, max_images=args.max_images,
                     background=args.background, checkpoint_every=args.checkpoint_every,
-                    num_random_points=args.random_points, progress=not args.no_progress)
+                    num_random_points=args.random_points, progress=not args.no_progress,
+                    strategy=args.strategy)
     ps = "n/a" if m["psnr"] is None else f"{m['psnr']:.2f} dB"
     ss = "n/a" if m["ssim"] is None else f"{m['ssim']:.4f}"
     print(f"{args.out}: {m['num_gaussians']} Gaussians, held-out PSNR {ps}, SSIM {ss}, "

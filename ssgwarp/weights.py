@@ -151,7 +151,7 @@ SPECS: dict[str, WeightSpec] = {s.key: s for s in [
                "a transformers SamModel folder: config.json, model.safetensors and preprocessor_config.json",
                "facebook/sam-vit-base", repo="facebook/sam-vit-base",
                files=("config.json", "model.safetensors", "preprocessor_config.json"), size=375_000_000,
-               licence="Apache-2.0", flags="--sam", used_by="group (SAM masks)", required=("config.json",)),
+               licence="Apache-2.0", flags="--sam", used_by="masks (instances for group)", required=("config.json",)),
 ]}
 
 # names for sets of models on the command line (`ssgwarp weights --download stage1`)

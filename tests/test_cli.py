@@ -174,6 +174,7 @@ def test_bad_poses(world, tmp_path, capsys, damage, message):
 PLY_COMMANDS = {
     "render": lambda run, out, w: ["render", run, "--out", out, "--no-progress"],
     "group": lambda run, out, w: ["group", run, "--masks", "none", "--iters", "2", "--quiet", "--force"],
+    "masks": lambda run, out, w: ["masks", run, "--view-masks", out, "--quiet", "--force"],
     "keyviews": lambda run, out, w: ["keyviews", run, "--out", out, "--max-side", "32"],
     "stylize": lambda run, out, w: ["stylize", run, "--style", w.style, "--out", out, "--iters", "2",
                                     "--path-frames", "0", "--max-side", "32"],

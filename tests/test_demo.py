@@ -63,7 +63,7 @@ def test_demo_runs_every_stage_and_prints_a_summary(demo):
     assert [s for s in record["stages"]] == ["data", "reconstruct", "group", "stylize", "evaluate", "sheet"]
     assert all(v["done"] for v in record["stages"].values())
     # the printed summary names every stage, Stage 1's skip and the contact sheet
-    for word in ("reconstruct", "group (mask-free)", "key views", "Stage 1 (diffusion)", "Stage 2 (IST)",
+    for word in ("reconstruct", "mask-free clusters", "key views", "Stage 1 (diffusion)", "Stage 2 (IST)",
                  "evaluate", "held-out PSNR", "Gram style loss", "consistency RMSE"):
         assert word in stdout, word
     assert "skipped: no local weights for sd15, controlnet_depth, ip_adapter, image_encoder" in stdout
@@ -83,6 +83,9 @@ def test_demo_runs_every_stage_and_prints_a_summary(demo):
     assert summary["gaussians"] == rec["num_gaussians"] and summary["psnr"] == rec["psnr"]
     assert summary["psnr"] > 15.0                     # seen ~19 dB after 150 steps at 48x36
     assert summary["groups"] == groups["num_groups"] >= 2
+    # no Segment Anything weights here: the groups are mask-free clusters, and the summary says so
+    assert summary["group_kind"] == groups["kind"] == "mask-free clusters"
+    assert 0 <= summary["objects_separated"] <= 5
     assert summary["gram_style_loss"] == sty["gram_style_loss"] and math.isfinite(summary["content_loss"])
     assert 0.0 < summary["group_purity"] <= 1.0
     c = summary["consistency_rmse"]

@@ -14,7 +14,7 @@ import torch
 
 from ssgwarp.cameras import Cameras, intrinsics, look_at
 from ssgwarp.datasets import SceneData, load_dataset, load_run
-from ssgwarp.errors import SsgwarpError
+from ssgwarp.errors import InputError, SsgwarpError
 from ssgwarp.reconstruct import Recipe, Trainer
 from ssgwarp.scene import GaussianScene
 
@@ -71,18 +71,19 @@ class IdentityHook:
         return loss
 
 
-def _resume_kwargs(fern, tmp_path, name):
+def _resume_kwargs(fern, tmp_path, name, strategy="default"):
     rec = Recipe(init_max_points=120, refine_start=8, refine_every=8, reset_every=20, sh_interval=10,
-                 prune_screen_px=0)
+                 prune_screen=0.5)
     return dict(iters=30, sh_degree=1, max_gaussians=400, recipe=rec, progress=False, device="cpu", seed=3,
-                identity_dim=4, checkpoint_path=tmp_path / name, checkpoint_every=100)
+                identity_dim=4, checkpoint_path=tmp_path / name, checkpoint_every=100, strategy=strategy)
 
 
 @needs_fern
-def test_ctrl_c_checkpoint_and_resume_match_an_uninterrupted_run(fern, tmp_path):
+@pytest.mark.parametrize("strategy", ["default", "mcmc"])
+def test_ctrl_c_checkpoint_and_resume_match_an_uninterrupted_run(fern, tmp_path, strategy):
     small = load_dataset(DATA / "llff_fern", images="images_8", width=28, max_images=8)
     ha = IdentityHook(4)
-    a = Trainer(small, hooks=[ha], **_resume_kwargs(small, tmp_path, "a.pt"))
+    a = Trainer(small, hooks=[ha], **_resume_kwargs(small, tmp_path, "a.pt", strategy))
     n0 = a.num_gaussians
     sa = a.train()
     # the hook saw [H, W, E] identity renders of training views, and the scene through scene_fn
@@ -93,14 +94,17 @@ def test_ctrl_c_checkpoint_and_resume_match_an_uninterrupted_run(fern, tmp_path)
     assert len(sa) != n0 and sa.identities.shape == (len(sa), 4)
 
     hb = IdentityHook(4, interrupt_at=13)
-    b = Trainer(small, hooks=[hb], **_resume_kwargs(small, tmp_path, "b.pt"))
+    b = Trainer(small, hooks=[hb], **_resume_kwargs(small, tmp_path, "b.pt", strategy))
     with pytest.raises(KeyboardInterrupt):
         b.train()
     assert b.step == 14 and (tmp_path / "b.pt").is_file()  # the step in flight finished, then checkpointed
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handler restored
 
     hc = IdentityHook(4)
-    c = Trainer(small, hooks=[hc], **_resume_kwargs(small, tmp_path, "b.pt"))
+    with pytest.raises(InputError, match="--strategy"):  # another strategy cannot resume it
+        Trainer(small, hooks=[IdentityHook(4)], **_resume_kwargs(
+            small, tmp_path, "b.pt", {"default": "mcmc", "mcmc": "default"}[strategy])).load_checkpoint()
+    c = Trainer(small, hooks=[hc], **_resume_kwargs(small, tmp_path, "b.pt", strategy))
     c.load_checkpoint()
     assert c.step == 14
     sc = c.train()
@@ -132,56 +136,35 @@ def _toy_scene(n=12):
     return s.replace(log_scales=ls, logit_opacities=lo)
 
 
-def test_densification_is_generic_and_respects_the_cap():
+@pytest.mark.parametrize("strategy", ["default", "mcmc"])
+def test_a_short_run_densifies_on_the_scaled_schedule(strategy):
+    """300 steps, no schedule given: refinements every 100 steps (the 30k schedule scaled, with its floors)
+    until half the run (default) or 5/6 of it (mcmc); every tensor, the identities of a joint hook
+    included, follows the count."""
     data = _toy_data()
     s0 = _toy_scene()
-    t = Trainer(data, scene=s0, iters=100, sh_degree=1, recipe=Recipe(sh_interval=1), progress=False, device="cpu")
-    assert math.isclose(t.extent, 1.1 * 0.25, rel_tol=1e-5)
-    t.step = 1
-    t.train_step()  # creates Adam state for the tensors that get gradients (identities: only with a hook)
-    before = {k: v.detach().clone() for k, v in t.params.items()}
-    t.grad2d[:] = 0.0
-    t.grad2d[0:8] = 1.0
-    t.count[:] = 1.0
-    t.step = 200  # before the first reset: no size pruning
-    info = t._refine()
-    assert info == {"clone": 4, "split": 4, "prune": 1}
-    n = t.num_gaussians
-    assert n == 12 + 4 + 4 - 1
-    with_state = set()
-    for k, p in t.params.items():
-        assert p.shape[0] == n
-        if p in t.opt.state:
-            st = t.opt.state[p]
-            assert st["exp_avg"].shape == p.shape and st["exp_avg_sq"].shape == p.shape, k
-            with_state.add(k)
-    assert with_state == {"means", "log_scales", "quats", "logit_opacities", "sh_dc", "sh_rest"}
-    # survivors first (minus the split and pruned ones), then clones, then split children
-    keep = [0, 1, 2, 3, 9, 10, 11]
-    assert torch.equal(t.params["identities"][:7], before["identities"][keep])
-    assert torch.equal(t.params["identities"][7:11], before["identities"][0:4])  # clones: exact copies
-    assert torch.equal(t.params["sh_rest"][7:11], before["sh_rest"][0:4])
-    children = t.params["identities"][11:]
-    assert torch.equal(children, before["identities"][4:8].repeat(2, 1))
-    assert torch.allclose(t.params["log_scales"][11:], (before["log_scales"][4:8] - math.log(1.6)).repeat(2, 1))
-    d = (t.params["means"][11:] - before["means"][4:8].repeat(2, 1)).norm(dim=1)
-    assert bool((d > 0).all()) and bool((d < 0.5 * 6).all())
-    assert t.grad2d.shape == (n,) and float(t.grad2d.abs().sum()) == 0.0  # statistics reset
-
-    # the cap: only the highest-gradient candidates grow
-    t2 = Trainer(data, scene=s0, iters=100, sh_degree=1, max_gaussians=14, progress=False, device="cpu")
-    t2.grad2d[:] = 0.0
-    t2.grad2d[0:8] = torch.arange(1.0, 9.0)
-    t2.count[:] = 1.0
-    info = t2._refine()
-    assert info["clone"] + info["split"] == 2 and info["split"] == 2  # gaussians 6, 7 have the top gradients
-    assert t2.num_gaussians <= 14
-
-    # opacity reset: capped at 0.01 and the Adam moments of the opacities cleared
-    t.train_step()
-    t._reset_opacity()
-    assert float(torch.sigmoid(t.params["logit_opacities"].detach()).max()) <= 0.01 + 1e-6
-    assert float(t.opt.state[t.params["logit_opacities"]]["exp_avg"].abs().sum()) == 0.0
+    hook = IdentityHook(5)
+    t = Trainer(data, scene=s0, iters=300, sh_degree=1, max_gaussians=13, hooks=[hook], progress=False,
+                device="cpu", strategy=strategy)
+    assert (t.recipe.refine_start, t.recipe.refine_every) == (100, 100)
+    assert t.recipe.refine_stop == {"default": 150, "mcmc": 250}[strategy]
+    refines = []
+    for _ in range(300):
+        info = t.train_step()
+        if "refine" in info:
+            refines.append(t.step)
+            did = info["refine"]
+            assert all(p.shape[0] == t.num_gaussians for p in t.params.values())
+            assert all(v.shape[0] == t.num_gaussians for v in t.gaussians.stats.values())
+    assert refines == ([100] if strategy == "default" else [100, 200])
+    sc = t.final_scene()
+    assert sc.identities.shape == (len(sc), 5) and sc.sh_rest.shape == (len(sc), 3, 3)
+    if strategy == "mcmc":
+        assert len(sc) == 13  # 12 -> 13 (ceil 5%), then at the budget
+        with pytest.raises(InputError, match="budget"):  # a given scene must fit in the budget
+            Trainer(data, scene=s0, iters=40, max_gaussians=11, progress=False, device="cpu", strategy="mcmc")
+    else:
+        assert did["prune"] == 1 and len(sc) == len(s0) + did["clone"] + did["split"] - 1  # the transparent one
 
 
 def test_nan_stops_with_the_step_and_keeps_the_last_checkpoint(tmp_path):
@@ -299,3 +282,45 @@ def test_smooth_path_through_cameras():
     # open path: starts at a camera and ends at another
     op = smooth_path(cams, 7, closed=False)
     assert float(torch.cdist(op.centers[[0, -1]].double(), eyes.double()).min(dim=1).values.max()) < 1e-4
+
+
+def test_cli_mcmc_strategy_stays_within_its_budget(tmp_path, monkeypatch, capsys):
+    from ssgwarp import cli
+
+    for var in ("SSGWARP_LPIPS", "SSGWARP_VGG16", "SSGWARP_WEIGHTS"):
+        monkeypatch.delenv(var, raising=False)
+    data_dir, out = tmp_path / "cap", tmp_path / "run"
+    _write_tiny_colmap(data_dir)
+    args = ["reconstruct", str(data_dir), "--out", str(out), "--iters", "250", "--sh-degree", "0", "--no-progress",
+            "--device", "cpu", "--strategy", "mcmc", "--max-gaussians", "70"]
+    assert cli.main(args) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    # 60 COLMAP points, refinements at steps 100 and 200 (the scaled schedule): +3, +4 (ceil 5%)
+    assert m["num_gaussians"] == 67 <= 70
+    assert m["densification"] == {"strategy": "mcmc", "max_gaussians": 70, "refine_start": 100,
+                                  "refine_stop": 208, "refine_every": 100, "reset_every": 0}
+    capsys.readouterr()
+    assert cli.main(args[:-4] + ["--resume"]) == 2  # resuming with the other strategy: a one-line error
+    err = capsys.readouterr().err
+    assert "--strategy mcmc" in err and len(err.strip().splitlines()) == 1
+    # a budget below the capture's point count: the initial points are subsampled to it
+    short = [("1" if a == "250" else a) for a in args[:-1]]
+    assert cli.main(short + ["40", "--out", str(tmp_path / "run2")]) == 0
+    assert json.loads((tmp_path / "run2" / "metrics.json").read_text())["num_gaussians"] == 40
+
+
+def test_initial_gaussians_from_a_dense_random_cloud_are_narrower():
+    """Random points (no point cloud): the 3DGS start with scales x (2000 / N)^(1/6) when N > 2000 (the fog of
+    the cloud kept at that of 2000 points); a reconstructed cloud keeps the 3DGS start."""
+    from dataclasses import replace
+
+    from ssgwarp.scene import knn_mean_distance
+
+    g = torch.Generator().manual_seed(0)
+    xyz, rgb = torch.randn(4000, 3, generator=g), torch.rand(4000, 3, generator=g)
+    d = knn_mean_distance(xyz, k=3)
+    for source, scale in (("random", 0.5 ** (1 / 6)), ("colmap", 1.0)):
+        data = replace(_toy_data(), points=(xyz, rgb), points_source=source)
+        s = Trainer(data, iters=10, sh_degree=0, progress=False, device="cpu").final_scene()
+        assert torch.allclose(s.scales, (d * scale)[:, None].expand(-1, 3), rtol=1e-5), source
+        assert torch.allclose(s.opacities, torch.full((4000,), 0.1), atol=1e-6), source

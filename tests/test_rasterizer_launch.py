@@ -1,0 +1,236 @@
+"""The rasterizer's launch layer (ssgwarp/launch.py) and the op paths it serves: replayed launches equal
+to Warp's own, per-camera inputs, partial gradients, and (on CUDA) torch's current stream."""
+import pytest
+import torch
+import warp as wp
+
+import ssgwarp.launch as L
+from ssgwarp import RasterSettings, rasterization
+
+from test_rasterizer import assert_match, make_cameras, make_scene, run_both
+
+CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+WARP_LAYOUT = pytest.mark.skipif(not L.FAST, reason="Warp's internal array/launch layout differs: launches use wp.launch")
+DEVICES = ["cpu", pytest.param("cuda", marks=CUDA)]
+
+
+def _render_and_grads(params, vm, K, w, h, **kw):
+    leaves = [p.clone().requires_grad_(True) for p in params]
+    img, alpha, meta = rasterization(*leaves, vm, K, w, h, **kw)
+    g = torch.Generator(device=img.device).manual_seed(3)
+    ((img * torch.rand(img.shape, generator=g, device=img.device, dtype=img.dtype)).sum()
+     + (alpha * torch.rand(alpha.shape, generator=g, device=img.device, dtype=img.dtype)).sum()).backward()
+    return [img.detach(), alpha.detach(), meta["flatten_ids"]] + [p.grad for p in leaves]
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_replayed_launches_equal_warp_launch(device, monkeypatch):
+    """Every kernel launched by replaying its recorded launch gives bit for bit what ``wp.launch``
+    gives (the fall-back path, used when Warp's internals differ), forward and backward, with SH
+    colours, two cameras and a background."""
+    params = [t.to(device) for t in make_scene(80, dtype=torch.float32, seed=2)]
+    g = torch.Generator().manual_seed(5)
+    params[4] = (torch.randn(80, 16, 3, generator=g) * 0.3).to(device)
+    vm, K = (t.to(device) for t in make_cameras(2, 30, 22, dtype=torch.float32))
+    kw = dict(sh_degree=3, backgrounds=torch.rand(2, 3, generator=g).to(device), deterministic=True)
+    fast = _render_and_grads(params, vm, K, 30, 22, **kw)
+    monkeypatch.setattr(L, "FAST", False)
+    monkeypatch.setattr(L._LOCAL, "plans", {})
+    slow = _render_and_grads(params, vm, K, 30, 22, **kw)
+    assert all(not p.fast for p in L._LOCAL.plans.values())
+    for a, b in zip(fast, slow):
+        assert torch.equal(a, b)
+
+
+@WARP_LAYOUT
+def test_array_descriptors_follow_the_tensor_layout():
+    t = torch.zeros(5, 7, 3)
+    assert L.arr(t, 3) == (t.data_ptr(), 0, 35, 0, 0, 0, 12, 0, 0, 0, 1, 0)
+    # a column block of a wider matrix: rows spaced by the full row
+    assert L.rows(t.view(35, 3)[:, 1:3], 2)[2:7] == (35, 0, 0, 0, 12)
+    # a camera-stride-0 grid: every camera reads the same Gaussian
+    assert L.grid(t.view(35, 3), 4, 35, 3, False)[2:8] == (4, 35, 0, 0, 0, 12)
+    assert L.cams(t, 5, 9, 21)[2:8] == (5, 9, 0, 0, 84, 0)
+    assert L.NULL == (0,) * 12
+    d = L._array_t(L.grid3(t, 2, 5, 7, 3, True))
+    assert (d.ndim, tuple(d.shape[:3]), tuple(d.strides[:3])) == (3, (2, 5, 7), (420, 84, 12))
+
+
+@WARP_LAYOUT
+def test_struct_layout_matches_ctypes():
+    """The packed parameter block is laid out byte for byte as Warp's ctypes structures."""
+    import ctypes
+    import struct
+
+    from warp._src.types import array_t
+
+    fmt = L._layout(array_t)
+    assert struct.calcsize("=" + fmt) == ctypes.sizeof(array_t)
+    a = array_t(123456789, 0, 2, (3, 4), (16, 4), 0)
+    assert struct.pack("=" + fmt, 123456789, 0, 3, 4, 0, 0, 16, 4, 0, 0, 2, 0) == bytes(a)
+
+    class Mixed(ctypes.Structure):
+        _fields_ = [("a", ctypes.c_int32), ("b", array_t), ("c", ctypes.c_float), ("d", ctypes.c_double)]
+
+    m = Mixed(7, a, 1.5, 2.25)
+    fmt = L._layout(Mixed)
+    assert struct.pack("=" + fmt, 7, 123456789, 0, 3, 4, 0, 0, 16, 4, 0, 0, 2, 0, 1.5, 2.25) == bytes(m)
+
+
+def test_per_camera_colours_and_sh_match_reference():
+    """Colours and SH coefficients given per camera ([C, N, ...]), more coefficients than the degree
+    uses, and a view-matrix gradient with one camera and with three."""
+    means, quats, scales, opac, _ = make_scene(90, seed=12)
+    g = torch.Generator().manual_seed(13)
+    for c in (1, 3):
+        vm, K = make_cameras(c, 33, 27)
+        cols = torch.rand(c, 90, 5, generator=g, dtype=torch.float64)
+        out = run_both([means, quats, scales, opac, cols], vm, K, 33, 27)
+        for d in out.values():
+            d[2].append(torch.zeros(1))
+        assert_match(out, 1e-10, 1e-9)
+        sh = torch.randn(c, 90, 16, 3, generator=g, dtype=torch.float64) * 0.3
+        out = run_both([means, quats, scales, opac, sh], vm, K, 33, 27, sh_degree=2)
+        for d in out.values():
+            d[2].append(torch.zeros(1))
+        assert_match(out, 1e-10, 1e-9)
+
+
+@pytest.mark.parametrize("loss", ["image", "alpha"])
+def test_gradients_of_one_output_and_of_some_inputs(loss):
+    """A loss on the image only or the alpha only (the other output has no gradient), with a
+    background, and inputs of which only some require gradients."""
+    means, quats, scales, opac, colors = make_scene(70, seed=21)
+    vm, K = make_cameras(2, 26, 20)
+    bg = torch.rand(2, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    grads = {}
+    for backend in ("torch", "warp"):
+        m, o, c, b = (t.clone().requires_grad_(True) for t in (means, opac, colors, bg))
+        img, alpha, _ = rasterization(m, quats, scales, o, c, vm, K, 26, 20, backgrounds=b, backend=backend)
+        (img.square().sum() if loss == "image" else alpha.square().sum()).backward()
+        grads[backend] = [m.grad, o.grad, c.grad, b.grad]
+    for a, b in zip(grads["warp"], grads["torch"]):
+        if b is None:
+            assert a is None or not a.any()
+            continue
+        assert torch.allclose(a, b, atol=1e-10 * max(1.0, b.abs().max().item()), rtol=0)
+
+
+def test_tile_counts_and_ids_are_consistent():
+    """The projection's tile counts (tiles_per_gauss), the intersection list and the per-tile
+    offsets agree with each other for every tile size, including ones that do not divide the image."""
+    params = make_scene(150, dtype=torch.float32, seed=4)
+    vm, K = make_cameras(2, 37, 29, dtype=torch.float32)
+    for ts in (3, 8, 16, 21):
+        _, _, meta = rasterization(*params, vm, K, 37, 29, tile_size=ts)
+        counts = meta["tiles_per_gauss"].reshape(-1).long()
+        ids = meta["flatten_ids"].long()
+        assert int(counts.sum()) == ids.numel()
+        assert torch.equal(torch.bincount(ids, minlength=counts.numel()), counts)
+        offs = meta["offsets"].long()
+        assert offs[0] == 0 and offs[-1] == ids.numel() and bool((offs[1:] >= offs[:-1]).all())
+        # each tile's range holds intersections of that tile only, sorted by depth
+        tiles = meta["isect_ids"] >> 32
+        assert torch.equal(tiles, torch.sort(tiles).values)
+
+
+@CUDA
+def test_cuda_launches_follow_torchs_current_stream():
+    """On a side stream the rasterizer's launches (and the sort) run on that stream: the result
+    equals the default stream's without any synchronisation beyond torch's own."""
+    params = [t.cuda() for t in make_scene(3000, dtype=torch.float32, seed=6, spread=0.3)]
+    vm, K = (t.cuda() for t in make_cameras(1, 96, 80, dtype=torch.float32))
+    ref = _render_and_grads(params, vm, K, 96, 80, deterministic=True)
+    side = torch.cuda.Stream()
+    side.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(side):
+        # a long kernel queued first on the side stream: work launched elsewhere would overtake it
+        big = torch.randn(4096, 4096, device="cuda")
+        for _ in range(5):
+            big = big @ big / 64.0
+        out = _render_and_grads(params, vm, K, 96, 80, deterministic=True)
+    torch.cuda.current_stream().wait_stream(side)
+    torch.cuda.synchronize()
+    for a, b in zip(ref, out):
+        assert torch.equal(a, b)
+    assert wp.get_device("cuda:0").stream.cuda_stream != side.cuda_stream  # Warp's own stream is restored
+
+
+@CUDA
+@pytest.mark.parametrize("sh", [None, 3])
+def test_cuda_float64_matches_reference(sh):
+    """float64 on CUDA (exact rules) against the torch reference on CUDA: image and every gradient,
+    two cameras, colours or SH."""
+    params = [t.cuda() for t in make_scene(200, seed=9)]
+    if sh is not None:
+        params[4] = torch.randn(200, 16, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64).cuda()
+    vm, K = (t.cuda() for t in make_cameras(2, 40, 30))
+    res = {}
+    for backend in ("torch", "warp"):
+        leaves = [p.clone().requires_grad_(True) for p in params]
+        img, alpha, _ = rasterization(*leaves, vm, K, 40, 30, sh_degree=sh, settings=RasterSettings.exact(),
+                                      backend=backend)
+        w = torch.linspace(-1, 1, img.numel(), dtype=img.dtype, device="cuda").reshape(img.shape)
+        ((img * w).sum() + alpha.sum()).backward()
+        res[backend] = [img.detach()] + [p.grad for p in leaves]
+    for a, b in zip(res["warp"], res["torch"]):
+        assert (a - b).abs().max().item() <= 1e-9 * max(1.0, b.abs().max().item())
+
+
+def test_tile_size_default_per_device():
+    """Without ``tile_size`` the CPU uses 8 (measured faster than gsplat's 16 there), CUDA keeps 16;
+    under the default rules the image is the same at both."""
+    from ssgwarp.rasterize import DEFAULT_TILE_SIZE
+
+    assert DEFAULT_TILE_SIZE == {"cuda": 16, "cpu": 8}
+    params = make_scene(120, dtype=torch.float32, seed=7)
+    vm, K = make_cameras(1, 40, 30, dtype=torch.float32)
+    img, alpha, meta = rasterization(*params, vm, K, 40, 30)
+    assert meta["tile_size"] == 8 and meta["tile_width"] == 5 and meta["isect_offsets"].shape == (1, 4, 5)
+    img16, alpha16, meta16 = rasterization(*params, vm, K, 40, 30, tile_size=16)
+    assert meta16["tile_size"] == 16
+    assert torch.equal(img, img16) and torch.equal(alpha, alpha16)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("per_camera", [False, True])
+def test_value_checks_in_the_projection(device, per_camera):
+    """The value checks run inside the projection kernel (compiled with fast maths on CUDA): each
+    failure is caught, in the last Gaussian, the last camera, per-camera colours and backgrounds."""
+    dtype = torch.float32
+    g = torch.Generator().manual_seed(0)
+    n, c = 9, 3
+    means = (torch.randn(n, 3, generator=g) * 0.3 + torch.tensor([0, 0, 3.0])).to(device)
+    quats, scales = torch.randn(n, 4, generator=g).to(device), (torch.rand(n, 3, generator=g) * 0.1).to(device)
+    opac = torch.rand(n, generator=g).to(device)
+    colors = torch.rand(*((c,) if per_camera else ()), n, 4, generator=g).to(device)
+    vm, K = (t.to(device=device, dtype=dtype) for t in make_cameras(c, 16, 16, dtype=dtype))
+    bg = torch.rand(c, 4, generator=g).to(device)
+    good = dict(means=means, quats=quats, scales=scales, opacities=opac, colors=colors, viewmats=vm, Ks=K)
+
+    def last(t, v):
+        t = t.clone()
+        t.view(-1)[-1] = v
+        return t
+
+    rasterization(**good, width=16, height=16, backgrounds=bg)
+    cases = [(dict(means=last(means, float("nan"))), "means has NaN/Inf"),
+             (dict(quats=last(quats, float("inf"))), "quats has NaN/Inf"),
+             (dict(scales=last(scales, float("-inf"))), "scales has NaN/Inf"),
+             (dict(opacities=last(opac, float("nan"))), "opacities has NaN/Inf"),
+             (dict(colors=last(colors, float("nan"))), "colors has NaN/Inf"),
+             (dict(viewmats=last(vm, float("inf"))), "viewmats has NaN/Inf"),
+             (dict(Ks=last(K, float("nan"))), "Ks has NaN/Inf"),
+             (dict(quats=quats.index_fill(0, torch.tensor([n - 1], device=device), 0.0)), "zero quaternions"),
+             (dict(scales=last(scales, -1e-30)), "scales has negative"),
+             (dict(opacities=last(opac, 1.0 + 1e-6)), r"opacities must lie in \[0, 1\]"),
+             (dict(Ks=K.index_fill(0, torch.tensor([c - 1], device=device), 0.0)), "non-positive focal")]
+    for change, message in cases:
+        with pytest.raises(ValueError, match=message):
+            rasterization(**{**good, **change}, width=16, height=16, backgrounds=bg)
+    with pytest.raises(ValueError, match="backgrounds has NaN/Inf"):
+        rasterization(**good, width=16, height=16, backgrounds=last(bg, float("nan")))
+    # no Gaussians to project: the checks still run on the cameras
+    empty = [t[:0] for t in (means, quats, scales, opac)] + [colors[..., :0, :]]
+    with pytest.raises(ValueError, match="Ks has NaN/Inf"):
+        rasterization(*empty, vm, last(K, float("nan")), 16, 16)
