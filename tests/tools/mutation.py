@@ -43,7 +43,8 @@ SUITES = {
               "tests/test_datasets.py", "tests/test_colmap.py")),
     "op": (("rasterize", "ops"),
            ("tests/test_rasterizer.py", "tests/test_rasterizer_analytic.py", "tests/test_rasterizer_options.py",
-            "tests/test_rasterizer_extremes.py", "tests/test_rasterizer_gradcheck.py", "tests/test_cuda.py")),
+            "tests/test_rasterizer_extremes.py", "tests/test_rasterizer_gradcheck.py", "tests/test_rasterizer_launch.py",
+            "tests/test_cuda.py")),
     "matching": (("matching",), ("tests/test_stylize.py",)),
 }
 SUITE_OF = {m: s for s, (mods, _) in SUITES.items() for m in mods}
