@@ -186,3 +186,15 @@ def test_several_cameras_in_one_call_equal_separate_calls():
         assert (img[c] - alone[c][0][0]).abs().max() < 1e-12
     for i, gr in enumerate(together):
         assert_close_elementwise(gr, sum(a[1][i] for a in alone), 1e-10, 1e-12, f"gradient {i}", ulps=16)
+
+
+def test_exact_settings_turn_every_shortcut_off():
+    """``RasterSettings.exact``: no alpha threshold, no cut-off, no clamp, a fixed extent of ``sigma_max``,
+    IEEE maths, the cancellation-free covariance; each differs from the default (gsplat's) settings."""
+    from ssgwarp import RasterSettings
+
+    fields = ("alpha_min", "t_min", "alpha_max", "extent", "sigma_max", "fast_math", "covariance")
+    e, d = RasterSettings.exact(), RasterSettings()
+    assert tuple(getattr(e, f) for f in fields) == (0.0, 0.0, 1.0, "fixed", 3.33, False, "factor")
+    assert tuple(getattr(d, f) for f in fields) == (1.0 / 255.0, 1e-4, 0.999, "opacity", 3.33, True, "gsplat")
+    assert RasterSettings.exact(5.0).sigma_max == 5.0

@@ -45,7 +45,7 @@ SUITES = {
            ("tests/test_rasterizer.py", "tests/test_rasterizer_analytic.py", "tests/test_rasterizer_options.py",
             "tests/test_rasterizer_extremes.py", "tests/test_rasterizer_gradcheck.py", "tests/test_rasterizer_launch.py",
             "tests/test_cuda.py")),
-    "matching": (("matching",), ("tests/test_stylize.py",)),
+    "matching": (("matching",), ("tests/test_stylize.py", "tests/test_matching.py")),
 }
 SUITE_OF = {m: s for s, (mods, _) in SUITES.items() for m in mods}
 # mutmut's exit codes (mutmut/stats.py)

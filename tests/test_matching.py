@@ -1,0 +1,34 @@
+"""Unit tests of ssgwarp.matching beside those of tests/test_stylize.py: defaults, messages, options passed on."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from ssgwarp.errors import InputError
+from ssgwarp.matching import MatchTargets, downsample_labels, nnfm_loss
+
+
+def test_downsample_labels_defaults_to_the_majority_vote():
+    """A 4x4 map to 1x1: majority gives the id covering most pixels (2, 10 of 16); the nearest pixel to the
+    cell centre would give another id (0 at row 2, column 2)."""
+    labels = torch.full((1, 4, 4), 2, dtype=torch.long)
+    labels[0, 2:, 2:] = 0
+    labels[0, 0, 0] = 1
+    assert downsample_labels(labels, (1, 1)).tolist() == [[[2]]]
+    assert downsample_labels(labels, (1, 1), "majority").tolist() == [[[2]]]
+    assert downsample_labels(labels, (1, 1), "nearest").tolist() != [[[2]]]
+
+
+def test_downsample_labels_names_the_bad_shape():
+    with pytest.raises(InputError, match=r"expected \[B,H,W\] labels, got \(4, 4\)"):
+        downsample_labels(torch.zeros(4, 4, dtype=torch.long), (2, 2))
+
+
+def test_nnfm_loss_passes_its_search_precision_on():
+    g = torch.Generator().manual_seed(0)
+    feats, keys = torch.randn(8, 3, 3, generator=g), torch.randn(2, 8, 4, 4, generator=g)
+    with pytest.raises(InputError, match="precision 'fp8'"):
+        nnfm_loss(feats, keys, precision="fp8")
+    # fp16 search on the CPU: the same neighbours as MatchTargets with that precision, the loss in fp32
+    want = MatchTargets(keys, precision="fp16").loss(feats)
+    assert torch.equal(nnfm_loss(feats, keys, precision="fp16"), want) and want.dtype == torch.float32
