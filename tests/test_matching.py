@@ -22,6 +22,8 @@ def test_downsample_labels_defaults_to_the_majority_vote():
 def test_downsample_labels_names_the_bad_shape():
     with pytest.raises(InputError, match=r"expected \[B,H,W\] labels, got \(4, 4\)"):
         downsample_labels(torch.zeros(4, 4, dtype=torch.long), (2, 2))
+    with pytest.raises(InputError, match=r"mode 'mean' \(use majority or nearest\)"):
+        downsample_labels(torch.zeros(1, 4, 4, dtype=torch.long), (2, 2), "mean")
 
 
 def test_nnfm_loss_passes_its_search_precision_on():
