@@ -36,3 +36,16 @@ def test_nnfm_loss_passes_its_search_precision_on():
     # fp16 search on the CPU: the same neighbours as MatchTargets with that precision, the loss in fp32
     want = MatchTargets(keys, precision="fp16").loss(feats)
     assert torch.equal(nnfm_loss(feats, keys, precision="fp16"), want) and want.dtype == torch.float32
+
+
+def test_downsample_labels_by_majority_per_cell_with_a_given_group_count():
+    """2x2 cells of a 4x4 map, counted by hand; ``num_groups`` wider than the ids present changes nothing,
+    and the result is long (group ids index tensors)."""
+    labels = torch.tensor([[[0, 0, 1, 1],
+                            [0, 2, 1, 3],
+                            [2, 2, 3, 3],
+                            [2, 0, 3, 1]]])
+    want = [[[0, 1], [2, 3]]]
+    for k in (None, 4, 7):
+        out = downsample_labels(labels, (2, 2), num_groups=k)
+        assert out.dtype == torch.long and out.tolist() == want
