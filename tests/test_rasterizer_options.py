@@ -198,3 +198,20 @@ def test_exact_settings_turn_every_shortcut_off():
     assert tuple(getattr(e, f) for f in fields) == (0.0, 0.0, 1.0, "fixed", 3.33, False, "factor")
     assert tuple(getattr(d, f) for f in fields) == (1.0 / 255.0, 1e-4, 0.999, "opacity", 3.33, True, "gsplat")
     assert RasterSettings.exact(5.0).sigma_max == 5.0
+
+
+def test_for_dtype_raises_t_min_to_the_precision_floor_only():
+    """``for_dtype``: a cut-off below the type's floor (1e-20 float32, 1e-200 float64) is raised to it, nothing
+    else changes; a cut-off at or above the floor, and types without a floor, keep the settings."""
+    import dataclasses
+
+    from ssgwarp import RasterSettings
+
+    e = RasterSettings.exact()
+    assert e.for_dtype(torch.float32) == dataclasses.replace(e, t_min=1e-20)
+    assert e.for_dtype(torch.float64) == dataclasses.replace(e, t_min=1e-200)
+    assert e.for_dtype(torch.float16) == e
+    d = RasterSettings()
+    assert d.for_dtype(torch.float32) == d and d.for_dtype(torch.float64) == d
+    at = RasterSettings(t_min=1e-20)
+    assert at.for_dtype(torch.float32) == at
