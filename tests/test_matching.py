@@ -49,3 +49,26 @@ def test_downsample_labels_by_majority_per_cell_with_a_given_group_count():
     for k in (None, 4, 7):
         out = downsample_labels(labels, (2, 2), num_groups=k)
         assert out.dtype == torch.long and out.tolist() == want
+
+
+def test_search_dtype_auto_is_bf16_on_cuda_only():
+    from ssgwarp.matching import search_dtype
+
+    assert search_dtype("auto", "cuda") == search_dtype("auto", "cuda:0") == torch.bfloat16   # no GPU needed
+    assert search_dtype("auto", "cpu", torch.float64) == torch.float64
+    assert search_dtype("fp16", "cpu") == torch.float16
+
+
+def test_loss_takes_one_view_with_or_without_its_batch_axis_and_names_bad_shapes():
+    g = torch.Generator().manual_seed(1)
+    keys, key_labels = torch.randn(2, 8, 4, 4, generator=g), torch.randint(0, 3, (2, 4, 4), generator=g)
+    feats, labels = torch.randn(8, 3, 3, generator=g), torch.randint(0, 3, (3, 3), generator=g)
+    t = MatchTargets(keys, key_labels)
+    want = t.loss(feats, labels)
+    assert torch.equal(t.loss(feats[None], labels), want) and torch.equal(t.loss(feats, labels[None]), want)
+    with pytest.raises(InputError, match=r"^MatchTargets.loss: one view at a time$"):
+        t.loss(torch.randn(2, 8, 3, 3, generator=g), labels)
+    with pytest.raises(InputError, match=r"^MatchTargets.loss: 5 feature channels, key features have 8$"):
+        t.loss(torch.randn(5, 3, 3, generator=g))
+    with pytest.raises(InputError, match=r"^MatchTargets.loss: view labels \(3, 2\) vs features \(3, 3\)$"):
+        t.loss(feats, labels[:, :2])
