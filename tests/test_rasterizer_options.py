@@ -215,3 +215,45 @@ def test_for_dtype_raises_t_min_to_the_precision_floor_only():
     assert d.for_dtype(torch.float32) == d and d.for_dtype(torch.float64) == d
     at = RasterSettings(t_min=1e-20)
     assert at.for_dtype(torch.float32) == at
+
+
+def test_incoming_gradients_of_any_layout_give_the_same_gradients():
+    """The ops read incoming gradients in place where their rows are strided views and copy them otherwise:
+    a broadcast gradient (``.sum()``: stride 0) and a column-strided one (a transposed tensor) give the
+    gradients of the same gradient made contiguous, for the SH op and for a loss on the projected
+    Gaussians of ``meta`` (means2d, depths, conics, opacities)."""
+    from ssgwarp.ops import spherical_harmonics_warp
+
+    g = torch.Generator().manual_seed(5)
+    dirs = torch.randn(2, 30, 3, generator=g, dtype=torch.float64)
+    coeffs = torch.randn(2, 30, 16, 3, generator=g, dtype=torch.float64)
+    strided = torch.randn(3, 2, 30, generator=g, dtype=torch.float64).permute(1, 2, 0)
+    assert strided.reshape(60, 3).stride(1) != 1
+
+    def sh_grads(upstream):
+        d, c = dirs.clone().requires_grad_(True), coeffs.clone().requires_grad_(True)
+        y = spherical_harmonics_warp(3, d, c)
+        if upstream is None:
+            y.sum().backward()
+        else:
+            y.backward(upstream)
+        return d.grad, c.grad
+
+    for upstream, same in ((None, torch.ones(2, 30, 3, dtype=torch.float64)), (strided, strided.contiguous())):
+        for a, b in zip(sh_grads(upstream), sh_grads(same)):
+            assert torch.equal(a, b)
+
+    means, quats, scales, opac, colors = make_scene(40, dtype=torch.float64)
+    vm, K = make_cameras(2, 24, 24, dtype=torch.float64)
+
+    def meta_grads(contiguous):
+        p = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac)]
+        _, _, meta = rasterization(*p, colors, vm, K, 24, 24)
+        loss = 0.0
+        for key in ("means2d", "depths", "conics", "opacities"):
+            loss = loss + ((meta[key] * torch.ones_like(meta[key])).sum() if contiguous else meta[key].sum())
+        loss.backward()
+        return [t.grad for t in p]
+
+    for a, b in zip(meta_grads(False), meta_grads(True)):
+        assert b.abs().max() > 0 and torch.equal(a, b)
