@@ -257,3 +257,18 @@ def test_incoming_gradients_of_any_layout_give_the_same_gradients():
 
     for a, b in zip(meta_grads(False), meta_grads(True)):
         assert b.abs().max() > 0 and torch.equal(a, b)
+
+
+def test_backward_launch_blocks_by_device_and_tile_size():
+    """``backward_blocks(tile_size, deterministic, cpu) -> (per_warp, block_dim)`` by hand: deterministic, one
+    block per tile; CPU, one pixel per block; CUDA, the largest multiple of 32 up to 256 dividing the tile's
+    pixels, summed per warp, or one tile row per block when the tile is not whole warps."""
+    from ssgwarp.ops import backward_blocks
+
+    assert backward_blocks(16, True, False) == (False, 256) and backward_blocks(8, True, True) == (False, 64)
+    assert backward_blocks(16, False, True) == (True, 1)
+    assert backward_blocks(16, False, False) == (True, 256)
+    assert backward_blocks(8, False, False) == (True, 64)
+    assert backward_blocks(24, False, False) == (True, 192)     # 576 pixels: 192 divides, 224 and 256 do not
+    assert backward_blocks(4, False, False) == (False, 4)       # 16 pixels: half a warp
+    assert backward_blocks(12, False, False) == (False, 12)     # 144 pixels: not a multiple of 32
