@@ -10,7 +10,9 @@
 
 Each suite (:data:`SUITES`: modules and the tests that exercise them) runs in its own copy of the
 repository, ``.mutation/<suite>/`` (git-ignored; tracked and untracked non-ignored files, re-copied
-when changed), whose ``pyproject.toml`` gets the suite's ``[tool.mutmut]`` settings. mutmut copies
+when changed), whose ``pyproject.toml`` gets the suite's ``[tool.mutmut]`` settings (changing a
+suite's test list changes them: mutmut then generates the suite's mutants again and forgets its earlier
+verdicts, so add tests to a listed file when only re-testing survivors). mutmut copies
 the package to ``mutants/`` there and keeps each mutant's result, so an interrupted run goes on where
 it stopped and a later run re-tests only what changed. Each module runs as ``nice -n 15 mutmut run
 --max-children 1 "ssgwarp.<module>*"`` (low priority, one worker: the machine is shared). Per mutant,
