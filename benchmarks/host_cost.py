@@ -29,6 +29,7 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import torch
 
@@ -168,7 +169,7 @@ def launch_paths(device: torch.device, launches: int) -> list[dict]:
     ins = list(params[:4]) + [vm, K]
 
     def flat():  # the projection kernel's parameters (no input checks)
-        return ops._project_args(ins, C, N) + cfg["scalars"] + ops._NO_CHECKS + [
+        return ops._project_args(ins, C, N) + list(cfg["params"]) + ops._NO_CHECKS + [
             *L.arr(outs[0], 2), *L.arr(outs[1]), *L.arr(outs[2], 3), *L.arr(outs[3]), *L.arr(outs[4], 2),
             *L.arr(outs[5]), *L.arr(outs[6]), *L.arr(outs[7], 6)]
 
@@ -176,16 +177,8 @@ def launch_paths(device: torch.device, launches: int) -> list[dict]:
     tg = L.target(params[0])
     stream = L._stream(tg)
 
-    def warp_args():
-        vals, out, i = flat(), [], 0
-        for a in kern.adj.args:
-            if wp.types.is_array(a.type):
-                out.append(L._array_t(tuple(vals[i:i + 12])))
-                i += 12
-            else:
-                out.append(vals[i])
-                i += 1
-        return out
+    def warp_args():  # (the flat list as Warp's own arguments, the way ssgwarp's fall-back builds them)
+        return L._Plan.unflatten(SimpleNamespace(kernel=kern), flat())
 
     def via_wp_launch():
         wp.launch(kern, dim=(C, N), inputs=warp_args(), device=tg.device, stream=stream, record_tape=False)
@@ -194,7 +187,10 @@ def launch_paths(device: torch.device, launches: int) -> list[dict]:
 
     def via_record_cmd():
         for i, v in enumerate(warp_args()):
-            rec.set_param_at_index_from_ctype(i, v)
+            if wp.types.is_struct(v):  # (a parameter block: Warp packs it)
+                rec.set_param_at_index(i, v)
+            else:
+                rec.set_param_at_index_from_ctype(i, v)
         rec.launch(stream)
 
     def via_ssgwarp():

@@ -135,6 +135,26 @@ def matrix_funcs(scalar, native_rsqrt: bool = False):
     return SimpleNamespace(dot3=dot3, mul33=mul33, mul33_t=mul33_t, quat_to_rotmat=quat_to_rotmat, cov2d=cov2d)
 
 
+# the fields of the projection's parameter block, in order, with their types (``scalar``: the
+# kernel's precision); ``ssgwarp.ops.ProjectionParams`` holds the same names for the host side
+PARAM_FIELDS = (("width", int), ("height", int), ("near_plane", "scalar"), ("far_plane", "scalar"),
+                ("eps2d", "scalar"), ("radius_clip", "scalar"), ("alpha_min", "scalar"), ("sigma_max", "scalar"),
+                ("opacity_extent", int), ("antialiased", int), ("tile_size", int), ("tile_width", int),
+                ("tile_height", int))
+
+
+@functools.lru_cache(maxsize=None)
+def projection_params(scalar):
+    """The projection's parameter block for one precision (a ``wp.struct``): image size, depth
+    range, ``eps2d``, ``radius_clip``, the culling rules (``alpha_min``, ``sigma_max``,
+    ``opacity_extent`` 0/1), ``antialiased`` 0/1, and the tile grid (``tile_size`` 0: no tile
+    counts)."""
+    cls = type(f"ProjectionParams_{scalar.__name__}", (), {
+        "__annotations__": {name: scalar if t == "scalar" else t for name, t in PARAM_FIELDS},
+        "__module__": __name__})
+    return wp.struct(cls)
+
+
 @functools.lru_cache(maxsize=None)
 def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = False):
     """The projection kernel for one precision, launched over ``(C, N)``. ``covariance``:
@@ -148,6 +168,7 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
     dot3, mul33, mul33_t, quat_to_rotmat, cov2d = mf.dot3, mf.mul33, mf.mul33_t, mf.quat_to_rotmat, mf.cov2d
     tile_box = tile_box_func(scalar)
     check_inputs = inputs_check_func(scalar)
+    Params = projection_params(scalar)
 
     @wp.func
     def cull(i: int, means2d: wp.array(dtype=vec2), depths: wp.array(dtype=scalar), conics: wp.array(dtype=vec3),
@@ -172,19 +193,7 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
         opacities: wp.array2d(dtype=scalar),
         viewmats: wp.array2d(dtype=mat44),
         Ks: wp.array(dtype=mat33),
-        width: int,
-        height: int,
-        near_plane: scalar,
-        far_plane: scalar,
-        eps2d: scalar,
-        radius_clip: scalar,
-        alpha_min: scalar,
-        sigma_max: scalar,
-        opacity_extent: int,
-        antialiased: int,
-        tile_size: int,
-        tile_width: int,
-        tile_height: int,
+        params: Params,
         colors: wp.array(dtype=scalar),
         color_row: int,
         colors_per_camera: int,
@@ -202,6 +211,11 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
     ):
         c, n = wp.tid()
         i = c * means.shape[1] + n
+        near_plane = params.near_plane
+        far_plane = params.far_plane
+        eps2d = params.eps2d
+        alpha_min = params.alpha_min
+        sigma_max = params.sigma_max
         V = viewmats[c, n]
         m = means[c, n]
         if flags.shape[0] > 0:  # the input value checks, on the values loaded here
@@ -228,8 +242,8 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
         fy = K[1, 1]
         cx = K[0, 2]
         cy = K[1, 2]
-        w = scalar(width)
-        h = scalar(height)
+        w = scalar(params.width)
+        h = scalar(params.height)
         tan_fovx = scalar(0.5) * w / fx
         tan_fovy = scalar(0.5) * h / fy
         lim_x_pos = (w - cx) / fx + scalar(0.3) * tan_fovx
@@ -280,17 +294,17 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
             cull(i, means2d, depths, conics, opac_out, radii, counts, ends)
             return
         op = opacities[c, n]
-        if antialiased != 0:
+        if params.antialiased != 0:
             op = op * wp.sqrt(wp.max(scalar(0.0), det_orig / det))
         if op < alpha_min:
             cull(i, means2d, depths, conics, opac_out, radii, counts, ends)
             return
         ext = sigma_max
-        if opacity_extent != 0 and alpha_min > scalar(0.0):
+        if params.opacity_extent != 0 and alpha_min > scalar(0.0):
             ext = wp.min(sigma_max, wp.sqrt(scalar(2.0) * wp.log(wp.max(op / alpha_min, scalar(1.0)))))
         rx = wp.min(wp.ceil(ext * wp.sqrt(a)), scalar(RADIUS_LIMIT))
         ry = wp.min(wp.ceil(ext * wp.sqrt(cc)), scalar(RADIUS_LIMIT))
-        if rx <= radius_clip and ry <= radius_clip:
+        if rx <= params.radius_clip and ry <= params.radius_clip:
             cull(i, means2d, depths, conics, opac_out, radii, counts, ends)
             return
         mx = fx * p[0] * rz + cx
@@ -309,7 +323,7 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
         r = wp.vec2i(int(rx), int(ry))
         radii[i] = r
         if counts.shape[0] > 0:
-            box = tile_box(vec2(mx, my), r, tile_size, tile_width, tile_height)
+            box = tile_box(vec2(mx, my), r, params.tile_size, params.tile_width, params.tile_height)
             cnt = (box[2] - box[0]) * (box[3] - box[1])
             counts[i] = cnt
             if ends.shape[0] > 0:  # (int64, scanned in place into the intersection ends)

@@ -46,7 +46,7 @@ Public API:
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
-from typing import Optional, Sequence
+from typing import Optional
 
 import numpy as np
 import torch
@@ -282,6 +282,76 @@ def _clusters(total: int, pa: np.ndarray, pc: np.ndarray, order: np.ndarray, con
     return (np.unique(roots, return_inverse=True)[1] if total else roots), refused
 
 
+def _vote_labels(scene: GaussianScene, labels: Tensor, share: Tensor, comp: Tensor, purity: Tensor, offsets: Tensor,
+                 q: int, cfg: AssociationConfig) -> tuple[Tensor, Tensor, int]:
+    """Each Gaussian's instance (0: background) by the views' votes: ``(labels [N], voted [N] bool,
+    instances dropped over the cap)``. Gaussians without votes take their nearest voted ones'."""
+    V, n = labels.shape
+    dev = labels.device
+    # votes: per Gaussian, per view, for the instance of its mask (its share x the mask's purity) or for
+    # the background; kept sparse (at most one vote per Gaussian and view)
+    ar = torch.arange(n, device=dev)
+    gi, li, wi = [], [], []
+    for v in range(V):
+        lv = labels[v]
+        on = lv >= 0
+        g = lv[on] + offsets[v]
+        gi += [ar[on], ar[lv == UNLABELLED]]
+        li += [comp[g] + 1, torch.zeros(int((lv == UNLABELLED).sum()), dtype=torch.long, device=dev)]
+        wi += [share[v][on].double() * purity[g],
+               torch.full((int((lv == UNLABELLED).sum()),), float(cfg.background_vote), dtype=torch.float64,
+                          device=dev)]
+    key_v, inv = torch.unique(torch.cat(gi) * (q + 1) + torch.cat(li), return_inverse=True)
+    tot = torch.zeros(key_v.numel(), dtype=torch.float64, device=dev).index_add_(0, inv, torch.cat(wi))
+    pos = tot > 0
+    vg, vl, tot = key_v[pos] // (q + 1), key_v[pos] % (q + 1), tot[pos]
+    top = torch.zeros(n, dtype=torch.float64, device=dev).scatter_reduce_(0, vg, tot, reduce="amax")
+    win = tot >= top[vg]
+    lab = torch.full((n,), q + 1, dtype=torch.long, device=dev).scatter_reduce_(0, vg[win], vl[win], reduce="amin")
+    has = torch.zeros(n, dtype=torch.bool, device=dev)
+    has[vg] = True
+    lab[~has] = 0
+    # at most max_instances instances (the most Gaussians); the rest join the background
+    counts = torch.bincount(lab[has], minlength=q + 1)
+    counts[0] = 0
+    dropped_cap = max(0, int((counts > 0).sum()) - cfg.max_instances)
+    if dropped_cap:
+        keep = torch.zeros(q + 1, dtype=torch.bool, device=dev)
+        keep[torch.argsort(counts, descending=True, stable=True)[:cfg.max_instances]] = True
+        keep[0] = True
+        lab = torch.where(keep[lab], lab, torch.zeros_like(lab))
+    if bool((~has).any()) and bool(has.any()):
+        pts = scene.means.detach()
+        used, lab_c = torch.unique(lab[has], return_inverse=True)          # vote over the labels in use
+        lab[~has] = used[_knn_vote(pts[~has].double(), pts[has].double(), lab_c, used.numel(), cfg.vote_k)]
+    return lab, has, dropped_cap
+
+
+def _number_instances(scene: GaussianScene, rc: Cameras, lab: Tensor, q: int, cfg: AssociationConfig,
+                      progress: bool) -> tuple[Tensor, Tensor, int, Tensor]:
+    """Instances numbered by their number of Gaussians, largest first: ``(labels [N], remap [q + 1]
+    old -> new id, instances, masks [C, H, W] rendered in ``rc``)``."""
+    dev = lab.device
+    # instances numbered by their number of Gaussians, largest first; those without Gaussians, or that
+    # dominate no pixel of any view, vanish (their Gaussians join the background)
+    remap = torch.arange(q + 1, device=dev)
+    while True:
+        counts = torch.bincount(lab, minlength=q + 1)
+        order = [i for i in sorted(range(1, q + 1), key=lambda i: (-int(counts[i]), i)) if counts[i] > 0]
+        step = torch.zeros(q + 1, dtype=torch.long, device=dev)
+        for new, old in enumerate(order, start=1):
+            step[old] = new
+        lab, remap, q = step[lab], step[remap], len(order)
+        masks = render_label_masks(scene, rc, lab, q + 1, alpha_min=cfg.alpha_min, share_min=cfg.share_min,
+                                   progress=progress)
+        shown = torch.bincount(masks[masks >= 0].flatten(), minlength=q + 1)
+        hidden = (shown[1:] == 0).nonzero().flatten() + 1
+        if hidden.numel() == 0:
+            break
+        lab = torch.where(torch.isin(lab, hidden.to(dev)), torch.zeros_like(lab), lab)
+    return lab, remap, q, masks
+
+
 def associate(scene: GaussianScene, cameras: Cameras, label_maps: Tensor, *,
               config: AssociationConfig = AssociationConfig(), render_cameras: Optional[Cameras] = None,
               progress: bool = False, **raster_kwargs) -> Association:
@@ -352,60 +422,9 @@ def associate(scene: GaussianScene, cameras: Cameras, label_maps: Tensor, *,
     q = int(comp.max()) + 1 if total else 0
     n_clusters = q
 
-    # votes: per Gaussian, per view, for the instance of its mask (its share x the mask's purity) or for
-    # the background; kept sparse (at most one vote per Gaussian and view)
-    ar = torch.arange(n, device=dev)
-    gi, li, wi = [], [], []
-    for v in range(V):
-        lv = labels[v]
-        on = lv >= 0
-        g = lv[on] + offsets[v]
-        gi += [ar[on], ar[lv == UNLABELLED]]
-        li += [comp[g] + 1, torch.zeros(int((lv == UNLABELLED).sum()), dtype=torch.long, device=dev)]
-        wi += [share[v][on].double() * purity[g],
-               torch.full((int((lv == UNLABELLED).sum()),), float(cfg.background_vote), dtype=torch.float64,
-                          device=dev)]
-    key_v, inv = torch.unique(torch.cat(gi) * (q + 1) + torch.cat(li), return_inverse=True)
-    tot = torch.zeros(key_v.numel(), dtype=torch.float64, device=dev).index_add_(0, inv, torch.cat(wi))
-    pos = tot > 0
-    vg, vl, tot = key_v[pos] // (q + 1), key_v[pos] % (q + 1), tot[pos]
-    top = torch.zeros(n, dtype=torch.float64, device=dev).scatter_reduce_(0, vg, tot, reduce="amax")
-    win = tot >= top[vg]
-    lab = torch.full((n,), q + 1, dtype=torch.long, device=dev).scatter_reduce_(0, vg[win], vl[win], reduce="amin")
-    has = torch.zeros(n, dtype=torch.bool, device=dev)
-    has[vg] = True
-    lab[~has] = 0
-    # at most max_instances instances (the most Gaussians); the rest join the background
-    counts = torch.bincount(lab[has], minlength=q + 1)
-    counts[0] = 0
-    dropped_cap = max(0, int((counts > 0).sum()) - cfg.max_instances)
-    if dropped_cap:
-        keep = torch.zeros(q + 1, dtype=torch.bool, device=dev)
-        keep[torch.argsort(counts, descending=True, stable=True)[:cfg.max_instances]] = True
-        keep[0] = True
-        lab = torch.where(keep[lab], lab, torch.zeros_like(lab))
-    if bool((~has).any()) and bool(has.any()):
-        pts = scene.means.detach()
-        used, lab_c = torch.unique(lab[has], return_inverse=True)          # vote over the labels in use
-        lab[~has] = used[_knn_vote(pts[~has].double(), pts[has].double(), lab_c, used.numel(), cfg.vote_k)]
-    # instances numbered by their number of Gaussians, largest first; those without Gaussians, or that
-    # dominate no pixel of any view, vanish (their Gaussians join the background)
+    lab, has, dropped_cap = _vote_labels(scene, labels, share, comp, purity, offsets, q, cfg)
     rc = cameras if render_cameras is None else render_cameras
-    remap = torch.arange(q + 1, device=dev)
-    while True:
-        counts = torch.bincount(lab, minlength=q + 1)
-        order = [i for i in sorted(range(1, q + 1), key=lambda i: (-int(counts[i]), i)) if counts[i] > 0]
-        step = torch.zeros(q + 1, dtype=torch.long, device=dev)
-        for new, old in enumerate(order, start=1):
-            step[old] = new
-        lab, remap, q = step[lab], step[remap], len(order)
-        masks = render_label_masks(scene, rc, lab, q + 1, alpha_min=cfg.alpha_min, share_min=cfg.share_min,
-                                   progress=progress)
-        shown = torch.bincount(masks[masks >= 0].flatten(), minlength=q + 1)
-        hidden = (shown[1:] == 0).nonzero().flatten() + 1
-        if hidden.numel() == 0:
-            break
-        lab = torch.where(torch.isin(lab, hidden.to(dev)), torch.zeros_like(lab), lab)
+    lab, remap, q, masks = _number_instances(scene, rc, lab, q, cfg, progress)
     k = q
     mask_instance = []
     for v in range(V):

@@ -17,6 +17,7 @@ import traceback
 from pathlib import Path
 from typing import Optional, Sequence
 
+from . import weights
 from .errors import SsgwarpError
 
 # name -> (module, one-line help, examples)
@@ -131,8 +132,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             return 0
         seed_everything(args.seed)
         args.device = resolve_device(args.device)
-        from . import weights
-
         with weights.offline("--offline") if args.offline else contextlib.nullcontext():
             return int(module.run(args) or 0)
     except SsgwarpError as e:
@@ -141,8 +140,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f"ssgwarp: error: {_one_line(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("ssgwarp: interrupted; completed checkpoints are kept (rerun with --resume to continue)",
-              file=sys.stderr)
+        if os.environ.get("RANK", "0") == "0":  # (under torchrun: said once, by the main process)
+            print("ssgwarp: interrupted; completed checkpoints are kept (rerun with --resume to continue)",
+                  file=sys.stderr)
         return 130
     except (ValueError, FileNotFoundError, OSError) as e:
         if debug:

@@ -29,8 +29,12 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+import torch
 
 from .errors import InputError
+from .fileio import atomic_path
+from .geometry import quat_to_rotmat, rotmat_to_quat
+from .lens import Lens
 
 # model id -> (name, number of parameters), as in COLMAP's camera model list
 MODELS: dict[int, tuple[str, int]] = {
@@ -83,8 +87,6 @@ class ColmapCamera:
     @property
     def lens(self):
         """The distortion as a :class:`ssgwarp.lens.Lens` (None for the pinhole models)."""
-        from .lens import Lens
-
         if self.model in ("SIMPLE_PINHOLE", "PINHOLE"):
             return None
         if self.model not in SUPPORTED:
@@ -145,37 +147,17 @@ class ColmapModel:
 
 
 def qvec_to_rotmat(q: np.ndarray) -> np.ndarray:
-    """``[3, 3]`` rotation of a (normalised here) wxyz quaternion."""
+    """``[3, 3]`` rotation of a (normalised here) wxyz quaternion (:func:`ssgwarp.geometry.quat_to_rotmat`)."""
     q = np.asarray(q, dtype=np.float64)
     n = np.linalg.norm(q)
     if not np.isfinite(n) or n == 0:
         raise InputError(f"invalid quaternion {q.tolist()}")
-    w, x, y, z = q / n
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return quat_to_rotmat(torch.from_numpy(q / n), normalize=False).numpy()
 
 
 def rotmat_to_qvec(R: np.ndarray) -> np.ndarray:
-    """wxyz quaternion (w >= 0) of a rotation matrix."""
-    R = np.asarray(R, dtype=np.float64)
-    tr = np.trace(R)
-    if tr > 0:
-        s = 2.0 * np.sqrt(tr + 1.0)
-        q = np.array([0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s])
-    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
-        q = np.array([(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s])
-    elif R[1, 1] > R[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
-        q = np.array([(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s])
-    else:
-        s = 2.0 * np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
-        q = np.array([(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s])
-    q /= np.linalg.norm(q)
-    return -q if q[0] < 0 else q
+    """wxyz quaternion (w >= 0) of a rotation matrix (:func:`ssgwarp.geometry.rotmat_to_quat`)."""
+    return rotmat_to_quat(torch.from_numpy(np.asarray(R, dtype=np.float64))).numpy()
 
 
 # ----------------------------------------------------------------------------- binary
@@ -484,8 +466,6 @@ def read_model(folder: str | Path, points: bool = True) -> ColmapModel:
 def write_model_text(folder: str | Path, cameras: dict[int, ColmapCamera], images: dict[int, ColmapImage],
                      points: Optional[ColmapPoints] = None) -> None:
     """Write a model in COLMAP's text format (atomically, file by file)."""
-    from .fileio import atomic_path
-
     folder = Path(folder)
     lines = ["# Camera list: CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"]
     for c in cameras.values():

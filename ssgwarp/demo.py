@@ -298,11 +298,16 @@ def run_demo(out: str | Path = "ssgwarp-demo", size="default", *, device=None, s
              matching=sm["matching"], nnfm=_nnfm_history(styl_dir / "stage2.ckpt"),
              substages={k: round(v, 3) for k, v in sm["seconds"].items()},
              gram_style_loss=sm["gram_style_loss"], gram_style_loss_original=sm["gram_style_loss_original"],
-             content_loss=sm["content_loss"], extractor=sm["extractor"], keyviews=sm["keyviews"])
+             style_distance=sm["style_distance"], style_distance_original=sm["style_distance_original"],
+             content_loss=sm["content_loss"], extractor=sm["extractor"], keyviews=sm["keyviews"],
+             style_loss=sm["style_loss"], weight_free=not str(sm["extractor"]).startswith("vgg16"),
+             color_transfer=sm["color_transfer"]["setting"])
     sty = stages["stylize"]
     times["stylize"] = sty["seconds"]
-    say(f"      Stage 2 matched {sty['matching']}; Gram style loss {_fmt(sty['gram_style_loss_original'])} -> "
-        f"{_fmt(sty['gram_style_loss'])}, content loss {_fmt(sty['content_loss'])}")
+    say(f"      {_path(sty)}")
+    say(f"      Stage 2 matched {sty['matching']}; {_distances(sty)}; Gram style loss "
+        f"{_fmt(sty['gram_style_loss_original'])} -> {_fmt(sty['gram_style_loss'])}, content loss "
+        f"{_fmt(sty['content_loss'])}")
 
     # -- 5. evaluate ------------------------------------------------------------------------------
     from .evaluate import EvalOptions, comparison_table, evaluate_run, load_models
@@ -350,7 +355,7 @@ def run_demo(out: str | Path = "ssgwarp-demo", size="default", *, device=None, s
     style = torch.from_numpy(read_image(out / "style.png", 3))
     title = (f"ssgwarp demo ({name}): {rec['gaussians']} Gaussians, PSNR {_fmt(rec['psnr'], '.2f')} dB, "
              f"K={grp['groups']} groups, Stage 1 {'ran' if sty['stage1'].get('ran') else 'skipped (no weights)'}, "
-             f"Gram style loss {_fmt(sty['gram_style_loss_original'], '.3g')} -> {_fmt(sty['gram_style_loss'], '.3g')}")
+             f"{_distances(sty)}")
     sheet = _contact_sheet(out / "contact_sheet.png", rows, style, title, grp.get("kind", "mask-free clusters"))
     times["sheet"] = time.perf_counter() - t0
     done("sheet", seconds=times["sheet"])
@@ -367,7 +372,10 @@ def run_demo(out: str | Path = "ssgwarp-demo", size="default", *, device=None, s
         "cross_view_agreement": grp["cross_view_agreement"],
         "stage1": sty["stage1"], "stage1_missing_weights": sty.get("stage1_missing", []),
         "matching": sty["matching"], "extractor": sty["extractor"], "nnfm_style_loss": sty.get("nnfm"),
+        "style_loss": sty.get("style_loss", "nnfm"), "weight_free": sty.get("weight_free", True),
+        "color_transfer": sty.get("color_transfer", "off"),
         "gram_style_loss_original": sty["gram_style_loss_original"], "gram_style_loss": sty["gram_style_loss"],
+        "style_distance_original": sty.get("style_distance_original"), "style_distance": sty.get("style_distance"),
         "content_loss": sty["content_loss"],
         "consistency_rmse": {"reconstruction": {"short": rmse(ev_rec, "short"), "long": rmse(ev_rec, "long")},
                              "stylized": {"short": rmse(ev_sty, "short"), "long": rmse(ev_sty, "long")}},
@@ -377,6 +385,26 @@ def run_demo(out: str | Path = "ssgwarp-demo", size="default", *, device=None, s
     }
     write_json(out / "summary.json", summary)
     return summary
+
+
+def _path(d: dict) -> str:
+    """Which Stage 2 path ran: with pretrained weights (Stage 1, VGG16) or weight-free."""
+    st1 = "Stage 1 ran" if (d.get("stage1") or {}).get("ran") else "no Stage 1"
+    if d.get("weight_free", True):
+        what = f"weight-free ({st1}, random features {d.get('extractor')}"
+    else:
+        what = f"with pretrained weights ({st1}, VGG16 features"
+    return (f"Stage 2 path: {what}, {str(d.get('style_loss', 'nnfm')).upper()} style loss, colour transfer "
+            f"{d.get('color_transfer', 'off')})")
+
+
+def _distances(d: dict) -> str:
+    """'style distance colour a -> b, texture c -> d' (weight-free, lower = closer), or '' when absent."""
+    b, a = d.get("style_distance_original") or {}, d.get("style_distance") or {}
+    if not a:
+        return "style distance n/a"
+    return (f"style distance colour {_fmt(b.get('color'), '.3g')} -> {_fmt(a.get('color'), '.3g')}, "
+            f"texture {_fmt(b.get('texture'), '.3g')} -> {_fmt(a.get('texture'), '.3g')}")
 
 
 def _nnfm_history(ckpt: Path) -> Optional[list[float]]:
@@ -410,7 +438,7 @@ def format_summary(s: dict) -> str:
     else:
         st1_line = f"skipped: {st1.get('reason', 'no weights')}"
     nn = s.get("nnfm_style_loss")
-    nn_line = f", NNFM style loss {_fmt(nn[0])} -> {_fmt(nn[1])}" if nn else ""
+    nn_line = f", {str(s.get('style_loss', 'nnfm')).upper()} style loss {_fmt(nn[0])} -> {_fmt(nn[1])}" if nn else ""
     c = s["consistency_rmse"]
     lines = [
         f"ssgwarp demo ({s['size']}: {s['views']} views {s['resolution'][0]}x{s['resolution'][1]}, "
@@ -426,11 +454,12 @@ def format_summary(s: dict) -> str:
         f"  {'  key views':<22}{sub.get('keyviews', 0):>8.1f}s",
         f"  {'  Stage 1 (diffusion)':<22}{sub.get('stage1', 0):>8.1f}s  {st1_line}",
         f"  {'  Stage 2 (IST)':<22}{sub.get('stage2', 0):>8.1f}s  matching {s['matching']}{nn_line}",
+        f"  {_path(s)}",
         f"  {'  renders + metrics':<22}{sub.get('renders', 0) + sub.get('metrics', 0):>8.1f}s",
         f"  {'evaluate':<22}{sec.get('evaluate', 0):>8.1f}s",
         f"  {'contact sheet':<22}{sec.get('sheet', 0):>8.1f}s",
-        f"  Gram style loss {_fmt(s['gram_style_loss_original'])} -> {_fmt(s['gram_style_loss'])} "
-        f"(features {s['extractor']}), content loss {_fmt(s['content_loss'])}",
+        f"  {_distances(s)}; Gram style loss {_fmt(s['gram_style_loss_original'])} -> "
+        f"{_fmt(s['gram_style_loss'])} (features {s['extractor']}), content loss {_fmt(s['content_loss'])}",
         f"  consistency RMSE (reprojection, short/long range): reconstruction "
         f"{_fmt(c['reconstruction']['short'], '.4f')}/{_fmt(c['reconstruction']['long'], '.4f')}, stylized "
         f"{_fmt(c['stylized']['short'], '.4f')}/{_fmt(c['stylized']['long'], '.4f')}",

@@ -3,7 +3,8 @@
 Anything a user can cause (a missing file, a corrupt PLY, a bad flag) raises
 :class:`SsgwarpError` (or a subclass) with a one-line message that says what
 was wrong and how to fix it. The CLI prints that line and exits with code 2;
-``--debug`` shows the traceback.
+``--debug`` shows the traceback. A Ctrl-C stays a ``KeyboardInterrupt``: the stages write their
+checkpoint and re-raise it, and the CLI exits with code 130.
 """
 
 
@@ -17,7 +18,3 @@ class InputError(SsgwarpError, ValueError):
 
 class WeightsNotFound(SsgwarpError):
     """Pretrained weights were asked for but are not on this machine."""
-
-
-class Interrupted(SsgwarpError):
-    """A long run was stopped (Ctrl-C); its last checkpoint is kept."""

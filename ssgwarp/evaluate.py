@@ -6,12 +6,15 @@ A run folder is either
 * a stylize output (``scene.ply`` + ``metrics.json`` naming its ``source_scene``
   reconstruction and its ``style`` image).
 
-For each run: render every selected camera (RGB + expected depth + alpha),
-measure short-range (adjacent views) and long-range (views ``--gap`` apart)
+For each run: render the scored cameras — by default novel views on a smooth
+camera path through the training cameras (``--views path``; ``test`` = the
+held-out captured views, ``train`` / ``all`` the old behaviour) —, measure
+short-range (adjacent views) and long-range (views ``--gap`` apart)
 consistency by warping view A into view B (:mod:`ssgwarp.metrics`), the Gram
-style loss against the style image, the content loss against the unstylized
-source renders (stylize outputs), and PSNR / SSIM against the captured images
-(reconstructions). Results go into ``RUN/metrics.json`` under ``"evaluation"``
+style loss and the weight-free style distances (colour and filter-bank sliced
+Wasserstein, :class:`ssgwarp.metrics.StyleDistance`) against the style image,
+the content loss against the unstylized source renders (stylize outputs), and
+PSNR / SSIM against the captured test images (reconstructions). Results go into ``RUN/metrics.json`` under ``"evaluation"``
 (other keys are kept), inspection images into ``RUN/evaluation/``, and one
 markdown table compares all runs (``--table``, printed too).
 """
@@ -32,6 +35,7 @@ from .errors import InputError
 
 PAIR_KINDS = ("short", "long")
 WARPS = ("auto", "reprojection", "flow", "both")
+VIEW_SETS = ("path", "test", "train", "all")
 
 
 # ----------------------------------------------------------------------------- options
@@ -43,7 +47,8 @@ class EvalOptions:
     pairs: tuple[str, ...] = PAIR_KINDS
     gap: int = 7                         # long-range view gap
     max_pairs: int = 16                  # per kind (0: all)
-    views: str = "all"                   # all | train | test
+    views: str = "path"                  # path (novel views) | test (held out) | train | all
+    path_frames: int = 30                # frames of the novel-view path (views=path)
     max_side: int = 0                    # evaluate at this longer image side (0: the cameras' resolution)
     depth_tol: float = 0.02              # relative depth tolerance of the occlusion test
     alpha_min: float = 0.9               # pixels with lower render alpha are not compared
@@ -65,8 +70,10 @@ class EvalOptions:
             raise InputError(f"--gap {self.gap}: must be >= 1")
         if self.max_pairs < 0:
             raise InputError(f"--max-pairs {self.max_pairs}: must be >= 0 (0 = all pairs)")
-        if self.views not in ("all", "train", "test"):
-            raise InputError(f"--views {self.views}: use all, train or test")
+        if self.views not in VIEW_SETS:
+            raise InputError(f"--views {self.views}: use {', '.join(VIEW_SETS)}")
+        if self.path_frames < 2:
+            raise InputError(f"--path-frames {self.path_frames}: must be >= 2 (consistency needs pairs)")
         if self.max_side < 0:
             raise InputError(f"--max-side {self.max_side}: must be >= 0")
         if not 0 < self.depth_tol < 1:
@@ -178,6 +185,30 @@ def _select(n: int, train: Sequence[int], test: Sequence[int], which: str) -> li
     else:
         ids = list(range(n))
     return sorted(ids)
+
+
+def scored_cameras(cameras: Cameras, train: Sequence[int], test: Sequence[int], opts: EvalOptions
+                   ) -> tuple[Cameras, Optional[list[int]], str]:
+    """The cameras ``evaluate`` scores, their capture indices (None for path views) and a description.
+
+    ``path``: ``opts.path_frames`` novel views on :func:`ssgwarp.render.smooth_path` through the
+    training cameras (as the 3D style transfer papers score videos along a path), taken half a
+    frame off the path's start so that no frame sits on the training camera the path starts at;
+    ``test``: the held-out captured views; ``train`` / ``all``: captured views.
+    """
+    if opts.views == "path":
+        from .render import smooth_path
+
+        base = list(train) or list(range(len(cameras)))
+        # the odd frames of a path twice as dense: the path starts on a training camera, these do not
+        cams = smooth_path(cameras[base], 2 * opts.path_frames)[list(range(1, 2 * opts.path_frames, 2))]
+        cams.names = [f"frame_{i:04d}" for i in range(len(cams))]
+        return cams, None, (f"{opts.path_frames} novel views on a smooth path through the {len(base)} "
+                            f"training cameras")
+    ids = _select(len(cameras), train, test, opts.views)
+    what = {"test": "held-out (test) captured views", "train": "training views",
+            "all": "all captured views (training and held out)"}[opts.views]
+    return cameras[ids], ids, f"{len(ids)} {what}"
 
 
 # ----------------------------------------------------------------------------- pieces
@@ -313,13 +344,14 @@ def evaluate_run(run_dir: str | Path, opts: EvalOptions, device: torch.device | 
         src_scene, data = load_run(src_dir, device=device, data_dir=opts.data_dir, load_images=False)
         need_images = False
     scene = read_ply(info.scene_ply).to(device) if info.kind == "stylized" else src_scene
-    ids = _select(len(data.cameras), data.train_ids, data.test_ids, opts.views)
-    if len(ids) == 0:
-        raise InputError(f"{info.path}: no '{opts.views}' views to evaluate (try --views all)")
-    cams = _scaled(data.cameras[ids], opts.max_side).to(device)
+    if opts.views != "path" and not _select(len(data.cameras), data.train_ids, data.test_ids, opts.views):
+        raise InputError(f"{info.path}: no '{opts.views}' views to evaluate (try --views path or all)")
+    cams, ids, scored = scored_cameras(data.cameras, data.train_ids, data.test_ids, opts)
+    cams = _scaled(cams, opts.max_side).to(device)
     names = [Path(n).stem for n in cams.names]
     bg = list(data.background)
-    result.update({"views": len(ids), "view_split": opts.views, "resolution": [cams.width, cams.height],
+    result.update({"views": len(cams), "view_split": opts.views, "views_scored": scored,
+                   "resolution": [cams.width, cams.height],
                    "gaussians": len(scene), "sh_degree": scene.sh_degree, "background": bg})
 
     rgb, depth, alpha = render_views(scene, cams, bg, desc=f"render {info.path.name}")
@@ -332,21 +364,29 @@ def evaluate_run(run_dir: str | Path, opts: EvalOptions, device: torch.device | 
 
     # style / content
     style_path = Path(opts.style) if opts.style else info.style
+    sc: dict[str, Any] = {}
+    style = None
+    if style_path is not None and style_path.is_file():
+        style = _load_style(style_path, device)
+        sc["style_image"] = str(style_path)
+    elif style_path is not None:
+        skipped["style"] = f"style image {style_path} not found (pass --style)"
+    else:
+        skipped.setdefault("style", "no style image (pass --style)")
+    originals = orig_alpha = None
+    if info.kind == "stylized" and (extractor is not None or style is not None):
+        originals, _, orig_alpha = render_views(src_scene, cams, bg, desc=f"source {info.path.name}")
     if extractor is not None:
-        sc: dict[str, Any] = {"extractor": getattr(extractor, "name", type(extractor).__name__)}
-        style = None
-        if style_path is not None and style_path.is_file():
-            style = _load_style(style_path, device)
-            sc["style_image"] = str(style_path)
-        elif style_path is not None:
-            skipped["style"] = f"style image {style_path} not found (pass --style)"
-        else:
-            skipped.setdefault("style", "no style image (pass --style)")
-        originals = None
-        if info.kind == "stylized":
-            originals, _, _ = render_views(src_scene, cams, bg, desc=f"source {info.path.name}")
-        losses = _style_content(extractor, rgb, style, originals)
-        sc.update(losses)
+        sc["extractor"] = getattr(extractor, "name", type(extractor).__name__)
+        sc.update(_style_content(extractor, rgb, style, originals))
+    if style is not None:
+        from .metrics import StyleDistance
+
+        dist = StyleDistance(style)       # on the scene's pixels (alpha >= 0.5): the background is not the scene
+        sc.update({f"style_distance_{k}": v for k, v in dist.mean(rgb, alpha).items()})
+        if originals is not None:   # the unstylized source from the same cameras: before / after in one run
+            sc.update({f"style_distance_{k}_original": v for k, v in dist.mean(originals, orig_alpha).items()})
+    if sc:
         result["style_content"] = sc
 
     # reconstruction quality
@@ -359,8 +399,8 @@ def evaluate_run(run_dir: str | Path, opts: EvalOptions, device: torch.device | 
             from .datasets import resize_images
 
             targets = resize_images(targets, qcams.height, qcams.width)
-        pos = {i: k for k, i in enumerate(ids)}
-        if all(i in pos for i in qids) and qcams.width == cams.width:
+        pos = {i: k for k, i in enumerate(ids or [])}
+        if ids is not None and all(i in pos for i in qids) and qcams.width == cams.width:
             renders = rgb[[pos[i] for i in qids]]
         else:
             renders, _, _ = render_views(scene, qcams, bg, desc=f"quality {info.path.name}")
@@ -458,6 +498,7 @@ def comparison_table(results: Sequence[dict]) -> str:
 
     row("kind", lambda r: r["kind"] + (f" ({r['mode']})" if r.get("mode") else ""))
     row("views, resolution", lambda r: f"{r['views']} ({r['view_split']}), {r['resolution'][0]}x{r['resolution'][1]}")
+    row("views scored", lambda r: r["views_scored"])
     warps = sorted({w for r in results for w in r.get("consistency", {})}, key=lambda w: w != "reprojection")
     for w in warps:
         for kind in PAIR_KINDS:
@@ -469,6 +510,12 @@ def comparison_table(results: Sequence[dict]) -> str:
                                                                         f"{_fmt(100 * g(r, key='coverage'), 3)}% px)"
                                                                         if g(r, key='coverage') is not None else ""))
             row(f"{label} LPIPS ({w})", lambda r, g=get: _fmt(g(r, key="lpips")))
+    row("colour distance (SW, Lab)", lambda r: _fmt(r["style_content"]["style_distance_color"]) + (
+        f" (source {_fmt(r['style_content']['style_distance_color_original'])})"
+        if "style_distance_color_original" in r["style_content"] else ""))
+    row("texture distance (SW, filters)", lambda r: _fmt(r["style_content"]["style_distance_texture"]) + (
+        f" (source {_fmt(r['style_content']['style_distance_texture_original'])})"
+        if "style_distance_texture_original" in r["style_content"] else ""))
     row("Gram style loss", lambda r: _fmt(r["style_content"]["gram_style_loss"]))
     row("content loss", lambda r: _fmt(r["style_content"]["content_loss"]))
     row("feature extractor", lambda r: r["style_content"]["extractor"])
@@ -513,7 +560,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pairs", default="short,long", help="consistency pairs: short, long or short,long")
     p.add_argument("--gap", type=int, default=7, help="view gap of long-range pairs (clamped to the views)")
     p.add_argument("--max-pairs", type=int, default=16, help="pairs per kind, evenly spread (0: all)")
-    p.add_argument("--views", choices=("all", "train", "test"), default="all", help="cameras to evaluate")
+    p.add_argument("--views", choices=VIEW_SETS, default="path",
+                   help="views scored: path = novel views on a smooth path through the training cameras "
+                        "(default, as the papers score), test = held-out captured views, train = training views, "
+                        "all = every captured view (the former default)")
+    p.add_argument("--path-frames", type=int, default=30, help="frames of the novel-view path (--views path)")
     p.add_argument("--max-side", type=int, default=0,
                    help="evaluate at this longer image side (0: the training resolution)")
     p.add_argument("--depth-tol", type=float, default=0.02, help="relative depth tolerance of the occlusion test")
@@ -538,7 +589,8 @@ def options_from_args(args: argparse.Namespace) -> EvalOptions:
     return EvalOptions(
         style=str(args.style) if args.style else None,
         pairs=tuple(s.strip() for s in str(args.pairs).split(",") if s.strip()),
-        gap=int(args.gap), max_pairs=int(args.max_pairs), views=args.views, max_side=int(args.max_side),
+        gap=int(args.gap), max_pairs=int(args.max_pairs), views=args.views, path_frames=int(args.path_frames),
+        max_side=int(args.max_side),
         depth_tol=float(args.depth_tol), alpha_min=float(args.alpha_min), warp=args.warp,
         flow_iters=int(args.flow_iters), save_pairs=int(args.save_pairs),
         vgg=str(args.vgg) if args.vgg else None, lpips=str(args.lpips) if args.lpips else None,
@@ -606,5 +658,5 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-__all__ = ["EvalOptions", "RunInfo", "inspect_run", "render_views", "consistency", "evaluate_run",
+__all__ = ["EvalOptions", "RunInfo", "inspect_run", "render_views", "consistency", "evaluate_run", "scored_cameras",
            "comparison_table", "load_models", "add_arguments", "run"]

@@ -27,12 +27,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Sequence
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 
 from .cameras import Cameras
+from .datasets import load_run
 from .errors import InputError
+from .fileio import claim_output_dir, read_image, read_json, write_image, write_json
+from .grouping_model import load_groups
+from .imaging import as_bhwc, resize_bhwc, save_sheet
+from .palette import colorize_labels
 
 __all__ = ["KeyViews", "select_keyviews", "diffusion_size", "content_size", "to_diffusion", "from_diffusion",
            "diffusion_cameras", "render_keyviews", "save_keyviews", "load_keyviews", "parse_ids",
@@ -125,40 +129,16 @@ def diffusion_size(width: int, height: int, max_side: int = 512) -> tuple[int, i
     return 8 * math.ceil(rw / 8), 8 * math.ceil(rh / 8)
 
 
-def _as_bhwc(img) -> tuple[torch.Tensor, bool, bool]:
-    was_np = not isinstance(img, torch.Tensor)
-    t = torch.as_tensor(np.asarray(img) if was_np else img)
-    squeeze = t.ndim == 3
-    if t.ndim == 2:
-        raise InputError("expected an image [H, W, C] or a batch [B, H, W, C], got [H, W]")
-    if squeeze:
-        t = t[None]
-    if t.ndim != 4:
-        raise InputError(f"expected an image [H, W, C] or [B, H, W, C], got shape {tuple(t.shape)}")
-    return t, squeeze, was_np
-
-
-def _resize(t: torch.Tensor, w: int, h: int) -> torch.Tensor:
-    """``[B, H, W, C]`` → ``[B, h, w, C]`` bilinear (antialiased when shrinking)."""
-    if t.shape[1] == h and t.shape[2] == w:
-        return t
-    x = t.permute(0, 3, 1, 2)
-    dt = x.dtype
-    x = x.float() if not x.is_floating_point() else x
-    x = F.interpolate(x, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
-    return x.to(dt).permute(0, 2, 3, 1)
-
-
 def to_diffusion(img, max_side: int = 512):
     """``[H, W, C]`` or ``[B, H, W, C]`` → the same at :func:`diffusion_size` (resize, then edge-pad right/bottom).
 
     Numpy in, numpy out; torch in, torch out.
     """
-    t, squeeze, was_np = _as_bhwc(img)
+    t, squeeze, was_np = as_bhwc(img)
     h, w = t.shape[1], t.shape[2]
     rw, rh = content_size(w, h, max_side)
     W, H = diffusion_size(w, h, max_side)
-    t = _resize(t, rw, rh)
+    t = resize_bhwc(t, rw, rh)
     if (W, H) != (rw, rh):
         t = F.pad(t.permute(0, 3, 1, 2).float(), (0, W - rw, 0, H - rh), mode="replicate").to(t.dtype)
         t = t.permute(0, 2, 3, 1)
@@ -168,14 +148,14 @@ def to_diffusion(img, max_side: int = 512):
 
 def from_diffusion(img, width: int, height: int):
     """Inverse of :func:`to_diffusion`: crop the top-left content and resize to ``width x height``."""
-    t, squeeze, was_np = _as_bhwc(img)
+    t, squeeze, was_np = as_bhwc(img)
     H, W = t.shape[1], t.shape[2]
     max_side = max(H, W)
     if diffusion_size(width, height, max_side) != (W, H):
         raise InputError(f"a {W}x{H} image is not the diffusion size of {width}x{height} "
                          f"(expected {diffusion_size(width, height, max_side)})")
     rw, rh = content_size(width, height, max_side)
-    t = _resize(t[:, :rh, :rw], int(width), int(height))
+    t = resize_bhwc(t[:, :rh, :rw], int(width), int(height))
     t = t[0] if squeeze else t
     return t.numpy() if was_np else t
 
@@ -292,9 +272,6 @@ def save_keyviews(keyviews: KeyViews, out_dir: str | Path, stylized: Optional[to
     diffusion size; ``keyviews.json`` the ids, camera names, sizes and file
     names (plus ``extra``).
     """
-    from .fileio import write_image, write_json
-    from .palette import colorize_labels
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     kv = keyviews
@@ -315,7 +292,6 @@ def save_keyviews(keyviews: KeyViews, out_dir: str | Path, stylized: Optional[to
             write_image(out / f["stylized"], stylized[j])
         files.append(f)
     if stylized is not None:
-        from .diffusion import save_sheet
         save_sheet(kv.rgb, stylized, out / "sheet.png")
     kv.cameras.save(out / "cameras.json")
     meta = {
@@ -339,8 +315,6 @@ def save_keyviews(keyviews: KeyViews, out_dir: str | Path, stylized: Optional[to
 
 def load_keyviews(out_dir: str | Path, device="cpu") -> tuple[KeyViews, Optional[torch.Tensor]]:
     """Read what :func:`save_keyviews` wrote: ``(KeyViews, stylized [K, H, W, 3] or None)``."""
-    from .fileio import read_image, read_json
-
     out = Path(out_dir)
     meta = read_json(out / "keyviews.json")
     try:
@@ -378,17 +352,12 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from .datasets import load_run   # written in parallel; imported lazily
-
-    from .fileio import claim_output_dir
-
     scene_dir = Path(args.scene_dir)
     device = args.device
     scene, data = load_run(scene_dir, device, load_images=False)  # key views are rendered: cameras suffice
     out = Path(args.out) if args.out is not None else scene_dir / "keyviews"
     classifier = None
     if (scene_dir / "groups" / "classifier.pt").is_file():
-        from .grouping import load_groups
         classifier = load_groups(scene_dir, device).classifier
     cams = data.cameras
     cand = None if args.from_all or not getattr(data, "train_ids", None) else list(data.train_ids)

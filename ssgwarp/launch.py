@@ -94,6 +94,11 @@ def at(ptr: int, n: int, itemsize: int) -> tuple:
     return (ptr, 0, n, 0, 0, 0, itemsize, 0, 0, 0, 1, 0)
 
 
+def _is_struct_type(t) -> bool:
+    """Whether a kernel parameter's type is a ``wp.struct`` (its fields and ctypes layout)."""
+    return hasattr(t, "vars") and hasattr(t, "ctype") and hasattr(t, "instance_type")
+
+
 def _array_t(v: tuple):
     nd = v[10]
     return array_t(v[0], v[1], nd, v[2:2 + nd], v[6:6 + nd], v[11])
@@ -235,12 +240,19 @@ class _Plan:
             self.cuda_launch = _wpc.runtime.core.wp_cuda_launch_kernel
 
     def unflatten(self, flat: list) -> list:
-        """The Warp arguments of a flat argument list (array descriptors spliced in as 12 values)."""
+        """The Warp arguments of a flat argument list (array descriptors spliced in as 12 values,
+        structures of scalars as their fields in order)."""
         out, i = [], 0
         for a in self.kernel.adj.args:
             if wp.types.is_array(a.type):
                 out.append(_array_t(tuple(flat[i:i + 12])))
                 i += 12
+            elif _is_struct_type(a.type):  # a parameter block: its fields in order
+                inst = a.type()
+                for name in a.type.vars:
+                    setattr(inst, name, flat[i])
+                    i += 1
+                out.append(inst)
             else:
                 out.append(flat[i])
                 i += 1

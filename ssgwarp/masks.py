@@ -44,8 +44,12 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from . import weights
+from .association import AssociationConfig, associate
+from .datasets import load_run
 from .errors import InputError, SsgwarpError
 from .fileio import atomic_path, read_json, write_json
+from .grouping_masks import load_masks, read_id_image
 
 Tensor = torch.Tensor
 FORMAT = "ssgwarp-masks-1"
@@ -150,8 +154,6 @@ def load_sam(path: str | Path, device=None) -> SamSegmenter:
     try:
         model = SamModel.from_pretrained(str(path), local_files_only=True)
     except (OSError, ValueError, KeyError, RuntimeError) as e:
-        from . import weights
-
         raise weights.load_error("sam", path, e) from None
     finally:
         tlog.set_verbosity(verbosity)
@@ -312,8 +314,6 @@ def _segment_views(scene_dir: Path, data, views: Sequence[int], sam: SamSegmente
     """SAM label maps of ``views`` (``[V, H, W]`` long, -1 uncovered), each saved to ``sam_masks/`` when done."""
     from tqdm.auto import tqdm
 
-    from .grouping import _read_id_image
-
     cams = data.cameras
     raw_dir = scene_dir / "sam_masks"
     settings = {"weights": sam.source, "image_size": sam.image_size, "config": asdict(config),
@@ -330,7 +330,7 @@ def _segment_views(scene_dir: Path, data, views: Sequence[int], sam: SamSegmente
         path = raw_dir / f"{_stem(name)}.png"
         t0 = time.perf_counter()
         if resume and path.is_file():
-            ids = torch.from_numpy(_read_id_image(path)).long() - 1     # stored +1: 0 = uncovered
+            ids = torch.from_numpy(read_id_image(path)).long() - 1     # stored +1: 0 = uncovered
             if tuple(ids.shape) != (cams.height, cams.width):
                 raise InputError(f"{path}: {ids.shape[1]}x{ids.shape[0]} but the views are "
                                  f"{cams.width}x{cams.height}; rerun with --force")
@@ -361,11 +361,6 @@ def make_masks(scene_dir: str | Path, *, sam: Optional[str | Path] = None, view_
         association: :class:`ssgwarp.association.AssociationConfig`.
         segmenter: an already loaded :class:`SamSegmenter` (skips the weights lookup).
     """
-    from . import weights
-    from .association import AssociationConfig, associate
-    from .datasets import load_run
-    from .grouping import load_masks
-
     t_all = time.perf_counter()
     scene_dir = Path(scene_dir)
     config = config.validate()

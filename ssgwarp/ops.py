@@ -12,12 +12,13 @@ input checks' flags).
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 import warp as wp
 
 from . import launch as L
 from .kernels import binning, blend_backward, blend_forward, projection, sh, validate
-from .kernels.types import channel_vector, types_for
 from .launch import NULL, arr, rows
 
 Tensor = torch.Tensor
@@ -112,7 +113,7 @@ class _Project(torch.autograd.Function):
             splats = torch.empty(C, N, 6, dtype=dt, device=dev)
         outs = [means2d, depths, conics, opac, radii]
         kern = projection.projection_kernel(s, *cfg["variant"])
-        head = _project_args(ins, C, N) + cfg["scalars"]
+        head = _project_args(ins, C, N) + list(cfg["params"])
         tail = [*arr(means2d, 2), *arr(depths), *arr(conics, 3), *arr(opac), *arr(radii, 2)]
         checks, keep = _check_args(extra, C, N)
         ends = None if extra is None else extra.get("ends")
@@ -164,7 +165,7 @@ class _Project(torch.autograd.Function):
         grads = [_adj(g, k, C * N) for g, k in ((g_means2d, 2), (g_depths, 1), (g_conics, 3), (g_opac, 1))]
         if any(g[1] is not None for g in grads) and any(need[:5]):
             adj = [*_grid(v_means, C, N, 3), *_grid(v_quats, C, N, 4), *_grid(v_scales, C, N, 3), *_grid(v_opac, C, N, 1),
-                   *_grid(v_view, C, N, 16), *NULL, *_ADJ_SCALARS, *_NO_CHECKS, *grads[0][0], *grads[1][0],
+                   *_grid(v_view, C, N, 16), *NULL, *_ADJ_PARAMS, *_NO_CHECKS, *grads[0][0], *grads[1][0],
                    *grads[2][0], *grads[3][0], *NULL, *NULL, *NULL, *NULL]
             L.launch(projection.projection_kernel(s, *cfg["variant"]), (C, N), ctx.args, tg, adj=adj)
         if C > 1:
@@ -179,8 +180,28 @@ class _Project(torch.autograd.Function):
         return v_means, v_quats, v_scales, v_opac, v_view, None, v_coeffs, v_campos, None, None
 
 
-# the adjoints of the projection's scalar parameters (ignored): width, height, six reals, five integers
-_ADJ_SCALARS = [0] * 2 + [0.0] * 6 + [0] * 5
+class ProjectionParams(NamedTuple):
+    """The projection kernel's parameter block (``kernels/projection.py: projection_params``, the
+    same fields in the same order), passed to a launch as its fields (``*params``)."""
+
+    width: int
+    height: int
+    near_plane: float
+    far_plane: float
+    eps2d: float
+    radius_clip: float
+    alpha_min: float
+    sigma_max: float
+    opacity_extent: int
+    antialiased: int
+    tile_size: int = 0
+    tile_width: int = 0
+    tile_height: int = 0
+
+
+assert ProjectionParams._fields == tuple(name for name, _ in projection.PARAM_FIELDS)
+# the adjoint of the parameter block (not read: nothing is differentiated with respect to it)
+_ADJ_PARAMS = ProjectionParams(0, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0)
 # the projection's check parameters when it runs no checks: colours, row, per camera, backgrounds, row, flags
 _NO_CHECKS = [*NULL, 0, 0, *NULL, 0, *NULL]
 
@@ -248,14 +269,17 @@ def project_warp(means, quats, scales, opacities, viewmats, Ks, width, height, *
 
 def _project_cfg(dtype, width, height, near_plane, far_plane, radius_clip, eps2d, antialiased, settings,
                  tile_size=0, tile_width=0, tile_height=0, sh_degree=None) -> dict:
-    return {
-        "scalars": [int(width), int(height), float(near_plane), float(far_plane), float(eps2d), float(radius_clip),
-                    float(settings.alpha_min), float(settings.sigma_max), int(settings.extent == "opacity"),
-                    int(bool(antialiased)), int(tile_size), int(tile_width), int(tile_height)],
-        "variant": (settings.covariance, _fast(settings, _scalar(dtype))),
-        "tile_size": int(tile_size),
-        "sh_degree": sh_degree,
-    }
+    """What :class:`_Project` needs besides tensors: ``params`` (:class:`ProjectionParams`),
+    ``variant`` (the kernel's build: covariance form, fast maths), ``tile_size`` and
+    ``sh_degree``."""
+    params = ProjectionParams(
+        width=int(width), height=int(height), near_plane=float(near_plane), far_plane=float(far_plane),
+        eps2d=float(eps2d), radius_clip=float(radius_clip), alpha_min=float(settings.alpha_min),
+        sigma_max=float(settings.sigma_max), opacity_extent=int(settings.extent == "opacity"),
+        antialiased=int(bool(antialiased)), tile_size=int(tile_size), tile_width=int(tile_width),
+        tile_height=int(tile_height))
+    return {"params": params, "variant": (settings.covariance, _fast(settings, _scalar(dtype))),
+            "tile_size": int(tile_size), "sh_degree": sh_degree}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -267,7 +291,7 @@ class _SH(torch.autograd.Function):
         shape = dirs.shape[:-1]
         d = _c(dirs).reshape(-1, 3)
         c = _c(coeffs).reshape(d.shape[0], -1, 3)
-        M, K = c.shape[0], c.shape[1]
+        M = c.shape[0]
         s = _scalar(dirs.dtype)
         out = torch.empty_like(d)
         L.launch(sh.sh_kernel(s, degree), (1, M), [*L.grid(d, 1, M, 3, True), *_coeff_rows(c), *arr(out, 3)], L.target(d))

@@ -45,6 +45,7 @@ import torch
 
 from .cameras import Cameras, intrinsics, look_at
 from .errors import InputError
+from .fileio import write_image, write_json
 from .scene import GaussianScene, rgb_to_sh_dc
 
 OBJECT_NAMES = ("ground", "red sphere", "blue box", "green torus", "yellow cone")
@@ -263,8 +264,6 @@ def write_transforms_dataset(folder: str | Path, images: torch.Tensor, cameras: 
     ``transform_matrix`` is camera-to-world in OpenGL axes (x right, y up, z back),
     with ``fl_x fl_y cx cy w h`` and ``camera_angle_x``. Returns the JSON's path.
     """
-    from .fileio import write_image, write_json
-
     folder = Path(folder)
     C, H, W = images.shape[:3]
     if C != len(cameras) or (W, H) != (cameras.width, cameras.height):

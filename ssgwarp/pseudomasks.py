@@ -36,6 +36,7 @@ import torch
 
 from .cameras import Cameras
 from .errors import InputError
+from .geometry import knn_indices
 from .scene import GaussianScene
 
 Tensor = torch.Tensor
@@ -224,20 +225,15 @@ def _nearest(x: Tensor, centroids: Tensor, chunk: int = 8192) -> tuple[Tensor, T
     return torch.cat(idx), torch.cat(dist)
 
 
-def _knn_vote(x: Tensor, ref: Tensor, ref_labels: Tensor, num_labels: int, k: int, chunk: int = 8192) -> Tensor:
+def _knn_vote(x: Tensor, ref: Tensor, ref_labels: Tensor, num_labels: int, k: int) -> Tensor:
     """``[n]`` majority label among each row's ``k`` nearest rows of ``ref`` (ties: the nearer label wins)."""
     k = max(1, min(k, ref.shape[0]))
-    out = []
-    for s in range(0, x.shape[0], chunk):
-        d = torch.cdist(x[s:s + chunk], ref)
-        idx = d.topk(k, dim=1, largest=False).indices          # sorted nearest first
-        lab = ref_labels[idx]                                  # [c, k]
-        votes = torch.zeros(lab.shape[0], num_labels, dtype=torch.float64, device=x.device)
-        # weight 1 per vote plus a tiny rank bonus so ties go to the nearer neighbour
-        w = 1.0 + 1e-3 * (k - torch.arange(k, device=x.device, dtype=torch.float64)) / k
-        votes.scatter_add_(1, lab, w[None].expand_as(lab).contiguous())
-        out.append(votes.argmax(dim=1))
-    return torch.cat(out)
+    lab = ref_labels[knn_indices(x, ref, k)]                   # [n, k], nearest first
+    votes = torch.zeros(lab.shape[0], num_labels, dtype=torch.float64, device=x.device)
+    # weight 1 per vote plus a tiny rank bonus so ties go to the nearer neighbour
+    w = 1.0 + 1e-3 * (k - torch.arange(k, device=x.device, dtype=torch.float64)) / k
+    votes.scatter_add_(1, lab, w[None].expand_as(lab).contiguous())
+    return votes.argmax(dim=1)
 
 
 def kmeans(x: Tensor, k: int, *, generator: torch.Generator, iters: int = 50, restarts: int = 3,

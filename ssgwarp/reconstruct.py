@@ -49,6 +49,23 @@ CHECKPOINT_FORMAT = "ssgwarp-reconstruct-checkpoint/1"
 OUTPUTS = ("scene.ply", "cameras.json", "data.json", "metrics.json")
 
 
+BATCH_SCALINGS = ("sqrt", "linear", "none")
+_STEP_FIELDS = ("sh_interval", "refine_start", "refine_stop", "refine_every", "reset_every")
+
+
+def batch_factors(batch_size: int, scaling: str = "sqrt") -> tuple[float, float]:
+    """``(lr factor, beta exponent)`` of Adam for ``batch_size`` views per step.
+
+    ``"sqrt"``: learning rates x sqrt(B) (the square-root rule for adaptive optimizers: the mean
+    gradient of B views has 1/sqrt(B) of one view's noise); ``"linear"``: x B; both raise Adam's
+    betas to the power B, so the moments forget at the same rate per image seen. ``"none"``:
+    one view's settings."""
+    b = max(1, int(batch_size))
+    if scaling == "none":
+        return 1.0, 1.0
+    return (math.sqrt(b) if scaling == "sqrt" else float(b)), float(b)
+
+
 @dataclass
 class Recipe:
     """Training knobs; defaults are the 3DGS paper's (3DGS-MCMC's where the strategy says so).
@@ -96,17 +113,34 @@ class Recipe:
     init_scale: Optional[float] = None   # initial scale: this x the mean distance to the 3 nearest points
     init_max_points: Optional[int] = None  # subsample the initial points (None: all)
     identity_init_std: float = 0.1
+    # -- batches of views (--batch-size B) --
+    batch_scaling: str = "sqrt"        # Adam for B views per step: "sqrt" (learning rates x sqrt(B)),
+                                       # "linear" (x B), both with betas ** B; "none": B=1's lrs and betas
 
-    def resolved(self, iters: int, sh_degree: int, strategy="default", random_init: Optional[int] = None) -> "Recipe":
-        """The recipe with every None field set for a run of ``iters`` steps with ``strategy``
-        (``random_init``: the number of initial points when they are random, not a point cloud)."""
+    def resolved(self, iters: int, sh_degree: int, strategy="default", random_init: Optional[int] = None,
+                 batch_size: int = 1) -> "Recipe":
+        """The recipe with every None field set for a run of ``iters`` steps of ``batch_size`` views
+        with ``strategy`` (``random_init``: the number of initial points when they are random, not
+        a point cloud).
+
+        Defaults are set for the run's number of images (``iters * batch_size``) and then counted
+        in steps (divided by ``batch_size``): a batch run refines, resets opacities and raises the
+        SH degree after the same number of images as a one-view run. Values given are steps."""
         from .strategy import make_strategy
 
+        if self.batch_scaling not in BATCH_SCALINGS:
+            raise InputError(f"Recipe.batch_scaling {self.batch_scaling!r}: choose one of {', '.join(BATCH_SCALINGS)}")
+        b = max(1, int(batch_size))
+        images = iters * b
         r = self
+        fill = {}
         if r.sh_interval is None:
-            r = replace(r, sh_interval=max(1, min(1000, iters // (2 * max(1, sh_degree)))))
-        fill = {k: v for k, v in make_strategy(strategy).defaults(iters, random_init).items()
-                if getattr(r, k) is None}
+            fill["sh_interval"] = max(1, min(1000, images // (2 * max(1, sh_degree))))
+        fill.update({k: v for k, v in make_strategy(strategy).defaults(images, random_init).items()
+                     if getattr(r, k) is None})
+        for k in _STEP_FIELDS:  # images -> steps
+            if fill.get(k):
+                fill[k] = max(1, round(fill[k] / b))
         r = replace(r, **fill)
         if r.reset_every is None:
             r = replace(r, reset_every=0)
@@ -175,6 +209,11 @@ class Trainer:
         checkpoint_every: steps between checkpoints.
         rasterize: a gsplat-compatible rasterization function (default ssgwarp's).
         raster_kwargs: extra keyword arguments for it.
+        batch_size: training views per step, over all processes (default: one per process). The
+            loss is their mean; Adam is adapted by ``recipe.batch_scaling`` (:func:`batch_factors`)
+            and the default schedule counts images (:meth:`Recipe.resolved`).
+        group: a :class:`ssgwarp.distributed.Group` when several processes train together (each
+            renders its share of every batch); default: alone.
         device, seed, progress: as usual.
     """
 
@@ -183,7 +222,8 @@ class Trainer:
                  identity_dim: Optional[int] = None, checkpoint_path: Optional[str | Path] = None,
                  checkpoint_every: int = 500, rasterize: Optional[Callable] = None,
                  raster_kwargs: Optional[dict] = None, device=None, seed: int = 0, progress: bool = True,
-                 strategy="default"):
+                 strategy="default", batch_size: Optional[int] = None, group=None):
+        from .distributed import SINGLE
         from .strategy import make_strategy
 
         if iters < 1:
@@ -194,6 +234,13 @@ class Trainer:
             raise InputError(f"max_gaussians must be >= 1, got {max_gaussians}")
         if not data.train_ids:
             raise InputError("no training views")
+        self.group = group if group is not None else SINGLE
+        self.batch_size = int(batch_size) if batch_size is not None else self.group.world_size
+        if self.batch_size < 1:
+            raise InputError(f"batch_size must be >= 1, got {self.batch_size}")
+        if self.batch_size % self.group.world_size:
+            raise InputError(f"--batch-size {self.batch_size} cannot be split evenly between "
+                             f"{self.group.world_size} processes; use a multiple of {self.group.world_size}")
         self.device = torch.device(device) if device is not None else data.device
         self.data = data.to(self.device)
         self.iters = int(iters)
@@ -204,7 +251,8 @@ class Trainer:
         random_init = None
         if scene is None and getattr(data, "points_source", "") == "random" and data.points is not None:
             random_init = self._initial_count(len(data.points[0]), recipe)
-        self.recipe = recipe.resolved(self.iters, self.sh_degree, self.strategy, random_init)
+        self.recipe = recipe.resolved(self.iters, self.sh_degree, self.strategy, random_init, self.batch_size)
+        self.lr_factor, self.beta_power = batch_factors(self.batch_size, self.recipe.batch_scaling)
         self.hooks = list(hooks)
         self.checkpoint_path = Path(checkpoint_path) if checkpoint_path is not None else None
         self.checkpoint_every = int(checkpoint_every)
@@ -213,12 +261,15 @@ class Trainer:
         if rasterize is None:
             self.raster_kwargs.setdefault("validate", False)  # the loss is checked for NaN every step
         self.seed = int(seed)
-        self.progress = progress
+        self.progress = progress and self.group.is_main
         self.extent = float(self.data.extent)
         self.step = 0
         self.elapsed = 0.0
         self.last_checkpoint_step: Optional[int] = None
         self._stop = False
+        self._agreed_stop = False  # the stop request as all processes agreed on it (in the gradient all-reduce)
+        from .distributed import check_every
+        self.check_every = check_every() if self.group.active else 0
         self.history: list[dict] = []
 
         self.view_gen = torch.Generator().manual_seed(self.seed)
@@ -274,21 +325,30 @@ class Trainer:
         return min(n, self.max_gaussians) if self.strategy.budgeted else n
 
     def _lr(self, name: str) -> float:
+        """Learning rate of scene tensor ``name`` for this run's batch size (at step 0)."""
         r = self.recipe
-        return {"means": r.lr_means * self.extent, "log_scales": r.lr_scales, "quats": r.lr_quats,
-                "logit_opacities": r.lr_opacity, "sh_dc": r.lr_sh_dc, "sh_rest": r.lr_sh_rest,
-                "identities": r.lr_identities}[name]
+        return self.lr_factor * {"means": r.lr_means * self.extent, "log_scales": r.lr_scales,
+                                 "quats": r.lr_quats, "logit_opacities": r.lr_opacity, "sh_dc": r.lr_sh_dc,
+                                 "sh_rest": r.lr_sh_rest, "identities": r.lr_identities}[name]
+
+    @property
+    def betas(self) -> tuple[float, float]:
+        """Adam's betas for this run's batch size (0.9, 0.999 raised to :attr:`beta_power`)."""
+        return 0.9 ** self.beta_power, 0.999 ** self.beta_power
 
     def _build_optimizer(self, scene: GaussianScene) -> None:
         from .strategy import GaussianParams
 
         params = {k: torch.nn.Parameter(v.detach().clone().contiguous()) for k, v in scene.tensors().items()}
         groups = [{"params": [p], "lr": self._lr(k), "name": k} for k, p in params.items()]
-        self.gaussians = GaussianParams(params, torch.optim.Adam(groups, eps=self.recipe.adam_eps))
+        self.gaussians = GaussianParams(params, torch.optim.Adam(groups, eps=self.recipe.adam_eps, betas=self.betas))
         hook_groups = []
         for h in self.hooks:
             hook_groups.extend(h.parameters())
-        self.hook_opt = torch.optim.Adam(hook_groups) if hook_groups else None
+        self.hook_opt = torch.optim.Adam(hook_groups, betas=self.betas) if hook_groups else None
+        if self.hook_opt is not None and self.lr_factor != 1.0:
+            for g in self.hook_opt.param_groups:
+                g["lr"] *= self.lr_factor
 
     def _hook_params(self) -> list[torch.Tensor]:
         if self.hook_opt is None:
@@ -330,27 +390,32 @@ class Trainer:
             self._queue = ids[torch.randperm(len(ids), generator=self.view_gen)].tolist()
         return self._queue.pop()
 
+    def next_batch(self) -> list[int]:
+        """The next step's ``batch_size`` views (all processes draw the same; each renders its share).
+        Consecutive batches are consecutive runs of the one-view order."""
+        return [self._next_view() for _ in range(self.batch_size)]
+
     def _set_lrs(self) -> None:
         r = self.recipe
         t = min(1.0, self.step / max(1, self.iters))
         lr0, lr1 = r.lr_means * self.extent, r.lr_means_final * self.extent
-        self.gaussians.groups["means"]["lr"] = math.exp(math.log(lr0) * (1 - t) + math.log(lr1) * t)
+        self.gaussians.groups["means"]["lr"] = self.lr_factor * math.exp(math.log(lr0) * (1 - t) + math.log(lr1) * t)
 
     def train_step(self) -> dict:
         """One optimisation step (``self.step`` counts completed steps)."""
         from .losses import photometric
 
         r = self.recipe
-        vi = self._next_view()
+        views = self.group.share(self.next_batch())  # this process's views of the step's batch
         self._set_lrs()
-        cam = self.data.cameras[vi]
-        gt = self.data.images[vi][None]
+        cam = self.data.cameras[views]
+        gt = torch.stack([self.data.images[v] for v in views])
         scene = self.scene
         with_ids = bool(self.hooks) and scene.identities is not None
         ch = 3 + (scene.identities.shape[1] if with_ids else 0)
         bg = self._bg.get(ch)
         if bg is None:
-            bg = self._bg[ch] = self.data.background_tensor(ch)[None]
+            bg = self._bg[ch] = self.data.background_tensor(ch)[None].expand(len(views), -1).contiguous()
         try:
             out, alphas, meta = render_views(scene, cam, sh_degree=self.active_sh_degree, identities=with_ids,
                                              backgrounds=bg, rasterize=self.rasterize, **self.raster_kwargs)
@@ -362,19 +427,28 @@ class Trainer:
         if self.strategy.uses_means2d_grad and means2d.requires_grad:
             means2d.retain_grad()
         img = out[..., :3]
-        loss = photometric(img, gt, r.lambda_dssim, r.dssim_scale)
+        loss = photometric(img, gt, r.lambda_dssim, r.dssim_scale)  # (the mean over the views)
         reg = self.strategy.regularizer(self.gaussians)
         if reg is not None:
             loss = loss + reg
         hook_losses = []
         if with_ids:
             for h in self.hooks:
-                hook_losses.append(h.loss(self.step, vi, out[0, ..., 3:]))
+                per_view = [h.loss(self.step, vi, out[j, ..., 3:]) for j, vi in enumerate(views)]
+                hook_losses.append(sum(per_view) / len(per_view))
         total = loss + sum(hook_losses) if hook_losses else loss
-        if not bool(torch.isfinite(total)):
+        finite = bool(torch.isfinite(total))
+        if not finite and not self.group.active:
             self._diverged("the loss is NaN/inf")
         total.backward()
-        self.strategy.observe(self.gaussians, meta)
+        # every process steps with the batch's mean gradient; NaN and Ctrl-C anywhere are seen everywhere
+        bad, stop = self.group.average_grads(list(self.params.values()) + self._hook_params(),
+                                             [0.0 if finite else 1.0, 1.0 if self._stop else 0.0])
+        self._agreed_stop = stop > 0
+        if bad > 0:
+            self._diverged("the loss is NaN/inf" + ("" if not self.group.active else
+                                                    f" on {int(bad)} of {self.group.world_size} processes"))
+        self._observe(meta)
         self.opt.step()
         self.opt.zero_grad(set_to_none=True)
         if self.hook_opt is not None:
@@ -383,7 +457,32 @@ class Trainer:
         self.step += 1
         info = {"loss": total.detach(), "mse": ((img.detach().clamp(0, 1) - gt) ** 2).mean()}
         info.update(self.strategy.step(self.gaussians, self.step, self.gaussians.groups["means"]["lr"]))
+        if self.check_every and self.step % self.check_every == 0:
+            self.group.check_identical(self._synced_tensors(), self.step)
         return info
+
+    def _observe(self, meta: dict) -> None:
+        """The strategy's statistics of this step's views, from every process's share."""
+        g = self.gaussians
+        if not self.group.active or not g.stats:
+            self.strategy.observe(g, meta)
+            return
+        kept = g.stats
+        g.stats = {k: torch.zeros_like(v) for k, v in kept.items()}
+        self.strategy.observe(g, meta)
+        ops = self.strategy.stat_ops
+        self.group.reduce_stats(g.stats, ops)
+        g.stats = {k: (torch.maximum(kept[k], v) if ops.get(k, "sum") == "max" else kept[k] + v)
+                   for k, v in g.stats.items()}
+
+    def _synced_tensors(self) -> dict[str, torch.Tensor]:
+        """What every process must hold identically: parameters, Adam moments, statistics."""
+        out = {f"param.{k}": v for k, v in self.params.items()}
+        for k, p in self.params.items():
+            out.update({f"adam.{k}.{n}": v for n, v in self.gaussians._moments(p).items()})
+        out.update({f"stat.{k}": v for k, v in self.gaussians.stats.items()})
+        out.update({f"hook.{i}": p for i, p in enumerate(self._hook_params())})
+        return out
 
     def _diverged(self, why: str) -> None:
         where = (f"the last good checkpoint (step {self.last_checkpoint_step}) is kept at {self.checkpoint_path}"
@@ -396,13 +495,17 @@ class Trainer:
         from tqdm import tqdm
 
         until = self.iters if until is None else min(int(until), self.iters)
-        old_handler = None
+        old_handlers = {}
         if threading.current_thread() is threading.main_thread():
             def on_sigint(signum, frame):
-                if self._stop:  # second Ctrl-C: stop now
+                # second Ctrl-C: stop now (alone; with several processes torchrun forwards the first
+                # Ctrl-C as a second one and stops the others with SIGTERM: all finish the step together)
+                if self._stop and not self.group.active:
                     raise KeyboardInterrupt
                 self._stop = True
-            old_handler = signal.signal(signal.SIGINT, on_sigint)
+            old_handlers[signal.SIGINT] = signal.signal(signal.SIGINT, on_sigint)
+            if self.group.active:
+                old_handlers[signal.SIGTERM] = signal.signal(signal.SIGTERM, on_sigint)
         bar = tqdm(total=until, initial=self.step, desc="reconstruct", unit="step", disable=not self.progress,
                    dynamic_ncols=True)
         t0 = time.time() - self.elapsed
@@ -424,12 +527,15 @@ class Trainer:
                 if self.checkpoint_path is not None and self.checkpoint_every > 0 \
                         and self.step % self.checkpoint_every == 0:
                     self.save_checkpoint()
-                if self._stop:  # Ctrl-C arrived during this step: it finished cleanly, save it
+                if self._agreed_stop if self.group.active else self._stop:
+                    # Ctrl-C arrived during this step (on any process): it finished cleanly, save it
                     self.elapsed = time.time() - t0
                     if self.checkpoint_path is not None:
                         self.save_checkpoint()
-                        log.warning("interrupted at step %d; checkpoint saved to %s (rerun with --resume)",
-                                    self.step, self.checkpoint_path)
+                        if self.group.is_main:
+                            log.warning("interrupted at step %d; checkpoint saved to %s (rerun with --resume)",
+                                        self.step, self.checkpoint_path)
+                    self.group.barrier()  # nobody leaves before the checkpoint is written
                     clean = True
                     raise KeyboardInterrupt
         except KeyboardInterrupt:
@@ -440,9 +546,9 @@ class Trainer:
             raise
         finally:
             bar.close()
-            if old_handler is not None:
-                signal.signal(signal.SIGINT, old_handler)
-            self._stop = False
+            for sig, h in old_handlers.items():
+                signal.signal(sig, h)
+            self._stop = self._agreed_stop = False
         if self.checkpoint_path is not None and self.last_checkpoint_step != self.step:
             self.save_checkpoint()
         return self.final_scene()
@@ -467,6 +573,8 @@ class Trainer:
             "elapsed": self.elapsed,
             "recipe": asdict(self.recipe),
             "strategy": self.strategy.name,
+            "batch_size": self.batch_size,
+            "world_size": self.group.world_size,  # (informational: any number of processes resumes it)
             "names": list(self.data.names),
             "params": {k: v.detach().cpu() for k, v in self.params.items()},
             "optimizer": _to_cpu(self.opt.state_dict()),
@@ -479,14 +587,16 @@ class Trainer:
         }
 
     def save_checkpoint(self, path: Optional[str | Path] = None) -> Path:
+        """Write the checkpoint (with several processes: the main one writes, the others only note the step)."""
         from .fileio import atomic_path
 
         path = Path(path) if path is not None else self.checkpoint_path
         if path is None:
             raise ValueError("no checkpoint path")
-        state = self.state_dict()
-        with atomic_path(path) as tmp:
-            torch.save(state, tmp)
+        if self.group.is_main:
+            state = self.state_dict()
+            with atomic_path(path) as tmp:
+                torch.save(state, tmp)
         self.last_checkpoint_step = self.step
         return path
 
@@ -503,6 +613,10 @@ class Trainer:
         if kind != self.strategy.name:
             raise InputError(f"the checkpoint was trained with --strategy {kind}, not {self.strategy.name}; "
                              f"pass --strategy {kind} to resume it")
+        b = int(st.get("batch_size", 1))
+        if b != self.batch_size:
+            raise InputError(f"the checkpoint was trained with --batch-size {b}, not {self.batch_size}; "
+                             f"pass --batch-size {b} to resume it (with any number of processes dividing it)")
         saved = set(st["params"])
         if saved != set(self.params):
             raise InputError(f"the checkpoint holds {sorted(saved)}, this run {sorted(self.params)}")
@@ -541,15 +655,11 @@ class Trainer:
         self.history = list(st.get("history", []))
         self.last_checkpoint_step = self.step
 
-    def load_checkpoint(self, path: Optional[str | Path] = None) -> None:
+    def load_checkpoint(self, path: Optional[str | Path] = None, state: Optional[dict] = None) -> None:
+        """Continue from the checkpoint at ``path`` (default: this run's), or from its already
+        read ``state`` (:func:`read_checkpoint`)."""
         path = Path(path) if path is not None else self.checkpoint_path
-        try:
-            st = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as e:
-            raise InputError(f"{path}: unreadable checkpoint ({str(e).splitlines()[0] if str(e) else type(e).__name__});"
-                             f" use --force to start over") from None
-        if not isinstance(st, dict):
-            raise InputError(f"{path}: not a reconstruction checkpoint")
+        st = state if state is not None else read_checkpoint(path)
         try:
             self.load_state_dict(st)
         except KeyError as e:
@@ -590,6 +700,18 @@ class Trainer:
         return out
 
 
+def read_checkpoint(path: str | Path) -> dict:
+    """The contents of a reconstruction checkpoint (on the CPU), or an :class:`InputError`."""
+    try:
+        st = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:
+        raise InputError(f"{path}: unreadable checkpoint ({str(e).splitlines()[0] if str(e) else type(e).__name__});"
+                         f" use --force to start over") from None
+    if not isinstance(st, dict):
+        raise InputError(f"{path}: not a reconstruction checkpoint")
+    return st
+
+
 def _to_cpu(obj):
     if torch.is_tensor(obj):
         return obj.detach().cpu()
@@ -621,15 +743,22 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
                 background: Optional[Sequence[float]] = None, recipe: Optional[Recipe] = None,
                 checkpoint_every: int = 500, num_random_points: int = 100_000,
                 rasterize: Optional[Callable] = None, raster_kwargs: Optional[dict] = None,
-                progress: bool = True, data=None, strategy="default") -> dict:
+                progress: bool = True, data=None, strategy="default", batch_size: Optional[int] = None,
+                group=None) -> dict:
     """Reconstruct the capture in ``data_dir`` into the run folder ``out`` (what the CLI runs).
 
     Writes ``out/scene.ply``, ``cameras.json``, ``data.json``, ``metrics.json`` (and keeps
     ``out/checkpoint.pt``). Existing outputs are never overwritten unless ``force``
     (which starts over) or ``resume`` (which continues from the checkpoint).
     ``data`` may be a preloaded :class:`~ssgwarp.datasets.SceneData` of ``data_dir``.
-    Returns the metrics dict.
+    ``batch_size``: views per step over all processes (default: one per process; on
+    ``resume``, the checkpoint's). ``group``: the :class:`ssgwarp.distributed.Group` of a
+    data-parallel run (default: alone); only its main process writes files and evaluates.
+    Returns the metrics dict (on the other processes: ``{}``).
     """
+    from .distributed import SINGLE
+
+    group = group if group is not None else SINGLE
     from .datasets import data_json, load_dataset
     from .fileio import write_json
     from .ply import write_ply
@@ -648,27 +777,40 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
         kw = {} if background is None else {"background": background}
         data = load_dataset(data_dir, images=images, split_every=split_every, max_images=max_images, width=width,
                             num_random_points=num_random_points, seed=seed, **kw)
+    state = read_checkpoint(ckpt) if resume and ckpt.is_file() and not force else None
+    if state is not None and batch_size is None:
+        batch_size = int(state.get("batch_size", 1))
+    group.barrier()  # everyone has looked at OUT before the main process changes it
     trainer = Trainer(data, iters=iters, sh_degree=sh_degree, max_gaussians=max_gaussians, recipe=recipe,
                       hooks=hooks, identity_dim=identity_dim, checkpoint_path=ckpt,
                       checkpoint_every=checkpoint_every, rasterize=rasterize, raster_kwargs=raster_kwargs,
-                      device=device, seed=seed, progress=progress, strategy=strategy)
-    if resume and ckpt.is_file() and not force:
-        trainer.load_checkpoint(ckpt)
+                      device=device, seed=seed, progress=progress, strategy=strategy, batch_size=batch_size,
+                      group=group)
+    if state is not None:
+        trainer.load_checkpoint(ckpt, state=state)
+        del state
         if trainer.step >= iters:
             log.info("the checkpoint is already at step %d: writing outputs only", trainer.step)
     elif resume and not force:
         if existing:
             raise SsgwarpError(f"{out}: nothing to resume (no checkpoint.pt); pass --force to start over")
         log.info("no checkpoint in %s: starting from scratch", out)
-    if force:
+    if force and group.is_main:
         for f in existing:
             p = out / f
             p.unlink() if p.is_file() else shutil.rmtree(p)
-    out.mkdir(parents=True, exist_ok=True)
+    if group.is_main:
+        out.mkdir(parents=True, exist_ok=True)
+    group.barrier()
 
     if torch.cuda.is_available() and device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     trainer.train()
+    peaks = None
+    if group.active and device.type == "cuda":
+        peaks = [round(v, 1) for v in group.gather(torch.cuda.max_memory_allocated(device) / 2**20)]
+    if not group.is_main:
+        return {}
     scene = trainer.final_scene()
 
     lpips, lpips_note = _lpips_model(device)
@@ -683,6 +825,11 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
         "identity_dim": None if scene.identities is None else int(scene.identities.shape[1]),
         "seed": seed,
         "device": str(device),
+        "world_size": group.world_size,
+        "batch_size": trainer.batch_size,
+        "images_seen": trainer.step * trainer.batch_size,
+        "batch_scaling": {"mode": trainer.recipe.batch_scaling, "lr_factor": trainer.lr_factor,
+                          "betas": list(trainer.betas)},
         "resolution": [data.width, data.height],
         **data.metric_frame,
         "per_view": ev["per_view"],
@@ -697,6 +844,8 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
         metrics["lpips_note"] = lpips_note
     if device.type == "cuda" and torch.cuda.is_available():
         metrics["peak_gpu_memory_mb"] = round(torch.cuda.max_memory_allocated(device) / 2**20, 1)
+        if peaks is not None:  # every process's peak (they differ by their renders' workspace)
+            metrics["peak_gpu_memory_mb_per_rank"] = peaks
 
     write_ply(out / "scene.ply", scene)
     data.cameras.to("cpu").save(out / "cameras.json")
@@ -743,21 +892,39 @@ def add_arguments(parser) -> None:
     parser.add_argument("--random-points", type=int, default=100_000,
                         help="initial points when the capture has no point cloud (default 100000)")
     parser.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints (default 500)")
+    parser.add_argument("--batch-size", type=int, default=None,
+                        help="training views per step, over all processes (default: one per process; on "
+                             "--resume the checkpoint's); the default schedule counts images, so --iters N "
+                             "--batch-size B trains on N x B images (docs/scaling.md)")
+    parser.add_argument("--batch-scaling", choices=("sqrt", "linear", "none"), default="sqrt",
+                        help="Adam for batches: learning rates x sqrt(B) (default) or x B with betas ** B, "
+                             "or none (one view's settings)")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     parser.add_argument("--force", action="store_true", help="overwrite an existing run in OUT")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args) -> int:
+    from . import distributed
+
     if args.resume and args.force:
         raise InputError("--resume and --force exclude each other")
-    logging.basicConfig(level=logging.INFO, format="ssgwarp: %(message)s")
-    m = reconstruct(args.data_dir, args.out, iters=args.iters, images=args.images, sh_degree=args.sh_degree,
-                    max_gaussians=args.max_gaussians, resume=args.resume, force=args.force, device=args.device,
-                    seed=args.seed, split_every=args.split_every, width=args.width, max_images=args.max_images,
-                    background=args.background, checkpoint_every=args.checkpoint_every,
-                    num_random_points=args.random_points, progress=not args.no_progress,
-                    strategy=args.strategy)
+    if args.batch_size is not None and args.batch_size < 1:
+        raise InputError(f"--batch-size must be >= 1, got {args.batch_size}")
+    group, device = distributed.from_env(args.device)  # under torchrun: join the others
+    logging.basicConfig(level=logging.INFO if group.is_main else logging.WARNING, format="ssgwarp: %(message)s")
+    try:
+        m = reconstruct(args.data_dir, args.out, iters=args.iters, images=args.images, sh_degree=args.sh_degree,
+                        max_gaussians=args.max_gaussians, resume=args.resume, force=args.force, device=device,
+                        seed=args.seed, split_every=args.split_every, width=args.width, max_images=args.max_images,
+                        background=args.background, checkpoint_every=args.checkpoint_every,
+                        num_random_points=args.random_points, progress=not args.no_progress,
+                        strategy=args.strategy, batch_size=args.batch_size,
+                        recipe=Recipe(batch_scaling=args.batch_scaling), group=group)
+    finally:
+        distributed.shutdown(group)
+    if not group.is_main:
+        return 0
     ps = "n/a" if m["psnr"] is None else f"{m['psnr']:.2f} dB"
     ss = "n/a" if m["ssim"] is None else f"{m['ssim']:.4f}"
     print(f"{args.out}: {m['num_gaussians']} Gaussians, held-out PSNR {ps}, SSIM {ss}, "

@@ -33,21 +33,12 @@ from typing import Optional
 
 import torch
 
-from .rasterize import RasterSettings
+from .geometry import quat_to_rotmat
+from .settings import INPUTS, RasterSettings, check_shapes, raise_for_flags, resolve_arguments
+from .sh import spherical_harmonics
 
 Tensor = torch.Tensor
 RADIUS_LIMIT = 1073741824.0  # radii saturate at 2^30 px (as kernels/projection.py)
-
-
-def quat_to_rotmat(quats: Tensor) -> Tensor:
-    """``[..., 3, 3]`` rotation of wxyz quaternions ``[..., 4]`` (normalised inside)."""
-    q = quats / torch.linalg.vector_norm(quats, dim=-1, keepdim=True)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=-1).reshape(q.shape[:-1] + (3, 3))
 
 
 def extent_sigmas(opacities: Tensor, settings: RasterSettings) -> Tensor:
@@ -196,9 +187,88 @@ def blend_reference(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: 
     return torch.stack(out_img), torch.stack(out_alpha)
 
 
-def rasterization_reference(*args, **kwargs):
-    """:func:`ssgwarp.rasterization` computed by this module (``backend="torch"``)."""
-    from .rasterize import rasterization
+def check_values_reference(means, quats, scales, opacities, colors, viewmats, Ks, backgrounds=None) -> list:
+    """The input value checks of ``kernels/validate.py`` in torch: a list of ``N_FLAGS`` ints in
+    the slots of :mod:`ssgwarp.settings` (NaN/Inf per input of ``INPUTS``, then zero quaternion,
+    negative scale, opacity outside [0, 1], non-positive focal length), for
+    :func:`ssgwarp.settings.raise_for_flags`. Shapes must already be consistent."""
+    inputs = (means, quats, scales, opacities, colors, viewmats, Ks, backgrounds)
+    checks = [torch.zeros((), dtype=torch.bool, device=means.device) if t is None else ~torch.isfinite(t).all()
+              for t in inputs]
+    assert len(checks) == len(INPUTS)
+    checks += [(quats == 0).all(dim=-1).any(), (scales < 0).any(), ((opacities < 0) | (opacities > 1)).any(),
+               ((Ks[:, 0, 0] <= 0) | (Ks[:, 1, 1] <= 0)).any()]
+    return [int(v) for v in torch.stack(checks).tolist()]
 
-    kwargs["backend"] = "torch"
-    return rasterization(*args, **kwargs)
+
+def mode_channels(colors, depths, backgrounds, render_mode, C):
+    """The blended channels of a render mode: colours, depth, or colours then depth (and the
+    background of each)."""
+    if render_mode in ("RGB+D", "RGB+ED"):
+        if colors.ndim == 2:
+            colors = colors[None].expand(C, -1, -1)
+        colors = torch.cat([colors, depths[..., None]], dim=-1)
+        if backgrounds is not None:
+            backgrounds = torch.cat([backgrounds, torch.zeros_like(backgrounds[:, :1])], dim=-1)
+    elif render_mode in ("D", "ED"):
+        colors = depths[..., None]
+        if backgrounds is not None:
+            backgrounds = torch.zeros_like(backgrounds[:, :1])
+    return colors, backgrounds
+
+
+def expected_depth(render_colors, render_alphas, render_mode):
+    """The expected-depth modes: the blended depth channel divided by the alpha."""
+    if render_mode in ("ED", "RGB+ED"):
+        render_colors = torch.cat(
+            [render_colors[..., :-1], render_colors[..., -1:] / render_alphas.clamp(min=1e-10)], dim=-1)
+    return render_colors
+
+
+def render_reference(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane, far_plane,
+                     radius_clip, eps2d, sh_degree, tile_size, backgrounds, render_mode, rasterize_mode, settings,
+                     validate):
+    """:func:`ssgwarp.rasterization` with ``backend="torch"``, its arguments resolved (``settings``
+    for the dtype, ``tile_size`` an int): the checks in torch, projection, SH colours and blending
+    by this module. No Warp kernel runs."""
+    if validate:
+        check_shapes(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds,
+                     render_mode, rasterize_mode, tile_size, near_plane)
+        raise_for_flags(check_values_reference(means, quats, scales, opacities, colors, viewmats, Ks, backgrounds))
+    C = viewmats.shape[0]
+    antialiased = rasterize_mode == "antialiased"
+    radii, means2d, depths, conics, opacs = project_reference(
+        means, quats, scales, opacities, viewmats, Ks, width, height, near_plane=near_plane, far_plane=far_plane,
+        radius_clip=radius_clip, eps2d=eps2d, antialiased=antialiased, settings=settings)
+    if sh_degree is not None:
+        # inv_ex: no singularity check, so no device synchronisation per call
+        campos = torch.linalg.inv_ex(viewmats).inverse[:, :3, 3]
+        dirs = means[None] - campos[:, None]
+        shs = colors if colors.ndim == 4 else colors[None].expand(C, -1, -1, -1)
+        visible = (radii > 0).all(dim=-1)
+        cols = spherical_harmonics(sh_degree, dirs, shs)
+        colors = torch.where(visible[..., None], torch.clamp_min(cols + 0.5, 0.0), 0.0)
+    elif colors.ndim == 2:
+        colors = colors[None].expand(C, -1, -1)
+    colors, backgrounds = mode_channels(colors, depths, backgrounds, render_mode, C)
+    tile_width, tile_height = math.ceil(width / tile_size), math.ceil(height / tile_size)
+    meta = {
+        "radii": radii, "means2d": means2d, "depths": depths, "conics": conics, "opacities": opacs,
+        "tile_width": tile_width, "tile_height": tile_height, "width": width, "height": height,
+        "tile_size": tile_size, "n_cameras": C, "settings": settings, "backend": "torch",
+    }
+    render_colors, render_alphas = blend_reference(
+        means2d, conics, colors, opacs, radii, depths, width, height, tile_size, backgrounds, settings)
+    return expected_depth(render_colors, render_alphas, render_mode), render_alphas, meta
+
+
+def rasterization_reference(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane=0.01,
+                            far_plane=1e10, radius_clip=0.0, eps2d=0.3, sh_degree=None, packed=True, tile_size=None,
+                            backgrounds=None, render_mode="RGB", sparse_grad=False, absgrad=False,
+                            rasterize_mode="classic", channel_chunk=32, *, settings=None, deterministic=False,
+                            validate=True):
+    """:func:`ssgwarp.rasterization` computed by this module (the same as ``backend="torch"``)."""
+    settings, tile_size = resolve_arguments(means, settings, tile_size, absgrad)
+    return render_reference(means, quats, scales, opacities, colors, viewmats, Ks, int(width), int(height),
+                            near_plane, far_plane, radius_clip, eps2d, sh_degree, tile_size, backgrounds,
+                            render_mode, rasterize_mode, settings, validate)

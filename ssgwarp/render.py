@@ -14,24 +14,13 @@ import numpy as np
 import torch
 
 from .cameras import Cameras
+from .datasets import load_run
 from .errors import InputError
-from .fileio import claim_output_dir
+from .fileio import claim_output_dir, write_image
+from .geometry import quat_to_rotmat, rotmat_to_quat
+from .reconstruct import render_views
 
 log = logging.getLogger("ssgwarp.render")
-
-
-# ----------------------------------------------------------------------------- rotations
-def _rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
-    """wxyz quaternions ``[C, 4]`` of rotation matrices ``[C, 3, 3]`` (float64)."""
-    from .colmap import rotmat_to_qvec
-
-    return torch.from_numpy(np.stack([rotmat_to_qvec(r) for r in R.cpu().numpy()]))
-
-
-def _quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
-    from .reference import quat_to_rotmat
-
-    return quat_to_rotmat(q)
 
 
 def _tour(points: torch.Tensor) -> list[int]:
@@ -107,7 +96,7 @@ def smooth_path(cameras: Cameras, n_frames: int, *, max_keys: int = 16, closed: 
         pick = np.linspace(0, len(order), max_keys, endpoint=False).round().astype(int)
         order = [order[i] for i in pick]
     P = centers[order]
-    Q = _rotmat_to_quat(c2w[order, :3, :3])
+    Q = rotmat_to_quat(c2w[order, :3, :3])
     for i in range(1, len(Q)):  # same hemisphere as the previous key: no flips
         if float(Q[i] @ Q[i - 1]) < 0:
             Q[i] = -Q[i]
@@ -128,7 +117,7 @@ def smooth_path(cameras: Cameras, n_frames: int, *, max_keys: int = 16, closed: 
     # quaternions: the four keys of each segment sign-aligned to its start (no flips, also at the wrap)
     q = _catmull_rom_quats(Q, t, closed)
     quat = torch.nn.functional.normalize(q, dim=1)
-    R = _quat_to_rotmat(quat)
+    R = quat_to_rotmat(quat)
     c2w_new = torch.eye(4, dtype=torch.float64).repeat(n_frames, 1, 1)
     c2w_new[:, :3, :3] = R
     c2w_new[:, :3, 3] = pos
@@ -162,9 +151,6 @@ def render_cameras(scene, cameras: Cameras, out_dir: str | Path, *, background=(
     """Render ``scene`` from each camera to ``out_dir/<name>.png``. Returns the written paths."""
     from tqdm import tqdm
 
-    from .fileio import write_image
-    from .reconstruct import render_views
-
     out_dir = Path(out_dir)
     names = names or list(cameras.names)
     cams = cameras.to(scene.device)
@@ -190,8 +176,6 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from .datasets import load_run
-
     scene, data = load_run(args.scene_dir, args.device, load_images=False)
     ids = data.split(args.split)
     if not ids:

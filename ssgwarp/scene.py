@@ -14,6 +14,9 @@ import torch
 
 from .cameras import Cameras
 from .errors import InputError
+from .geometry import knn_mean_distance
+from .rasterize import rasterization
+from .sh import spherical_harmonics
 
 SH_C0 = 0.28209479177387814
 
@@ -176,9 +179,6 @@ class GaussianScene:
         blending pass. ``kwargs`` are passed on (``render_mode``,
         ``backgrounds``, knobs...). Returns ``(colors [C,H,W,D], alphas [C,H,W,1], meta)``.
         """
-        from .rasterize import rasterization
-        from .sh import spherical_harmonics
-
         deg = self.sh_degree if sh_degree is None else min(sh_degree, self.sh_degree)
         C = len(cameras)
         parts = []
@@ -202,17 +202,3 @@ class GaussianScene:
             self.means, self.quats, self.scales, self.opacities, colors,
             cameras.viewmats.to(self.dtype), cameras.Ks.to(self.dtype), cameras.width, cameras.height, **kwargs,
         )
-
-
-def knn_mean_distance(xyz: torch.Tensor, k: int = 3, chunk: int = 4096) -> torch.Tensor:
-    """``[N]`` mean distance of each point to its ``k`` nearest other points (chunked, exact)."""
-    n = xyz.shape[0]
-    if n <= 1:
-        return torch.ones(n, dtype=xyz.dtype, device=xyz.device)
-    k = min(k, n - 1)
-    out = torch.empty(n, dtype=xyz.dtype, device=xyz.device)
-    for s in range(0, n, chunk):
-        d = torch.cdist(xyz[s:s + chunk], xyz)
-        vals = d.topk(k + 1, largest=False).values[:, 1:]
-        out[s:s + chunk] = vals.mean(dim=1)
-    return out

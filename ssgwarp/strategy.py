@@ -16,7 +16,11 @@ The interface the Trainer calls, once per training step::
     optimizer.step()
     info = strategy.step(gaussians, step, lr_means)           # refine / reset / perturb
 
-plus :meth:`Strategy.setup` (before the first step), :meth:`Strategy.defaults`
+With several processes (:mod:`ssgwarp.distributed`) each observes its own views into zeroed
+statistics, which are then combined across processes by :attr:`Strategy.stat_ops` and added to
+the running ones, so every process refines identically.
+
+Plus :meth:`Strategy.setup` (before the first step), :meth:`Strategy.defaults`
 (the recipe values it resolves, schedule included) and the state of its random
 generator for checkpoints.
 
@@ -204,6 +208,8 @@ class Strategy:
     name = "none"
     uses_means2d_grad = False   # the Trainer keeps meta["means2d"].grad for observe()
     budgeted = False            # max_gaussians is a budget the initial scene must fit in
+    stat_ops: dict = {}         # how each statistic combines over views rendered by several processes:
+                                # "sum" (default) or "max" (ssgwarp.distributed.Group.reduce_stats)
     reference = {"refine_start": REFERENCE_ITERS, "refine_stop": 0, "refine_every": REFERENCE_ITERS}
     recipe_defaults = {"init_opacity": 0.1, "init_scale": 1.0, "opacity_reg": 0.0, "scale_reg": 0.0}
 
@@ -276,6 +282,7 @@ class DefaultStrategy(Strategy):
 
     name = "default"
     uses_means2d_grad = True
+    stat_ops = {"grad2d": "sum", "count": "sum", "max_radii": "max"}
     reference = {"refine_start": 500, "refine_stop": 15_000, "refine_every": 100, "reset_every": 3000}
 
     def defaults(self, iters: int, random_init: Optional[int] = None) -> dict:

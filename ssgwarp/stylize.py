@@ -2,32 +2,38 @@
 
 Stage 2 fine-tunes the Gaussians' colours so that renders along the training
 cameras carry the style of the stylized key views (Stage 1), matched group by
-group (:mod:`ssgwarp.matching`). Per iteration, for one training view:
+group (:mod:`ssgwarp.matching`), or of the style image when Stage 1 did not run.
 
-1. render the view without gradient (full resolution);
-2. treat the image as a leaf, compute the loss
-   ``style_weight * NNFM + content_weight * content + tv_weight * TV`` and its
-   gradient ``dL/dimage`` (features, chunked nearest-neighbour search);
-3. render again with gradient and back-propagate ``dL/dimage`` through the
-   rasterizer alone.
+0. **colour transfer** (``pre``, ARF): one linear colour map per group, applied
+   to the SH coefficients, gives the renders the colour mean and covariance of
+   the targets (:func:`transfer_colors`, :mod:`ssgwarp.color`);
+1. for ``iters`` steps, one training view each: render without gradient, treat
+   the image as a leaf, compute the loss
+   ``style_weight * L_style + content_weight * content + tv_weight * TV`` and
+   its gradient ``dL/dimage``, render again with gradient and back-propagate
+   ``dL/dimage`` through the rasterizer alone (*deferred back-propagation*: the
+   feature network's graph and the rasterizer's are never held at once, so
+   1008x756 views fit; gradients equal direct back-propagation, tested);
+2. **colour transfer** again (``post``).
 
-This *deferred back-propagation* never holds the feature network's graph and
-the rasterizer's graph at once, so 1008x756 views fit; its gradients equal
-direct back-propagation (tested).
-
-Losses (one view, image ``I``, original render ``I0``, features ``phi`` =
-the extractor's layers concatenated at the coarsest resolution):
-- style: :meth:`ssgwarp.matching.MatchTargets.loss` (NNFM, per-group matching);
+Losses (one view, image ``I``, render ``I0`` of the colour-transferred scene,
+features ``phi`` = the extractor's layers concatenated at the coarsest resolution):
+- style: NNFM (:meth:`ssgwarp.matching.MatchTargets.loss`, the paper's) or the
+  sliced Wasserstein feature loss (:meth:`ssgwarp.matching.SlicedTargets.loss`),
+  both with per-group matching; ``style_loss="auto"`` uses NNFM on VGG16
+  features and SW on the weight-free random features (NNFM on random features
+  collapses a view onto the style's dominant mode: docs/stylize.md);
 - content: ``mean((phi(I) - phi(I0))^2) / mean(phi(I0)^2)`` (relative, so the
   weight means the same for every extractor);
 - TV: mean squared difference of neighbouring pixels.
 
-Only colour is optimised by default (``sh_dc``; ``sh_bands`` adds the higher
-SH bands, ``free_opacity`` the opacities); every other tensor of the scene is
-passed through untouched (the same tensor objects, bit-identical).
+Only colour is optimised (``sh_dc``; ``sh_rest="optimise"`` adds the higher
+SH bands, ``"zero"`` zeroes them first; ``free_opacity`` adds the opacities);
+every other tensor of the scene is passed through untouched (the same tensor
+objects, bit-identical).
 
-Modes: ``ist`` (default: per-group NNFM against the stylized key views),
-``global`` (ARF: NNFM against the style image, one group), ``finetune``
+Modes: ``ist`` (default: per-group matching against the stylized key views),
+``global`` (ARF: matching against the style image, one group), ``finetune``
 (no IST: L1 + 0.2 D-SSIM against the stylized key views at the key cameras).
 When Stage 1 could not run (no diffusion weights), ``ist`` and ``finetune``
 fall back to global matching against the style image and the outputs say so.
@@ -49,10 +55,13 @@ import torch.nn.functional as F
 
 from .cameras import Cameras
 from .errors import InputError, SsgwarpError, WeightsNotFound
-from .matching import DEFAULT_CHUNK, MatchTargets, downsample_labels
+from .matching import DEFAULT_CHUNK, MatchTargets, SlicedTargets, downsample_labels
 from .scene import GaussianScene
 
 MODES = ("ist", "finetune", "global")
+COLOR_TRANSFER = ("both", "pre", "post", "off")
+SH_REST = ("keep", "zero", "optimise")
+STYLE_LOSSES = ("auto", "nnfm", "sw")
 
 
 # ----------------------------------------------------------------------------- configuration
@@ -65,7 +74,17 @@ class Stage2Config:
         iters: optimisation steps (one training view each).
         lr: Adam learning rate of ``sh_dc`` (higher bands: ``lr / 20``; opacity logits: ``lr * 5``).
         style_weight, content_weight, tv_weight: loss weights.
-        sh_bands: also optimise the higher SH bands (view-dependent colour).
+        style_loss: ``nnfm`` (nearest-neighbour feature matching, the paper's), ``sw`` (sliced
+            Wasserstein between the feature distributions, :class:`ssgwarp.matching.SlicedTargets`) or
+            ``auto``: NNFM on VGG16 features, SW on the weight-free random features (measured:
+            docs/stylize.md).
+        sw_projections: random directions per step of the ``sw`` loss.
+        color_transfer: ARF's view-consistent colour transfer (:mod:`ssgwarp.color`) ``pre`` (before
+            the optimisation), ``post`` (after it), ``both`` or ``off``.
+        color_max_gain: the colour transfer's map may stretch colour differences by at most this
+            factor (its largest eigenvalue; the consistency figures grow with it, see docs/stylize.md).
+        sh_rest: the higher SH bands (view-dependent colour): ``keep`` them as reconstructed,
+            ``zero`` them at the start (renders become view-independent), or ``optimise`` them too.
         free_opacity: also optimise opacities (geometry otherwise frozen).
         label_mode: group maps to feature resolution by ``majority`` or ``nearest``.
         feature_scale: images are resized by this factor before the feature
@@ -83,7 +102,11 @@ class Stage2Config:
     style_weight: float = 1.0
     content_weight: float = 0.05
     tv_weight: float = 0.02
-    sh_bands: bool = False
+    style_loss: str = "auto"
+    sw_projections: int = 64
+    color_transfer: str = "both"
+    color_max_gain: float = 1.3
+    sh_rest: str = "keep"
     free_opacity: bool = False
     label_mode: str = "majority"
     feature_scale: float = 1.0
@@ -104,6 +127,16 @@ class Stage2Config:
                 raise InputError(f"--{k.replace('_', '-')} {v}: must be a finite number >= 0")
         if not 0 < self.feature_scale <= 4:
             raise InputError(f"--feature-scale {self.feature_scale}: must be in (0, 4]")
+        if self.style_loss not in STYLE_LOSSES:
+            raise InputError(f"--style-loss {self.style_loss}: use one of {', '.join(STYLE_LOSSES)}")
+        if self.sw_projections < 1:
+            raise InputError(f"--sw-projections {self.sw_projections}: must be >= 1")
+        if self.color_transfer not in COLOR_TRANSFER:
+            raise InputError(f"--color-transfer {self.color_transfer}: use one of {', '.join(COLOR_TRANSFER)}")
+        if not (math.isfinite(self.color_max_gain) and self.color_max_gain > 0):
+            raise InputError(f"--color-max-gain {self.color_max_gain}: must be a finite number > 0")
+        if self.sh_rest not in SH_REST:
+            raise InputError(f"--sh-rest {self.sh_rest}: use one of {', '.join(SH_REST)}")
         if self.label_mode not in ("majority", "nearest"):
             raise InputError(f"--label-mode {self.label_mode}: use majority or nearest")
         if self.nn_precision not in ("auto", "fp32", "bf16", "fp16"):
@@ -136,6 +169,12 @@ def render_batched(scene: GaussianScene, cams: Cameras, background: Optional[tor
         for s in tqdm(range(0, len(cams), batch), desc=desc, disable=desc is None, leave=False):
             out.append(render_rgb(scene, cams[list(range(s, min(s + batch, len(cams))))], background))
     return torch.cat(out, 0)
+
+
+def render_alphas(scene: GaussianScene, cams: Cameras) -> torch.Tensor:
+    """No-grad accumulated opacity ``[C, H, W]`` of many cameras, one at a time."""
+    with torch.no_grad():
+        return torch.cat([scene.render(cams[[c]].to(scene.device))[1][..., 0] for c in range(len(cams))])
 
 
 def deferred_backward(render: Callable[[Cameras], torch.Tensor], camera: Cameras,
@@ -198,10 +237,19 @@ def content_loss(feats: torch.Tensor, feats0: torch.Tensor) -> torch.Tensor:
     return ((feats - feats0) ** 2).mean() / (feats0 ** 2).mean().clamp_min(1e-12)
 
 
+def style_loss_kind(cfg: Stage2Config, extractor) -> str:
+    """The style loss ``cfg`` asks for with this extractor (``auto``: NNFM on VGG16 features, else SW)."""
+    if cfg.style_loss != "auto":
+        return cfg.style_loss
+    return "nnfm" if str(getattr(extractor, "name", "")).startswith("vgg16") else "sw"
+
+
 def build_targets(extractor, images: torch.Tensor, labels: Optional[torch.Tensor], cfg: Stage2Config,
-                  size: Optional[tuple[int, int]] = None) -> MatchTargets:
-    """Match targets from style images ``[V,H,W,3]`` (key views or the style image) and their
-    group maps ``[V,H,W]`` (None = global). ``size`` resizes the images first (``(H, W)``)."""
+                  size: Optional[tuple[int, int]] = None):
+    """Style targets from style images ``[V,H,W,3]`` (key views or the style image) and their
+    group maps ``[V,H,W]`` (None = global): a :class:`~ssgwarp.matching.MatchTargets` (NNFM) or a
+    :class:`~ssgwarp.matching.SlicedTargets` (SW), see :func:`style_loss_kind`. ``size`` resizes
+    the images first (``(H, W)``)."""
     images = images.detach()
     if size is not None and tuple(images.shape[1:3]) != tuple(size):
         x = F.interpolate(to_nchw(images), size=size, mode="bilinear", align_corners=False, antialias=True)
@@ -213,6 +261,8 @@ def build_targets(extractor, images: torch.Tensor, labels: Optional[torch.Tensor
     lab = None
     if labels is not None:
         lab = downsample_labels(labels.to(feats.device), tuple(feats.shape[-2:]), cfg.label_mode)
+    if style_loss_kind(cfg, extractor) == "sw":
+        return SlicedTargets(feats, lab, cfg.sw_projections, cfg.seed)
     return MatchTargets(feats, lab, cfg.chunk, cfg.nn_precision)
 
 
@@ -242,10 +292,14 @@ class ViewLoss:
             self._labels[view] = downsample_labels(lab, size, self.cfg.label_mode)[0]
         return self._labels[view]
 
-    def __call__(self, image: torch.Tensor, view: int) -> torch.Tensor:
+    def __call__(self, image: torch.Tensor, view: int, step: int = 0) -> torch.Tensor:
         cfg = self.cfg
         feats = extract(self.extractor, image, cfg.feature_scale)[0]      # [C,h,w]
-        style = self.targets.loss(feats, self.labels_at(view, tuple(feats.shape[-2:])))
+        labels = self.labels_at(view, tuple(feats.shape[-2:]))
+        if isinstance(self.targets, SlicedTargets):
+            style = self.targets.loss(feats, labels, step=step)       # fresh projections each step
+        else:
+            style = self.targets.loss(feats, labels)
         total = cfg.style_weight * style
         parts = {"style": float(style.detach())}
         if self.originals is not None and cfg.content_weight > 0:
@@ -270,10 +324,52 @@ def finetune_loss(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return photometric(image[None], target[None])
 
 
+# ----------------------------------------------------------------------------- colour transfer
+@torch.no_grad()
+def transfer_colors(scene: GaussianScene, cameras: Cameras, target: torch.Tensor, *,
+                    labels: Optional[torch.Tensor] = None,
+                    target_labels: Optional[torch.Tensor] = None, assign: Optional[torch.Tensor] = None,
+                    num_groups: Optional[int] = None, min_pixels: int = 64, max_gain: float = 1.3
+                    ) -> tuple[GaussianScene, dict]:
+    """ARF's colour transfer of ``scene``: its renders from ``cameras`` get the colour mean and
+    covariance of ``target [V, H, W, 3]`` (the style image or the stylized key views), by one linear
+    map of the SH coefficients (:mod:`ssgwarp.color`; view-consistent by construction).
+
+    Per group when ``labels [C, H, W]`` (group maps of the renders), ``target_labels [V, H, W]``,
+    ``assign [N]`` (each Gaussian's group) and ``num_groups`` are given: group ``g``'s Gaussians get
+    the map from group ``g``'s rendered pixels to group ``g``'s target pixels, or — when ``g`` has
+    fewer than ``min_pixels`` pixels on either side (absent from the key views) — the global map
+    (all rendered pixels -> all target pixels). The source colours are the renders' surface colours
+    (rendered without background and divided by alpha, so that the map is exact on them); pixels with
+    alpha < 0.5 (background) are left out. Returns the recoloured scene and a record of what was done.
+    """
+    from .color import fit_group_transforms, fit_transform, pixel_stats, transform_sh
+
+    renders, alphas = [], []
+    for c in range(len(cameras)):   # rendered without background, un-premultiplied: the surface colour
+        col, alpha, _ = scene.render(cameras[[c]].to(scene.device))
+        renders.append(col[..., :3] / alpha.clamp_min(1e-6))
+        alphas.append(alpha[..., 0])
+    renders, alphas = torch.cat(renders), torch.cat(alphas)
+    grouped = labels is not None and target_labels is not None and assign is not None and num_groups
+    src = pixel_stats(renders, alphas, labels if grouped else None)
+    tgt = pixel_stats(target.to(scene.device), None, target_labels if grouped else None)
+    if grouped:
+        transforms, how = fit_group_transforms(src, tgt, int(num_groups), min_pixels, max_gain=max_gain)
+        out = transform_sh(scene, transforms, assign)
+        info = {"per_group": True, "groups_matched": how.count("group"), "groups_global": how.count("global"),
+                "how": how}
+    else:
+        t = fit_transform(src[0], tgt[0], max_gain=max_gain)
+        out = transform_sh(scene, [t])
+        info = {"per_group": False, "transform": t.to_list()}
+    return out, info
+
+
 # ----------------------------------------------------------------------------- parameters
 def trainable_names(cfg: Stage2Config, scene: GaussianScene) -> list[str]:
     names = ["sh_dc"]
-    if cfg.sh_bands and scene.sh_rest is not None:
+    if cfg.sh_rest == "optimise" and scene.sh_rest is not None:
         names.append("sh_rest")
     if cfg.free_opacity:
         names.append("logit_opacities")
@@ -331,6 +427,8 @@ def optimise(scene: GaussianScene, cameras: Cameras, cfg: Stage2Config, *,
     if not finetune and loss is None:
         raise InputError(f"{cfg.mode} mode needs a ViewLoss")
     names = trainable_names(cfg, scene)
+    if cfg.sh_rest == "zero" and scene.sh_rest is not None:
+        scene = scene.replace(sh_rest=torch.zeros_like(scene.sh_rest))
     params = {n: getattr(scene, n).detach().clone().requires_grad_(True) for n in names}
     opt = torch.optim.Adam([{"params": [p], "lr": _lr(n, cfg), "name": n} for n, p in params.items()], eps=1e-15)
     start, history, elapsed = 0, [], 0.0
@@ -378,7 +476,7 @@ def optimise(scene: GaussianScene, cameras: Cameras, cfg: Stage2Config, *,
                 parts = {"total": float(value)}
             else:
                 cam = cameras[v]
-                fn = lambda img: loss(img, v)  # noqa: E731
+                fn = lambda img: loss(img, v, step)  # noqa: E731
                 if cfg.deferred:
                     value = deferred_backward(render, cam, fn)
                 else:
@@ -488,6 +586,13 @@ def fit_style(style: torch.Tensor, height: int, width: int) -> torch.Tensor:
     if size != tuple(x.shape[-2:]):
         x = F.interpolate(x, size=size, mode="bilinear", align_corners=False, antialias=k < 1.0)
     return x.permute(0, 2, 3, 1)
+
+
+def _transfer_text(info: dict, against: str) -> str:
+    if info.get("per_group"):
+        return (f"per group against {against}: {info['groups_matched']} groups matched on their own, "
+                f"{info['groups_global']} by the global map (absent from the key views)")
+    return f"one global linear map against {against}"
 
 
 def _group_maps(scene: GaussianScene, cams: Cameras, classifier, progress: bool) -> torch.Tensor:
@@ -682,27 +787,48 @@ def stylize_run(scene_dir: str | Path, style_path: str | Path, out: str | Path, 
     # -- Stage 2 -------------------------------------------------------------------------------------
     t0 = time.perf_counter()
     originals = render_batched(scene, train_cams, bg, desc="original renders" if progress else None)
-    loss, ft_images, ft_cams = None, None, None
-    if stylized is not None and stage2.mode in ("ist", "finetune"):
+    use_keys = stylized is not None and stage2.mode in ("ist", "finetune")
+    key_images = key_cams = key_labels = view_labels = assign = None
+    if use_keys:
         from .keyviews import from_diffusion
 
         key_images = from_diffusion(stylized.to(device).float(), cams.width, cams.height).to(scene.dtype)
         key_cams = cams[list(kv.ids)]
+        if classifier is not None:
+            from .grouping import gaussian_groups
+
+            key_labels = _group_maps(scene, key_cams, classifier, progress)
+            assign = gaussian_groups(scene, classifier)[0]
+
+    # colour transfer (ARF): against the stylized key views (per group when grouped) or the style image
+    def color_transfer(sc: GaussianScene) -> tuple[GaussianScene, dict]:
+        if use_keys:
+            return transfer_colors(sc, key_cams, key_images, labels=key_labels, target_labels=key_labels,
+                                   assign=assign, num_groups=num_groups, max_gain=stage2.color_max_gain)
+        return transfer_colors(sc, train_cams, style[None].to(scene.dtype), max_gain=stage2.color_max_gain)
+
+    transfer: dict = {"setting": stage2.color_transfer,
+                      "against": "the stylized key views" if use_keys else "the style image"}
+    work = scene
+    if stage2.color_transfer in ("pre", "both"):
+        work, transfer["pre"] = color_transfer(scene)
+        _say("colour transfer (pre): " + _transfer_text(transfer["pre"], transfer["against"]), progress)
+    content_ref = originals if work is scene else render_batched(work, train_cams, bg)
+    loss, ft_images, ft_cams = None, None, None
+    if use_keys:
         if stage2.mode == "finetune":
             matching = "none (fine-tuned on the stylized key views)"
             ft_images, ft_cams = key_images, key_cams
         else:
-            key_labels = view_labels = None
             if classifier is not None:
                 view_labels = _group_maps(scene, train_cams, classifier, progress)
-                key_labels = _group_maps(scene, key_cams, classifier, progress)
             targets = build_targets(extractor, key_images, key_labels, stage2)
             matching = (f"per group ({num_groups} groups) against {len(kv)} stylized key views"
                         if classifier is not None else f"global against {len(kv)} stylized key views (no groups)")
-            loss = ViewLoss(extractor, targets, stage2, view_labels=view_labels, originals=originals)
+            loss = ViewLoss(extractor, targets, stage2, view_labels=view_labels, originals=content_ref)
     else:
         targets = build_targets(extractor, fit_style(style.to(scene.dtype), cams.height, cams.width), None, stage2)
-        loss = ViewLoss(extractor, targets, stage2, originals=originals)
+        loss = ViewLoss(extractor, targets, stage2, originals=content_ref)
         matching = "global against the style image"
         if stage2.mode != "global":
             matching += f" (Stage 1 did not run: requested mode '{stage2.mode}' fell back)"
@@ -711,11 +837,14 @@ def stylize_run(scene_dir: str | Path, style_path: str | Path, out: str | Path, 
     if stage2.mode == "finetune" and ft_images is None:   # no stylized key views to fit: global fallback
         run_cfg = dataclasses.replace(stage2, mode="global")
     _say(f"Stage 2 ({stage2.mode}): {stage2.iters} steps, matching {matching}", progress)
-    res = optimise(scene, train_cams, run_cfg, loss=loss, finetune_images=ft_images, finetune_cameras=ft_cams,
+    res = optimise(work, train_cams, run_cfg, loss=loss, finetune_images=ft_images, finetune_cameras=ft_cams,
                    background=bg, checkpoint=out / "stage2.ckpt", resume=resume, progress=progress)
+    styled = res.scene
+    if stage2.color_transfer in ("post", "both"):
+        styled, transfer["post"] = color_transfer(styled)
+        _say("colour transfer (post): " + _transfer_text(transfer["post"], transfer["against"]), progress)
     times["stage2"] = time.perf_counter() - t0
     times["stage2_optimisation"] = res.seconds
-    styled = res.scene
     write_ply(out / "scene.ply", styled)
     mark("stage2", seconds=times["stage2"], iters=stage2.iters)
     _plot_losses(out / "loss.png", res.history, f"Stage 2 ({stage2.mode}, {extractor.name})")
@@ -736,12 +865,16 @@ def stylize_run(scene_dir: str | Path, style_path: str | Path, out: str | Path, 
     times["renders"] = time.perf_counter() - t0
 
     # -- metrics and sheet ---------------------------------------------------------------------------
-    from .metrics import style_content_losses
+    from .metrics import StyleDistance, style_content_losses
 
     t0 = time.perf_counter()
     with torch.no_grad():
         after = style_content_losses(extractor, renders.float(), style.float(), originals.float())
         before = style_content_losses(extractor, originals.float(), style.float())
+        dist = StyleDistance(style.float())          # on the scene's pixels (alpha >= 0.5), not the background
+        alphas = render_alphas(scene, train_cams)
+        alphas_after = render_alphas(styled, train_cams) if stage2.free_opacity else alphas
+        dist_after, dist_before = dist.mean(renders.float(), alphas_after), dist.mean(originals.float(), alphas)
     times["metrics"] = time.perf_counter() - t0
     rows = sorted({round(i * (len(train_ids) - 1) / max(1, opts.sheet_views - 1))
                    for i in range(min(opts.sheet_views, len(train_ids)))})
@@ -756,9 +889,14 @@ def stylize_run(scene_dir: str | Path, style_path: str | Path, out: str | Path, 
         "matching": matching,
         "stage1": stage1_info,
         "extractor": extractor.name,
+        "style_loss": style_loss_kind(stage2, extractor),
         "gram_style_loss": float(after["style"].mean()),
         "gram_style_loss_original": float(before["style"].mean()),
+        "style_distance": dist_after,
+        "style_distance_original": dist_before,
+        "metric_views": f"the {len(train_ids)} training views (ssgwarp evaluate scores novel path views)",
         "content_loss": float(after["content"].mean()),
+        "color_transfer": transfer,
         "final_losses": res.last,
         "keyviews": None if kv is None else {"ids": list(kv.ids), "names": list(kv.cameras.names),
                                               "size": list(kv.size)},
@@ -775,9 +913,12 @@ def stylize_run(scene_dir: str | Path, style_path: str | Path, out: str | Path, 
     }
     write_json(out / "metrics.json", metrics)
     mark("done", seconds=times["total"])
-    _say(f"done in {times['total']:.1f}s: Gram style loss {metrics['gram_style_loss_original']:.4g} -> "
-         f"{metrics['gram_style_loss']:.4g}, content {metrics['content_loss']:.4g}; "
-         f"contact sheet {out / 'contact_sheet.png'}", progress)
+    d0, d1 = metrics["style_distance_original"], metrics["style_distance"]
+    g = lambda x: "n/a" if x is None else f"{x:.3g}"  # noqa: E731
+    _say(f"done in {times['total']:.1f}s: style distance colour {g(d0['color'])} -> {g(d1['color'])}, "
+         f"texture {g(d0['texture'])} -> {g(d1['texture'])}; Gram style loss "
+         f"{metrics['gram_style_loss_original']:.4g} -> {metrics['gram_style_loss']:.4g}, content "
+         f"{metrics['content_loss']:.4g}; contact sheet {out / 'contact_sheet.png'}", progress)
     return metrics
 
 
@@ -808,7 +949,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--content-weight", type=float, default=d.content_weight,
                    help=f"content loss weight (relative feature MSE; default {d.content_weight})")
     g.add_argument("--tv-weight", type=float, default=d.tv_weight, help=f"total variation weight (default {d.tv_weight})")
-    g.add_argument("--sh-bands", action="store_true", help="also optimise the higher SH bands")
+    g.add_argument("--style-loss", default=d.style_loss, choices=STYLE_LOSSES,
+                   help="nnfm: nearest-neighbour feature matching (the paper's); sw: sliced Wasserstein "
+                        "between feature distributions; auto (default): NNFM on VGG16 features, SW on the "
+                        "weight-free random features")
+    g.add_argument("--sw-projections", type=int, default=d.sw_projections,
+                   help=f"random directions per step of the sw loss (default {d.sw_projections})")
+    g.add_argument("--color-transfer", default=d.color_transfer, choices=COLOR_TRANSFER,
+                   help="ARF's view-consistent colour transfer (colour mean and covariance matched to the "
+                        "stylized key views, per group, or to the style image) before the optimisation, "
+                        f"after it, both or off (default {d.color_transfer})")
+    g.add_argument("--color-max-gain", type=float, default=d.color_max_gain,
+                   help="largest factor by which the colour transfer may stretch colour differences "
+                        f"(default {d.color_max_gain}; higher: closer colours, lower: smaller consistency error)")
+    g.add_argument("--sh-rest", default=d.sh_rest, choices=SH_REST,
+                   help=f"higher SH bands (view-dependent colour): keep, zero at the start, or optimise "
+                        f"(default {d.sh_rest})")
+    g.add_argument("--sh-bands", action="store_true", help="same as --sh-rest optimise")
     g.add_argument("--free-opacity", action="store_true", help="also optimise opacities")
     g.add_argument("--label-mode", default=d.label_mode, choices=("majority", "nearest"),
                    help="group maps to feature resolution (default majority)")
@@ -835,7 +992,10 @@ def run(args) -> int:
     weights = getattr(args, "weights", None)
     weights = weights if isinstance(weights, dict) else None
     s2 = Stage2Config(mode=args.mode, iters=args.iters, lr=args.lr, style_weight=args.style_weight,
-                      content_weight=args.content_weight, tv_weight=args.tv_weight, sh_bands=args.sh_bands,
+                      content_weight=args.content_weight, tv_weight=args.tv_weight,
+                      style_loss=args.style_loss, sw_projections=args.sw_projections,
+                      color_transfer=args.color_transfer, color_max_gain=args.color_max_gain,
+                      sh_rest="optimise" if args.sh_bands else args.sh_rest,
                       free_opacity=args.free_opacity, label_mode=args.label_mode,
                       feature_scale=args.feature_scale, deferred=not args.direct, chunk=args.chunk,
                       nn_precision=args.nn_precision,

@@ -336,7 +336,7 @@ def test_nan_in_stylize_is_reported_with_the_step_and_keeps_the_checkpoint(world
 
 
 def test_nan_in_grouping_is_reported_with_the_step(world, tmp_path, capsys, fail_on_call):
-    import ssgwarp.grouping as G
+    import ssgwarp.grouping_train as G  # (the training loop calls mask_loss there)
 
     fail_on_call(G, "mask_loss", 5, "nan")
     run = copy(world.run, tmp_path / "run")
@@ -393,7 +393,7 @@ def test_ctrl_c_in_reconstruct_then_resume_matches_an_uninterrupted_run(world, t
 
 def test_ctrl_c_in_grouping_then_resume_matches_an_uninterrupted_run(world, tmp_path, capsys, monkeypatch,
                                                                      fail_on_call):
-    import ssgwarp.grouping as G
+    import ssgwarp.grouping_train as G  # (the training loop calls mask_loss there)
 
     a, b = copy(world.run, tmp_path / "a"), copy(world.run, tmp_path / "b")
     args = ["--masks", "none", "--iters", "14", "--quiet", *FAST]

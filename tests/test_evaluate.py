@@ -87,7 +87,7 @@ def test_evaluate_cli_writes_metrics_pairs_and_table(runs, tmp_path, capsys):
     recon, sty, _ = runs
     table = tmp_path / "table.md"
     rc = main(["evaluate", str(recon), str(sty), "--max-pairs", "2", "--gap", "3", "--device", "cpu",
-               "--table", str(table)])
+               "--table", str(table), "--views", "all"])
     assert rc == 0, capsys.readouterr().err
     m_rec = json.loads((recon / "metrics.json").read_text())
     m_sty = json.loads((sty / "metrics.json").read_text())
@@ -95,7 +95,8 @@ def test_evaluate_cli_writes_metrics_pairs_and_table(runs, tmp_path, capsys):
     assert m_rec["note"] == "kept" and m_sty["gram_style_loss"] == 1.25 and m_sty["mode"] == "global"
     er, es = m_rec["evaluation"], m_sty["evaluation"]
     assert er["kind"] == "reconstruction" and es["kind"] == "stylized" and es["mode"] == "global"
-    assert er["views"] == 6 and er["resolution"] == [W, H]
+    assert er["views"] == 6 and er["resolution"] == [W, H] and er["view_split"] == "all"
+    assert er["views_scored"] == "6 all captured views (training and held out)"
     c = er["consistency"]["reprojection"]
     assert c["short"]["pairs"] == 2 and c["long"]["pairs"] == 2 and c["long"]["gap"] == 3
     assert c["short"]["coverage"] > 0.5
@@ -109,6 +110,9 @@ def test_evaluate_cli_writes_metrics_pairs_and_table(runs, tmp_path, capsys):
     # style / content: extractor always reported; stylized run has both losses
     assert es["style_content"]["extractor"].startswith("random-multiscale")
     assert es["style_content"]["gram_style_loss"] > 0 and es["style_content"]["content_loss"] > 0
+    # the weight-free distances, for the stylized renders and for the source renders of the same views
+    for k in ("color", "texture"):
+        assert es["style_content"][f"style_distance_{k}"] > 0 and es["style_content"][f"style_distance_{k}_original"] > 0
     assert "gram_style_loss" not in er.get("style_content", {})       # no style image for the reconstruction
     assert "no local weights for lpips" in er["skipped"]["lpips"]
     assert "raft" in er["skipped"]["flow warp"]
@@ -117,7 +121,34 @@ def test_evaluate_cli_writes_metrics_pairs_and_table(runs, tmp_path, capsys):
     assert len(strips) == 8 and "short_reprojection_v0-v1.png" in strips and "short_reprojection_v0-v1_mask.png" in strips
     text = table.read_text()
     assert "| metric | recon | styled |" in text and "short-range RMSE (reprojection)" in text
-    assert "PSNR" in text and "Gram style loss" in text
+    assert "PSNR" in text and "Gram style loss" in text and "colour distance (SW, Lab)" in text
+
+
+def test_evaluate_scores_novel_path_views_by_default(runs, tmp_path):
+    """The default is the papers' protocol: novel views on a smooth path, none of them a training view;
+    metrics say which views were scored; --views test scores the held-out views."""
+    from ssgwarp.cameras import Cameras
+    from ssgwarp.evaluate import EvalOptions, evaluate_run
+
+    recon, sty, style = runs
+    assert EvalOptions().views == "path"
+    res = evaluate_run(sty, EvalOptions(max_pairs=2, gap=3, path_frames=12, save_pairs=0), write=False)
+    assert res["view_split"] == "path" and res["views"] == 12
+    assert res["views_scored"] == "12 novel views on a smooth path through the 4 training cameras"
+    assert res["consistency"]["reprojection"]["short"]["pairs"] == 2
+    assert res["style_content"]["style_distance_color"] > 0
+    # no path frame coincides with a training camera
+    train = Cameras.load(recon / "cameras.json")
+    from ssgwarp.evaluate import scored_cameras
+    from ssgwarp.datasets import load_run
+
+    _, data = load_run(recon, load_images=False)
+    path, ids, _ = scored_cameras(data.cameras, data.train_ids, data.test_ids, EvalOptions(path_frames=12))
+    assert ids is None and len(path) == 12
+    d = torch.cdist(path.centers.double(), train.centers.double())
+    assert float(d.min()) > 1e-3
+    test = evaluate_run(recon, EvalOptions(views="test", max_pairs=1, save_pairs=0), write=False)
+    assert test["view_split"] == "test" and test["views"] == 2 and "held-out" in test["views_scored"]
 
 
 def test_evaluate_with_style_gives_lower_style_loss_to_matching_colours(runs, tmp_path):

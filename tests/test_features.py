@@ -72,7 +72,7 @@ def test_default_is_random_when_no_weights(monkeypatch):
     monkeypatch.delenv("SSGWARP_VGG16", raising=False)
     monkeypatch.delenv("SSGWARP_WEIGHTS", raising=False)
     ext = load_extractor()
-    assert ext.name == "random-multiscale:seed0"
+    assert ext.name == "random-multiscale:seed0,c128s2"
     with pytest.raises(WeightsNotFound):
         load_extractor(kind="vgg16")
 
@@ -81,7 +81,10 @@ def test_random_extractor_deterministic_for_seed_and_differentiable():
     x = torch.rand(2, 3, 36, 44, generator=torch.Generator().manual_seed(1)).requires_grad_(True)
     a, b, c = RandomMultiScale(seed=3), RandomMultiScale(seed=3), RandomMultiScale(seed=4)
     fa, fb, fc = a(x), b(x), c(x)
-    assert [f.shape for f in fa] == [torch.Size([2, 64, 9, 11])] * 3
+    assert [f.shape for f in fa] == [torch.Size([2, 128, 18, 22])] * 3
+    legacy = RandomMultiScale(seed=3, channels=64, stride=4)       # the extractor of earlier versions
+    assert legacy.name == "random-multiscale:seed3"
+    assert [f.shape for f in legacy(x)] == [torch.Size([2, 64, 9, 11])] * 3
     for u, v in zip(fa, fb):
         assert torch.equal(u, v)
     assert not torch.allclose(fa[0], fc[0])

@@ -147,7 +147,7 @@ def test_mask_loss_and_3d_regulariser():
 
     pts = torch.rand(200, 3, generator=g)
     q = torch.arange(0, 200, 7)
-    nn_idx = knn_indices(pts[q], pts, 5, exclude=q, chunk=64)
+    nn_idx = knn_indices(pts[q], pts, 5, exclude=q, block=len(q) * 64)  # blocks of 64 points
     d = torch.cdist(pts[q], pts)
     d[torch.arange(len(q)), q] = float("inf")
     assert torch.equal(nn_idx.sort(1).values, d.topk(5, largest=False).indices.sort(1).values)
@@ -305,7 +305,7 @@ def test_cap_and_min_fraction():
 # -- determinism, interruption and resume ------------------------------------------------------------
 
 def test_deterministic_for_a_seed_and_resume_after_interrupt(tmp_path, synth, monkeypatch, fail_on_call):
-    import ssgwarp.grouping as grouping
+    import ssgwarp.grouping_train as grouping  # (the training loop calls mask_loss there)
     from ssgwarp.grouping import GroupConfig, train_identities
     from ssgwarp.pseudomasks import pseudo_masks
 

@@ -127,7 +127,7 @@ def test_tile_counts_and_ids_are_consistent():
         ids = meta["flatten_ids"].long()
         assert int(counts.sum()) == ids.numel()
         assert torch.equal(torch.bincount(ids, minlength=counts.numel()), counts)
-        offs = meta["offsets"].long()
+        offs = torch.cat([meta["isect_offsets"].reshape(-1).long(), torch.tensor([ids.numel()])])
         assert offs[0] == 0 and offs[-1] == ids.numel() and bool((offs[1:] >= offs[:-1]).all())
         # each tile's range holds intersections of that tile only, sorted by depth
         tiles = meta["isect_ids"] >> 32

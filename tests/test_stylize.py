@@ -167,7 +167,8 @@ def _redness(scene, obj, k):
     return float(c[0] - c[2])
 
 
-def test_ist_gives_each_object_its_matched_colour_while_global_mixes():
+@pytest.mark.parametrize("style_loss,margin", [("nnfm", 0.25), ("sw", 0.15)])
+def test_ist_gives_each_object_its_matched_colour_while_global_mixes(style_loss, margin):
     """Left object is matched (by group) to red, right to blue; the style image holds both colours.
 
     The objects start bluish (left) and reddish (right), so plain nearest-neighbour matching
@@ -181,7 +182,8 @@ def test_ist_gives_each_object_its_matched_colour_while_global_mixes():
     assert before[0] < -0.1 and before[1] > 0.1
     out = {}
     for mode in ("ist", "global"):
-        cfg = st.Stage2Config(mode=mode, iters=40, lr=0.05, content_weight=0.0, tv_weight=0.0)
+        cfg = st.Stage2Config(mode=mode, iters=40, lr=0.05, content_weight=0.0, tv_weight=0.0, style_loss=style_loss,
+                              color_transfer="off")
         if mode == "ist":
             targets = st.build_targets(ext, keys, labels[key_ids], cfg)
         else:
@@ -192,8 +194,8 @@ def test_ist_gives_each_object_its_matched_colour_while_global_mixes():
         res = st.optimise(scene, cams, cfg, loss=loss, progress=False)
         out[mode] = (_redness(res.scene, obj, 0), _redness(res.scene, obj, 1))
         assert res.last["style"] < res.history[0]["style"]
-    # IST: left clearly red, right clearly blue (margin 0.25 on a 0..0.8 scale)
-    assert out["ist"][0] > 0.25 and out["ist"][1] < -0.25, out
+    # IST: left clearly red, right clearly blue (margin on a 0..0.8 scale)
+    assert out["ist"][0] > margin and out["ist"][1] < -margin, out
     # global: the assignment is not the matched one (each object goes to its nearest style colour)
     assert not (out["global"][0] > 0.0 and out["global"][1] < 0.0), out
     assert out["ist"][0] - out["global"][0] > 0.5 and out["global"][1] - out["ist"][1] > 0.5, out
@@ -256,6 +258,14 @@ def test_bad_options_are_one_line_errors():
         st.Stage2Config(lr=float("nan")).validate()
     with pytest.raises(InputError, match="--feature-scale"):
         st.Stage2Config(feature_scale=0).validate()
+    with pytest.raises(InputError, match="--color-transfer"):
+        st.Stage2Config(color_transfer="sideways").validate()
+    with pytest.raises(InputError, match="--sh-rest"):
+        st.Stage2Config(sh_rest="drop").validate()
+    with pytest.raises(InputError, match="--style-loss"):
+        st.Stage2Config(style_loss="gram").validate()
+    with pytest.raises(InputError, match="--color-max-gain"):
+        st.Stage2Config(color_max_gain=0.0).validate()
 
 
 # ----------------------------------------------------------------------------- end to end (CLI)
@@ -309,8 +319,13 @@ def test_cli_stylize_end_to_end_without_stage1_weights(tmp_path, monkeypatch):
     m = json.loads((out / "metrics.json").read_text())
     assert m["stage1"]["ran"] is False and "no local diffusion weights" in m["stage1"]["reason"]
     assert m["matching"].startswith("global against the style image")
-    assert m["extractor"] == "random-multiscale:seed0" and m["groups"] == 3
+    assert m["extractor"] == "random-multiscale:seed0,c128s2" and m["groups"] == 3 and m["style_loss"] == "sw"
     assert m["gram_style_loss"] > 0 and m["content_loss"] > 0
+    for k in ("color", "texture"):
+        assert m["style_distance"][k] > 0 and m["style_distance_original"][k] > 0
+    ct = m["color_transfer"]
+    assert ct["setting"] == "both" and ct["against"] == "the style image"
+    assert ct["pre"]["per_group"] is False and ct["post"]["per_group"] is False
     assert set(m["seconds"]) >= {"keyviews", "stage1", "stage2", "renders", "total"}
     for f in ("scene.ply", "contact_sheet.png", "loss.png", "keyviews/keyviews.json", "renders/train/img00.png"):
         assert (out / f).is_file(), f
@@ -322,8 +337,9 @@ def test_cli_stylize_end_to_end_without_stage1_weights(tmp_path, monkeypatch):
     assert main(["stylize", *argv, "--resume"]) == 0
     assert torch.equal(read_ply(out / "scene.ply").sh_dc, styled.sh_dc)
     assert main(["stylize", *argv, "--resume", "--lr", "0.5"]) == 2     # different options
-    assert main(["stylize", *argv, "--force", "--mode", "global"]) == 0
-    assert json.loads((out / "metrics.json").read_text())["mode"] == "global"
+    assert main(["stylize", *argv, "--force", "--mode", "global", "--color-transfer", "off", "--style-loss", "nnfm"]) == 0
+    m2 = json.loads((out / "metrics.json").read_text())
+    assert m2["mode"] == "global" and m2["style_loss"] == "nnfm" and set(m2["color_transfer"]) == {"setting", "against"}
     # bad input: a missing style image is a one-line error
     assert main(["stylize", str(run), "--style", str(tmp_path / "nope.png"), "--out", str(tmp_path / "o2")]) == 2
 
@@ -358,3 +374,121 @@ def test_stylize_with_tiny_stage1_runs_ist_on_the_stylized_key_views(tmp_path, m
     # a different CVSA setting is a different run
     with pytest.raises(InputError, match="stage1"):
         st.stylize_run(run, style, out, stage1=Stage1Config(steps=2, cvsa=True, progress=False), resume=True, **kw)
+
+
+# ----------------------------------------------------------------------------- the Stage 2 objective, by hand
+class _Identity(torch.nn.Module):
+    """Features = the image itself (stride 1): every loss term becomes hand-computable."""
+
+    name = "identity"
+    strides = [1]
+
+    def __init__(self):
+        super().__init__()
+        self.p = torch.nn.Parameter(torch.zeros(1, dtype=torch.float64), requires_grad=False)
+
+    def forward(self, x):
+        return [x.to(self.p.dtype)]
+
+
+def test_stage2_total_loss_equals_its_equation_by_hand():
+    """L = style_weight * L_style + content_weight * L_content + tv_weight * L_TV on a 2x2 image.
+
+    NNFM: pixels (1,0,0) (0,1,0) / (0,0,1) (1,1,0) against keys (1,0,0), (0,1,1): cosine distances to
+    the nearest key 0, 1 - 1/sqrt2, 1 - 1/sqrt2, 1 - 1/sqrt2 -> mean 3 (1 - 1/sqrt2) / 4.
+    Content against a flat 0.5 render: mean((I - 0.5)^2) / mean(0.5^2) = 0.25 / 0.25 = 1.
+    TV: vertical squared differences (1,0,1), (1,0,0) -> 1/2; horizontal (1,1,0), (1,1,1) -> 5/6.
+    """
+    img = torch.tensor([[[1.0, 0, 0], [0, 1, 0]], [[0, 0, 1], [1, 1, 0]]], dtype=torch.float64)
+    keys = torch.tensor([[[1.0, 0, 0], [0, 1, 1]]], dtype=torch.float64)          # a 1x2 style image
+    original = torch.full((1, 2, 2, 3), 0.5, dtype=torch.float64)
+    ext = _Identity()
+    nnfm = 3 * (1 - 1 / 2 ** 0.5) / 4
+    content, tv = 1.0, 0.5 + 5 / 6
+    for sw, cw, tw in [(2.0, 0.5, 0.1), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 3.0)]:
+        cfg = st.Stage2Config(style_loss="nnfm", style_weight=sw, content_weight=cw, tv_weight=tw)
+        loss = st.ViewLoss(ext, st.build_targets(ext, keys, None, cfg), cfg, originals=original)
+        total = loss(img, 0)
+        assert float(total) == pytest.approx(sw * nnfm + cw * content + tw * tv, abs=1e-12)
+        assert loss.last["style"] == pytest.approx(nnfm, abs=1e-12)
+    # the paper's objective (content 0, TV 0) is the style term alone
+    cfg = st.Stage2Config(style_loss="nnfm", content_weight=0.0, tv_weight=0.0)
+    loss = st.ViewLoss(ext, st.build_targets(ext, keys, None, cfg), cfg, originals=original)
+    assert float(loss(img, 0)) == pytest.approx(nnfm, abs=1e-12) and set(loss.last) == {"style", "total"}
+
+
+def test_sliced_style_loss_by_hand_and_per_group():
+    """SW term: a view whose features are the keys permuted -> 0; scaled by 2 -> exactly 1 for any
+    directions (sorting commutes with scaling); per group, an absent group uses all keys (fallback)."""
+    from ssgwarp.matching import SlicedTargets
+
+    g = torch.Generator().manual_seed(0)
+    keys = torch.randn(1, 6, 4, 5, generator=g, dtype=torch.float64)            # [V, C, h, w]
+    flat = keys[0].reshape(6, -1)
+    perm = torch.randperm(20, generator=g)
+    view = flat[:, perm].reshape(6, 4, 5)
+    t = SlicedTargets(keys, None, projections=16, seed=3)
+    assert float(t.loss(view, step=0)) < 1e-24
+    assert float(t.loss(2 * view, step=5)) == pytest.approx(1.0, abs=1e-12)
+    # resumable: the directions are a function of seed and step only
+    assert torch.equal(t.directions(7, 6, "cpu", torch.float64), SlicedTargets(keys, None, 16, 3).directions(7, 6, "cpu", torch.float64))
+    assert not torch.equal(t.directions(7, 6, "cpu", torch.float64), t.directions(8, 6, "cpu", torch.float64))
+    # per group: keys of group 0 (left half) and 1 (right half); the view has groups 0 and 9 (absent)
+    klab = torch.zeros(1, 4, 5, dtype=torch.long)
+    klab[..., 3:] = 1
+    tg = SlicedTargets(keys, klab, projections=16, seed=3)
+    vlab = torch.zeros(4, 5, dtype=torch.long)
+    vlab[2:] = 9
+    k_all = keys[0].permute(1, 2, 0).reshape(-1, 6)
+    k_g0 = k_all[klab.reshape(-1) == 0]
+    q = view.permute(1, 2, 0).reshape(-1, 6)
+    d = tg.directions(0, 6, "cpu", torch.float64)
+    m0, m9 = vlab.reshape(-1) == 0, vlab.reshape(-1) == 9
+    expect = (SlicedTargets.sliced_term(q[m0], k_g0, d) * m0.sum() + SlicedTargets.sliced_term(q[m9], k_all, d) * m9.sum()) / 20
+    assert float(tg.loss(view, vlab, step=0)) == pytest.approx(float(expect), rel=1e-12)
+    assert tg.key_index(9) is None and tg.key_index(0).numel() == int((klab == 0).sum())
+
+
+def test_absent_group_falls_back_to_every_key_view_feature():
+    """A group the key views do not show is matched against all key features (never against nothing,
+    never against one group only): its nearest neighbour is the global one, here in group 1."""
+    kf = torch.zeros(1, 2, 1, 3, dtype=torch.float64)
+    kf[0, :, 0, 0] = torch.tensor([1.0, 0.0])    # group 0
+    kf[0, :, 0, 1] = torch.tensor([0.0, 1.0])    # group 1
+    kf[0, :, 0, 2] = torch.tensor([-1.0, 0.0])   # group 1
+    klab = torch.tensor([[[0, 1, 1]]])
+    t = MatchTargets(kf, klab)
+    q = F.normalize(torch.tensor([[0.1, 1.0], [0.9, 0.1]], dtype=torch.float64), dim=1)
+    assert t.nearest(q, torch.tensor([4, 4])).tolist() == [1, 0]        # group 4 absent: best over all keys
+    assert t.nearest(q, torch.tensor([1, 1])).tolist() == [1, 1]        # group 1: only its own keys
+    assert t.nearest(q, torch.tensor([0, 0])).tolist() == [0, 0]        # group 0: only its own key
+    vf = q.T.reshape(2, 1, 2)
+    loss_absent = t.loss(vf, torch.tensor([[4, 4]]))
+    brute = (1 - (q @ F.normalize(kf[0, :, 0].T, dim=1).T).max(1).values).mean()
+    assert float(loss_absent) == pytest.approx(float(brute), abs=1e-12)
+
+
+def test_weight_free_default_moves_the_scene_toward_its_style(tmp_path):
+    """The default weight-free Stage 2 (colour transfer before and after, SW loss on the random
+    features), scored by the weight-free distances — not by the extractor it optimised.
+
+    Measured on this scene and the procedural style, 30 steps (2026-11-23, CPU): colour distance
+    x0.77, texture x0.93; the previous default (NNFM on the same features, no colour transfer) x0.84,
+    x0.96. Asserted with about half of those margins, and better than the previous default.
+    """
+    from ssgwarp.fileio import write_image
+    from ssgwarp.procedural import style_image
+
+    run, _ = _write_run(tmp_path)
+    write_image(tmp_path / "art.png", torch.from_numpy(style_image(96, 96, seed=0)))
+    opts = st.StylizeOptions(keyviews=2, max_side=48, path_frames=0, sheet_views=2)
+    ratio = {}
+    for name, kw in (("default", {}), ("previous", {"color_transfer": "off", "style_loss": "nnfm"})):
+        m = st.stylize_run(run, tmp_path / "art.png", tmp_path / name, device="cpu", progress=False, opts=opts,
+                           stage2=st.Stage2Config(iters=30, checkpoint_every=1000, **kw))
+        b, a = m["style_distance_original"], m["style_distance"]
+        ratio[name] = {k: a[k] / b[k] for k in ("color", "texture")}
+    assert m["extractor"].startswith("random-multiscale") and m["stage1"]["ran"] is False
+    assert ratio["default"]["color"] < 0.88 and ratio["default"]["texture"] < 0.97, ratio
+    assert ratio["default"]["color"] < ratio["previous"]["color"] - 0.03, ratio
+    assert ratio["default"]["texture"] < ratio["previous"]["texture"], ratio

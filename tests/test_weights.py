@@ -218,7 +218,7 @@ def test_failed_download_falls_back_once_with_one_line(tmp_path, monkeypatch, ca
     hub = FakeHub(monkeypatch, tmp_path, fail=OSError("[Errno -2] Name or service not known"))
     use(monkeypatch, tmp_path, online=True)
     ext = load_extractor()                              # VGG16 wanted, download fails: weight-free features
-    assert ext.name == "random-multiscale:seed0"
+    assert ext.name == "random-multiscale:seed0,c128s2"
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and "downloading vgg16" in err[0]
     assert "download failed" in err[1] and "weight-free random multi-scale extractor" in err[1]

@@ -33,6 +33,7 @@ import torch
 
 from ssgwarp.cameras import Cameras
 from ssgwarp.errors import InputError, SsgwarpError
+from ssgwarp.fileio import write_image
 from ssgwarp.palette import palette
 from ssgwarp.scene import GaussianScene
 
@@ -532,8 +533,6 @@ class Viewer:
         """The current image ``[H, W, 3]`` uint8; written (atomically, via OpenImageIO) when ``path`` is given."""
         img = self.plotter.screenshot(None, return_img=True)
         if path is not None:
-            from ssgwarp.fileio import write_image
-
             write_image(path, img.astype(np.float32) / 255.0)
         return img
 

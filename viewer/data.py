@@ -16,6 +16,8 @@ import torch
 from ssgwarp.cameras import Cameras
 from ssgwarp.errors import InputError, SsgwarpError
 from ssgwarp.fileio import read_json
+from ssgwarp.grouping_model import gaussian_groups, load_groups
+from ssgwarp.ply import read_ply
 from ssgwarp.scene import GaussianScene
 
 
@@ -72,11 +74,6 @@ def load_scene(path: str | Path) -> GaussianScene:
     if head[:3] != b"ply":
         raise InputError(f"{path}: not a PLY file (it does not start with the 'ply' magic line); "
                          "pass the scene.ply written by `ssgwarp reconstruct`")
-    try:
-        from ssgwarp.ply import read_ply
-    except ImportError as e:
-        raise SsgwarpError(f"reading {path} needs the module ssgwarp.ply, which this installation lacks ({e})") \
-            from None
     try:
         return read_ply(path)
     except SsgwarpError:
@@ -135,17 +132,12 @@ def resolve_groups(scene: GaussianScene, *, labels=None, scene_dir: str | Path |
     if scene.identities is None:
         return None
     if scene_dir is not None and (Path(scene_dir) / "groups" / "classifier.pt").is_file():
-        try:
-            from ssgwarp.grouping import gaussian_groups, load_groups
-        except ImportError:
-            pass
-        else:
-            model = load_groups(scene_dir, device)
-            with torch.no_grad():
-                ids, prob = gaussian_groups(scene.to(device), model.classifier)
-            k = int(getattr(model, "num_groups", 0) or int(ids.max()) + 1)
-            return GroupInfo(ids.cpu().numpy().astype(np.int64), k, "grouping classifier",
-                             prob.detach().cpu().numpy().astype(np.float32))
+        model = load_groups(scene_dir, device)
+        with torch.no_grad():
+            ids, prob = gaussian_groups(scene.to(device), model.classifier)
+        k = int(getattr(model, "num_groups", 0) or int(ids.max()) + 1)
+        return GroupInfo(ids.cpu().numpy().astype(np.int64), k, "grouping classifier",
+                         prob.detach().cpu().numpy().astype(np.float32))
     ident = scene.identities.detach().cpu()
     lab = ident.argmax(dim=1).numpy().astype(np.int64)
     prob = torch.softmax(ident.float(), dim=1).max(dim=1).values.numpy()

@@ -1,4 +1,4 @@
-"""Geometry the viewer draws, as plain numpy (no VTK here).
+"""Geometry the viewer draws, as plain numpy (no VTK here; rotations from :mod:`ssgwarp.geometry`).
 
 Everything is float64 numpy; meshes come back as ``(points, cells)`` with
 ``cells`` in VTK's flat connectivity layout (``[n, i0, ..., i{n-1}, n, ...]``)
@@ -8,22 +8,19 @@ directly.
 from __future__ import annotations
 
 import numpy as np
+import torch
+
+from ssgwarp import geometry
 
 
 def quat_to_rotmat(quats: np.ndarray) -> np.ndarray:
-    """``[N, 4]`` wxyz quaternions (any norm) → ``[N, 3, 3]`` rotation matrices.
-
-    A zero quaternion gives the identity.
+    """``[N, 4]`` wxyz quaternions (any norm) → ``[N, 3, 3]`` rotation matrices
+    (:func:`ssgwarp.geometry.quat_to_rotmat`). A zero quaternion gives the identity.
     """
     q = np.asarray(quats, dtype=np.float64)
     norm = np.linalg.norm(q, axis=1, keepdims=True)
     q = np.where(norm > 0, q / np.where(norm > 0, norm, 1.0), np.array([1.0, 0.0, 0.0, 0.0]))
-    w, x, y, z = q.T
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], axis=-2)
+    return geometry.quat_to_rotmat(torch.from_numpy(q), normalize=False).numpy()
 
 
 def unit_sphere(theta_res: int = 12, phi_res: int = 8) -> tuple[np.ndarray, np.ndarray]:

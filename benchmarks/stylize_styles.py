@@ -1,0 +1,319 @@
+"""Weight-free stylization over many styles: before/after by the weight-free style distances, Gram, consistency.
+
+For a scene (fern ``images_8`` reconstruction, the demo scene, or any grouped run) and every style
+image in a folder (default ``../shared/data/styles``, 25 images), runs ``ssgwarp stylize`` (no
+Stage 1 weights needed: Stage 2 matches the style image) and ``ssgwarp evaluate`` (default
+protocol: 30 novel views on a smooth path through the training cameras), and prints one row per
+style: colour and texture distances (sliced Wasserstein in Lab / of a derivative-of-Gaussian
+filter bank, ``ssgwarp.metrics.StyleDistance``) of the original and the stylized renders, the Gram
+loss of the extractor Stage 2 used, and short/long-range consistency RMSE as ratios to the
+unstylized scene's. The last rows check the issue's targets (both distances >= 30 % lower on
+average; consistency at most 1.5x the unstylized scene's). ``--ablation`` runs the Stage 2
+ablations (colour transfer, content/TV weights, SH bands, extractor) on a few styles instead.
+
+    python benchmarks/stylize_styles.py --scene demo                  # the demo scene (built first)
+    python benchmarks/stylize_styles.py --scene fern                  # fern images_8 (reconstructed + grouped first)
+    python benchmarks/stylize_styles.py --scene fern --shard 0/3      # a third of the styles (10-minute slots)
+    python benchmarks/stylize_styles.py --scene demo --demo-size small --styles-subset candy,udnie \
+        --iters 10 --path-frames 6 --out /tmp/ss                       # CPU check (~2 min on 2 cores)
+    python benchmarks/stylize_styles.py --scene fern --ablation       # Stage 2 ablation table
+    python benchmarks/stylize_styles.py --scene fern --report         # table of what is finished, no new runs
+
+Every finished style is kept (``OUT/<scene>/<style>/result.json``) and skipped when the script
+runs again, so shards and interrupted runs add up; ``--report`` prints the table of everything
+finished. Writes ``OUT/<scene>/table.md``, ``OUT/<scene>/results.json`` and a contact sheet of a
+few styles, ``OUT/<scene>/styles_sheet.jpg``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Optional
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+DATA = ROOT.parent / "shared" / "data"
+if not DATA.is_dir():
+    DATA = Path("/work/shared/data")
+
+SHEET_STYLES = ("candy", "la_muse", "mosaic", "the_resevoir_at_poitiers", "sketch", "udnie")
+ABLATION_STYLES = ("candy", "la_muse", "sketch", "udnie")
+
+
+def prepare_scene(scene: str, out: Path, device, fern_iters: int, progress: bool, demo_size: str = "default",
+                  fern: Path = DATA / "llff_fern") -> Path:
+    """A grouped reconstruction run folder for ``scene`` (built once, reused)."""
+    if scene not in ("fern", "demo"):
+        run = Path(scene)
+        if not (run / "scene.ply").is_file():
+            raise SystemExit(f"--scene {scene}: not a run folder (no scene.ply); use fern, demo or a run folder")
+        return run
+    if scene == "demo":
+        from ssgwarp.demo import run_demo
+
+        demo = out / f"demo_build_{demo_size}"
+        if not (demo / "scene" / "groups" / "classifier.pt").is_file():
+            run_demo(demo, demo_size, device=device, force=True, progress=progress)
+        return demo / "scene"
+    from ssgwarp.grouping import group_scene
+    from ssgwarp.reconstruct import reconstruct
+
+    run = out / "fern_images_8"
+    if not (run / "scene.ply").is_file():
+        reconstruct(fern, run, images="images_8", iters=fern_iters, device=device,
+                    progress=progress, force=True)
+    if not (run / "groups" / "classifier.pt").is_file():
+        group_scene(run, masks=None, device=device, progress=progress, force=True)     # mask-free: no SAM weights
+    return run
+
+
+def stage2_config(args, **over):
+    from ssgwarp.stylize import Stage2Config
+
+    kw = {}
+    for k in ("iters", "lr", "content_weight", "tv_weight", "color_transfer", "sh_rest"):
+        v = getattr(args, k)
+        if v is not None:
+            kw[k] = v
+    kw.update(over)
+    return Stage2Config(**kw)
+
+
+def run_style(run: Path, style: Path, out: Path, cfg, device, extractor: str, eval_opts, progress: bool) -> dict:
+    """Stylize ``run`` with ``style`` into ``out`` and evaluate it; returns the result row (cached in out)."""
+    from ssgwarp.evaluate import evaluate_run
+    from ssgwarp.fileio import read_json, write_json
+    from ssgwarp.stylize import StylizeOptions, stylize_run
+
+    res_file = out / "result.json"
+    if res_file.is_file():
+        return read_json(res_file)
+    t0 = time.perf_counter()
+    m = stylize_run(run, style, out, stage2=cfg, opts=StylizeOptions(path_frames=0, sheet_views=2,
+                                                                        extractor=extractor),
+                    device=device, force=True, progress=progress)
+    seconds = time.perf_counter() - t0
+    ev = evaluate_run(out, eval_opts, device, write=True)
+    sc = ev["style_content"]
+    rep = ev["consistency"]["reprojection"]
+    row = {"style": style.stem, "color_before": sc["style_distance_color_original"],
+           "color_after": sc["style_distance_color"], "texture_before": sc["style_distance_texture_original"],
+           "texture_after": sc["style_distance_texture"], "gram_before": m["gram_style_loss_original"],
+           "gram_after": m["gram_style_loss"], "content": sc.get("content_loss", m["content_loss"]),
+           "short": rep["short"]["rmse"], "long": rep["long"]["rmse"],
+           "stylize_seconds": seconds, "stage2_seconds": m["seconds"]["stage2"], "extractor": m["extractor"],
+           "config": m["config"], "views_scored": ev["views_scored"], "device": m["device"]}
+    write_json(res_file, row)
+    return row
+
+
+def source_consistency(run: Path, out: Path, device, eval_opts) -> dict:
+    from ssgwarp.evaluate import evaluate_run
+    from ssgwarp.fileio import read_json, write_json
+
+    f = out / "source_consistency.json"
+    if f.is_file():
+        return read_json(f)
+    ev = evaluate_run(run, eval_opts, device, write=False)
+    rep = ev["consistency"]["reprojection"]
+    d = {"short": rep["short"]["rmse"], "long": rep["long"]["rmse"], "views_scored": ev["views_scored"]}
+    write_json(f, d)
+    return d
+
+
+def _pct(before: Optional[float], after: Optional[float]) -> str:
+    if before is None or after is None or before == 0:
+        return "-"
+    return f"{100 * (after - before) / before:+.0f}%"
+
+
+def table(rows: list[dict], src: dict, title: str) -> str:
+    lines = [title, "",
+             "| style | colour before | colour after | Δ | texture before | texture after | Δ | Gram before | "
+             "Gram after | content loss | short RMSE (x src) | long RMSE (x src) | Stage 2 s | stylize s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(
+            f"| {r['style']} | {r['color_before']:.2f} | {r['color_after']:.2f} | "
+            f"{_pct(r['color_before'], r['color_after'])} | {r['texture_before']:.3f} | {r['texture_after']:.3f} | "
+            f"{_pct(r['texture_before'], r['texture_after'])} | {r['gram_before']:.3g} | {r['gram_after']:.3g} | "
+            f"{r.get('content', float('nan')):.3g} | "
+            f"{r['short']:.4f} ({r['short'] / src['short']:.2f}) | {r['long']:.4f} ({r['long'] / src['long']:.2f}) | "
+            f"{r['stage2_seconds']:.1f} | {r['stylize_seconds']:.1f} |")
+    if rows:
+        n = len(rows)
+        dc = sum(1 - r["color_after"] / r["color_before"] for r in rows) / n
+        dt = sum(1 - r["texture_after"] / r["texture_before"] for r in rows) / n
+        worse = [r["style"] for r in rows if r["color_after"] >= r["color_before"] or r["texture_after"] >= r["texture_before"]]
+        ms = max(r["short"] / src["short"] for r in rows)
+        ml = max(r["long"] / src["long"] for r in rows)
+        lines += ["", f"Unstylized scene: short-range RMSE {src['short']:.4f}, long-range {src['long']:.4f} "
+                      f"({src['views_scored']}).",
+                  f"Mean reduction over {n} styles: colour {100 * dc:.1f}%, texture {100 * dt:.1f}% "
+                  f"(target >= 30% each: {'met' if dc >= 0.3 and dt >= 0.3 else 'NOT met'}).",
+                  f"Styles not closer on both terms: {', '.join(worse) if worse else 'none'}.",
+                  f"Worst consistency ratio: short {ms:.2f}x, long {ml:.2f}x "
+                  f"(target <= 1.5x: {'met' if ms <= 1.5 and ml <= 1.5 else 'NOT met'})."]
+    return "\n".join(lines) + "\n"
+
+
+def sheet(path: Path, run: Path, results_dir: Path, styles: list[Path], device) -> Optional[Path]:
+    """Rows: style image | original | stylized (one view), for the styles that finished; a small JPEG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ssgwarp.datasets import load_run
+    from ssgwarp.fileio import atomic_path, read_image
+    from ssgwarp.ply import read_ply
+    from ssgwarp.stylize import render_rgb
+
+    done = [s for s in styles if (results_dir / s.stem / "scene.ply").is_file()]
+    if not done:
+        return None
+    src, data = load_run(run, device, load_images=False)
+    cam = data.cameras[[list(data.test_ids or data.train_ids)[0]]].to(device)
+    bg = torch.tensor(data.background[:3], dtype=src.dtype, device=device)
+    with torch.no_grad():
+        orig = render_rgb(src, cam, bg)[0].clamp(0, 1).cpu()
+    h, w = orig.shape[:2]
+    fig, axes = plt.subplots(len(done), 3, figsize=(3 * 2.4, len(done) * 2.4 * h / w + 0.3), dpi=90, squeeze=False)
+    for i, s in enumerate(done):
+        with torch.no_grad():
+            styl = render_rgb(read_ply(results_dir / s.stem / "scene.ply", device=device), cam, bg)[0].clamp(0, 1).cpu()
+        for j, (img, label) in enumerate([(torch.from_numpy(read_image(s, 3)), s.stem), (orig, "original"),
+                                          (styl, "stylized")]):
+            axes[i, j].imshow(img.numpy())
+            axes[i, j].set_title(label, fontsize=7)
+            axes[i, j].axis("off")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="jpg", pil_kwargs={"quality": 82})
+    plt.close(fig)
+    return path
+
+
+ABLATIONS = {
+    "default": {},
+    "color transfer off": {"color_transfer": "off"},
+    "color transfer pre": {"color_transfer": "pre"},
+    "color transfer post": {"color_transfer": "post"},
+    "colour transfer only (0 steps)": {"iters": 0},
+    "paper objective (content 0, TV 0)": {"content_weight": 0.0, "tv_weight": 0.0},
+    "content 0": {"content_weight": 0.0},
+    "TV 0": {"tv_weight": 0.0},
+    "SH rest: keep": {"sh_rest": "keep"},
+    "SH rest: zero": {"sh_rest": "zero"},
+    "SH rest: optimise": {"sh_rest": "optimise"},
+}
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--scene", default="demo", help="fern, demo, or a (grouped) reconstruction run folder")
+    p.add_argument("--styles", type=Path, default=DATA / "styles", help="folder of style images")
+    p.add_argument("--styles-subset", default=None, help="comma-separated style names (file stems)")
+    p.add_argument("--shard", default=None, help="i/n: run the i-th of n interleaved slices of the styles")
+    p.add_argument("--out", type=Path, default=ROOT / "out" / "stylize_styles")
+    p.add_argument("--device", default="auto")
+    p.add_argument("--fern-iters", type=int, default=7000, help="reconstruction steps of fern images_8")
+    p.add_argument("--fern", type=Path, default=DATA / "llff_fern", help="the LLFF fern capture (--scene fern)")
+    p.add_argument("--demo-size", default="default", choices=("small", "default"),
+                   help="demo scene size (--scene demo; small: the tests' scene, for a CPU check)")
+    p.add_argument("--extractor", default="auto", choices=("auto", "vgg16", "random"))
+    p.add_argument("--path-frames", type=int, default=30, help="novel path views scored by evaluate")
+    p.add_argument("--ablation", action="store_true", help="the Stage 2 ablation table on a few styles")
+    p.add_argument("--report", action="store_true", help="print the table of finished styles only")
+    p.add_argument("--quiet", action="store_true")
+    g = p.add_argument_group("Stage 2 (default: the CLI defaults)")
+    g.add_argument("--iters", type=int, default=None)
+    g.add_argument("--lr", type=float, default=None)
+    g.add_argument("--content-weight", type=float, default=None)
+    g.add_argument("--tv-weight", type=float, default=None)
+    g.add_argument("--color-transfer", default=None)
+    g.add_argument("--sh-rest", default=None)
+    args = p.parse_args()
+
+    from ssgwarp.cli import resolve_device
+    from ssgwarp.evaluate import EvalOptions
+    from ssgwarp.fileio import atomic_path, write_json
+
+    device = resolve_device(args.device)
+    torch.manual_seed(0)
+    progress = not args.quiet
+    styles = sorted(q for q in args.styles.iterdir() if q.suffix.lower() in (".jpg", ".jpeg", ".png"))
+    if args.styles_subset:
+        want = [s.strip() for s in args.styles_subset.split(",") if s.strip()]
+        styles = [q for q in styles if q.stem in want]
+    if not styles:
+        raise SystemExit(f"no style images in {args.styles}")
+    name = args.scene if args.scene in ("fern", "demo") else Path(args.scene).name
+    out = args.out / name
+    out.mkdir(parents=True, exist_ok=True)
+    run = prepare_scene(args.scene, args.out, device, args.fern_iters, progress, args.demo_size, args.fern)
+    eval_opts = EvalOptions(path_frames=args.path_frames, max_pairs=16, save_pairs=0)
+    src = source_consistency(run, out, device, eval_opts)
+    dev = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
+
+    if args.ablation:
+        abl = [s for s in styles if s.stem in ABLATION_STYLES] or styles[:4]
+        lines = [f"Stage 2 ablation on {name} ({dev}, {time.strftime('%Y-%m-%d')}), styles "
+                 f"{', '.join(s.stem for s in abl)}; means over the styles", "",
+                 "| configuration | colour Δ | texture Δ | Gram after/before | short RMSE (x src) | long RMSE (x src) | Stage 2 s |",
+                 "|---|---|---|---|---|---|---|"]
+        raw = {}
+        for label, over in ABLATIONS.items():
+            cfg = stage2_config(args, **over)
+            tag = "abl_" + "".join(c if c.isalnum() else "_" for c in label)
+            rows = [] if args.report else [run_style(run, s, out / tag / s.stem, cfg, device, args.extractor,
+                                                      eval_opts, progress) for s in abl]
+            if not rows:
+                continue
+            raw[label] = rows
+            n = len(rows)
+            mean = lambda f: sum(f(r) for r in rows) / n  # noqa: E731
+            lines.append(f"| {label} | {100 * mean(lambda r: r['color_after'] / r['color_before'] - 1):+.1f}% | "
+                         f"{100 * mean(lambda r: r['texture_after'] / r['texture_before'] - 1):+.1f}% | "
+                         f"{mean(lambda r: r['gram_after'] / r['gram_before']):.2f} | "
+                         f"{mean(lambda r: r['short'] / src['short']):.2f} | {mean(lambda r: r['long'] / src['long']):.2f} | "
+                         f"{mean(lambda r: r['stage2_seconds']):.1f} |")
+        text = "\n".join(lines) + "\n"
+        with atomic_path(out / "ablation.md") as tmp:
+            tmp.write_text(text)
+        write_json(out / "ablation.json", {"device": dev, "source": src, "runs": raw})
+        print(text)
+        return 0
+
+    todo = styles
+    if args.shard:
+        i, n = (int(x) for x in args.shard.split("/"))
+        todo = styles[i::n]
+    cfg = stage2_config(args)
+    rows = []
+    for s in styles:
+        if s in todo and not args.report:
+            rows.append(run_style(run, s, out / "styles" / s.stem, cfg, device, args.extractor, eval_opts, progress))
+        elif (out / "styles" / s.stem / "result.json").is_file():
+            rows.append(json.loads((out / "styles" / s.stem / "result.json").read_text()))
+    title = (f"`ssgwarp stylize` (weight-free: no Stage 1, {rows[0]['extractor'] if rows else '-'}) on {name}, "
+             f"{dev}, {time.strftime('%Y-%m-%d')}; scored by `ssgwarp evaluate` on {src['views_scored']}. "
+             f"Distances: sliced Wasserstein to the style (colour in Lab, texture of a derivative-of-Gaussian "
+             f"filter bank), on the scene's pixels; lower is closer.")
+    text = table(rows, src, title)
+    with atomic_path(out / "table.md") as tmp:
+        tmp.write_text(text)
+    write_json(out / "results.json", {"device": dev, "source": src, "rows": rows})
+    sheet(out / "styles_sheet.jpg", run, out / "styles", [s for s in styles if s.stem in SHEET_STYLES], device)
+    print(text)
+    print(f"{len(rows)}/{len(styles)} styles finished; table {out / 'table.md'}, sheet {out / 'styles_sheet.jpg'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

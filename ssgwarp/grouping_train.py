@@ -1,0 +1,198 @@
+"""Training Gaussian Grouping's identities and classifier.
+
+:func:`train_identities`: the stage with the geometry frozen (only identities and classifier
+are optimised), checkpointed (every ``checkpoint_every`` steps, on Ctrl-C and on a non-finite
+loss) and resumable to the same result. :class:`GroupingHook`: joint training with
+reconstruction (``ssgwarp group --joint``), as a hook of :class:`ssgwarp.reconstruct.Trainer`.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import torch
+from tqdm.auto import tqdm
+
+from .cameras import Cameras
+from .errors import InputError, SsgwarpError
+from .fileio import atomic_path
+from .grouping_model import GroupConfig, init_identities, make_classifier, mask_loss, regularizer_3d
+from .scene import GaussianScene
+
+Tensor = torch.Tensor
+
+
+def _adam(identities: Tensor, classifier: torch.nn.Linear, config: GroupConfig) -> torch.optim.Adam:
+    return torch.optim.Adam([
+        {"params": [identities], "lr": config.identity_lr, "name": "identities"},
+        {"params": list(classifier.parameters()), "lr": config.classifier_lr, "name": "classifier"},
+    ])
+
+
+def _save_checkpoint(path: Path, step: int, identities: Tensor, classifier: torch.nn.Linear,
+                     opt: torch.optim.Optimizer, gen_state: Tensor, meta: dict, history: list,
+                     order: list) -> None:
+    obj = {"step": step, "identities": identities.detach().cpu(), "classifier": classifier.state_dict(),
+           "optimizer": opt.state_dict(), "generator": gen_state, "meta": meta, "history": history,
+           "order": list(order)}
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
+
+
+def train_identities(scene: GaussianScene, cameras: Cameras, targets: Tensor, num_groups: int, *,
+                     config: GroupConfig = GroupConfig(), seed: int = 0, progress: bool = True,
+                     checkpoint_path: Optional[str | Path] = None, resume: bool = False,
+                     ) -> tuple[GaussianScene, torch.nn.Linear, list[dict]]:
+    """Train identities and classifier with the geometry frozen.
+
+    Args:
+        scene: the reconstructed scene (its geometry and colour are not changed).
+        cameras: the C training cameras. targets: ``[C, H, W]`` long masks
+        (``IGNORE`` = -1 skipped). num_groups: K.
+        checkpoint_path: where checkpoints go (every ``config.checkpoint_every``
+        steps and on Ctrl-C); with ``resume`` a compatible one is continued.
+    Returns:
+        ``(scene with identities [N, E], classifier, history)``; history holds
+        ``{"step", "ce", "reg"}`` every 10 steps (``reg`` None on steps without
+        the 3D term). Deterministic for a seed.
+    """
+    C = len(cameras)
+    if targets.shape != (C, cameras.height, cameras.width):
+        raise InputError(f"targets must be [C={C}, H={cameras.height}, W={cameras.width}], got {tuple(targets.shape)}")
+    dev, dt = scene.device, scene.dtype
+    gen = torch.Generator().manual_seed(int(seed))
+    geom = scene.detach().replace(identities=None)
+    n = len(geom)
+    identities = init_identities(n, config.dim, generator=gen, device=dev, dtype=dt).requires_grad_(True)
+    classifier = make_classifier(config.dim, num_groups, generator=gen, device=dev, dtype=dt)
+    opt = _adam(identities, classifier, config)
+    targets = targets.to("cpu", torch.int16 if num_groups < 32767 else torch.long)  # moved per step
+    cams = cameras.to(dev)
+    history: list[dict] = []
+    order: list[int] = []
+    meta = {"n": n, "dim": config.dim, "num_groups": num_groups, "seed": int(seed), "views": C}
+    start = 0
+    ckpt = Path(checkpoint_path) if checkpoint_path is not None else None
+    if resume and ckpt is not None and ckpt.is_file():
+        state = torch.load(ckpt, map_location=dev, weights_only=False)
+        if state.get("meta") != meta:
+            raise InputError(f"{ckpt}: checkpoint was written for a different setup ({state.get('meta')} vs {meta}); "
+                             "rerun with --force to start over")
+        with torch.no_grad():
+            identities.copy_(state["identities"].to(dev, dt))
+        classifier.load_state_dict(state["classifier"])
+        opt.load_state_dict(state["optimizer"])
+        gen.set_state(state["generator"])
+        start = int(state["step"])
+        history = list(state["history"])
+        order = list(state.get("order", []))
+    if num_groups == 1 or C == 0:
+        start = config.iters  # nothing to learn: every pixel is group 0
+
+    def next_views() -> list[int]:
+        nonlocal order
+        out = []
+        while len(out) < min(config.views_per_step, C):
+            if not order:
+                order = torch.randperm(C, generator=gen).tolist()
+            out.append(order.pop())
+        return out
+
+    done = start          # steps whose update has been applied
+    snap = None           # (generator state, view order) at the start of an unfinished step
+    bar = tqdm(total=config.iters, initial=start, desc="grouping", unit="it", disable=not progress)
+    try:
+        for step in range(start, config.iters):
+            snap = (gen.get_state(), list(order))
+            views = next_views()
+            s = geom.replace(identities=identities)
+            img, _, _ = s.render(cams[views], identities=True, rgb=False)
+            logits = classifier(img)
+            ce = mask_loss(logits, targets[views].to(dev), num_groups)
+            loss = ce
+            reg_v = None
+            if config.reg_weight > 0 and config.reg_every > 0 and step % config.reg_every == 0:
+                reg = regularizer_3d(identities, geom.means, classifier, generator=gen, k=config.reg_k,
+                                     samples=config.reg_samples, max_points=config.reg_max_points)
+                loss = loss + config.reg_weight * reg
+                reg_v = float(reg.detach())
+            if not torch.isfinite(loss.detach()):
+                if ckpt is not None:  # the parameters are still those of the last good step
+                    _save_checkpoint(ckpt, done, identities, classifier, opt, snap[0], meta, history, snap[1])
+                raise SsgwarpError(f"grouping: the loss became {float(loss.detach())} at step {step + 1} of "
+                                   f"{config.iters}; the last good state is kept in the checkpoint (lower the "
+                                   "learning rate and rerun with --resume)")
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            done, snap = step + 1, None
+            if step % 10 == 0 or step == config.iters - 1:
+                history.append({"step": step, "ce": float(ce.detach()), "reg": reg_v})
+                bar.set_postfix(ce=f"{float(ce.detach()):.4f}")
+            bar.update(1)
+            if ckpt is not None and config.checkpoint_every > 0 and done % config.checkpoint_every == 0 \
+                    and done < config.iters:
+                _save_checkpoint(ckpt, done, identities, classifier, opt, gen.get_state(), meta, history, order)
+    except KeyboardInterrupt:
+        if ckpt is not None:
+            # an unfinished step is dropped and replayed on resume (same views, same samples)
+            g_state, o = snap if snap is not None else (gen.get_state(), order)
+            _save_checkpoint(ckpt, done, identities, classifier, opt, g_state, meta, history, o)
+        raise
+    finally:
+        bar.close()
+    out = scene.detach().replace(identities=identities.detach().clone())
+    classifier.requires_grad_(False)
+    return out, classifier, history
+
+
+class GroupingHook:
+    """Joint training with reconstruction: a hook for ``ssgwarp.reconstruct.Trainer(..., hooks=[...])``.
+
+    The Trainer renders the identity channels with colour, optimises
+    ``scene.identities`` itself and densifies every scene tensor; the hook
+    contributes the classifier's parameter group and the grouping loss.
+
+    Args:
+        targets: ``[C, H, W]`` long masks, row ``i`` for the Trainer's view index ``i``
+            (all-``IGNORE`` rows for views without masks).
+        num_groups: K. config: :class:`GroupConfig`. seed: classifier init and
+            regulariser samples.
+    """
+
+    def __init__(self, targets: Tensor, num_groups: int, *, config: GroupConfig = GroupConfig(), seed: int = 0,
+                 device=None, dtype=torch.float32):
+        self.config = config
+        self.num_groups = int(num_groups)
+        self.dim = int(config.dim)
+        self.generator = torch.Generator().manual_seed(int(seed) + 7919)
+        self.classifier = make_classifier(self.dim, self.num_groups, generator=self.generator,
+                                          device=device, dtype=dtype)
+        self.targets = targets
+        self.scene_fn = None      # callable returning the Trainer's current scene (for the 3D regulariser)
+        self.last: dict = {}
+
+    def parameters(self) -> list[dict]:
+        """The classifier's Adam parameter group."""
+        return [{"params": list(self.classifier.parameters()), "lr": self.config.classifier_lr,
+                 "name": "group_classifier"}]
+
+    def loss(self, step: int, view_index: int, identity_render: Tensor, scene: Optional[GaussianScene] = None) -> Tensor:
+        """Grouping loss of one rendered view: ``identity_render [H, W, E]`` (or ``[B, H, W, E]``) → scalar."""
+        cls = self.classifier
+        if cls.weight.device != identity_render.device:
+            cls.to(identity_render.device)
+        t = self.targets[view_index].to(identity_render.device)
+        ce = mask_loss(cls(identity_render), t, self.num_groups)
+        loss = ce
+        self.last = {"ce": float(ce.detach())}
+        if scene is None and self.scene_fn is not None:
+            scene = self.scene_fn()
+        cfg = self.config
+        if scene is not None and scene.identities is not None and cfg.reg_weight > 0 and cfg.reg_every > 0 \
+                and step % cfg.reg_every == 0:
+            reg = regularizer_3d(scene.identities, scene.means, cls, generator=self.generator, k=cfg.reg_k,
+                                 samples=cfg.reg_samples, max_points=cfg.reg_max_points)
+            loss = loss + cfg.reg_weight * reg
+            self.last["reg"] = float(reg.detach())
+        return loss

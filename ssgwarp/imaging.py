@@ -1,0 +1,65 @@
+"""Image helpers shared by the stages: batches in ``[B, H, W, C]``, resizing, contact sheets.
+
+:func:`as_bhwc` takes an image or a batch (numpy or torch), :func:`resize_bhwc` resizes a batch
+(bilinear, antialiased when shrinking), :func:`save_sheet` writes original | stylized pairs side
+by side (atomically, :mod:`ssgwarp.fileio`).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .errors import InputError
+from .fileio import write_image
+
+
+def as_bhwc(img) -> tuple[torch.Tensor, bool, bool]:
+    """``(batch [B, H, W, C] tensor, was a single image, was numpy)`` of an image or a batch
+    (numpy or torch): what a function taking either form works on."""
+    was_np = not isinstance(img, torch.Tensor)
+    t = torch.as_tensor(np.asarray(img) if was_np else img)
+    squeeze = t.ndim == 3
+    if t.ndim == 2:
+        raise InputError("expected an image [H, W, C] or a batch [B, H, W, C], got [H, W]")
+    if squeeze:
+        t = t[None]
+    if t.ndim != 4:
+        raise InputError(f"expected an image [H, W, C] or [B, H, W, C], got shape {tuple(t.shape)}")
+    return t, squeeze, was_np
+
+
+def resize_bhwc(t: torch.Tensor, w: int, h: int) -> torch.Tensor:
+    """``[B, H, W, C]`` → ``[B, h, w, C]`` bilinear (antialiased when shrinking)."""
+    if t.shape[1] == h and t.shape[2] == w:
+        return t
+    x = t.permute(0, 3, 1, 2)
+    dt = x.dtype
+    x = x.float() if not x.is_floating_point() else x
+    x = F.interpolate(x, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
+    return x.to(dt).permute(0, 2, 3, 1)
+
+
+def save_sheet(original, stylized, path: str | Path, gap: int = 4) -> Path:
+    """Side-by-side sheet, one row per view: original | stylized (white gaps), written atomically."""
+    def np_(x):
+        x = x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+        return np.clip(x.astype(np.float32), 0.0, 1.0)
+
+    a, b = np_(original), np_(stylized)
+    if a.ndim == 3:
+        a, b = a[None], b[None]
+    if a.shape[0] != b.shape[0]:
+        raise InputError(f"save_sheet: {a.shape[0]} originals but {b.shape[0]} stylized views")
+    H, W = a.shape[1], a.shape[2]
+    if b.shape[1:3] != (H, W):
+        b = resize_bhwc(torch.from_numpy(b), W, H).numpy()
+    rows = []
+    for i in range(a.shape[0]):
+        g = np.ones((H, gap, 3), np.float32)
+        rows.append(np.concatenate([a[i, ..., :3], g, b[i, ..., :3]], axis=1))
+        if i + 1 < a.shape[0]:
+            rows.append(np.ones((gap, 2 * W + gap, 3), np.float32))
+    return write_image(path, np.concatenate(rows, axis=0))

@@ -1,0 +1,73 @@
+"""A data-parallel training run for tests/test_distributed.py, launched by ``torchrun``.
+
+``python -m torch.distributed.run --nproc_per_node N tests/ddp_worker.py DATA_DIR OUT.pt [--steps S]``
+trains the tiny capture in DATA_DIR (see :func:`make_trainer`) with one view per process and
+per step, and the main process saves the final trainer state to OUT.pt. The test trains the
+same capture in one process with the whole batch and compares.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+import torch
+
+
+class HeadHook:
+    """Gaussian Grouping's shape of hook: a linear head on the identity channels, its own parameters."""
+
+    def __init__(self, dim: int):
+        g = torch.Generator().manual_seed(5)
+        self.head = torch.nn.Linear(dim, 2)
+        with torch.no_grad():
+            self.head.weight.copy_(torch.randn(2, dim, generator=g))
+            self.head.bias.zero_()
+        self.calls = []
+
+    def parameters(self):
+        return [{"params": list(self.head.parameters()), "lr": 1e-2, "name": "head"}]
+
+    def loss(self, step, view_index, identity_render):
+        self.calls.append((step, view_index))
+        return ((self.head(identity_render) - 0.5) ** 2).mean()
+
+
+def make_trainer(data_dir, *, batch_size: int = 2, group=None, steps: int = 12, hook: bool = True):
+    """Default strategy refining every 4 steps (clone, split, prune, an opacity reset), SH degree 1,
+    identity encodings trained by a :class:`HeadHook`."""
+    from ssgwarp.datasets import load_dataset
+    from ssgwarp.reconstruct import Recipe, Trainer
+
+    data = load_dataset(data_dir, split_every=0)
+    rec = Recipe(refine_start=4, refine_every=4, reset_every=8, sh_interval=4, grad_threshold=2e-5,
+                 prune_opacity=0.02, prune_screen=0.4)
+    return Trainer(data, iters=steps, sh_degree=1, max_gaussians=400, recipe=rec, progress=False, device="cpu",
+                   seed=7, identity_dim=4 if hook else None, hooks=[HeadHook(4)] if hook else (),
+                   batch_size=batch_size, group=group)
+
+
+def main() -> int:
+    from ssgwarp import distributed
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("data_dir")
+    ap.add_argument("out")
+    ap.add_argument("--steps", type=int, default=12)
+    ap.add_argument("--perturb", action="store_true", help="rank 1 nudges one position (the check must see it)")
+    a = ap.parse_args()
+    group, _ = distributed.from_env(torch.device("cpu"))
+    try:
+        t = make_trainer(a.data_dir, batch_size=group.world_size, group=group, steps=a.steps)
+        if a.perturb and group.rank == 1:
+            with torch.no_grad():
+                t.params["means"][0, 0] += 1e-4
+        t.train()
+        if group.is_main:
+            torch.save({"state": t.state_dict(), "calls": t.hooks[0].calls}, a.out)
+    finally:
+        distributed.shutdown(group)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

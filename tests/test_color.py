@@ -1,0 +1,148 @@
+"""Colour transfer (ssgwarp.color and stylize.transfer_colors): hand cases, SH linearity, per-group path and its fallback."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from ssgwarp.color import (ColorStats, ColorTransform, fit_group_transforms, fit_transform, pixel_stats,
+                           rgb_to_lab, transform_sh)
+from ssgwarp.scene import GaussianScene, sh_dc_to_rgb
+
+
+def _cloud(n: int, mean, L, seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return torch.randn(n, 3, generator=g, dtype=torch.float64) @ torch.tensor(L, dtype=torch.float64).T \
+        + torch.tensor(mean, dtype=torch.float64)
+
+
+def test_rgb_to_lab_reference_values():
+    # white, black, the sRGB primaries (CIE values for D65; e.g. red = L 53.24, a 80.09, b 67.20)
+    rgb = torch.tensor([[1.0, 1, 1], [0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0.5, 0.5, 0.5]], dtype=torch.float64)
+    ref = torch.tensor([[100.0, 0, 0], [0, 0, 0], [53.24, 80.09, 67.20], [87.73, -86.18, 83.18],
+                        [32.30, 79.19, -107.86], [53.39, 0, 0]], dtype=torch.float64)
+    torch.testing.assert_close(rgb_to_lab(rgb), ref, atol=0.02, rtol=0)
+
+
+def test_fit_transform_maps_mean_and_covariance_to_the_target():
+    """Hand case: a source cloud with known mean/covariance goes to the target's, exactly."""
+    src = _cloud(4000, [0.3, 0.5, 0.2], [[0.1, 0, 0], [0.05, 0.08, 0], [0.0, 0.02, 0.03]], 0)
+    tgt = _cloud(3000, [0.7, 0.2, 0.6], [[0.02, 0.0, 0], [0.0, 0.15, 0], [0.04, 0.0, 0.05]], 1)
+    t = fit_transform(ColorStats().add(src), ColorStats().add(tgt), eps=0.0)
+    mapped = ColorStats().add(t(src))
+    target = ColorStats().add(tgt)
+    torch.testing.assert_close(mapped.mean, target.mean, atol=1e-10, rtol=0)
+    torch.testing.assert_close(mapped.cov, target.cov, atol=1e-10, rtol=0)
+    # the map is the symmetric (optimal-transport) one: A symmetric positive definite
+    torch.testing.assert_close(t.A, t.A.T)
+    assert bool((torch.linalg.eigvalsh(t.A) > 0).all())
+    # 1-D hand case inside 3-D: isotropic source std 0.1 -> target std 0.2 gives A = 2 I, b = mu_t - 2 mu_s
+    s = ColorStats().add(_cloud(20000, [0.5, 0.5, 0.5], [[0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.1]], 2))
+    s_cov, s_mean = s.cov, s.mean
+    tt = ColorStats()
+    tt.n, tt.s1 = s.n, s.s1 * 0 + s.n * torch.tensor([0.2, 0.3, 0.4], dtype=torch.float64)
+    tt.s2 = s.n * (4 * s_cov + torch.outer(tt.mean, tt.mean))
+    t2 = fit_transform(s, tt, eps=0.0)
+    torch.testing.assert_close(t2.A, 2 * torch.eye(3, dtype=torch.float64), atol=1e-9, rtol=0)
+    torch.testing.assert_close(t2.b, torch.tensor([0.2, 0.3, 0.4], dtype=torch.float64) - 2 * s_mean)
+
+
+def test_flat_source_gain_is_capped():
+    src = torch.full((100, 3), 0.4, dtype=torch.float64) + 1e-6 * torch.randn(100, 3, dtype=torch.float64)
+    tgt = _cloud(500, [0.5, 0.5, 0.5], [[0.2, 0, 0], [0, 0.2, 0], [0, 0, 0.2]], 3)
+    t = fit_transform(ColorStats().add(src), ColorStats().add(tgt), max_gain=4.0)
+    assert float(torch.linalg.eigvalsh(t.A).max()) <= 4.0 + 1e-9
+    torch.testing.assert_close(t(src).mean(0), ColorStats().add(tgt).mean, atol=1e-3, rtol=0)
+
+
+def test_transform_sh_is_the_colour_map_of_every_view():
+    """Applied to the SH coefficients, the map recolours the view-dependent colour of every direction."""
+    from ssgwarp.sh import spherical_harmonics
+
+    g = torch.Generator().manual_seed(0)
+    n = 50
+    scene = GaussianScene.from_points(torch.randn(n, 3, generator=g, dtype=torch.float64),
+                                      torch.rand(n, 3, generator=g, dtype=torch.float64), sh_degree=2)
+    scene = scene.replace(sh_rest=0.1 * torch.randn(scene.sh_rest.shape, generator=g, dtype=torch.float64))
+    t = ColorTransform(torch.tensor([[0.8, 0.1, 0.0], [0.1, 1.2, 0.05], [0.0, 0.05, 0.6]], dtype=torch.float64),
+                       torch.tensor([0.1, -0.05, 0.2], dtype=torch.float64))
+    out = transform_sh(scene, [t])
+    dirs = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    before = spherical_harmonics(2, dirs, scene.sh_coeffs) + 0.5
+    after = spherical_harmonics(2, dirs, out.sh_coeffs) + 0.5
+    torch.testing.assert_close(after, t(before), atol=1e-12, rtol=0)
+    assert out.means is scene.means and out.logit_opacities is scene.logit_opacities
+
+
+def test_per_group_transforms_and_the_global_fallback():
+    """Group 0 and 1 are matched on their own; group 2 is absent from the target -> the global map."""
+    src0 = _cloud(800, [0.2, 0.2, 0.8], [[0.05, 0, 0], [0, 0.05, 0], [0, 0, 0.05]], 10)
+    src1 = _cloud(800, [0.8, 0.2, 0.2], [[0.05, 0, 0], [0, 0.05, 0], [0, 0, 0.05]], 11)
+    src2 = _cloud(800, [0.5, 0.5, 0.5], [[0.05, 0, 0], [0, 0.05, 0], [0, 0, 0.05]], 12)
+    tgt0 = _cloud(600, [0.9, 0.1, 0.1], [[0.02, 0, 0], [0, 0.02, 0], [0, 0, 0.02]], 13)
+    tgt1 = _cloud(600, [0.1, 0.1, 0.9], [[0.03, 0, 0], [0, 0.03, 0], [0, 0, 0.03]], 14)
+    # images [1, H, W, 3] with group maps: source has groups 0, 1, 2; target only 0 and 1
+    src_img = torch.cat([src0, src1, src2]).reshape(1, 40, 60, 3)
+    src_lab = torch.cat([torch.full((800,), k) for k in range(3)]).reshape(1, 40, 60)
+    tgt_img = torch.cat([tgt0, tgt1]).reshape(1, 30, 40, 3)
+    tgt_lab = torch.cat([torch.full((600,), k) for k in range(2)]).reshape(1, 30, 40)
+    src, tgt = pixel_stats(src_img, labels=src_lab), pixel_stats(tgt_img, labels=tgt_lab)
+    transforms, how = fit_group_transforms(src, tgt, 3, eps=0.0)
+    assert how == ["group", "group", "global"]
+    for k, (s, t) in enumerate([(src0, tgt0), (src1, tgt1)]):
+        torch.testing.assert_close(transforms[k](s).mean(0), t.mean(0), atol=1e-9, rtol=0)
+    glob = fit_transform(src[0], tgt[0], eps=0.0)
+    torch.testing.assert_close(transforms[2].A, glob.A)
+    torch.testing.assert_close(transforms[2].b, glob.b)
+    # on a scene: each Gaussian gets its group's map
+    scene = GaussianScene.from_points(torch.zeros(3, 3, dtype=torch.float64),
+                                      torch.tensor([[0.2, 0.2, 0.8], [0.8, 0.2, 0.2], [0.5, 0.5, 0.5]],
+                                                   dtype=torch.float64))
+    out = transform_sh(scene, transforms, torch.tensor([0, 1, 2]))
+    for k in range(3):
+        torch.testing.assert_close(out.base_colors[k], transforms[k](scene.base_colors[k]), atol=1e-12, rtol=0)
+    with pytest.raises(Exception, match="assignment"):
+        transform_sh(scene, transforms)
+
+
+def test_transfer_colors_on_a_rendered_scene_per_group_and_global():
+    """stylize.transfer_colors: renders of the recoloured scene carry the target's colour statistics;
+    per group, a group absent from the target views gets the global map (the fallback)."""
+    from test_stylize import object_labels, ring, two_objects
+
+    from ssgwarp import stylize as st
+
+    scene, obj = two_objects(n=80, dtype=torch.float64)
+    cams = ring(n=3, dtype=torch.float64)
+    labels = object_labels(scene, obj, cams)                 # 0, 1 objects, 2 background
+    # global: against a style image of warm colours (no colour is pushed below 0, where renders clamp)
+    style = _cloud(400, [0.6, 0.5, 0.4], [[0.04, 0, 0], [0.02, 0.03, 0], [0.0, 0.01, 0.03]], 5).reshape(1, 20, 20, 3)
+    out, info = st.transfer_colors(scene, cams, style, max_gain=4.0)     # a cap that this map stays under
+    assert float(sh_dc_to_rgb(out.sh_dc).min()) > 0
+    assert info["per_group"] is False
+    col, alpha, _ = out.render(cams)
+    surface = (col[..., :3] / alpha)[alpha[..., 0] >= 0.5]     # the pixels the statistics are taken on
+    stats, target_stats = ColorStats().add(surface), ColorStats().add(style)
+    torch.testing.assert_close(stats.mean, target_stats.mean, atol=1e-6, rtol=0)
+    # covariance: up to the eps regularisation of the (nearly rank-2) source covariance
+    torch.testing.assert_close(stats.cov, target_stats.cov, atol=0.05 * float(target_stats.cov.diagonal().max()), rtol=0.05)
+
+    # the default cap (Stage 2's --color-max-gain 1.3) limits the stretch of every colour direction
+    _, info_d = st.transfer_colors(scene, cams, style)
+    gains = torch.linalg.eigvalsh(torch.tensor(info_d["transform"]["A"], dtype=torch.float64))
+    assert float(gains.max()) == pytest.approx(1.3, abs=1e-5), gains      # this map wants more: capped
+
+    # per group: object 0 -> red, object 1 is absent from the target views -> the global map
+    target = torch.zeros(1, *labels.shape[1:], 3, dtype=torch.float64)
+    tlab = torch.full(labels.shape[1:], 2)[None]
+    target[0, :, :] = torch.tensor([0.9, 0.1, 0.1], dtype=torch.float64)
+    tlab[0, labels[0] == 0] = 0                               # target view 0 shows object 0 only (as red)
+    out_g, info_g = st.transfer_colors(scene, cams[[0]], target, labels=labels[[0]], target_labels=tlab,
+                                       assign=obj, num_groups=2, max_gain=4.0)
+    assert info_g["per_group"] and info_g["how"] == ["group", "global"]
+    c0 = out_g.base_colors[obj == 0].mean(0)
+    assert c0[0] > 0.7 and c0[1] < 0.25 and c0[2] < 0.25, c0
+    # object 1 got exactly the global map of the same views
+    col, alpha, _ = scene.render(cams[[0]])
+    src = pixel_stats(col[..., :3] / alpha, alpha[..., 0])
+    glob = fit_transform(src[0], pixel_stats(target)[0])
+    torch.testing.assert_close(out_g.sh_dc[obj == 1], transform_sh(scene, [glob]).sh_dc[obj == 1])

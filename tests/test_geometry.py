@@ -1,0 +1,93 @@
+"""ssgwarp.geometry: rotations, reprojection, nearest neighbours, against independent constructions."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from ssgwarp.geometry import (knn, knn_indices, knn_mean_distance, pixel_centers, project, quat_to_rotmat,
+                              rotmat_to_quat, unproject)
+
+
+def rodrigues(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
+    """Rotation by ``angle`` about unit ``axis``: I + sin K + (1 - cos) K^2."""
+    x, y, z = axis.unbind(-1)
+    zero = torch.zeros_like(x)
+    K = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*axis.shape[:-1], 3, 3)
+    s, c = torch.sin(angle)[..., None, None], torch.cos(angle)[..., None, None]
+    return torch.eye(3, dtype=axis.dtype) + s * K + (1 - c) * (K @ K)
+
+
+def test_quaternions_match_axis_angle_and_round_trip():
+    g = torch.Generator().manual_seed(0)
+    axis = torch.nn.functional.normalize(torch.randn(500, 3, generator=g, dtype=torch.float64), dim=-1)
+    angle = torch.rand(500, generator=g, dtype=torch.float64) * 2 * math.pi
+    q = torch.cat([torch.cos(angle / 2)[:, None], torch.sin(angle / 2)[:, None] * axis], -1)
+    R = rodrigues(axis, angle)
+    torch.testing.assert_close(quat_to_rotmat(q * 3.7), R, atol=1e-13, rtol=0)   # any norm
+    back = rotmat_to_quat(R)
+    assert bool((back[:, 0] >= 0).all())
+    torch.testing.assert_close(back, q * torch.sign(q[:, :1]), atol=1e-12, rtol=0)  # q and -q: one rotation
+
+
+@pytest.mark.parametrize("diag", [(1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1)])
+def test_rotmat_to_quat_half_turns_and_identity(diag):
+    """The trace is -1 for the half turns (the w formula breaks down there): the x, y, z branches."""
+    R = torch.diag(torch.tensor(diag, dtype=torch.float64))
+    q = rotmat_to_quat(R)
+    assert torch.isfinite(q).all()
+    torch.testing.assert_close(quat_to_rotmat(q), R, atol=1e-15, rtol=0)
+
+
+def test_colmap_and_viewer_rotations_are_the_shared_ones():
+    from ssgwarp.colmap import qvec_to_rotmat, rotmat_to_qvec
+    from ssgwarp.viewer import geometry as viewer_geometry
+
+    q = np.array([0.3, -0.5, 0.2, 0.7])
+    R = qvec_to_rotmat(q)
+    assert np.allclose(R, quat_to_rotmat(torch.from_numpy(q)).numpy(), atol=1e-15)
+    assert np.allclose(rotmat_to_qvec(R), q / np.linalg.norm(q), atol=1e-15)
+    both = viewer_geometry.quat_to_rotmat(np.stack([q, np.zeros(4)]))
+    assert np.allclose(both[0], R, atol=1e-15) and np.array_equal(both[1], np.eye(3))
+
+
+def test_unproject_then_project_returns_the_pixel_centres():
+    g = torch.Generator().manual_seed(1)
+    H, W = 6, 9
+    K = torch.tensor([[20.0, 0, 4.1], [0, 18.0, 3.2], [0, 0, 1]], dtype=torch.float64)
+    axis = torch.nn.functional.normalize(torch.randn(3, generator=g, dtype=torch.float64), dim=0)
+    view = torch.eye(4, dtype=torch.float64)
+    view[:3, :3] = rodrigues(axis, torch.tensor(0.7, dtype=torch.float64))
+    view[:3, 3] = torch.tensor([0.2, -0.1, 1.5], dtype=torch.float64)
+    depth = 1.0 + torch.rand(H, W, generator=g, dtype=torch.float64)
+    pts = unproject(depth, K, view)
+    uv, z = project(pts, view, K)
+    torch.testing.assert_close(uv, pixel_centers(H, W, dtype=torch.float64), atol=1e-12, rtol=0)
+    torch.testing.assert_close(z, depth, atol=1e-12, rtol=0)
+    assert pixel_centers(2, 3)[1, 2].tolist() == [2.5, 1.5]
+
+
+@pytest.mark.parametrize("block", [7, 64, 1 << 25])
+def test_knn_is_exact_in_any_block_size(block):
+    """Blocks smaller than a row of queries, a few points per block, or the whole matrix at once:
+    the same neighbours as a full distance matrix; the excluded index never comes back."""
+    g = torch.Generator().manual_seed(2)
+    pts = torch.rand(150, 3, generator=g, dtype=torch.float64)
+    q = torch.arange(0, 150, 4)
+    d, i = knn(pts[q], pts, 6, exclude=q, block=block)
+    full = torch.cdist(pts[q], pts)
+    full[torch.arange(len(q)), q] = float("inf")
+    top = full.topk(6, largest=False)
+    assert torch.equal(i, top.indices)
+    torch.testing.assert_close(d, top.values, atol=1e-12, rtol=0)
+    assert not bool((i == q[:, None]).any())
+    assert torch.equal(knn_indices(pts[q], pts, 6, exclude=q, block=block), i)
+    # k beyond the points available is capped; no queries, no rows
+    assert knn(pts[:3], pts[:3], 10, exclude=torch.arange(3))[1].shape == (3, 2)
+    assert knn(pts[:0], pts, 4)[0].shape == (0, 4)
+
+
+def test_knn_mean_distance():
+    pts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [3, 0, 0], [7, 0, 0]])
+    torch.testing.assert_close(knn_mean_distance(pts, k=2), torch.tensor([2.0, 1.5, 2.5, 5.0]))
+    assert knn_mean_distance(pts[:1]).tolist() == [1.0]
