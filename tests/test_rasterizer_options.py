@@ -270,5 +270,6 @@ def test_backward_launch_blocks_by_device_and_tile_size():
     assert backward_blocks(16, False, False) == (True, 256)
     assert backward_blocks(8, False, False) == (True, 64)
     assert backward_blocks(24, False, False) == (True, 192)     # 576 pixels: 192 divides, 224 and 256 do not
+    assert backward_blocks(40, False, False) == (True, 160)     # 1600 pixels: 160, a multiple of 32 (not 200)
     assert backward_blocks(4, False, False) == (False, 4)       # 16 pixels: half a warp
     assert backward_blocks(12, False, False) == (False, 12)     # 144 pixels: not a multiple of 32
