@@ -271,3 +271,197 @@ def test_lego_transforms():
     # white background around the object
     assert torch.allclose(d.images[:, 0, 0], torch.ones(25, 3))
     assert d.images.mean() > 0.6
+
+
+# ----------------------------------------------------------------------------- helpers, unit by unit
+def test_evenly_spaced_subsets_and_the_split():
+    from ssgwarp.datasets import _evenly, _split
+
+    assert _evenly(10, None) == list(range(10)) and _evenly(10, 10) == list(range(10)) and _evenly(3, 7) == [0, 1, 2]
+    assert _evenly(10, 4) == [0, 3, 6, 9] and _evenly(10, 1) == [0] and _evenly(9, 3) == [0, 4, 8]
+    for k in (0, -2):
+        with pytest.raises(InputError, match=f"max_images must be positive, got {k}"):
+            _evenly(10, k)
+    assert _split(10, 4) == ([1, 2, 3, 5, 6, 7, 9], [0, 4, 8])
+    assert _split(5, 0) == ([0, 1, 2, 3, 4], []) and _split(5, -1) == ([0, 1, 2, 3, 4], [])
+    assert _split(4, 8, [False, True, False, True]) == ([0, 2], [1, 3])  # the dataset's own split wins
+    assert _split(1, 8) == ([0], [])  # a single image: trained on, nothing held out
+    assert _split(2, 1) == ([0, 1], [])  # every image held out would leave nothing to train on
+
+
+def test_resize_images_by_hand():
+    from ssgwarp.datasets import resize_images
+
+    # shrinking 4 -> 2 is antialiased (PIL-style triangle filter twice as wide): output 0 sits between inputs
+    # 0 and 1 (weights 3/4 each) and reaches input 2 (1/4; input -1 is outside): (0 + 0 + 1/4) / (7/4) = 1/7
+    row = torch.tensor([0.0, 0.0, 1.0, 1.0]).view(1, 1, 4, 1).expand(1, 2, 4, 3).contiguous()
+    got = resize_images(row, 1, 2)
+    assert got.shape == (1, 1, 2, 3) and torch.allclose(got[0, 0, :, 0], torch.tensor([1 / 7, 6 / 7]), atol=1e-6)
+    # enlarging 2 -> 4 is plain bilinear with pixel centres at +0.5: samples at -0.25, 0.25, 0.75, 1.25 (clamped)
+    two = torch.tensor([0.0, 1.0]).view(1, 1, 2, 1).expand(1, 1, 2, 3).contiguous()
+    big = resize_images(two, 2, 4)
+    assert torch.allclose(big[0, :, :, 1], torch.tensor([0.0, 0.25, 0.75, 1.0]).expand(2, 4), atol=1e-6)
+    assert big.is_contiguous() and resize_images(row, 2, 4).equal(row)  # same size: unchanged
+    # one side kept, the other shrunk: antialiased along the shrunk side (either side)
+    assert torch.allclose(resize_images(row, 2, 2)[0, :, :, 0], torch.tensor([1 / 7, 6 / 7]).expand(2, 2), atol=1e-6)
+    col = row[:, :1].transpose(1, 2).expand(1, 4, 4, 3).contiguous()   # [0, 0, 1, 1] down each column, 4 wide
+    assert torch.allclose(resize_images(col, 2, 4)[0, :, 1, 2], torch.tensor([1 / 7, 6 / 7]), atol=1e-6)
+    # one side grown, the other shrunk: plain bilinear (4 -> 2 samples at 0.5 and 2.5: [0, 1])
+    mixed = resize_images(row, 3, 2)
+    assert mixed.shape == (1, 3, 2, 3) and torch.allclose(mixed[0, :, :, 0], torch.tensor([0.0, 1.0]).expand(3, 2))
+
+
+def test_viewmats_from_c2w_and_the_focus_point():
+    from ssgwarp.cameras import Cameras, intrinsics
+    from ssgwarp.datasets import _viewmats_from_c2w, focus_point
+
+    eyes = [[3.0, 0.0, 0.5], [0.0, 2.0, -1.0], [-1.0, -2.0, 2.0]]
+    V = np.stack([_look(e, [0.2, -0.1, 0.3]) for e in eyes])
+    back = _viewmats_from_c2w(np.linalg.inv(V)[:, :3, :4])
+    assert back.dtype == torch.float64 and torch.allclose(back, torch.from_numpy(V), atol=1e-12)
+    bad = np.linalg.inv(V)[:, :3, :4].copy()
+    bad[1, 0, 3] = np.nan
+    with pytest.raises(InputError, match="^camera poses contain NaN/inf values$"):
+        _viewmats_from_c2w(bad)
+    cams = Cameras(torch.from_numpy(V).float(), intrinsics(10.0, 10.0, 5.0, 5.0, 3), 10, 10)
+    assert torch.allclose(focus_point(cams), torch.tensor([0.2, -0.1, 0.3], dtype=torch.float64), atol=1e-5)
+    # parallel optical axes meet nowhere: the centres' mean
+    Vp = np.stack([np.eye(4)] * 3)
+    Vp[:, :3, 3] = -np.array(eyes)
+    par = Cameras(torch.from_numpy(Vp).float(), intrinsics(10.0, 10.0, 5.0, 5.0, 3), 10, 10)
+    assert torch.allclose(focus_point(par), torch.tensor(eyes, dtype=torch.float64).mean(0), atol=1e-6)
+
+
+def test_depth_range_percentiles_of_points_in_front():
+    from ssgwarp.datasets import _depth_range
+
+    V = np.eye(4)[None]
+    z = np.arange(1.0, 1001.0)
+    xyz = np.stack([np.zeros_like(z), np.zeros_like(z), z], axis=1)
+    behind = np.array([[0.0, 0.0, -5.0], [0.0, 0.0, -2000.0], [1.0, 0.0, 0.0]])  # the last in the camera's plane
+    # numpy's linear percentiles of 1..1000: 0.1% -> 1 + 0.001 * 999, 99.9% -> 1 + 0.999 * 999
+    near, far = _depth_range(np.concatenate([xyz, behind]), V)
+    assert near == pytest.approx(1.999) and far == pytest.approx(999.001)
+    V2 = np.eye(4)[None].copy()
+    V2[0, 2, 3] = 10.0  # the camera 10 units behind the origin along its axis: depths grow by 10
+    assert _depth_range(xyz, V2) == (pytest.approx(11.999), pytest.approx(1009.001))
+    assert _depth_range(behind, V) == (None, None) and _depth_range(np.zeros((0, 3)), V) == (None, None)
+    assert _depth_range(None, V) == (None, None)
+    assert _depth_range(np.array([[0.1, 0.0, 3.0]]), V) == (pytest.approx(3.0), pytest.approx(3.0))  # one point
+    # more than 20000 points: a seeded sample of them, still close
+    many = np.stack([np.zeros(30000), np.zeros(30000), np.linspace(1.0, 2.0, 30000)], axis=1)
+    n, f = _depth_range(many, V)
+    assert 1.0 < n < 1.01 and 1.99 < f < 2.0 and (n, f) == _depth_range(many, V)
+
+
+def test_random_points_lie_in_their_pixels_frustum_with_the_pixels_colour():
+    """Each camera's image encodes (camera, column, row) in its colour, so a point's colour says which pixel
+    it was drawn from: the point must project into that pixel at a depth within that view's near/far."""
+    from ssgwarp.cameras import Cameras, intrinsics
+    from ssgwarp.datasets import random_points_in_frusta
+
+    W, H = 8, 6
+    V = np.stack([_look([0.5 * i, 0.2, -3.0], [0.0, 0.0, 0.0]) for i in range(3)])
+    K = intrinsics(9.0, 10.0, 4.2, 2.9, 3)
+    cams = Cameras(torch.from_numpy(V).float(), K, W, H)
+    u, v = torch.meshgrid(torch.arange(W), torch.arange(H), indexing="xy")
+    imgs = torch.stack([torch.stack([torch.full((H, W), c / 4), (u + 0.5) / W, (v + 0.5) / H], -1) for c in range(3)])
+    near, far = np.array([1.0, 2.0, 1.5]), np.array([4.0, 3.0, 6.0])
+    xyz, rgb = random_points_in_frusta(cams, imgs, near, far, 400, seed=5)
+    assert xyz.shape == rgb.shape == (400, 3) and xyz.dtype == rgb.dtype == torch.float32
+    cam = (rgb[:, 0] * 4).round().long()
+    col, row = (rgb[:, 1] * W - 0.5).round().long(), (rgb[:, 2] * H - 0.5).round().long()
+    assert set(cam.tolist()) == {0, 1, 2}
+    Vt, Kt = cams.viewmats.double()[cam], K.double()[cam]
+    pc = (Vt[:, :3, :3] @ xyz.double()[:, :, None])[..., 0] + Vt[:, :3, 3]
+    pu = pc[:, 0] / pc[:, 2] * Kt[:, 0, 0] + Kt[:, 0, 2]
+    pv = pc[:, 1] / pc[:, 2] * Kt[:, 1, 1] + Kt[:, 1, 2]
+    assert bool(((pu >= col - 1e-3) & (pu <= col + 1 + 1e-3) & (pv >= row - 1e-3) & (pv <= row + 1 + 1e-3)).all())
+    lo, hi = torch.from_numpy(near)[cam], torch.from_numpy(far)[cam]
+    assert bool(((pc[:, 2] >= lo - 1e-4) & (pc[:, 2] <= hi + 1e-4)).all())
+    # uniform in disparity: the median disparity is the mean of the bounds' disparities (to sampling noise)
+    s = (1 / pc[:, 2] - 1 / hi) / (1 / lo - 1 / hi)
+    assert abs(float(s.median()) - 0.5) < 0.1 and float(s.min()) < 0.1 and float(s.max()) > 0.9
+    assert torch.equal(random_points_in_frusta(cams, imgs, near, far, 400, seed=5)[0], xyz)
+
+
+def test_transforms_intrinsics_variants_and_errors():
+    from ssgwarp.datasets import _intrinsics_from
+
+    assert _intrinsics_from({"fl_x": 20.0}, 40, 30, "w") == (20.0, 20.0, 20.0, 15.0)
+    assert _intrinsics_from({"fl_y": 22.0, "cx": 3.0, "cy": 4.0}, 40, 30, "w") == (22.0, 22.0, 3.0, 4.0)
+    fx, fy, cx, cy = _intrinsics_from({"camera_angle_x": 2 * np.arctan(0.5), "camera_angle_y": 2 * np.arctan(0.25)},
+                                      40, 30, "w")
+    assert (fx, fy, cx, cy) == (pytest.approx(40.0), pytest.approx(60.0), 20.0, 15.0)
+    assert _intrinsics_from({"camera_angle_x": 2 * np.arctan(0.5)}, 40, 30, "w")[1] == pytest.approx(40.0)
+    with pytest.raises(InputError, match=r"^where: no intrinsics \(need camera_angle_x or fl_x/fl_y\)$"):
+        _intrinsics_from({"camera_angle_y": 1.0}, 40, 30, "where")
+    with pytest.raises(InputError, match="^where: intrinsics are not numbers$"):
+        _intrinsics_from({"fl_x": "wide"}, 40, 30, "where")
+    with pytest.raises(InputError, match="^where: intrinsics are not numbers$"):
+        _intrinsics_from({"fl_x": 20.0, "cx": [1]}, 40, 30, "where")
+    assert _intrinsics_from({"fl_x": 0.5, "fl_y": 0.25}, 40, 30, "w")[:2] == (0.5, 0.25)  # any positive focal
+    for bad in ({"fl_x": 0.0}, {"fl_x": 0.0, "fl_y": 10.0}, {"fl_x": 10.0, "fl_y": 0.0}, {"fl_x": 10.0, "fl_y": -1.0},
+                {"fl_x": float("inf")}, {"fl_x": 10.0, "cy": float("nan")}):
+        with pytest.raises(InputError, match="^where: invalid intrinsics fx="):
+            _intrinsics_from(bad, 40, 30, "where")
+
+
+def test_transforms_lens_variants_and_errors():
+    from ssgwarp.datasets import _transforms_lens
+    from ssgwarp.lens import Lens
+
+    assert _transforms_lens({}, "w") == Lens("OPENCV", (0.0, 0.0, 0.0, 0.0))
+    assert _transforms_lens({"k1": 0.1, "p2": 0.02, "camera_model": "opencv"}, "w") == Lens("OPENCV", (0.1, 0, 0, 0.02))
+    assert _transforms_lens({"k1": 0.1, "k3": 0.01, "p1": 0.03}, "w") == Lens("FULL_OPENCV", (0.1, 0, 0.03, 0, 0.01, 0, 0, 0))
+    fish = Lens("OPENCV_FISHEYE", (0.1, 0.0, 0.0, 0.02))
+    for flag in (True, 1, "true", " True ", "1"):
+        assert _transforms_lens({"k1": 0.1, "k4": 0.02, "is_fisheye": flag}, "w") == fish, flag
+    for flag in (False, 0, "false", "no", ""):
+        assert _transforms_lens({"k1": 0.1, "is_fisheye": flag}, "w").model == "OPENCV", flag
+    assert _transforms_lens({"k1": 0.1, "k4": 0.02, "camera_model": "OPENCV_FISHEYE"}, "w") == fish
+    assert _transforms_lens({"camera_model": "PINHOLE"}, "w").is_pinhole
+    with pytest.raises(InputError, match=r"^w: distortion coefficients are not numbers$"):
+        _transforms_lens({"k2": "big"}, "w")
+    with pytest.raises(InputError, match=r"^w: camera_model fisheye is not supported \(supported: OPENCV, "
+                                         r"OPENCV_FISHEYE, PINHOLE, SIMPLE_PINHOLE\)"):
+        _transforms_lens({"camera_model": "fisheye"}, "w")
+    with pytest.raises(InputError, match=r"w: a fisheye camera .* not p1 p2 \(got p1=0 p2=0.5\)"):
+        _transforms_lens({"is_fisheye": True, "p2": 0.5}, "w")
+
+
+def test_scene_data_validation_split_background_and_device():
+    from ssgwarp.cameras import Cameras, intrinsics
+
+    V = torch.from_numpy(np.stack([_look([0.0, 0.0, -3.0 - i], [0, 0, 0]) for i in range(3)])).float()
+    cams = Cameras(V, intrinsics(10.0, 10.0, 4.0, 3.0, 3), 8, 6)
+    imgs = torch.rand(3, 6, 8, 3, generator=torch.Generator().manual_seed(0))
+    d = SceneData(cams, imgs, ["a", "b", "c"], [0, 2], [1], background=(0.1, 0.2, 0.3))
+    assert d.split("train") == [0, 2] and d.split("test") == [1] and d.split("all") == [0, 1, 2] and len(d) == 3
+    with pytest.raises(InputError, match=r"unknown split 'val' \(train, test or all\)"):
+        d.split("val")
+    assert torch.equal(d.background_tensor(), torch.tensor([0.1, 0.2, 0.3]))
+    assert torch.equal(d.background_tensor(5), torch.tensor([0.1, 0.2, 0.3, 0.0, 0.0]))
+    moved = d.to("cpu")
+    assert moved.names == d.names and torch.equal(moved.images, imgs) and moved.points is None
+    with_pts = SceneData(cams, imgs, ["a", "b", "c"], [0], [], points=(torch.zeros(2, 3), torch.ones(2, 3))).to("cpu")
+    assert torch.equal(with_pts.points[1], torch.ones(2, 3)) and torch.equal(with_pts.points[0], torch.zeros(2, 3))
+    with pytest.raises(InputError, match=r"SceneData: images \(3, 6, 7, 3\) do not match 3 cameras of 8x6"):
+        SceneData(cams, imgs[:, :, :7], ["a", "b", "c"], [0], [])
+    with pytest.raises(InputError, match="SceneData: 2 names for 3 cameras"):
+        SceneData(cams, imgs, ["a", "b"], [0], [])
+
+
+def test_loader_option_errors(tmp_path):
+    _llff_scene(tmp_path)
+    with pytest.raises(InputError, match="width must be positive, got 0"):
+        load_dataset(tmp_path, images="images_10", width=0)
+    with pytest.raises(InputError, match="split_every must be >= 0, got -1"):
+        load_dataset(tmp_path, images="images_10", split_every=-1)
+    with pytest.raises(InputError, match=r"background must be 3 numbers \(RGB\), got \(1.0, 1.0\)"):
+        load_dataset(tmp_path, images="images_10", background=(1.0, 1.0))
+    with pytest.raises(InputError, match="unknown data format 'ply' \\(colmap, llff or transforms\\)"):
+        load_dataset(tmp_path, images="images_10", format="ply")
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(InputError, match="not a folder"):
+        load_dataset(tmp_path / "file")

@@ -88,16 +88,21 @@ def test_demo_runs_every_stage_and_prints_a_summary(demo):
     sty = json.loads((out / "stylized" / "metrics.json").read_text())
     groups = json.loads((out / "scene" / "groups" / "groups.json").read_text())
     assert summary["gaussians"] == rec["num_gaussians"] and summary["psnr"] == rec["psnr"]
-    assert summary["psnr"] > 15.0                     # seen ~19 dB after 150 steps at 48x36
+    assert summary["psnr"] > 15.0                     # measured 18.8 dB (2026-11-23, 2 CPU cores)
     assert summary["groups"] == groups["num_groups"] >= 2
     # no Segment Anything weights here: the groups are mask-free clusters, and the summary says so
     assert summary["group_kind"] == groups["kind"] == "mask-free clusters"
-    assert 0 <= summary["objects_separated"] <= 5
+    # measured (2026-11-23): 3 groups, 2 of the 5 objects separated, purity 0.82, cross-view agreement 0.977
+    assert 1 <= summary["objects_separated"] <= 5
+    assert summary["cross_view_agreement"] > 0.9
     assert summary["gram_style_loss"] == sty["gram_style_loss"] and math.isfinite(summary["content_loss"])
-    assert 0.0 < summary["group_purity"] <= 1.0
+    assert 0.7 < summary["group_purity"] <= 1.0
     c = summary["consistency_rmse"]
     assert c["stylized"]["short"] == sty["evaluation"]["consistency"]["reprojection"]["short"]["rmse"]
-    assert all(0.0 <= c[r][k] < 0.5 for r in c for k in c[r])
+    # measured RMSE: reconstruction 0.056 (short) / 0.072 (long), stylized 0.061 / 0.076: a consistent scene,
+    # and stylization costs little consistency
+    assert all(0.0 < c[r]["short"] < 0.1 and 0.0 < c[r]["long"] < 0.12 for r in c)
+    assert all(c["stylized"][k] < c["reconstruction"][k] + 0.02 for k in ("short", "long"))
     assert set(summary["seconds"]) == {"data", "reconstruct", "group", "stylize", "evaluate", "sheet"}
     assert (out / "evaluation.md").read_text().startswith("Evaluation")
 

@@ -33,11 +33,16 @@ def _min_pairwise(feat: torch.Tensor, ids) -> float:
     return min(float((feat[a] - feat[b]).norm()) for a, b in itertools.combinations(ids, 2))
 
 
-def test_select_ring_is_evenly_spread_and_deterministic():
+def test_select_ring_is_evenly_spread_in_farthest_point_order():
+    """On a ring every camera is equally far from the rig's mean, so the lowest index starts; then the
+    opposite camera (farthest in position and in direction), then the first of the two tied quarter points
+    (ties go to the lowest index), then the other."""
     cams = ring_cameras(16)
-    ids = select_keyviews(cams, 4)
-    assert sorted(ids) == [0, 4, 8, 12]
-    assert select_keyviews(cams, 4) == ids  # deterministic
+    assert select_keyviews(cams, 4) == [0, 8, 4, 12]
+    assert select_keyviews(cams, 2) == [0, 8]
+    # the same ring numbered from camera 3: the same views, in the new numbering
+    order = [(i + 3) % 16 for i in range(16)]
+    assert [order[i] for i in select_keyviews(cams[order], 4)] == [3, 11, 7, 15]
 
 
 def test_select_spread_close_to_optimal_on_random_rig():

@@ -536,3 +536,276 @@ def test_group_masks_of_the_source_frame_are_undistorted(tmp_path):
     assert torch.equal(ms.targets[1], torch.from_numpy(crop_mask.astype(np.int64)))
     # the crop of a pincushion lens is smaller than the source: band edges move inwards, not copied
     assert not torch.equal(ms.targets[0], torch.from_numpy((np.arange(d.width) // 20)[None, :].repeat(d.height, 0)))
+
+# ----------------------------------------------------------------------------- the lens maths, unit by unit
+def _grid_points():
+    g = np.random.default_rng(7)
+    x, y = g.uniform(-0.6, 0.6, 200), g.uniform(-0.45, 0.45, 200)
+    return np.concatenate([[0.0, 0.3, 0.0], x]), np.concatenate([[0.0, 0.0, -0.2], y])  # the centre and the axes
+
+
+@pytest.mark.parametrize("model", list(LENSES))
+def test_lens_distort_matches_the_formulas(model):
+    from ssgwarp.lens import Lens
+
+    x, y = _grid_points()
+    got = Lens(model, LENSES[model]).distort(x, y)
+    want = _forward(model, LENSES[model], x, y)
+    assert np.abs(got[0] - want[0]).max() < 1e-13 and np.abs(got[1] - want[1]).max() < 1e-13
+    assert got[0][0] == 0.0 and got[1][0] == 0.0  # the principal point stays (the fisheye's r = 0 case too)
+
+
+def test_rational_model_is_undefined_where_its_denominator_is_not_positive():
+    from ssgwarp.lens import Lens
+
+    # FULL_OPENCV denominator 1 + k4 r^2: zero at r = 1 for k4 = -1, negative beyond
+    lens = Lens("FULL_OPENCV", (0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0))
+    xd, yd = lens.distort(np.array([1.0, 0.0, 1.2, 0.5]), np.array([0.0, 1.0, 0.0, 0.0]))
+    assert np.isnan(xd[:3]).all() and np.isnan(yd[:3]).all()
+    assert xd[3] == pytest.approx(0.5 / (1 - 0.25)) and yd[3] == 0.0
+
+
+@pytest.mark.parametrize("model, p", [("SIMPLE_RADIAL", (0.3,)), ("RADIAL", (-0.2, 0.05)),
+                                      ("OPENCV_FISHEYE", (0.05, 0.01, -0.002, 0.0005))])
+def test_jacobian_determinant_of_radial_maps(model, p):
+    """A radial map p -> p rho(r) / r has Jacobian determinant (rho / r) rho'(r)."""
+    from ssgwarp.lens import Lens
+
+    x, y = _grid_points()
+    x, y = x[3:], y[3:]
+    r = np.hypot(x, y)
+    if model in FISHEYES:
+        k = list(p)
+        th = np.arctan(r)
+        rho = th * (1 + k[0] * th ** 2 + k[1] * th ** 4 + k[2] * th ** 6 + k[3] * th ** 8)
+        drho = (1 + 3 * k[0] * th ** 2 + 5 * k[1] * th ** 4 + 7 * k[2] * th ** 6 + 9 * k[3] * th ** 8) / (1 + r * r)
+    else:
+        k1, k2 = (list(p) + [0.0])[:2]
+        rho = r * (1 + k1 * r ** 2 + k2 * r ** 4)
+        drho = 1 + 3 * k1 * r ** 2 + 5 * k2 * r ** 4
+    want = rho / r * drho
+    got = Lens(model, p).jacobian_det(x, y)
+    assert np.abs(got - want).max() < 1e-6
+
+
+def test_undistort_inverts_distort_before_the_fold_and_is_nan_beyond_reach():
+    from ssgwarp.lens import Lens
+
+    x, y = _grid_points()
+    for model, p in LENSES.items():
+        lens = Lens(model, p)
+        bx, by = lens.undistort(*lens.distort(x, y))
+        assert np.abs(bx - x).max() < 1e-9 and np.abs(by - y).max() < 1e-9, model
+    # barrel k = -0.5: rho = r - r^3 / 2 folds at r^2 = 2/3 (largest rho ~0.544); rho = 0.5 has two preimages,
+    # r = (sqrt(5) - 1) / 2 before the fold and 1 beyond it; 0.7 has none
+    lens = Lens("SIMPLE_RADIAL", (-0.5,))
+    t = np.linspace(0.05, 0.75, 15) / 2 ** 0.5  # up the diagonal, to r = 0.75 (near the fold at 0.816)
+    bx, by = lens.undistort(*lens.distort(t, t))
+    assert np.abs(bx - t).max() < 1e-9 and np.abs(by - t).max() < 1e-9
+    ux, uy = lens.undistort(np.array([0.5, 0.0, 0.7, 0.0]), np.array([0.0, -0.5, 0.0, 0.56]))
+    assert ux[0] == pytest.approx((5 ** 0.5 - 1) / 2, abs=1e-9) and uy[0] == 0.0
+    assert uy[1] == pytest.approx(-(5 ** 0.5 - 1) / 2, abs=1e-9) and ux[1] == 0.0
+    assert np.isnan(ux[2:]).all() and np.isnan(uy[2:]).all()
+
+
+def test_lens_validation_and_description():
+    from ssgwarp.lens import Lens
+
+    with pytest.raises(InputError, match=r"lens model FOV is not supported \(supported: SIMPLE_RADIAL, RADIAL, "):
+        Lens("FOV", (0.1,))
+    with pytest.raises(InputError, match=r"lens model RADIAL takes 2 coefficients \(k1 k2\), got 3"):
+        Lens("RADIAL", (0.1, 0.2, 0.3))
+    with pytest.raises(InputError, match=r"lens model OPENCV: non-finite coefficients \[0.1, nan, 0.0, 0.0\]"):
+        Lens("OPENCV", (0.1, float("nan"), 0, 0))
+    lens = Lens("OPENCV", (0.1, -0.02, 1, 0))
+    assert lens.params == (0.1, -0.02, 1.0, 0.0) and all(type(v) is float for v in lens.params)
+    assert lens.describe() == "OPENCV k1=0.1 k2=-0.02 p1=1 p2=0"
+    assert lens.to_json() == {"model": "OPENCV", "params": {"k1": 0.1, "k2": -0.02, "p1": 1.0, "p2": 0.0}}
+    assert Lens("RADIAL", (0.0, 0.0)).is_pinhole and not Lens("RADIAL", (0.0, 1e-9)).is_pinhole
+    assert not Lens("SIMPLE_RADIAL_FISHEYE", (0.0,)).is_pinhole  # an equidistant fisheye is no pinhole
+
+
+def test_widest_rectangle_of_row_runs():
+    from ssgwarp.lens import _widest
+
+    L, R = np.array([2, 1, 0, 3]), np.array([5, 6, 8, 4])
+    # h = 1: row 2 (8 wide); h = 2: rows 1-2 (min R 6 - max L 1); h = 3: rows 0-2 (5 - 2); h = 4: 4 - 3
+    assert _widest(L, R).tolist() == [8, 5, 3, 1]
+
+
+def test_crop_is_centred_on_the_principal_point_and_records_itself():
+    from ssgwarp.lens import Lens, plan_undistortion
+
+    K = np.array([[F, 0, W0 / 2], [0, F, H0 / 2], [0, 0, 1.0]])
+    plan = plan_undistortion(K[None], [Lens("SIMPLE_RADIAL", (0.08,))], W0, H0, ["cam"])
+    (W, H), (x0, y0) = plan.size, plan.cameras[0].crop
+    assert (x0 + W / 2, y0 + H / 2) == (W0 / 2, H0 / 2)
+    assert np.allclose(plan.Ks[0], [[F, 0, W0 / 2 - x0], [0, F, H0 / 2 - y0], [0, 0, 1]])
+    rec = plan.record()
+    assert rec["source_size"] == [W0, H0] and rec["size"] == [W, H] and rec["area"] == round(W * H / (W0 * H0), 4)
+    assert rec["cameras"][0]["crop"] == [x0, y0, x0 + W, y0 + H] and rec["cameras"][0]["camera"] == "cam"
+    # an image of another size is refused
+    with pytest.raises(InputError, match=rf"image 0: size 40x30, expected {W0}x{H0}"):
+        plan(0, torch.zeros(30, 40, 3))
+    # a constant image stays constant: every output pixel interpolates real pixels (none reads padding)
+    out = plan(0, torch.full((H0, W0, 3), 0.25))
+    assert out.shape == (H, W, 3) and torch.allclose(out, torch.full_like(out, 0.25))
+    # the grid follows the image to its device (the meta device stands in for a GPU)
+    assert plan(0, torch.zeros(H0, W0, 3, device="meta")).device.type == "meta"
+
+
+def test_bad_principal_points_are_refused():
+    from ssgwarp.lens import Lens, plan_undistortion
+
+    barrel = Lens("SIMPLE_RADIAL", (-0.3,))
+    K = np.array([[F, 0, -5.0], [0, F, H0 / 2], [0, 0, 1.0]])
+    with pytest.raises(InputError, match=r"cam: the principal point \(-5.0, 30.0\) is outside the 80x60 image; "
+                                         r"check the intrinsics"):
+        plan_undistortion(K[None], [Lens("SIMPLE_RADIAL", (0.08,))], W0, H0, ["cam"])
+    K = np.array([[F, 0, 0.3], [0, F, H0 / 2], [0, 0, 1.0]])  # its pixel maps left of the first pixel centre
+    with pytest.raises(InputError, match=r"cam: the principal point does not map inside the 80x60 image through "
+                                         r"the lens \(SIMPLE_RADIAL k=-0.3\)"):
+        plan_undistortion(K[None], [barrel], W0, H0, ["cam"])
+
+
+def test_blockwise_scans_give_what_one_block_gives(monkeypatch):
+    """The valid-region scan and the sampling grid work in blocks of rows (bounded memory on large images):
+    blocks of a few rows, not dividing the image height, give the same crop and grid as one block."""
+    import ssgwarp.lens as lens_mod
+    from ssgwarp.lens import Lens, plan_undistortion
+
+    K = np.array([[F, 0, W0 / 2 + 1.3], [0, F, H0 / 2 - 0.7], [0, 0, 1.0]])[None]
+    lens = Lens("OPENCV_FISHEYE", LENSES["OPENCV_FISHEYE"])
+    one = plan_undistortion(K, [lens], W0, H0, ["c"])
+    grid = one.grid(0).clone()
+    assert one.size[1] > 7 and grid.shape == (1, one.size[1], one.size[0], 2)
+    monkeypatch.setattr(lens_mod, "_CHUNK", 7 * W0 + 3)   # 5 to 7 rows a block
+    few = plan_undistortion(K, [lens], W0, H0, ["c"])
+    assert few.size == one.size and np.array_equal(few.Ks, one.Ks) and few.cameras[0].crop == one.cameras[0].crop
+    assert torch.equal(few.grid(0), grid)
+
+
+def test_a_smaller_common_window_is_placed_nearest_each_principal_point():
+    """With one size for all cameras, a camera whose region is larger than the window has room to place it:
+    the window goes where its centre is nearest the principal point, clamped to the region (here pinhole
+    cameras, whose region is the whole 80x60 image, beside a pincushion camera whose crop is 72x54)."""
+    from ssgwarp.lens import Lens, plan_undistortion
+
+    pp = [(40.0, 30.0), (41.7, 28.2), (20.0, 50.0), (70.0, 3.0)]
+    Ks = np.stack([np.array([[F, 0, cx], [0, F, cy], [0, 0, 1]]) for cx, cy in pp])
+    plan = plan_undistortion(Ks, [Lens("SIMPLE_RADIAL", (0.2,)), None, None, None], W0, H0, list("abcd"))
+    assert plan.size == (72, 54)
+    # x0 = round(cx - 36) and y0 = round(cy - 27), each clamped to [0, 80 - 72] x [0, 60 - 54]
+    assert [c.crop for c in plan.cameras] == [(4, 3), (6, 1), (0, 6), (8, 0)]
+    assert np.allclose(plan.Ks[:, :2, 2], [[36.0, 27.0], [35.7, 27.2], [20.0, 44.0], [62.0, 3.0]])
+    img = torch.arange(H0 * W0, dtype=torch.float32).reshape(H0, W0, 1)
+    assert torch.equal(plan(2, img), img[6:60, 0:72])  # a pinhole image is a plain crop
+    rec = plan.record()
+    assert rec["method"].startswith("pinhole crop: every pixel has a source")
+    assert [(c["model"], c["params"], c["crop"]) for c in rec["cameras"][1:]] == [
+        ("PINHOLE", {}, [6, 1, 78, 55]), ("PINHOLE", {}, [0, 6, 72, 60]), ("PINHOLE", {}, [8, 0, 80, 54])]
+
+
+def _assert_valid_and_tight(plan, i, model, p, K_src, tight=True):
+    """(c) on a plan alone: every pixel centre of image ``i``'s crop maps (this file's forward map) inside the
+    source's pixel centres, and (``tight``) one more column or row on any side would not."""
+    (W, H), K = plan.size, plan.Ks[i]
+
+    def inside(u, v):
+        x, y = (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
+        if model is not None:
+            x, y = _forward(model, p, x, y)
+        su, sv = x * K_src[0, 0] + K_src[0, 2], y * K_src[1, 1] + K_src[1, 2]
+        return (su >= 0.5 - 1e-9) & (su <= W0 - 0.5 + 1e-9) & (sv >= 0.5 - 1e-9) & (sv <= H0 - 0.5 + 1e-9)
+
+    u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    assert inside(u, v).all(), (model, K_src)
+    if not tight:
+        return
+    cols, rows = np.arange(W) + 0.5, np.arange(H) + 0.5
+    for uu, vv in ((np.full(H, -0.5), rows), (np.full(H, W + 0.5), rows), (cols, np.full(W, -0.5)),
+                   (cols, np.full(W, H + 0.5))):
+        assert not inside(uu, vv).all(), (model, K_src)
+
+
+WIDE, NARROW = (26.0, 23.0, 38.3, 33.1), (120.0, 130.0, 41.0, 27.0)
+
+
+@pytest.mark.parametrize("model, p, intr", [
+    ("SIMPLE_RADIAL", (0.02,), WIDE), ("RADIAL", (-0.03, 0.002), WIDE), ("OPENCV", (0.01, 0.0, 0.002, -0.001), WIDE),
+    ("SIMPLE_RADIAL", (0.3,), NARROW), ("RADIAL", (-0.5, 0.1), NARROW), ("OPENCV", (0.2, 0.0, 0.004, -0.003), NARROW),
+    ("OPENCV_FISHEYE", (0.4, 0.0, 0.0, 0.0), NARROW),
+])
+def test_crop_is_valid_and_tight_for_wide_and_narrow_non_square_cameras(model, p, intr):
+    """Wide (focal below the principal point's coordinates) and narrow cameras, non-square pixels and an
+    off-centre principal point: the crop keeps its focal lengths and is valid and tight. (A wide fisheye's
+    region reaches the 2x search limit, COLMAP's max_scale, so its crop is not tight: left out.)"""
+    from ssgwarp.lens import Lens, plan_undistortion
+
+    fx, fy, cx, cy = intr
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    plan = plan_undistortion(K[None], [Lens(model, p)], W0, H0, ["c"], min_area=0.3)
+    assert plan.Ks[0, 0, 0] == fx and plan.Ks[0, 1, 1] == fy
+    _assert_valid_and_tight(plan, 0, model, p, K)
+
+
+def test_pinhole_beside_a_barrel_lens_keeps_its_whole_image():
+    """A barrel lens's region is larger than its source: beside a pinhole camera the common size is the
+    pinhole camera's whole image (its first and last pixel centres are valid sources), placed at (0, 0)."""
+    from ssgwarp.lens import Lens, plan_undistortion
+
+    K = np.array([[F, 0, W0 / 2], [0, F, H0 / 2], [0, 0, 1.0]])
+    barrel = Lens("SIMPLE_RADIAL", (-0.08,))
+    plan = plan_undistortion(np.stack([K, K]), [None, barrel], W0, H0, ["pin", "bar"])
+    assert plan.size == (W0, H0) and plan.cameras[0].crop == (0, 0)
+    _assert_valid_and_tight(plan, 0, None, (), K)
+    _assert_valid_and_tight(plan, 1, "SIMPLE_RADIAL", (-0.08,), K, tight=False)
+
+
+def test_principal_point_on_the_first_pixel_column():
+    """The valid runs are counted from the principal point's column: with the principal point inside the first
+    pixel column (cx = 1.0), the region starts at that column and the crop is still valid and tight."""
+    from ssgwarp.lens import Lens, plan_undistortion
+
+    K = np.array([[F, 0, 1.0], [0, F, H0 / 2], [0, 0, 1.0]])
+    plan = plan_undistortion(K[None], [Lens("SIMPLE_RADIAL", (0.05,))], W0, H0, ["c"], min_area=0.3)
+    assert plan.cameras[0].crop[0] == 1 and plan.Ks[0, 0, 2] == 0.0
+    _assert_valid_and_tight(plan, 0, "SIMPLE_RADIAL", (0.05,), K)
+
+
+def test_a_wide_fisheye_is_cut_at_twice_the_source_size():
+    """A fisheye of focal 20 px on an 80x60 image sees past 90 degrees in the corners: its undistorted frame
+    is unbounded, and the search stops at the source size beyond each side of the principal point (COLMAP's
+    max_scale 2): the crop is that whole 160x120 frame, every pixel still with a source."""
+    from ssgwarp.lens import Lens, plan_undistortion
+
+    K = np.array([[20.0, 0, 40.0], [0, 20.0, 30.0], [0, 0, 1.0]])
+    plan = plan_undistortion(K[None], [Lens("OPENCV_FISHEYE", (0.02, 0.0, 0.0, 0.0))], W0, H0, ["c"])
+    assert plan.size == (2 * W0, 2 * H0) and plan.cameras[0].crop == (-W0 // 2, -H0 // 2)
+    _assert_valid_and_tight(plan, 0, "OPENCV_FISHEYE", (0.02, 0.0, 0.0, 0.0), K, tight=False)
+
+
+def test_min_area_is_inclusive_and_the_refusal_names_the_covered_share():
+    from ssgwarp.lens import Lens, plan_undistortion
+
+    K = np.array([[F, 0, W0 / 2], [0, F, H0 / 2], [0, 0, 1.0]])[None]
+    lens = Lens("SIMPLE_RADIAL", (0.4,))
+    plan = plan_undistortion(K, [lens], W0, H0, ["c"], min_area=0.1)
+    share = plan.size[0] * plan.size[1] / (W0 * H0)
+    assert plan_undistortion(K, [lens], W0, H0, ["c"], min_area=share).size == plan.size  # exactly enough
+    assert 0.5 < share < 0.9
+    with pytest.raises(InputError, match=rf"c \(SIMPLE_RADIAL k=0.4\): .* covers {share:.0%} of the 80x60 image "
+                                         rf"\(at least 95% needed\)"):
+        plan_undistortion(K, [lens], W0, H0, ["c"], min_area=0.95)
+
+
+def test_cameras_a_fraction_of_a_pixel_apart_stay_apart():
+    from ssgwarp.lens import Lens, plan_undistortion
+
+    K = np.array([[F, 0, W0 / 2], [0, F, H0 / 2], [0, 0, 1.0]])
+    K2 = K.copy()
+    K2[0, 2] += 0.3
+    lens = Lens("SIMPLE_RADIAL", (0.08,))
+    plan = plan_undistortion(np.stack([K, K2, K]), [lens, lens, lens], W0, H0, ["a", "b", "a"])
+    assert len(plan.cameras) == 2 and [c.images for c in plan.cameras] == [[0, 2], [1]]
+    assert plan.Ks[1, 0, 2] == pytest.approx(W0 / 2 + 0.3 - plan.cameras[1].crop[0])

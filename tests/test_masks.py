@@ -355,6 +355,7 @@ def reconstruction_like(gt, seed: int = 0, colour_noise: float = 0.2, floaters: 
                          rgb_to_sh_dc(torch.cat([rgb, torch.rand(m, 3, generator=g)])))
 
 
+@pytest.mark.slow  # mask-free grouping of the whole demo scene (~3.5 s on 2 cores)
 def test_mask_free_groups_separate_the_demo_objects(truth, tmp_path):
     """`ssgwarp group` without masks on the demo scene with noisy colours and floaters: clustering on
     the captured colour lifted onto the Gaussians finds the five objects (each in a group of its own,

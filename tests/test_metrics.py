@@ -251,6 +251,8 @@ def test_lpips_loads_lpips_layout_and_is_a_distance(tmp_path):
     assert torch.equal(lp.lins[3].weight, lins["lin3.model.1.weight"])
     x = torch.rand(2, 3, 32, 32)
     y = (x + 0.2 * torch.randn_like(x)).clamp(0, 1)
+    # distance properties, on top of the value against its definition
+    # (test_quality_measures.py::test_lpips_value_follows_its_definition)
     with torch.no_grad():
         assert torch.allclose(lp(x, x), torch.zeros(2), atol=1e-6)
         d = lp(x, y)

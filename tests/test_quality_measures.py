@@ -59,10 +59,13 @@ def test_ssim_of_a_textured_pair_matches_an_independent_computation():
 
 
 def test_psnr_of_a_known_error():
-    a = torch.zeros(1, 8, 8, 3, dtype=torch.float64)
+    a = torch.full((1, 8, 8, 3), 0.4, dtype=torch.float64)   # not zero: a sum a + b would differ from a - b
     b = a.clone()
-    b[..., 0] = 0.3                           # MSE = 0.09 / 3 = 0.03
+    b[..., 0] = 0.7                           # MSE = 0.09 / 3 = 0.03
     assert float(psnr(a, b)) == pytest.approx(-10 * math.log10(0.03), abs=1e-9)
+    assert float(psnr(b, a)) == pytest.approx(-10 * math.log10(0.03), abs=1e-9)
+    # equal images: the MSE floor 1e-20 gives 200 dB, not inf
+    assert float(psnr(a, a)) == pytest.approx(200.0, abs=1e-9)
 
 
 def _vgg_features(state, x, upto):

@@ -186,3 +186,90 @@ def test_several_cameras_in_one_call_equal_separate_calls():
         assert (img[c] - alone[c][0][0]).abs().max() < 1e-12
     for i, gr in enumerate(together):
         assert_close_elementwise(gr, sum(a[1][i] for a in alone), 1e-10, 1e-12, f"gradient {i}", ulps=16)
+
+
+def test_exact_settings_turn_every_shortcut_off():
+    """``RasterSettings.exact``: no alpha threshold, no cut-off, no clamp, a fixed extent of ``sigma_max``,
+    IEEE maths, the cancellation-free covariance; each differs from the default (gsplat's) settings."""
+    from ssgwarp import RasterSettings
+
+    fields = ("alpha_min", "t_min", "alpha_max", "extent", "sigma_max", "fast_math", "covariance")
+    e, d = RasterSettings.exact(), RasterSettings()
+    assert tuple(getattr(e, f) for f in fields) == (0.0, 0.0, 1.0, "fixed", 3.33, False, "factor")
+    assert tuple(getattr(d, f) for f in fields) == (1.0 / 255.0, 1e-4, 0.999, "opacity", 3.33, True, "gsplat")
+    assert RasterSettings.exact(5.0).sigma_max == 5.0
+
+
+def test_for_dtype_raises_t_min_to_the_precision_floor_only():
+    """``for_dtype``: a cut-off below the type's floor (1e-20 float32, 1e-200 float64) is raised to it, nothing
+    else changes; a cut-off at or above the floor, and types without a floor, keep the settings."""
+    import dataclasses
+
+    from ssgwarp import RasterSettings
+
+    e = RasterSettings.exact()
+    assert e.for_dtype(torch.float32) == dataclasses.replace(e, t_min=1e-20)
+    assert e.for_dtype(torch.float64) == dataclasses.replace(e, t_min=1e-200)
+    assert e.for_dtype(torch.float16) == e
+    d = RasterSettings()
+    assert d.for_dtype(torch.float32) == d and d.for_dtype(torch.float64) == d
+    at = RasterSettings(t_min=1e-20)
+    assert at.for_dtype(torch.float32) == at
+
+
+def test_incoming_gradients_of_any_layout_give_the_same_gradients():
+    """The ops read incoming gradients in place where their rows are strided views and copy them otherwise:
+    a broadcast gradient (``.sum()``: stride 0) and a column-strided one (a transposed tensor) give the
+    gradients of the same gradient made contiguous, for the SH op and for a loss on the projected
+    Gaussians of ``meta`` (means2d, depths, conics, opacities)."""
+    from ssgwarp.ops import spherical_harmonics_warp
+
+    g = torch.Generator().manual_seed(5)
+    dirs = torch.randn(2, 30, 3, generator=g, dtype=torch.float64)
+    coeffs = torch.randn(2, 30, 16, 3, generator=g, dtype=torch.float64)
+    strided = torch.randn(3, 2, 30, generator=g, dtype=torch.float64).permute(1, 2, 0)
+    assert strided.reshape(60, 3).stride(1) != 1
+
+    def sh_grads(upstream):
+        d, c = dirs.clone().requires_grad_(True), coeffs.clone().requires_grad_(True)
+        y = spherical_harmonics_warp(3, d, c)
+        if upstream is None:
+            y.sum().backward()
+        else:
+            y.backward(upstream)
+        return d.grad, c.grad
+
+    for upstream, same in ((None, torch.ones(2, 30, 3, dtype=torch.float64)), (strided, strided.contiguous())):
+        for a, b in zip(sh_grads(upstream), sh_grads(same)):
+            assert torch.equal(a, b)
+
+    means, quats, scales, opac, colors = make_scene(40, dtype=torch.float64)
+    vm, K = make_cameras(2, 24, 24, dtype=torch.float64)
+
+    def meta_grads(contiguous):
+        p = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac)]
+        _, _, meta = rasterization(*p, colors, vm, K, 24, 24)
+        loss = 0.0
+        for key in ("means2d", "depths", "conics", "opacities"):
+            loss = loss + ((meta[key] * torch.ones_like(meta[key])).sum() if contiguous else meta[key].sum())
+        loss.backward()
+        return [t.grad for t in p]
+
+    for a, b in zip(meta_grads(False), meta_grads(True)):
+        assert b.abs().max() > 0 and torch.equal(a, b)
+
+
+def test_backward_launch_blocks_by_device_and_tile_size():
+    """``backward_blocks(tile_size, deterministic, cpu) -> (per_warp, block_dim)`` by hand: deterministic, one
+    block per tile; CPU, one pixel per block; CUDA, the largest multiple of 32 up to 256 dividing the tile's
+    pixels, summed per warp, or one tile row per block when the tile is not whole warps."""
+    from ssgwarp.ops import backward_blocks
+
+    assert backward_blocks(16, True, False) == (False, 256) and backward_blocks(8, True, True) == (False, 64)
+    assert backward_blocks(16, False, True) == (True, 1)
+    assert backward_blocks(16, False, False) == (True, 256)
+    assert backward_blocks(8, False, False) == (True, 64)
+    assert backward_blocks(24, False, False) == (True, 192)     # 576 pixels: 192 divides, 224 and 256 do not
+    assert backward_blocks(40, False, False) == (True, 160)     # 1600 pixels: 160, a multiple of 32 (not 200)
+    assert backward_blocks(4, False, False) == (False, 4)       # 16 pixels: half a warp
+    assert backward_blocks(12, False, False) == (False, 12)     # 144 pixels: not a multiple of 32
