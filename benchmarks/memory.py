@@ -9,11 +9,15 @@ them, two training steps (the second measured). Reported per configuration:
   from the tensors themselves (exact on any device);
 * ``intersections``: Gaussian-tile intersections of the step's views (the length of ``meta["isect_ids"]``);
 * on CUDA, ``workspace``: the step's peak allocated memory minus what was allocated before it and
-  minus the gradients (counted in ``persistent``).
+  minus the gradients (counted in ``persistent``), and the same peak per phase: ``peak_render_backward``
+  (forward, loss and backward, up to the densification statistics) and ``peak_optimizer`` (statistics,
+  Adam step, strategy), both minus what was allocated before the step (gradients included).
 
-On CUDA the workspace is then fitted (least squares) as ``a x (views x N) + b x intersections +
-c x pixels``: ``a`` bytes per (camera, Gaussian), ``b`` per intersection, ``c`` per pixel (per
-megapixel: ``c x 2^20``). On the CPU only the exact and counted columns are printed.
+The step's peak is the larger of the phases' peaks, not a sum of terms, and in these configurations
+intersections grow with views x N; a least-squares fit of ``a x (views x N) + b x intersections +
+c x pixels`` is ill-conditioned (on an H200 it gave a negative ``b``). So on CUDA the script reports
+differences between pairs of configurations that differ in one factor only: per added (camera,
+Gaussian) at a fixed image and views count, per added pixel at fixed N and views, per added view.
 
     python benchmarks/memory.py --out memory.json                       # GPU: 8 configurations, ~1 minute
     python benchmarks/memory.py --device cpu --gaussians 20000 --widths 64 --batch 1 --out /tmp/mem.json
@@ -69,13 +73,23 @@ def measure(data, n: int, batch: int, device: torch.device) -> dict:
         torch.cuda.synchronize(device)
         before = torch.cuda.memory_allocated(device)  # (gradients are freed between steps)
         torch.cuda.reset_peak_memory_stats(device)
+    phase = {}
+    if device.type == "cuda":
+        def counting_cuda(gaussians, meta):  # (after backward: the render + loss + backward phase ends here)
+            phase["render_backward"] = torch.cuda.max_memory_allocated(device) - before
+            torch.cuda.reset_peak_memory_stats(device)
+            counting(gaussians, meta)
+        t.strategy.observe = counting_cuda
     t.train_step()
     row = {"gaussians": n, "views": batch, "width": data.width, "height": data.height,
            "pixels": batch * data.width * data.height, "intersections": seen.get("isects"), **tensor_bytes(t)}
     row["persistent"] = row["params"] + row["grads"] + row["adam"] + row["stats"]
     if device.type == "cuda":
         torch.cuda.synchronize(device)
-        row["workspace"] = torch.cuda.max_memory_allocated(device) - before - row["grads"]
+        rest = torch.cuda.max_memory_allocated(device) - before
+        row["peak_render_backward"] = phase["render_backward"]
+        row["peak_optimizer"] = rest
+        row["workspace"] = max(phase["render_backward"], rest) - row["grads"]
     del t
     return row
 
@@ -94,14 +108,33 @@ def make_scene(data, n: int, device: torch.device):
     return GaussianScene.from_points(pts, cols, sh_degree=3, opacity=0.1, scale=scale)
 
 
-def fit(rows: list) -> dict:
-    A = torch.tensor([[r["views"] * r["gaussians"], r["intersections"], r["pixels"]] for r in rows],
-                     dtype=torch.float64)
-    y = torch.tensor([r["workspace"] for r in rows], dtype=torch.float64)
-    coef = torch.linalg.lstsq(A, y[:, None]).solution[:, 0].tolist()
-    resid = (A @ torch.tensor(coef, dtype=torch.float64) - y).abs().max().item()
-    return {"bytes_per_camera_gaussian": coef[0], "bytes_per_intersection": coef[1], "bytes_per_pixel": coef[2],
-            "max_residual_mb": resid / 2**20}
+_FACTORS = ("gaussians", "width", "views")
+
+
+def pairwise(rows: list) -> list:
+    """Workspace differences between configurations that differ in one factor only.
+
+    Per pair: the factor, the two values, the other two factors, the workspace difference and what it is
+    per unit of the quantity that changed: bytes per added (camera, Gaussian) when N changes, per added
+    pixel when the width changes, MB per added view when the views change."""
+    out = []
+    for a, b in itertools.combinations(rows, 2):
+        diff = [f for f in _FACTORS if a[f] != b[f]]
+        if len(diff) != 1 or "workspace" not in a or "workspace" not in b:
+            continue
+        f = diff[0]
+        lo, hi = (a, b) if a[f] < b[f] else (b, a)
+        d = hi["workspace"] - lo["workspace"]
+        if f == "gaussians":
+            per, unit = d / (lo["views"] * (hi["gaussians"] - lo["gaussians"])), "B per camera x Gaussian"
+        elif f == "width":
+            per, unit = d / (hi["pixels"] - lo["pixels"]), "B per pixel"
+        else:
+            per, unit = d / 2**20 / (hi["views"] - lo["views"]), "MB per view"
+        out.append({"factor": f, "from": lo[f], "to": hi[f],
+                    "fixed": {g: lo[g] for g in _FACTORS if g != f},
+                    "workspace_mb": [lo["workspace"] / 2**20, hi["workspace"] / 2**20], "per": per, "unit": unit})
+    return out
 
 
 def main() -> int:
@@ -135,13 +168,21 @@ def main() -> int:
               f"{r['params'] / mb:.1f} | {r['grads'] / mb:.1f} | {r['adam'] / mb:.1f} | "
               f"{r['persistent'] / r['gaussians']:.0f} | {ws} |")
     out = {"device": str(device), "rows": rows}
-    if device.type == "cuda" and len(rows) >= 3:
+    if device.type == "cuda":
         out["device_name"] = torch.cuda.get_device_name(device)
-        out["fit"] = f = fit(rows)
-        print(f"\nworkspace ~ {f['bytes_per_camera_gaussian']:.0f} B per (camera, Gaussian) + "
-              f"{f['bytes_per_intersection']:.0f} B per intersection + {f['bytes_per_pixel']:.0f} B per pixel "
-              f"(= MiB per 2^20 pixels); max residual "
-              f"{f['max_residual_mb']:.1f} MB")
+        print("\n| Gaussians | views | image | peak: render + backward MB | peak: optimizer MB |")
+        print("|---:|---:|---|---:|---:|")
+        for r in rows:
+            print(f"| {r['gaussians']:,} | {r['views']} | {r['width']}x{r['height']} | "
+                  f"{r['peak_render_backward'] / mb:.1f} | {r['peak_optimizer'] / mb:.1f} |")
+    out["pairs"] = pairs = pairwise(rows)
+    if pairs:
+        print("\n| changes | from | to | at | workspace MB | difference |")
+        print("|---|---:|---:|---|---|---:|")
+        for p in pairs:
+            at = ", ".join(f"{k} {v:,}" for k, v in p["fixed"].items())
+            print(f"| {p['factor']} | {p['from']:,} | {p['to']:,} | {at} | "
+                  f"{p['workspace_mb'][0]:.1f} -> {p['workspace_mb'][1]:.1f} | {p['per']:.0f} {p['unit']} |")
     write_json(a.out, out)
     print(f"wrote {a.out}")
     return 0
