@@ -29,7 +29,6 @@ the command (``reconstruct``: load, claim the run folder, train, evaluate, write
 from __future__ import annotations
 
 import logging
-import shutil
 from pathlib import Path
 from typing import Callable, Optional, Sequence
 
@@ -44,6 +43,7 @@ from .metrics import load_lpips
 from .ply import write_ply
 from .recipe import BATCH_SCALINGS, Recipe, batch_factors
 from .rendering import render as render_views   # (the old name of the differentiable render)
+from .runs import claim
 from .trainer import CHECKPOINT_FORMAT, Trainer, read_checkpoint
 
 log = logging.getLogger("ssgwarp.reconstruct")
@@ -89,18 +89,13 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
     out = Path(out).expanduser()
     device = torch.device(device) if device is not None else torch.device("cuda" if torch.cuda.is_available() else "cpu")
     ckpt = out / "checkpoint.pt"
-    existing = [f for f in OUTPUTS + ("checkpoint.pt",) if (out / f).exists()]
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out}: exists and is not a folder")
-    if existing and not (force or resume):
-        raise SsgwarpError(f"{out} already holds a reconstruction ({', '.join(existing)}); pass --force to "
-                           f"overwrite it or --resume to continue it")
+    claimed = claim(out, OUTPUTS + ("checkpoint.pt",), force=force, resume=resume, what="a reconstruction")
     # load and validate everything before touching the output folder
     if data is None:
         kw = {} if background is None else {"background": background}
         data = load_dataset(data_dir, images=images, split_every=split_every, max_images=max_images, width=width,
                             num_random_points=num_random_points, seed=seed, **kw)
-    state = read_checkpoint(ckpt) if resume and ckpt.is_file() and not force else None
+    state = read_checkpoint(ckpt) if resume and ckpt.is_file() else None
     if state is not None and batch_size is None:
         batch_size = int(state.get("batch_size", 1))
     group.barrier()  # everyone has looked at OUT before the main process changes it
@@ -114,14 +109,12 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
         del state
         if trainer.step >= iters:
             log.info("the checkpoint is already at step %d: writing outputs only", trainer.step)
-    elif resume and not force:
-        if existing:
+    elif resume:
+        if claimed.existing:
             raise SsgwarpError(f"{out}: nothing to resume (no checkpoint.pt); pass --force to start over")
         log.info("no checkpoint in %s: starting from scratch", out)
-    if force and group.is_main:
-        for f in existing:
-            p = out / f
-            p.unlink() if p.is_file() else shutil.rmtree(p)
+    if group.is_main:
+        claimed.clear()   # (--force: the old run's files)
     if group.is_main:
         out.mkdir(parents=True, exist_ok=True)
     group.barrier()
@@ -228,8 +221,6 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    if args.resume and args.force:
-        raise InputError("--resume and --force exclude each other")
     if args.batch_size is not None and args.batch_size < 1:
         raise InputError(f"--batch-size must be >= 1, got {args.batch_size}")
     group, device = distributed.from_env(args.device)  # under torchrun: join the others

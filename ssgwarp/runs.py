@@ -176,25 +176,29 @@ class Claim:
     existing: list[str]
     force: bool
     resume: bool
+    scratch: tuple[str, ...] = ()
 
     def clear(self) -> None:
-        """With ``force``: remove the stage's existing outputs (only those; other files stay)."""
+        """With ``force``: remove the stage's existing outputs and scratch files (only those; other
+        files stay)."""
         if not self.force:
             return
-        for f in self.existing:
+        for f in [*self.existing, *(s for s in self.scratch if (self.path / s).exists())]:
             p = self.path / f
             shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink(missing_ok=True)
         self.existing = []
 
 
 def claim(out: str | Path, outputs: Sequence[str], *, force: bool = False, resume: bool = False,
-          what: str = "outputs", resumable: bool = True, clear: bool = False) -> Claim:
+          what: str = "outputs", resumable: bool = True, clear: bool = False, scratch: Sequence[str] = ()) -> Claim:
     """Check that ``out`` may receive a stage's ``outputs`` (names relative to it).
 
     Refuses (one line, naming the fix): ``force`` with ``resume``; ``out`` a file; outputs
     already there without ``force`` or ``resume`` ("OUT already holds WHAT (...); pass --force
     ..."). ``clear``: remove them at once under ``force`` (else call :meth:`Claim.clear` when
-    everything else has been validated). The stage continues from its own record on ``resume``."""
+    everything else has been validated). ``scratch``: work files (partial results) that ``force``
+    removes too but that alone do not make ``out`` taken. The stage continues from its own record
+    on ``resume``."""
     out = Path(out).expanduser()
     if force and resume:
         raise InputError("--resume and --force exclude each other")
@@ -204,7 +208,7 @@ def claim(out: str | Path, outputs: Sequence[str], *, force: bool = False, resum
     if existing and not (force or resume):
         hint = " or --resume to continue it" if resumable else ""
         raise SsgwarpError(f"{out} already holds {what} ({', '.join(existing)}); pass --force to overwrite it{hint}")
-    c = Claim(out, tuple(outputs), existing, bool(force), bool(resume))
+    c = Claim(out, tuple(outputs), existing, bool(force), bool(resume), tuple(scratch))
     if clear:
         c.clear()
     return c
