@@ -46,11 +46,10 @@ import torch.nn.functional as F
 
 from . import weights
 from .association import AssociationConfig, associate
-from .datasets import load_run
 from .errors import InputError, SsgwarpError
 from .fileio import atomic_path, read_json, write_json
 from .grouping_masks import load_masks, read_id_image
-from .runs import claim
+from .runs import Run, claim
 
 Tensor = torch.Tensor
 FORMAT = "ssgwarp-masks-1"
@@ -376,7 +375,7 @@ def make_masks(scene_dir: str | Path, *, sam: Optional[str | Path] = None, view_
         seg = segmenter if segmenter is not None else None
         src = seg.source if seg is not None else str(weights.require("sam", sam, weights_config))  # before any work
     t0 = time.perf_counter()
-    scene, data = load_run(scene_dir, device, data_dir=data_dir, load_images=view_masks is None)
+    scene, data = Run.reconstruction(scene_dir).load(device, data_dir=data_dir, load_images=view_masks is None)
     cams = data.cameras
     train = list(data.train_ids)
     if not train:

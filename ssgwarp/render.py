@@ -13,11 +13,11 @@ import numpy as np
 import torch
 
 from .cameras import Cameras
-from .datasets import load_run
 from .errors import InputError
 from .fileio import claim_output_dir
 from .geometry import quat_to_rotmat, rotmat_to_quat
 from .rendering import render_to_files
+from .runs import Run
 
 log = logging.getLogger("ssgwarp.render")
 
@@ -160,7 +160,7 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    scene, data = load_run(args.scene_dir, args.device, load_images=False)
+    scene, data = Run.reconstruction(args.scene_dir).load(args.device, load_images=False)
     ids = data.split(args.split)
     if not ids:
         raise InputError(f"{args.scene_dir}: the run has no {args.split} cameras")
