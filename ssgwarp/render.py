@@ -143,7 +143,7 @@ def _catmull_rom_quats(Q: torch.Tensor, t: torch.Tensor, closed: bool) -> torch.
                   + (-p0 + 3 * p1 - 3 * p2 + p3) * u ** 3)
 
 
-# the renders themselves: ssgwarp.rendering (render_cameras is its old name here)
+# the renders themselves: ssgwarp.rendering (render_cameras: the old name, kept importable)
 render_cameras = render_to_files
 
 
@@ -171,6 +171,6 @@ def run(args) -> int:
     if args.path is not None:
         cams = smooth_path(cams, args.path, closed=not args.open)
         cams.to("cpu").save(args.out / "path_cameras.json")
-    paths = render_cameras(scene, cams, args.out, background=data.background, progress=not args.no_progress)
+    paths = render_to_files(scene, cams, args.out, background=data.background, progress=not args.no_progress)
     print(f"{args.out}: {len(paths)} images")
     return 0
