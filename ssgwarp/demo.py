@@ -25,7 +25,6 @@ overwritten without ``--force``.
 from __future__ import annotations
 
 import logging
-import shutil
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -33,8 +32,21 @@ from typing import Callable, Optional
 
 import torch
 
+from . import procedural as P
 from . import weights as W
-from .errors import InputError, SsgwarpError
+from .datasets import load_dataset
+from .diffusion import WEIGHT_KEYS
+from .errors import InputError
+from .evaluate import EvalOptions, comparison_table, evaluate_run, load_models
+from .fileio import atomic_path, read_image, read_json, write_image, write_json
+from .grouping import GroupConfig, group_scene, load_groups, render_group_maps
+from .masks import make_masks
+from .palette import colorize_labels
+from .ply import read_ply
+from .procedural import SIZES
+from .reconstruct import Recipe, reconstruct
+from .runs import Run, claim
+from .stylize import Stage2Config, StylizeOptions, stylize_run
 
 OUTPUTS = ("demo.json", "data", "style.png", "scene", "stylized", "evaluation.md", "contact_sheet.png",
            "summary.json")
@@ -50,8 +62,6 @@ def _resolve_device(device) -> torch.device:
 
 
 def _size(size) -> tuple[str, "object"]:
-    from .procedural import SIZES
-
     if not isinstance(size, str):
         return "custom", size
     if size not in SIZES:
@@ -60,15 +70,10 @@ def _size(size) -> tuple[str, "object"]:
 
 
 def _prepare_out(out: Path, force: bool, resume: bool, record: dict) -> dict:
-    """Check ``out`` (refuse to overwrite without ``force``); returns the stage record to continue."""
-    from .fileio import read_json
-
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out}: exists and is not a folder")
-    existing = [p for p in OUTPUTS if (out / p).exists()]
-    if resume and force:
-        raise InputError("--resume and --force exclude each other")
-    if existing and resume:
+    """Claim ``out`` (:func:`ssgwarp.runs.claim`: never overwritten without ``force``); returns the
+    stage record to continue (``resume``: the finished stages of the same options)."""
+    claimed = claim(out, OUTPUTS, force=force, resume=resume, what="a demo run")
+    if claimed.existing and resume:
         if not (out / "demo.json").is_file():
             raise InputError(f"{out}: nothing to resume (no demo.json); pass --force to start over")
         old = read_json(out / "demo.json")
@@ -79,19 +84,12 @@ def _prepare_out(out: Path, force: bool, resume: bool, record: dict) -> dict:
                              f"{record['options']} now); use the same ones or --force")
         record["stages"] = dict(old.get("stages", {}))
         return record
-    if existing and not force:
-        raise SsgwarpError(f"{out} already holds a demo run ({', '.join(existing)}); pass --force to overwrite "
-                           f"it or --resume to continue it")
-    for p in existing:  # --force: remove only what the demo writes
-        q = out / p
-        shutil.rmtree(q) if q.is_dir() else q.unlink()
+    claimed.clear()   # --force: remove only what the demo writes
     return record
 
 
 def _weights_missing() -> list[str]:
     """Stage 1 weight keys not found on this machine (no import of diffusers)."""
-    from .diffusion import WEIGHT_KEYS
-
     return [k for k in WEIGHT_KEYS if W.find(k) is None]
 
 
@@ -121,20 +119,17 @@ def group_agreement(labels: torch.Tensor, objects: torch.Tensor, num_objects: in
 
 
 def _contact_sheet(path: Path, rows: list[dict], style, title: str, groups_kind: str = "mask-free clusters") -> Path:
-    """Rows of captured | reconstruction | groups | stylized, the style image on the right (matplotlib, Agg)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    """Rows of captured | reconstruction | groups | stylized, the style image on the right (a matplotlib
+    Figure drawn by Agg: no pyplot, the process's backend untouched)."""
+    # (matplotlib is imported here: it costs ~0.3 s at start-up and only the sheet needs it)
+    from matplotlib.figure import Figure
     from matplotlib.gridspec import GridSpec
-
-    from .fileio import atomic_path
 
     cols = ("captured", "reconstruction", f"groups ({groups_kind})", "stylized")
     n = len(rows)
     h, w = rows[0]["captured"].shape[:2]
     cell = 2.4
-    fig = plt.figure(figsize=(cell * 5.2, n * cell * h / w + 0.9), dpi=110)
+    fig = Figure(figsize=(cell * 5.2, n * cell * h / w + 0.9), dpi=110)
     gs = GridSpec(n, 5, figure=fig, wspace=0.04, hspace=0.16)
     for i, r in enumerate(rows):
         for j, key in enumerate(("captured", "reconstruction", "groups", "stylized")):
@@ -153,7 +148,6 @@ def _contact_sheet(path: Path, rows: list[dict], style, title: str, groups_kind:
     fig.suptitle(title, fontsize=9)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", bbox_inches="tight")
-    plt.close(fig)
     return path
 
 
@@ -163,6 +157,217 @@ def _fmt(x, spec: str = ".4g", none: str = "n/a") -> str:
 
 # ----------------------------------------------------------------------------- the demo
 @W.offline("ssgwarp demo downloads nothing")
+class _Demo:
+    """One demo run's context: the folder, the size, the stage record and how to speak."""
+
+    def __init__(self, out: Path, name: str, sz, device: torch.device, seed: int, progress: bool, say, record: dict):
+        self.out, self.name, self.sz, self.device, self.seed, self.progress, self.say = \
+            out, name, sz, device, int(seed), progress, say
+        self.record = record
+        self.stages: dict = record["stages"]
+        self.times: dict[str, float] = {}
+        self.data_dir, self.scene_dir, self.styl_dir = out / "data", out / "scene", out / "stylized"
+
+    def todo(self, stage: str) -> bool:
+        return not self.stages.get(stage, {}).get("done")
+
+    def done(self, stage: str, **info) -> None:
+        self.stages[stage] = {"done": True, **info}
+        write_json(self.out / "demo.json", self.record)
+
+    def header(self, i: int, stage: str, what: str) -> None:
+        self.say(f"[{i}/{len(STAGES)}] {stage}: {what}")
+
+
+def _stage_data(d: _Demo):
+    """1: the procedural capture and the style image; returns the true scene, cameras, images, object maps."""
+    sz = d.sz
+    gt = P.build_scene(sz.density, seed=d.seed)
+    cams = P.ring_cameras(sz.views, sz.width, sz.height)
+    d.header(1, "data", f"procedural scene ({len(gt)} Gaussians, objects: {', '.join(gt.names)}), "
+                        f"{sz.views} views {sz.width}x{sz.height}")
+    t0 = time.perf_counter()
+    gt_dev = P.ProceduralScene(gt.scene.to(d.device), gt.object_ids.to(d.device), gt.names)
+    images, objects = P.render_views(gt_dev, cams.to(d.device))
+    if d.todo("data"):
+        P.write_transforms_dataset(d.data_dir, images.cpu(), cams)
+        write_image(d.out / "style.png", P.style_image(192, 192, seed=d.seed))
+        d.done("data", seconds=time.perf_counter() - t0)
+    d.times["data"] = d.stages["data"]["seconds"]
+    return gt, cams, images, objects
+
+
+def _stage_reconstruct(d: _Demo) -> dict:
+    sz = d.sz
+    d.header(2, "reconstruct", f"3DGS from {sz.init_points} random points, {sz.reconstruct_iters} steps, "
+                               f"SH degree 0 (the colours do not depend on the view), device {d.device}")
+    if d.todo("reconstruct"):
+        t0 = time.perf_counter()
+        data = load_dataset(d.data_dir, num_random_points=sz.init_points, seed=d.seed)
+        it = sz.reconstruct_iters
+        every = max(10, it // 15)
+        recipe = Recipe(refine_start=every, refine_every=every, refine_stop=int(it * 0.6), reset_every=0)
+        resume_rec = (d.scene_dir / "checkpoint.pt").is_file()
+        m = reconstruct(d.data_dir, d.scene_dir, iters=it, sh_degree=0, max_gaussians=sz.max_gaussians,
+                        device=d.device, seed=d.seed, recipe=recipe, checkpoint_every=max(50, it // 5),
+                        progress=d.progress, data=data, resume=resume_rec, force=not resume_rec)
+        d.done("reconstruct", seconds=time.perf_counter() - t0, gaussians=m["num_gaussians"], psnr=m["psnr"],
+               ssim=m["ssim"], iters=m["iters"], test_views=m["test_views"])
+    rec = d.stages["reconstruct"]
+    d.times["reconstruct"] = rec["seconds"]
+    d.say(f"      {rec['gaussians']} Gaussians, held-out PSNR {_fmt(rec['psnr'], '.2f')} dB "
+          f"over {rec['test_views']} views")
+    return rec
+
+
+def _stage_group(d: _Demo, cams, objects, num_objects: int, resume: bool) -> dict:
+    """3: segmenter instances when SAM's weights are here, else mask-free clusters."""
+    sam = W.find("sam")
+    d.header(3, "group", "Gaussian Grouping on " + ("Segment Anything instances associated across views" if sam else
+                         "mask-free clusters (spectral clustering of the Gaussians on the captured colour; no "
+                         "Segment Anything weights here)"))
+    if d.todo("group"):
+        t0 = time.perf_counter()
+        if sam:
+            made = make_masks(d.scene_dir, sam=sam, device=d.device, progress=d.progress, force=not resume,
+                              resume=resume)
+            if made["num_instances"] == 0:
+                d.say("      Segment Anything found no instances: grouping on mask-free clusters instead")
+                sam = None
+        info = group_scene(d.scene_dir, masks="auto" if sam else None, max_groups=8,
+                           config=GroupConfig(iters=d.sz.group_iters,
+                           checkpoint_every=max(25, d.sz.group_iters // 4)), device=d.device, seed=d.seed,
+                           progress=d.progress, resume=resume)
+        scene = read_ply(d.scene_dir / "scene.ply", device=d.device)
+        gm = load_groups(d.scene_dir, d.device)
+        labels, _ = render_group_maps(scene, cams.to(d.device), gm.classifier)
+        agree = group_agreement(labels, objects, num_objects)
+        d.done("group", seconds=time.perf_counter() - t0, groups=info["num_groups"], kind=info["kind"],
+               cross_view_agreement=info.get("reprojection_agreement", {}).get("mean"),
+               purity=agree["purity"], separated=agree["separated"], objects=agree["objects"])
+    grp = d.stages["group"]
+    d.times["group"] = grp["seconds"]
+    d.say(f"      K={grp['groups']} groups ({grp.get('kind')}); they match the {grp['objects']} true objects with "
+          f"purity {_fmt(grp['purity'], '.3f')} ({grp['separated']} objects in a group of their own); "
+          f"cross-view agreement {_fmt(grp['cross_view_agreement'], '.3f')}")
+    return grp
+
+
+def _stage_stylize(d: _Demo, resume: bool) -> dict:
+    """4: key views, Stage 1 (when its weights are here), Stage 2."""
+    sz = d.sz
+    missing = _weights_missing()
+    stage1_runs = not missing
+    d.header(4, "stylize", "key views -> Stage 1 (diffusion + CVSA) -> Stage 2 (instance-level style transfer)")
+    if not stage1_runs:
+        d.say(f"      Stage 1 will be skipped: no local weights for {', '.join(missing)} "
+              f"(`ssgwarp weights --download stage1` fetches them); Stage 2 then matches the style image directly")
+    if d.todo("stylize"):
+        t0 = time.perf_counter()
+        opts = StylizeOptions(keyviews=sz.keyviews, max_side=512 if stage1_runs else sz.max_side,
+                              path_frames=sz.path_frames, sheet_views=3)
+        s2 = Stage2Config(mode="ist", iters=sz.stylize_iters, lr=sz.stylize_lr,
+                          checkpoint_every=max(10, sz.stylize_iters // 5), seed=d.seed)
+        again = resume and d.styl_dir.exists()
+        sm = stylize_run(d.scene_dir, d.out / "style.png", d.styl_dir, stage2=s2, opts=opts, device=d.device,
+                         resume=again, force=not again, progress=d.progress)
+        d.done("stylize", seconds=time.perf_counter() - t0, stage1=sm["stage1"], stage1_missing=missing,
+               matching=sm["matching"], nnfm=_nnfm_history(d.styl_dir / "stage2.ckpt"),
+               substages={k: round(v, 3) for k, v in sm["seconds"].items()},
+               gram_style_loss=sm["gram_style_loss"], gram_style_loss_original=sm["gram_style_loss_original"],
+               style_distance=sm["style_distance"], style_distance_original=sm["style_distance_original"],
+               content_loss=sm["content_loss"], extractor=sm["extractor"], keyviews=sm["keyviews"],
+               style_loss=sm["style_loss"], weight_free=not str(sm["extractor"]).startswith("vgg16"),
+               color_transfer=sm["color_transfer"]["setting"])
+    sty = d.stages["stylize"]
+    d.times["stylize"] = sty["seconds"]
+    d.say(f"      {_path(sty)}")
+    d.say(f"      Stage 2 matched {sty['matching']}; {_distances(sty)}; Gram style loss "
+          f"{_fmt(sty['gram_style_loss_original'])} -> {_fmt(sty['gram_style_loss'])}, content loss "
+          f"{_fmt(sty['content_loss'])}")
+    return sty
+
+
+def _stage_evaluate(d: _Demo) -> tuple[dict, dict]:
+    """5: both runs scored by ``ssgwarp evaluate``'s code; the table in ``OUT/evaluation.md``."""
+    d.header(5, "evaluate", "consistency (reprojection), Gram style / content losses, PSNR")
+    t0 = time.perf_counter()
+    eopts = EvalOptions(max_pairs=d.sz.eval_pairs, gap=max(2, d.sz.views // 3), save_pairs=1).validate()
+    extractor, raft, lpips, skipped = load_models(eopts, d.device)
+    kw = dict(extractor=extractor, raft=raft, lpips=lpips, skipped=skipped)
+    ev_rec = evaluate_run(d.scene_dir, eopts, d.device, **kw)
+    ev_sty = evaluate_run(d.styl_dir, eopts, d.device, **kw)
+    with atomic_path(d.out / "evaluation.md") as tmp:
+        tmp.write_text(comparison_table([ev_rec, ev_sty]))
+    d.times["evaluate"] = time.perf_counter() - t0
+    d.done("evaluate", seconds=d.times["evaluate"])
+    return ev_rec, ev_sty
+
+
+def _stage_sheet(d: _Demo, cams, images, rec: dict, grp: dict, sty: dict) -> Path:
+    """6: captured | reconstructed | groups | stylized rows of three views, and the style."""
+    d.header(6, "sheet", "contact sheet")
+    t0 = time.perf_counter()
+    dev = d.device
+    rec_scene = read_ply(d.scene_dir / "scene.ply", device=dev)
+    sty_scene = read_ply(d.styl_dir / "scene.ply", device=dev)
+    gm = load_groups(d.scene_dir, dev)
+    test = set(Run.open(d.scene_dir).test_ids)
+    rows_ids = sorted(test)[:3] if len(test) >= 3 else sorted({round(i * (d.sz.views - 1) / 3) for i in range(3)})
+    bg = torch.tensor(P.BACKGROUND, dtype=torch.float32, device=dev)
+    rows = []
+    with torch.no_grad():
+        for i in rows_ids:
+            cam = cams[[i]].to(dev)
+            r, alpha, _ = rec_scene.render(cam, backgrounds=bg[None])
+            s, _, _ = sty_scene.render(cam, backgrounds=bg[None])
+            lab, _ = render_group_maps(rec_scene, cam, gm.classifier)
+            groups = torch.from_numpy(colorize_labels(lab[0], gm.num_groups))
+            empty = alpha[0, ..., 0].cpu() < 0.5           # no surface there: shown light grey, not as a group
+            groups[empty] = 0.92
+            rows.append({"label": f"{cams.names[i]}{' (held out)' if i in test else ''}", "captured": images[i],
+                         "reconstruction": r[0, ..., :3], "stylized": s[0, ..., :3], "groups": groups})
+    style = torch.from_numpy(read_image(d.out / "style.png", 3))
+    title = (f"ssgwarp demo ({d.name}): {rec['gaussians']} Gaussians, PSNR {_fmt(rec['psnr'], '.2f')} dB, "
+             f"K={grp['groups']} groups, Stage 1 {'ran' if sty['stage1'].get('ran') else 'skipped (no weights)'}, "
+             f"{_distances(sty)}")
+    sheet = _contact_sheet(d.out / "contact_sheet.png", rows, style, title, grp.get("kind", "mask-free clusters"))
+    d.times["sheet"] = time.perf_counter() - t0
+    d.done("sheet", seconds=d.times["sheet"])
+    return sheet
+
+
+def _rmse(ev: dict, kind: str):
+    return ev.get("consistency", {}).get("reprojection", {}).get(kind, {}).get("rmse")
+
+
+def _summary(d: _Demo, gt, rec: dict, grp: dict, sty: dict, evs: tuple[dict, dict], sheet: Path, total: float) -> dict:
+    ev_rec, ev_sty = evs
+    sz = d.sz
+    return {
+        "size": d.name, "views": sz.views, "resolution": [sz.width, sz.height], "device": str(d.device),
+        "seed": d.seed, "seconds": {k: round(v, 2) for k, v in d.times.items()}, "total_seconds": round(total, 2),
+        "stylize_substages": sty.get("substages"),
+        "true_gaussians": len(gt), "objects": list(gt.names),
+        "gaussians": rec["gaussians"], "psnr": rec["psnr"], "ssim": rec["ssim"],
+        "groups": grp["groups"], "group_kind": grp.get("kind"), "group_purity": grp["purity"],
+        "objects_separated": grp["separated"],
+        "cross_view_agreement": grp["cross_view_agreement"],
+        "stage1": sty["stage1"], "stage1_missing_weights": sty.get("stage1_missing", []),
+        "matching": sty["matching"], "extractor": sty["extractor"], "nnfm_style_loss": sty.get("nnfm"),
+        "style_loss": sty.get("style_loss", "nnfm"), "weight_free": sty.get("weight_free", True),
+        "color_transfer": sty.get("color_transfer", "off"),
+        "gram_style_loss_original": sty["gram_style_loss_original"], "gram_style_loss": sty["gram_style_loss"],
+        "style_distance_original": sty.get("style_distance_original"), "style_distance": sty.get("style_distance"),
+        "content_loss": sty["content_loss"],
+        "consistency_rmse": {"reconstruction": {"short": _rmse(ev_rec, "short"), "long": _rmse(ev_rec, "long")},
+                             "stylized": {"short": _rmse(ev_sty, "short"), "long": _rmse(ev_sty, "long")}},
+        "contact_sheet": str(sheet.resolve()),
+        "outputs": {"data": str(d.data_dir), "style": str(d.out / "style.png"), "reconstruction": str(d.scene_dir),
+                    "stylized": str(d.styl_dir), "evaluation": str(d.out / "evaluation.md")},
+    }
+
+
 def run_demo(out: str | Path = "ssgwarp-demo", size="default", *, device=None, seed: int = 0,
              force: bool = False, resume: bool = False, progress: bool = True,
              echo: Optional[Callable[[str], None]] = None) -> dict:
@@ -177,212 +382,24 @@ def run_demo(out: str | Path = "ssgwarp-demo", size="default", *, device=None, s
         force: overwrite an existing demo in ``out``. resume: continue one (after Ctrl-C).
         progress: progress bars and stage messages. echo: where messages go (default print).
     """
-    from . import procedural as P
-    from .fileio import read_image, write_image, write_json
-
     say = echo or (lambda s: print(s, flush=True))
     if not progress and echo is None:
         say = lambda s: None  # noqa: E731
     t_all = time.perf_counter()
     name, sz = _size(size)
-    device = _resolve_device(device)
     out = Path(out).expanduser()
     record = {"format": FORMAT, "options": {"size": name, "seed": int(seed), **asdict(sz)}, "stages": {}}
     record = _prepare_out(out, force, resume, record)
     out.mkdir(parents=True, exist_ok=True)
-    stages: dict = record["stages"]
-
-    def done(stage: str, **info) -> None:
-        stages[stage] = {"done": True, **info}
-        write_json(out / "demo.json", record)
-
-    def header(i: int, stage: str, what: str) -> None:
-        say(f"[{i}/{len(STAGES)}] {stage}: {what}")
-
+    d = _Demo(out, name, sz, _resolve_device(device), seed, progress, say, record)
     write_json(out / "demo.json", record)
-    times: dict[str, float] = {}
-    data_dir, scene_dir, styl_dir = out / "data", out / "scene", out / "stylized"
-
-    # -- 1. the procedural capture and style ----------------------------------------------------
-    gt = P.build_scene(sz.density, seed=seed)
-    cams = P.ring_cameras(sz.views, sz.width, sz.height)
-    header(1, "data", f"procedural scene ({len(gt)} Gaussians, objects: {', '.join(gt.names)}), "
-                      f"{sz.views} views {sz.width}x{sz.height}")
-    t0 = time.perf_counter()
-    gt_dev = P.ProceduralScene(gt.scene.to(device), gt.object_ids.to(device), gt.names)
-    images, objects = P.render_views(gt_dev, cams.to(device))
-    if not stages.get("data", {}).get("done"):
-        P.write_transforms_dataset(data_dir, images.cpu(), cams)
-        write_image(out / "style.png", P.style_image(192, 192, seed=seed))
-        done("data", seconds=time.perf_counter() - t0)
-    times["data"] = stages["data"]["seconds"]
-
-    # -- 2. reconstruct ---------------------------------------------------------------------------
-    from .datasets import load_dataset
-    from .reconstruct import Recipe, reconstruct
-
-    header(2, "reconstruct", f"3DGS from {sz.init_points} random points, {sz.reconstruct_iters} steps, "
-                             f"SH degree 0 (the colours do not depend on the view), device {device}")
-    if not stages.get("reconstruct", {}).get("done"):
-        t0 = time.perf_counter()
-        data = load_dataset(data_dir, num_random_points=sz.init_points, seed=seed)
-        it = sz.reconstruct_iters
-        every = max(10, it // 15)
-        recipe = Recipe(refine_start=every, refine_every=every, refine_stop=int(it * 0.6), reset_every=0)
-        resume_rec = (scene_dir / "checkpoint.pt").is_file()
-        m = reconstruct(data_dir, scene_dir, iters=it, sh_degree=0, max_gaussians=sz.max_gaussians,
-                        device=device, seed=seed, recipe=recipe, checkpoint_every=max(50, it // 5),
-                        progress=progress, data=data, resume=resume_rec, force=not resume_rec)
-        done("reconstruct", seconds=time.perf_counter() - t0, gaussians=m["num_gaussians"], psnr=m["psnr"],
-             ssim=m["ssim"], iters=m["iters"], test_views=m["test_views"])
-    rec = stages["reconstruct"]
-    times["reconstruct"] = rec["seconds"]
-    say(f"      {rec['gaussians']} Gaussians, held-out PSNR {_fmt(rec['psnr'], '.2f')} dB "
-        f"over {rec['test_views']} views")
-
-    # -- 3. group: segmenter instances when SAM's weights are here, else mask-free clusters ----------
-    from . import weights
-    from .grouping import GroupConfig, group_scene, load_groups, render_group_maps
-    from .ply import read_ply
-
-    sam = weights.find("sam")
-    header(3, "group", "Gaussian Grouping on " + ("Segment Anything instances associated across views" if sam else
-                       "mask-free clusters (spectral clustering of the Gaussians on the captured colour; no "
-                       "Segment Anything weights here)"))
-    if not stages.get("group", {}).get("done"):
-        t0 = time.perf_counter()
-        if sam:
-            from .masks import make_masks
-
-            made = make_masks(scene_dir, sam=sam, device=device, progress=progress, force=not resume,
-                              resume=resume)
-            if made["num_instances"] == 0:
-                say("      Segment Anything found no instances: grouping on mask-free clusters instead")
-                sam = None
-        info = group_scene(scene_dir, masks="auto" if sam else None, max_groups=8,
-                           config=GroupConfig(iters=sz.group_iters,
-                           checkpoint_every=max(25, sz.group_iters // 4)), device=device, seed=seed,
-                           progress=progress, resume=resume, force=resume)
-        scene = read_ply(scene_dir / "scene.ply", device=device)
-        gm = load_groups(scene_dir, device)
-        labels, _ = render_group_maps(scene, cams.to(device), gm.classifier)
-        agree = group_agreement(labels, objects, len(gt.names))
-        done("group", seconds=time.perf_counter() - t0, groups=info["num_groups"], kind=info["kind"],
-             cross_view_agreement=info.get("reprojection_agreement", {}).get("mean"),
-             purity=agree["purity"], separated=agree["separated"], objects=agree["objects"])
-    grp = stages["group"]
-    times["group"] = grp["seconds"]
-    say(f"      K={grp['groups']} groups ({grp.get('kind')}); they match the {grp['objects']} true objects with purity "
-        f"{_fmt(grp['purity'], '.3f')} ({grp['separated']} objects in a group of their own); "
-        f"cross-view agreement {_fmt(grp['cross_view_agreement'], '.3f')}")
-
-    # -- 4. key views, Stage 1, Stage 2 -----------------------------------------------------------
-    from .stylize import Stage2Config, StylizeOptions, stylize_run
-
-    missing = _weights_missing()
-    stage1_runs = not missing
-    header(4, "stylize", "key views -> Stage 1 (diffusion + CVSA) -> Stage 2 (instance-level style transfer)")
-    if not stage1_runs:
-        say(f"      Stage 1 will be skipped: no local weights for {', '.join(missing)} "
-            f"(`ssgwarp weights --download stage1` fetches them); Stage 2 then matches the style image directly")
-    if not stages.get("stylize", {}).get("done"):
-        t0 = time.perf_counter()
-        opts = StylizeOptions(keyviews=sz.keyviews, max_side=512 if stage1_runs else sz.max_side,
-                              path_frames=sz.path_frames, sheet_views=3)
-        s2 = Stage2Config(mode="ist", iters=sz.stylize_iters, lr=sz.stylize_lr,
-                          checkpoint_every=max(10, sz.stylize_iters // 5), seed=seed)
-        sm = stylize_run(scene_dir, out / "style.png", styl_dir, stage2=s2, opts=opts, device=device,
-                         resume=resume and styl_dir.exists(), force=not (resume and styl_dir.exists()),
-                         progress=progress)
-        done("stylize", seconds=time.perf_counter() - t0, stage1=sm["stage1"], stage1_missing=missing,
-             matching=sm["matching"], nnfm=_nnfm_history(styl_dir / "stage2.ckpt"),
-             substages={k: round(v, 3) for k, v in sm["seconds"].items()},
-             gram_style_loss=sm["gram_style_loss"], gram_style_loss_original=sm["gram_style_loss_original"],
-             style_distance=sm["style_distance"], style_distance_original=sm["style_distance_original"],
-             content_loss=sm["content_loss"], extractor=sm["extractor"], keyviews=sm["keyviews"],
-             style_loss=sm["style_loss"], weight_free=not str(sm["extractor"]).startswith("vgg16"),
-             color_transfer=sm["color_transfer"]["setting"])
-    sty = stages["stylize"]
-    times["stylize"] = sty["seconds"]
-    say(f"      {_path(sty)}")
-    say(f"      Stage 2 matched {sty['matching']}; {_distances(sty)}; Gram style loss "
-        f"{_fmt(sty['gram_style_loss_original'])} -> {_fmt(sty['gram_style_loss'])}, content loss "
-        f"{_fmt(sty['content_loss'])}")
-
-    # -- 5. evaluate ------------------------------------------------------------------------------
-    from .evaluate import EvalOptions, comparison_table, evaluate_run, load_models
-
-    header(5, "evaluate", "consistency (reprojection), Gram style / content losses, PSNR")
-    t0 = time.perf_counter()
-    eopts = EvalOptions(max_pairs=sz.eval_pairs, gap=max(2, sz.views // 3), save_pairs=1).validate()
-    extractor, raft, lpips, skipped = load_models(eopts, device)
-    ev_rec = evaluate_run(scene_dir, eopts, device, extractor=extractor, raft=raft, lpips=lpips, skipped=skipped)
-    ev_sty = evaluate_run(styl_dir, eopts, device, extractor=extractor, raft=raft, lpips=lpips, skipped=skipped)
-    from .fileio import atomic_path
-
-    with atomic_path(out / "evaluation.md") as tmp:
-        tmp.write_text(comparison_table([ev_rec, ev_sty]))
-    times["evaluate"] = time.perf_counter() - t0
-    done("evaluate", seconds=times["evaluate"])
-
-    def rmse(ev: dict, kind: str):
-        c = ev.get("consistency", {}).get("reprojection", {}).get(kind, {})
-        return c.get("rmse")
-
-    # -- 6. contact sheet -------------------------------------------------------------------------
-    from .palette import colorize_labels
-
-    header(6, "sheet", "contact sheet")
-    t0 = time.perf_counter()
-    rec_scene = read_ply(scene_dir / "scene.ply", device=device)
-    sty_scene = read_ply(styl_dir / "scene.ply", device=device)
-    gm = load_groups(scene_dir, device)
-    test = set(_test_ids(scene_dir))
-    rows_ids = sorted(test)[:3] if len(test) >= 3 else sorted({round(i * (sz.views - 1) / 3) for i in range(3)})
-    bg = torch.tensor(P.BACKGROUND, dtype=torch.float32, device=device)
-    rows = []
-    with torch.no_grad():
-        for i in rows_ids:
-            cam = cams[[i]].to(device)
-            r, alpha, _ = rec_scene.render(cam, backgrounds=bg[None])
-            s, _, _ = sty_scene.render(cam, backgrounds=bg[None])
-            lab, _ = render_group_maps(rec_scene, cam, gm.classifier)
-            groups = torch.from_numpy(colorize_labels(lab[0], gm.num_groups))
-            empty = alpha[0, ..., 0].cpu() < 0.5           # no surface there: shown light grey, not as a group
-            groups[empty] = 0.92
-            rows.append({"label": f"{cams.names[i]}{' (held out)' if i in test else ''}", "captured": images[i],
-                         "reconstruction": r[0, ..., :3], "stylized": s[0, ..., :3], "groups": groups})
-    style = torch.from_numpy(read_image(out / "style.png", 3))
-    title = (f"ssgwarp demo ({name}): {rec['gaussians']} Gaussians, PSNR {_fmt(rec['psnr'], '.2f')} dB, "
-             f"K={grp['groups']} groups, Stage 1 {'ran' if sty['stage1'].get('ran') else 'skipped (no weights)'}, "
-             f"{_distances(sty)}")
-    sheet = _contact_sheet(out / "contact_sheet.png", rows, style, title, grp.get("kind", "mask-free clusters"))
-    times["sheet"] = time.perf_counter() - t0
-    done("sheet", seconds=times["sheet"])
-
-    total = time.perf_counter() - t_all
-    summary = {
-        "size": name, "views": sz.views, "resolution": [sz.width, sz.height], "device": str(device),
-        "seed": int(seed), "seconds": {k: round(v, 2) for k, v in times.items()}, "total_seconds": round(total, 2),
-        "stylize_substages": sty.get("substages"),
-        "true_gaussians": len(gt), "objects": list(gt.names),
-        "gaussians": rec["gaussians"], "psnr": rec["psnr"], "ssim": rec["ssim"],
-        "groups": grp["groups"], "group_kind": grp.get("kind"), "group_purity": grp["purity"],
-        "objects_separated": grp["separated"],
-        "cross_view_agreement": grp["cross_view_agreement"],
-        "stage1": sty["stage1"], "stage1_missing_weights": sty.get("stage1_missing", []),
-        "matching": sty["matching"], "extractor": sty["extractor"], "nnfm_style_loss": sty.get("nnfm"),
-        "style_loss": sty.get("style_loss", "nnfm"), "weight_free": sty.get("weight_free", True),
-        "color_transfer": sty.get("color_transfer", "off"),
-        "gram_style_loss_original": sty["gram_style_loss_original"], "gram_style_loss": sty["gram_style_loss"],
-        "style_distance_original": sty.get("style_distance_original"), "style_distance": sty.get("style_distance"),
-        "content_loss": sty["content_loss"],
-        "consistency_rmse": {"reconstruction": {"short": rmse(ev_rec, "short"), "long": rmse(ev_rec, "long")},
-                             "stylized": {"short": rmse(ev_sty, "short"), "long": rmse(ev_sty, "long")}},
-        "contact_sheet": str(sheet.resolve()),
-        "outputs": {"data": str(data_dir), "style": str(out / "style.png"), "reconstruction": str(scene_dir),
-                    "stylized": str(styl_dir), "evaluation": str(out / "evaluation.md")},
-    }
+    gt, cams, images, objects = _stage_data(d)
+    rec = _stage_reconstruct(d)
+    grp = _stage_group(d, cams, objects, len(gt.names), resume)
+    sty = _stage_stylize(d, resume)
+    evs = _stage_evaluate(d)
+    sheet = _stage_sheet(d, cams, images, rec, grp, sty)
+    summary = _summary(d, gt, rec, grp, sty, evs, sheet, time.perf_counter() - t_all)
     write_json(out / "summary.json", summary)
     return summary
 
@@ -415,15 +432,6 @@ def _nnfm_history(ckpt: Path) -> Optional[list[float]]:
         return [vals[0], vals[-1]] if vals else None
     except Exception:  # the history is a convenience: a missing or changed checkpoint just drops the line
         return None
-
-
-def _test_ids(scene_dir: Path) -> list[int]:
-    from .cameras import Cameras
-    from .fileio import read_json
-
-    names = Cameras.load(scene_dir / "cameras.json").names
-    test = read_json(scene_dir / "data.json").get("split", {}).get("test", [])
-    return [names.index(n) for n in test if n in names]
 
 
 def format_summary(s: dict) -> str:

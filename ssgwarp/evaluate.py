@@ -24,16 +24,28 @@ import argparse
 import datetime as _dt
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
 import torch
+from tqdm.auto import tqdm
 
+from . import metrics as M
 from .cameras import Cameras
-from .errors import InputError
+from .datasets import resize_images
+from .errors import InputError, WeightsNotFound
+from .evaluate_table import PAIR_KINDS, comparison_table, default_table_path
+from .features import load_extractor
+from .fileio import atomic_path, read_image, read_json, write_image, write_json
+from .metrics import StyleDistance, reconstruction_quality, style_content_losses
+from .render import smooth_path
+from .rendering import render_views
+from .runs import Run
 
-PAIR_KINDS = ("short", "long")
+RunInfo = Run                # (the run folder: ssgwarp.runs.Run)
+inspect_run = Run.open
+
 WARPS = ("auto", "reprojection", "flow", "both")
 VIEW_SETS = ("path", "test", "train", "all")
 
@@ -89,87 +101,6 @@ class EvalOptions:
         return self
 
 
-@dataclass
-class RunInfo:
-    """What a run folder holds (see module docs)."""
-
-    path: Path
-    kind: str                                  # "reconstruction" | "stylized"
-    scene_ply: Path
-    source_dir: Optional[Path] = None          # the reconstruction a stylized run came from
-    style: Optional[Path] = None
-    mode: Optional[str] = None
-    recorded: dict = field(default_factory=dict)
-
-
-# ----------------------------------------------------------------------------- run discovery
-def _read_metrics(run: Path) -> dict:
-    from .fileio import read_json
-
-    p = run / "metrics.json"
-    if not p.is_file():
-        return {}
-    d = read_json(p)
-    return d if isinstance(d, dict) else {}
-
-
-def _path_entry(value: Any, base: Path) -> Optional[Path]:
-    """A path recorded in metrics.json (a string or ``{"path": ...}``), relative to ``base`` when not absolute."""
-    if isinstance(value, dict):
-        value = value.get("path") or value.get("image") or value.get("dir")
-    if not value or not isinstance(value, str):
-        return None
-    p = Path(value).expanduser()
-    if not p.is_absolute() and not p.exists():
-        p = base / p
-    return p
-
-
-def inspect_run(run_dir: str | Path) -> RunInfo:
-    """Classify a run folder; raises InputError naming what is missing."""
-    run = Path(run_dir)
-    if not run.is_dir():
-        raise InputError(f"{run}: run folder not found")
-    if not (run / "scene.ply").is_file():
-        raise InputError(f"{run}: no scene.ply (expected a `ssgwarp reconstruct` or `ssgwarp stylize` output)")
-    metrics = _read_metrics(run)
-    if "source_scene" in metrics:
-        src = _path_entry(metrics["source_scene"], run)
-        if src is not None and src.is_file():          # recorded as the source's scene.ply
-            src = src.parent
-        if src is None or not (src / "cameras.json").is_file():
-            raise InputError(f"{run / 'metrics.json'}: source_scene {metrics['source_scene']!r} is not a "
-                             f"reconstruction folder with cameras.json (moved? pass the run again after fixing it)")
-        style = _path_entry(metrics.get("style"), run)
-        cfg = metrics.get("config")
-        mode = metrics.get("mode") or (cfg.get("mode") if isinstance(cfg, dict) else None)
-        return RunInfo(run, "stylized", run / "scene.ply", src, style, mode, metrics)
-    if (run / "cameras.json").is_file() and (run / "data.json").is_file():
-        return RunInfo(run, "reconstruction", run / "scene.ply", recorded=metrics)
-    raise InputError(f"{run}: neither a reconstruction (needs cameras.json and data.json) nor a stylize output "
-                     f"(needs metrics.json with source_scene)")
-
-
-# ----------------------------------------------------------------------------- rendering
-@torch.no_grad()
-def render_views(scene, cams: Cameras, background: Optional[Sequence[float]] = None,
-                 desc: Optional[str] = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Render ``cams`` one at a time: ``rgb [V,H,W,3]`` (composited on ``background``), ``depth [V,H,W]``, ``alpha [V,H,W]``."""
-    from tqdm.auto import tqdm
-
-    rgbs, depths, alphas = [], [], []
-    for i in tqdm(range(len(cams)), desc=desc, disable=desc is None, leave=False):
-        colors, alpha, _ = scene.render(cams[i].to(scene.device), render_mode="RGB+ED")
-        rgb, depth, a = colors[0, ..., :3], colors[0, ..., 3], alpha[0, ..., 0]
-        if background is not None:
-            bg = torch.as_tensor(background, dtype=rgb.dtype, device=rgb.device)[:3]
-            rgb = rgb + (1.0 - a)[..., None] * bg
-        rgbs.append(rgb.clamp(0.0, 1.0))
-        depths.append(depth)
-        alphas.append(a)
-    return torch.stack(rgbs), torch.stack(depths), torch.stack(alphas)
-
-
 def _scaled(cams: Cameras, max_side: int) -> Cameras:
     if max_side <= 0 or max(cams.width, cams.height) <= max_side:
         return cams
@@ -197,8 +128,6 @@ def scored_cameras(cameras: Cameras, train: Sequence[int], test: Sequence[int], 
     ``test``: the held-out captured views; ``train`` / ``all``: captured views.
     """
     if opts.views == "path":
-        from .render import smooth_path
-
         base = list(train) or list(range(len(cameras)))
         # the odd frames of a path twice as dense: the path starts on a training camera, these do not
         cams = smooth_path(cameras[base], 2 * opts.path_frames)[list(range(1, 2 * opts.path_frames, 2))]
@@ -218,8 +147,6 @@ def _finite(x: float) -> Optional[float]:
 
 def _save_strip(path: Path, a: torch.Tensor, warped: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> None:
     """PNG strip: A | A warped into B | B | mask | 4x |warped - B| on the mask."""
-    from .fileio import write_image
-
     m = mask.to(b.dtype)[..., None]
     err = ((warped - b).abs() * 4.0 * m).clamp(0, 1)
     if a.shape != b.shape:
@@ -239,9 +166,7 @@ def consistency(images: torch.Tensor, depths: torch.Tensor, alphas: torch.Tensor
 
     Returns ``{warp: {kind: {"gap", "pairs", "rmse", "rmse_std", "lpips", "coverage"}}}``.
     """
-    from tqdm.auto import tqdm
 
-    from . import metrics as M
 
     warps = []
     if opts.warp in ("auto", "reprojection", "both"):
@@ -304,8 +229,6 @@ def consistency(images: torch.Tensor, depths: torch.Tensor, alphas: torch.Tensor
 
 
 def _load_style(path: Path, device) -> torch.Tensor:
-    from .fileio import read_image
-
     return torch.from_numpy(read_image(path, channels=3)).to(device)
 
 
@@ -314,10 +237,6 @@ def evaluate_run(run_dir: str | Path, opts: EvalOptions, device: torch.device | 
                  extractor=None, raft=None, lpips=None, skipped: Optional[dict] = None,
                  write: bool = True) -> dict:
     """Evaluate one run folder; returns the ``evaluation`` dict (also merged into ``RUN/metrics.json``)."""
-    from .datasets import load_run
-    from .fileio import read_json, write_json
-    from .ply import read_ply
-
     opts.validate()
     device = torch.device(device)
     info = inspect_run(run_dir)
@@ -332,18 +251,16 @@ def evaluate_run(run_dir: str | Path, opts: EvalOptions, device: torch.device | 
         result["mode"] = info.mode
 
     # cameras, split, background, the scene (and the source scene of a stylized run)
-    src_dir = info.source_dir if info.kind == "stylized" else info.path
-    data = None
     need_images = info.kind == "reconstruction"
     try:
-        src_scene, data = load_run(src_dir, device=device, data_dir=opts.data_dir, load_images=need_images)
+        scene, data = info.load(device, data_dir=opts.data_dir, load_images=need_images)
     except InputError as e:
         if not need_images:
             raise
         skipped["quality"] = f"captured images not available ({e})"
-        src_scene, data = load_run(src_dir, device=device, data_dir=opts.data_dir, load_images=False)
+        scene, data = info.load(device, data_dir=opts.data_dir, load_images=False)
         need_images = False
-    scene = read_ply(info.scene_ply).to(device) if info.kind == "stylized" else src_scene
+    src_scene = Run.reconstruction(info.source_dir).scene(device) if info.kind == "stylized" else scene
     if opts.views != "path" and not _select(len(data.cameras), data.train_ids, data.test_ids, opts.views):
         raise InputError(f"{info.path}: no '{opts.views}' views to evaluate (try --views path or all)")
     cams, ids, scored = scored_cameras(data.cameras, data.train_ids, data.test_ids, opts)
@@ -380,8 +297,6 @@ def evaluate_run(run_dir: str | Path, opts: EvalOptions, device: torch.device | 
         sc["extractor"] = getattr(extractor, "name", type(extractor).__name__)
         sc.update(_style_content(extractor, rgb, style, originals))
     if style is not None:
-        from .metrics import StyleDistance
-
         dist = StyleDistance(style)       # on the scene's pixels (alpha >= 0.5): the background is not the scene
         sc.update({f"style_distance_{k}": v for k, v in dist.mean(rgb, alpha).items()})
         if originals is not None:   # the unstylized source from the same cameras: before / after in one run
@@ -396,16 +311,12 @@ def evaluate_run(run_dir: str | Path, opts: EvalOptions, device: torch.device | 
         qcams = _scaled(data.cameras[qids], opts.max_side).to(device)
         targets = data.images[qids].to(device)
         if targets.shape[1:3] != (qcams.height, qcams.width):
-            from .datasets import resize_images
-
             targets = resize_images(targets, qcams.height, qcams.width)
         pos = {i: k for k, i in enumerate(ids or [])}
         if ids is not None and all(i in pos for i in qids) and qcams.width == cams.width:
             renders = rgb[[pos[i] for i in qids]]
         else:
             renders, _, _ = render_views(scene, qcams, bg, desc=f"quality {info.path.name}")
-        from .metrics import reconstruction_quality
-
         q = reconstruction_quality(renders, targets)
         qd: dict[str, Any] = {"split": qsplit, "views": len(qids),
                               "psnr": sum(q["psnr"]) / len(q["psnr"]), "ssim": sum(q["ssim"]) / len(q["ssim"]),
@@ -431,8 +342,6 @@ def evaluate_run(run_dir: str | Path, opts: EvalOptions, device: torch.device | 
 
 def _style_content(extractor, rgb: torch.Tensor, style: Optional[torch.Tensor],
                    originals: Optional[torch.Tensor]) -> dict:
-    from .metrics import style_content_losses
-
     if style is None and originals is None:
         return {}
     vals = style_content_losses(extractor, rgb, style, originals)
@@ -463,92 +372,6 @@ def _device_name(device: torch.device) -> str:
     import platform
 
     return f"cpu ({platform.processor() or platform.machine()}, {torch.get_num_threads()} threads)"
-
-
-# ----------------------------------------------------------------------------- the table
-def _fmt(x: Any, digits: int = 4) -> str:
-    if x is None:
-        return "-"
-    if isinstance(x, float):
-        return f"{x:.{digits}g}" if abs(x) < 1e4 else f"{x:.3e}"
-    return str(x)
-
-
-def _run_labels(results: Sequence[dict]) -> list[str]:
-    labels = [Path(r["run"]).name for r in results]
-    if len(set(labels)) < len(labels):
-        labels = ["/".join(Path(r["run"]).parts[-2:]) for r in results]
-    return labels
-
-
-def comparison_table(results: Sequence[dict]) -> str:
-    """One markdown table, one column per run, one row per metric (lower is better unless marked ↑)."""
-    labels = _run_labels(results)
-    rows: list[tuple[str, list[str]]] = []
-
-    def row(name: str, fn) -> None:
-        vals = []
-        for r in results:
-            try:
-                vals.append(fn(r))
-            except (KeyError, TypeError, IndexError):
-                vals.append("-")
-        if any(v != "-" for v in vals):
-            rows.append((name, vals))
-
-    row("kind", lambda r: r["kind"] + (f" ({r['mode']})" if r.get("mode") else ""))
-    row("views, resolution", lambda r: f"{r['views']} ({r['view_split']}), {r['resolution'][0]}x{r['resolution'][1]}")
-    row("views scored", lambda r: r["views_scored"])
-    warps = sorted({w for r in results for w in r.get("consistency", {})}, key=lambda w: w != "reprojection")
-    for w in warps:
-        for kind in PAIR_KINDS:
-            def get(r, w=w, kind=kind, key="rmse"):
-                return r["consistency"][w][kind][key]
-            label = f"{kind}-range"
-            row(f"{label} RMSE ({w})", lambda r, g=get: _fmt(g(r)) + (f" (gap {g(r, key='gap')}, "
-                                                                        f"{g(r, key='pairs')} pairs, "
-                                                                        f"{_fmt(100 * g(r, key='coverage'), 3)}% px)"
-                                                                        if g(r, key='coverage') is not None else ""))
-            row(f"{label} LPIPS ({w})", lambda r, g=get: _fmt(g(r, key="lpips")))
-    row("colour distance (SW, Lab)", lambda r: _fmt(r["style_content"]["style_distance_color"]) + (
-        f" (source {_fmt(r['style_content']['style_distance_color_original'])})"
-        if "style_distance_color_original" in r["style_content"] else ""))
-    row("texture distance (SW, filters)", lambda r: _fmt(r["style_content"]["style_distance_texture"]) + (
-        f" (source {_fmt(r['style_content']['style_distance_texture_original'])})"
-        if "style_distance_texture_original" in r["style_content"] else ""))
-    row("Gram style loss", lambda r: _fmt(r["style_content"]["gram_style_loss"]))
-    row("content loss", lambda r: _fmt(r["style_content"]["content_loss"]))
-    row("feature extractor", lambda r: r["style_content"]["extractor"])
-    row("PSNR dB ↑", lambda r: f"{r['quality']['psnr']:.2f} ({r['quality']['split']})")
-    row("SSIM ↑", lambda r: f"{r['quality']['ssim']:.4f}")
-    row("LPIPS (quality)", lambda r: _fmt(r["quality"]["lpips"]))
-    row("Gaussians", lambda r: str(r["gaussians"]))
-    row("time s", lambda r: f"{r['time_s']:.1f}")
-
-    head = "| metric | " + " | ".join(labels) + " |"
-    sep = "|---|" + "---|" * len(labels)
-    body = ["| " + name + " | " + " | ".join(vals) + " |" for name, vals in rows]
-    notes = []
-    which: dict[tuple[str, str], list[str]] = {}
-    for label, r in zip(labels, results):
-        for k, v in (r.get("skipped") or {}).items():
-            which.setdefault((k, v), []).append(label)
-    for (k, v), who in which.items():
-        scope = "" if len(who) == len(results) else f" ({', '.join(who)})"
-        notes.append(f"- {k} skipped{scope}: {v}")
-    date = results[0].get("date", "") if results else ""
-    dev = results[0].get("device", "") if results else ""
-    title = f"Evaluation ({date}, {dev}). Lower is better except ↑. RMSE on [0,1] colours over co-visible pixels."
-    return "\n".join([title, "", head, sep, *body, *([""] + notes if notes else [])]) + "\n"
-
-
-def _default_table_path(runs: Sequence[Path]) -> Path:
-    import os
-
-    if len(runs) == 1:
-        return runs[0] / "evaluation" / "table.md"
-    common = Path(os.path.commonpath([str(p.resolve()) for p in runs]))
-    return common / "evaluation.md"
 
 
 # ----------------------------------------------------------------------------- CLI
@@ -606,9 +429,6 @@ def load_models(opts: EvalOptions, device) -> tuple[Any, Any, Any, dict]:
 
     Weights come through :mod:`ssgwarp.weights`: found, or downloaded on first use unless downloads are off.
     """
-    from . import metrics as M
-    from .errors import WeightsNotFound
-    from .features import load_extractor
 
     skipped: dict[str, str] = {}
     extractor = load_extractor(opts.vgg, device, layers=opts.layers, config=opts.weights_config)
@@ -633,8 +453,6 @@ def load_models(opts: EvalOptions, device) -> tuple[Any, Any, Any, dict]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .fileio import atomic_path
-
     opts = options_from_args(args)
     runs = [Path(r) for r in args.runs]
     infos = [inspect_run(r) for r in runs]          # fail fast on a bad folder, before any rendering
@@ -649,7 +467,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"{info.path}: metrics written to {info.path / 'metrics.json'} (inspection images in "
               f"{info.path / 'evaluation'})")
     table = comparison_table(results)
-    path = args.table or _default_table_path(runs)
+    path = args.table or default_table_path(runs)
     with atomic_path(path) as tmp:
         tmp.write_text(table)
     print()

@@ -43,7 +43,7 @@ Public API:
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -51,7 +51,6 @@ import torch
 
 from . import reconstruct as rec
 from .cameras import Cameras
-from .datasets import load_run
 from .errors import InputError, SsgwarpError
 from .fileio import atomic_path, read_json, write_image, write_json
 from .grouping_agreement import neighbour_pairs, plot_training, reprojection_agreement
@@ -65,6 +64,7 @@ from .masks import read_record
 from .palette import colorize_labels
 from .ply import read_ply, write_ply
 from .pseudomasks import IGNORE, ClusterConfig, pseudo_masks
+from .runs import Run, claim
 from .scene import GaussianScene
 
 Tensor = torch.Tensor
@@ -80,44 +80,7 @@ __all__ = ["GroupConfig", "GroupModel", "GroupingHook", "MaskSet", "RunInfo", "D
            "group_scene", "load_groups", "add_arguments", "run"]
 
 
-@dataclass
-class RunInfo:
-    scene_dir: Path
-    cameras: Cameras
-    train_ids: list[int]
-    test_ids: list[int]
-    data: dict
-
-
-def _read_run(scene_dir: Path) -> RunInfo:
-    if not scene_dir.is_dir():
-        raise InputError(f"{scene_dir}: run folder not found (run `ssgwarp reconstruct` first)")
-    for f in ("scene.ply", "cameras.json"):
-        if not (scene_dir / f).is_file():
-            raise InputError(f"{scene_dir}: no {f} (run `ssgwarp reconstruct ... --out {scene_dir}` first)")
-    cameras = Cameras.load(scene_dir / "cameras.json")
-    data = read_json(scene_dir / "data.json") if (scene_dir / "data.json").is_file() else {}
-    names = cameras.names
-    index = {}
-    for i, nm in enumerate(names):
-        index.setdefault(nm, i)
-        index.setdefault(Path(nm).stem, i)
-
-    def ids_of(lst) -> list[int]:
-        out = []
-        for nm in lst or []:
-            i = index.get(str(nm), index.get(Path(str(nm)).stem))
-            if i is None:
-                raise InputError(f"{scene_dir / 'data.json'}: split names image '{nm}' that cameras.json does not hold")
-            out.append(i)
-        return out
-
-    split = data.get("split", {}) if isinstance(data, dict) else {}
-    train = ids_of(split.get("train"))
-    test = ids_of(split.get("test"))
-    if not train:
-        train = [i for i in range(len(cameras)) if i not in set(test)] or list(range(len(cameras)))
-    return RunInfo(scene_dir, cameras, train, test, data if isinstance(data, dict) else {})
+RunInfo = Run   # (the run folder: ssgwarp.runs.Run)
 
 
 def _resolve_masks(masks: Optional[str | Path], run: RunInfo) -> Optional[Path]:
@@ -127,7 +90,7 @@ def _resolve_masks(masks: Optional[str | Path], run: RunInfo) -> Optional[Path]:
         return None
     if str(masks).lower() == "auto":
         dd = run.data.get("data_dir")
-        for cand in (run.scene_dir / "object_mask", Path(dd) / "object_mask" if dd else None):
+        for cand in (run.path / "object_mask", Path(dd) / "object_mask" if dd else None):
             if cand is not None and cand.is_dir():
                 return cand
         return None
@@ -138,7 +101,7 @@ def _train_images(scene_dir: Path, run: RunInfo, device) -> Optional[Tensor]:
     """The run's training images ``[T, H, W, 3]`` (reloaded from its capture), or None when the capture
     cannot be read (the mask-free path then clusters on the Gaussians' own colours, and says so)."""
     try:
-        _, data = load_run(scene_dir)
+        _, data = run.load()
     except (InputError, OSError):
         return None
     if data.cameras.names != run.cameras.names:
@@ -206,10 +169,10 @@ def group_scene(scene_dir: str | Path, *, masks: Optional[str | Path] = "auto", 
     """
     t0 = time.time()
     scene_dir = Path(scene_dir)
-    run = _read_run(scene_dir)
+    run = Run.open(scene_dir)
     gdir = scene_dir / "groups"
-    if (gdir / "groups.json").is_file() and not force and not resume:
-        raise SsgwarpError(f"{scene_dir} is already grouped ({gdir / 'groups.json'}); use --force to group it again")
+    claimed = claim(scene_dir, ("groups/groups.json",), force=force, resume=resume, what="groups",
+                    scratch=("groups/checkpoint.pt", "groups/classifier.pt", "groups/group_maps"))
     if num_groups is not None and num_groups < 1:
         raise InputError(f"--groups must be >= 1, got {num_groups}")
     if max_groups < 1:
@@ -258,6 +221,7 @@ def group_scene(scene_dir: str | Path, *, masks: Optional[str | Path] = "auto", 
     info["num_groups"] = k
     info["K"] = k
     history: list[dict] = []
+    claimed.clear()   # (--force, everything read and checked: the old groups and any checkpoint)
     if joint:
         scene, classifier, extra = _joint(scene_dir, run, all_targets, k, config, seed, device, progress,
                                           reconstruct_kwargs or {}, resume=resume)
@@ -290,13 +254,13 @@ def _joint(scene_dir: Path, run: RunInfo, targets: Tensor, k: int, config: Group
            progress: bool, kwargs: dict, resume: bool = False):
     """Re-run reconstruction of the run's capture with a :class:`GroupingHook` (replaces the run's scene).
 
-    The capture is reloaded through :func:`ssgwarp.datasets.load_run`, so the
+    The capture is reloaded through :meth:`ssgwarp.runs.Run.load`, so the
     Trainer's view indices are the rows of ``cameras.json`` (and of ``targets``).
     ``kwargs`` go to :func:`ssgwarp.reconstruct.reconstruct` (``iters``,
     ``sh_degree``, ``max_gaussians``, ``recipe``...); by default the original
     run's iteration count and SH degree are reused.
     """
-    _, data = load_run(scene_dir)
+    _, data = run.load()
     if data.cameras.names != run.cameras.names:
         raise SsgwarpError(f"{scene_dir}: the reloaded capture's views do not match cameras.json")
     metrics = read_json(scene_dir / "metrics.json") if (scene_dir / "metrics.json").is_file() else {}

@@ -1,8 +1,9 @@
 """Training Gaussian Grouping's identities and classifier.
 
 :func:`train_identities`: the stage with the geometry frozen (only identities and classifier
-are optimised), checkpointed (every ``checkpoint_every`` steps, on Ctrl-C and on a non-finite
-loss) and resumable to the same result. :class:`GroupingHook`: joint training with
+are optimised), checkpointed and resumable to the same result under :mod:`ssgwarp.loop`'s policy
+(every ``checkpoint_every`` steps; Ctrl-C finishes the step and saves; an exception or a
+non-finite loss inside a step saves the last completed step, the unfinished one is replayed). :class:`GroupingHook`: joint training with
 reconstruction (``ssgwarp group --joint``), as a hook of :class:`ssgwarp.reconstruct.Trainer`.
 """
 from __future__ import annotations
@@ -11,11 +12,11 @@ from pathlib import Path
 from typing import Optional
 
 import torch
-from tqdm.auto import tqdm
 
 from .cameras import Cameras
-from .errors import InputError, SsgwarpError
+from .errors import InputError
 from .fileio import atomic_path
+from .loop import Loop, check_finite
 from .grouping_model import GroupConfig, init_identities, make_classifier, mask_loss, regularizer_3d
 from .scene import GaussianScene
 
@@ -98,49 +99,46 @@ def train_identities(scene: GaussianScene, cameras: Cameras, targets: Tensor, nu
             out.append(order.pop())
         return out
 
-    done = start          # steps whose update has been applied
-    snap = None           # (generator state, view order) at the start of an unfinished step
-    bar = tqdm(total=config.iters, initial=start, desc="grouping", unit="it", disable=not progress)
-    try:
-        for step in range(start, config.iters):
-            snap = (gen.get_state(), list(order))
-            views = next_views()
-            s = geom.replace(identities=identities)
-            img, _, _ = s.render(cams[views], identities=True, rgb=False)
-            logits = classifier(img)
-            ce = mask_loss(logits, targets[views].to(dev), num_groups)
-            loss = ce
-            reg_v = None
-            if config.reg_weight > 0 and config.reg_every > 0 and step % config.reg_every == 0:
-                reg = regularizer_3d(identities, geom.means, classifier, generator=gen, k=config.reg_k,
-                                     samples=config.reg_samples, max_points=config.reg_max_points)
-                loss = loss + config.reg_weight * reg
-                reg_v = float(reg.detach())
-            if not torch.isfinite(loss.detach()):
-                if ckpt is not None:  # the parameters are still those of the last good step
-                    _save_checkpoint(ckpt, done, identities, classifier, opt, snap[0], meta, history, snap[1])
-                raise SsgwarpError(f"grouping: the loss became {float(loss.detach())} at step {step + 1} of "
-                                   f"{config.iters}; the last good state is kept in the checkpoint (lower the "
-                                   "learning rate and rerun with --resume)")
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            done, snap = step + 1, None
-            if step % 10 == 0 or step == config.iters - 1:
-                history.append({"step": step, "ce": float(ce.detach()), "reg": reg_v})
-                bar.set_postfix(ce=f"{float(ce.detach()):.4f}")
-            bar.update(1)
-            if ckpt is not None and config.checkpoint_every > 0 and done % config.checkpoint_every == 0 \
-                    and done < config.iters:
-                _save_checkpoint(ckpt, done, identities, classifier, opt, gen.get_state(), meta, history, order)
-    except KeyboardInterrupt:
-        if ckpt is not None:
-            # an unfinished step is dropped and replayed on resume (same views, same samples)
-            g_state, o = snap if snap is not None else (gen.get_state(), order)
-            _save_checkpoint(ckpt, done, identities, classifier, opt, g_state, meta, history, o)
-        raise
-    finally:
-        bar.close()
+    prog = {"done": start, "snap": None}    # steps applied; (generator, order) at an unfinished step's start
+
+    def save(step: int, g_state, o) -> None:
+        _save_checkpoint(ckpt, step, identities, classifier, opt, g_state, meta, history, o)
+
+    def step_fn() -> None:
+        step = prog["done"]
+        prog["snap"] = (gen.get_state(), list(order))
+        views = next_views()
+        s = geom.replace(identities=identities)
+        img, _, _ = s.render(cams[views], identities=True, rgb=False)
+        logits = classifier(img)
+        ce = mask_loss(logits, targets[views].to(dev), num_groups)
+        loss = ce
+        reg_v = None
+        if config.reg_weight > 0 and config.reg_every > 0 and step % config.reg_every == 0:
+            reg = regularizer_3d(identities, geom.means, classifier, generator=gen, k=config.reg_k,
+                                 samples=config.reg_samples, max_points=config.reg_max_points)
+            loss = loss + config.reg_weight * reg
+            reg_v = float(reg.detach())
+        check_finite(loss, step + 1, "the last good state is kept in the checkpoint" if ckpt is not None
+                     else "no checkpoint path was given")
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        prog["done"], prog["snap"] = step + 1, None
+        if step % 10 == 0 or step == config.iters - 1:
+            history.append({"step": step, "ce": float(ce.detach()), "reg": reg_v})
+            loop.bar.set_postfix(ce=f"{float(ce.detach()):.4f}")
+
+    def save_last_good() -> None:
+        # an unfinished step is dropped and replayed on resume (same views, same samples): the
+        # parameters change only at the end of a step
+        g_state, o = prog["snap"] if prog["snap"] is not None else (gen.get_state(), order)
+        save(prog["done"], g_state, o)
+
+    loop = Loop(lambda: prog["done"], save=(lambda: save(prog["done"], gen.get_state(), order)) if ckpt else None,
+                every=config.checkpoint_every, save_last_good=save_last_good if ckpt else None, final_save=False,
+                desc="grouping", unit="it", total=config.iters, progress=progress)
+    loop.run(step_fn, config.iters)
     out = scene.detach().replace(identities=identities.detach().clone())
     classifier.requires_grad_(False)
     return out, classifier, history

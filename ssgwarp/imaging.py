@@ -2,7 +2,8 @@
 
 :func:`as_bhwc` takes an image or a batch (numpy or torch), :func:`resize_bhwc` resizes a batch
 (bilinear, antialiased when shrinking), :func:`save_sheet` writes original | stylized pairs side
-by side (atomically, :mod:`ssgwarp.fileio`).
+by side (atomically, :mod:`ssgwarp.fileio`), :func:`fit_style` scales a style image to a view's
+shorter side (the metrics' Gram and style distances).
 """
 from __future__ import annotations
 
@@ -63,3 +64,14 @@ def save_sheet(original, stylized, path: str | Path, gap: int = 4) -> Path:
         if i + 1 < a.shape[0]:
             rows.append(np.ones((gap, 2 * W + gap, 3), np.float32))
     return write_image(path, np.concatenate(rows, axis=0))
+
+
+def fit_style(style: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """Resize ``style [H_s, W_s, 3]`` so its shorter side equals ``min(height, width)`` (aspect kept): ``[1,3,h,w]``."""
+    s = style.permute(2, 0, 1)[None]
+    hs, ws = s.shape[-2:]
+    k = min(height, width) / min(hs, ws)
+    size = (max(1, round(hs * k)), max(1, round(ws * k)))
+    if size == (hs, ws):
+        return s
+    return F.interpolate(s, size=size, mode="bilinear", align_corners=False, antialias=k < 1.0)

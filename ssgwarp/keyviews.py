@@ -31,12 +31,13 @@ import torch
 import torch.nn.functional as F
 
 from .cameras import Cameras
-from .datasets import load_run
 from .errors import InputError
 from .fileio import claim_output_dir, read_image, read_json, write_image, write_json
 from .grouping_model import load_groups
 from .imaging import as_bhwc, resize_bhwc, save_sheet
 from .palette import colorize_labels
+from .rendering import background_tensor
+from .runs import Run
 
 __all__ = ["KeyViews", "select_keyviews", "diffusion_size", "content_size", "to_diffusion", "from_diffusion",
            "diffusion_cameras", "render_keyviews", "save_keyviews", "load_keyviews", "parse_ids",
@@ -231,13 +232,8 @@ def render_keyviews(scene, cameras: Cameras, ids: Sequence[int], size: tuple[int
     cams = diffusion_cameras(cameras[ids], size).to(scene.device)
     with_groups = classifier is not None
     kw = dict(raster_kwargs)
-    if isinstance(background, str):
-        named = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
-        if background.lower() not in named:
-            raise InputError(f"background '{background}': expected white, black or three numbers")
-        background = named[background.lower()]
     if background is not None:
-        bg = torch.as_tensor(background, dtype=scene.dtype, device=scene.device).reshape(-1)[:3]
+        bg = background_tensor(background, scene.means)
         if with_groups:
             bg = torch.cat([bg, bg.new_zeros(scene.identities.shape[1])])
         kw["backgrounds"] = bg[None].expand(len(ids), -1).contiguous()
@@ -354,7 +350,7 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     scene_dir = Path(args.scene_dir)
     device = args.device
-    scene, data = load_run(scene_dir, device, load_images=False)  # key views are rendered: cameras suffice
+    scene, data = Run.reconstruction(scene_dir).load(device, load_images=False)  # key views are rendered: cameras suffice
     out = Path(args.out) if args.out is not None else scene_dir / "keyviews"
     classifier = None
     if (scene_dir / "groups" / "classifier.pt").is_file():

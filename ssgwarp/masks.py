@@ -46,10 +46,10 @@ import torch.nn.functional as F
 
 from . import weights
 from .association import AssociationConfig, associate
-from .datasets import load_run
 from .errors import InputError, SsgwarpError
 from .fileio import atomic_path, read_json, write_json
 from .grouping_masks import load_masks, read_id_image
+from .runs import Run, claim
 
 Tensor = torch.Tensor
 FORMAT = "ssgwarp-masks-1"
@@ -367,31 +367,21 @@ def make_masks(scene_dir: str | Path, *, sam: Optional[str | Path] = None, view_
     acfg = (association or AssociationConfig()).validate()
     out_dir = scene_dir / "object_mask"
     record_path = scene_dir / "masks.json"
-    if resume and force:
-        raise InputError("--resume and --force exclude each other")
-    if (out_dir.exists() or record_path.exists()) and not force and not resume:
-        raise SsgwarpError(f"{scene_dir} already has instance masks ({out_dir}); use --force to make them again "
-                           "or --resume to finish an interrupted run")
+    claimed = claim(scene_dir, ("object_mask", "masks.json"), force=force, resume=resume, what="instance masks",
+                    scratch=("sam_masks",))
     device = torch.device(device) if device is not None else torch.device("cpu")
     seconds: dict[str, float] = {}
     if view_masks is None:
         seg = segmenter if segmenter is not None else None
         src = seg.source if seg is not None else str(weights.require("sam", sam, weights_config))  # before any work
     t0 = time.perf_counter()
-    scene, data = load_run(scene_dir, device, data_dir=data_dir, load_images=view_masks is None)
+    scene, data = Run.reconstruction(scene_dir).load(device, data_dir=data_dir, load_images=view_masks is None)
     cams = data.cameras
     train = list(data.train_ids)
     if not train:
         raise InputError(f"{scene_dir}: the run has no training views")
     seconds["load"] = time.perf_counter() - t0
-    if force:
-        import shutil
-
-        for p in (out_dir, scene_dir / "sam_masks"):
-            if p.exists():
-                shutil.rmtree(p)
-        if record_path.exists():
-            record_path.unlink()
+    claimed.clear()   # (--force: the old masks, the raw SAM masks too)
     t0 = time.perf_counter()
     if view_masks is None:
         if seg is None:

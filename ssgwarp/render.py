@@ -8,17 +8,16 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 import torch
 
 from .cameras import Cameras
-from .datasets import load_run
 from .errors import InputError
-from .fileio import claim_output_dir, write_image
+from .fileio import claim_output_dir
 from .geometry import quat_to_rotmat, rotmat_to_quat
-from .reconstruct import render_views
+from .rendering import render_to_files
+from .runs import Run
 
 log = logging.getLogger("ssgwarp.render")
 
@@ -144,23 +143,8 @@ def _catmull_rom_quats(Q: torch.Tensor, t: torch.Tensor, closed: bool) -> torch.
                   + (-p0 + 3 * p1 - 3 * p2 + p3) * u ** 3)
 
 
-# ----------------------------------------------------------------------------- rendering
-@torch.no_grad()
-def render_cameras(scene, cameras: Cameras, out_dir: str | Path, *, background=(1.0, 1.0, 1.0),
-                   names: Optional[list[str]] = None, progress: bool = True) -> list[Path]:
-    """Render ``scene`` from each camera to ``out_dir/<name>.png``. Returns the written paths."""
-    from tqdm import tqdm
-
-    out_dir = Path(out_dir)
-    names = names or list(cameras.names)
-    cams = cameras.to(scene.device)
-    bg = torch.tensor(list(background)[:3], dtype=scene.dtype, device=scene.device)[None]
-    paths = []
-    for i in tqdm(range(len(cams)), desc="render", unit="view", disable=not progress):
-        img, _, _ = render_views(scene, cams[i], sh_degree=scene.sh_degree, backgrounds=bg)
-        stem = Path(names[i]).with_suffix("").as_posix().replace("/", "_")
-        paths.append(write_image(out_dir / f"{stem}.png", img[0, ..., :3].clamp(0, 1)))
-    return paths
+# the renders themselves: ssgwarp.rendering (render_cameras: the old name, kept importable)
+render_cameras = render_to_files
 
 
 def add_arguments(parser) -> None:
@@ -176,7 +160,7 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    scene, data = load_run(args.scene_dir, args.device, load_images=False)
+    scene, data = Run.reconstruction(args.scene_dir).load(args.device, load_images=False)
     ids = data.split(args.split)
     if not ids:
         raise InputError(f"{args.scene_dir}: the run has no {args.split} cameras")
@@ -187,6 +171,6 @@ def run(args) -> int:
     if args.path is not None:
         cams = smooth_path(cams, args.path, closed=not args.open)
         cams.to("cpu").save(args.out / "path_cameras.json")
-    paths = render_cameras(scene, cams, args.out, background=data.background, progress=not args.no_progress)
+    paths = render_to_files(scene, cams, args.out, background=data.background, progress=not args.no_progress)
     print(f"{args.out}: {len(paths)} images")
     return 0

@@ -15,8 +15,7 @@ import torch
 from .cameras import Cameras
 from .errors import InputError
 from .geometry import knn_mean_distance
-from .rasterize import rasterization
-from .sh import spherical_harmonics
+from .rendering import render
 
 SH_C0 = 0.28209479177387814
 
@@ -171,7 +170,7 @@ class GaussianScene:
     # -- rendering -------------------------------------------------------------
     def render(self, cameras: Cameras, *, sh_degree: Optional[int] = None, identities: bool = False,
                extra: Optional[torch.Tensor] = None, rgb: bool = True, **kwargs):
-        """Render the scene from ``cameras`` through :func:`ssgwarp.rasterization`.
+        """Render the scene from ``cameras`` (:func:`ssgwarp.rendering.render`).
 
         Channels, in order: RGB (SH evaluated up to ``sh_degree``, default the
         scene's degree) if ``rgb``; then the identity encodings if
@@ -179,26 +178,4 @@ class GaussianScene:
         blending pass. ``kwargs`` are passed on (``render_mode``,
         ``backgrounds``, knobs...). Returns ``(colors [C,H,W,D], alphas [C,H,W,1], meta)``.
         """
-        deg = self.sh_degree if sh_degree is None else min(sh_degree, self.sh_degree)
-        C = len(cameras)
-        parts = []
-        if rgb:
-            if deg == 0:
-                parts.append(sh_dc_to_rgb(self.sh_dc).clamp_min(0.0)[None].expand(C, -1, -1))
-            else:
-                dirs = self.means[None] - cameras.centers.to(self.dtype)[:, None]
-                coeffs = self.sh_coeffs[:, : (deg + 1) ** 2]
-                parts.append((spherical_harmonics(deg, dirs, coeffs[None].expand(C, -1, -1, -1)) + 0.5).clamp_min(0.0))
-        if identities:
-            if self.identities is None:
-                raise InputError("scene has no identity encodings: run `ssgwarp group` first")
-            parts.append(self.identities[None].expand(C, -1, -1))
-        if extra is not None:
-            parts.append(extra[None].expand(C, -1, -1) if extra.ndim == 2 else extra)
-        if not parts:
-            raise ValueError("render: nothing to render (rgb=False and no identities or extra)")
-        colors = parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
-        return rasterization(
-            self.means, self.quats, self.scales, self.opacities, colors,
-            cameras.viewmats.to(self.dtype), cameras.Ks.to(self.dtype), cameras.width, cameras.height, **kwargs,
-        )
+        return render(self, cameras, sh_degree=sh_degree, rgb=rgb, identities=identities, extra=extra, **kwargs)

@@ -45,6 +45,7 @@ from typing import Callable, Optional
 import torch
 
 from .errors import InputError
+from .geometry import quat_to_rotmat
 
 # ----------------------------------------------------------------------------- schedule
 REFERENCE_ITERS = 30_000      # the run length the 3DGS / 3DGS-MCMC schedules were set for
@@ -402,8 +403,6 @@ def split_children(params: dict[str, torch.Tensor], sel: torch.Tensor, split_fac
     ``z ~ N(0, I)`` drawn from ``generator`` on the CPU), scales are the parent's divided
     by ``split_factor``; every other tensor is copied.
     """
-    from .reference import quat_to_rotmat
-
     p = {k: v.data[sel] for k, v in params.items()}
     m = int(sel.sum())
     scales = torch.exp(p["log_scales"])
@@ -546,8 +545,6 @@ class MCMCStrategy(Strategy):
 
     @torch.no_grad()
     def perturb(self, g: GaussianParams, lr_means: float) -> None:
-        from .reference import quat_to_rotmat
-
         p = g.params
         opac = torch.sigmoid(p["logit_opacities"].data)
         gate = torch.sigmoid(-self.noise_k * (opac - self.noise_t))
