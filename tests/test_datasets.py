@@ -275,7 +275,8 @@ def test_lego_transforms():
 
 # ----------------------------------------------------------------------------- helpers, unit by unit
 def test_evenly_spaced_subsets_and_the_split():
-    from ssgwarp.datasets import _evenly, _split
+    from ssgwarp.capture_formats import _evenly
+    from ssgwarp.datasets import _split
 
     assert _evenly(10, None) == list(range(10)) and _evenly(10, 10) == list(range(10)) and _evenly(3, 7) == [0, 1, 2]
     assert _evenly(10, 4) == [0, 3, 6, 9] and _evenly(10, 1) == [0] and _evenly(9, 3) == [0, 4, 8]
@@ -313,7 +314,7 @@ def test_resize_images_by_hand():
 
 def test_viewmats_from_c2w_and_the_focus_point():
     from ssgwarp.cameras import Cameras, intrinsics
-    from ssgwarp.datasets import _viewmats_from_c2w, focus_point
+    from ssgwarp.capture_formats import _viewmats_from_c2w, focus_point
 
     eyes = [[3.0, 0.0, 0.5], [0.0, 2.0, -1.0], [-1.0, -2.0, 2.0]]
     V = np.stack([_look(e, [0.2, -0.1, 0.3]) for e in eyes])
@@ -333,7 +334,7 @@ def test_viewmats_from_c2w_and_the_focus_point():
 
 
 def test_depth_range_percentiles_of_points_in_front():
-    from ssgwarp.datasets import _depth_range
+    from ssgwarp.capture_formats import _depth_range
 
     V = np.eye(4)[None]
     z = np.arange(1.0, 1001.0)
@@ -386,7 +387,7 @@ def test_random_points_lie_in_their_pixels_frustum_with_the_pixels_colour():
 
 
 def test_transforms_intrinsics_variants_and_errors():
-    from ssgwarp.datasets import _intrinsics_from
+    from ssgwarp.capture_formats import _intrinsics_from
 
     assert _intrinsics_from({"fl_x": 20.0}, 40, 30, "w") == (20.0, 20.0, 20.0, 15.0)
     assert _intrinsics_from({"fl_y": 22.0, "cx": 3.0, "cy": 4.0}, 40, 30, "w") == (22.0, 22.0, 3.0, 4.0)
@@ -408,7 +409,7 @@ def test_transforms_intrinsics_variants_and_errors():
 
 
 def test_transforms_lens_variants_and_errors():
-    from ssgwarp.datasets import _transforms_lens
+    from ssgwarp.capture_formats import _transforms_lens
     from ssgwarp.lens import Lens
 
     assert _transforms_lens({}, "w") == Lens("OPENCV", (0.0, 0.0, 0.0, 0.0))
