@@ -27,8 +27,10 @@ features ``phi`` = the extractor's layers concatenated at the coarsest resolutio
   weight means the same for every extractor);
 - TV: mean squared difference of neighbouring pixels.
 
-Only colour is optimised (``sh_dc``; ``sh_rest="optimise"`` adds the higher
-SH bands, ``"zero"`` zeroes them first; ``free_opacity`` adds the opacities);
+Only colour is optimised (``sh_dc``); the higher SH bands are zeroed first by
+default (``sh_rest="zero"``: view-independent stylized colour, measured in
+docs/stylize.md; ``"keep"`` keeps them, ``"optimise"`` optimises them too;
+``free_opacity`` adds the opacities);
 every other tensor of the scene is passed through untouched (the same tensor
 objects, bit-identical).
 
@@ -83,8 +85,9 @@ class Stage2Config:
             the optimisation), ``post`` (after it), ``both`` or ``off``.
         color_max_gain: the colour transfer's map may stretch colour differences by at most this
             factor (its largest eigenvalue; the consistency figures grow with it, see docs/stylize.md).
-        sh_rest: the higher SH bands (view-dependent colour): ``keep`` them as reconstructed,
-            ``zero`` them at the start (renders become view-independent), or ``optimise`` them too.
+        sh_rest: the higher SH bands (view-dependent colour): ``zero`` them at the start (default:
+            renders become view-independent, lower consistency error at equal style distances,
+            docs/stylize.md), ``keep`` them as reconstructed, or ``optimise`` them too.
         free_opacity: also optimise opacities (geometry otherwise frozen).
         label_mode: group maps to feature resolution by ``majority`` or ``nearest``.
         feature_scale: images are resized by this factor before the feature
@@ -106,7 +109,7 @@ class Stage2Config:
     sw_projections: int = 64
     color_transfer: str = "both"
     color_max_gain: float = 1.3
-    sh_rest: str = "keep"
+    sh_rest: str = "zero"
     free_opacity: bool = False
     label_mode: str = "majority"
     feature_scale: float = 1.0

@@ -219,7 +219,7 @@ def test_colour_only_leaves_geometry_bit_identical(free_opacity):
     keep = {k: v.clone() for k, v in scene.tensors().items()}
     cams = ring(n=3)
     ext = RandomMultiScale(seed=0).freeze()
-    cfg = st.Stage2Config(mode="global", iters=6, lr=0.05, free_opacity=free_opacity)
+    cfg = st.Stage2Config(mode="global", iters=6, lr=0.05, free_opacity=free_opacity, sh_rest="keep")
     targets = st.build_targets(ext, torch.rand(1, 32, 48, 3, generator=torch.Generator().manual_seed(0)), None, cfg)
     res = st.optimise(scene, cams, cfg, loss=st.ViewLoss(ext, targets, cfg), progress=False)
     frozen = ["means", "log_scales", "quats", "identities", "sh_rest"] + ([] if free_opacity else ["logit_opacities"])
@@ -492,3 +492,41 @@ def test_weight_free_default_moves_the_scene_toward_its_style(tmp_path):
     assert ratio["default"]["color"] < 0.88 and ratio["default"]["texture"] < 0.97, ratio
     assert ratio["default"]["color"] < ratio["previous"]["color"] - 0.03, ratio
     assert ratio["default"]["texture"] < ratio["previous"]["texture"], ratio
+
+
+def test_default_zeroes_the_view_dependent_bands_and_lowers_the_consistency_error():
+    """``sh_rest="zero"`` (the default) against ``keep`` on a scene with view-dependent colour (SH
+    degree 1, bands ~0.15): the stylized scene's bands are exactly 0, and its reprojection RMSE
+    between views is lower. Measured here (2026-11-23, CPU, 6 steps): short 0.0195 vs 0.0291
+    (x0.67), long 0.0549 vs 0.0691 (x0.79); colour distance to the style 12.3 (unstylized 17.2).
+    Asserted with about half of those margins."""
+    from ssgwarp.evaluate import EvalOptions, consistency, render_views
+    from ssgwarp.metrics import StyleDistance
+
+    assert st.Stage2Config().sh_rest == "zero"
+    scene, _ = two_objects(n=50)
+    g = torch.Generator().manual_seed(1)
+    scene = scene.with_sh_degree(1)
+    scene = scene.replace(sh_rest=0.15 * torch.randn(scene.sh_rest.shape, generator=g))
+    cams = ring(n=5)
+    style = torch.rand(40, 40, 3, generator=g)
+    style[:, :20] *= 0.3
+    ext = RandomMultiScale(seed=0).freeze()
+    dist, opts = StyleDistance(style), EvalOptions(gap=3, max_pairs=8)
+
+    def score(sc):
+        rgb, depth, alpha = render_views(sc, cams, [0.0, 0.0, 0.0])
+        rep = consistency(rgb, depth, alpha, cams, opts)["reprojection"]
+        return rep["short"]["rmse"], rep["long"]["rmse"], float(dist.mean(rgb, alpha)["color"])
+
+    out = {}
+    for sh in ("keep", None):
+        cfg = st.Stage2Config(mode="global", iters=6, lr=0.05, **({"sh_rest": sh} if sh else {}))
+        work, _ = st.transfer_colors(scene, cams, style[None], max_gain=cfg.color_max_gain)
+        targets = st.build_targets(ext, st.fit_style(style, 32, 48), None, cfg)
+        res = st.optimise(work, cams, cfg, loss=st.ViewLoss(ext, targets, cfg), progress=False)
+        out[sh or "default"], _ = st.transfer_colors(res.scene, cams, style[None], max_gain=cfg.color_max_gain)
+    assert float(out["default"].sh_rest.abs().max()) == 0.0 and float(out["keep"].sh_rest.abs().max()) > 0.1
+    src, keep, default = score(scene), score(out["keep"]), score(out["default"])
+    assert default[0] < 0.85 * keep[0] and default[1] < 0.9 * keep[1], (keep, default)
+    assert default[2] < 0.85 * src[2], (src, default)           # still clearly closer to the style's colours
