@@ -3,18 +3,21 @@
 :func:`as_bhwc` takes an image or a batch (numpy or torch), :func:`resize_bhwc` resizes a batch
 (bilinear, antialiased when shrinking), :func:`save_sheet` writes original | stylized pairs side
 by side (atomically, :mod:`ssgwarp.fileio`), :func:`fit_style` scales a style image to a view's
-shorter side (the metrics' Gram and style distances).
+shorter side (Stage 2's global targets, the metrics' Gram and style distances);
+:func:`contact_sheet` (original | stylized | style rows) and :func:`plot_losses` draw on a bare
+matplotlib Figure (no pyplot, nothing process-wide).
 """
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
 from .errors import InputError
-from .fileio import write_image
+from .fileio import atomic_path, write_image
 
 
 def as_bhwc(img) -> tuple[torch.Tensor, bool, bool]:
@@ -75,3 +78,50 @@ def fit_style(style: torch.Tensor, height: int, width: int) -> torch.Tensor:
     if size == (hs, ws):
         return s
     return F.interpolate(s, size=size, mode="bilinear", align_corners=False, antialias=k < 1.0)
+
+
+def plot_losses(path: Path, history: list[dict], title: str) -> None:
+    """A PNG of the loss history (``total``, ``style``, ``content``, ``tv`` per logged step, log scale);
+    nothing when the history is empty."""
+    from matplotlib.figure import Figure
+
+    if not history:
+        return
+    fig = Figure(figsize=(6, 3.5), dpi=100)
+    ax = fig.subplots()
+    steps = [h["step"] for h in history]
+    for key in ("total", "style", "content", "tv"):
+        if key in history[0]:
+            ax.plot(steps, [h.get(key, float("nan")) for h in history], label=key)
+    ax.set_xlabel("step")
+    ax.set_ylabel("loss")
+    ax.set_yscale("log")
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+
+
+def contact_sheet(path: Path, originals: torch.Tensor, stylized: torch.Tensor, style: torch.Tensor,
+                  names: Sequence[str], title: str = "") -> Path:
+    """A PNG with one row per view: original | stylized | style (a bare matplotlib Figure: no pyplot)."""
+    from matplotlib.figure import Figure
+
+    n = len(originals)
+    h, w = originals.shape[1:3]
+    fig = Figure(figsize=(3 * 3.2, n * 3.2 * h / w + 0.6), dpi=110)
+    axes = fig.subplots(n, 3, squeeze=False)
+    for i in range(n):
+        for j, (img, label) in enumerate([(originals[i], f"original {names[i]}"), (stylized[i], "stylized"),
+                                          (style, "style")]):
+            ax = axes[i, j]
+            ax.imshow(img.detach().float().clamp(0, 1).cpu().numpy())
+            ax.set_title(label, fontsize=8)
+            ax.axis("off")
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    return path

@@ -411,7 +411,7 @@ def test_ctrl_c_in_grouping_then_resume_matches_an_uninterrupted_run(world, tmp_
 
 def test_ctrl_c_in_stylize_then_resume_matches_an_uninterrupted_run(world, tmp_path, capsys, monkeypatch,
                                                                      fail_on_call):
-    import ssgwarp.stylize as st
+    import ssgwarp.stage2 as st   # where optimise calls it
 
     def argv(out):
         return ["stylize", world.grouped, "--style", world.style, "--out", out, "--iters", "10",

@@ -167,7 +167,7 @@ def test_force_removes_only_what_the_demo_writes(tmp_path):
 @pytest.mark.slow  # runs the demo again, interrupted and resumed (~20 s)
 def test_ctrl_c_in_a_demo_stage_resumes_to_the_uninterrupted_result(demo, tmp_path, monkeypatch, fail_on_call):
     """Ctrl-C during Stage 2: exit 130, finished stages kept; --resume gives the same stylized scene."""
-    import ssgwarp.stylize as st
+    import ssgwarp.stage2 as st   # where optimise calls it
     from ssgwarp.ply import read_ply
 
     _no_weights(monkeypatch)

@@ -501,6 +501,7 @@ def test_default_zeroes_the_view_dependent_bands_and_lowers_the_consistency_erro
     (x0.67), long 0.0549 vs 0.0691 (x0.79); colour distance to the style 12.3 (unstylized 17.2).
     Asserted with about half of those margins."""
     from ssgwarp.evaluate import EvalOptions, consistency, render_views
+    from ssgwarp.imaging import fit_style
     from ssgwarp.metrics import StyleDistance
 
     assert st.Stage2Config().sh_rest == "zero"
@@ -523,10 +524,24 @@ def test_default_zeroes_the_view_dependent_bands_and_lowers_the_consistency_erro
     for sh in ("keep", None):
         cfg = st.Stage2Config(mode="global", iters=6, lr=0.05, **({"sh_rest": sh} if sh else {}))
         work, _ = st.transfer_colors(scene, cams, style[None], max_gain=cfg.color_max_gain)
-        targets = st.build_targets(ext, st.fit_style(style, 32, 48), None, cfg)
+        targets = st.build_targets(ext, fit_style(style, 32, 48).permute(0, 2, 3, 1), None, cfg)
         res = st.optimise(work, cams, cfg, loss=st.ViewLoss(ext, targets, cfg), progress=False)
         out[sh or "default"], _ = st.transfer_colors(res.scene, cams, style[None], max_gain=cfg.color_max_gain)
     assert float(out["default"].sh_rest.abs().max()) == 0.0 and float(out["keep"].sh_rest.abs().max()) > 0.1
     src, keep, default = score(scene), score(out["keep"]), score(out["default"])
     assert default[0] < 0.85 * keep[0] and default[1] < 0.9 * keep[1], (keep, default)
     assert default[2] < 0.85 * src[2], (src, default)           # still clearly closer to the style's colours
+
+
+def test_fit_style_scales_the_style_to_the_views_shorter_side_keeping_its_aspect():
+    """The one rule Stage 2's global targets, the Gram loss and the style distance use
+    (``[1, 3, h, w]``; Stage 2 permutes it to ``[1, h, w, 3]``)."""
+    from ssgwarp.imaging import fit_style
+
+    style = torch.rand(100, 300, 3)
+    assert fit_style(style, 24, 32).shape == (1, 3, 24, 72)        # shorter side 24, aspect 3:1 kept
+    assert fit_style(style, 600, 800).shape == (1, 3, 600, 1800)   # enlarged too
+    same = torch.rand(24, 40, 3)
+    assert torch.equal(fit_style(same, 24, 99)[0].permute(1, 2, 0), same)   # already the size: untouched
+    small = fit_style(torch.rand(50, 50, 3), 4, 6)
+    assert small.shape == (1, 3, 4, 4) and 0.0 <= float(small.min()) and float(small.max()) <= 1.0
