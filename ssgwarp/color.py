@@ -41,30 +41,10 @@ from typing import Optional, Sequence
 import torch
 
 from .errors import InputError
+from .imaging import rgb_to_lab  # noqa: F401  (re-exported: ssgwarp.color.rgb_to_lab)
 from .scene import SH_C0, GaussianScene
 
 Tensor = torch.Tensor
-
-# D65 reference white and the sRGB -> XYZ matrix (IEC 61966-2-1)
-_D65 = (0.95047, 1.0, 1.08883)
-_RGB_TO_XYZ = ((0.4124564, 0.3575761, 0.1804375),
-               (0.2126729, 0.7151522, 0.0721750),
-               (0.0193339, 0.1191920, 0.9503041))
-
-
-def rgb_to_lab(rgb: Tensor) -> Tensor:
-    """CIE L*a*b* ``[..., 3]`` (D65; L in [0, 100]) of sRGB colours ``rgb [..., 3]`` (clamped to [0, 1])."""
-    x = rgb.clamp(0.0, 1.0)
-    lin = torch.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
-    m = torch.tensor(_RGB_TO_XYZ, dtype=lin.dtype, device=lin.device)
-    xyz = lin @ m.T / torch.tensor(_D65, dtype=lin.dtype, device=lin.device)
-    d = 6.0 / 29.0
-    f = torch.where(xyz > d ** 3, xyz.clamp_min(1e-12) ** (1.0 / 3.0), xyz / (3 * d * d) + 4.0 / 29.0)
-    L = 116.0 * f[..., 1] - 16.0
-    a = 500.0 * (f[..., 0] - f[..., 1])
-    b = 200.0 * (f[..., 1] - f[..., 2])
-    return torch.stack([L, a, b], dim=-1)
-
 
 # ----------------------------------------------------------------------------- statistics
 class ColorStats:

@@ -1,6 +1,7 @@
 """Image helpers shared by the stages: batches in ``[B, H, W, C]``, resizing, contact sheets.
 
-:func:`as_bhwc` takes an image or a batch (numpy or torch), :func:`resize_bhwc` resizes a batch
+:func:`rgb_to_lab` converts sRGB to CIE Lab (the colour transfer's and the style distance's
+colour space), :func:`as_bhwc` takes an image or a batch (numpy or torch), :func:`resize_bhwc` resizes a batch
 (bilinear, antialiased when shrinking), :func:`save_sheet` writes original | stylized pairs side
 by side (atomically, :mod:`ssgwarp.fileio`), :func:`fit_style` scales a style image to a view's
 shorter side (Stage 2's global targets, the metrics' Gram and style distances);
@@ -18,6 +19,27 @@ import torch.nn.functional as F
 
 from .errors import InputError
 from .fileio import atomic_path, write_image
+
+
+# D65 reference white and the sRGB -> XYZ matrix (IEC 61966-2-1)
+_D65 = (0.95047, 1.0, 1.08883)
+_RGB_TO_XYZ = ((0.4124564, 0.3575761, 0.1804375),
+               (0.2126729, 0.7151522, 0.0721750),
+               (0.0193339, 0.1191920, 0.9503041))
+
+
+def rgb_to_lab(rgb: torch.Tensor) -> torch.Tensor:
+    """CIE L*a*b* ``[..., 3]`` (D65; L in [0, 100]) of sRGB colours ``rgb [..., 3]`` (clamped to [0, 1])."""
+    x = rgb.clamp(0.0, 1.0)
+    lin = torch.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+    m = torch.tensor(_RGB_TO_XYZ, dtype=lin.dtype, device=lin.device)
+    xyz = lin @ m.T / torch.tensor(_D65, dtype=lin.dtype, device=lin.device)
+    d = 6.0 / 29.0
+    f = torch.where(xyz > d ** 3, xyz.clamp_min(1e-12) ** (1.0 / 3.0), xyz / (3 * d * d) + 4.0 / 29.0)
+    L = 116.0 * f[..., 1] - 16.0
+    a = 500.0 * (f[..., 0] - f[..., 1])
+    b = 200.0 * (f[..., 1] - f[..., 2])
+    return torch.stack([L, a, b], dim=-1)
 
 
 def as_bhwc(img) -> tuple[torch.Tensor, bool, bool]:

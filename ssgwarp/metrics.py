@@ -325,9 +325,14 @@ def gram_style_loss(feats: Sequence[Tensor], style_grams: Sequence[Tensor]) -> T
     return torch.stack(per, 0).mean(0)
 
 
-def content_loss(feats: Sequence[Tensor], ref_feats: Sequence[Tensor]) -> Tensor:
-    """``[B]`` content loss: mean over layers of the mean squared feature difference."""
+def content_loss(feats: Sequence[Tensor], ref_feats: Sequence[Tensor], *, relative: bool = False) -> Tensor:
+    """``[B]`` content loss: mean over layers of the mean squared feature difference (per layer
+    ``[B, C, h, w]``). ``relative``: each layer's divided by the mean square of its reference
+    features, ``mean((f - r)^2) / mean(r^2)``, so that a weight means the same for every extractor
+    (Stage 2's content term, :class:`ssgwarp.stage2.ViewLoss`); the metric is absolute."""
     per = [((f - r) ** 2).mean(dim=(1, 2, 3)) for f, r in zip(feats, ref_feats)]
+    if relative:
+        per = [p / (r ** 2).mean(dim=(1, 2, 3)).clamp_min(1e-12) for p, r in zip(per, ref_feats)]
     return torch.stack(per, 0).mean(0)
 
 

@@ -39,7 +39,7 @@ from .datasets import data_json, load_dataset
 from .distributed import SINGLE
 from .errors import InputError, SsgwarpError, WeightsNotFound
 from .fileio import write_json
-from .metrics import load_lpips
+from .networks import load_lpips
 from .ply import write_ply
 from .recipe import BATCH_SCALINGS, Recipe, batch_factors
 from .rendering import render as render_views   # (the old name of the differentiable render)

@@ -54,6 +54,7 @@ import torch.nn.functional as F
 from .cameras import Cameras
 from .errors import InputError, SsgwarpError
 from .matching import DEFAULT_CHUNK, MatchTargets, SlicedTargets, downsample_labels
+from .metrics import content_loss
 from .scene import GaussianScene
 
 MODES = ("ist", "finetune", "global")
@@ -231,11 +232,6 @@ def tv_loss(image: torch.Tensor) -> torch.Tensor:
     return ((image[1:] - image[:-1]) ** 2).mean() + ((image[:, 1:] - image[:, :-1]) ** 2).mean()
 
 
-def content_loss(feats: torch.Tensor, feats0: torch.Tensor) -> torch.Tensor:
-    """Relative feature MSE ``mean((f - f0)^2) / mean(f0^2)``."""
-    return ((feats - feats0) ** 2).mean() / (feats0 ** 2).mean().clamp_min(1e-12)
-
-
 def style_loss_kind(cfg: Stage2Config, extractor) -> str:
     """The style loss ``cfg`` asks for with this extractor (``auto``: NNFM on VGG16 features, else SW)."""
     if cfg.style_loss != "auto":
@@ -304,7 +300,7 @@ class ViewLoss:
         if self.originals is not None and cfg.content_weight > 0:
             with torch.no_grad():
                 f0 = extract(self.extractor, self.originals[view].to(image.device), cfg.feature_scale)[0]
-            content = content_loss(feats, f0)
+            content = content_loss([feats[None]], [f0[None]], relative=True)[0]
             total = total + cfg.content_weight * content
             parts["content"] = float(content.detach())
         if cfg.tv_weight > 0:

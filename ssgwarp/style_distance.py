@@ -10,9 +10,8 @@ from typing import Optional
 import torch
 import torch.nn.functional as F
 
-from .color import rgb_to_lab
 from .errors import InputError
-from .imaging import fit_style
+from .imaging import fit_style, rgb_to_lab
 
 Tensor = torch.Tensor
 
@@ -176,7 +175,7 @@ class StyleDistance:
     """Weight-free distances of images to one style image: colour and texture (filter bank).
 
     * ``color``: :func:`sliced_wasserstein` between the images' pixel colours and the style's,
-      in CIE Lab (:func:`ssgwarp.color.rgb_to_lab`; Lab units, about one just-noticeable difference per unit);
+      in CIE Lab (:func:`ssgwarp.imaging.rgb_to_lab`; Lab units, about one just-noticeable difference per unit);
     * ``texture``: per pyramid level, the sliced Wasserstein distance between the per-pixel responses
       of a fixed oriented derivative-of-Gaussian filter bank (:func:`filter_responses`, on Lab L;
       4 orientations x first/second derivative), averaged over the levels (filter scales 1, 2, 4, 8 px,

@@ -27,7 +27,7 @@ from .imaging import contact_sheet, plot_losses  # noqa: F401  (contact_sheet re
 from .scene import GaussianScene
 from .stage2 import (  # noqa: F401  (re-exported: the public Stage 2 API lives in ssgwarp.stage2)
     COLOR_TRANSFER, MODES, SH_REST, STYLE_LOSSES, Stage2Config, Stage2Result, ViewLoss, build_targets,
-    content_loss, deferred_backward, direct_backward, extract, finetune_loss, optimise, render_alphas,
+    deferred_backward, direct_backward, extract, finetune_loss, optimise, render_alphas,
     render_batched, render_rgb, style_loss_kind, to_nchw, trainable_names, transfer_colors, tv_loss,
     view_order)
 
