@@ -52,7 +52,8 @@ import torch
 import torch.nn.functional as F
 
 from .cameras import Cameras
-from .errors import InputError, SsgwarpError
+from .errors import InputError
+from .loop import Diverged, Loop
 from .matching import DEFAULT_CHUNK, MatchTargets, SlicedTargets, downsample_labels
 from .metrics import content_loss
 from .scene import GaussianScene
@@ -411,8 +412,6 @@ def optimise(scene: GaussianScene, cameras: Cameras, cfg: Stage2Config, *,
         checkpoint: file to checkpoint into every ``cfg.checkpoint_every`` steps
             and on Ctrl-C; with ``resume`` the run continues from it.
     """
-    from tqdm.auto import tqdm
-
     from .fileio import atomic_path
 
     cfg.validate()
@@ -459,43 +458,40 @@ def optimise(scene: GaussianScene, cameras: Cameras, cfg: Stage2Config, *,
     if n_views == 0:
         raise InputError("Stage 2: no views to optimise on")
     t0 = time.perf_counter()
-    done, last = start, (history[-1] if history else {})
-    bar = tqdm(total=cfg.iters, initial=start, desc=f"stage 2 ({cfg.mode})", disable=not progress, leave=False)
-    try:
-        for step in range(start, cfg.iters):
-            v = view_order(step, n_views, cfg.seed)
-            opt.zero_grad(set_to_none=True)
-            if finetune:
-                target = finetune_images[v].to(scene.device, scene.dtype)
-                value = direct_backward(render, finetune_cameras[v], lambda img: finetune_loss(img, target))
-                parts = {"total": float(value)}
-            else:
-                cam = cameras[v]
-                fn = lambda img: loss(img, v, step)  # noqa: E731
-                if cfg.deferred:
-                    value = deferred_backward(render, cam, fn)
-                else:
-                    value = direct_backward(render, cam, fn)
-                parts = dict(loss.last)
-            if not math.isfinite(float(value)):
-                raise SsgwarpError(f"Stage 2: loss became {float(value)} at step {step}; last good checkpoint "
-                                   f"kept (lower --lr and rerun with --resume)")
-            opt.step()
-            done = step + 1
-            last = {"step": step, "view": v, **parts}
-            if step % log_every == 0:
-                history.append(last)
-            bar.update(1)
-            bar.set_postfix({k: f"{val:.4f}" for k, val in parts.items() if k in ("style", "total")})
-            if done % cfg.checkpoint_every == 0 and done < cfg.iters:
-                save(done)
-    except KeyboardInterrupt:
-        save(done)  # the steps applied completely; resume continues after them
-        raise
-    finally:
-        bar.close()
+    prog = {"done": start, "last": history[-1] if history else {}}
+
+    def step_fn() -> dict:
+        step = prog["done"]
+        v = view_order(step, n_views, cfg.seed)
+        opt.zero_grad(set_to_none=True)
+        if finetune:
+            target = finetune_images[v].to(scene.device, scene.dtype)
+            value = direct_backward(render, finetune_cameras[v], lambda img: finetune_loss(img, target))
+            parts = {"total": float(value)}
+        else:
+            fn = lambda img: loss(img, v, step)  # noqa: E731
+            value = (deferred_backward if cfg.deferred else direct_backward)(render, cameras[v], fn)
+            parts = dict(loss.last)
+        if not math.isfinite(float(value)):   # parameters untouched this step: the last good state is saved
+            kept = (f"the state after the last good step ({step} steps) is saved to {checkpoint}"
+                    if checkpoint is not None else "no checkpoint was asked for")
+            raise Diverged(f"Stage 2: loss became {float(value)} at step {step}; last good checkpoint kept: "
+                           f"{kept} (lower --lr and rerun with --resume)")
+        opt.step()
+        prog["done"] = step + 1
+        prog["last"] = {"step": step, "view": v, **parts}
+        if step % log_every == 0:
+            history.append(prog["last"])
+        return parts
+
+    def on_step(parts: dict) -> None:
+        loop.bar.set_postfix({k: f"{val:.4f}" for k, val in parts.items() if k in ("style", "total")})
+
+    keep = (lambda: save(prog["done"])) if checkpoint is not None else None
+    loop = Loop(lambda: prog["done"], save=keep, every=cfg.checkpoint_every, save_last_good=keep,
+                desc=f"stage 2 ({cfg.mode})", total=cfg.iters, progress=progress)
+    loop.run(step_fn, cfg.iters, on_step)   # Ctrl-C: the step finishes, a checkpoint is written (ssgwarp.loop)
+    last = prog["last"]
     seconds = elapsed + time.perf_counter() - t0
     out = scene.replace(**{n: p.detach().clone() for n, p in params.items()})
-    if checkpoint is not None:
-        save(cfg.iters)
     return Stage2Result(out, history, last, seconds, cfg.iters)

@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import shutil
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -75,27 +74,22 @@ def _signature(style: Path, scene_dir: Path, s2: Stage2Config, opts: StylizeOpti
 
 
 def _prepare_out(out: Path, scene_dir: Path, signature: dict, resume: bool, force: bool) -> dict:
+    """Claim ``out`` (:func:`ssgwarp.runs.claim`: the policy every stage shares) and return the run's
+    record: on ``--resume`` the finished stages of the earlier run, which must have had the same options."""
     from .fileio import read_json
+    from .runs import claim
 
     if out.resolve() == scene_dir.resolve():
         raise InputError(f"--out {out}: must differ from the scene folder (it would overwrite its scene.ply)")
+    claimed = claim(out, OUTPUTS, force=force, resume=resume, what="a stylize output", clear=True)
     state: dict = {"signature": signature, "stages": {}}
-    existing = [p for p in OUTPUTS if (out / p).exists()]
-    if existing and resume:
-        if (out / "run.json").is_file():
-            old = read_json(out / "run.json")
-            if old.get("signature") != signature:
-                changed = sorted(k for k in signature if old.get("signature", {}).get(k) != signature[k])
-                raise InputError(f"{out}: --resume with different options ({', '.join(changed)}); "
-                                 f"use the same options or --force to start over")
-            state["stages"] = dict(old.get("stages", {}))
-    elif existing and not force:
-        raise InputError(f"{out}: already holds a stylize output ({', '.join(existing)}); "
-                         f"pass --resume to continue it or --force to overwrite it")
-    elif existing and force:
-        for p in existing:
-            q = out / p
-            shutil.rmtree(q) if q.is_dir() else q.unlink()
+    if claimed.existing and resume and (out / "run.json").is_file():
+        old = read_json(out / "run.json")
+        if old.get("signature") != signature:
+            changed = sorted(k for k in signature if old.get("signature", {}).get(k) != signature[k])
+            raise InputError(f"{out}: --resume with different options ({', '.join(changed)}); "
+                             f"use the same options or --force to start over")
+        state["stages"] = dict(old.get("stages", {}))
     out.mkdir(parents=True, exist_ok=True)
     return state
 

@@ -545,3 +545,17 @@ def test_fit_style_scales_the_style_to_the_views_shorter_side_keeping_its_aspect
     assert torch.equal(fit_style(same, 24, 99)[0].permute(1, 2, 0), same)   # already the size: untouched
     small = fit_style(torch.rand(50, 50, 3), 4, 6)
     assert small.shape == (1, 3, 4, 4) and 0.0 <= float(small.min()) and float(small.max()) <= 1.0
+
+
+def test_content_loss_relative_is_the_feature_mse_over_the_references_mean_square():
+    """One content loss: absolute for the metric, ``relative=True`` for Stage 2's term (so a weight
+    means the same for every extractor): by hand on two layers."""
+    from ssgwarp.metrics import content_loss
+
+    f = [torch.full((2, 1, 2, 2), 3.0), torch.full((2, 4, 1, 1), 1.0)]
+    r = [torch.full((2, 1, 2, 2), 1.0), torch.full((2, 4, 1, 1), 2.0)]
+    torch.testing.assert_close(content_loss(f, r), torch.tensor([2.5, 2.5]))              # (4 + 1) / 2
+    torch.testing.assert_close(content_loss(f, r, relative=True), torch.tensor([2.125, 2.125]))  # (4/1 + 1/4) / 2
+    x = torch.randn(1, 3, 5, 5)
+    assert float(content_loss([x * 7], [x * 7], relative=True)[0]) == 0.0
+    assert content_loss([x], [torch.zeros_like(x)], relative=True).isfinite().all()     # zero reference: no 0/0
