@@ -167,7 +167,6 @@ class GroupingHook:
         self.classifier = make_classifier(self.dim, self.num_groups, generator=self.generator,
                                           device=device, dtype=dtype)
         self.targets = targets
-        self.scene_fn = None      # callable returning the Trainer's current scene (for the 3D regulariser)
         self.last: dict = {}
 
     def parameters(self) -> list[dict]:
@@ -184,8 +183,6 @@ class GroupingHook:
         ce = mask_loss(cls(identity_render), t, self.num_groups)
         loss = ce
         self.last = {"ce": float(ce.detach())}
-        if scene is None and self.scene_fn is not None:
-            scene = self.scene_fn()
         cfg = self.config
         if scene is not None and scene.identities is not None and cfg.reg_weight > 0 and cfg.reg_every > 0 \
                 and step % cfg.reg_every == 0:

@@ -35,6 +35,16 @@ log = logging.getLogger("ssgwarp.reconstruct")
 CHECKPOINT_FORMAT = "ssgwarp-reconstruct-checkpoint/1"
 
 
+
+def _takes_scene(hook) -> bool:
+    """Whether a hook's ``loss`` takes the current scene (a ``scene`` parameter)."""
+    import inspect
+
+    try:
+        return "scene" in inspect.signature(hook.loss).parameters
+    except (TypeError, ValueError):
+        return False
+
 class Trainer:
     """The 3DGS training loop on one :class:`~ssgwarp.datasets.SceneData`.
 
@@ -50,8 +60,9 @@ class Trainer:
             ``loss(step, view_index, identity_render [H,W,E]) -> Tensor``. When a hook
             is present and the scene has identities, identities are rendered in the
             same pass as colour, optimised (``recipe.lr_identities``) and densified,
-            and each hook's loss is added. A hook with a ``scene_fn`` attribute gets
-            a callable returning the current scene. ``view_index`` indexes ``data``.
+            and each hook's loss is added. A hook whose ``loss`` takes a ``scene``
+            parameter gets the current scene there (``loss(step, view_index,
+            identity_render, scene=...)``). ``view_index`` indexes ``data``.
         identity_dim: give the initial scene identity encodings of this size (random,
             ``recipe.identity_init_std``) when it has none.
         checkpoint_path: where checkpoints go (None: no checkpoints).
@@ -139,9 +150,7 @@ class Trainer:
         self._build_optimizer(scene)
         self.strategy.setup(self.gaussians, recipe=self.recipe, extent=self.extent,
                             max_gaussians=self.max_gaussians, seed=self.seed)
-        for h in self.hooks:
-            if hasattr(h, "scene_fn"):
-                h.scene_fn = lambda: self.scene
+        self._hook_takes_scene = [_takes_scene(h) for h in self.hooks]
 
     # -- state --------------------------------------------------------------------------------
     def _initial_scene(self) -> GaussianScene:
@@ -267,8 +276,9 @@ class Trainer:
             loss = loss + reg
         hook_losses = []
         if with_ids:
-            for h in self.hooks:
-                per_view = [h.loss(self.step, vi, out[j, ..., 3:]) for j, vi in enumerate(views)]
+            for h, takes_scene in zip(self.hooks, self._hook_takes_scene):
+                extra = {"scene": self.scene} if takes_scene else {}
+                per_view = [h.loss(self.step, vi, out[j, ..., 3:], **extra) for j, vi in enumerate(views)]
                 hook_losses.append(sum(per_view) / len(per_view))
         total = loss + sum(hook_losses) if hook_losses else loss
         finite = bool(torch.isfinite(total.detach()))
