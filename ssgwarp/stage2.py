@@ -51,6 +51,7 @@ from typing import Callable, Optional
 import torch
 import torch.nn.functional as F
 
+from . import rendering
 from .cameras import Cameras
 from .errors import InputError
 from .loop import Diverged, Loop
@@ -152,11 +153,13 @@ class Stage2Config:
 # ----------------------------------------------------------------------------- rendering helpers
 def render_rgb(scene: GaussianScene, cams: Cameras, background: Optional[torch.Tensor] = None,
                **kwargs) -> torch.Tensor:
-    """``[C, H, W, 3]`` colour renders (background ``[3]`` blended behind)."""
+    """``[C, H, W, 3]`` colour renders (background ``[3]`` blended behind by the rasterizer;
+    differentiable, :func:`ssgwarp.rendering.render`). The renders Stage 2 optimises, unclamped:
+    :func:`ssgwarp.rendering.render_views` composites and clamps, which the loss must not see."""
     bg = None
     if background is not None:
         bg = background.to(scene.device, scene.dtype).reshape(1, 3).expand(len(cams), 3)
-    colors, _, _ = scene.render(cams.to(scene.device), backgrounds=bg, **kwargs)
+    colors, _, _ = rendering.render(scene, cams.to(scene.device), backgrounds=bg, **kwargs)
     return colors[..., :3]
 
 
@@ -175,7 +178,7 @@ def render_batched(scene: GaussianScene, cams: Cameras, background: Optional[tor
 def render_alphas(scene: GaussianScene, cams: Cameras) -> torch.Tensor:
     """No-grad accumulated opacity ``[C, H, W]`` of many cameras, one at a time."""
     with torch.no_grad():
-        return torch.cat([scene.render(cams[[c]].to(scene.device))[1][..., 0] for c in range(len(cams))])
+        return torch.cat([rendering.render(scene, cams[[c]].to(scene.device))[1][..., 0] for c in range(len(cams))])
 
 
 def deferred_backward(render: Callable[[Cameras], torch.Tensor], camera: Cameras,
