@@ -18,7 +18,7 @@ A slider sets the opacity threshold (Gaussians below it are hidden).
 
 Python API: :func:`build_viewer` / :class:`Viewer` (``build_plotter`` returns
 the pyvista plotter) and :func:`screenshot`; the CLI is ``add_arguments``/``run``.
-pyvista is imported only when a viewer is built.
+pyvista is imported only when a viewer is built. The drawing is :mod:`ssgwarp.viewer.drawing`'s.
 """
 from __future__ import annotations
 
@@ -40,29 +40,21 @@ from ssgwarp.scene import GaussianScene
 from . import geometry
 from .data import (GroupInfo, as_numpy, camera_index, finite_mask, load_cameras, load_scene, resolve_groups,
                    resolve_keyviews, resolve_ply)
+from .drawing import CAMERA_COLOR, KEYVIEW_COLOR, SELECTED_COLOR, Drawing  # noqa: F401  (re-exported)
 from .headless import has_display, prepare_offscreen
 
 COLOR_MODES = ("rgb", "group", "opacity")
-CAMERA_COLOR = (0.70, 0.70, 0.70)
-KEYVIEW_COLOR = (1.00, 0.55, 0.00)
-SELECTED_COLOR = (0.20, 0.60, 1.00)
 MAX_LEGEND_ROWS = 24
 RADIUS_CAP = 0.02  # discs are at most this fraction of the cloud's (1st-99th percentile) diagonal
 
 HELP = ("keys:  c colouring   g glyphs/discs   n/N next/previous camera   k next key view\n"
         "       l look through camera   i render splat image   h help   right click: pick a Gaussian")
 
-# Fragment code for vtkPointGaussianMapper: flat, opaque discs of radius = the point's scale value.
-_DISC_SHADER = ("//VTK::Color::Impl\n"
-                "float dist2 = dot(offsetVCVSOutput.xy, offsetVCVSOutput.xy);\n"
-                "if (dist2 > 1.0) { discard; }\n")
-
-
 def _fmt(n: int) -> str:
     return f"{n:,}"
 
 
-class Viewer:
+class Viewer(Drawing):
     """An inspection viewer of one Gaussian scene (see the module docstring for what it draws).
 
     Args:
@@ -228,124 +220,6 @@ class Viewer:
             lines.append(f"{len(self.cameras)} cameras, {len(self.keyviews)} key views{sel}")
         return "\n".join(lines + self.notes)
 
-    # -- drawing ---------------------------------------------------------------
-    def _auto_frustum_size(self) -> float:
-        if self.cameras is None or len(self.cameras) == 0:
-            return 0.1 * self.extent
-        c = as_numpy(self.cameras.centers)
-        if len(c) > 1:
-            d = np.linalg.norm(c[:, None] - c[None], axis=-1)
-            np.fill_diagonal(d, np.inf)
-            spacing = float(np.median(d.min(axis=1)))
-        else:
-            spacing = np.inf
-        return float(min(0.6 * spacing, 0.1 * max(self.extent, 1e-6)))
-
-    def _draw_cloud(self) -> None:
-        pv, pl = self.pv, self.plotter
-        for name in ("gaussians", "glyphs"):
-            pl.remove_actor(name, render=False)
-        if "opacity" in pl.scalar_bars:
-            pl.remove_scalar_bar("opacity", render=False)
-        vis = np.nonzero(self.visible)[0]
-        self.cloud_actor, self.glyph_count = None, 0
-        if len(vis) == 0:
-            return
-        scalars = {"scalars": "opacity", "cmap": "viridis", "clim": (0.0, 1.0), "show_scalar_bar": self.hud,
-                   "scalar_bar_args": {"title": "opacity", "vertical": True, "position_x": 0.9,
-                                       "position_y": 0.3, "width": 0.04, "height": 0.4, "n_labels": 3,
-                                       "title_font_size": 12, "label_font_size": 10, "fmt": "%.1f"}} \
-            if self.color == "opacity" else {"scalars": "colors", "rgb": True}
-        if self.glyphs:
-            chosen = np.sort(vis[np.argsort(self._glyph_rank[vis])[: self.max_glyphs]])
-            pts, faces, owner = geometry.ellipsoid_glyphs(self.xyz[chosen], self.quats[chosen],
-                                                          self.scales[chosen], self.sigma)
-            mesh = pv.PolyData(pts, faces=faces)
-            mesh.point_data["colors"] = self.colors()[chosen][owner]
-            mesh.point_data["opacity"] = self.opacity[chosen][owner]
-            mesh.point_data["gaussian"] = self.index[chosen][owner]
-            self.cloud_actor = pl.add_mesh(mesh, name="glyphs", smooth_shading=True, reset_camera=False,
-                                           pickable=True, **scalars)
-            self.glyph_count = len(chosen)
-            return
-        cloud = pv.PolyData(self.xyz[vis])
-        cloud.point_data["colors"] = self.colors()[vis]
-        cloud.point_data["opacity"] = self.opacity[vis]
-        cloud.point_data["radius"] = self.radii[vis]
-        cloud.point_data["gaussian"] = self.index[vis]
-        actor = pl.add_mesh(cloud, name="gaussians", style="points_gaussian", emissive=False, lighting=False,
-                            reset_camera=False, pickable=True, **scalars)
-        actor.mapper.scale_array = "radius"
-        actor.mapper.SetSplatShaderCode(_DISC_SHADER)
-        actor.prop.opacity = 1.0
-        self.cloud_actor = actor
-
-    def _draw_cameras(self) -> None:
-        if self.cameras is None or len(self.cameras) == 0:
-            return
-        pv, pl, cams = self.pv, self.plotter, self.cameras
-        vm, Ks = as_numpy(cams.viewmats), as_numpy(cams.Ks)
-        key = set(self.keyviews)
-        groups = [("frustums", [i for i in range(len(cams)) if i not in key], CAMERA_COLOR, 1.5),
-                  ("keyview_frustums", sorted(key), KEYVIEW_COLOR, 3.0)]
-        for name, ids, color, width in groups:
-            pl.remove_actor(name, render=False)
-            if not ids:
-                continue
-            pts, lines = geometry.frustum_lines(vm[ids], Ks[ids], cams.width, cams.height, self.frustum_size)
-            pl.add_mesh(pv.PolyData(pts, lines=lines), name=name, color=color, line_width=width,
-                        lighting=False, pickable=False, reset_camera=False)
-        if key and self.hud:
-            cen = as_numpy(cams.centers)[sorted(key)]
-            pl.add_point_labels(cen, [cams.names[i] for i in sorted(key)], name="keyview_names", font_size=11,
-                                text_color=KEYVIEW_COLOR, shape=None, show_points=False, always_visible=True,
-                                pickable=False, reset_camera=False)
-        self._draw_selected()
-
-    def _draw_selected(self) -> None:
-        pl = self.plotter
-        pl.remove_actor("selected_frustum", render=False)
-        if self.selected is None:
-            return
-        cams, i = self.cameras, self.selected
-        pts, lines = geometry.frustum_lines(as_numpy(cams.viewmats[i:i + 1]), as_numpy(cams.Ks[i:i + 1]),
-                                            cams.width, cams.height, self.frustum_size * 1.02)
-        pl.add_mesh(self.pv.PolyData(pts, lines=lines), name="selected_frustum", color=SELECTED_COLOR,
-                    line_width=4.0, lighting=False, pickable=False, reset_camera=False)
-
-    def _draw_overlays(self) -> None:
-        pl = self.plotter
-        if self.hud:
-            pl.add_text(self.status_text(), position="upper_left", font_size=9, color="white", name="status")
-        if self.legend and self.color == "group" and self.groups is not None:
-            rows = self.legend_entries()
-            pl.add_legend(labels=[list(r) for r in rows], bcolor=(0.12, 0.12, 0.14), border=False,
-                          size=(0.18, min(0.9, 0.035 * len(rows) + 0.02)), loc="upper right", face="rectangle",
-                          name="legend")
-        elif getattr(pl, "legend", None) is not None:
-            pl.remove_legend(render=False)
-
-    def _set_start_view(self) -> None:
-        pl = self.plotter
-        if self.cameras is not None and len(self.cameras):
-            c2w = as_numpy(self.cameras.camtoworlds)
-            up = -c2w[:, :3, 1].mean(axis=0)           # OpenCV: camera y points down
-            up = up / (np.linalg.norm(up) or 1.0)
-            # an oblique overview from above the cameras: their ring/arc and the cloud both show
-            back = c2w[:, :3, 3].mean(axis=0) - self.center
-            back = back - up * (back @ up)
-            if np.linalg.norm(back) < 1e-9:
-                back = c2w[0, :3, 3] - self.center
-                back = back - up * (back @ up)
-            direction = 0.6 * back / (np.linalg.norm(back) or 1.0) + up
-            pl.camera.focal_point = tuple(self.center)
-            pl.camera.position = tuple(self.center + direction * self.extent)
-            pl.camera.up = tuple(up)
-            pl.reset_camera()
-        else:
-            pl.view_isometric()
-            pl.reset_camera()
-
     def _bind_keys(self) -> None:
         pl = self.plotter
         actions = {"c": self.cycle_color, "g": self.toggle_glyphs, "n": lambda: self.next_camera(+1),
@@ -490,43 +364,6 @@ class Viewer:
         self.splat_image = img
         self._show_panel(img, f"splat render: {self.cameras.names[i]} ({img.shape[1]}x{img.shape[0]})")
         return img
-
-    def _show_panel(self, img: np.ndarray, title: str) -> None:
-        from vtkmodules.vtkRenderingCore import vtkImageActor, vtkRenderer, vtkTextActor
-
-        pl, split = self.plotter, 0.62
-        if self._panel is None:
-            ren = vtkRenderer()
-            ren.SetViewport(split, 0.0, 1.0, 1.0)
-            ren.SetBackground(0.0, 0.0, 0.0)
-            ren.SetInteractive(False)
-            actor, text = vtkImageActor(), vtkTextActor()
-            text.GetTextProperty().SetFontSize(12)
-            text.GetTextProperty().SetColor(1.0, 1.0, 1.0)
-            text.GetPositionCoordinate().SetCoordinateSystemToNormalizedViewport()
-            text.GetPositionCoordinate().SetValue(0.03, 0.03)
-            actor.InterpolateOff()  # show the rasterizer's pixels as they are
-            ren.AddActor(actor)
-            ren.AddViewProp(text)
-            pl.render_window.AddRenderer(ren)
-            pl.renderer.viewport = (0.0, 0.0, split, 1.0)
-            self._panel = (ren, actor, text)
-        ren, actor, text = self._panel
-        h, w = img.shape[:2]
-        data = self.pv.ImageData(dimensions=(w, h, 1))
-        data.point_data["rgb"] = (np.clip(img[::-1], 0, 1) * 255 + 0.5).astype(np.uint8).reshape(-1, 3)
-        actor.GetMapper().SetInputData(data)
-        text.SetInput(title)
-        cam = ren.GetActiveCamera()
-        cam.ParallelProjectionOn()
-        cam.SetFocalPoint((w - 1) / 2, (h - 1) / 2, 0.0)
-        cam.SetPosition((w - 1) / 2, (h - 1) / 2, 10.0 * max(w, h))
-        cam.SetViewUp(0.0, 1.0, 0.0)
-        win_w, win_h = pl.window_size
-        aspect = (1.0 - split) * win_w / max(win_h, 1)
-        cam.SetParallelScale(max(h / 2, w / 2 / aspect) * 1.02)
-        ren.ResetCameraClippingRange()
-        pl.render()
 
     # -- output ------------------------------------------------------------------
     def screenshot(self, path: str | Path | None = None) -> np.ndarray:
