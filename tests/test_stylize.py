@@ -302,7 +302,7 @@ def _write_run(tmp_path, grouped: bool = True):
     return run, tmp_path / "style.png"
 
 
-def test_cli_stylize_end_to_end_without_stage1_weights(tmp_path, monkeypatch):
+def test_cli_stylize_end_to_end_without_stage1_weights(tmp_path, monkeypatch, capsys):
     import json
 
     from ssgwarp.cli import main
@@ -318,6 +318,12 @@ def test_cli_stylize_end_to_end_without_stage1_weights(tmp_path, monkeypatch):
     assert main(["stylize", *argv]) == 0
     m = json.loads((out / "metrics.json").read_text())
     assert m["stage1"]["ran"] is False and "no local diffusion weights" in m["stage1"]["reason"]
+    # the console says it in one short line (the models' names, how to find and fetch them); the full
+    # reasons (where each model was looked for) stay in metrics.json and run.json
+    line = next(x for x in capsys.readouterr().out.splitlines() if "Stage 1 skipped" in x)
+    assert "sd15" in line and "image_encoder" in line and "ssgwarp weights --download stage1" in line
+    assert len(line) < 250 and len(m["stage1"]["reason"]) > len(line)
+    assert json.loads((out / "run.json").read_text())["stages"]["stage1"]["reason"] == m["stage1"]["reason"]
     assert m["matching"].startswith("global against the style image")
     assert m["extractor"] == "random-multiscale:seed0,c128s2" and m["groups"] == 3 and m["style_loss"] == "sw"
     assert m["gram_style_loss"] > 0 and m["content_loss"] > 0
