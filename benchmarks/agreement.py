@@ -17,7 +17,8 @@ import torch
 
 import ssgwarp
 from raster import camera, make_scene
-from ssgwarp import RasterSettings, ops
+from ssgwarp import RasterSettings
+from ssgwarp.raster import ops
 
 
 def compare(n: int, w: int, h: int, gsplat) -> None:

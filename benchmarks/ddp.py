@@ -50,9 +50,9 @@ def worker(a) -> int:
     """Train one configuration (alone or as one torchrun rank); the main rank writes ``a.result``."""
     import torch
 
-    from ssgwarp import distributed
-    from ssgwarp.datasets import load_dataset
-    from ssgwarp.reconstruct import Recipe, Trainer
+    from ssgwarp.services import distributed
+    from ssgwarp.capture.datasets import load_dataset
+    from ssgwarp.reconstruction.reconstruct import Recipe, Trainer
 
     group, device = distributed.from_env(a.device)
     try:
@@ -180,7 +180,7 @@ def main() -> int:
         peaks = ", ".join(f"{p:.0f}" for p in r["peak_mb_per_gpu"])
         print(f"| {r['gpus']} | {r['batch_size']} | {scaling} | {r['steps']} | {r['train_seconds']:.1f} | {reached} | "
               f"{speed} | {r['speedup_whole_run']:.2f}x | {r['psnr']:.2f} | {r['gaussians']:,} | {peaks} |")
-    from ssgwarp.fileio import write_json
+    from ssgwarp.core.fileio import write_json
 
     write_json(a.out, {"target_psnr": target, "iters": a.iters, "images": a.images, "rows": rows})
     print(f"\nwrote {a.out}")

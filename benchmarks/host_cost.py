@@ -154,10 +154,11 @@ def launch_paths(device: torch.device, launches: int) -> list[dict]:
     routes: ``wp.launch`` with array descriptors (how ssgwarp launched before), Warp's recorded
     launch (``wp.launch(..., record_cmd=True)``; every parameter set again with
     ``Launch.set_param_at_index_from_ctype``, then ``Launch.launch()``), and ssgwarp's replay of the
-    recorded launch (``ssgwarp.launch``: the parameter block refilled by one ``struct.pack_into``)."""
+    recorded launch (``ssgwarp.raster.launch``: the parameter block refilled by one ``struct.pack_into``)."""
     import warp as wp
 
-    from ssgwarp import RasterSettings, launch as L, ops
+    from ssgwarp import RasterSettings
+    from ssgwarp.raster import launch as L, ops
     from ssgwarp.kernels import projection
 
     params, _, vm, K = scene(16, 16, device)
@@ -199,7 +200,7 @@ def launch_paths(device: torch.device, launches: int) -> list[dict]:
     rows = []
     for name, fn in (("wp.launch, array descriptors (before)", via_wp_launch),
                      ("Warp recorded launch, parameters set again, Launch.launch()", via_record_cmd),
-                     ("ssgwarp.launch: recorded launch replayed from one packed buffer", via_ssgwarp)):
+                     ("ssgwarp.raster.launch: recorded launch replayed from one packed buffer", via_ssgwarp)):
         per_call, _ = measure(fn, device, launches, 3)
         rows.append({"device": device.type, "route": name, "us_per_launch": per_call,
                      "parameters": len(kern.adj.args)})
@@ -228,7 +229,7 @@ def main() -> None:
     ap.add_argument("--blocks", type=int, default=5)
     ap.add_argument("--gsplat", action="store_true", help="also time gsplat.rasterization (CUDA)")
     ap.add_argument("--launch-paths", action="store_true",
-                    help="also time one kernel launch by wp.launch, Warp's recorded launch and ssgwarp.launch")
+                    help="also time one kernel launch by wp.launch, Warp's recorded launch and ssgwarp.raster.launch")
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (1: host cost, not parallelism)")
     ap.add_argument("--out", default=None, help="raw rows as JSON")
     ap.add_argument("--markdown", default=None)

@@ -32,8 +32,8 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ssgwarp.fileio import atomic_path  # noqa: E402
-from ssgwarp.masks import MaskConfig, load_sam, make_masks  # noqa: E402
+from ssgwarp.core.fileio import atomic_path  # noqa: E402
+from ssgwarp.grouping.segment import MaskConfig, load_sam, make_masks  # noqa: E402
 
 DEFAULT_DATA = ROOT.parent / "shared" / "data" / "llff_fern"
 
@@ -54,7 +54,7 @@ def save_random_sam(size: str, folder: Path) -> None:
 
 
 def build_run(args, work: Path, device: torch.device) -> Path:
-    from ssgwarp.reconstruct import reconstruct
+    from ssgwarp.reconstruction.reconstruct import reconstruct
 
     run = work / f"run_{args.images}_{args.recon_iters}"
     if (run / "scene.ply").is_file():

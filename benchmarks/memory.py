@@ -55,7 +55,7 @@ _SCENES: dict = {}
 
 
 def measure(data, n: int, batch: int, device: torch.device) -> dict:
-    from ssgwarp.reconstruct import Recipe, Trainer
+    from ssgwarp.reconstruction.reconstruct import Recipe, Trainer
 
     if n not in _SCENES:  # (the same scene at every width and batch)
         _SCENES[n] = make_scene(data, n, device)
@@ -96,7 +96,7 @@ def measure(data, n: int, batch: int, device: torch.device) -> dict:
 
 def make_scene(data, n: int, device: torch.device):
     """``n`` Gaussians: the capture's points replicated with jitter, 3DGS initial widths (3-NN distance)."""
-    from ssgwarp.scene import GaussianScene, knn_mean_distance
+    from ssgwarp.raster.scene import GaussianScene, knn_mean_distance
 
     xyz, rgb = data.points
     g = torch.Generator().manual_seed(0)
@@ -146,8 +146,8 @@ def main() -> int:
     ap.add_argument("--device", default="cuda")
     ap.add_argument("--out", type=Path, default=Path("memory.json"))
     a = ap.parse_args()
-    from ssgwarp.datasets import load_dataset
-    from ssgwarp.fileio import write_json
+    from ssgwarp.capture.datasets import load_dataset
+    from ssgwarp.core.fileio import write_json
 
     device = torch.device(a.device)
     root = a.data or data_root() / "llff_fern"

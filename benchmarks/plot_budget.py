@@ -83,7 +83,7 @@ def plot(rows: list[dict], out: Path, title: str) -> Path:
     fig.legend(handles, labels, fontsize=8, loc="lower center", ncol=4, frameon=False)
     fig.suptitle(title, fontsize=9)
     fig.tight_layout(rect=(0, 0.1, 1, 1))
-    from ssgwarp.fileio import atomic_path
+    from ssgwarp.core.fileio import atomic_path
 
     with atomic_path(out) as tmp:
         fig.savefig(tmp, format="png", dpi=110)

@@ -1,10 +1,10 @@
 """Reconstruction benchmark: our 3DGS loop with either rasterizer and each densification strategy.
 
-One :class:`ssgwarp.reconstruct.Trainer` loop (same data, seed, recipe, schedule); what varies:
+One :class:`ssgwarp.reconstruction.reconstruct.Trainer` loop (same data, seed, recipe, schedule); what varies:
 
 * ``--backend``: ``ssgwarp`` (our Warp rasterizer) or ``gsplat`` (``gsplat.rasterization``,
   non-packed; imported only when asked);
-* ``--strategy``: ``default`` / ``mcmc`` (ours, :mod:`ssgwarp.strategy`) or ``gsplat-default`` /
+* ``--strategy``: ``default`` / ``mcmc`` (ours, :mod:`ssgwarp.reconstruction.strategy`) or ``gsplat-default`` /
   ``gsplat-mcmc`` (gsplat 1.5's ``DefaultStrategy`` / ``MCMCStrategy`` editing our loop's
   tensors and Adam state through :class:`GsplatStrategy`; MCMC needs gsplat's CUDA ops). The gsplat
   strategies get our resolved schedule and thresholds, the MCMC regulariser is ours for both
@@ -18,7 +18,7 @@ One :class:`ssgwarp.reconstruct.Trainer` loop (same data, seed, recipe, schedule
 
 ``--dssim-scale 0.5`` trains with the halved D-SSIM term ssgwarp used before (default 1: the 3DGS loss).
 Distorted captures (fern is SIMPLE_RADIAL) are undistorted into a pinhole crop (every pixel has a
-source, ``ssgwarp.lens``); PSNR/SSIM are measured on that crop (``metric_frame`` in the JSON rows).
+source, ``ssgwarp.capture.lens``); PSNR/SSIM are measured on that crop (``metric_frame`` in the JSON rows).
 
 ``--match-default`` also runs ``mcmc`` with the budget set to the Gaussian count the ``default`` run of
 the same scene / backend / iters ended with (MCMC at an equal count). Prints markdown tables (runs;
@@ -50,10 +50,10 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ssgwarp.datasets import load_dataset  # noqa: E402
-from ssgwarp.fileio import atomic_path, write_json  # noqa: E402
-from ssgwarp.reconstruct import Recipe, Trainer, render_views  # noqa: E402
-from ssgwarp.strategy import DefaultStrategy, MCMCStrategy, Strategy  # noqa: E402
+from ssgwarp.capture.datasets import load_dataset  # noqa: E402
+from ssgwarp.core.fileio import atomic_path, write_json  # noqa: E402
+from ssgwarp.reconstruction.reconstruct import Recipe, Trainer, render_views  # noqa: E402
+from ssgwarp.reconstruction.strategy import DefaultStrategy, MCMCStrategy, Strategy  # noqa: E402
 
 SCENES = {"fern8": ("llff_fern", "images_8"), "fern4": ("llff_fern", "images_4"), "cup": ("colmap_cup", "images"),
           "lego": ("lego_200", "images")}

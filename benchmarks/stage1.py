@@ -32,7 +32,7 @@ from timing import sync  # noqa: E402
 
 def build(args, device):
     from fakeweights import random_stage1_components
-    from ssgwarp.diffusion import Stage1Config, assemble_stage1, load_stage1
+    from ssgwarp.stylization.diffusion import Stage1Config, assemble_stage1, load_stage1
 
     cfg = Stage1Config(sd15=args.sd15, controlnet_depth=args.controlnet_depth, ip_adapter=args.ip_adapter,
                        image_encoder=args.image_encoder, dtype=args.dtype, progress=False)
@@ -65,7 +65,7 @@ def main(argv=None) -> int:
         p.add_argument("--" + k.replace("_", "-"), default=None)
     args = p.parse_args(argv)
 
-    from ssgwarp.diffusion import stylize_views
+    from ssgwarp.stylization.diffusion import stylize_views
 
     device = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available() else
                           ("cpu" if args.device == "auto" else args.device))
@@ -110,7 +110,7 @@ def main(argv=None) -> int:
     if args.reconstruction:
         from diffusers import DDIMScheduler
 
-        from ssgwarp.diffusion import ddim_denoise, ddim_invert, depth_to_control, encode_latents, schedule
+        from ssgwarp.stylization.diffusion import ddim_denoise, ddim_invert, depth_to_control, encode_latents, schedule
 
         rgb, depth = smooth_views(2, size, size)
         lat = encode_latents(models, rgb)

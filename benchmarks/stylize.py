@@ -36,10 +36,10 @@ DATA = ROOT.parent / "shared" / "data"
 
 def synthetic_run(run: Path, data_dir: Path, images: str, n: int, groups: int = 8, seed: int = 0) -> Path:
     """A grouped run folder whose scene is N Gaussians around the capture's sparse points."""
-    from ssgwarp.datasets import data_json, load_dataset
-    from ssgwarp.fileio import write_json
-    from ssgwarp.ply import write_ply
-    from ssgwarp.scene import GaussianScene
+    from ssgwarp.capture.datasets import data_json, load_dataset
+    from ssgwarp.core.fileio import write_json
+    from ssgwarp.capture.ply import write_ply
+    from ssgwarp.raster.scene import GaussianScene
 
     data = load_dataset(data_dir, images=images)
     if data.points is None:
@@ -97,7 +97,7 @@ def main() -> int:
     args = p.parse_args()
 
     from ssgwarp.cli import main as cli, resolve_device
-    from ssgwarp.stylize import Stage2Config, StylizeOptions, stylize_run
+    from ssgwarp.stylization.stylize import Stage2Config, StylizeOptions, stylize_run
 
     device = resolve_device(args.device)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -123,7 +123,7 @@ def main() -> int:
     models, s1 = None, None
     if args.random_stage1:
         from fakeweights import random_stage1_components
-        from ssgwarp.diffusion import Stage1Config, assemble_stage1
+        from ssgwarp.stylization.diffusion import Stage1Config, assemble_stage1
 
         t0 = time.perf_counter()
         dtype = torch.float16 if device.type == "cuda" else torch.float32

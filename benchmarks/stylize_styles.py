@@ -5,7 +5,7 @@ image in a folder (default ``../shared/data/styles``, 25 images), runs ``ssgwarp
 Stage 1 weights needed: Stage 2 matches the style image) and ``ssgwarp evaluate`` (default
 protocol: 30 novel views on a smooth path through the training cameras), and prints one row per
 style: colour and texture distances (sliced Wasserstein in Lab / of a derivative-of-Gaussian
-filter bank, ``ssgwarp.metrics.StyleDistance``) of the original and the stylized renders, the Gram
+filter bank, ``ssgwarp.evaluation.metrics.StyleDistance``) of the original and the stylized renders, the Gram
 loss of the extractor Stage 2 used, and short/long-range consistency RMSE as ratios to the
 unstylized scene's. The last rows check the issue's targets (both distances >= 30 % lower on
 average; consistency at most 1.5x the unstylized scene's). ``--ablation`` runs the Stage 2
@@ -62,8 +62,8 @@ def prepare_scene(scene: str, out: Path, device, fern_iters: int, progress: bool
         if not (demo / "scene" / "groups" / "classifier.pt").is_file():
             run_demo(demo, demo_size, device=device, force=True, progress=progress)
         return demo / "scene"
-    from ssgwarp.grouping import group_scene
-    from ssgwarp.reconstruct import reconstruct
+    from ssgwarp.grouping.stage import group_scene
+    from ssgwarp.reconstruction.reconstruct import reconstruct
 
     run = out / "fern_images_8"
     if not (run / "scene.ply").is_file():
@@ -75,7 +75,7 @@ def prepare_scene(scene: str, out: Path, device, fern_iters: int, progress: bool
 
 
 def stage2_config(args, **over):
-    from ssgwarp.stylize import Stage2Config
+    from ssgwarp.stylization.stylize import Stage2Config
 
     kw = {}
     for k in ("iters", "lr", "content_weight", "tv_weight", "color_transfer", "sh_rest"):
@@ -88,9 +88,9 @@ def stage2_config(args, **over):
 
 def run_style(run: Path, style: Path, out: Path, cfg, device, extractor: str, eval_opts, progress: bool) -> dict:
     """Stylize ``run`` with ``style`` into ``out`` and evaluate it; returns the result row (cached in out)."""
-    from ssgwarp.evaluate import evaluate_run
-    from ssgwarp.fileio import read_json, write_json
-    from ssgwarp.stylize import StylizeOptions, stylize_run
+    from ssgwarp.evaluation.evaluate import evaluate_run
+    from ssgwarp.core.fileio import read_json, write_json
+    from ssgwarp.stylization.stylize import StylizeOptions, stylize_run
 
     res_file = out / "result.json"
     if res_file.is_file():
@@ -115,8 +115,8 @@ def run_style(run: Path, style: Path, out: Path, cfg, device, extractor: str, ev
 
 
 def source_consistency(run: Path, out: Path, device, eval_opts) -> dict:
-    from ssgwarp.evaluate import evaluate_run
-    from ssgwarp.fileio import read_json, write_json
+    from ssgwarp.evaluation.evaluate import evaluate_run
+    from ssgwarp.core.fileio import read_json, write_json
 
     f = out / "source_consistency.json"
     if f.is_file():
@@ -171,10 +171,10 @@ def sheet(path: Path, run: Path, results_dir: Path, styles: list[Path], device) 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ssgwarp.datasets import load_run
-    from ssgwarp.fileio import atomic_path, read_image
-    from ssgwarp.ply import read_ply
-    from ssgwarp.stylize import render_rgb
+    from ssgwarp.capture.datasets import load_run
+    from ssgwarp.core.fileio import atomic_path, read_image
+    from ssgwarp.capture.ply import read_ply
+    from ssgwarp.stylization.stylize import render_rgb
 
     done = [s for s in styles if (results_dir / s.stem / "scene.ply").is_file()]
     if not done:
@@ -248,8 +248,8 @@ def main() -> int:
     args = p.parse_args()
 
     from ssgwarp.cli import resolve_device
-    from ssgwarp.evaluate import EvalOptions
-    from ssgwarp.fileio import atomic_path, write_json
+    from ssgwarp.evaluation.evaluate import EvalOptions
+    from ssgwarp.core.fileio import atomic_path, write_json
 
     device = resolve_device(args.device)
     torch.manual_seed(0)

@@ -23,10 +23,10 @@ extent), all Gaussians, full SH degree. Errors: image RMSE and max abs error
 (colours in [0, 1]) and the relative L2 error of the positional gradient
 ``dL/dmeans`` (what densification reads) on the Gaussians the case keeps.
 
-Stylization knobs (``--stylize``; Stage 2 through :func:`ssgwarp.stylize.stylize_run`):
+Stylization knobs (``--stylize``; Stage 2 through :func:`ssgwarp.stylization.stylize.stylize_run`):
 key views 2 | 4 | 8 and feature resolution (``feature_scale`` 0.25 | 0.5 | 1),
 each reporting the Stage 2 time and the resulting Gram style loss and content
-loss (:mod:`ssgwarp.metrics`). Without Stage 1 weights the key views fall back
+loss (:mod:`ssgwarp.evaluation.metrics`). Without Stage 1 weights the key views fall back
 to global matching and the table says so.
 
 Outputs in ``--out``: ``tradeoffs.md`` (tables, device names, date),
@@ -71,8 +71,8 @@ except ImportError:
         sys.modules["ssgwarp.kernels"] = _mod
         _spec.loader.exec_module(_mod)
 from ssgwarp import RasterSettings  # noqa: E402
-from ssgwarp.cameras import Cameras, look_at  # noqa: E402
-from ssgwarp.scene import GaussianScene  # noqa: E402
+from ssgwarp.core.cameras import Cameras, look_at  # noqa: E402
+from ssgwarp.raster.scene import GaussianScene  # noqa: E402
 from timing import sync, timed  # noqa: E402
 
 
@@ -88,7 +88,7 @@ def synthetic_scene(n: int, sh_degree: int = 3, seed: int = 0) -> GaussianScene:
     rgb = torch.rand(n, 3, generator=g)
     k = (sh_degree + 1) ** 2 - 1
     rest = torch.randn(n, k, 3, generator=g) * 0.15 if sh_degree > 0 else None
-    from ssgwarp.scene import rgb_to_sh_dc
+    from ssgwarp.raster.scene import rgb_to_sh_dc
 
     return GaussianScene(means, log_s, quats, torch.logit(op), rgb_to_sh_dc(rgb), rest, None, sh_degree)
 
@@ -105,7 +105,7 @@ def synthetic_cameras(views: int, width: int, height: int) -> Cameras:
 
 def run_scene(run_dir: Path, views: int, side: int) -> tuple[GaussianScene, Cameras]:
     """A reconstruction's scene and ``views`` of its cameras (evenly spread), longer side ``side``."""
-    from ssgwarp.ply import read_ply
+    from ssgwarp.capture.ply import read_ply
 
     scene = read_ply(run_dir / "scene.ply")
     cams = Cameras.load(run_dir / "cameras.json")
@@ -221,8 +221,8 @@ def raster_study(scene: GaussianScene, cams: Cameras, device: torch.device, repe
 # ----------------------------------------------------------------------------- stylization knobs
 def _synthetic_run(folder: Path, scene: GaussianScene, cams: Cameras) -> Path:
     """A minimal reconstruction folder (scene.ply, cameras.json, data.json) for Stage 2."""
-    from ssgwarp.fileio import write_json
-    from ssgwarp.ply import write_ply
+    from ssgwarp.core.fileio import write_json
+    from ssgwarp.capture.ply import write_ply
 
     folder.mkdir(parents=True, exist_ok=True)
     write_ply(folder / "scene.ply", scene)
@@ -234,7 +234,7 @@ def _synthetic_run(folder: Path, scene: GaussianScene, cams: Cameras) -> Path:
 
 def _procedural_style(path: Path, size: int = 64) -> Path:
     """Diagonal stripes of three colours (stands in when no --style is given)."""
-    from ssgwarp.fileio import write_image
+    from ssgwarp.core.fileio import write_image
 
     y, x = torch.meshgrid(torch.arange(size), torch.arange(size), indexing="ij")
     band = ((x + y) // 6) % 3
@@ -246,9 +246,9 @@ def _procedural_style(path: Path, size: int = 64) -> Path:
 def stylize_study(run_dir: Path, style: Path, out: Path, device: torch.device, iters: int,
                   keyviews=(2, 4, 8), scales=(0.25, 0.5, 1.0), max_side: int = 256) -> list[dict]:
     try:
-        from ssgwarp.stylize import Stage2Config, StylizeOptions, stylize_run
+        from ssgwarp.stylization.stylize import Stage2Config, StylizeOptions, stylize_run
     except ImportError as e:
-        return [{"knob": "stylize", "value": "-", "skipped": f"ssgwarp.stylize not available ({e})"}]
+        return [{"knob": "stylize", "value": "-", "skipped": f"ssgwarp.stylization.stylize not available ({e})"}]
     rows = []
     jobs = [("key views", str(k), Stage2Config(mode="ist", iters=iters), StylizeOptions(
         keyviews=k, path_frames=0, max_side=max_side)) for k in keyviews]
@@ -397,7 +397,7 @@ def pareto_plot(results: dict, path: Path) -> Path:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7, loc="best")
     fig.tight_layout()
-    from ssgwarp.fileio import atomic_path
+    from ssgwarp.core.fileio import atomic_path
 
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=120)
@@ -407,7 +407,7 @@ def pareto_plot(results: dict, path: Path) -> Path:
 
 # ----------------------------------------------------------------------------- main
 def _write_text(path: Path, text: str) -> None:
-    from ssgwarp.fileio import atomic_path
+    from ssgwarp.core.fileio import atomic_path
 
     with atomic_path(path) as tmp:
         tmp.write_text(text)

@@ -136,7 +136,7 @@ def matrix_funcs(scalar, native_rsqrt: bool = False):
 
 
 # the fields of the projection's parameter block, in order, with their types (``scalar``: the
-# kernel's precision); ``ssgwarp.ops.ProjectionParams`` holds the same names for the host side
+# kernel's precision); ``ssgwarp.raster.ops.ProjectionParams`` holds the same names for the host side
 PARAM_FIELDS = (("width", int), ("height", int), ("near_plane", "scalar"), ("far_plane", "scalar"),
                 ("eps2d", "scalar"), ("radius_clip", "scalar"), ("alpha_min", "scalar"), ("sigma_max", "scalar"),
                 ("opacity_extent", int), ("antialiased", int), ("tile_size", int), ("tile_width", int),

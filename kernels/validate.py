@@ -1,6 +1,6 @@
 """Input value checks: each check that fails sets its own flag (a plain store of 1: threads that
 find the same problem write the same value). The flags are read back once, together with the
-intersection count, and turned into errors on the host (``ssgwarp.rasterize``).
+intersection count, and turned into errors on the host (``ssgwarp.raster.rasterize``).
 
 Two forms of the same checks: :func:`inputs_check_func`, called by the projection kernel on the
 values it loads anyway (the rasterizer's path: no pass of its own), and :func:`check_kernel`, one

@@ -6,10 +6,10 @@ Public API:
     GaussianScene        the scene model
     Cameras              pinhole cameras (world-to-camera viewmats, intrinsics)
 """
-from .cameras import Cameras
+from .core.cameras import Cameras
 from .errors import InputError, SsgwarpError, WeightsNotFound
-from .rasterize import RasterSettings, rasterization
-from .scene import GaussianScene
+from .raster.rasterize import RasterSettings, rasterization
+from .raster.scene import GaussianScene
 
 __all__ = ["rasterization", "RasterSettings", "GaussianScene", "Cameras",
            "SsgwarpError", "InputError", "WeightsNotFound"]

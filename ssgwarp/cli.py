@@ -17,30 +17,30 @@ import traceback
 from pathlib import Path
 from typing import Optional, Sequence
 
-from . import weights
+from .services import weights
 from .errors import SsgwarpError
 
 # name -> (module, one-line help, examples)
 COMMANDS: dict[str, tuple[str, str, str]] = {
     "demo": ("ssgwarp.demo", "run the whole pipeline on an embedded procedural scene",
              "ssgwarp demo --out ssgwarp-demo"),
-    "reconstruct": ("ssgwarp.reconstruct", "3DGS reconstruction of a capture (COLMAP, LLFF, transforms.json)",
+    "reconstruct": ("ssgwarp.reconstruction.reconstruct", "3DGS reconstruction of a capture (COLMAP, LLFF, transforms.json)",
                     "ssgwarp reconstruct data/fern --images images_8 --out runs/fern --iters 7000"),
-    "masks": ("ssgwarp.masks", "instance masks of every training view (Segment Anything), associated across views",
+    "masks": ("ssgwarp.grouping.segment", "instance masks of every training view (Segment Anything), associated across views",
               "ssgwarp masks runs/fern [--sam PATH]"),
-    "group": ("ssgwarp.grouping", "Gaussian Grouping: identity encodings and groups (from masks or mask-free)",
+    "group": ("ssgwarp.grouping.stage", "Gaussian Grouping: identity encodings and groups (from masks or mask-free)",
               "ssgwarp group runs/fern [--masks runs/fern/object_mask] [--groups 8]"),
-    "keyviews": ("ssgwarp.keyviews", "choose key views and render their RGB, depth and group maps",
+    "keyviews": ("ssgwarp.stylization.keyviews", "choose key views and render their RGB, depth and group maps",
                  "ssgwarp keyviews runs/fern --keyviews 4 --out runs/fern/keyviews"),
-    "stylize": ("ssgwarp.stylize", "key views, Stage 1 (diffusion + CVSA) and Stage 2 (instance-level style transfer)",
+    "stylize": ("ssgwarp.stylization.stylize", "key views, Stage 1 (diffusion + CVSA) and Stage 2 (instance-level style transfer)",
                 "ssgwarp stylize runs/fern --style style.jpg --out runs/fern-styled"),
-    "evaluate": ("ssgwarp.evaluate", "consistency and style/content metrics of one or more runs",
+    "evaluate": ("ssgwarp.evaluation.evaluate", "consistency and style/content metrics of one or more runs",
                  "ssgwarp evaluate runs/fern-styled runs/fern-global"),
     "view": ("ssgwarp.viewer.app", "pyvista viewer of a Gaussian cloud, its groups and cameras",
              "ssgwarp view runs/fern/scene.ply --color group --screenshot shot.png"),
-    "render": ("ssgwarp.render", "render a scene along its cameras or a smooth path",
+    "render": ("ssgwarp.evaluation.render", "render a scene along its cameras or a smooth path",
                "ssgwarp render runs/fern --out runs/fern/renders [--path]"),
-    "weights": ("ssgwarp.weights", "pretrained models: where each is found (or missing), size, licence; "
+    "weights": ("ssgwarp.services.weights", "pretrained models: where each is found (or missing), size, licence; "
                 "--download fetches them into the Hugging Face / torch hub caches",
                 "ssgwarp weights --download stage1 vgg16"),
 }

@@ -6,15 +6,15 @@ Stages (each through its module's Python API, all under ``OUT``):
    Gaussians with known ids, renders them from a ring of cameras with
    :func:`ssgwarp.rasterization` and writes a NeRF capture ``OUT/data``
    (``transforms.json`` + ``images/``) and a style image ``OUT/style.png``.
-2. **reconstruct** — 3DGS from random initial points (:mod:`ssgwarp.reconstruct`) → ``OUT/scene``.
-3. **group** — Gaussian Grouping (:mod:`ssgwarp.grouping`) → ``OUT/scene/groups``: on Segment
-   Anything instances associated across views (:mod:`ssgwarp.masks`) when its weights are on this
+2. **reconstruct** — 3DGS from random initial points (:mod:`ssgwarp.reconstruction.reconstruct`) → ``OUT/scene``.
+3. **group** — Gaussian Grouping (:mod:`ssgwarp.grouping.stage`) → ``OUT/scene/groups``: on Segment
+   Anything instances associated across views (:mod:`ssgwarp.grouping.segment`) when its weights are on this
    machine, else on mask-free clusters; the summary says which (``group_kind``). The group maps are
    scored against the true object ids.
 4. **stylize** — key views, Stage 1 (diffusion; skipped when its weights are not on
    this machine, and the summary says so: the demo downloads nothing, ``ssgwarp weights
-   --download stage1`` fetches them) and Stage 2 (:mod:`ssgwarp.stylize`) → ``OUT/stylized``.
-5. **evaluate** — consistency, style/content losses and PSNR (:mod:`ssgwarp.evaluate`)
+   --download stage1`` fetches them) and Stage 2 (:mod:`ssgwarp.stylization.stylize`) → ``OUT/stylized``.
+5. **evaluate** — consistency, style/content losses and PSNR (:mod:`ssgwarp.evaluation.evaluate`)
    of the reconstruction and of the stylized scene → ``OUT/evaluation.md``.
 6. **sheet** — ``OUT/contact_sheet.png``: captured | reconstructed | groups | stylized, and the style.
 
@@ -33,20 +33,20 @@ from typing import Callable, Optional
 import torch
 
 from . import procedural as P
-from . import weights as W
-from .datasets import load_dataset
-from .diffusion import WEIGHT_KEYS
+from .services import weights as W
+from .capture.datasets import load_dataset
+from .stylization.diffusion import WEIGHT_KEYS
 from .errors import InputError
-from .evaluate import EvalOptions, comparison_table, evaluate_run, load_models
-from .fileio import atomic_path, read_image, read_json, write_image, write_json
-from .grouping import GroupConfig, group_scene, load_groups, render_group_maps
-from .masks import make_masks
-from .palette import colorize_labels
-from .ply import read_ply
+from .evaluation.evaluate import EvalOptions, comparison_table, evaluate_run, load_models
+from .core.fileio import atomic_path, read_image, read_json, write_image, write_json
+from .grouping.stage import GroupConfig, group_scene, load_groups, render_group_maps
+from .grouping.segment import make_masks
+from .core.palette import colorize_labels
+from .capture.ply import read_ply
 from .procedural import SIZES
-from .reconstruct import Recipe, reconstruct
-from .runs import Run, claim
-from .stylize import Stage2Config, StylizeOptions, stylize_run
+from .reconstruction.reconstruct import Recipe, reconstruct
+from .services.runs import Run, claim
+from .stylization.stylize import Stage2Config, StylizeOptions, stylize_run
 
 OUTPUTS = ("demo.json", "data", "style.png", "scene", "stylized", "evaluation.md", "contact_sheet.png",
            "summary.json")
@@ -70,7 +70,7 @@ def _size(size) -> tuple[str, "object"]:
 
 
 def _prepare_out(out: Path, force: bool, resume: bool, record: dict) -> dict:
-    """Claim ``out`` (:func:`ssgwarp.runs.claim`: never overwritten without ``force``); returns the
+    """Claim ``out`` (:func:`ssgwarp.services.runs.claim`: never overwritten without ``force``); returns the
     stage record to continue (``resume``: the finished stages of the same options)."""
     claimed = claim(out, OUTPUTS, force=force, resume=resume, what="a demo run")
     if claimed.existing and resume:

@@ -19,7 +19,7 @@ degree 0 reconstruction can reproduce them). A ring of cameras at a fixed
 elevation looks at the centre. :func:`render_views` renders it with
 :func:`ssgwarp.rasterization`; :func:`write_transforms_dataset` writes a NeRF
 ``transforms.json`` capture (camera-to-world in OpenGL axes: x right, y up,
-z back), which :func:`ssgwarp.datasets.load_dataset` reads like any other.
+z back), which :func:`ssgwarp.capture.datasets.load_dataset` reads like any other.
 
 :func:`style_image` paints the style: bold diagonal stripes and brush strokes
 of saturated colours on a warm paper background.
@@ -43,10 +43,10 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
-from .cameras import Cameras, intrinsics, look_at
+from .core.cameras import Cameras, intrinsics, look_at
 from .errors import InputError
-from .fileio import write_image, write_json
-from .scene import GaussianScene, rgb_to_sh_dc
+from .core.fileio import write_image, write_json
+from .raster.scene import GaussianScene, rgb_to_sh_dc
 
 OBJECT_NAMES = ("ground", "red sphere", "blue box", "green torus", "yellow cone")
 BACKGROUND = (1.0, 1.0, 1.0)

@@ -121,7 +121,7 @@ def _no_weights_no_network(monkeypatch, _empty_caches):
     and fails loudly on a DNS lookup or connection to anything but this machine."""
     import socket
 
-    from ssgwarp import weights
+    from ssgwarp.services import weights
 
     monkeypatch.setattr(weights, "_NETWORK_DOWN", None)    # per-process download state starts afresh
     monkeypatch.setattr(weights, "_OFFLINE_FLAG", None)

@@ -35,8 +35,8 @@ class HeadHook:
 def make_trainer(data_dir, *, batch_size: int = 2, group=None, steps: int = 12, hook: bool = True):
     """Default strategy refining every 4 steps (clone, split, prune, an opacity reset), SH degree 1,
     identity encodings trained by a :class:`HeadHook`."""
-    from ssgwarp.datasets import load_dataset
-    from ssgwarp.reconstruct import Recipe, Trainer
+    from ssgwarp.capture.datasets import load_dataset
+    from ssgwarp.reconstruction.reconstruct import Recipe, Trainer
 
     data = load_dataset(data_dir, split_every=0)
     rec = Recipe(refine_start=4, refine_every=4, reset_every=8, sh_interval=4, grad_threshold=2e-5,
@@ -47,7 +47,7 @@ def make_trainer(data_dir, *, batch_size: int = 2, group=None, steps: int = 12, 
 
 
 def main() -> int:
-    from ssgwarp import distributed
+    from ssgwarp.services import distributed
 
     ap = argparse.ArgumentParser()
     ap.add_argument("data_dir")

@@ -30,8 +30,13 @@ def _modules() -> dict[str, Path]:
     """Every module of the three packages: dotted name -> file."""
     out = {}
     for pkg, folder in PACKAGES.items():
-        for f in sorted(folder.glob("*.py")):
-            out[pkg if f.stem == "__init__" else f"{pkg}.{f.stem}"] = f
+        for f in sorted(folder.rglob("*.py")):
+            parts = f.relative_to(folder).with_suffix("").parts
+            if PACKAGES.get(".".join((pkg, *parts[:1]))) not in (None, folder):
+                continue   # ssgwarp/kernels -> ../kernels (a link on the GPU machine): walked as its own package
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            out[".".join((pkg, *parts))] = f
     return out
 
 
@@ -53,8 +58,9 @@ def _imports(name: str, path: Path, known: set[str]) -> set[str]:
             if mod in known:
                 out.add(mod)
             out.update(f"{mod}.{a.name}" for a in n.names if f"{mod}.{a.name}" in known)
-    # a package's __init__ always runs before its modules: edges to it close no cycle of their own
-    return {m for m in out if m != name and m not in PACKAGES}
+    # a package's __init__ always runs before its modules: edges to the packages holding a module close
+    # no cycle of their own
+    return {m for m in out if m != name and not name.startswith(m + ".")}
 
 
 def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
@@ -100,15 +106,15 @@ def test_no_import_cycle_between_package_modules():
     keyviews, grouping <-> masks)."""
     mods = _modules()
     graph = {m: _imports(m, f, set(mods)) for m, f in mods.items()}
-    assert graph["ssgwarp.rasterize"] >= {"ssgwarp.settings", "ssgwarp.reference"}   # the resolver sees imports
+    assert graph["ssgwarp.raster.rasterize"] >= {"ssgwarp.raster.settings", "ssgwarp.raster.reference"}   # the resolver sees imports
     assert _cycles(graph) == [], "import cycles (move the shared part into a module both import)"
 
 
 def test_settings_is_a_leaf():
-    """ssgwarp.settings imports no other module of the package (the rasterizer, the reference and
+    """ssgwarp.raster.settings imports no other module of the package (the rasterizer, the reference and
     the kernels' wrappers all read it)."""
     mods = _modules()
-    assert _imports("ssgwarp.settings", mods["ssgwarp.settings"], set(mods)) == set()
+    assert _imports("ssgwarp.raster.settings", mods["ssgwarp.raster.settings"], set(mods)) == set()
 
 
 _IMPORT_EACH = r"""
@@ -180,7 +186,7 @@ def _scene(dtype=torch.float64):
 @pytest.fixture
 def no_warp_launches(monkeypatch):
     """Any Warp launch (or the Warp value-check op) fails the test."""
-    from ssgwarp import launch, ops
+    from ssgwarp.raster import launch, ops
 
     def refuse(*a, **k):
         raise AssertionError("a Warp kernel was launched")
@@ -215,9 +221,9 @@ def test_torch_backend_launches_no_warp_kernel_and_still_validates(no_warp_launc
 
 def test_torch_and_warp_value_checks_agree_flag_for_flag():
     """The torch checks (reference) and the Warp check kernel set the same flags in the same slots."""
-    from ssgwarp import ops, settings
+    from ssgwarp.raster import ops, settings
     from ssgwarp.kernels import validate
-    from ssgwarp.reference import check_values_reference
+    from ssgwarp.raster.reference import check_values_reference
 
     assert settings.INPUTS == validate.INPUTS and settings.N_FLAGS == validate.N_FLAGS
     assert [settings.ZERO_QUAT, settings.NEGATIVE_SCALE, settings.OPACITY_RANGE, settings.FOCAL] == \
@@ -249,3 +255,32 @@ def test_meta_holds_gsplats_binning_keys_only():
     _, _, meta = rasterization(*_scene(torch.float32), backend="warp")
     assert {"tiles_per_gauss", "isect_ids", "flatten_ids", "isect_offsets"} <= set(meta)
     assert not {"offsets", "perm", "isect_ends", "n_isects"} & set(meta)
+
+
+# -- the layers ------------------------------------------------------------------------------------------
+
+# ssgwarp's sub-packages in import order (docs/architecture.md: "The package, layer by layer")
+LAYERS = ["core", "raster", "capture", "services", "evaluation", "reconstruction", "grouping", "stylization"]
+SHARED = {"ssgwarp.errors"}   # what every layer may import besides the layers above it (and ssgwarp.kernels)
+
+
+def _layer(name: str):
+    parts = name.split(".")
+    return LAYERS.index(parts[1]) if len(parts) > 1 and parts[1] in LAYERS else None
+
+
+def test_layers_import_only_from_layers_above():
+    """A module of a layer imports only modules of its own layer or of the layers above it, errors and
+    the kernels: never a later layer, the commands at the top (cli, demo) or the viewer."""
+    mods = _modules()
+    assert all((ROOT / "ssgwarp" / layer / "__init__.py").exists() for layer in LAYERS)
+    wrong = []
+    for name, path in mods.items():
+        here = _layer(name)
+        if here is None:
+            continue
+        for dep in sorted(_imports(name, path, set(mods))):
+            there = _layer(dep)
+            if not (dep in SHARED or dep.startswith("ssgwarp.kernels") or (there is not None and there <= here)):
+                wrong.append(f"{name} -> {dep}")
+    assert wrong == [], "imports against the layer order (move the shared part up a layer): " + ", ".join(wrong)

@@ -1,4 +1,4 @@
-"""ssgwarp.cameras: the OpenCV convention of ``look_at`` against hand-derived matrices, intrinsics,
+"""ssgwarp.core.cameras: the OpenCV convention of ``look_at`` against hand-derived matrices, intrinsics,
 selection, device/dtype moves, rescaling, the cameras.json round trip and the validation errors."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import json
 import pytest
 import torch
 
-from ssgwarp.cameras import Cameras, intrinsics, look_at
+from ssgwarp.core.cameras import Cameras, intrinsics, look_at
 from ssgwarp.errors import InputError
 
 

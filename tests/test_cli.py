@@ -36,8 +36,8 @@ def _no_weights(monkeypatch):
 
 def _write_colmap(root: Path, gt: P.ProceduralScene, cams, images: torch.Tensor, n_points: int = 200) -> None:
     """The procedural views as a COLMAP text model (PINHOLE) with a sparse cloud drawn from the true Gaussians."""
-    from ssgwarp.colmap import ColmapCamera, ColmapImage, ColmapPoints, rotmat_to_qvec, write_model_text
-    from ssgwarp.fileio import write_image
+    from ssgwarp.capture.colmap import ColmapCamera, ColmapImage, ColmapPoints, rotmat_to_qvec, write_model_text
+    from ssgwarp.core.fileio import write_image
 
     K = cams.Ks[0].double()
     ccams = {1: ColmapCamera(1, "PINHOLE", cams.width, cams.height,
@@ -64,7 +64,7 @@ def world(tmp_path_factory):
     images, _ = P.render_views(gt, cams)
     _write_colmap(root / "cap", gt, cams, images)
     P.write_transforms_dataset(root / "nerf", images, cams)
-    from ssgwarp.fileio import write_image
+    from ssgwarp.core.fileio import write_image
 
     write_image(root / "style.png", P.style_image(32, 32))
     run = root / "run"
@@ -198,7 +198,7 @@ def test_bad_ply(world, tmp_path, capsys, damage, message):
     elif damage == "not a ply":
         ply.write_text("hello\n")
     else:
-        from ssgwarp.ply import read_ply, write_ply
+        from ssgwarp.capture.ply import read_ply, write_ply
 
         s = read_ply(ply)
         m = s.means.clone()
@@ -214,7 +214,7 @@ def test_bad_ply(world, tmp_path, capsys, damage, message):
 
 # ----------------------------------------------------------------------------- masks
 def _write_masks(folder: Path, names, n: int, h: int = 24, w: int = 32) -> None:
-    from ssgwarp.fileio import write_image
+    from ssgwarp.core.fileio import write_image
 
     for name in names[:n]:
         ids = np.zeros((h, w, 1), np.float32)
@@ -230,7 +230,7 @@ def _write_masks(folder: Path, names, n: int, h: int = 24, w: int = 32) -> None:
     ("wrong aspect", "aspect"),
 ])
 def test_bad_masks(world, tmp_path, capsys, damage, message):
-    from ssgwarp.fileio import write_image
+    from ssgwarp.core.fileio import write_image
 
     run = copy(world.run, tmp_path / "run")
     masks = tmp_path / "masks"
@@ -308,7 +308,7 @@ def test_bad_weights(world, tmp_path, capsys, row):
 # ----------------------------------------------------------------------------- NaN during optimisation
 def test_nan_in_reconstruct_is_reported_with_the_step_and_keeps_the_checkpoint(world, tmp_path, capsys,
                                                                                  monkeypatch, fail_on_call):
-    import ssgwarp.losses as L
+    import ssgwarp.services.losses as L
 
     orig = fail_on_call(L, "l1", 13, "nan")
     out = tmp_path / "run"
@@ -324,19 +324,19 @@ def test_nan_in_reconstruct_is_reported_with_the_step_and_keeps_the_checkpoint(w
 
 
 def test_nan_in_stylize_is_reported_with_the_step_and_keeps_the_checkpoint(world, tmp_path, capsys, fail_on_call):
-    import ssgwarp.stylize as st
+    import ssgwarp.stylization.stylize as st
 
     fail_on_call(st.ViewLoss, "__call__", 8, "nan")
     out = tmp_path / "styled"
     fails(capsys, ["stylize", world.grouped, "--style", world.style, "--out", out, "--iters", "12",
                    "--checkpoint-every", "3", "--path-frames", "0", "--max-side", "32", *FAST],
           "loss became nan at step 7", "last good checkpoint kept")
-    assert torch.load(out / "stage2.ckpt", weights_only=False)["step"] == 7   # the state after the last good step, saved by ssgwarp.loop
+    assert torch.load(out / "stage2.ckpt", weights_only=False)["step"] == 7   # the state after the last good step, saved by ssgwarp.services.loop
     assert not (out / "scene.ply").exists() and not (out / "metrics.json").exists()
 
 
 def test_nan_in_grouping_is_reported_with_the_step(world, tmp_path, capsys, fail_on_call):
-    import ssgwarp.grouping_train as G  # (the training loop calls mask_loss there)
+    import ssgwarp.grouping.train as G  # (the training loop calls mask_loss there)
 
     fail_on_call(G, "mask_loss", 5, "nan")
     run = copy(world.run, tmp_path / "run")
@@ -358,7 +358,7 @@ def _interrupted(capsys, argv) -> None:
 
 
 def _same_scene(a: Path, b: Path) -> None:
-    from ssgwarp.ply import read_ply
+    from ssgwarp.capture.ply import read_ply
 
     sa, sb = read_ply(a), read_ply(b)
     assert sa.tensors().keys() == sb.tensors().keys()
@@ -367,7 +367,7 @@ def _same_scene(a: Path, b: Path) -> None:
 
 
 def test_ctrl_c_in_reconstruct_then_resume_matches_an_uninterrupted_run(world, tmp_path, capsys, monkeypatch):
-    from ssgwarp.reconstruct import Trainer
+    from ssgwarp.reconstruction.reconstruct import Trainer
 
     def argv(out):
         return ["reconstruct", world.cap, "--out", out, "--iters", "24", "--sh-degree", "1",
@@ -393,7 +393,7 @@ def test_ctrl_c_in_reconstruct_then_resume_matches_an_uninterrupted_run(world, t
 
 def test_ctrl_c_in_grouping_then_resume_matches_an_uninterrupted_run(world, tmp_path, capsys, monkeypatch,
                                                                      fail_on_call):
-    import ssgwarp.grouping_train as G  # (the training loop calls mask_loss there)
+    import ssgwarp.grouping.train as G  # (the training loop calls mask_loss there)
 
     a, b = copy(world.run, tmp_path / "a"), copy(world.run, tmp_path / "b")
     args = ["--masks", "none", "--iters", "14", "--quiet", *FAST]
@@ -411,7 +411,7 @@ def test_ctrl_c_in_grouping_then_resume_matches_an_uninterrupted_run(world, tmp_
 
 def test_ctrl_c_in_stylize_then_resume_matches_an_uninterrupted_run(world, tmp_path, capsys, monkeypatch,
                                                                      fail_on_call):
-    import ssgwarp.stage2 as st   # where optimise calls it
+    import ssgwarp.stylization.stage2 as st   # where optimise calls it
 
     def argv(out):
         return ["stylize", world.grouped, "--style", world.style, "--out", out, "--iters", "10",

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ssgwarp.colmap import (MODEL_IDS, ColmapCamera, ColmapImage, ColmapPoints, find_model, qvec_to_rotmat,
+from ssgwarp.capture.colmap import (MODEL_IDS, ColmapCamera, ColmapImage, ColmapPoints, find_model, qvec_to_rotmat,
                             read_cameras_binary, read_images_binary, read_model, read_points3d_binary,
                             rotmat_to_qvec, write_model_text)
 from ssgwarp.errors import InputError
@@ -192,7 +192,7 @@ def test_colmap_cup_points_reproject_onto_their_observations():
 
 @pytest.mark.skipif(not (DATA / "llff_fern").is_dir(), reason="shared data not present")
 def test_fern_cameras_and_points_binary():
-    from ssgwarp.colmap import read_cameras, read_points3d
+    from ssgwarp.capture.colmap import read_cameras, read_points3d
 
     cams = read_cameras(DATA / "llff_fern" / "sparse" / "0" / "cameras.bin")
     (cam,) = cams.values()

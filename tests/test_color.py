@@ -1,12 +1,12 @@
-"""Colour transfer (ssgwarp.color and stylize.transfer_colors): hand cases, SH linearity, per-group path and its fallback."""
+"""Colour transfer (ssgwarp.services.color and stylize.transfer_colors): hand cases, SH linearity, per-group path and its fallback."""
 from __future__ import annotations
 
 import pytest
 import torch
 
-from ssgwarp.color import (ColorStats, ColorTransform, fit_group_transforms, fit_transform, pixel_stats,
+from ssgwarp.services.color import (ColorStats, ColorTransform, fit_group_transforms, fit_transform, pixel_stats,
                            rgb_to_lab, transform_sh)
-from ssgwarp.scene import GaussianScene, sh_dc_to_rgb
+from ssgwarp.raster.scene import GaussianScene, sh_dc_to_rgb
 
 
 def _cloud(n: int, mean, L, seed: int) -> torch.Tensor:
@@ -56,7 +56,7 @@ def test_flat_source_gain_is_capped():
 
 def test_transform_sh_is_the_colour_map_of_every_view():
     """Applied to the SH coefficients, the map recolours the view-dependent colour of every direction."""
-    from ssgwarp.sh import spherical_harmonics
+    from ssgwarp.raster.sh import spherical_harmonics
 
     g = torch.Generator().manual_seed(0)
     n = 50
@@ -109,7 +109,7 @@ def test_transfer_colors_on_a_rendered_scene_per_group_and_global():
     per group, a group absent from the target views gets the global map (the fallback)."""
     from test_stylize import object_labels, ring, two_objects
 
-    from ssgwarp import stylize as st
+    from ssgwarp.stylization import stylize as st
 
     scene, obj = two_objects(n=80, dtype=torch.float64)
     cams = ring(n=3, dtype=torch.float64)

@@ -1,4 +1,4 @@
-"""Cross-View Style Alignment processors (ssgwarp.cvsa) on a tiny random UNet with IP-Adapter."""
+"""Cross-View Style Alignment processors (ssgwarp.stylization.cvsa) on a tiny random UNet with IP-Adapter."""
 from __future__ import annotations
 
 import math
@@ -9,8 +9,8 @@ import torch
 pytest.importorskip("diffusers")
 
 from fakeweights import random_stage1_components  # noqa: E402
-from ssgwarp.cvsa import CVSAProcessor, cvsa_enabled, cvsa_names, install_cvsa, remove_cvsa  # noqa: E402
-from ssgwarp.diffusion import assemble_stage1  # noqa: E402
+from ssgwarp.stylization.cvsa import CVSAProcessor, cvsa_enabled, cvsa_names, install_cvsa, remove_cvsa  # noqa: E402
+from ssgwarp.stylization.diffusion import assemble_stage1  # noqa: E402
 from ssgwarp.errors import InputError  # noqa: E402
 
 
@@ -163,7 +163,7 @@ def test_guided_denoising_shares_attention_within_each_cfg_half_only(models):
     (x0 = (x - sqrt(1 - a) eps) / sqrt(a), a = 0.005)."""
     from diffusers import DDIMScheduler
 
-    from ssgwarp.diffusion import ddim_denoise, ddim_step, predict_noise, schedule
+    from ssgwarp.stylization.diffusion import ddim_denoise, ddim_step, predict_noise, schedule
 
     K, w, blocks = 2, 3.0, ("mid_block", "up_blocks.0", "up_blocks.1")
     g = torch.Generator().manual_seed(5)

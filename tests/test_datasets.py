@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 import torch
 
-from ssgwarp.colmap import ColmapCamera, ColmapImage, ColmapPoints, rotmat_to_qvec, write_model_text
-from ssgwarp.datasets import SceneData, detect_format, load_dataset
+from ssgwarp.capture.colmap import ColmapCamera, ColmapImage, ColmapPoints, rotmat_to_qvec, write_model_text
+from ssgwarp.capture.datasets import SceneData, detect_format, load_dataset
 from ssgwarp.errors import InputError
-from ssgwarp.fileio import write_image
+from ssgwarp.core.fileio import write_image
 
 from conftest import SHARED_DATA as DATA
 needs = lambda name: pytest.mark.skipif(not (DATA / name).is_dir(), reason="shared data not present")  # noqa: E731
@@ -23,7 +23,7 @@ needs = lambda name: pytest.mark.skipif(not (DATA / name).is_dir(), reason="shar
 
 def _look(eye, target, up=(0.0, 1.0, 0.0)):
     """OpenCV world-to-camera [4,4] (float64 numpy)."""
-    from ssgwarp.cameras import look_at
+    from ssgwarp.core.cameras import look_at
 
     return look_at(torch.tensor([eye], dtype=torch.float64), torch.tensor([target], dtype=torch.float64), up)[0].numpy()
 
@@ -275,8 +275,8 @@ def test_lego_transforms():
 
 # ----------------------------------------------------------------------------- helpers, unit by unit
 def test_evenly_spaced_subsets_and_the_split():
-    from ssgwarp.capture_formats import _evenly
-    from ssgwarp.datasets import _split
+    from ssgwarp.capture.formats import _evenly
+    from ssgwarp.capture.datasets import _split
 
     assert _evenly(10, None) == list(range(10)) and _evenly(10, 10) == list(range(10)) and _evenly(3, 7) == [0, 1, 2]
     assert _evenly(10, 4) == [0, 3, 6, 9] and _evenly(10, 1) == [0] and _evenly(9, 3) == [0, 4, 8]
@@ -291,7 +291,7 @@ def test_evenly_spaced_subsets_and_the_split():
 
 
 def test_resize_images_by_hand():
-    from ssgwarp.datasets import resize_images
+    from ssgwarp.capture.datasets import resize_images
 
     # shrinking 4 -> 2 is antialiased (PIL-style triangle filter twice as wide): output 0 sits between inputs
     # 0 and 1 (weights 3/4 each) and reaches input 2 (1/4; input -1 is outside): (0 + 0 + 1/4) / (7/4) = 1/7
@@ -313,8 +313,8 @@ def test_resize_images_by_hand():
 
 
 def test_viewmats_from_c2w_and_the_focus_point():
-    from ssgwarp.cameras import Cameras, intrinsics
-    from ssgwarp.capture_formats import _viewmats_from_c2w, focus_point
+    from ssgwarp.core.cameras import Cameras, intrinsics
+    from ssgwarp.capture.formats import _viewmats_from_c2w, focus_point
 
     eyes = [[3.0, 0.0, 0.5], [0.0, 2.0, -1.0], [-1.0, -2.0, 2.0]]
     V = np.stack([_look(e, [0.2, -0.1, 0.3]) for e in eyes])
@@ -334,7 +334,7 @@ def test_viewmats_from_c2w_and_the_focus_point():
 
 
 def test_depth_range_percentiles_of_points_in_front():
-    from ssgwarp.capture_formats import _depth_range
+    from ssgwarp.capture.formats import _depth_range
 
     V = np.eye(4)[None]
     z = np.arange(1.0, 1001.0)
@@ -358,8 +358,8 @@ def test_depth_range_percentiles_of_points_in_front():
 def test_random_points_lie_in_their_pixels_frustum_with_the_pixels_colour():
     """Each camera's image encodes (camera, column, row) in its colour, so a point's colour says which pixel
     it was drawn from: the point must project into that pixel at a depth within that view's near/far."""
-    from ssgwarp.cameras import Cameras, intrinsics
-    from ssgwarp.datasets import random_points_in_frusta
+    from ssgwarp.core.cameras import Cameras, intrinsics
+    from ssgwarp.capture.datasets import random_points_in_frusta
 
     W, H = 8, 6
     V = np.stack([_look([0.5 * i, 0.2, -3.0], [0.0, 0.0, 0.0]) for i in range(3)])
@@ -387,7 +387,7 @@ def test_random_points_lie_in_their_pixels_frustum_with_the_pixels_colour():
 
 
 def test_transforms_intrinsics_variants_and_errors():
-    from ssgwarp.capture_formats import _intrinsics_from
+    from ssgwarp.capture.formats import _intrinsics_from
 
     assert _intrinsics_from({"fl_x": 20.0}, 40, 30, "w") == (20.0, 20.0, 20.0, 15.0)
     assert _intrinsics_from({"fl_y": 22.0, "cx": 3.0, "cy": 4.0}, 40, 30, "w") == (22.0, 22.0, 3.0, 4.0)
@@ -409,8 +409,8 @@ def test_transforms_intrinsics_variants_and_errors():
 
 
 def test_transforms_lens_variants_and_errors():
-    from ssgwarp.capture_formats import _transforms_lens
-    from ssgwarp.lens import Lens
+    from ssgwarp.capture.formats import _transforms_lens
+    from ssgwarp.capture.lens import Lens
 
     assert _transforms_lens({}, "w") == Lens("OPENCV", (0.0, 0.0, 0.0, 0.0))
     assert _transforms_lens({"k1": 0.1, "p2": 0.02, "camera_model": "opencv"}, "w") == Lens("OPENCV", (0.1, 0, 0, 0.02))
@@ -432,7 +432,7 @@ def test_transforms_lens_variants_and_errors():
 
 
 def test_scene_data_validation_split_background_and_device():
-    from ssgwarp.cameras import Cameras, intrinsics
+    from ssgwarp.core.cameras import Cameras, intrinsics
 
     V = torch.from_numpy(np.stack([_look([0.0, 0.0, -3.0 - i], [0, 0, 0]) for i in range(3)])).float()
     cams = Cameras(V, intrinsics(10.0, 10.0, 4.0, 3.0, 3), 8, 6)

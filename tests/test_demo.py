@@ -79,7 +79,7 @@ def test_demo_runs_every_stage_and_prints_a_summary(demo):
     assert last == f"contact sheet: {summary['contact_sheet']}"
     sheet = Path(summary["contact_sheet"])
     assert sheet == (out / "contact_sheet.png").resolve() and sheet.is_file()
-    from ssgwarp.fileio import read_image
+    from ssgwarp.core.fileio import read_image
 
     img = read_image(sheet, 3)
     assert img.shape[1] > 600 and img.shape[0] > 300 and float(img.std()) > 0.1  # a picture, not a blank
@@ -109,9 +109,9 @@ def test_demo_runs_every_stage_and_prints_a_summary(demo):
 
 @pytest.mark.slow  # the demo fixture runs the whole pipeline once (~30 s on 2 cores)
 def test_demo_outputs_follow_the_run_contract(demo):
-    from ssgwarp.datasets import load_dataset, load_run
-    from ssgwarp.grouping import load_groups
-    from ssgwarp.ply import read_ply
+    from ssgwarp.capture.datasets import load_dataset, load_run
+    from ssgwarp.grouping.stage import load_groups
+    from ssgwarp.capture.ply import read_ply
 
     out = demo[0]
     size = P.SIZES["small"]
@@ -125,7 +125,7 @@ def test_demo_outputs_follow_the_run_contract(demo):
     # Stage 2 changed colour only
     assert torch.equal(styled.means, scene.means) and torch.equal(styled.identities, scene.identities)
     assert not torch.equal(styled.sh_dc, scene.sh_dc)
-    from ssgwarp.fileio import read_image
+    from ssgwarp.core.fileio import read_image
 
     style = read_image(out / "style.png", 3)
     assert np.allclose(style, P.style_image(192, 192, seed=0), atol=1 / 255)
@@ -167,8 +167,8 @@ def test_force_removes_only_what_the_demo_writes(tmp_path):
 @pytest.mark.slow  # runs the demo again, interrupted and resumed (~20 s)
 def test_ctrl_c_in_a_demo_stage_resumes_to_the_uninterrupted_result(demo, tmp_path, monkeypatch, fail_on_call):
     """Ctrl-C during Stage 2: exit 130, finished stages kept; --resume gives the same stylized scene."""
-    import ssgwarp.stage2 as st   # where optimise calls it
-    from ssgwarp.ply import read_ply
+    import ssgwarp.stylization.stage2 as st   # where optimise calls it
+    from ssgwarp.capture.ply import read_ply
 
     _no_weights(monkeypatch)
     orig = fail_on_call(st, "deferred_backward", 7, "interrupt")
@@ -192,7 +192,7 @@ def test_ctrl_c_in_a_demo_stage_resumes_to_the_uninterrupted_result(demo, tmp_pa
 def test_transforms_capture_reads_back_with_the_cameras_it_was_rendered_from(tmp_path):
     """OpenGL axes in transforms.json: the loader recovers the ring (OpenCV) and re-rendering the
     ground truth from the loaded cameras reproduces the written images to 8-bit precision."""
-    from ssgwarp.datasets import load_dataset
+    from ssgwarp.capture.datasets import load_dataset
 
     gt = P.build_scene(0.3)
     cams = P.ring_cameras(4, 40, 30)

@@ -1,4 +1,4 @@
-"""Stage 1 (ssgwarp.diffusion) on tiny randomly initialised SD-style models: no weights, no network."""
+"""Stage 1 (ssgwarp.stylization.diffusion) on tiny randomly initialised SD-style models: no weights, no network."""
 from __future__ import annotations
 
 import math
@@ -9,13 +9,13 @@ import torch
 pytest.importorskip("diffusers")
 pytest.importorskip("transformers")
 
-from ssgwarp.cameras import Cameras, intrinsics, look_at  # noqa: E402
+from ssgwarp.core.cameras import Cameras, intrinsics, look_at  # noqa: E402
 from fakeweights import random_stage1_components, save_stage1  # noqa: E402
-from ssgwarp.diffusion import (Stage1Config, assemble_stage1, ddim_denoise, ddim_invert, ddim_step,  # noqa: E402
+from ssgwarp.stylization.diffusion import (Stage1Config, assemble_stage1, ddim_denoise, ddim_invert, ddim_step,  # noqa: E402
                                depth_to_control, encode_latents, load_stage1, save_sheet, schedule,
                                set_ip_adapter_scales, stylize_keyviews, stylize_views)
 from ssgwarp.errors import InputError, WeightsNotFound  # noqa: E402
-from ssgwarp.keyviews import KeyViews  # noqa: E402
+from ssgwarp.stylization.keyviews import KeyViews  # noqa: E402
 from ssgwarp.procedural import smooth_views  # noqa: E402
 
 WEIGHT_ENV = ("SSGWARP_WEIGHTS", "SSGWARP_SD15", "SSGWARP_CONTROLNET_DEPTH", "SSGWARP_IP_ADAPTER",
@@ -163,7 +163,7 @@ def test_load_stage1_from_local_folders(tmp_path, models, monkeypatch):
     torch.testing.assert_close(stylize_views(loaded, rgb, depth, style, cfg),
                                stylize_views(models, rgb, depth, style, cfg), atol=1e-5, rtol=1e-5)
     # the same folders found through the environment variables
-    from ssgwarp.diffusion import missing_weights
+    from ssgwarp.stylization.diffusion import missing_weights
     assert len(missing_weights(Stage1Config())) == 4
     for key, env in [("sd15", "SSGWARP_SD15"), ("controlnet_depth", "SSGWARP_CONTROLNET_DEPTH"),
                      ("ip_adapter", "SSGWARP_IP_ADAPTER"), ("image_encoder", "SSGWARP_IMAGE_ENCODER")]:
@@ -194,7 +194,7 @@ def test_missing_weights_message(tmp_path, capsys, monkeypatch):
 
 
 def test_save_sheet(tmp_path):
-    from ssgwarp.fileio import read_image
+    from ssgwarp.core.fileio import read_image
 
     a = torch.zeros(3, 16, 24, 3)
     b = torch.ones(3, 16, 24, 3) * 0.5

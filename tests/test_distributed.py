@@ -21,9 +21,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from ssgwarp.distributed import Group
+from ssgwarp.services.distributed import Group
 from ssgwarp.errors import InputError
-from ssgwarp.reconstruct import Recipe, Trainer, batch_factors, read_checkpoint
+from ssgwarp.reconstruction.reconstruct import Recipe, Trainer, batch_factors, read_checkpoint
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
@@ -78,8 +78,8 @@ def capture(tmp_path_factory):
 
 def _toy_data(n_cams: int, size: int = 12):
     """``n_cams`` cameras on an arc looking at the origin, random images, no points."""
-    from ssgwarp.cameras import Cameras, intrinsics, look_at
-    from ssgwarp.datasets import SceneData
+    from ssgwarp.core.cameras import Cameras, intrinsics, look_at
+    from ssgwarp.capture.datasets import SceneData
 
     a = torch.linspace(-0.4, 0.4, n_cams, dtype=torch.float64)
     eyes = torch.stack([3 * torch.sin(a), torch.zeros_like(a), -3 * torch.cos(a)], -1)
@@ -136,7 +136,7 @@ def test_default_schedule_counts_images():
 def test_a_batch_step_renders_every_view_once_and_keeps_statistics_per_view():
     """A batch of two views: each rendered once, the loss their mean, and the densification
     statistics the sum of what each view alone gives (gradient norms per view, counts per view)."""
-    from ssgwarp.scene import GaussianScene
+    from ssgwarp.raster.scene import GaussianScene
 
     data = _toy_data(n_cams=4, size=16)
     g = torch.Generator().manual_seed(2)
@@ -176,7 +176,7 @@ class _Rank1(Group):
 
 
 def test_only_the_main_process_writes(capture, tmp_path, monkeypatch):
-    from ssgwarp.reconstruct import reconstruct
+    from ssgwarp.reconstruction.reconstruct import reconstruct
 
     monkeypatch.setenv("SSGWARP_OFFLINE", "1")
     out = tmp_path / "run"
@@ -227,7 +227,7 @@ def test_torchrun_resumes_a_one_process_checkpoint_and_records_the_world(capture
     """Steps 1-4 in one process (batch 2), 5-8 by ``torchrun -m ssgwarp`` with two: the scene of
     an uninterrupted one-process run; metrics.json says who trained it."""
     from ssgwarp import cli
-    from ssgwarp.datasets import load_dataset
+    from ssgwarp.capture.datasets import load_dataset
 
     monkeypatch.setenv("SSGWARP_OFFLINE", "1")
     full, split = tmp_path / "full", tmp_path / "split"

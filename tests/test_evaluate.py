@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from ssgwarp.cameras import Cameras
-from ssgwarp.scene import GaussianScene
+from ssgwarp.core.cameras import Cameras
+from ssgwarp.raster.scene import GaussianScene
 
 W, H, F_PX = 32, 24, 40.0
 
@@ -41,9 +41,9 @@ def _cameras(n: int = 6) -> Cameras:
 @pytest.fixture
 def runs(tmp_path, monkeypatch):
     """(reconstruction dir, stylized dir, style image) built with the project's own writers."""
-    from ssgwarp.datasets import data_json, load_dataset
-    from ssgwarp.fileio import write_image, write_json
-    from ssgwarp.ply import write_ply
+    from ssgwarp.capture.datasets import data_json, load_dataset
+    from ssgwarp.core.fileio import write_image, write_json
+    from ssgwarp.capture.ply import write_ply
 
     for var in ("SSGWARP_WEIGHTS", "SSGWARP_RAFT", "SSGWARP_LPIPS", "SSGWARP_VGG16"):
         monkeypatch.delenv(var, raising=False)
@@ -127,8 +127,8 @@ def test_evaluate_cli_writes_metrics_pairs_and_table(runs, tmp_path, capsys):
 def test_evaluate_scores_novel_path_views_by_default(runs, tmp_path):
     """The default is the papers' protocol: novel views on a smooth path, none of them a training view;
     metrics say which views were scored; --views test scores the held-out views."""
-    from ssgwarp.cameras import Cameras
-    from ssgwarp.evaluate import EvalOptions, evaluate_run
+    from ssgwarp.core.cameras import Cameras
+    from ssgwarp.evaluation.evaluate import EvalOptions, evaluate_run
 
     recon, sty, style = runs
     assert EvalOptions().views == "path"
@@ -139,8 +139,8 @@ def test_evaluate_scores_novel_path_views_by_default(runs, tmp_path):
     assert res["style_content"]["style_distance_color"] > 0
     # no path frame coincides with a training camera
     train = Cameras.load(recon / "cameras.json")
-    from ssgwarp.evaluate import scored_cameras
-    from ssgwarp.datasets import load_run
+    from ssgwarp.evaluation.evaluate import scored_cameras
+    from ssgwarp.capture.datasets import load_run
 
     _, data = load_run(recon, load_images=False)
     path, ids, _ = scored_cameras(data.cameras, data.train_ids, data.test_ids, EvalOptions(path_frames=12))
@@ -153,9 +153,9 @@ def test_evaluate_scores_novel_path_views_by_default(runs, tmp_path):
 
 def test_evaluate_with_style_gives_lower_style_loss_to_matching_colours(runs, tmp_path):
     """The Gram loss ranks runs: a run recoloured towards the style's colours scores lower."""
-    from ssgwarp.evaluate import EvalOptions, evaluate_run
-    from ssgwarp.features import load_extractor
-    from ssgwarp.ply import read_ply, write_ply
+    from ssgwarp.evaluation.evaluate import EvalOptions, evaluate_run
+    from ssgwarp.services.features import load_extractor
+    from ssgwarp.capture.ply import read_ply, write_ply
 
     recon, sty, style = runs
     ext = load_extractor(None, "cpu")
@@ -168,7 +168,7 @@ def test_evaluate_with_style_gives_lower_style_loss_to_matching_colours(runs, tm
     blue = torch.tensor([0.1, 0.2, 0.7])
     cell = torch.floor(s.means[:, 0] / 0.6) + torch.floor(s.means[:, 1] / 0.6)
     target = torch.where((cell % 2 == 0)[:, None], yellow, blue)
-    from ssgwarp.scene import rgb_to_sh_dc
+    from ssgwarp.raster.scene import rgb_to_sh_dc
 
     s2 = s.replace(sh_dc=rgb_to_sh_dc(target))
     closer = tmp_path / "runs" / "closer"

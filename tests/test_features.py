@@ -6,7 +6,7 @@ import torch
 import torch.nn.functional as F
 
 from ssgwarp.errors import InputError, WeightsNotFound
-from ssgwarp.features import (VGG16_LAYERS, RandomMultiScale, gram_loss, gram_matrix,
+from ssgwarp.services.features import (VGG16_LAYERS, RandomMultiScale, gram_loss, gram_matrix,
                               load_extractor, resolve_layers, stack_features)
 
 

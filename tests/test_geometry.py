@@ -1,11 +1,11 @@
-"""ssgwarp.geometry: rotations, reprojection, nearest neighbours, against independent constructions."""
+"""ssgwarp.core.geometry: rotations, reprojection, nearest neighbours, against independent constructions."""
 import math
 
 import numpy as np
 import pytest
 import torch
 
-from ssgwarp.geometry import (knn, knn_indices, knn_mean_distance, pixel_centers, project, quat_to_rotmat,
+from ssgwarp.core.geometry import (knn, knn_indices, knn_mean_distance, pixel_centers, project, quat_to_rotmat,
                               rotmat_to_quat, unproject)
 
 
@@ -40,7 +40,7 @@ def test_rotmat_to_quat_half_turns_and_identity(diag):
 
 
 def test_colmap_and_viewer_rotations_are_the_shared_ones():
-    from ssgwarp.colmap import qvec_to_rotmat, rotmat_to_qvec
+    from ssgwarp.capture.colmap import qvec_to_rotmat, rotmat_to_qvec
     from ssgwarp.viewer import geometry as viewer_geometry
 
     q = np.array([0.3, -0.5, 0.2, 0.7])

@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 import torch
 
-from ssgwarp.cameras import Cameras, intrinsics, look_at
+from ssgwarp.core.cameras import Cameras, intrinsics, look_at
 from ssgwarp.errors import InputError
-from ssgwarp.scene import GaussianScene, rgb_to_sh_dc
+from ssgwarp.raster.scene import GaussianScene, rgb_to_sh_dc
 
 SIZE = 48
 TRAIN = [0, 1, 2, 3, 5, 6, 7, 8]
@@ -63,7 +63,7 @@ def ring_cameras(n: int = 10, size: int = SIZE) -> Cameras:
 
 
 def gt_masks(scene, cams, oid):
-    from ssgwarp.pseudomasks import render_label_masks
+    from ssgwarp.grouping.pseudomasks import render_label_masks
 
     return render_label_masks(scene, cams, oid, int(oid.max()) + 1)
 
@@ -81,8 +81,8 @@ def best_match_accuracy(pred: torch.Tensor, gt: torch.Tensor) -> float:
 
 def make_run(root: Path, scene: GaussianScene, cams: Cameras, data_dir: str | None = None) -> Path:
     """A run folder as reconstruction writes it (scene.ply, cameras.json, data.json)."""
-    from ssgwarp.fileio import write_json
-    from ssgwarp.ply import write_ply
+    from ssgwarp.core.fileio import write_json
+    from ssgwarp.capture.ply import write_ply
 
     root.mkdir(parents=True, exist_ok=True)
     write_ply(root / "scene.ply", scene)
@@ -104,8 +104,8 @@ def synth():
 # -- the rasterizer carries identity channels like colour ---------------------------------------
 
 def test_identity_channels_match_torch_reference(synth):
-    reference = pytest.importorskip("ssgwarp.reference")
-    from ssgwarp.rasterize import rasterization
+    reference = pytest.importorskip("ssgwarp.raster.reference")
+    from ssgwarp.raster.rasterize import rasterization
 
     scene, _, cams, _ = synth
     g = torch.Generator().manual_seed(1)
@@ -135,7 +135,7 @@ def test_identity_channels_match_torch_reference(synth):
 # -- losses -----------------------------------------------------------------------------------------
 
 def test_mask_loss_and_3d_regulariser():
-    from ssgwarp.grouping import knn_indices, make_classifier, mask_loss, regularizer_3d
+    from ssgwarp.grouping.stage import knn_indices, make_classifier, mask_loss, regularizer_3d
 
     g = torch.Generator().manual_seed(0)
     logits = torch.randn(5, 7, 4, generator=g)
@@ -168,7 +168,7 @@ def test_mask_loss_and_3d_regulariser():
 # -- masks from outside --------------------------------------------------------------------------------
 
 def _write_masks(folder: Path, labels: torch.Tensor, names, values=(0, 10, 20, 30), ignore=255):
-    from ssgwarp.fileio import write_image
+    from ssgwarp.core.fileio import write_image
 
     folder.mkdir(parents=True, exist_ok=True)
     lut = torch.tensor(list(values))
@@ -180,8 +180,8 @@ def _write_masks(folder: Path, labels: torch.Tensor, names, values=(0, 10, 20, 3
 def test_given_masks_heldout_accuracy(tmp_path, synth):
     """Masks at 2x resolution with sparse ids → group maps of held-out views >= 95% (best matching)."""
     from ssgwarp.cli import main
-    from ssgwarp.grouping import gaussian_groups, load_groups, render_group_maps
-    from ssgwarp.ply import read_ply
+    from ssgwarp.grouping.stage import gaussian_groups, load_groups, render_group_maps
+    from ssgwarp.capture.ply import read_ply
 
     scene, oid, cams, gt = synth
     big = cams.rescaled(2 * SIZE, 2 * SIZE)
@@ -211,8 +211,8 @@ def test_given_masks_heldout_accuracy(tmp_path, synth):
 
 
 def test_mask_validation_errors(tmp_path, synth):
-    from ssgwarp.fileio import write_image
-    from ssgwarp.grouping import load_masks
+    from ssgwarp.core.fileio import write_image
+    from ssgwarp.grouping.stage import load_masks
 
     scene, oid, cams, gt = synth
     names = [cams.names[i] for i in TRAIN]
@@ -245,8 +245,8 @@ def test_mask_validation_errors(tmp_path, synth):
 
 def test_mask_free_path_heldout_accuracy_and_outputs(tmp_path, synth):
     from ssgwarp.cli import main
-    from ssgwarp.grouping import load_groups, render_group_maps
-    from ssgwarp.ply import read_ply
+    from ssgwarp.grouping.stage import load_groups, render_group_maps
+    from ssgwarp.capture.ply import read_ply
 
     scene, oid, cams, gt = synth
     run = make_run(tmp_path / "run", scene, cams)
@@ -271,8 +271,8 @@ def test_mask_free_path_heldout_accuracy_and_outputs(tmp_path, synth):
           f"reprojection agreement {info['reprojection_agreement']['mean']:.4f}")
     assert acc >= 0.95
     # the group map PNGs use the shared palette
-    from ssgwarp.fileio import read_image
-    from ssgwarp.palette import palette
+    from ssgwarp.core.fileio import read_image
+    from ssgwarp.core.palette import palette
 
     png = read_image(run / "groups" / "group_maps" / "view04.png", 3)
     full, _ = render_group_maps(grouped, cams[[4]], model.classifier)
@@ -286,7 +286,7 @@ def test_mask_free_path_heldout_accuracy_and_outputs(tmp_path, synth):
 
 def test_cap_and_min_fraction():
     """The cap bounds K and tiny clusters are merged away (model only what the scene requires)."""
-    from ssgwarp.pseudomasks import ClusterConfig, cluster_gaussians
+    from ssgwarp.grouping.pseudomasks import ClusterConfig, cluster_gaussians
 
     scene, oid = blobs_scene(n_blob=40)
     # add a 3-Gaussian yellow speck: too small to keep as a group
@@ -305,9 +305,9 @@ def test_cap_and_min_fraction():
 # -- determinism, interruption and resume ------------------------------------------------------------
 
 def test_deterministic_for_a_seed_and_resume_after_interrupt(tmp_path, synth, monkeypatch, fail_on_call):
-    import ssgwarp.grouping_train as grouping  # (the training loop calls mask_loss there)
-    from ssgwarp.grouping import GroupConfig, train_identities
-    from ssgwarp.pseudomasks import pseudo_masks
+    import ssgwarp.grouping.train as grouping  # (the training loop calls mask_loss there)
+    from ssgwarp.grouping.stage import GroupConfig, train_identities
+    from ssgwarp.grouping.pseudomasks import pseudo_masks
 
     scene, oid, cams, gt = synth
     tc = cams[TRAIN]
@@ -340,9 +340,9 @@ def test_deterministic_for_a_seed_and_resume_after_interrupt(tmp_path, synth, mo
 # -- joint training with reconstruction -------------------------------------------------------------
 
 def test_grouping_hook_trains_with_reconstruction(synth):
-    rec = pytest.importorskip("ssgwarp.reconstruct")
-    from ssgwarp.datasets import SceneData
-    from ssgwarp.grouping import GroupConfig, GroupingHook
+    rec = pytest.importorskip("ssgwarp.reconstruction.reconstruct")
+    from ssgwarp.capture.datasets import SceneData
+    from ssgwarp.grouping.stage import GroupConfig, GroupingHook
 
     scene, oid, cams, gt = synth
     with torch.no_grad():
@@ -367,10 +367,10 @@ def test_grouping_hook_trains_with_reconstruction(synth):
 
 def test_joint_grouping_of_a_run(tmp_path, synth):
     """`group --joint`: the run's capture is reconstructed again with the grouping hook."""
-    rec = pytest.importorskip("ssgwarp.reconstruct")
-    from ssgwarp.fileio import write_image, write_json
-    from ssgwarp.grouping import GroupConfig, group_scene, load_groups
-    from ssgwarp.ply import read_ply
+    rec = pytest.importorskip("ssgwarp.reconstruction.reconstruct")
+    from ssgwarp.core.fileio import write_image, write_json
+    from ssgwarp.grouping.stage import GroupConfig, group_scene, load_groups
+    from ssgwarp.capture.ply import read_ply
 
     scene, oid, cams, gt = synth
     with torch.no_grad():
@@ -398,10 +398,10 @@ def test_joint_grouping_of_a_run(tmp_path, synth):
 
 def test_mask_free_on_real_capture(shared_data):
     """A points-based scene of LLFF fern: more than one group, and group maps that agree across views."""
-    from ssgwarp.datasets import load_dataset
-    from ssgwarp.grouping import (GroupConfig, neighbour_pairs, render_group_maps, reprojection_agreement,
+    from ssgwarp.capture.datasets import load_dataset
+    from ssgwarp.grouping.stage import (GroupConfig, neighbour_pairs, render_group_maps, reprojection_agreement,
                                   train_identities)
-    from ssgwarp.pseudomasks import pseudo_masks
+    from ssgwarp.grouping.pseudomasks import pseudo_masks
 
     data = load_dataset(shared_data / "llff_fern", images="images_8", width=48)
     xyz, rgb = data.points

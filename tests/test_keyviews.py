@@ -1,4 +1,4 @@
-"""Key view selection, the resize/pad rule and key view rendering/saving (ssgwarp.keyviews)."""
+"""Key view selection, the resize/pad rule and key view rendering/saving (ssgwarp.stylization.keyviews)."""
 from __future__ import annotations
 
 import itertools
@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from ssgwarp.cameras import Cameras, intrinsics, look_at
+from ssgwarp.core.cameras import Cameras, intrinsics, look_at
 from ssgwarp.errors import InputError
-from ssgwarp.keyviews import (content_size, diffusion_cameras, diffusion_size, from_diffusion, load_keyviews,
+from ssgwarp.stylization.keyviews import (content_size, diffusion_cameras, diffusion_size, from_diffusion, load_keyviews,
                               parse_ids, render_keyviews, save_keyviews, select_keyviews, to_diffusion)
-from ssgwarp.scene import GaussianScene
+from ssgwarp.raster.scene import GaussianScene
 
 
 def ring_cameras(n: int, radius: float = 3.0, w: int = 50, h: int = 30) -> Cameras:
@@ -180,7 +180,7 @@ def test_render_keyviews_rgb_depth_groups():
 
 
 def test_save_and_load_keyviews(tmp_path):
-    from ssgwarp.fileio import read_json
+    from ssgwarp.core.fileio import read_json
 
     scene = _two_blob_scene()
     cams = ring_cameras(4)
@@ -205,8 +205,8 @@ def test_save_and_load_keyviews(tmp_path):
 
 def test_cli_keyviews_on_a_run_directory(tmp_path):
     from ssgwarp.cli import main
-    from ssgwarp.fileio import read_json, write_json
-    from ssgwarp.ply import write_ply
+    from ssgwarp.core.fileio import read_json, write_json
+    from ssgwarp.capture.ply import write_ply
 
     run = tmp_path / "run"
     run.mkdir()

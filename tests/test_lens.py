@@ -3,7 +3,7 @@
 Each test builds a distorted capture on disk in its real format (COLMAP text/binary, transforms.json,
 LLFF + sparse/0/cameras.bin): a smooth pattern P(x, y) is fixed on the *undistorted* normalised image
 plane and every source pixel centre gets the value of P at its undistorted position (inverted here with
-this file's own forward maps, written independently of ``ssgwarp.lens``). Loading must give:
+this file's own forward maps, written independently of ``ssgwarp.capture.lens``). Loading must give:
 
 (a) pinhole intrinsics that keep the focal length, one size for all images, the record in
     ``SceneData.undistortion``;
@@ -31,10 +31,10 @@ import numpy as np
 import pytest
 import torch
 
-from ssgwarp.colmap import MODEL_IDS, ColmapCamera, ColmapImage, ColmapPoints, rotmat_to_qvec, write_model_text
-from ssgwarp.datasets import data_json, load_dataset, load_run
+from ssgwarp.capture.colmap import MODEL_IDS, ColmapCamera, ColmapImage, ColmapPoints, rotmat_to_qvec, write_model_text
+from ssgwarp.capture.datasets import data_json, load_dataset, load_run
 from ssgwarp.errors import InputError
-from ssgwarp.fileio import write_image
+from ssgwarp.core.fileio import write_image
 
 from conftest import SHARED_DATA
 
@@ -143,7 +143,7 @@ def _check_image(img, K_out, model, p, K_src, w0, h0, check_tight=True):
 
 # ----------------------------------------------------------------------------- capture writers
 def _look(eye):
-    from ssgwarp.cameras import look_at
+    from ssgwarp.core.cameras import look_at
 
     return look_at(torch.tensor([eye], dtype=torch.float64), torch.zeros(1, 3, dtype=torch.float64),
                    (0.0, -1.0, 0.0))[0].numpy()
@@ -188,7 +188,7 @@ def _colmap_capture(root: Path, cams: dict, n=4, folder="images", render=True, b
 def test_colmap_models_undistort_into_a_pinhole_crop(tmp_path, model, caplog):
     p = LENSES[model]
     ccams = _colmap_capture(tmp_path, {1: (model, p)}, binary=model == "OPENCV")
-    with caplog.at_level(logging.INFO, logger="ssgwarp.datasets"):
+    with caplog.at_level(logging.INFO, logger="ssgwarp.capture.datasets"):
         d = load_dataset(tmp_path, split_every=0)
     K_src = ccams[1].K
     assert d.undistorted and f"undistorting 4 images ({model}) into a {d.width}x{d.height} pinhole crop" in caplog.text
@@ -214,7 +214,7 @@ def test_colmap_models_undistort_into_a_pinhole_crop(tmp_path, model, caplog):
 def test_pincushion_crops_and_barrel_grows():
     """Which way the crop goes: a pincushion lens (k > 0) keeps less than the source frame, a barrel lens
     (k < 0) at least as many pixels (its undistorted frame is larger), with the same focal length."""
-    from ssgwarp.lens import Lens, plan_undistortion
+    from ssgwarp.capture.lens import Lens, plan_undistortion
 
     K = np.array([[F, 0, W0 / 2], [0, F, H0 / 2], [0, 0, 1.0]])[None]
     pin = plan_undistortion(K, [Lens("SIMPLE_RADIAL", (0.08,))], W0, H0, ["c"])
@@ -233,7 +233,7 @@ def test_mixed_cameras_share_one_size(tmp_path):
     assert len(rec["cameras"]) == 2 and rec["size"] == [d.width, d.height]
     by_model = {c["model"]: c for c in rec["cameras"]}
     assert set(by_model) == {"PINHOLE", "OPENCV"}
-    from ssgwarp.fileio import read_image
+    from ssgwarp.core.fileio import read_image
 
     for i, name in enumerate(d.names):
         cid = 1 + int(name[1]) % 2
@@ -374,7 +374,7 @@ def test_llff_sparse_camera_with_another_focal_is_not_used(tmp_path, caplog):
     _llff_capture(tmp_path, "SIMPLE_RADIAL", (0.05,), levels=(4,))
     cam = ColmapCamera(1, "SIMPLE_RADIAL", 320, 240, np.array([300.0, 160, 120, 0.05]))
     _cameras_bin(tmp_path / "sparse" / "0" / "cameras.bin", {1: cam})
-    with caplog.at_level(logging.WARNING, logger="ssgwarp.datasets"):
+    with caplog.at_level(logging.WARNING, logger="ssgwarp.capture.datasets"):
         d = load_dataset(tmp_path, images="images_4", num_random_points=10)
     assert not d.undistorted and (d.width, d.height) == (80, 60) and "its distortion is not removed" in caplog.text
 
@@ -404,9 +404,9 @@ def test_unsupported_models_are_named(tmp_path, model):
 
 # ----------------------------------------------------------------------------- runs
 def test_run_files_carry_the_crop_and_load_run_reproduces_it(tmp_path):
-    from ssgwarp.fileio import write_json
-    from ssgwarp.ply import write_ply
-    from ssgwarp.scene import GaussianScene
+    from ssgwarp.core.fileio import write_json
+    from ssgwarp.capture.ply import write_ply
+    from ssgwarp.raster.scene import GaussianScene
 
     cap, run = tmp_path / "cap", tmp_path / "run"
     _colmap_capture(cap, {1: ("OPENCV", LENSES["OPENCV"])}, n=5)
@@ -432,7 +432,7 @@ def test_run_files_carry_the_crop_and_load_run_reproduces_it(tmp_path):
 
 
 def test_reconstruct_metrics_say_which_frame(tmp_path, monkeypatch):
-    from ssgwarp.reconstruct import reconstruct
+    from ssgwarp.reconstruction.reconstruct import reconstruct
 
     for var in ("SSGWARP_LPIPS", "SSGWARP_VGG16", "SSGWARP_WEIGHTS"):
         monkeypatch.delenv(var, raising=False)
@@ -455,8 +455,8 @@ def test_reconstruct_metrics_say_which_frame(tmp_path, monkeypatch):
 def test_fern_every_pixel_is_an_interpolation_of_real_pixels():
     """fern (SIMPLE_RADIAL, k = 0.0197): each loaded pixel is the bilinear interpolation of the source
     image at its distorted position (recomputed here), and that position is inside the source."""
-    from ssgwarp.colmap import read_cameras
-    from ssgwarp.fileio import read_image
+    from ssgwarp.capture.colmap import read_cameras
+    from ssgwarp.core.fileio import read_image
 
     (cam,) = read_cameras(DATA / "llff_fern" / "sparse" / "0" / "cameras.bin").values()
     d = load_dataset(DATA / "llff_fern", images="images_8", max_images=3, split_every=0)
@@ -493,7 +493,7 @@ def test_source_frame_labels_follow_their_images_into_the_crop(tmp_path, width):
     ``undistort_labels`` names, at every output pixel, the source pixel the image's colour came from
     (within half a pixel plus the 8-bit rounding), for two cameras with different lenses and at a
     mask resolution half the image's."""
-    from ssgwarp.lens import undistort_labels
+    from ssgwarp.capture.lens import undistort_labels
 
     _colmap_capture(tmp_path, {1: ("OPENCV", LENSES["OPENCV"]), 2: ("RADIAL", LENSES["RADIAL"])}, n=4)
     _coordinate_images(tmp_path, 4)
@@ -519,8 +519,8 @@ def test_group_masks_of_the_source_frame_are_undistorted(tmp_path):
     """``load_masks`` with the run's undistortion record: a mask at the source size (one id per source
     column band) comes out in the crop's frame, equal to ``undistort_labels`` of it; a mask already at
     the crop's size is taken as it is."""
-    from ssgwarp.grouping_masks import load_masks
-    from ssgwarp.lens import undistort_labels
+    from ssgwarp.grouping.mask_files import load_masks
+    from ssgwarp.capture.lens import undistort_labels
 
     _colmap_capture(tmp_path, {1: ("SIMPLE_RADIAL", (0.08,))}, n=2)
     d = load_dataset(tmp_path, split_every=0)
@@ -546,7 +546,7 @@ def _grid_points():
 
 @pytest.mark.parametrize("model", list(LENSES))
 def test_lens_distort_matches_the_formulas(model):
-    from ssgwarp.lens import Lens
+    from ssgwarp.capture.lens import Lens
 
     x, y = _grid_points()
     got = Lens(model, LENSES[model]).distort(x, y)
@@ -556,7 +556,7 @@ def test_lens_distort_matches_the_formulas(model):
 
 
 def test_rational_model_is_undefined_where_its_denominator_is_not_positive():
-    from ssgwarp.lens import Lens
+    from ssgwarp.capture.lens import Lens
 
     # FULL_OPENCV denominator 1 + k4 r^2: zero at r = 1 for k4 = -1, negative beyond
     lens = Lens("FULL_OPENCV", (0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0))
@@ -569,7 +569,7 @@ def test_rational_model_is_undefined_where_its_denominator_is_not_positive():
                                       ("OPENCV_FISHEYE", (0.05, 0.01, -0.002, 0.0005))])
 def test_jacobian_determinant_of_radial_maps(model, p):
     """A radial map p -> p rho(r) / r has Jacobian determinant (rho / r) rho'(r)."""
-    from ssgwarp.lens import Lens
+    from ssgwarp.capture.lens import Lens
 
     x, y = _grid_points()
     x, y = x[3:], y[3:]
@@ -589,7 +589,7 @@ def test_jacobian_determinant_of_radial_maps(model, p):
 
 
 def test_undistort_inverts_distort_before_the_fold_and_is_nan_beyond_reach():
-    from ssgwarp.lens import Lens
+    from ssgwarp.capture.lens import Lens
 
     x, y = _grid_points()
     for model, p in LENSES.items():
@@ -609,7 +609,7 @@ def test_undistort_inverts_distort_before_the_fold_and_is_nan_beyond_reach():
 
 
 def test_lens_validation_and_description():
-    from ssgwarp.lens import Lens
+    from ssgwarp.capture.lens import Lens
 
     with pytest.raises(InputError, match=r"lens model FOV is not supported \(supported: SIMPLE_RADIAL, RADIAL, "):
         Lens("FOV", (0.1,))
@@ -626,7 +626,7 @@ def test_lens_validation_and_description():
 
 
 def test_widest_rectangle_of_row_runs():
-    from ssgwarp.lens import _widest
+    from ssgwarp.capture.lens import _widest
 
     L, R = np.array([2, 1, 0, 3]), np.array([5, 6, 8, 4])
     # h = 1: row 2 (8 wide); h = 2: rows 1-2 (min R 6 - max L 1); h = 3: rows 0-2 (5 - 2); h = 4: 4 - 3
@@ -634,7 +634,7 @@ def test_widest_rectangle_of_row_runs():
 
 
 def test_crop_is_centred_on_the_principal_point_and_records_itself():
-    from ssgwarp.lens import Lens, plan_undistortion
+    from ssgwarp.capture.lens import Lens, plan_undistortion
 
     K = np.array([[F, 0, W0 / 2], [0, F, H0 / 2], [0, 0, 1.0]])
     plan = plan_undistortion(K[None], [Lens("SIMPLE_RADIAL", (0.08,))], W0, H0, ["cam"])
@@ -655,7 +655,7 @@ def test_crop_is_centred_on_the_principal_point_and_records_itself():
 
 
 def test_bad_principal_points_are_refused():
-    from ssgwarp.lens import Lens, plan_undistortion
+    from ssgwarp.capture.lens import Lens, plan_undistortion
 
     barrel = Lens("SIMPLE_RADIAL", (-0.3,))
     K = np.array([[F, 0, -5.0], [0, F, H0 / 2], [0, 0, 1.0]])
@@ -671,8 +671,8 @@ def test_bad_principal_points_are_refused():
 def test_blockwise_scans_give_what_one_block_gives(monkeypatch):
     """The valid-region scan and the sampling grid work in blocks of rows (bounded memory on large images):
     blocks of a few rows, not dividing the image height, give the same crop and grid as one block."""
-    import ssgwarp.lens as lens_mod
-    from ssgwarp.lens import Lens, plan_undistortion
+    import ssgwarp.capture.lens as lens_mod
+    from ssgwarp.capture.lens import Lens, plan_undistortion
 
     K = np.array([[F, 0, W0 / 2 + 1.3], [0, F, H0 / 2 - 0.7], [0, 0, 1.0]])[None]
     lens = Lens("OPENCV_FISHEYE", LENSES["OPENCV_FISHEYE"])
@@ -689,7 +689,7 @@ def test_a_smaller_common_window_is_placed_nearest_each_principal_point():
     """With one size for all cameras, a camera whose region is larger than the window has room to place it:
     the window goes where its centre is nearest the principal point, clamped to the region (here pinhole
     cameras, whose region is the whole 80x60 image, beside a pincushion camera whose crop is 72x54)."""
-    from ssgwarp.lens import Lens, plan_undistortion
+    from ssgwarp.capture.lens import Lens, plan_undistortion
 
     pp = [(40.0, 30.0), (41.7, 28.2), (20.0, 50.0), (70.0, 3.0)]
     Ks = np.stack([np.array([[F, 0, cx], [0, F, cy], [0, 0, 1]]) for cx, cy in pp])
@@ -740,7 +740,7 @@ def test_crop_is_valid_and_tight_for_wide_and_narrow_non_square_cameras(model, p
     """Wide (focal below the principal point's coordinates) and narrow cameras, non-square pixels and an
     off-centre principal point: the crop keeps its focal lengths and is valid and tight. (A wide fisheye's
     region reaches the 2x search limit, COLMAP's max_scale, so its crop is not tight: left out.)"""
-    from ssgwarp.lens import Lens, plan_undistortion
+    from ssgwarp.capture.lens import Lens, plan_undistortion
 
     fx, fy, cx, cy = intr
     K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
@@ -752,7 +752,7 @@ def test_crop_is_valid_and_tight_for_wide_and_narrow_non_square_cameras(model, p
 def test_pinhole_beside_a_barrel_lens_keeps_its_whole_image():
     """A barrel lens's region is larger than its source: beside a pinhole camera the common size is the
     pinhole camera's whole image (its first and last pixel centres are valid sources), placed at (0, 0)."""
-    from ssgwarp.lens import Lens, plan_undistortion
+    from ssgwarp.capture.lens import Lens, plan_undistortion
 
     K = np.array([[F, 0, W0 / 2], [0, F, H0 / 2], [0, 0, 1.0]])
     barrel = Lens("SIMPLE_RADIAL", (-0.08,))
@@ -765,7 +765,7 @@ def test_pinhole_beside_a_barrel_lens_keeps_its_whole_image():
 def test_principal_point_on_the_first_pixel_column():
     """The valid runs are counted from the principal point's column: with the principal point inside the first
     pixel column (cx = 1.0), the region starts at that column and the crop is still valid and tight."""
-    from ssgwarp.lens import Lens, plan_undistortion
+    from ssgwarp.capture.lens import Lens, plan_undistortion
 
     K = np.array([[F, 0, 1.0], [0, F, H0 / 2], [0, 0, 1.0]])
     plan = plan_undistortion(K[None], [Lens("SIMPLE_RADIAL", (0.05,))], W0, H0, ["c"], min_area=0.3)
@@ -777,7 +777,7 @@ def test_a_wide_fisheye_is_cut_at_twice_the_source_size():
     """A fisheye of focal 20 px on an 80x60 image sees past 90 degrees in the corners: its undistorted frame
     is unbounded, and the search stops at the source size beyond each side of the principal point (COLMAP's
     max_scale 2): the crop is that whole 160x120 frame, every pixel still with a source."""
-    from ssgwarp.lens import Lens, plan_undistortion
+    from ssgwarp.capture.lens import Lens, plan_undistortion
 
     K = np.array([[20.0, 0, 40.0], [0, 20.0, 30.0], [0, 0, 1.0]])
     plan = plan_undistortion(K[None], [Lens("OPENCV_FISHEYE", (0.02, 0.0, 0.0, 0.0))], W0, H0, ["c"])
@@ -786,7 +786,7 @@ def test_a_wide_fisheye_is_cut_at_twice_the_source_size():
 
 
 def test_min_area_is_inclusive_and_the_refusal_names_the_covered_share():
-    from ssgwarp.lens import Lens, plan_undistortion
+    from ssgwarp.capture.lens import Lens, plan_undistortion
 
     K = np.array([[F, 0, W0 / 2], [0, F, H0 / 2], [0, 0, 1.0]])[None]
     lens = Lens("SIMPLE_RADIAL", (0.4,))
@@ -800,7 +800,7 @@ def test_min_area_is_inclusive_and_the_refusal_names_the_covered_share():
 
 
 def test_cameras_a_fraction_of_a_pixel_apart_stay_apart():
-    from ssgwarp.lens import Lens, plan_undistortion
+    from ssgwarp.capture.lens import Lens, plan_undistortion
 
     K = np.array([[F, 0, W0 / 2], [0, F, H0 / 2], [0, 0, 1.0]])
     K2 = K.copy()

@@ -1,5 +1,5 @@
 """The 3DGS photometric loss, ``(1 - lambda) L1 + lambda (1 - SSIM)`` with lambda = 0.2 (Kerbl et al. 2023),
-in ssgwarp.losses and in the callers that train with it (reconstruction, Stage 2 fine-tuning).
+in ssgwarp.services.losses and in the callers that train with it (reconstruction, Stage 2 fine-tuning).
 
 SSIM is recomputed here with kornia directly, and D-SSIM is pinned by a property that does not depend on
 the SSIM implementation: an image against its negative has SSIM ~ -1, so ``1 - SSIM`` ~ 2 (a halved term
@@ -10,11 +10,11 @@ import kornia
 import pytest
 import torch
 
-from ssgwarp.cameras import Cameras, intrinsics, look_at
-from ssgwarp.datasets import SceneData
-from ssgwarp.losses import dssim, photometric
-from ssgwarp.reconstruct import Recipe, Trainer, render_views
-from ssgwarp.scene import GaussianScene
+from ssgwarp.core.cameras import Cameras, intrinsics, look_at
+from ssgwarp.capture.datasets import SceneData
+from ssgwarp.services.losses import dssim, photometric
+from ssgwarp.reconstruction.reconstruct import Recipe, Trainer, render_views
+from ssgwarp.raster.scene import GaussianScene
 
 
 def _ssim(a, b):
@@ -47,7 +47,7 @@ def test_photometric_loss_weights():
 
 
 def test_stage2_finetune_loss_is_the_3dgs_loss():
-    from ssgwarp.stylize import finetune_loss
+    from ssgwarp.stylization.stylize import finetune_loss
 
     a, b = _images()
     want = 0.8 * (a - b).abs().mean() + 0.2 * (1.0 - _ssim(a, b))

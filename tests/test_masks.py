@@ -36,9 +36,9 @@ def _main(argv):
 
 def write_run(root: Path, scene, cams, images) -> Path:
     """A run folder (scene.ply, cameras.json, data.json) whose capture is ``images`` (transforms.json)."""
-    from ssgwarp.datasets import data_json, load_dataset
-    from ssgwarp.fileio import write_json
-    from ssgwarp.ply import write_ply
+    from ssgwarp.capture.datasets import data_json, load_dataset
+    from ssgwarp.core.fileio import write_json
+    from ssgwarp.capture.ply import write_ply
 
     P.write_transforms_dataset(root / "data", images, cams)
     data = load_dataset(root / "data")
@@ -98,7 +98,7 @@ def perturb(objects: torch.Tensor, seed: int, p_split=0.4, p_merge=0.3, p_drop=0
 def _ari_per_view_and_all(masks: torch.Tensor, objects: torch.Tensor) -> tuple[list[float], float]:
     """ARI of recovered masks against the true objects over the pixels an object covers (an ignored
     pixel, -1, counts as a label of its own, so it can only lower the score)."""
-    from ssgwarp.association import adjusted_rand_index
+    from ssgwarp.grouping.association import adjusted_rand_index
 
     keep = objects >= 0
     per_view = [adjusted_rand_index(masks[v][keep[v]], objects[v][keep[v]]) for v in range(len(objects))]
@@ -108,7 +108,7 @@ def _ari_per_view_and_all(masks: torch.Tensor, objects: torch.Tensor) -> tuple[l
 # ----------------------------------------------------------------------------- association
 
 def test_adjusted_rand_index():
-    from ssgwarp.association import adjusted_rand_index as ari
+    from ssgwarp.grouping.association import adjusted_rand_index as ari
 
     a = torch.tensor([0, 0, 1, 1, 2, 2])
     assert ari(a, a) == 1.0 and ari(a, torch.tensor([7, 7, 3, 3, 9, 9])) == 1.0    # renaming does not matter
@@ -124,8 +124,8 @@ def test_adjusted_rand_index():
 def test_blending_weight_sums_and_lifted_labels(truth):
     """gaussian_sums: the per-Gaussian weights of a view sum to its rendered alpha; lifting the true
     masks labels each seen Gaussian with its own object."""
-    from ssgwarp.association import UNSEEN, compact_masks, lift_masks
-    from ssgwarp.pseudomasks import gaussian_sums
+    from ssgwarp.grouping.association import UNSEEN, compact_masks, lift_masks
+    from ssgwarp.grouping.pseudomasks import gaussian_sums
 
     gt, cams, _, objects = truth
     ones = torch.ones(H, W, 1)
@@ -149,7 +149,7 @@ def test_blending_weight_sums_and_lifted_labels(truth):
 def test_association_recovers_instances_from_perturbed_masks(truth, seed):
     """Per-view masks renamed at random, split, merged, dropped, with specks: the association recovers
     the five objects, ARI >= 0.95 in every view and over all views together (consistent ids)."""
-    from ssgwarp.association import associate
+    from ssgwarp.grouping.association import associate
 
     gt, cams, _, objects = truth
     given = perturb(objects, seed)
@@ -169,7 +169,7 @@ def test_association_objects_seen_in_few_views_and_background(truth):
     """The cone is labelled in only three of the ten views that see it and the ground in none (its pixels
     unlabelled, as a segmenter that leaves stuff out): the cone is still an instance of its own, also in
     a neighbouring view that did not label it, and the ground is background."""
-    from ssgwarp.association import associate
+    from ssgwarp.grouping.association import associate
 
     gt, cams, _, objects = truth
     given = objects.clone()
@@ -192,9 +192,9 @@ def test_association_objects_seen_in_few_views_and_background(truth):
 
 def test_masks_command_associates_given_view_masks_and_group_trains_on_them(truth, tmp_path):
     """`ssgwarp masks RUN --view-masks DIR` → RUN/object_mask + masks.json; `ssgwarp group RUN` finds them."""
-    from ssgwarp.fileio import read_json
-    from ssgwarp.grouping import _read_id_image
-    from ssgwarp.masks import write_id_image
+    from ssgwarp.core.fileio import read_json
+    from ssgwarp.grouping.stage import _read_id_image
+    from ssgwarp.grouping.segment import write_id_image
 
     gt, cams, images, objects = truth
     run = write_run(tmp_path, gt.scene, cams, images)
@@ -231,14 +231,14 @@ def _fake_hf_cache(hf_home: Path) -> Path:
     tiny random SamModel as facebook/sam-vit-base. Returns the snapshot folder."""
     from fakeweights import _tree, hf_cache_entry, save_tiny_sam
 
-    from ssgwarp.weights import SPECS
+    from ssgwarp.services.weights import SPECS
 
     saved = save_tiny_sam(hf_home.parent / "tiny_sam", seed=0)
     return hf_cache_entry(hf_home / "hub", SPECS["sam"].repo, _tree(saved))
 
 
 def test_mask_filters_nms_and_painting():
-    from ssgwarp.masks import MaskConfig, mask_nms, paint_label_map, point_grid, select_masks, stability_scores
+    from ssgwarp.grouping.segment import MaskConfig, mask_nms, paint_label_map, point_grid, select_masks, stability_scores
 
     yy, xx = torch.meshgrid(torch.arange(32.0), torch.arange(32.0), indexing="ij")
     sharp = torch.where((xx < 16) & (yy < 16), 20.0, -20.0)                 # a square with sharp edges
@@ -269,8 +269,8 @@ def test_masks_command_with_tiny_sam_from_hf_cache(truth, tmp_path, monkeypatch,
     """A tiny random SamModel saved with save_pretrained in the Hugging Face cache layout, found offline
     through HF_HOME: `ssgwarp masks` segments every training view (batched prompts), associates, writes the
     layout; after Ctrl-C `--resume` segments only the views left; `group --joint` trains on the result."""
-    import ssgwarp.masks as M
-    from ssgwarp.fileio import read_json
+    import ssgwarp.grouping.segment as M
+    from ssgwarp.core.fileio import read_json
 
     gt, cams, images, objects = truth
     run = write_run(tmp_path, gt.scene, cams, images)
@@ -315,8 +315,8 @@ def test_masks_command_with_tiny_sam_from_hf_cache(truth, tmp_path, monkeypatch,
     code, _, err = _main([a if a != "6" else "5" for a in argv] + ["--resume"])
     assert code == 2 and "other settings" in err
     # joint training with the reconstruction takes them too
-    from ssgwarp.grouping import GroupConfig, group_scene
-    from ssgwarp.reconstruct import Recipe
+    from ssgwarp.grouping.stage import GroupConfig, group_scene
+    from ssgwarp.reconstruction.reconstruct import Recipe
 
     info = group_scene(run, joint=True, config=GroupConfig(dim=8), progress=False,
                        reconstruct_kwargs={"iters": 6, "recipe": Recipe(init_max_points=300)})
@@ -341,7 +341,7 @@ def reconstruction_like(gt, seed: int = 0, colour_noise: float = 0.2, floaters: 
     """The true Gaussians as a reconstruction leaves them: each colour off by N(0, colour_noise) (colours
     that compensate for each other where Gaussians overlap) and ``floaters`` times as many faint,
     randomly coloured Gaussians in the air."""
-    from ssgwarp.scene import GaussianScene, rgb_to_sh_dc
+    from ssgwarp.raster.scene import GaussianScene, rgb_to_sh_dc
 
     g = torch.Generator().manual_seed(seed)
     s = gt.scene
@@ -361,9 +361,9 @@ def test_mask_free_groups_separate_the_demo_objects(truth, tmp_path):
     the captured colour lifted onto the Gaussians finds the five objects (each in a group of its own,
     purity >= 0.95 of the group maps against the true objects); on the Gaussians' own colours it does not."""
     from ssgwarp.demo import group_agreement
-    from ssgwarp.grouping import GroupConfig, group_scene, load_groups, render_group_maps
-    from ssgwarp.ply import read_ply
-    from ssgwarp.pseudomasks import ClusterConfig, cluster_gaussians, render_label_masks
+    from ssgwarp.grouping.stage import GroupConfig, group_scene, load_groups, render_group_maps
+    from ssgwarp.capture.ply import read_ply
+    from ssgwarp.grouping.pseudomasks import ClusterConfig, cluster_gaussians, render_label_masks
 
     gt, cams, images, objects = truth
     noisy = reconstruction_like(gt)

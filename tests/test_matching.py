@@ -1,11 +1,11 @@
-"""Unit tests of ssgwarp.matching beside those of tests/test_stylize.py: defaults, messages, options passed on."""
+"""Unit tests of ssgwarp.stylization.matching beside those of tests/test_stylize.py: defaults, messages, options passed on."""
 from __future__ import annotations
 
 import pytest
 import torch
 
 from ssgwarp.errors import InputError
-from ssgwarp.matching import MatchTargets, downsample_labels, nnfm_loss
+from ssgwarp.stylization.matching import MatchTargets, downsample_labels, nnfm_loss
 
 
 def test_downsample_labels_defaults_to_the_majority_vote():
@@ -52,7 +52,7 @@ def test_downsample_labels_by_majority_per_cell_with_a_given_group_count():
 
 
 def test_search_dtype_auto_is_bf16_on_cuda_only():
-    from ssgwarp.matching import search_dtype
+    from ssgwarp.stylization.matching import search_dtype
 
     assert search_dtype("auto", "cuda") == search_dtype("auto", "cuda:0") == torch.bfloat16   # no GPU needed
     assert search_dtype("auto", "cpu", torch.float64) == torch.float64

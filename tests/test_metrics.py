@@ -6,7 +6,7 @@ import math
 import pytest
 import torch
 
-from ssgwarp import metrics as M
+from ssgwarp.evaluation import metrics as M
 from ssgwarp.errors import InputError, WeightsNotFound
 
 F_PX, W, H = 40.0, 32, 24
@@ -100,8 +100,8 @@ def test_reprojection_warp_masks_occlusions_and_low_alpha():
 
 def test_reprojection_warp_on_a_rendered_plane():
     """A perfectly consistent render (flat Gaussians on a plane) warps to ~0 error."""
-    from ssgwarp.cameras import Cameras
-    from ssgwarp.scene import GaussianScene
+    from ssgwarp.core.cameras import Cameras
+    from ssgwarp.raster.scene import GaussianScene
 
     g = torch.linspace(-2.2, 2.2, 34)
     gy, gx = torch.meshgrid(g * 0.75, g, indexing="ij")

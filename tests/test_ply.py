@@ -8,8 +8,8 @@ import torch
 from hypothesis import given, settings, strategies as st
 
 from ssgwarp.errors import InputError
-from ssgwarp.ply import field_names, read_ply, write_ply
-from ssgwarp.scene import GaussianScene
+from ssgwarp.capture.ply import field_names, read_ply, write_ply
+from ssgwarp.raster.scene import GaussianScene
 
 
 def _scene(n=50, degree=2, identities=0, seed=0):

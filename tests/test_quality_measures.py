@@ -10,15 +10,15 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from ssgwarp import metrics as M
-from ssgwarp.losses import psnr, ssim
+from ssgwarp.evaluation import metrics as M
+from ssgwarp.services.losses import psnr, ssim
 
 C1, C2 = 0.01 ** 2, 0.03 ** 2       # SSIM's stabilisers for images in [0, 1] (K1 = 0.01, K2 = 0.03)
 
 
 def ssim_numpy(a: np.ndarray, b: np.ndarray, window: int = 11, sigma: float = 1.5) -> float:
     """Mean SSIM of ``[H, W, C]`` images: Gaussian window (sigma 1.5) applied separably with reflect
-    padding (the convention ``ssgwarp.losses.ssim`` documents), local means, variances and covariance,
+    padding (the convention ``ssgwarp.services.losses.ssim`` documents), local means, variances and covariance,
     ``(2 mu_a mu_b + C1)(2 s_ab + C2) / ((mu_a^2 + mu_b^2 + C1)(s_a^2 + s_b^2 + C2))``."""
     r = window // 2
     k = np.exp(-((np.arange(window) - r) ** 2) / (2 * sigma ** 2))

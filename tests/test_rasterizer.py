@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from ssgwarp import rasterization
-from ssgwarp.cameras import intrinsics, look_at
+from ssgwarp.core.cameras import intrinsics, look_at
 
 from conftest import assert_close_elementwise
 
@@ -127,8 +127,8 @@ def test_many_channels_split_in_chunks():
 
 
 def test_sh_kernel_matches_torch():
-    from ssgwarp.ops import spherical_harmonics_warp
-    from ssgwarp.sh import spherical_harmonics
+    from ssgwarp.raster.ops import spherical_harmonics_warp
+    from ssgwarp.raster.sh import spherical_harmonics
 
     g = torch.Generator().manual_seed(0)
     for deg in range(4):

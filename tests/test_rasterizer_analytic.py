@@ -1,4 +1,4 @@
-"""The rasterizer against hand-derived values, independent of ``ssgwarp/reference.py``.
+"""The rasterizer against hand-derived values, independent of ``ssgwarp/raster/reference.py``.
 
 Every expectation here is computed in the test from the formulas of 3D Gaussian splatting (numpy,
 float64): one Gaussian's image, its 2D covariance ``J Sigma J^T + eps2d I`` (sigma = f s / z on the
@@ -386,8 +386,8 @@ def test_every_projection_entry_point_defaults_to_gsplats_eps2d():
     call's default is measured from images above; the others must not drift from it)."""
     import inspect
 
-    from ssgwarp.ops import project_warp
-    from ssgwarp.reference import project_reference
+    from ssgwarp.raster.ops import project_warp
+    from ssgwarp.raster.reference import project_reference
 
     for fn in (rasterization, project_reference, project_warp):
         assert inspect.signature(fn).parameters["eps2d"].default == 0.3, fn.__qualname__

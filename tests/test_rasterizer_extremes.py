@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from ssgwarp import RasterSettings, rasterization
-from ssgwarp.cameras import intrinsics
+from ssgwarp.core.cameras import intrinsics
 
 from conftest import assert_close_elementwise
 from test_rasterizer import GRAD_NAMES, assert_match, make_cameras, make_scene, run_both
@@ -407,7 +407,7 @@ def test_bad_cameras_and_modes():
 
 
 def test_intersection_overflow_is_a_clear_error(monkeypatch):
-    import ssgwarp.ops as ops
+    import ssgwarp.raster.ops as ops
 
     params, vm, K = _good()
     monkeypatch.setattr(ops, "INT32_MAX", 8)

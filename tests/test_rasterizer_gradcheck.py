@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from ssgwarp import RasterSettings, rasterization
-from ssgwarp.cameras import intrinsics
+from ssgwarp.core.cameras import intrinsics
 
 EXACT = RasterSettings.exact()
 F64 = torch.float64
@@ -80,7 +80,7 @@ def test_gradcheck_antialiased_expected_depth():
 def test_gradcheck_blending_to_means2d():
     """The blending op alone: gradients to the screen-space means (the densification statistic),
     conics, colours, opacities and backgrounds, for two cameras."""
-    from ssgwarp import ops
+    from ssgwarp.raster import ops
 
     g = torch.Generator().manual_seed(11)
     C, N, D = 2, 4, 2

@@ -1,10 +1,10 @@
-"""The rasterizer's launch layer (ssgwarp/launch.py) and the op paths it serves: replayed launches equal
+"""The rasterizer's launch layer (ssgwarp/raster/launch.py) and the op paths it serves: replayed launches equal
 to Warp's own, per-camera inputs, partial gradients, and (on CUDA) torch's current stream."""
 import pytest
 import torch
 import warp as wp
 
-import ssgwarp.launch as L
+import ssgwarp.raster.launch as L
 from ssgwarp import RasterSettings, rasterization
 
 from test_rasterizer import assert_match, make_cameras, make_scene, run_both
@@ -180,7 +180,7 @@ def test_cuda_float64_matches_reference(sh):
 def test_tile_size_default_per_device():
     """Without ``tile_size`` the CPU uses 8 (measured faster than gsplat's 16 there), CUDA keeps 16;
     under the default rules the image is the same at both."""
-    from ssgwarp.rasterize import DEFAULT_TILE_SIZE
+    from ssgwarp.raster.rasterize import DEFAULT_TILE_SIZE
 
     assert DEFAULT_TILE_SIZE == {"cuda": 16, "cpu": 8}
     params = make_scene(120, dtype=torch.float32, seed=7)

@@ -222,7 +222,7 @@ def test_incoming_gradients_of_any_layout_give_the_same_gradients():
     a broadcast gradient (``.sum()``: stride 0) and a column-strided one (a transposed tensor) give the
     gradients of the same gradient made contiguous, for the SH op and for a loss on the projected
     Gaussians of ``meta`` (means2d, depths, conics, opacities)."""
-    from ssgwarp.ops import spherical_harmonics_warp
+    from ssgwarp.raster.ops import spherical_harmonics_warp
 
     g = torch.Generator().manual_seed(5)
     dirs = torch.randn(2, 30, 3, generator=g, dtype=torch.float64)
@@ -263,7 +263,7 @@ def test_backward_launch_blocks_by_device_and_tile_size():
     """``backward_blocks(tile_size, deterministic, cpu) -> (per_warp, block_dim)`` by hand: deterministic, one
     block per tile; CPU, one pixel per block; CUDA, the largest multiple of 32 up to 256 dividing the tile's
     pixels, summed per warp, or one tile row per block when the tile is not whole warps."""
-    from ssgwarp.ops import backward_blocks
+    from ssgwarp.raster.ops import backward_blocks
 
     assert backward_blocks(16, True, False) == (False, 256) and backward_blocks(8, True, True) == (False, 64)
     assert backward_blocks(16, False, True) == (True, 1)

@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 import torch
 
-from ssgwarp.cameras import Cameras, intrinsics, look_at
-from ssgwarp.datasets import SceneData, load_dataset, load_run
+from ssgwarp.core.cameras import Cameras, intrinsics, look_at
+from ssgwarp.capture.datasets import SceneData, load_dataset, load_run
 from ssgwarp.errors import InputError, SsgwarpError
-from ssgwarp.reconstruct import Recipe, Trainer
-from ssgwarp.scene import GaussianScene
+from ssgwarp.reconstruction.reconstruct import Recipe, Trainer
+from ssgwarp.raster.scene import GaussianScene
 
 from conftest import SHARED_DATA as DATA
 needs_fern = pytest.mark.skipif(not (DATA / "llff_fern").is_dir(), reason="shared data not present")
@@ -182,8 +182,8 @@ def test_nan_stops_with_the_step_and_keeps_the_last_checkpoint(tmp_path):
 
 
 def _write_tiny_colmap(root: Path):
-    from ssgwarp.colmap import ColmapCamera, ColmapImage, ColmapPoints, rotmat_to_qvec, write_model_text
-    from ssgwarp.fileio import write_image
+    from ssgwarp.capture.colmap import ColmapCamera, ColmapImage, ColmapPoints, rotmat_to_qvec, write_model_text
+    from ssgwarp.core.fileio import write_image
 
     rng = np.random.default_rng(0)
     cams = {1: ColmapCamera(1, "SIMPLE_PINHOLE", 24, 18, np.array([20.0, 12.0, 9.0]))}
@@ -204,7 +204,7 @@ def _write_tiny_colmap(root: Path):
 
 def test_cli_reconstruct_writes_the_run_contract_and_refuses_to_overwrite(tmp_path, monkeypatch, capsys):
     from ssgwarp import cli
-    from ssgwarp.ply import read_ply
+    from ssgwarp.capture.ply import read_ply
 
     for var in ("SSGWARP_LPIPS", "SSGWARP_VGG16", "SSGWARP_WEIGHTS"):
         monkeypatch.delenv(var, raising=False)
@@ -260,7 +260,7 @@ def test_cli_reconstruct_writes_the_run_contract_and_refuses_to_overwrite(tmp_pa
 
 
 def test_smooth_path_through_cameras():
-    from ssgwarp.render import smooth_path
+    from ssgwarp.evaluation.render import smooth_path
 
     n = 10
     ang = torch.linspace(0, 2 * math.pi, n + 1)[:-1]
@@ -315,7 +315,7 @@ def test_initial_gaussians_from_a_dense_random_cloud_are_narrower():
     the cloud kept at that of 2000 points); a reconstructed cloud keeps the 3DGS start."""
     from dataclasses import replace
 
-    from ssgwarp.scene import knn_mean_distance
+    from ssgwarp.raster.scene import knn_mean_distance
 
     g = torch.Generator().manual_seed(0)
     xyz, rgb = torch.randn(4000, 3, generator=g), torch.rand(4000, 3, generator=g)

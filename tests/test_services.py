@@ -1,5 +1,5 @@
-"""The shared services: the run folder (ssgwarp.runs), rendering (ssgwarp.rendering) and the
-checkpointed loop (ssgwarp.loop), each tested on its own policy."""
+"""The shared services: the run folder (ssgwarp.services.runs), rendering (ssgwarp.raster.rendering) and the
+checkpointed loop (ssgwarp.services.loop), each tested on its own policy."""
 from __future__ import annotations
 
 import signal
@@ -8,14 +8,14 @@ import pytest
 import torch
 
 from ssgwarp import rasterization
-from ssgwarp.cameras import Cameras
+from ssgwarp.core.cameras import Cameras
 from ssgwarp.errors import InputError, SsgwarpError
-from ssgwarp.fileio import write_json
-from ssgwarp.loop import Diverged, Loop, check_finite
-from ssgwarp.ply import write_ply
-from ssgwarp.rendering import gaussian_colors, render, render_views
-from ssgwarp.runs import Run, claim
-from ssgwarp.scene import GaussianScene
+from ssgwarp.core.fileio import write_json
+from ssgwarp.services.loop import Diverged, Loop, check_finite
+from ssgwarp.capture.ply import write_ply
+from ssgwarp.raster.rendering import gaussian_colors, render, render_views
+from ssgwarp.services.runs import Run, claim
+from ssgwarp.raster.scene import GaussianScene
 
 
 def _scene(n=30, degree=1, ids=0, seed=0) -> GaussianScene:

@@ -8,10 +8,10 @@ import math
 import pytest
 import torch
 
-from ssgwarp.cameras import Cameras, intrinsics, look_at
-from ssgwarp.reconstruct import Recipe
-from ssgwarp.scene import GaussianScene
-from ssgwarp.strategy import (REFERENCE_ITERS, DefaultStrategy, GaussianParams, MCMCStrategy, Schedule,
+from ssgwarp.core.cameras import Cameras, intrinsics, look_at
+from ssgwarp.reconstruction.reconstruct import Recipe
+from ssgwarp.raster.scene import GaussianScene
+from ssgwarp.reconstruction.strategy import (REFERENCE_ITERS, DefaultStrategy, GaussianParams, MCMCStrategy, Schedule,
                               accumulate_grad2d, make_strategy, relocation, scaled_schedule)
 from ssgwarp.errors import InputError
 
@@ -202,7 +202,7 @@ def _two_views(w=8, h=6):
 def test_gradient_statistics_by_hand():
     """Three Gaussians, two 8x6 views: A at the origin (seen by both), B just in front of view 0 and
     outside view 1, C behind view 0 and outside view 1. A loss linear in means2d fixes its gradient."""
-    from ssgwarp.rasterize import rasterization
+    from ssgwarp.raster.rasterize import rasterization
 
     cams = _two_views()
     means = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, -2.5], [0.0, 0.0, -5.0]], requires_grad=True)

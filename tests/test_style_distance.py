@@ -1,4 +1,4 @@
-"""Weight-free style distances (ssgwarp.metrics): sliced Wasserstein hand cases, the filter bank, StyleDistance."""
+"""Weight-free style distances (ssgwarp.evaluation.metrics): sliced Wasserstein hand cases, the filter bank, StyleDistance."""
 from __future__ import annotations
 
 import math
@@ -6,7 +6,7 @@ import math
 import pytest
 import torch
 
-from ssgwarp.metrics import (StyleDistance, filter_responses, projections, sliced_wasserstein, texture_levels,
+from ssgwarp.evaluation.metrics import (StyleDistance, filter_responses, projections, sliced_wasserstein, texture_levels,
                              wasserstein_1d_sorted)
 
 

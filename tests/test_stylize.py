@@ -5,12 +5,12 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from ssgwarp import stylize as st
-from ssgwarp.cameras import Cameras, intrinsics, look_at
+from ssgwarp.stylization import stylize as st
+from ssgwarp.core.cameras import Cameras, intrinsics, look_at
 from ssgwarp.errors import InputError
-from ssgwarp.features import RandomMultiScale
-from ssgwarp.matching import MatchTargets, downsample_labels, match_mask, nearest_neighbors, nnfm_loss
-from ssgwarp.scene import GaussianScene, rgb_to_sh_dc
+from ssgwarp.services.features import RandomMultiScale
+from ssgwarp.stylization.matching import MatchTargets, downsample_labels, match_mask, nearest_neighbors, nnfm_loss
+from ssgwarp.raster.scene import GaussianScene, rgb_to_sh_dc
 
 RED, BLUE = (0.9, 0.1, 0.1), (0.1, 0.1, 0.9)
 
@@ -273,8 +273,8 @@ def _write_run(tmp_path, grouped: bool = True):
     """A tiny reconstruction run folder (scene.ply, cameras.json, data.json, groups/) and a style image."""
     import json
 
-    from ssgwarp.fileio import write_image
-    from ssgwarp.ply import write_ply
+    from ssgwarp.core.fileio import write_image
+    from ssgwarp.capture.ply import write_ply
 
     scene, obj = two_objects(n=60)
     run = tmp_path / "run"
@@ -306,7 +306,7 @@ def test_cli_stylize_end_to_end_without_stage1_weights(tmp_path, monkeypatch, ca
     import json
 
     from ssgwarp.cli import main
-    from ssgwarp.ply import read_ply
+    from ssgwarp.capture.ply import read_ply
 
     for var in ("SSGWARP_WEIGHTS", "SSGWARP_SD15", "SSGWARP_CONTROLNET_DEPTH", "SSGWARP_IP_ADAPTER",
                 "SSGWARP_IMAGE_ENCODER", "SSGWARP_VGG16"):
@@ -357,8 +357,8 @@ def test_stylize_with_tiny_stage1_runs_ist_on_the_stylized_key_views(tmp_path, m
 
     pytest.importorskip("diffusers")
     from fakeweights import random_stage1_components
-    from ssgwarp.diffusion import Stage1Config, assemble_stage1
-    from ssgwarp.keyviews import load_keyviews
+    from ssgwarp.stylization.diffusion import Stage1Config, assemble_stage1
+    from ssgwarp.stylization.keyviews import load_keyviews
 
     for var in ("SSGWARP_WEIGHTS", "SSGWARP_SD15"):
         monkeypatch.delenv(var, raising=False)
@@ -426,7 +426,7 @@ def test_stage2_total_loss_equals_its_equation_by_hand():
 def test_sliced_style_loss_by_hand_and_per_group():
     """SW term: a view whose features are the keys permuted -> 0; scaled by 2 -> exactly 1 for any
     directions (sorting commutes with scaling); per group, an absent group uses all keys (fallback)."""
-    from ssgwarp.matching import SlicedTargets
+    from ssgwarp.stylization.matching import SlicedTargets
 
     g = torch.Generator().manual_seed(0)
     keys = torch.randn(1, 6, 4, 5, generator=g, dtype=torch.float64)            # [V, C, h, w]
@@ -482,7 +482,7 @@ def test_weight_free_default_moves_the_scene_toward_its_style(tmp_path):
     x0.77, texture x0.93; the previous default (NNFM on the same features, no colour transfer) x0.84,
     x0.96. Asserted with about half of those margins, and better than the previous default.
     """
-    from ssgwarp.fileio import write_image
+    from ssgwarp.core.fileio import write_image
     from ssgwarp.procedural import style_image
 
     run, _ = _write_run(tmp_path)
@@ -506,9 +506,9 @@ def test_default_zeroes_the_view_dependent_bands_and_lowers_the_consistency_erro
     between views is lower. Measured here (2026-11-23, CPU, 6 steps): short 0.0195 vs 0.0291
     (x0.67), long 0.0549 vs 0.0691 (x0.79); colour distance to the style 12.3 (unstylized 17.2).
     Asserted with about half of those margins."""
-    from ssgwarp.evaluate import EvalOptions, consistency, render_views
-    from ssgwarp.imaging import fit_style
-    from ssgwarp.metrics import StyleDistance
+    from ssgwarp.evaluation.evaluate import EvalOptions, consistency, render_views
+    from ssgwarp.core.imaging import fit_style
+    from ssgwarp.evaluation.metrics import StyleDistance
 
     assert st.Stage2Config().sh_rest == "zero"
     scene, _ = two_objects(n=50)
@@ -542,7 +542,7 @@ def test_default_zeroes_the_view_dependent_bands_and_lowers_the_consistency_erro
 def test_fit_style_scales_the_style_to_the_views_shorter_side_keeping_its_aspect():
     """The one rule Stage 2's global targets, the Gram loss and the style distance use
     (``[1, 3, h, w]``; Stage 2 permutes it to ``[1, h, w, 3]``)."""
-    from ssgwarp.imaging import fit_style
+    from ssgwarp.core.imaging import fit_style
 
     style = torch.rand(100, 300, 3)
     assert fit_style(style, 24, 32).shape == (1, 3, 24, 72)        # shorter side 24, aspect 3:1 kept
@@ -556,7 +556,7 @@ def test_fit_style_scales_the_style_to_the_views_shorter_side_keeping_its_aspect
 def test_content_loss_relative_is_the_feature_mse_over_the_references_mean_square():
     """One content loss: absolute for the metric, ``relative=True`` for Stage 2's term (so a weight
     means the same for every extractor): by hand on two layers."""
-    from ssgwarp.metrics import content_loss
+    from ssgwarp.evaluation.metrics import content_loss
 
     f = [torch.full((2, 1, 2, 2), 3.0), torch.full((2, 4, 1, 1), 1.0)]
     r = [torch.full((2, 1, 2, 2), 1.0), torch.full((2, 4, 1, 1), 2.0)]

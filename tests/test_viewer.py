@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 import torch
 
-from ssgwarp.cameras import Cameras, intrinsics, look_at
+from ssgwarp.core.cameras import Cameras, intrinsics, look_at
 from ssgwarp.errors import InputError, SsgwarpError
-from ssgwarp.palette import palette
-from ssgwarp.scene import GaussianScene, rgb_to_sh_dc
+from ssgwarp.core.palette import palette
+from ssgwarp.raster.scene import GaussianScene, rgb_to_sh_dc
 
 
 def _import_viewer():
@@ -134,7 +134,7 @@ def test_groups_from_classifier_labels_and_identity_fallback(tmp_path):
     assert np.array_equal(info.labels, labels) and "argmax" in info.source
     assert info.counts().tolist() == [PER] * K
     # a classifier that permutes channels -> groups: the viewer must use it, not the argmax
-    grouping = pytest.importorskip("ssgwarp.grouping")
+    grouping = pytest.importorskip("ssgwarp.grouping.stage")
     perm = [2, 0, 1]
     lin = torch.nn.Linear(K, K)
     with torch.no_grad():
@@ -309,7 +309,7 @@ def test_screenshot_api_writes_the_file(scene, tmp_path):
     out = tmp_path / "api.png"
     img = viewer.screenshot(sc, out, labels=labels, cameras=make_cameras(), keyviews=[0], view="cam_a",
                             render_view="cam_b", window_size=SIZE)
-    from ssgwarp.fileio import read_image
+    from ssgwarp.core.fileio import read_image
 
     assert out.is_file() and img.shape == (SIZE[1], SIZE[0], 3)
     assert np.abs(read_image(out, 3) * 255 - img).max() <= 1
@@ -322,9 +322,9 @@ def test_screenshot_api_writes_the_file(scene, tmp_path):
 
 @needs_gl
 def test_cli_screenshot_is_written(tmp_path, capsys):
-    ply = pytest.importorskip("ssgwarp.ply")
+    ply = pytest.importorskip("ssgwarp.capture.ply")
     from ssgwarp.cli import main
-    from ssgwarp.fileio import read_image
+    from ssgwarp.core.fileio import read_image
 
     sc, labels = make_scene(identities=True)
     run = tmp_path / "run"
@@ -356,7 +356,7 @@ def test_bad_ply_gives_a_clear_error(tmp_path, capsys):
     assert main(["view", str(tmp_path / "missing.ply")]) == 2
     assert "not found" in capsys.readouterr().err
 
-    pytest.importorskip("ssgwarp.ply")
+    pytest.importorskip("ssgwarp.capture.ply")
     plain = tmp_path / "points.ply"                    # a valid PLY, but a plain point cloud
     plain.write_text("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
                      "property float z\nend_header\n0 0 0\n1 1 1\n")

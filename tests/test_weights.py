@@ -1,4 +1,4 @@
-"""ssgwarp.weights: resolution order, the Hugging Face / torch hub caches in their real layouts, offline
+"""ssgwarp.services.weights: resolution order, the Hugging Face / torch hub caches in their real layouts, offline
 behaviour, downloads (mocked at the libraries' boundary: never the network), corrupt files, `ssgwarp weights`,
 and `ssgwarp stylize` running Stage 1 + Stage 2 from fake caches alone."""
 from __future__ import annotations
@@ -12,7 +12,7 @@ import torch
 
 from fakeweights import (copy_tree, fake_hf_cache, fake_torch_hub, hf_cache_entry, random_stage1_components,
                          save_stage1, save_tiny_sam, vgg16_state)
-from ssgwarp import weights as W
+from ssgwarp.services import weights as W
 from ssgwarp.cli import main
 from ssgwarp.errors import InputError, WeightsNotFound
 
@@ -213,7 +213,7 @@ def test_download_only_when_allowed_and_asked_for_the_right_files(caches, tmp_pa
 
 
 def test_failed_download_falls_back_once_with_one_line(tmp_path, monkeypatch, capsys):
-    from ssgwarp.features import load_extractor
+    from ssgwarp.services.features import load_extractor
 
     hub = FakeHub(monkeypatch, tmp_path, fail=OSError("[Errno -2] Name or service not known"))
     use(monkeypatch, tmp_path, online=True)
@@ -226,7 +226,7 @@ def test_failed_download_falls_back_once_with_one_line(tmp_path, monkeypatch, ca
     with pytest.raises(WeightsNotFound, match="no network"):   # later models do not wait on the network again
         W.require("sd15")
     assert len(hub.calls) == n
-    from ssgwarp.diffusion import Stage1Config, missing_weights
+    from ssgwarp.stylization.diffusion import Stage1Config, missing_weights
     assert len(missing_weights(Stage1Config())) == 4 and len(hub.calls) == n
 
 
@@ -271,9 +271,9 @@ def test_interrupted_or_wrong_download_leaves_nothing_behind(tmp_path, monkeypat
 
 
 def test_corrupt_or_truncated_files_are_clear_errors(caches, tmp_path, monkeypatch):
-    from ssgwarp.diffusion import Stage1Config, load_stage1
-    from ssgwarp.features import load_extractor
-    from ssgwarp.metrics import load_raft
+    from ssgwarp.stylization.diffusion import Stage1Config, load_stage1
+    from ssgwarp.services.features import load_extractor
+    from ssgwarp.evaluation.metrics import load_raft
 
     root = copy_tree(caches, tmp_path / "c")
     use(monkeypatch, root)

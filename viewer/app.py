@@ -4,7 +4,7 @@ The cloud is drawn as flat discs sized by each Gaussian's scale (radius =
 ``sigma`` x the geometric mean of its three standard deviations) or, for a
 subsample, as oriented ellipsoids (semi-axes ``sigma`` x scales). Colouring is
 the degree-0 SH colour, the group label (the palette of
-:mod:`ssgwarp.palette`, shared with the group-map renders, with a legend of
+:mod:`ssgwarp.core.palette`, shared with the group-map renders, with a legend of
 group ids and Gaussian counts) or the opacity. Camera frustums are drawn with
 the key views highlighted; the splat image of the selected camera, rendered by
 our rasterizer, can be shown beside the cloud.
@@ -31,11 +31,11 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
-from ssgwarp.cameras import Cameras
+from ssgwarp.core.cameras import Cameras
 from ssgwarp.errors import InputError, SsgwarpError
-from ssgwarp.fileio import write_image
-from ssgwarp.palette import palette
-from ssgwarp.scene import GaussianScene
+from ssgwarp.core.fileio import write_image
+from ssgwarp.core.palette import palette
+from ssgwarp.raster.scene import GaussianScene
 
 from . import geometry
 from .data import (GroupInfo, as_numpy, camera_index, finite_mask, load_cameras, load_scene, resolve_groups,

@@ -1,7 +1,7 @@
 """What the viewer shows, gathered from a run directory: scene, group labels, cameras, key views.
 
 No VTK here: these functions turn files and flags into numpy arrays and
-:class:`ssgwarp.cameras.Cameras`, with one-line :class:`InputError` messages
+:class:`ssgwarp.core.cameras.Cameras`, with one-line :class:`InputError` messages
 for anything a user can get wrong.
 """
 from __future__ import annotations
@@ -13,12 +13,12 @@ from typing import Iterable, Optional, Sequence
 import numpy as np
 import torch
 
-from ssgwarp.cameras import Cameras
+from ssgwarp.core.cameras import Cameras
 from ssgwarp.errors import InputError, SsgwarpError
-from ssgwarp.fileio import read_json
-from ssgwarp.grouping_model import gaussian_groups, load_groups
-from ssgwarp.ply import read_ply
-from ssgwarp.scene import GaussianScene
+from ssgwarp.core.fileio import read_json
+from ssgwarp.grouping.model import gaussian_groups, load_groups
+from ssgwarp.capture.ply import read_ply
+from ssgwarp.raster.scene import GaussianScene
 
 
 @dataclass
@@ -117,7 +117,7 @@ def resolve_groups(scene: GaussianScene, *, labels=None, scene_dir: str | Path |
 
     Order: ``labels`` given (array, tensor or a path to ``.npy``) → the
     grouping classifier in ``scene_dir/groups/`` applied to the scene's
-    identity encodings (``ssgwarp.grouping.gaussian_groups``) → the argmax of
+    identity encodings (``ssgwarp.grouping.stage.gaussian_groups``) → the argmax of
     the identity channels (an approximation, said so in ``source``) → None
     (a scene that was never grouped).
     """

@@ -1,4 +1,4 @@
-"""Geometry the viewer draws, as plain numpy (no VTK here; rotations from :mod:`ssgwarp.geometry`).
+"""Geometry the viewer draws, as plain numpy (no VTK here; rotations from :mod:`ssgwarp.core.geometry`).
 
 Everything is float64 numpy; meshes come back as ``(points, cells)`` with
 ``cells`` in VTK's flat connectivity layout (``[n, i0, ..., i{n-1}, n, ...]``)
@@ -10,12 +10,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ssgwarp import geometry
+from ssgwarp.core import geometry
 
 
 def quat_to_rotmat(quats: np.ndarray) -> np.ndarray:
     """``[N, 4]`` wxyz quaternions (any norm) → ``[N, 3, 3]`` rotation matrices
-    (:func:`ssgwarp.geometry.quat_to_rotmat`). A zero quaternion gives the identity.
+    (:func:`ssgwarp.core.geometry.quat_to_rotmat`). A zero quaternion gives the identity.
     """
     q = np.asarray(quats, dtype=np.float64)
     norm = np.linalg.norm(q, axis=1, keepdims=True)

@@ -2,10 +2,10 @@
 
     pip install "mutmut>=3.8,<4"
     python tests/tools/mutation.py                      # the "data" suite: losses, cameras, lens, datasets
-    python tests/tools/mutation.py losses lens          # some modules (each runs in its suite)
-    python tests/tools/mutation.py rasterize ops        # the "op" suite (the Python side of the rasterizer)
-    python tests/tools/mutation.py datasets --functions _split _evenly "SceneData.*"   # some functions of one
-    python tests/tools/mutation.py --retest lens        # the survivors and timeouts again (after adding tests)
+    python tests/tools/mutation.py services.losses capture.lens          # some modules (each runs in its suite)
+    python tests/tools/mutation.py raster.rasterize raster.ops        # the "op" suite (the Python side of the rasterizer)
+    python tests/tools/mutation.py capture.datasets --functions _split _evenly "SceneData.*"   # some functions of one
+    python tests/tools/mutation.py --retest capture.lens        # the survivors and timeouts again (after adding tests)
     python tests/tools/mutation.py --report --survivors # the table of the results so far, and every survivor's diff
 
 Each suite (:data:`SUITES`: modules and the tests that exercise them) runs in its own copy of the
@@ -40,14 +40,14 @@ ROOT = Path(__file__).resolve().parents[2]
 WORK = ROOT / ".mutation"
 # suite -> the modules it mutates (in the order they run) and the tests run against them
 SUITES = {
-    "data": (("losses", "cameras", "lens", "datasets"),
+    "data": (("services.losses", "core.cameras", "capture.lens", "capture.datasets"),
              ("tests/test_losses.py", "tests/test_quality_measures.py", "tests/test_cameras.py", "tests/test_lens.py",
               "tests/test_datasets.py", "tests/test_colmap.py")),
-    "op": (("rasterize", "ops"),
+    "op": (("raster.rasterize", "raster.ops"),
            ("tests/test_rasterizer.py", "tests/test_rasterizer_analytic.py", "tests/test_rasterizer_options.py",
             "tests/test_rasterizer_extremes.py", "tests/test_rasterizer_gradcheck.py", "tests/test_rasterizer_launch.py",
             "tests/test_cuda.py")),
-    "matching": (("matching",), ("tests/test_stylize.py", "tests/test_matching.py")),
+    "matching": (("stylization.matching",), ("tests/test_stylize.py", "tests/test_matching.py")),
 }
 SUITE_OF = {m: s for s, (mods, _) in SUITES.items() for m in mods}
 # mutmut's exit codes (mutmut/stats.py)
@@ -60,7 +60,7 @@ def _mutmut_settings(suite: str) -> str:
     return "\n".join([
         "", "[tool.mutmut]  # written by tests/tools/mutation.py",
         'source_paths = ["ssgwarp/"]',
-        f"only_mutate = {json.dumps([f'ssgwarp/{m}.py' for m in mods])}",
+        f"only_mutate = {json.dumps([Path('ssgwarp', *m.split('.')).as_posix() + '.py' for m in mods])}",
         f"pytest_add_cli_args_test_selection = {json.dumps(list(tests))}",
         'pytest_add_cli_args = ["-p", "no:cacheprovider", "-q"]',
         'process_isolation = "forkserver"',
@@ -97,7 +97,7 @@ def _mangled(module: str, function: str) -> str:
 
 def results(module: str) -> dict[str, str]:
     """``mutant name -> status`` of ``ssgwarp/<module>.py`` from mutmut's record (empty if never run)."""
-    meta = WORK / SUITE_OF[module] / "mutants" / "ssgwarp" / f"{module}.py.meta"
+    meta = WORK / SUITE_OF[module] / "mutants" / "ssgwarp" / f"{module.replace('.', '/')}.py.meta"
     if not meta.is_file():
         return {}
     codes = json.loads(meta.read_text())["exit_code_by_key"]
@@ -109,7 +109,7 @@ def row(module: str) -> dict:
     c = Counter(r.values())
     n = len(r)
     detected = c["killed"] + c["timeout"]
-    return {"module": module, "file": f"ssgwarp/{module}.py", "mutants": n, "killed": c["killed"],
+    return {"module": module, "file": f"ssgwarp/{module.replace('.', '/')}.py", "mutants": n, "killed": c["killed"],
             "survived": c["survived"], "timeout": c["timeout"], "no_tests": c["no tests"],
             "not_checked": c["not checked"],
             "other": n - sum(c[k] for k in ("killed", "survived", "timeout", "no tests", "not checked")),

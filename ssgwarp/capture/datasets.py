@@ -1,0 +1,327 @@
+"""Captures in: COLMAP models, LLFF ``poses_bounds.npy`` and NeRF / instant-ngp ``transforms*.json``.
+
+:func:`load_dataset` auto-detects the layout of a data folder and returns a
+:class:`SceneData`: cameras in our convention (OpenCV axes, world-to-camera,
+intrinsics at the loaded resolution), the images as one float32 tensor, a
+train/test split, and initial points for the Gaussians. :func:`load_run` reads
+a reconstruction run directory back (scene + the data it was trained on; the run folder as a
+whole is :class:`ssgwarp.services.runs.Run`). The readers of the layouts are in :mod:`ssgwarp.capture.formats`.
+
+Layouts, checked in this order:
+
+* ``transforms.json`` or ``transforms_train.json`` (NeRF synthetic, instant-ngp):
+  ``camera_angle_x`` (and optional ``camera_angle_y``) or ``fl_x/fl_y/cx/cy``
+  (top level or per frame), optional ``k1 k2 k3 p1 p2`` (or fisheye ``k1..k4`` with
+  ``is_fisheye`` / ``camera_model: OPENCV_FISHEYE``); ``transform_matrix`` is
+  camera-to-world in OpenGL axes (x right, y up, z back) and is converted.
+  RGBA images are composited over ``background``. ``transforms_test.json``,
+  when present, provides the held-out views (the dataset's own split).
+* COLMAP: ``sparse/0`` (or ``sparse``, or the folder itself) with
+  ``cameras`` and ``images`` (``.bin`` or ``.txt``); ``points3D`` gives the
+  initial points. Every distorted model of :mod:`ssgwarp.capture.lens` is supported.
+* LLFF: ``poses_bounds.npy`` ``[N, 17]``: camera-to-world 3x4 in
+  [down, right, back] axes, a column ``[H, W, focal]`` at full capture
+  resolution (the focal is scaled to the loaded width) and near/far bounds.
+  Initial points from ``sparse/0/points3D.bin`` when present, otherwise random
+  points inside the near/far bounds of the views. When ``sparse/0/cameras``
+  holds a single distorted camera with the poses' focal, its distortion is
+  removed too.
+
+Distorted images become pinhole images in which every pixel has a source
+(:func:`ssgwarp.capture.lens.plan_undistortion`: the largest crop of the undistorted
+frame, focal lengths kept, one size for all cameras), at the image folder's own
+resolution and before any ``width`` resize; ``SceneData.undistortion`` (and
+``data.json``) record what was done.
+
+All image I/O goes through :mod:`ssgwarp.core.fileio` (OpenImageIO).
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Optional, Sequence
+
+import torch
+
+from ..core.cameras import Cameras
+from .formats import (  # noqa: F401 (re-exported: part of this module's API)
+    IMAGE_EXTS, LOADERS, focus_point, missing_images_error, random_points_in_frusta, resize_images)
+from .colmap import find_model
+from ..errors import InputError
+from ..core.fileio import read_json
+from .ply import read_ply
+
+log = logging.getLogger("ssgwarp.capture.datasets")
+
+
+
+@dataclass
+class SceneData:
+    """A capture ready for training.
+
+    Attributes:
+        cameras: all C cameras at the loaded resolution (undistorted pinhole).
+        images: ``[C, H, W, 3]`` float32 in [0, 1] (RGBA composited on ``background``).
+        names: image names (file names relative to the image folder), one per camera.
+        train_ids, test_ids: indices into the cameras.
+        points: ``(xyz [P, 3], rgb [P, 3] in [0, 1])`` initial points, or None.
+        points_source: "colmap", "random" or "none".
+        near, far: depth range of the scene seen from the cameras (scene units), or None.
+        background: RGB the images were composited on (and that renders should use).
+        data_dir, image_dir: where the capture and its images live.
+        format: "colmap", "llff" or "transforms".
+        undistortion: what lens undistortion did (:meth:`ssgwarp.capture.lens.Undistortion.record`: per camera
+            its lens, crop box and intrinsics before/after), or None when the capture has no distortion.
+        options: the :func:`load_dataset` options that reproduce this data (for ``data.json``).
+    """
+
+    cameras: Cameras
+    images: torch.Tensor
+    names: list[str]
+    train_ids: list[int]
+    test_ids: list[int]
+    points: Optional[tuple[torch.Tensor, torch.Tensor]] = None
+    points_source: str = "none"
+    near: Optional[float] = None
+    far: Optional[float] = None
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    data_dir: Optional[Path] = None
+    image_dir: Optional[str] = None
+    format: str = ""
+    undistortion: Optional[dict] = None
+    options: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        c = len(self.cameras)
+        if self.images.shape != (c, self.cameras.height, self.cameras.width, 3):
+            raise InputError(f"SceneData: images {tuple(self.images.shape)} do not match {c} cameras of "
+                             f"{self.cameras.width}x{self.cameras.height}")
+        if len(self.names) != c:
+            raise InputError(f"SceneData: {len(self.names)} names for {c} cameras")
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    @property
+    def undistorted(self) -> bool:
+        """True when the images were undistorted (and cropped) at load time."""
+        return self.undistortion is not None
+
+    @property
+    def metric_frame(self) -> dict:
+        """Which image frame metrics on these images are computed in (for ``metrics.json``)."""
+        if self.undistortion is None:
+            return {"metric_frame": "as-captured", "metric_size": [self.width, self.height]}
+        u = self.undistortion
+        return {"metric_frame": "undistorted-crop", "metric_size": [self.width, self.height],
+                "metric_crop": {"source_size": u["source_size"], "size": u["size"], "resized_to": u.get("resized_to"),
+                                "crops": [c["crop"] for c in u["cameras"]]}}
+
+    @property
+    def device(self) -> torch.device:
+        return self.images.device
+
+    @property
+    def width(self) -> int:
+        return self.cameras.width
+
+    @property
+    def height(self) -> int:
+        return self.cameras.height
+
+    @property
+    def extent(self) -> float:
+        """Scene radius for learning rates and densification: 1.1 x the largest camera distance
+        from the camera centroid (the 3DGS definition; at least 1e-3)."""
+        c = self.cameras.centers.double()
+        r = (c - c.mean(dim=0)).norm(dim=1).max().item() if len(c) > 1 else 0.0
+        if r < 1e-6 and self.far is not None:
+            r = float(self.far)
+        return max(1.1 * r, 1e-3)
+
+    def split(self, which: str) -> list[int]:
+        """Camera indices of ``"train"``, ``"test"`` or ``"all"``."""
+        if which == "train":
+            return list(self.train_ids)
+        if which == "test":
+            return list(self.test_ids)
+        if which == "all":
+            return list(range(len(self)))
+        raise InputError(f"unknown split '{which}' (train, test or all)")
+
+    def to(self, device) -> "SceneData":
+        pts = None if self.points is None else (self.points[0].to(device), self.points[1].to(device))
+        return replace(self, cameras=self.cameras.to(device), images=self.images.to(device), points=pts)
+
+    def background_tensor(self, channels: int = 3) -> torch.Tensor:
+        """``[channels]`` background (RGB then zeros for extra channels) on the data's device."""
+        bg = torch.zeros(channels, dtype=torch.float32, device=self.device)
+        bg[:3] = torch.tensor(self.background[:3], dtype=torch.float32)
+        return bg
+
+
+# ----------------------------------------------------------------------------- helpers
+def _as_path(p) -> Path:
+    return Path(p).expanduser()
+
+
+def detect_format(path: str | Path) -> str:
+    """``"transforms"``, ``"colmap"`` or ``"llff"`` for a data folder (InputError if none fits)."""
+    path = _as_path(path)
+    if not path.exists():
+        raise InputError(f"{path}: data folder not found")
+    if not path.is_dir():
+        raise InputError(f"{path}: not a folder (give the capture's folder)")
+    if (path / "transforms.json").is_file() or (path / "transforms_train.json").is_file():
+        return "transforms"
+    if find_model(path) is not None:
+        return "colmap"
+    if (path / "poses_bounds.npy").is_file():
+        return "llff"
+    raise InputError(f"{path}: no capture found (expected transforms*.json, a COLMAP model in sparse/0 with "
+                     f"cameras and images .bin/.txt, or LLFF poses_bounds.npy)")
+
+
+def _split(n: int, split_every: int, test_mask: Optional[Sequence[bool]] = None) -> tuple[list[int], list[int]]:
+    if test_mask is not None:
+        test = [i for i in range(n) if test_mask[i]]
+    elif split_every and split_every > 0:
+        test = [i for i in range(n) if i % split_every == 0]
+    else:
+        test = []
+    train = [i for i in range(n) if i not in set(test)]
+    if not train:  # a single image: train on it, hold nothing out
+        train, test = list(range(n)), []
+    return train, test
+
+
+
+def load_dataset(path: str | Path, images: str = "images", split_every: int = 8,
+                 background: Sequence[float] = (1.0, 1.0, 1.0), max_images: Optional[int] = None,
+                 device=None, *, width: Optional[int] = None, num_random_points: int = 100_000,
+                 seed: int = 0, format: Optional[str] = None) -> SceneData:
+    """Load a capture (layout auto-detected, see the module docstring).
+
+    Args:
+        path: the capture's folder.
+        images: image sub-folder (``images``, ``images_4``, ``images_8``...); intrinsics are
+            scaled to the size of the images found there.
+        split_every: every ``split_every``-th image (0, 8, 16, ...) is held out for testing
+            (0: none). A ``transforms_test.json`` overrides this with the dataset's own split.
+        background: RGB that RGBA images are composited on.
+        max_images: keep at most this many images, evenly spaced (None: all).
+        device: where the tensors go (default CPU).
+        width: resize the images to this width (height keeps the aspect ratio), after any
+            undistortion: the returned images are ``width`` pixels wide.
+        num_random_points: initial points when the capture has no point cloud.
+        seed: seed of those random points.
+        format: force ``"colmap"``, ``"llff"`` or ``"transforms"`` instead of detecting.
+    """
+    root = _as_path(path)
+    fmt = format or detect_format(root)
+    if fmt not in LOADERS:
+        raise InputError(f"unknown data format '{fmt}' (colmap, llff or transforms)")
+    if split_every is None or split_every < 0:
+        raise InputError(f"split_every must be >= 0, got {split_every}")
+    bg = tuple(float(v) for v in background)
+    if len(bg) != 3:
+        raise InputError(f"background must be 3 numbers (RGB), got {background!r}")
+    d = LOADERS[fmt](root, images=images, max_images=max_images, width=width, background=bg,
+                      num_random_points=int(num_random_points), seed=seed)
+    test_mask = d.pop("test_mask", None)
+    train, test = _split(len(d["names"]), split_every, test_mask)
+    options = dict(images=images, split_every=split_every, background=list(bg), max_images=max_images,
+                   width=width, num_random_points=int(num_random_points), seed=seed, format=fmt)
+    data = SceneData(train_ids=train, test_ids=test, background=bg, data_dir=root.resolve(), format=fmt,
+                     options=options, **d)
+    log.info("loaded %s capture %s: %d images %dx%d (%d train, %d test), %s points", fmt, root, len(data),
+             data.width, data.height, len(train), len(test),
+             "no" if data.points is None else f"{len(data.points[0])} {data.points_source}")
+    return data.to(device) if device is not None else data
+
+
+# ----------------------------------------------------------------------------- runs
+def data_json(data: SceneData, **extra) -> dict:
+    """The ``data.json`` record of a run trained on ``data``."""
+    return {
+        "data_dir": str(data.data_dir) if data.data_dir is not None else None,
+        "format": data.format,
+        "images": data.options.get("images", data.image_dir),
+        "width": data.width,
+        "height": data.height,
+        "split": {"train": [data.names[i] for i in data.train_ids], "test": [data.names[i] for i in data.test_ids]},
+        "background": list(data.background),
+        "undistorted": data.undistorted,
+        "undistortion": data.undistortion,
+        "near": data.near,
+        "far": data.far,
+        "points_source": data.points_source,
+        "load_options": data.options,
+        **extra,
+    }
+
+
+def load_run(scene_dir: str | Path, device=None, *, data_dir: Optional[str | Path] = None,
+             load_images: bool = True):
+    """Read a reconstruction run: ``(GaussianScene, SceneData)``.
+
+    The scene comes from ``scene.ply``, the cameras from ``cameras.json`` (training
+    resolution) and the split and data options from ``data.json``; the images are
+    reloaded from the capture (``data_dir`` overrides the recorded folder, e.g. after
+    moving it). With ``load_images=False`` the images are left black (cameras only).
+    """
+    scene_dir = _as_path(scene_dir)
+    if not scene_dir.is_dir():
+        raise InputError(f"{scene_dir}: run folder not found")
+    for f in ("scene.ply", "cameras.json", "data.json"):
+        if not (scene_dir / f).is_file():
+            raise InputError(f"{scene_dir}: not a reconstruction run (no {f}); run `ssgwarp reconstruct` first")
+    scene = read_ply(scene_dir / "scene.ply")
+    cams = Cameras.load(scene_dir / "cameras.json")
+    meta = read_json(scene_dir / "data.json")
+    if not isinstance(meta, dict) or "split" not in meta:
+        raise InputError(f"{scene_dir / 'data.json'}: unexpected layout (no 'split')")
+    split = meta["split"]
+    index = {n: i for i, n in enumerate(cams.names)}
+    unknown = [n for n in list(split.get("train", [])) + list(split.get("test", [])) if n not in index]
+    if unknown:
+        raise InputError(f"{scene_dir / 'data.json'}: split names not in cameras.json: {', '.join(unknown[:5])}")
+    train = [index[n] for n in split.get("train", [])]
+    test = [index[n] for n in split.get("test", [])]
+    bg = tuple(float(v) for v in meta.get("background", (1.0, 1.0, 1.0)))
+    src = data_dir or meta.get("data_dir")
+    points = None
+    images = torch.zeros(len(cams), cams.height, cams.width, 3)
+    data_root = _as_path(src) if src else None
+    undistortion = meta.get("undistortion")
+    if load_images:
+        if data_root is None or not data_root.is_dir():
+            raise InputError(f"{scene_dir / 'data.json'}: capture folder {src} not found "
+                             f"(pass data_dir= / --data-dir to say where it is now)")
+        opts = dict(meta.get("load_options", {}))
+        opts.pop("split_every", None)
+        opts["width"] = cams.width
+        data = load_dataset(data_root, **{k: opts[k] for k in ("images", "background", "width", "max_images",
+                                                                 "num_random_points", "seed", "format")
+                                         if k in opts})
+        pos = {n: i for i, n in enumerate(data.names)}
+        missing = [n for n in cams.names if n not in pos]
+        if missing:
+            raise missing_images_error(missing, data_root, f"{scene_dir / 'cameras.json'}")
+        sel = [pos[n] for n in cams.names]
+        images = data.images[sel]
+        if (data.width, data.height) != (cams.width, cams.height) or not torch.allclose(
+                data.cameras.Ks[sel].double(), cams.Ks.double(), rtol=0.0, atol=1e-2):
+            raise InputError(f"{data_root} now loads as {data.width}x{data.height} images with other intrinsics "
+                             f"than the run's {scene_dir / 'cameras.json'} ({cams.width}x{cams.height}): the run was "
+                             f"made from other data or by an ssgwarp that did not crop undistorted images; run "
+                             f"`ssgwarp reconstruct` again")
+        points, undistortion = data.points, data.undistortion
+    out = SceneData(cameras=cams, images=images, names=list(cams.names), train_ids=train, test_ids=test,
+                    points=points, points_source=meta.get("points_source", "none"), near=meta.get("near"),
+                    far=meta.get("far"), background=bg, data_dir=data_root, image_dir=meta.get("images"),
+                    format=meta.get("format", ""), undistortion=undistortion, options=meta.get("load_options", {}))
+    if device is not None:
+        scene, out = scene.to(device), out.to(device)
+    return scene, out

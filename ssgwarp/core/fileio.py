@@ -1,0 +1,160 @@
+"""Atomic file writes and image I/O through OpenImageIO.
+
+Every file ssgwarp writes goes through :func:`atomic_path` (write to a temporary
+name in the same folder, then ``os.replace``), so an interrupted run never
+leaves a half-written file behind.
+
+Images are float32 numpy arrays ``[H, W, C]`` in [0, 1] (8-bit formats) or raw
+values (EXR).
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from ..errors import InputError
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; on success move it into place.
+
+    On any exception (KeyboardInterrupt included) the temporary file is removed
+    and ``path`` is left as it was.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix + ".tmp", dir=path.parent)
+    os.close(fd)
+    tmp = Path(tmp)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the file the usual permissions
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        raise
+
+
+def claim_output_dir(path: str | os.PathLike, force: bool) -> Path:
+    """Make ``path`` ready for a command's outputs: an existing non-empty folder is refused unless
+    ``force`` (then it is emptied), so outputs are never overwritten by accident."""
+    import shutil
+
+    path = Path(path)
+    if path.exists() and (not path.is_dir() or any(path.iterdir())):
+        if not force:
+            raise InputError(f"{path}: already exists and is not empty; pass --force to overwrite it")
+        shutil.rmtree(path) if path.is_dir() else path.unlink()
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def write_json(path: str | os.PathLike, obj: Any) -> None:
+    """Write ``obj`` as indented JSON, atomically."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n")
+
+
+def read_json(path: str | os.PathLike) -> Any:
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: file not found")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise InputError(f"{path}: not valid JSON ({e})") from None
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    if hasattr(o, "tolist"):
+        return o.tolist()
+    raise TypeError(f"not JSON serialisable: {type(o)}")
+
+
+def read_image(path: str | os.PathLike, channels: int | None = None) -> np.ndarray:
+    """Read an image with OpenImageIO as float32 ``[H, W, C]``.
+
+    8-bit and 16-bit files are scaled to [0, 1]; float files (EXR) keep their
+    values. ``channels`` keeps the first ``channels`` channels (a grey image is
+    repeated to 3 when 3 are asked for).
+    """
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: image not found")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise InputError(f"{path}: cannot read image ({oiio.geterror()})")
+    try:
+        spec = inp.spec()
+        data = inp.read_image(0, 0, 0, spec.nchannels, "float")
+    finally:
+        inp.close()
+    if data is None or not isinstance(data, np.ndarray):
+        raise InputError(f"{path}: cannot decode image (truncated or corrupt?)")
+    img = np.asarray(data, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+    if channels is not None:
+        if img.shape[2] == 1 and channels >= 3:
+            img = np.repeat(img, 3, axis=2)
+            if channels == 4:
+                img = np.concatenate([img, np.ones_like(img[..., :1])], axis=2)
+        elif img.shape[2] < channels:
+            if channels == 4 and img.shape[2] == 3:
+                img = np.concatenate([img, np.ones_like(img[..., :1])], axis=2)
+            else:
+                raise InputError(f"{path}: has {img.shape[2]} channels, {channels} needed")
+        img = img[..., :channels]
+    return np.ascontiguousarray(img)
+
+
+def write_image(path: str | os.PathLike, img: Any) -> Path:
+    """Write ``img`` (``[H, W]`` or ``[H, W, C]``, numpy or torch) atomically.
+
+    PNG/JPEG are written as 8-bit after clipping to [0, 1]; EXR as float32.
+    """
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    if hasattr(img, "detach"):
+        img = img.detach().cpu().numpy()
+    img = np.asarray(img, dtype=np.float32)
+    if img.ndim == 2:
+        img = img[..., None]
+    if img.ndim != 3:
+        raise ValueError(f"write_image: expected [H, W, C], got shape {img.shape}")
+    h, w, c = img.shape
+    ext = path.suffix.lower()
+    if ext in (".exr", ".hdr"):
+        fmt, data = "float", img
+    else:
+        fmt, data = "uint8", (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    with atomic_path(path) as tmp:
+        # OIIO picks the format from the file name: give the temp file the real suffix
+        out = oiio.ImageOutput.create(ext.lstrip(".") or "png")
+        if out is None:
+            raise InputError(f"{path}: no image writer for '{ext}' ({oiio.geterror()})")
+        spec = oiio.ImageSpec(w, h, c, fmt)
+        if not out.open(str(tmp), spec):
+            raise OSError(f"{path}: cannot write image ({out.geterror()})")
+        out.write_image(np.ascontiguousarray(data))
+        out.close()
+    return path

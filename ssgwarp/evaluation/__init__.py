@@ -1,0 +1,3 @@
+"""Metrics, evaluation, renders and camera paths (ssgwarp evaluate, ssgwarp render).
+
+Modules: evaluate, metrics, render, style_distance, table."""

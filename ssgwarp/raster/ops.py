@@ -1,0 +1,550 @@
+"""Torch autograd ops over the Warp kernels (``ssgwarp.kernels``).
+
+Tensors are shared with Warp zero-copy: launch arguments are Warp array descriptors built from
+a tensor's pointer (:mod:`ssgwarp.raster.launch`), and launches replay a recorded Warp launch; CPU
+tensors run on Warp's CPU device, CUDA tensors on the same CUDA device and on torch's current
+stream. float32 and float64 use the same kernel source, built per precision.
+
+:func:`rasterize_warp` is the rasterizer's Warp path: two autograd ops (:class:`_Project`:
+projection, tile counts and SH colours; :class:`_Blend`: blending) around the tile binning,
+with one device synchronisation per call (the intersection count, read back together with the
+input checks' flags).
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+import warp as wp
+
+from . import launch as L
+from ..kernels import binning, blend_backward, blend_forward, projection, sh, validate
+from .launch import NULL, arr, rows
+
+Tensor = torch.Tensor
+MAX_CHANNELS = 64
+INT32_MAX = 2**31 - 1
+
+
+def _scalar(dtype: torch.dtype):
+    if dtype == torch.float32:
+        return wp.float32
+    if dtype == torch.float64:
+        return wp.float64
+    raise ValueError(f"ssgwarp kernels support float32 and float64, got {dtype}")
+
+
+def _fast(settings, scalar) -> bool:
+    """Fast maths (approximate exp, log, division, square roots) in the CUDA kernels: float32 only
+    (a CUDA compile option; the CPU build ignores it)."""
+    return bool(settings.fast_math) and scalar == wp.float32
+
+
+def _c(t: Tensor) -> Tensor:
+    """``t`` itself when contiguous, else a contiguous copy (outside autograd): what kernels read."""
+    return t if t.is_contiguous() else t.detach().contiguous()
+
+
+def _adj(g, inner: int, n: int):
+    """``(descriptor, tensor)`` of an incoming gradient read as ``n`` rows of ``inner`` values
+    (row-strided views, e.g. column blocks of the blending's packed gradients, are read in place);
+    :data:`NULL` when there is none."""
+    if g is None:
+        return NULL, None
+    g = g.detach().reshape(n, inner) if inner > 1 else g.detach().reshape(n, 1)
+    if g.stride(1) != 1 and inner > 1:
+        g = g.contiguous()
+    return rows(g, inner), g
+
+
+# ---------------------------------------------------------------------------------------------
+# input value checks
+# ---------------------------------------------------------------------------------------------
+def check_values(means, quats, scales, opacities, colors, viewmats, Ks, backgrounds=None, flags=None) -> Tensor:
+    """Flags of the value checks of :mod:`.kernels.validate` (one kernel, no synchronisation):
+    an int64 tensor ``[N_FLAGS]`` on the inputs' device, non-zero where a check failed (slot ``i``
+    < 8: NaN/Inf in ``validate.INPUTS[i]``; then zero quaternion, negative scale, opacity outside
+    [0, 1], non-positive focal length). Shapes must already be consistent. ``flags``: a zeroed
+    int64 tensor ``[N_FLAGS]`` to write into (else one is made)."""
+    flat = [_c(t) for t in (means, quats, scales, opacities, colors, viewmats, Ks)]
+    if backgrounds is not None:
+        flat.append(_c(backgrounds))
+    if flags is None:
+        flags = torch.zeros(validate.N_FLAGS, dtype=torch.int64, device=means.device)
+    descs = [v for t in flat for v in arr(t)]
+    if backgrounds is None:
+        descs += NULL
+    L.launch(validate.check_kernel(_scalar(means.dtype)), max(t.numel() for t in flat),
+             [*descs, means.shape[0], viewmats.shape[0], *arr(flags)], L.target(means))
+    return flags
+
+
+# ---------------------------------------------------------------------------------------------
+# projection (+ tile counts, + SH colours)
+# ---------------------------------------------------------------------------------------------
+class _Project(torch.autograd.Function):
+    """``(radii, means2d, depths, conics, opacities, colors, counts, splats)`` of N Gaussians in C
+    cameras.
+
+    ``colors [C, N, 3]`` (SH colour, ``+ 0.5`` clamped, 0 where culled) when ``coeffs`` is given,
+    else None; ``counts [C, N]`` (int32 tiles per Gaussian) and ``splats [C, N, 6]`` (the
+    blending's packed splats) when ``cfg["tile_size"] > 0``, else None. ``extra`` (or None):
+    ``flags`` (int64 ``[N_FLAGS]``, zeroed) to run the input value checks in the projection, with
+    the ``colors`` and ``backgrounds`` they also cover; ``ends`` (int64 ``[C*N]``) to receive the
+    tile counts for the binning's in-place scan. Backward: the SH adjoint then the projection
+    adjoint, both into per-(camera, Gaussian) slots when C > 1 (summed here in a fixed order),
+    straight into the gradients when C = 1."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, viewmats, Ks, coeffs, campos, cfg, extra):
+        C, N = viewmats.shape[0], means.shape[0]
+        dt, dev = means.dtype, means.device
+        s = _scalar(dt)
+        tg = L.target(means)
+        ins = [_c(t) for t in (means, quats, scales, opacities, viewmats, Ks)]
+        means2d = torch.empty(C, N, 2, dtype=dt, device=dev)
+        depths = torch.empty(C, N, dtype=dt, device=dev)
+        conics = torch.empty(C, N, 3, dtype=dt, device=dev)
+        opac = torch.empty(C, N, dtype=dt, device=dev)
+        radii = torch.empty(C, N, 2, dtype=torch.int32, device=dev)
+        counts = splats = None
+        if cfg["tile_size"] > 0:  # (rendering follows: tile counts and packed splats for the binning and blending)
+            counts = torch.empty(C, N, dtype=torch.int32, device=dev)
+            splats = torch.empty(C, N, 6, dtype=dt, device=dev)
+        outs = [means2d, depths, conics, opac, radii]
+        kern = projection.projection_kernel(s, *cfg["variant"])
+        head = _project_args(ins, C, N) + list(cfg["params"])
+        tail = [*arr(means2d, 2), *arr(depths), *arr(conics, 3), *arr(opac), *arr(radii, 2)]
+        checks, keep = _check_args(extra, C, N)
+        ends = None if extra is None else extra.get("ends")
+        L.launch(kern, (C, N), head + checks + tail + [*(arr(counts) if counts is not None else NULL),
+                                                       *(arr(ends) if ends is not None else NULL),
+                                                       *(arr(splats, 6) if splats is not None else NULL)], tg)
+        del keep  # (contiguous copies made for the checks: needed until the launch is queued)
+        colors = colour_args = None
+        if coeffs is not None:
+            coeffs, campos = _c(coeffs), _c(campos)
+            colors = torch.empty(C, N, 3, dtype=dt, device=dev)
+            colour_args = _colour_args(ins[0], campos, coeffs, radii, C, N)
+            L.launch(sh.colour_kernel(s, cfg["sh_degree"]), (C, N), colour_args + [*arr(colors, 3)], tg)
+        ctx.save_for_backward(*ins, *outs, coeffs, campos)
+        # the backward launches read the same tensors (kept by ctx): their descriptors are kept too
+        # (without the checks, and without the tile counts and ends, which the binning has scanned)
+        ctx.cfg, ctx.args, ctx.colour_args = cfg, head + _NO_CHECKS + tail + [*NULL, *NULL, *NULL], colour_args
+        ctx.mark_non_differentiable(*(t for t in (radii, counts, splats) if t is not None))
+        return radii, means2d, depths, conics, opac, colors, counts, splats
+
+    @staticmethod
+    def backward(ctx, _g_radii, g_means2d, g_depths, g_conics, g_opac, g_colors, _g_counts, _g_splats):
+        means, quats, scales, opacities, viewmats, Ks, means2d, depths, conics, opac, radii, coeffs, campos = \
+            ctx.saved_tensors
+        cfg, need = ctx.cfg, ctx.needs_input_grad
+        C, N = viewmats.shape[0], means.shape[0]
+        dt, dev = means.dtype, means.device
+        s = _scalar(dt)
+        tg = L.target(means)
+        # one adjoint slot per (camera, Gaussian); the per-Gaussian gradients share one zeroed buffer
+        lead = (C, N) if C > 1 else (N,)
+        v_means, v_quats, v_scales, v_opac = _zeros_split([3, 4, 3, 1], need[:4], lead, dt, dev)
+        v_view = torch.zeros(C, N, 4, 4, dtype=dt, device=dev) if need[4] else None
+        v_coeffs = v_campos = None
+        if g_colors is not None and coeffs is not None:
+            g, g_t = _adj(g_colors, 3, C * N)
+            per_cam = coeffs.ndim == 4
+            if need[6]:
+                v_coeffs = torch.zeros(C, *coeffs.shape[-3:], dtype=dt, device=dev) if (C > 1 and not per_cam) \
+                    else torch.zeros_like(coeffs)
+            if need[7]:
+                v_campos = torch.zeros(C, N, 3, dtype=dt, device=dev)
+            K = coeffs.shape[-2]
+            adj = [*_grid(v_means, C, N, 3), *_grid(v_campos, C, N, 3),
+                   *(NULL if v_coeffs is None else L.grid3(v_coeffs, C, N, K, 3, True)), *NULL, *g]
+            # (array stores are not replayed in Warp's adjoints: the colour output is not needed)
+            L.launch(sh.colour_kernel(s, cfg["sh_degree"]), (C, N), ctx.colour_args + [*NULL], tg, adj=adj)
+            del g_t
+        grads = [_adj(g, k, C * N) for g, k in ((g_means2d, 2), (g_depths, 1), (g_conics, 3), (g_opac, 1))]
+        if any(g[1] is not None for g in grads) and any(need[:5]):
+            adj = [*_grid(v_means, C, N, 3), *_grid(v_quats, C, N, 4), *_grid(v_scales, C, N, 3), *_grid(v_opac, C, N, 1),
+                   *_grid(v_view, C, N, 16), *NULL, *_ADJ_PARAMS, *_NO_CHECKS, *grads[0][0], *grads[1][0],
+                   *grads[2][0], *grads[3][0], *NULL, *NULL, *NULL, *NULL]
+            L.launch(projection.projection_kernel(s, *cfg["variant"]), (C, N), ctx.args, tg, adj=adj)
+        if C > 1:
+            v_means, v_quats, v_scales, v_opac = (None if v is None else v.sum(0)
+                                                  for v in (v_means, v_quats, v_scales, v_opac))
+            if v_coeffs is not None and coeffs.ndim == 3:
+                v_coeffs = v_coeffs.sum(0)
+        if v_view is not None:
+            v_view = v_view.sum(1)
+        if v_campos is not None:
+            v_campos = v_campos.sum(1)
+        return v_means, v_quats, v_scales, v_opac, v_view, None, v_coeffs, v_campos, None, None
+
+
+class ProjectionParams(NamedTuple):
+    """The projection kernel's parameter block (``kernels/projection.py: projection_params``, the
+    same fields in the same order), passed to a launch as its fields (``*params``)."""
+
+    width: int
+    height: int
+    near_plane: float
+    far_plane: float
+    eps2d: float
+    radius_clip: float
+    alpha_min: float
+    sigma_max: float
+    opacity_extent: int
+    antialiased: int
+    tile_size: int = 0
+    tile_width: int = 0
+    tile_height: int = 0
+
+
+assert ProjectionParams._fields == tuple(name for name, _ in projection.PARAM_FIELDS)
+# the adjoint of the parameter block (not read: nothing is differentiated with respect to it)
+_ADJ_PARAMS = ProjectionParams(0, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0)
+# the projection's check parameters when it runs no checks: colours, row, per camera, backgrounds, row, flags
+_NO_CHECKS = [*NULL, 0, 0, *NULL, 0, *NULL]
+
+
+def _check_args(extra, C, N):
+    """``(flat arguments, tensors to keep alive)`` of the projection's input checks (none without
+    ``extra["flags"]``): the colours read flat in rows (per camera or shared), the backgrounds."""
+    if extra is None or extra.get("flags") is None:
+        return _NO_CHECKS, ()
+    colors, bg = _c(extra["colors"]), extra.get("backgrounds")
+    per_cam = colors.shape[0] == C and colors.ndim == (4 if extra.get("sh") else 3)
+    row = colors.numel() // (C * N if per_cam else N) if N else 0
+    bg = _c(bg) if bg is not None else None
+    args = [*arr(colors), row, int(per_cam), *(arr(bg) if bg is not None else NULL),
+            bg.shape[-1] if bg is not None else 0, *arr(extra["flags"])]
+    return args, (colors, bg)
+
+
+def _zeros_split(widths, wanted, lead, dt, dev):
+    """Zeroed ``[*lead, w]`` tensors for the wanted widths (None for the others), as contiguous
+    views of one buffer (one allocation and one fill)."""
+    n = 1
+    for d in lead:
+        n *= d
+    total = sum(w for w, on in zip(widths, wanted) if on)
+    if total == 0:
+        return [None] * len(widths)
+    buf = torch.zeros(n * total, dtype=dt, device=dev)
+    out, pos = [], 0
+    for w, on in zip(widths, wanted):
+        if on:
+            out.append(buf[pos:pos + n * w].view(*lead, w) if w > 1 else buf[pos:pos + n].view(*lead))
+            pos += n * w
+        else:
+            out.append(None)
+    return out
+
+
+def _grid(t, C, N, inner):
+    """Adjoint slots ``[C, N]`` (or ``[N]`` with one camera) as a 2-D descriptor; NULL if absent."""
+    return NULL if t is None else L.grid(t, C, N, inner, True)
+
+
+def _project_args(ins, C, N):
+    means, quats, scales, opacities, viewmats, Ks = ins
+    return [*L.grid(means, C, N, 3, False), *L.grid(quats, C, N, 4, False), *L.grid(scales, C, N, 3, False),
+            *L.grid(opacities, C, N, 1, False), *L.cams(viewmats, C, N, 16), *arr(Ks, 9)]
+
+
+def _colour_args(means, campos, coeffs, radii, C, N):
+    K = coeffs.shape[-2]
+    per_cam = coeffs.ndim == 4
+    return [*L.grid(means, C, N, 3, False), *L.cams(campos, C, N, 3), *L.grid3(coeffs, C, N, K, 3, per_cam),
+            *arr(radii, 2)]
+
+
+def project_warp(means, quats, scales, opacities, viewmats, Ks, width, height, *, near_plane=0.01,
+                 far_plane=1e10, radius_clip=0.0, eps2d=0.3, antialiased=False, settings=None):
+    """Warp version of :func:`ssgwarp.raster.reference.project_reference` (same outputs)."""
+    cfg = _project_cfg(means.dtype, width, height, near_plane, far_plane, radius_clip, eps2d, antialiased, settings)
+    radii, means2d, depths, conics, opac, _, _, _ = _Project.apply(means, quats, scales, opacities, viewmats, Ks,
+                                                                   None, None, cfg, None)
+    return radii, means2d, depths, conics, opac
+
+
+def _project_cfg(dtype, width, height, near_plane, far_plane, radius_clip, eps2d, antialiased, settings,
+                 tile_size=0, tile_width=0, tile_height=0, sh_degree=None) -> dict:
+    """What :class:`_Project` needs besides tensors: ``params`` (:class:`ProjectionParams`),
+    ``variant`` (the kernel's build: covariance form, fast maths), ``tile_size`` and
+    ``sh_degree``."""
+    params = ProjectionParams(
+        width=int(width), height=int(height), near_plane=float(near_plane), far_plane=float(far_plane),
+        eps2d=float(eps2d), radius_clip=float(radius_clip), alpha_min=float(settings.alpha_min),
+        sigma_max=float(settings.sigma_max), opacity_extent=int(settings.extent == "opacity"),
+        antialiased=int(bool(antialiased)), tile_size=int(tile_size), tile_width=int(tile_width),
+        tile_height=int(tile_height))
+    return {"params": params, "variant": (settings.covariance, _fast(settings, _scalar(dtype))),
+            "tile_size": int(tile_size), "sh_degree": sh_degree}
+
+
+# ---------------------------------------------------------------------------------------------
+# spherical harmonics
+# ---------------------------------------------------------------------------------------------
+class _SH(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, degree, dirs, coeffs):
+        shape = dirs.shape[:-1]
+        d = _c(dirs).reshape(-1, 3)
+        c = _c(coeffs).reshape(d.shape[0], -1, 3)
+        M = c.shape[0]
+        s = _scalar(dirs.dtype)
+        out = torch.empty_like(d)
+        L.launch(sh.sh_kernel(s, degree), (1, M), [*L.grid(d, 1, M, 3, True), *_coeff_rows(c), *arr(out, 3)], L.target(d))
+        ctx.save_for_backward(d, c, out)
+        ctx.degree, ctx.shape, ctx.cshape = degree, shape, coeffs.shape
+        return out.reshape(*shape, 3)
+
+    @staticmethod
+    def backward(ctx, g):
+        d, c, out = ctx.saved_tensors
+        s = _scalar(d.dtype)
+        M = d.shape[0]
+        vd, vc = torch.zeros_like(d), torch.zeros_like(c)
+        ga, g = _adj(g, 3, M)
+        L.launch(sh.sh_kernel(s, ctx.degree), (1, M), [*L.grid(d, 1, M, 3, True), *_coeff_rows(c), *arr(out, 3)],
+                 L.target(d), adj=[*L.grid(vd, 1, M, 3, True), *_coeff_rows(vc), *ga])
+        return None, vd.reshape(*ctx.shape, 3), vc.reshape(ctx.cshape)
+
+
+def _coeff_rows(c):
+    return L.grid3(c, 1, c.shape[0], c.shape[1], 3, False)
+
+
+def spherical_harmonics_warp(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
+    """Warp version of :func:`ssgwarp.raster.sh.spherical_harmonics`: ``dirs [...,3]``, ``coeffs [...,K,3]`` → ``[...,3]``."""
+    return _SH.apply(int(degree), dirs, coeffs)
+
+
+# ---------------------------------------------------------------------------------------------
+# tile binning
+# ---------------------------------------------------------------------------------------------
+def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, tile_width: int, tile_height: int,
+              pending=None, counts: Tensor | None = None, scan: Tensor | None = None, keep_perm: bool = True,
+              counts_in_scan: bool = False) -> dict:
+    """Tile intersections of projected Gaussians, sorted by (camera, tile, depth).
+
+    Returns ``tiles_per_gauss [C,N]`` (int32), ``isect_ids [M]`` (int64 keys), ``flatten_ids [M]``
+    (flat camera*N + Gaussian index per sorted intersection), ``isect_offsets [C,th,tw]`` and, for
+    the backward, ``offsets [C*th*tw+1]``, ``perm [M]`` (pre-sort slot of each sorted
+    intersection; the deterministic backward's slots; None unless ``keep_perm``), ``isect_ends
+    [C*N]`` (int64 inclusive scan of the counts).
+
+    ``counts``: the tile counts when already known (the projection writes them), else counted
+    here. ``scan``: an int64 tensor ``[C*N + N_FLAGS]`` to hold the scan, whose tail holds the
+    input checks' flags, and with ``counts_in_scan`` whose head already holds the counts (the
+    projection wrote them; scanned in place); ``pending``: ``(flags, check)`` from deferred input
+    validation. The
+    intersection count and the flags are read back together (the one synchronisation) and the
+    flags checked before anything else. Without ``keep_perm`` the sort carries the Gaussian ids
+    themselves (as gsplat's does), so the sorted values are the flattened ids.
+    """
+    C, N = depths.shape
+    s = _scalar(means2d.dtype)
+    dev = means2d.device
+    tg = L.target(means2d)
+    n_ranges = C * tile_width * tile_height
+    if n_ranges >= INT32_MAX:
+        raise ValueError(f"rasterization: {C} cameras x {tile_width * tile_height} tiles exceed the 2^31 tile "
+                         "ranges one call can index; render fewer cameras per call or use a larger tile_size")
+    CN = C * N
+    m2, rd, dp = _c(means2d), _c(radii), _c(depths)
+    if counts is None:
+        counts = torch.empty(C, N, dtype=torch.int32, device=dev)
+        L.launch(binning.count_kernel(s), CN, [*arr(m2, 2), *arr(rd, 2), tile_size, tile_width, tile_height,
+                                                *arr(counts)], tg)
+    n_flags = 0 if pending is None else pending[0].numel()
+    if scan is None or scan.numel() != CN + n_flags:
+        scan, counts_in_scan = torch.empty(CN + n_flags, dtype=torch.int64, device=dev), False
+        if n_flags:
+            scan[CN:] = pending[0]
+    ends = scan[:CN]
+    if CN and counts_in_scan:
+        ends.cumsum_(0)
+    elif CN:
+        torch.cumsum(counts.view(-1), 0, dtype=torch.int64, out=ends)
+    if CN:
+        host = scan[CN - 1:].tolist()
+    else:
+        host = [0] + (scan.tolist() if n_flags else [])
+    if pending is not None:
+        pending[1](host[1:])
+    n_isects = int(host[0])
+    if n_isects > INT32_MAX // 2:
+        raise ValueError(
+            f"rasterization: {n_isects:,} Gaussian-tile intersections exceed the {INT32_MAX // 2:,} one call can "
+            "sort; render fewer cameras per call, lower the resolution, raise tile_size, or cull large Gaussians "
+            "(radius_clip / RasterSettings.sigma_max)")
+    M = max(n_isects, 1)
+    # every entry below n_isects is written by the kernel; the upper halves are the sort's scratch.
+    # One int32 buffer: sort values (2M) | offsets, and with keep_perm also the Gaussian of each
+    # pre-sort slot (M) and the flatten ids (M)
+    keys = torch.empty(2 * M, dtype=torch.int64, device=dev)
+    extra = 2 * M if keep_perm else 0
+    ints = torch.empty(2 * M + extra + n_ranges + 1, dtype=torch.int32, device=dev)
+    values, offsets = ints[:2 * M], ints[2 * M + extra:]
+    if keep_perm:
+        gauss, flatten_ids = ints[2 * M:3 * M], ints[3 * M:3 * M + n_isects]
+        a_gauss, a_flat = arr(gauss), L.at(flatten_ids.data_ptr(), n_isects, 4)
+    else:
+        flatten_ids, a_gauss, a_flat = values[:n_isects], NULL, NULL
+    L.launch(binning.write_kernel(s), CN,
+             [*arr(m2, 2), *arr(rd, 2), *arr(dp), *arr(ends), *arr(counts), N, tile_size, tile_width, tile_height,
+              *arr(keys), *arr(values), *a_gauss], tg)
+    if n_isects > 0:
+        L.sort_pairs(keys, values, n_isects, 32 + max(1, int(n_ranges).bit_length()), tg)
+        L.launch(binning.offsets_kernel, n_isects, [*arr(keys), *arr(values), *a_gauss, n_isects, n_ranges,
+                                                    *arr(offsets), *a_flat], tg)
+    else:
+        offsets.zero_()
+    return {
+        "tiles_per_gauss": counts,
+        "isect_ids": keys[:n_isects],
+        "flatten_ids": flatten_ids,
+        "isect_offsets": offsets[:-1].view(C, tile_height, tile_width),
+        "offsets": offsets,
+        "perm": values[:n_isects] if keep_perm else None,
+        "isect_ends": ends,
+        "n_isects": n_isects,
+    }
+
+
+# ---------------------------------------------------------------------------------------------
+# blending
+# ---------------------------------------------------------------------------------------------
+def pack_splats(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, flatten_ids: Tensor,
+                packed: Tensor | None = None):
+    """Per sorted intersection, contiguous in the order the blending kernels walk them:
+    ``splats [M, 6]`` (x, y, conic a, b, c, opacity) and ``colors [M, D]`` (one gather kernel;
+    ``colors`` is ``[C, N, D]`` or, the same for every camera, ``[N, D]``; ``packed [C, N, 6]``:
+    the projection's packed splats, read instead of the three arrays)."""
+    M, D = flatten_ids.shape[0], colors.shape[-1]
+    dt = means2d.dtype
+    s = _scalar(dt)
+    splats = torch.empty(M, 6, dtype=dt, device=means2d.device)
+    cols = torch.empty(M, D, dtype=dt, device=means2d.device)
+    if packed is None:
+        gauss = [*arr(_c(means2d), 2), *arr(_c(conics), 3), *arr(_c(opacities))]
+    else:  # (the three arrays are not read)
+        gauss = [*NULL, *NULL, *NULL]
+    ids, cs = _c(flatten_ids), _c(colors)
+    L.launch(blend_forward.pack_kernel(s, D), M,
+             [*arr(ids), *(NULL if packed is None else arr(packed, 6)), *gauss, *arr(cs, D), *arr(splats, 6),
+              *arr(cols, D)], L.target(means2d))
+    return splats, cols
+
+
+class _Blend(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, colors, opacities, backgrounds, tiles, width, height, tile_size, settings,
+                deterministic, packed):
+        C, N = means2d.shape[:2]
+        D = colors.shape[-1]
+        dt, dev = colors.dtype, colors.device
+        s = _scalar(dt)
+        th, tw = tiles["isect_offsets"].shape[1:]
+        tg = L.target(colors)
+        # the kernel writes every pixel
+        out = torch.empty(C, height, width, D, dtype=dt, device=dev)
+        out_alpha = torch.empty(C, height, width, 1, dtype=dt, device=dev)
+        out_T = torch.empty(C, height, width, dtype=dt, device=dev)
+        last = torch.empty(C, height, width, dtype=torch.int32, device=dev)
+        bg = _c(backgrounds) if backgrounds is not None else None
+        splats, cols = pack_splats(means2d, conics, opacities, colors, tiles["flatten_ids"], packed)
+        a_splats, a_cols, a_bg, a_offsets = arr(splats, 6), arr(cols, D), NULL if bg is None else arr(bg, D), \
+            arr(tiles["offsets"])
+        a_T, a_last = arr(out_T), arr(last)
+        L.launch(blend_forward.forward_kernel(s, D, _fast(settings, s)), C * th * tw * tile_size * tile_size,
+                 [*a_splats, *a_cols, *a_bg, *a_offsets, width, height, tile_size, tw, th, settings.alpha_min,
+                  settings.alpha_max, settings.t_min, *arr(out, D), *a_T, *arr(out_alpha), *a_last], tg)
+        ctx.save_for_backward(splats, cols, bg, out_T, last)
+        # the backward launch's leading arguments: the same tensors (kept by ctx)
+        ctx.args = [*a_splats, *a_cols, *a_bg, *arr(tiles["flatten_ids"]), *a_offsets, width, height, tile_size, tw,
+                    th, settings.alpha_min, settings.alpha_max, *a_T, *a_last]
+        ctx.n_gauss, ctx.cshape = N, colors.shape
+        ctx.tiles, ctx.geom, ctx.settings, ctx.det = tiles, (width, height, tile_size, tw, th), settings, deterministic
+        return out, out_alpha
+
+    @staticmethod
+    def backward(ctx, g_colors, g_alphas):
+        splats, cols, bg, out_T, last = ctx.saved_tensors
+        width, height, tile_size, tw, th = ctx.geom
+        tiles, st = ctx.tiles, ctx.settings
+        N, D = ctx.n_gauss, cols.shape[-1]
+        C = out_T.shape[0]
+        dt, dev = cols.dtype, cols.device
+        s = _scalar(dt)
+        tg = L.target(cols)
+        # an image without a gradient is passed as a null array (read as zeros)
+        g_colors = _c(g_colors) if g_colors is not None else None
+        g_alphas = _c(g_alphas) if g_alphas is not None else None
+        M = tiles["n_isects"]
+        n_pix = C * th * tw * tile_size * tile_size
+        # blocks of pixels of one tile walk its Gaussians in lockstep and sum their pixels' gradients
+        # before one atomic add per Gaussian: per warp with one block per tile where the tile splits
+        # into whole warps (and on CPU, one pixel per block), else per block of one tile row.
+        # Deterministic: one block per tile adds into the intersection's own slot (one add per slot
+        # on CUDA; blocks in turn on CPU), then the slots are summed per Gaussian in a fixed order.
+        det = bool(ctx.det)
+        if det and tile_size * tile_size > 256:
+            # one block per tile: larger blocks run out of registers on CUDA
+            raise ValueError(f"rasterization: deterministic=True needs tile_size <= 16, got {tile_size}")
+        per_warp, block = backward_blocks(tile_size, det, tg.cpu)
+        packed = torch.zeros(max(M if det else C * N, 1), 6 + D, dtype=dt, device=dev)
+        L.launch(blend_backward.reduced_backward_kernel(s, D, det, per_warp, _fast(st, s)), n_pix,
+                 [*ctx.args, *(NULL if g_colors is None else arr(g_colors, D)),
+                  *(NULL if g_alphas is None else arr(g_alphas)), *(arr(tiles["perm"]) if det else NULL),
+                  *arr(packed, 6 + D)],
+                 tg, block_dim=block)
+        if det:
+            slots = packed
+            packed = torch.empty(C * N, 6 + D, dtype=dt, device=dev)
+            L.launch(blend_backward.gather_kernel(s, D), C * N,
+                     [*arr(tiles["isect_ends"]), *arr(tiles["tiles_per_gauss"]), *arr(slots, 6 + D), *arr(packed, 6 + D)],
+                     tg)
+        v_colors = packed[:, 6:].view(C, N, D)
+        if len(ctx.cshape) == 2:  # colours shared by the cameras
+            v_colors = v_colors[0] if C == 1 else v_colors.sum(0)
+        v_bg = None
+        if bg is not None:
+            v_bg = (g_colors * out_T[..., None]).sum(dim=(1, 2)) if g_colors is not None else torch.zeros_like(bg)
+        return (packed[:, 0:2].view(C, N, 2), packed[:, 2:5].view(C, N, 3), v_colors, packed[:, 5].view(C, N),
+                v_bg, None, None, None, None, None, None, None)
+
+
+def backward_blocks(tile_size: int, deterministic: bool, cpu: bool) -> tuple[bool, int]:
+    """``(per_warp, block_dim)`` of the blending backward launch.
+
+    Deterministic: one block per tile (a fixed-order block sum per intersection). Otherwise on CPU
+    one pixel per block; on CUDA, when the tile splits into whole warps (``tile_size^2`` a multiple
+    of 32), blocks of up to 256 pixels of one tile (the whole tile at tile_size 16) summed per warp,
+    else blocks of one tile row summed per block (a warp would straddle two tiles)."""
+    pixels = tile_size * tile_size
+    if deterministic:
+        return False, pixels
+    if cpu:
+        return True, 1
+    if pixels % 32 == 0:
+        # the largest multiple of 32 up to 256 that divides the tile
+        return True, max(b for b in range(32, 257, 32) if pixels % b == 0)
+    return False, tile_size
+
+
+def blend_warp(means2d, conics, colors, opacities, backgrounds, tiles, width, height, tile_size, settings,
+               deterministic=False, packed=None):
+    """Front-to-back blending in Warp: ``colors [C,N,D]`` (or ``[N,D]``, the same for every
+    camera) → ``(image [C,H,W,D], alpha [C,H,W,1])``. ``packed``: the projection's packed splats
+    (the same values as means2d, conics and opacities; read instead of them)."""
+    D = colors.shape[-1]
+    if D > MAX_CHANNELS:
+        chunks = [blend_warp(means2d, conics, colors[..., i:i + MAX_CHANNELS], opacities,
+                             None if backgrounds is None else backgrounds[..., i:i + MAX_CHANNELS],
+                             tiles, width, height, tile_size, settings, deterministic, packed)
+                  for i in range(0, D, MAX_CHANNELS)]
+        return torch.cat([c[0] for c in chunks], dim=-1), chunks[0][1]
+    return _Blend.apply(means2d, conics, colors, opacities, backgrounds, tiles, width, height, tile_size,
+                        settings, deterministic, packed)

@@ -1,0 +1,186 @@
+"""``ssgwarp.rasterization``: the differentiable 3DGS renderer, gsplat 1.5.3-compatible.
+
+A gsplat user swaps the import and keeps the call. The work runs in Warp
+kernels (``backend="warp"``, CPU tensors on Warp's CPU device, CUDA tensors on
+CUDA, zero-copy on torch's current stream) or in the dense torch reference
+(``backend="torch"``, :mod:`ssgwarp.raster.reference`, the spec).
+
+Pipeline (one module each): projection + SH (``kernels/projection.py``,
+``kernels/sh.py``) → tile binning and sort (``kernels/binning.py``) → blending
+(``kernels/blend_forward.py``, ``kernels/blend_backward.py``), the per-pixel
+rule shared by both in ``kernels/pixel.py``.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+
+from . import reference
+from .settings import (  # noqa: F401 (re-exported: their historical home)
+    DEFAULT_TILE_SIZE, N_FLAGS, RENDER_MODES, T_MIN_FLOOR, RasterSettings, check_shapes, raise_for_flags,
+    resolve_arguments)
+
+try:  # the Warp path; without warp-lang only backend="torch" is available
+    from . import ops
+except ImportError:  # pragma: no cover - warp-lang missing
+    ops = None
+
+Tensor = torch.Tensor
+# the binning outputs that ``meta`` carries (gsplat's names)
+PUBLIC_TILE_KEYS = ("tiles_per_gauss", "isect_ids", "flatten_ids", "isect_offsets")
+
+
+def validate_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+                    sh_degree, backgrounds, render_mode, rasterize_mode, tile_size, near_plane=0.01,
+                    defer_values: bool = False, flags=None, backend: str = "warp"):
+    """One cheap pass over the inputs; raises ValueError naming the bad argument.
+
+    Shapes, devices and dtypes are checked at once (:func:`check_shapes`). The value checks
+    (NaN/Inf, zero quaternions, negative scales, opacities outside [0, 1], focal lengths) run,
+    with ``backend="warp"``, as one kernel over all inputs on their device
+    (:func:`ssgwarp.raster.ops.check_values`), whose flags are read back with one synchronisation; with
+    ``defer_values=True`` that read is left to the caller, which gets ``(flags, check)``: an int64
+    device tensor and the function that raises on its host copy (``check(flags.tolist())``,
+    :func:`raise_for_flags`), so the read can share a synchronisation the caller makes anyway;
+    ``flags``: a zeroed int64 tensor ``[N_FLAGS]`` for the kernel to write into (else one is
+    made). With ``backend="torch"`` the same checks run in torch
+    (:func:`ssgwarp.raster.reference.check_values_reference`; no Warp kernel, nothing deferred).
+    """
+    check_shapes(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds,
+                 render_mode, rasterize_mode, tile_size, near_plane)
+    if backend == "torch":
+        raise_for_flags(reference.check_values_reference(means, quats, scales, opacities, colors, viewmats, Ks,
+                                                         backgrounds))
+        return None
+    values = ops.check_values(means, quats, scales, opacities, colors, viewmats, Ks, backgrounds, flags)
+    if defer_values:
+        return values, raise_for_flags
+    raise_for_flags(values.tolist())
+    return None
+
+
+def rasterization(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    radius_clip: float = 0.0,
+    eps2d: float = 0.3,
+    sh_degree: Optional[int] = None,
+    packed: bool = True,
+    tile_size: Optional[int] = None,
+    backgrounds: Optional[Tensor] = None,
+    render_mode: str = "RGB",
+    sparse_grad: bool = False,
+    absgrad: bool = False,
+    rasterize_mode: str = "classic",
+    channel_chunk: int = 32,
+    *,
+    settings: Optional[RasterSettings] = None,
+    deterministic: bool = False,
+    validate: bool = True,
+    backend: str = "auto",
+):
+    """Render N Gaussians into C cameras (gsplat 1.5.3 ``rasterization`` semantics, classic mode).
+
+    Args (gsplat's): ``means [N,3]``, ``quats [N,4]`` (wxyz, any norm), ``scales [N,3]`` (linear),
+        ``opacities [N]`` in [0,1], ``colors [N,D]`` / ``[C,N,D]`` or SH ``[N,K,3]`` / ``[C,N,K,3]``
+        with ``sh_degree``, ``viewmats [C,4,4]`` (world-to-camera), ``Ks [C,3,3]``, ``width``,
+        ``height``, ``near_plane``, ``far_plane``, ``radius_clip``, ``eps2d``, ``backgrounds [C,D]``,
+        ``render_mode`` (RGB, D, ED, RGB+D, RGB+ED), ``rasterize_mode`` (classic, antialiased),
+        ``tile_size`` (default: per device, :data:`DEFAULT_TILE_SIZE`: gsplat's 16 on CUDA, 8 on the
+        CPU, where shorter per-tile lists are about 1.8x faster; docs/tradeoffs.md). ``packed``,
+        ``sparse_grad`` and ``channel_chunk`` are accepted for compatibility; the layout is always the
+        non-packed one ([C, N] per-camera arrays).
+    Extra (keyword only):
+        settings: :class:`RasterSettings` speed/accuracy knobs (default: gsplat's rules).
+        deterministic: bit-identical gradients from run to run on CUDA (slower backward; needs
+            ``tile_size <= 16``).
+        validate: check inputs for NaN/Inf, bad shapes, devices, dtypes, quaternions, scales,
+            opacities (one cheap pass); ``False`` skips it.
+        backend: ``"warp"`` (kernels), ``"torch"`` (dense reference) or ``"auto"`` (warp).
+
+    Returns:
+        ``render_colors [C,H,W,D']``, ``render_alphas [C,H,W,1]``, ``meta`` with ``radii [C,N,2]``,
+        ``means2d [C,N,2]`` (after backward its ``.grad`` is the screen-space positional gradient
+        used by densification; call ``meta["means2d"].retain_grad()`` first), ``depths [C,N]``,
+        ``conics [C,N,3]``, ``opacities [C,N]``, ``tiles_per_gauss``, ``isect_ids``,
+        ``flatten_ids``, ``isect_offsets [C,th,tw]``, ``tile_width``, ``tile_height``,
+        ``width``, ``height``, ``tile_size``, ``n_cameras``, ``settings``.
+    """
+    settings, tile_size = resolve_arguments(means, settings, tile_size, absgrad)
+    width, height = int(width), int(height)
+    if backend == "auto":
+        backend = "warp" if ops is not None else "torch"
+    if backend not in ("warp", "torch"):
+        raise ValueError(f"rasterization: backend must be 'warp', 'torch' or 'auto', got {backend!r}")
+    if backend == "warp":
+        return _rasterize_warp(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane,
+                               far_plane, radius_clip, eps2d, sh_degree, tile_size, backgrounds, render_mode,
+                               rasterize_mode, settings, deterministic, validate)
+    return reference.render_reference(
+        means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane, far_plane, radius_clip,
+        eps2d, sh_degree, tile_size, backgrounds, render_mode, rasterize_mode, settings, validate)
+
+
+def _rasterize_warp(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane, far_plane,
+                    radius_clip, eps2d, sh_degree, tile_size, backgrounds, render_mode, rasterize_mode, settings,
+                    deterministic, validate):
+    """The Warp path: value checks, projection (+ tile counts, + SH colours), binning with the one
+    read-back, blending (:mod:`ssgwarp.raster.ops`)."""
+    if ops is None:
+        raise ImportError("rasterization: backend='warp' needs warp-lang (pip install warp-lang), "
+                          "or use backend='torch'")
+    pending = None
+    if validate:
+        check_shapes(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds,
+                     render_mode, rasterize_mode, tile_size, near_plane)
+    C, N = viewmats.shape[0], means.shape[0]
+    CN = C * N
+    tile_width, tile_height = -(-width // tile_size), -(-height // tile_size)
+    # the projection writes each Gaussian's tile count into the head of ``scan`` (scanned there in
+    # place into the intersection ends) and the value checks their flags into its tail, so the
+    # intersection count and the flags come back in one read: one synchronisation per call, and
+    # nothing is allocated from the inputs' values before it
+    scan = torch.empty(CN + (N_FLAGS if validate else 0), dtype=torch.int64, device=means.device)
+    extra = {"ends": scan[:CN]}
+    if validate:
+        flags = scan[CN:]
+        flags.zero_()
+        if CN:  # the projection runs the checks on the values it loads
+            extra.update(flags=flags, colors=colors, backgrounds=backgrounds, sh=sh_degree is not None)
+        else:  # nothing to project: the checks on their own
+            ops.check_values(means, quats, scales, opacities, colors, viewmats, Ks, backgrounds, flags)
+        pending = (flags, raise_for_flags)
+    cfg = ops._project_cfg(means.dtype, width, height, near_plane, far_plane, radius_clip, eps2d,
+                           rasterize_mode == "antialiased", settings, tile_size, tile_width, tile_height, sh_degree)
+    coeffs = campos = None
+    if sh_degree is not None:
+        # inv_ex: no singularity check, so no device synchronisation per call
+        campos = torch.linalg.inv_ex(viewmats).inverse[:, :3, 3]
+        coeffs = colors
+    radii, means2d, depths, conics, opacs, sh_colors, counts, packed = ops._Project.apply(
+        means, quats, scales, opacities, viewmats, Ks, coeffs, campos, cfg, extra)
+    if sh_colors is not None:
+        colors = sh_colors
+    colors, backgrounds = reference.mode_channels(colors, depths, backgrounds, render_mode, C)
+    meta = {
+        "radii": radii, "means2d": means2d, "depths": depths, "conics": conics, "opacities": opacs,
+        "tile_width": tile_width, "tile_height": tile_height, "width": width, "height": height,
+        "tile_size": tile_size, "n_cameras": C, "settings": settings, "backend": "warp",
+    }
+    tiles = ops.bin_tiles(means2d, radii, depths, tile_size, tile_width, tile_height, pending=pending, counts=counts,
+                          scan=scan, keep_perm=deterministic, counts_in_scan=True)
+    # gsplat's binning outputs; the backward's internal arrays (offsets, perm, isect_ends) stay in ``tiles``
+    meta.update({k: tiles[k] for k in PUBLIC_TILE_KEYS})
+    render_colors, render_alphas = ops.blend_warp(means2d, conics, colors, opacs, backgrounds, tiles, width, height,
+                                                  tile_size, settings, deterministic=deterministic, packed=packed)
+    return reference.expected_depth(render_colors, render_alphas, render_mode), render_alphas, meta

@@ -1,0 +1,3 @@
+"""3DGS reconstruction (ssgwarp reconstruct): the trainer, its recipe, densification.
+
+Modules: recipe, reconstruct, strategy, trainer."""

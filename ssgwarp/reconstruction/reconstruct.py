@@ -1,0 +1,244 @@
+"""3DGS reconstruction of a capture: ``ssgwarp reconstruct``.
+
+The 3D Gaussian Splatting recipe (Kerbl et al. 2023), one view per step:
+
+* loss ``(1 - 0.2) L1 + 0.2 (1 - SSIM)`` (:func:`ssgwarp.services.losses.photometric`);
+* Adam (eps 1e-15), one parameter group per scene tensor with its own learning
+  rate; the position rate decays exponentially from ``1.6e-4`` to ``1.6e-6``
+  times the scene extent over the run;
+* densification by a strategy (:mod:`ssgwarp.reconstruction.strategy`): ``"default"``, the 3DGS
+  rules (clone / split by the view-space positional gradient in NDC units, prune
+  by opacity and size, opacity reset; at most ``max_gaussians`` Gaussians), or
+  ``"mcmc"``, 3DGS-MCMC (relocation of dead Gaussians, growth up to the budget
+  ``max_gaussians``, opacity-gated position noise, opacity and scale
+  regularisers); its schedule scales with the run's length;
+* SH degree raised by one every ``sh_interval`` steps up to ``sh_degree``.
+
+Densification works on every tensor the scene holds (identity encodings
+included) and its Adam state, so Gaussian Grouping can train jointly through ``hooks``.
+
+Runs are seeded and repeatable (views, split samples and initial identities
+come from dedicated generators), checkpoint atomically to ``OUT/checkpoint.pt``
+every ``checkpoint_every`` steps and on Ctrl-C, and resume bit-exactly
+(``--resume``). A NaN loss stops the run with the step number; the last good
+checkpoint is kept.
+
+The recipe lives in :mod:`ssgwarp.reconstruction.recipe`, the loop in :mod:`ssgwarp.reconstruction.trainer`; this module is
+the command (``reconstruct``: load, claim the run folder, train, evaluate, write the run files).
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Callable, Optional, Sequence
+
+import torch
+
+from ..services import distributed
+from ..capture.datasets import data_json, load_dataset
+from ..services.distributed import SINGLE
+from ..errors import InputError, SsgwarpError, WeightsNotFound
+from ..core.fileio import write_json
+from ..services.networks import load_lpips
+from ..capture.ply import write_ply
+from .recipe import BATCH_SCALINGS, Recipe, batch_factors
+from ..raster.rendering import render as render_views   # (the old name of the differentiable render)
+from ..services.runs import claim
+from .trainer import CHECKPOINT_FORMAT, Trainer, read_checkpoint
+
+log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
+
+OUTPUTS = ("scene.ply", "cameras.json", "data.json", "metrics.json")
+
+__all__ = ["BATCH_SCALINGS", "CHECKPOINT_FORMAT", "OUTPUTS", "Recipe", "Trainer", "batch_factors", "read_checkpoint",
+           "reconstruct", "render_views"]
+
+
+# ----------------------------------------------------------------------------- the stage
+def _lpips_model(device):
+    """LPIPS (found, or downloaded where allowed: :mod:`ssgwarp.services.weights`), or ``(None, reason)``."""
+    try:
+        return load_lpips(device=device), None
+    except WeightsNotFound as e:
+        return None, f"skipped: {e}"
+    except Exception as e:  # weights present but unusable: report, do not fail the run
+        return None, f"skipped: LPIPS weights could not be loaded ({str(e).splitlines()[0] if str(e) else e})"
+
+
+def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, images: str = "images",
+                sh_degree: int = 3, max_gaussians: int = 1_000_000, resume: bool = False, force: bool = False,
+                device=None, seed: int = 0, hooks: Sequence = (), identity_dim: Optional[int] = None,
+                split_every: int = 8, width: Optional[int] = None, max_images: Optional[int] = None,
+                background: Optional[Sequence[float]] = None, recipe: Optional[Recipe] = None,
+                checkpoint_every: int = 500, num_random_points: int = 100_000,
+                rasterize: Optional[Callable] = None, raster_kwargs: Optional[dict] = None,
+                progress: bool = True, data=None, strategy="default", batch_size: Optional[int] = None,
+                group=None) -> dict:
+    """Reconstruct the capture in ``data_dir`` into the run folder ``out`` (what the CLI runs).
+
+    Writes ``out/scene.ply``, ``cameras.json``, ``data.json``, ``metrics.json`` (and keeps
+    ``out/checkpoint.pt``). Existing outputs are never overwritten unless ``force``
+    (which starts over) or ``resume`` (which continues from the checkpoint).
+    ``data`` may be a preloaded :class:`~ssgwarp.capture.datasets.SceneData` of ``data_dir``.
+    ``batch_size``: views per step over all processes (default: one per process; on
+    ``resume``, the checkpoint's). ``group``: the :class:`ssgwarp.services.distributed.Group` of a
+    data-parallel run (default: alone); only its main process writes files and evaluates.
+    Returns the metrics dict (on the other processes: ``{}``).
+    """
+    group = group if group is not None else SINGLE
+    out = Path(out).expanduser()
+    device = torch.device(device) if device is not None else torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    ckpt = out / "checkpoint.pt"
+    claimed = claim(out, OUTPUTS + ("checkpoint.pt",), force=force, resume=resume, what="a reconstruction")
+    # load and validate everything before touching the output folder
+    if data is None:
+        kw = {} if background is None else {"background": background}
+        data = load_dataset(data_dir, images=images, split_every=split_every, max_images=max_images, width=width,
+                            num_random_points=num_random_points, seed=seed, **kw)
+    state = read_checkpoint(ckpt) if resume and ckpt.is_file() else None
+    if state is not None and batch_size is None:
+        batch_size = int(state.get("batch_size", 1))
+    group.barrier()  # everyone has looked at OUT before the main process changes it
+    trainer = Trainer(data, iters=iters, sh_degree=sh_degree, max_gaussians=max_gaussians, recipe=recipe,
+                      hooks=hooks, identity_dim=identity_dim, checkpoint_path=ckpt,
+                      checkpoint_every=checkpoint_every, rasterize=rasterize, raster_kwargs=raster_kwargs,
+                      device=device, seed=seed, progress=progress, strategy=strategy, batch_size=batch_size,
+                      group=group)
+    if state is not None:
+        trainer.load_checkpoint(ckpt, state=state)
+        del state
+        if trainer.step >= iters:
+            log.info("the checkpoint is already at step %d: writing outputs only", trainer.step)
+    elif resume:
+        if claimed.existing:
+            raise SsgwarpError(f"{out}: nothing to resume (no checkpoint.pt); pass --force to start over")
+        log.info("no checkpoint in %s: starting from scratch", out)
+    if group.is_main:
+        claimed.clear()   # (--force: the old run's files)
+    if group.is_main:
+        out.mkdir(parents=True, exist_ok=True)
+    group.barrier()
+
+    if torch.cuda.is_available() and device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    trainer.train()
+    peaks = None
+    if group.active and device.type == "cuda":
+        peaks = [round(v, 1) for v in group.gather(torch.cuda.max_memory_allocated(device) / 2**20)]
+    if not group.is_main:
+        return {}
+    scene = trainer.final_scene()
+
+    lpips, lpips_note = _lpips_model(device)
+    ev = trainer.evaluate(lpips=lpips)
+    metrics = {
+        "psnr": ev["psnr"], "ssim": ev["ssim"], "lpips": ev["lpips"],
+        "test_views": ev["views"],
+        "num_gaussians": len(scene),
+        "train_seconds": round(trainer.elapsed, 2),
+        "iters": trainer.step,
+        "sh_degree": scene.sh_degree,
+        "identity_dim": None if scene.identities is None else int(scene.identities.shape[1]),
+        "seed": seed,
+        "device": str(device),
+        "world_size": group.world_size,
+        "batch_size": trainer.batch_size,
+        "images_seen": trainer.step * trainer.batch_size,
+        "batch_scaling": {"mode": trainer.recipe.batch_scaling, "lr_factor": trainer.lr_factor,
+                          "betas": list(trainer.betas)},
+        "resolution": [data.width, data.height],
+        **data.metric_frame,
+        "per_view": ev["per_view"],
+    }
+    r = trainer.recipe
+    metrics["densification"] = {"strategy": trainer.strategy.name, "max_gaussians": trainer.max_gaussians,
+                                "refine_start": r.refine_start, "refine_stop": r.refine_stop,
+                                "refine_every": r.refine_every, "reset_every": r.reset_every}
+    if ev["views"] == 0:
+        metrics["note"] = "no held-out views (split_every=0 or a single image): PSNR/SSIM not measured"
+    if lpips_note:
+        metrics["lpips_note"] = lpips_note
+    if device.type == "cuda" and torch.cuda.is_available():
+        metrics["peak_gpu_memory_mb"] = round(torch.cuda.max_memory_allocated(device) / 2**20, 1)
+        if peaks is not None:  # every process's peak (they differ by their renders' workspace)
+            metrics["peak_gpu_memory_mb_per_rank"] = peaks
+
+    write_ply(out / "scene.ply", scene)
+    data.cameras.to("cpu").save(out / "cameras.json")
+    write_json(out / "data.json", data_json(data, seed=seed))
+    write_json(out / "metrics.json", metrics)
+    log.info("wrote %s: %d Gaussians, held-out PSNR %s", out, len(scene),
+             "n/a" if metrics["psnr"] is None else f"{metrics['psnr']:.2f} dB")
+    return metrics
+
+
+# ----------------------------------------------------------------------------- CLI
+def _background(s: str) -> tuple[float, float, float]:
+    named = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
+    if s in named:
+        return named[s]
+    try:
+        v = tuple(float(x) for x in s.split(","))
+    except ValueError:
+        v = ()
+    if len(v) != 3:
+        raise InputError(f"--background {s!r}: expected white, black or R,G,B in [0, 1]")
+    return v  # type: ignore[return-value]
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("data_dir", type=Path, help="the capture: COLMAP (sparse/0), LLFF (poses_bounds.npy) "
+                        "or NeRF/instant-ngp (transforms*.json) folder")
+    parser.add_argument("--out", type=Path, required=True, help="run folder to write")
+    parser.add_argument("--iters", type=int, default=30000, help="training steps (default 30000; 7000 is a quick run)")
+    parser.add_argument("--images", default="images", help="image sub-folder, e.g. images_4 or images_8 (default images)")
+    parser.add_argument("--width", type=int, default=None, help="resize images to this width (default: as loaded)")
+    parser.add_argument("--sh-degree", type=int, default=3, help="final SH degree 0..3 (default 3)")
+    parser.add_argument("--strategy", choices=("default", "mcmc"), default="default",
+                        help="densification: default (3DGS: clone/split/prune, opacity reset) or mcmc "
+                             "(3DGS-MCMC: relocation, a fixed budget of --max-gaussians, position noise)")
+    parser.add_argument("--max-gaussians", type=int, default=1_000_000,
+                        help="cap on the number of Gaussians; with --strategy mcmc the budget it grows to "
+                             "(default 1000000)")
+    parser.add_argument("--split-every", type=int, default=8,
+                        help="hold out every N-th image for testing (default 8, the LLFF convention; 0: none)")
+    parser.add_argument("--max-images", type=int, default=None, help="use at most this many images (evenly spaced)")
+    parser.add_argument("--background", type=_background, default=None,
+                        help="white, black or R,G,B: what RGBA images are composited on (default white)")
+    parser.add_argument("--random-points", type=int, default=100_000,
+                        help="initial points when the capture has no point cloud (default 100000)")
+    parser.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints (default 500)")
+    parser.add_argument("--batch-size", type=int, default=None,
+                        help="training views per step, over all processes (default: one per process; on "
+                             "--resume the checkpoint's); the default schedule counts images, so --iters N "
+                             "--batch-size B trains on N x B images (docs/scaling.md)")
+    parser.add_argument("--batch-scaling", choices=("sqrt", "linear", "none"), default="sqrt",
+                        help="Adam for batches: learning rates x sqrt(B) (default) or x B with betas ** B, "
+                             "or none (one view's settings)")
+    parser.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    parser.add_argument("--force", action="store_true", help="overwrite an existing run in OUT")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args) -> int:
+    if args.batch_size is not None and args.batch_size < 1:
+        raise InputError(f"--batch-size must be >= 1, got {args.batch_size}")
+    group, device = distributed.from_env(args.device)  # under torchrun: join the others
+    logging.basicConfig(level=logging.INFO if group.is_main else logging.WARNING, format="ssgwarp: %(message)s")
+    try:
+        m = reconstruct(args.data_dir, args.out, iters=args.iters, images=args.images, sh_degree=args.sh_degree,
+                        max_gaussians=args.max_gaussians, resume=args.resume, force=args.force, device=device,
+                        seed=args.seed, split_every=args.split_every, width=args.width, max_images=args.max_images,
+                        background=args.background, checkpoint_every=args.checkpoint_every,
+                        num_random_points=args.random_points, progress=not args.no_progress,
+                        strategy=args.strategy, batch_size=args.batch_size,
+                        recipe=Recipe(batch_scaling=args.batch_scaling), group=group)
+    finally:
+        distributed.shutdown(group)
+    if not group.is_main:
+        return 0
+    ps = "n/a" if m["psnr"] is None else f"{m['psnr']:.2f} dB"
+    ss = "n/a" if m["ssim"] is None else f"{m['ssim']:.4f}"
+    print(f"{args.out}: {m['num_gaussians']} Gaussians, held-out PSNR {ps}, SSIM {ss}, "
+          f"{m['train_seconds']:.0f} s")
+    return 0

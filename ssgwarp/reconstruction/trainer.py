@@ -1,0 +1,523 @@
+"""The 3DGS training loop: :class:`Trainer` (one capture, a :class:`~ssgwarp.reconstruction.recipe.Recipe`, a
+densification :class:`~ssgwarp.reconstruction.strategy.Strategy`, hooks such as Gaussian Grouping's, batches of
+views split over processes by :mod:`ssgwarp.services.distributed`), its checkpoints and evaluation.
+
+Runs are seeded and repeatable (views, split samples and initial identities come from the run's
+own generators), checkpoint atomically every ``checkpoint_every`` steps and on Ctrl-C, and resume
+bit-exactly; a NaN loss stops the run with the step number, the last good checkpoint kept
+(the policy of :mod:`ssgwarp.services.loop`). The command around it is :mod:`ssgwarp.reconstruction.reconstruct`.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Callable, Optional, Sequence
+
+import numpy as np
+import torch
+
+from ..services.distributed import SINGLE, check_every
+from ..errors import InputError
+from ..core.fileio import atomic_path
+from ..core.geometry import knn_mean_distance
+from ..services.loop import Diverged, Loop, diverged_message
+from ..services.losses import photometric, psnr, ssim
+from .recipe import Recipe, batch_factors
+from ..raster.rendering import render
+from ..raster.scene import GaussianScene
+from .strategy import GaussianParams, make_strategy
+
+log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
+
+CHECKPOINT_FORMAT = "ssgwarp-reconstruct-checkpoint/1"
+
+
+
+def _takes_scene(hook) -> bool:
+    """Whether a hook's ``loss`` takes the current scene (a ``scene`` parameter)."""
+    import inspect
+
+    try:
+        return "scene" in inspect.signature(hook.loss).parameters
+    except (TypeError, ValueError):
+        return False
+
+class Trainer:
+    """The 3DGS training loop on one :class:`~ssgwarp.capture.datasets.SceneData`.
+
+    Args:
+        data: the capture (its ``train_ids`` are trained on, ``test_ids`` evaluated).
+        scene: initial scene (default: from ``data.points``).
+        iters: total number of steps.
+        sh_degree: final SH degree (0..3).
+        max_gaussians: cap on the number of Gaussians (the budget of the mcmc strategy).
+        recipe: :class:`Recipe`.
+        strategy: ``"default"`` or ``"mcmc"`` (or a :class:`ssgwarp.reconstruction.strategy.Strategy`).
+        hooks: objects with ``parameters() -> list[param-group dicts]`` and
+            ``loss(step, view_index, identity_render [H,W,E]) -> Tensor``. When a hook
+            is present and the scene has identities, identities are rendered in the
+            same pass as colour, optimised (``recipe.lr_identities``) and densified,
+            and each hook's loss is added. A hook whose ``loss`` takes a ``scene``
+            parameter gets the current scene there (``loss(step, view_index,
+            identity_render, scene=...)``). ``view_index`` indexes ``data``.
+        identity_dim: give the initial scene identity encodings of this size (random,
+            ``recipe.identity_init_std``) when it has none.
+        checkpoint_path: where checkpoints go (None: no checkpoints).
+        checkpoint_every: steps between checkpoints.
+        rasterize: a gsplat-compatible rasterization function (default ssgwarp's).
+        raster_kwargs: extra keyword arguments for it.
+        batch_size: training views per step, over all processes (default: one per process). The
+            loss is their mean; Adam is adapted by ``recipe.batch_scaling`` (:func:`batch_factors`)
+            and the default schedule counts images (:meth:`Recipe.resolved`).
+        group: a :class:`ssgwarp.services.distributed.Group` when several processes train together (each
+            renders its share of every batch); default: alone.
+        device, seed, progress: as usual.
+    """
+
+    def __init__(self, data, *, scene: Optional[GaussianScene] = None, iters: int = 30000, sh_degree: int = 3,
+                 max_gaussians: int = 1_000_000, recipe: Optional[Recipe] = None, hooks: Sequence = (),
+                 identity_dim: Optional[int] = None, checkpoint_path: Optional[str | Path] = None,
+                 checkpoint_every: int = 500, rasterize: Optional[Callable] = None,
+                 raster_kwargs: Optional[dict] = None, device=None, seed: int = 0, progress: bool = True,
+                 strategy="default", batch_size: Optional[int] = None, group=None):
+        if iters < 1:
+            raise InputError(f"iters must be >= 1, got {iters}")
+        if not 0 <= sh_degree <= 3:
+            raise InputError(f"sh_degree must be 0..3, got {sh_degree}")
+        if max_gaussians < 1:
+            raise InputError(f"max_gaussians must be >= 1, got {max_gaussians}")
+        if not data.train_ids:
+            raise InputError("no training views")
+        self.group = group if group is not None else SINGLE
+        self.batch_size = int(batch_size) if batch_size is not None else self.group.world_size
+        if self.batch_size < 1:
+            raise InputError(f"batch_size must be >= 1, got {self.batch_size}")
+        if self.batch_size % self.group.world_size:
+            raise InputError(f"--batch-size {self.batch_size} cannot be split evenly between "
+                             f"{self.group.world_size} processes; use a multiple of {self.group.world_size}")
+        self.device = torch.device(device) if device is not None else data.device
+        self.data = data.to(self.device)
+        self.iters = int(iters)
+        self.sh_degree = int(sh_degree)
+        self.max_gaussians = int(max_gaussians)
+        self.strategy = make_strategy(strategy)
+        recipe = recipe or Recipe()
+        random_init = None
+        if scene is None and getattr(data, "points_source", "") == "random" and data.points is not None:
+            random_init = self._initial_count(len(data.points[0]), recipe)
+        self.recipe = recipe.resolved(self.iters, self.sh_degree, self.strategy, random_init, self.batch_size)
+        self.lr_factor, self.beta_power = batch_factors(self.batch_size, self.recipe.batch_scaling)
+        self.hooks = list(hooks)
+        self.checkpoint_path = Path(checkpoint_path) if checkpoint_path is not None else None
+        self.checkpoint_every = int(checkpoint_every)
+        self.rasterize = rasterize
+        self.raster_kwargs = dict(raster_kwargs or {})
+        if rasterize is None:
+            self.raster_kwargs.setdefault("validate", False)  # the loss is checked for NaN every step
+        self.seed = int(seed)
+        self.progress = progress and self.group.is_main
+        self.extent = float(self.data.extent)
+        self.step = 0
+        self.elapsed = 0.0
+        self.last_checkpoint_step: Optional[int] = None
+        self._loop: Optional[Loop] = None
+        self._agreed_stop = False  # the stop request as all processes agreed on it (in the gradient all-reduce)
+        self.check_every = check_every() if self.group.active else 0
+        self.history: list[dict] = []
+
+        self.view_gen = torch.Generator().manual_seed(self.seed)
+        self._queue: list[int] = []
+        self._bg: dict[int, torch.Tensor] = {}
+
+        if scene is None:
+            scene = self._initial_scene()
+        if scene.sh_degree != self.sh_degree:
+            scene = scene.with_sh_degree(self.sh_degree)
+        if identity_dim and scene.identities is None:
+            g = torch.Generator().manual_seed(self.seed + 2)
+            ids = torch.randn(len(scene), int(identity_dim), generator=g) * self.recipe.identity_init_std
+            scene = scene.replace(identities=ids.to(scene.device, scene.dtype))
+        scene = scene.to(self.device, torch.float32)
+        if self.strategy.budgeted and len(scene) > self.max_gaussians:
+            raise InputError(f"the initial scene has {len(scene)} Gaussians, more than the budget of "
+                             f"{self.max_gaussians} (--max-gaussians) of the {self.strategy.name} strategy")
+        if self.hooks and scene.identities is None:
+            log.warning("hooks given but the scene has no identity encodings (pass identity_dim): "
+                        "their losses are not used")
+        self._build_optimizer(scene)
+        self.strategy.setup(self.gaussians, recipe=self.recipe, extent=self.extent,
+                            max_gaussians=self.max_gaussians, seed=self.seed)
+        self._hook_takes_scene = [_takes_scene(h) for h in self.hooks]
+
+    # -- state --------------------------------------------------------------------------------
+    def _initial_scene(self) -> GaussianScene:
+        if self.data.points is None:
+            raise InputError("the capture has no initial points (and none were generated); pass a scene")
+        xyz, rgb = self.data.points
+        xyz, rgb = xyz.float().cpu(), rgb.float().cpu()
+        m = self._initial_count(len(xyz), self.recipe)
+        if len(xyz) > m:
+            g = torch.Generator().manual_seed(self.seed + 3)
+            idx = torch.randperm(len(xyz), generator=g)[:m].sort().values
+            xyz, rgb = xyz[idx], rgb[idx]
+        if len(xyz) == 0:
+            raise InputError("the capture has an empty point cloud")
+        xyz = xyz.to(self.device)
+        scale = knn_mean_distance(xyz, k=3).clamp_min(1e-7) * self.recipe.init_scale
+        return GaussianScene.from_points(xyz, rgb.to(self.device), sh_degree=0,
+                                         opacity=self.recipe.init_opacity, scale=scale)
+
+    def _initial_count(self, n: int, recipe: Recipe) -> int:
+        """How many of ``n`` capture points start the scene (``init_max_points``; the budget of a budgeted strategy)."""
+        if recipe.init_max_points is not None:
+            n = min(n, recipe.init_max_points)
+        return min(n, self.max_gaussians) if self.strategy.budgeted else n
+
+    def _lr(self, name: str) -> float:
+        """Learning rate of scene tensor ``name`` for this run's batch size (at step 0)."""
+        r = self.recipe
+        return self.lr_factor * {"means": r.lr_means * self.extent, "log_scales": r.lr_scales,
+                                 "quats": r.lr_quats, "logit_opacities": r.lr_opacity, "sh_dc": r.lr_sh_dc,
+                                 "sh_rest": r.lr_sh_rest, "identities": r.lr_identities}[name]
+
+    @property
+    def betas(self) -> tuple[float, float]:
+        """Adam's betas for this run's batch size (0.9, 0.999 raised to :attr:`beta_power`)."""
+        return 0.9 ** self.beta_power, 0.999 ** self.beta_power
+
+    def _build_optimizer(self, scene: GaussianScene) -> None:
+        params = {k: torch.nn.Parameter(v.detach().clone().contiguous()) for k, v in scene.tensors().items()}
+        groups = [{"params": [p], "lr": self._lr(k), "name": k} for k, p in params.items()]
+        self.gaussians = GaussianParams(params, torch.optim.Adam(groups, eps=self.recipe.adam_eps, betas=self.betas))
+        hook_groups = []
+        for h in self.hooks:
+            hook_groups.extend(h.parameters())
+        self.hook_opt = torch.optim.Adam(hook_groups, betas=self.betas) if hook_groups else None
+        if self.hook_opt is not None and self.lr_factor != 1.0:
+            for g in self.hook_opt.param_groups:
+                g["lr"] *= self.lr_factor
+
+    def _hook_params(self) -> list[torch.Tensor]:
+        if self.hook_opt is None:
+            return []
+        return [p for g in self.hook_opt.param_groups for p in g["params"]]
+
+    @property
+    def params(self) -> dict[str, torch.nn.Parameter]:
+        """The scene's tensors (live parameters), by :class:`GaussianScene` field name."""
+        return self.gaussians.params
+
+    @property
+    def opt(self) -> torch.optim.Optimizer:
+        return self.gaussians.opt
+
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.params["means"].shape[0])
+
+    @property
+    def active_sh_degree(self) -> int:
+        return min(self.sh_degree, self.step // max(1, self.recipe.sh_interval))
+
+    @property
+    def scene(self) -> GaussianScene:
+        """The current scene (tensors are the live parameters)."""
+        p = self.params
+        return GaussianScene(p["means"], p["log_scales"], p["quats"], p["logit_opacities"], p["sh_dc"],
+                             p.get("sh_rest"), p.get("identities"), self.sh_degree)
+
+    def final_scene(self) -> GaussianScene:
+        """A detached copy of the scene."""
+        return self.scene.detach()
+
+    # -- training -------------------------------------------------------------------------------
+    def _next_view(self) -> int:
+        if not self._queue:
+            ids = torch.as_tensor(self.data.train_ids)
+            self._queue = ids[torch.randperm(len(ids), generator=self.view_gen)].tolist()
+        return self._queue.pop()
+
+    def next_batch(self) -> list[int]:
+        """The next step's ``batch_size`` views (all processes draw the same; each renders its share).
+        Consecutive batches are consecutive runs of the one-view order."""
+        return [self._next_view() for _ in range(self.batch_size)]
+
+    def _set_lrs(self) -> None:
+        r = self.recipe
+        t = min(1.0, self.step / max(1, self.iters))
+        lr0, lr1 = r.lr_means * self.extent, r.lr_means_final * self.extent
+        self.gaussians.groups["means"]["lr"] = self.lr_factor * math.exp(math.log(lr0) * (1 - t) + math.log(lr1) * t)
+
+    def train_step(self) -> dict:
+        """One optimisation step (``self.step`` counts completed steps)."""
+        r = self.recipe
+        views = self.group.share(self.next_batch())  # this process's views of the step's batch
+        self._set_lrs()
+        cam = self.data.cameras[views]
+        gt = torch.stack([self.data.images[v] for v in views])
+        scene = self.scene
+        with_ids = bool(self.hooks) and scene.identities is not None
+        ch = 3 + (scene.identities.shape[1] if with_ids else 0)
+        bg = self._bg.get(ch)
+        if bg is None:
+            bg = self._bg[ch] = self.data.background_tensor(ch)[None].expand(len(views), -1).contiguous()
+        out, alphas, meta = render(scene, cam, sh_degree=self.active_sh_degree, identities=with_ids,
+                                   backgrounds=bg, rasterize=self.rasterize, **self.raster_kwargs)
+        means2d = meta["means2d"]
+        if self.strategy.uses_means2d_grad and means2d.requires_grad:
+            means2d.retain_grad()
+        img = out[..., :3]
+        loss = photometric(img, gt, r.lambda_dssim, r.dssim_scale)  # (the mean over the views)
+        reg = self.strategy.regularizer(self.gaussians)
+        if reg is not None:
+            loss = loss + reg
+        hook_losses = []
+        if with_ids:
+            for h, takes_scene in zip(self.hooks, self._hook_takes_scene):
+                extra = {"scene": self.scene} if takes_scene else {}
+                per_view = [h.loss(self.step, vi, out[j, ..., 3:], **extra) for j, vi in enumerate(views)]
+                hook_losses.append(sum(per_view) / len(per_view))
+        total = loss + sum(hook_losses) if hook_losses else loss
+        finite = bool(torch.isfinite(total.detach()))
+        if not finite and not self.group.active:
+            self._diverged("the loss is NaN/inf")
+        total.backward()
+        # every process steps with the batch's mean gradient; NaN and Ctrl-C anywhere are seen everywhere
+        bad, stop = self.group.average_grads(list(self.params.values()) + self._hook_params(),
+                                             [0.0 if finite else 1.0, 1.0 if self._stop_requested else 0.0])
+        self._agreed_stop = stop > 0
+        if bad > 0:
+            self._diverged("the loss is NaN/inf" + ("" if not self.group.active else
+                                                    f" on {int(bad)} of {self.group.world_size} processes"))
+        self._observe(meta)
+        self.opt.step()
+        self.opt.zero_grad(set_to_none=True)
+        if self.hook_opt is not None:
+            self.hook_opt.step()
+            self.hook_opt.zero_grad(set_to_none=True)
+        self.step += 1
+        info = {"loss": total.detach(), "mse": ((img.detach().clamp(0, 1) - gt) ** 2).mean()}
+        info.update(self.strategy.step(self.gaussians, self.step, self.gaussians.groups["means"]["lr"]))
+        if self.check_every and self.step % self.check_every == 0:
+            self.group.check_identical(self._synced_tensors(), self.step)
+        return info
+
+    def _observe(self, meta: dict) -> None:
+        """The strategy's statistics of this step's views, from every process's share."""
+        g = self.gaussians
+        if not self.group.active or not g.stats:
+            self.strategy.observe(g, meta)
+            return
+        kept = g.stats
+        g.stats = {k: torch.zeros_like(v) for k, v in kept.items()}
+        self.strategy.observe(g, meta)
+        ops = self.strategy.stat_ops
+        self.group.reduce_stats(g.stats, ops)
+        g.stats = {k: (torch.maximum(kept[k], v) if ops.get(k, "sum") == "max" else kept[k] + v)
+                   for k, v in g.stats.items()}
+
+    def _synced_tensors(self) -> dict[str, torch.Tensor]:
+        """What every process must hold identically: parameters, Adam moments, statistics."""
+        out = {f"param.{k}": v for k, v in self.params.items()}
+        for k, p in self.params.items():
+            out.update({f"adam.{k}.{n}": v for n, v in self.gaussians._moments(p).items()})
+        out.update({f"stat.{k}": v for k, v in self.gaussians.stats.items()})
+        out.update({f"hook.{i}": p for i, p in enumerate(self._hook_params())})
+        return out
+
+    @property
+    def _stop_requested(self) -> bool:
+        return self._loop is not None and self._loop.stop_requested
+
+    def _diverged(self, why: str) -> None:
+        where = (f"the last good checkpoint (step {self.last_checkpoint_step}) is kept at {self.checkpoint_path}"
+                 if self.last_checkpoint_step is not None else "no checkpoint was written yet")
+        raise Diverged(diverged_message(self.step + 1, where, why))
+
+    def train(self, until: Optional[int] = None) -> GaussianScene:
+        """Train up to step ``until`` (default ``iters``) under :mod:`ssgwarp.services.loop`'s policy:
+        checkpoints every ``checkpoint_every`` steps, at the end and on Ctrl-C (the step in flight
+        finishes first); a NaN loss stops with the last good checkpoint kept."""
+        until = self.iters if until is None else min(int(until), self.iters)
+        save = self.save_checkpoint if self.checkpoint_path is not None else None
+        active = self.group.active
+        loop = Loop(lambda: self.step, save=save, every=self.checkpoint_every, desc="reconstruct",
+                    progress=self.progress, total=until, sigterm=active, second_raises=not active,
+                    stop_agreed=(lambda: self._agreed_stop) if active else None,
+                    after_stop=self.group.barrier, say=self.group.is_main)   # nobody leaves before the checkpoint is written
+        loop.saved_step = self.last_checkpoint_step
+        t0 = time.time() - self.elapsed
+        ema = [None]
+
+        def on_step(info: dict) -> None:
+            self.elapsed = time.time() - t0
+            if self.step % 10 == 0 or self.step == until:
+                p = -10.0 * math.log10(max(float(info["mse"]), 1e-10))
+                ema[0] = p if ema[0] is None else 0.9 * ema[0] + 0.1 * p
+                loop.bar.set_postfix(loss=f"{float(info['loss']):.4f}", psnr=f"{ema[0]:.2f}",
+                                     gaussians=self.num_gaussians, sh=self.active_sh_degree, refresh=False)
+                self.history.append({"step": self.step, "loss": float(info["loss"]), "psnr": p,
+                                     "gaussians": self.num_gaussians})
+
+        self._loop = loop
+        try:
+            loop.run(self.train_step, until, on_step)
+        finally:
+            self._loop = None
+            self._agreed_stop = False
+        return self.final_scene()
+
+    # -- checkpoints ----------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        # the run's own generators only (the process-wide RNGs are the caller's: never saved or restored)
+        rng = {"view": self.view_gen.get_state(), "split": self.strategy.generator_state()}
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "step": self.step,
+            "iters": self.iters,
+            "sh_degree": self.sh_degree,
+            "max_gaussians": self.max_gaussians,
+            "seed": self.seed,
+            "elapsed": self.elapsed,
+            "recipe": asdict(self.recipe),
+            "strategy": self.strategy.name,
+            "batch_size": self.batch_size,
+            "world_size": self.group.world_size,  # (informational: any number of processes resumes it)
+            "names": list(self.data.names),
+            "params": {k: v.detach().cpu() for k, v in self.params.items()},
+            "optimizer": _to_cpu(self.opt.state_dict()),
+            "hook_params": [p.detach().cpu() for p in self._hook_params()],
+            "hook_optimizer": _to_cpu(self.hook_opt.state_dict()) if self.hook_opt is not None else None,
+            "stats": {k: v.detach().cpu() for k, v in self.gaussians.stats.items()},
+            "queue": list(self._queue),
+            "rng": rng,
+            "history": self.history[-1000:],
+        }
+
+    def save_checkpoint(self, path: Optional[str | Path] = None) -> Path:
+        """Write the checkpoint (with several processes: the main one writes, the others only note the step)."""
+        path = Path(path) if path is not None else self.checkpoint_path
+        if path is None:
+            raise ValueError("no checkpoint path")
+        if self.group.is_main:
+            state = self.state_dict()
+            with atomic_path(path) as tmp:
+                torch.save(state, tmp)
+        self.last_checkpoint_step = self.step
+        return path
+
+    def load_state_dict(self, st: dict) -> None:
+        if st.get("format") != CHECKPOINT_FORMAT:
+            raise InputError(f"not a reconstruction checkpoint (format {st.get('format')!r})")
+        if list(st["names"]) != list(self.data.names):
+            raise InputError("the checkpoint was trained on other images than this capture's "
+                             "(different --images/--max-images?); use --force to start over")
+        if int(st["sh_degree"]) != self.sh_degree:
+            raise InputError(f"the checkpoint has SH degree {st['sh_degree']}, not {self.sh_degree}; "
+                             f"pass --sh-degree {st['sh_degree']} to resume it")
+        kind = st.get("strategy", "default")
+        if kind != self.strategy.name:
+            raise InputError(f"the checkpoint was trained with --strategy {kind}, not {self.strategy.name}; "
+                             f"pass --strategy {kind} to resume it")
+        b = int(st.get("batch_size", 1))
+        if b != self.batch_size:
+            raise InputError(f"the checkpoint was trained with --batch-size {b}, not {self.batch_size}; "
+                             f"pass --batch-size {b} to resume it (with any number of processes dividing it)")
+        saved = set(st["params"])
+        if saved != set(self.params):
+            raise InputError(f"the checkpoint holds {sorted(saved)}, this run {sorted(self.params)}")
+        scene = GaussianScene(**{k: v for k, v in st["params"].items()}, sh_degree=self.sh_degree)
+        self._build_optimizer(scene.to(self.device))
+        self.opt.load_state_dict(st["optimizer"])  # (new group dicts: GaussianParams looks them up by name)
+        self.strategy.setup(self.gaussians, recipe=self.recipe, extent=self.extent,
+                            max_gaussians=self.max_gaussians, seed=self.seed)
+        # statistics this run keeps (a checkpoint may hold more, e.g. screen radii of a run that pruned by them)
+        stats = {k: v.to(self.device) for k, v in st["stats"].items() if k in self.gaussians.stats}
+        if set(stats) != set(self.gaussians.stats):
+            raise InputError(f"the checkpoint's densification statistics ({sorted(stats)}) do not match this "
+                             f"run's ({sorted(self.gaussians.stats)}): it was written with other densification "
+                             f"settings; use --force to start over")
+        self.gaussians.stats = stats
+        hp = self._hook_params()
+        if len(hp) != len(st["hook_params"]):
+            raise InputError("the checkpoint's hook parameters do not match this run's hooks")
+        with torch.no_grad():
+            for p, v in zip(hp, st["hook_params"]):
+                p.copy_(v.to(p.device))
+        if self.hook_opt is not None and st["hook_optimizer"] is not None:
+            self.hook_opt.load_state_dict(st["hook_optimizer"])
+        self.step = int(st["step"])
+        self.elapsed = float(st.get("elapsed", 0.0))
+        self._queue = list(st["queue"])
+        rng = st["rng"]
+        self.view_gen.set_state(rng["view"])
+        self.strategy.set_generator_state(rng["split"])
+        self.history = list(st.get("history", []))
+        self.last_checkpoint_step = self.step
+
+    def load_checkpoint(self, path: Optional[str | Path] = None, state: Optional[dict] = None) -> None:
+        """Continue from the checkpoint at ``path`` (default: this run's), or from its already
+        read ``state`` (:func:`read_checkpoint`)."""
+        path = Path(path) if path is not None else self.checkpoint_path
+        st = state if state is not None else read_checkpoint(path)
+        try:
+            self.load_state_dict(st)
+        except KeyError as e:
+            raise InputError(f"{path}: checkpoint lacks {e}; use --force to start over") from None
+        log.info("resumed from %s at step %d", path, self.step)
+
+    # -- evaluation -----------------------------------------------------------------------------
+    @torch.no_grad()
+    def render(self, ids: Sequence[int]) -> torch.Tensor:
+        """``[len(ids), H, W, 3]`` renders of the data's views ``ids`` at the final SH degree."""
+        scene = self.scene.detach()
+        out = []
+        bg = self.data.background_tensor(3)[None]
+        for i in ids:
+            img, _, _ = render(scene, self.data.cameras[i], sh_degree=self.sh_degree, backgrounds=bg,
+                               rasterize=self.rasterize, **self.raster_kwargs)
+            out.append(img[0, ..., :3].clamp(0.0, 1.0))
+        return torch.stack(out) if out else torch.zeros(0, self.data.height, self.data.width, 3)
+
+    @torch.no_grad()
+    def evaluate(self, ids: Optional[Sequence[int]] = None, lpips=None) -> dict:
+        """PSNR / SSIM (and LPIPS when a model is given) over the views ``ids`` (default: test views)."""
+        ids = list(self.data.test_ids if ids is None else ids)
+        per = []
+        for i in ids:
+            pred = self.render([i])
+            gt = self.data.images[i][None]
+            row = {"name": self.data.names[i], "psnr": float(psnr(pred, gt)), "ssim": float(ssim(pred, gt))}
+            if lpips is not None:
+                row["lpips"] = float(lpips(pred.permute(0, 3, 1, 2), gt.permute(0, 3, 1, 2)).mean())
+            per.append(row)
+        out = {"views": len(per), "per_view": per}
+        for k in ("psnr", "ssim", "lpips"):
+            vals = [r[k] for r in per if k in r]
+            out[k] = float(np.mean(vals)) if vals else None
+        return out
+
+
+def read_checkpoint(path: str | Path) -> dict:
+    """The contents of a reconstruction checkpoint (on the CPU), or an :class:`InputError`."""
+    try:
+        st = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:
+        raise InputError(f"{path}: unreadable checkpoint ({str(e).splitlines()[0] if str(e) else type(e).__name__});"
+                         f" use --force to start over") from None
+    if not isinstance(st, dict):
+        raise InputError(f"{path}: not a reconstruction checkpoint")
+    return st
+
+
+def _to_cpu(obj):
+    if torch.is_tensor(obj):
+        return obj.detach().cpu()
+    if isinstance(obj, dict):
+        return {k: _to_cpu(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_to_cpu(v) for v in obj]
+    return obj

@@ -1,0 +1,207 @@
+"""Colour spaces and the view-consistent colour transfer of Stage 2.
+
+**CIE Lab.** :func:`rgb_to_lab` converts sRGB in [0, 1] (D65 white) to CIE
+L*a*b* (``L`` in [0, 100]); the weight-free style distances of
+:mod:`ssgwarp.evaluation.metrics` compare colours there, where Euclidean distance follows
+perceived colour difference better than in RGB.
+
+**Colour transfer** (ARF, Zhang et al. 2022, §3.3): a linear map of colours
+``x -> A x + b`` that gives a source colour distribution the mean and
+covariance of a target one. With source mean/covariance ``(mu_s, S)`` and
+target ``(mu_t, T)``::
+
+    A = S^{-1/2} (S^{1/2} T S^{1/2})^{1/2} S^{-1/2},     b = mu_t - A mu_s
+
+(symmetric matrix square roots by eigen-decomposition). ``A S A^T = T``
+exactly, and among all linear maps doing so this ``A`` moves colours the
+least (it is the optimal-transport map between Gaussians; Pitié & Kokaram
+2007, "The linear Monge-Kantorovitch linear colour mapping"), so hues are
+not rotated gratuitously. ``S`` is regularised by ``eps`` times its mean
+eigenvalue (a flat-coloured source would otherwise have its noise amplified
+without bound) and the gain of ``A`` is capped (``max_gain``).
+
+Because the map is linear and a Gaussian scene's colour is linear in its SH
+coefficients (``c(d) = C0 dc + 0.5 + sum_k B_k(d) rest_k``), applying it to
+the coefficients (:func:`transform_sh`) recolours every view identically —
+the transfer is view-consistent by construction: ``dc' = A dc + (A 0.5 + b
+- 0.5) / C0`` and ``rest_k' = A rest_k``. On opaque pixels the render of the
+recoloured scene is exactly ``A render + b`` (up to the rasterizer's clamp of
+negative colours).
+
+Per group (:func:`fit_group_transforms`): each group's transform maps that
+group's pixels in the source views to its pixels in the target views; a
+group with too few target pixels (absent from the key views) falls back to
+the global transform, as group matching does.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+import torch
+
+from ..errors import InputError
+from ..core.imaging import rgb_to_lab  # noqa: F401  (re-exported: ssgwarp.services.color.rgb_to_lab)
+from ..raster.scene import SH_C0, GaussianScene
+
+Tensor = torch.Tensor
+
+# ----------------------------------------------------------------------------- statistics
+class ColorStats:
+    """Streaming mean and covariance of colours (float64 sums; add pixels in any number of batches)."""
+
+    def __init__(self, channels: int = 3, device=None) -> None:
+        self.n = 0.0
+        self.s1 = torch.zeros(channels, dtype=torch.float64, device=device)
+        self.s2 = torch.zeros(channels, channels, dtype=torch.float64, device=device)
+
+    def add(self, colors: Tensor) -> "ColorStats":
+        """Add colours ``[..., C]`` (flattened)."""
+        x = colors.reshape(-1, colors.shape[-1]).to(self.s1.device, torch.float64)
+        self.n += float(x.shape[0])
+        self.s1 += x.sum(0)
+        self.s2 += x.T @ x
+        return self
+
+    @property
+    def mean(self) -> Tensor:
+        return self.s1 / max(self.n, 1.0)
+
+    @property
+    def cov(self) -> Tensor:
+        mu = self.mean
+        c = self.s2 / max(self.n, 1.0) - torch.outer(mu, mu)
+        return (c + c.T) / 2
+
+
+def _sym_pow(m: Tensor, p: float, floor: float = 0.0) -> Tensor:
+    """``m^p`` of a symmetric PSD matrix (eigenvalues clamped below at ``floor``)."""
+    w, v = torch.linalg.eigh((m + m.T) / 2)
+    w = w.clamp_min(floor)
+    if p < 0:
+        w = w.clamp_min(max(floor, 1e-300))
+    return (v * w ** p) @ v.T
+
+
+@dataclass
+class ColorTransform:
+    """``x -> A x + b`` on colour vectors (``A [3, 3]``, ``b [3]``, float64)."""
+
+    A: Tensor
+    b: Tensor
+
+    @staticmethod
+    def identity(device=None) -> "ColorTransform":
+        return ColorTransform(torch.eye(3, dtype=torch.float64, device=device),
+                              torch.zeros(3, dtype=torch.float64, device=device))
+
+    def __call__(self, x: Tensor) -> Tensor:
+        """Apply to colours ``[..., 3]`` (in their dtype)."""
+        return x @ self.A.T.to(x) + self.b.to(x)
+
+    def then(self, other: "ColorTransform") -> "ColorTransform":
+        """The composition ``other(self(x))``."""
+        return ColorTransform(other.A @ self.A, other.A @ self.b + other.b)
+
+    def to_list(self) -> dict:
+        return {"A": [[round(float(v), 6) for v in row] for row in self.A], "b": [round(float(v), 6) for v in self.b]}
+
+
+def fit_transform(source: ColorStats, target: ColorStats, eps: float = 1e-3, max_gain: float = 4.0) -> ColorTransform:
+    """The linear colour map giving ``source``'s mean and covariance those of ``target`` (see module docs).
+
+    ``eps``: the source covariance gets ``eps * mean eigenvalue`` (+1e-12) added to its diagonal;
+    ``max_gain``: eigenvalues of ``A`` are capped at this (a map that would stretch some colour
+    direction more than that — a near-flat source — is limited).
+    """
+    if source.n < 2 or target.n < 1:
+        raise InputError("colour transfer: not enough pixels to estimate colour statistics")
+    S, T = source.cov, target.cov
+    reg = eps * float(torch.trace(S)) / S.shape[0] + 1e-12
+    S = S + reg * torch.eye(S.shape[0], dtype=S.dtype, device=S.device)
+    Sh = _sym_pow(S, 0.5)
+    Sih = _sym_pow(S, -0.5)
+    A = Sih @ _sym_pow(Sh @ T @ Sh, 0.5) @ Sih
+    A = (A + A.T) / 2
+    w, v = torch.linalg.eigh(A)
+    A = (v * w.clamp(0.0, max_gain)) @ v.T
+    return ColorTransform(A, target.mean - A @ source.mean)
+
+
+def transform_sh(scene: GaussianScene, transforms: Sequence[ColorTransform],
+                 assign: Optional[Tensor] = None) -> GaussianScene:
+    """Recolour a scene by colour transforms applied to its SH coefficients (see module docs).
+
+    Args:
+        scene: the scene (not modified).
+        transforms: one transform (every Gaussian) or one per group.
+        assign: ``[N]`` index into ``transforms`` per Gaussian (required for more than one).
+    Returns: the scene with new ``sh_dc`` and ``sh_rest`` (other tensors are the same objects).
+    """
+    if len(transforms) == 0:
+        raise InputError("transform_sh: no colour transforms")
+    if len(transforms) > 1 and assign is None:
+        raise InputError("transform_sh: several transforms need a per-Gaussian assignment")
+    dt, dev = scene.dtype, scene.device
+    A = torch.stack([t.A for t in transforms]).to(dev, dt)                 # [G, 3, 3]
+    b = torch.stack([t.b for t in transforms]).to(dev, dt)                 # [G, 3]
+    idx = torch.zeros(len(scene), dtype=torch.long, device=dev) if assign is None else assign.to(dev).long()
+    if idx.numel() != len(scene) or (idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= len(transforms))):
+        raise InputError(f"transform_sh: assignment must be [N={len(scene)}] indices < {len(transforms)}")
+    Ag, bg = A[idx], b[idx]                                                # [N, 3, 3], [N, 3]
+    half = torch.full((3,), 0.5, dtype=dt, device=dev)
+    offset = (Ag @ half + bg - half) / SH_C0                                # [N, 3]
+    dc = (Ag @ scene.sh_dc[..., None])[..., 0] + offset
+    rest = None
+    if scene.sh_rest is not None:
+        rest = torch.einsum("nij,nkj->nki", Ag, scene.sh_rest)
+    return scene.replace(sh_dc=dc, sh_rest=rest) if rest is not None else scene.replace(sh_dc=dc)
+
+
+# ----------------------------------------------------------------------------- fitting from images
+def pixel_stats(images: Tensor, alphas: Optional[Tensor] = None, labels: Optional[Tensor] = None,
+                num_groups: Optional[int] = None, alpha_min: float = 0.5
+                ) -> tuple[ColorStats, dict[int, ColorStats]]:
+    """Colour statistics of ``images [V, H, W, 3]``: all kept pixels and, with ``labels [V, H, W]``, per group.
+
+    Pixels with ``alphas [V, H, W]`` below ``alpha_min`` (background) are left out when alphas are given.
+    """
+    keep = torch.ones(images.shape[:3], dtype=torch.bool, device=images.device)
+    if alphas is not None:
+        keep = alphas.reshape(images.shape[:3]).to(images.device) >= alpha_min
+    total = ColorStats(device=images.device)
+    groups: dict[int, ColorStats] = {}
+    for v in range(images.shape[0]):
+        px = images[v][keep[v]]
+        total.add(px)
+        if labels is not None:
+            lab = labels[v].to(images.device)[keep[v]].long()
+            for g in torch.unique(lab).tolist():
+                groups.setdefault(int(g), ColorStats(device=images.device)).add(px[lab == g])
+    return total, groups
+
+
+def fit_group_transforms(source: tuple[ColorStats, dict[int, ColorStats]],
+                         target: tuple[ColorStats, dict[int, ColorStats]], num_groups: int,
+                         min_pixels: int = 64, **kw) -> tuple[list[ColorTransform], list[str]]:
+    """One transform per group ``0..num_groups-1`` and how each was obtained (``"group"`` / ``"global"``).
+
+    A group is matched on its own when it has at least ``min_pixels`` pixels in both the source and
+    the target views; otherwise it gets the global transform (all source pixels -> all target pixels):
+    the same fallback as group matching (:class:`ssgwarp.stylization.matching.MatchTargets`).
+    """
+    glob = fit_transform(source[0], target[0], **kw)
+    out, how = [], []
+    for g in range(num_groups):
+        s, t = source[1].get(g), target[1].get(g)
+        if s is not None and t is not None and s.n >= min_pixels and t.n >= min_pixels:
+            out.append(fit_transform(s, t, **kw))
+            how.append("group")
+        else:
+            out.append(glob)
+            how.append("global")
+    return out, how
+
+
+__all__ = ["rgb_to_lab", "ColorStats", "ColorTransform", "fit_transform", "transform_sh", "pixel_stats",
+           "fit_group_transforms"]

@@ -1,0 +1,500 @@
+"""Stage 2, Instance-level Style Transfer (run end to end by :mod:`ssgwarp.stylization.stylize`).
+
+Stage 2 fine-tunes the Gaussians' colours so that renders along the training
+cameras carry the style of the stylized key views (Stage 1), matched group by
+group (:mod:`ssgwarp.stylization.matching`), or of the style image when Stage 1 did not run.
+
+0. **colour transfer** (``pre``, ARF): one linear colour map per group, applied
+   to the SH coefficients, gives the renders the colour mean and covariance of
+   the targets (:func:`transfer_colors`, :mod:`ssgwarp.services.color`);
+1. for ``iters`` steps, one training view each: render without gradient, treat
+   the image as a leaf, compute the loss
+   ``style_weight * L_style + content_weight * content + tv_weight * TV`` and
+   its gradient ``dL/dimage``, render again with gradient and back-propagate
+   ``dL/dimage`` through the rasterizer alone (*deferred back-propagation*: the
+   feature network's graph and the rasterizer's are never held at once, so
+   1008x756 views fit; gradients equal direct back-propagation, tested);
+2. **colour transfer** again (``post``).
+
+Losses (one view, image ``I``, render ``I0`` of the colour-transferred scene,
+features ``phi`` = the extractor's layers concatenated at the coarsest resolution):
+- style: NNFM (:meth:`ssgwarp.stylization.matching.MatchTargets.loss`, the paper's) or the
+  sliced Wasserstein feature loss (:meth:`ssgwarp.stylization.matching.SlicedTargets.loss`),
+  both with per-group matching; ``style_loss="auto"`` uses NNFM on VGG16
+  features and SW on the weight-free random features (NNFM on random features
+  collapses a view onto the style's dominant mode: docs/stylize.md);
+- content: ``mean((phi(I) - phi(I0))^2) / mean(phi(I0)^2)`` (relative, so the
+  weight means the same for every extractor);
+- TV: mean squared difference of neighbouring pixels.
+
+Only colour is optimised (``sh_dc``); the higher SH bands are zeroed first by
+default (``sh_rest="zero"``: view-independent stylized colour, measured in
+docs/stylize.md; ``"keep"`` keeps them, ``"optimise"`` optimises them too;
+``free_opacity`` adds the opacities);
+every other tensor of the scene is passed through untouched (the same tensor
+objects, bit-identical).
+
+Modes: ``ist`` (default: per-group matching against the stylized key views),
+``global`` (ARF: matching against the style image, one group), ``finetune``
+(no IST: L1 + 0.2 D-SSIM against the stylized key views at the key cameras).
+When Stage 1 could not run (no diffusion weights), ``ist`` and ``finetune``
+fall back to global matching against the style image and the outputs say so.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Optional
+
+import torch
+import torch.nn.functional as F
+
+from ..raster import rendering
+from ..core.cameras import Cameras
+from ..errors import InputError
+from ..services.loop import Diverged, Loop
+from .matching import DEFAULT_CHUNK, MatchTargets, SlicedTargets, downsample_labels
+from ..evaluation.metrics import content_loss
+from ..raster.scene import GaussianScene
+
+MODES = ("ist", "finetune", "global")
+COLOR_TRANSFER = ("both", "pre", "post", "off")
+SH_REST = ("keep", "zero", "optimise")
+STYLE_LOSSES = ("auto", "nnfm", "sw")
+
+
+# ----------------------------------------------------------------------------- configuration
+@dataclass
+class Stage2Config:
+    """Options of the Stage 2 optimisation (CLI flags of the same names).
+
+    Attributes:
+        mode: ``ist`` | ``finetune`` | ``global``.
+        iters: optimisation steps (one training view each).
+        lr: Adam learning rate of ``sh_dc`` (higher bands: ``lr / 20``; opacity logits: ``lr * 5``).
+        style_weight, content_weight, tv_weight: loss weights.
+        style_loss: ``nnfm`` (nearest-neighbour feature matching, the paper's), ``sw`` (sliced
+            Wasserstein between the feature distributions, :class:`ssgwarp.stylization.matching.SlicedTargets`) or
+            ``auto``: NNFM on VGG16 features, SW on the weight-free random features (measured:
+            docs/stylize.md).
+        sw_projections: random directions per step of the ``sw`` loss.
+        color_transfer: ARF's view-consistent colour transfer (:mod:`ssgwarp.services.color`) ``pre`` (before
+            the optimisation), ``post`` (after it), ``both`` or ``off``.
+        color_max_gain: the colour transfer's map may stretch colour differences by at most this
+            factor (its largest eigenvalue; the consistency figures grow with it, see docs/stylize.md).
+        sh_rest: the higher SH bands (view-dependent colour): ``zero`` them at the start (default:
+            renders become view-independent, lower consistency error at equal style distances,
+            docs/stylize.md), ``keep`` them as reconstructed, or ``optimise`` them too.
+        free_opacity: also optimise opacities (geometry otherwise frozen).
+        label_mode: group maps to feature resolution by ``majority`` or ``nearest``.
+        feature_scale: images are resized by this factor before the feature
+            extractor (speed/accuracy knob; 1 = full resolution).
+        deferred: deferred back-propagation (False: direct, for comparison).
+        chunk: similarity entries per block of the nearest-neighbour search.
+        nn_precision: dtype of the nearest-neighbour search (``auto``: bf16 on CUDA, fp32 on CPU).
+        checkpoint_every: iterations between checkpoints.
+        seed: view order.
+    """
+
+    mode: str = "ist"
+    iters: int = 600
+    lr: float = 0.02
+    style_weight: float = 1.0
+    content_weight: float = 0.05
+    tv_weight: float = 0.02
+    style_loss: str = "auto"
+    sw_projections: int = 64
+    color_transfer: str = "both"
+    color_max_gain: float = 1.3
+    sh_rest: str = "zero"
+    free_opacity: bool = False
+    label_mode: str = "majority"
+    feature_scale: float = 1.0
+    deferred: bool = True
+    chunk: int = DEFAULT_CHUNK
+    nn_precision: str = "auto"
+    checkpoint_every: int = 100
+    seed: int = 0
+
+    def validate(self) -> "Stage2Config":
+        if self.mode not in MODES:
+            raise InputError(f"--mode {self.mode}: use one of {', '.join(MODES)}")
+        if self.iters < 0:
+            raise InputError(f"--iters {self.iters}: must be >= 0")
+        for k in ("lr", "style_weight", "content_weight", "tv_weight"):
+            v = getattr(self, k)
+            if not math.isfinite(v) or v < 0:
+                raise InputError(f"--{k.replace('_', '-')} {v}: must be a finite number >= 0")
+        if not 0 < self.feature_scale <= 4:
+            raise InputError(f"--feature-scale {self.feature_scale}: must be in (0, 4]")
+        if self.style_loss not in STYLE_LOSSES:
+            raise InputError(f"--style-loss {self.style_loss}: use one of {', '.join(STYLE_LOSSES)}")
+        if self.sw_projections < 1:
+            raise InputError(f"--sw-projections {self.sw_projections}: must be >= 1")
+        if self.color_transfer not in COLOR_TRANSFER:
+            raise InputError(f"--color-transfer {self.color_transfer}: use one of {', '.join(COLOR_TRANSFER)}")
+        if not (math.isfinite(self.color_max_gain) and self.color_max_gain > 0):
+            raise InputError(f"--color-max-gain {self.color_max_gain}: must be a finite number > 0")
+        if self.sh_rest not in SH_REST:
+            raise InputError(f"--sh-rest {self.sh_rest}: use one of {', '.join(SH_REST)}")
+        if self.label_mode not in ("majority", "nearest"):
+            raise InputError(f"--label-mode {self.label_mode}: use majority or nearest")
+        if self.nn_precision not in ("auto", "fp32", "bf16", "fp16"):
+            raise InputError(f"--nn-precision {self.nn_precision}: use auto, fp32, bf16 or fp16")
+        if self.chunk < 1:
+            raise InputError(f"--chunk {self.chunk}: must be >= 1")
+        if self.checkpoint_every < 1:
+            raise InputError("--checkpoint-every must be >= 1")
+        return self
+
+
+# ----------------------------------------------------------------------------- rendering helpers
+def render_rgb(scene: GaussianScene, cams: Cameras, background: Optional[torch.Tensor] = None,
+               **kwargs) -> torch.Tensor:
+    """``[C, H, W, 3]`` colour renders (background ``[3]`` blended behind by the rasterizer;
+    differentiable, :func:`ssgwarp.raster.rendering.render`). The renders Stage 2 optimises, unclamped:
+    :func:`ssgwarp.raster.rendering.render_views` composites and clamps, which the loss must not see."""
+    bg = None
+    if background is not None:
+        bg = background.to(scene.device, scene.dtype).reshape(1, 3).expand(len(cams), 3)
+    colors, _, _ = rendering.render(scene, cams.to(scene.device), backgrounds=bg, **kwargs)
+    return colors[..., :3]
+
+
+def render_batched(scene: GaussianScene, cams: Cameras, background: Optional[torch.Tensor] = None,
+                   batch: int = 1, desc: Optional[str] = None) -> torch.Tensor:
+    """No-grad renders of many cameras, a few at a time (on the scene's device): ``[C,H,W,3]``."""
+    from tqdm.auto import tqdm
+
+    out = []
+    with torch.no_grad():
+        for s in tqdm(range(0, len(cams), batch), desc=desc, disable=desc is None, leave=False):
+            out.append(render_rgb(scene, cams[list(range(s, min(s + batch, len(cams))))], background))
+    return torch.cat(out, 0)
+
+
+def render_alphas(scene: GaussianScene, cams: Cameras) -> torch.Tensor:
+    """No-grad accumulated opacity ``[C, H, W]`` of many cameras, one at a time."""
+    with torch.no_grad():
+        return torch.cat([rendering.render(scene, cams[[c]].to(scene.device))[1][..., 0] for c in range(len(cams))])
+
+
+def deferred_backward(render: Callable[[Cameras], torch.Tensor], camera: Cameras,
+                      loss_fn: Callable[[torch.Tensor], torch.Tensor]) -> torch.Tensor:
+    """Deferred back-propagation of ``loss_fn(render(camera))`` into the scene parameters.
+
+    The image is rendered without gradient, ``dL/dimage`` is computed with the
+    image as a leaf (the feature network's graph is freed right after), then
+    the image is rendered again with gradient and ``dL/dimage`` is pushed
+    through the rasterizer alone.
+
+    Args:
+        render: cameras -> ``[1, h, w, 3]`` (differentiable in the parameters).
+        camera: one camera.
+        loss_fn: image ``[H, W, 3]`` -> scalar.
+    Returns: the loss (detached). Gradients are accumulated into the parameters' ``.grad``.
+    """
+    with torch.no_grad():
+        image = render(camera)[0]
+    image = image.detach().requires_grad_(True)
+    loss = loss_fn(image)
+    (grad,) = torch.autograd.grad(loss, image)
+    del image
+    render(camera)[0].backward(grad)
+    return loss.detach()
+
+
+def direct_backward(render: Callable[[Cameras], torch.Tensor], camera: Cameras,
+                    loss_fn: Callable[[torch.Tensor], torch.Tensor]) -> torch.Tensor:
+    """Plain back-propagation of ``loss_fn(render(camera))`` (reference for :func:`deferred_backward`)."""
+    loss = loss_fn(render(camera)[0])
+    loss.backward()
+    return loss.detach()
+
+
+# ----------------------------------------------------------------------------- losses
+def to_nchw(image: torch.Tensor) -> torch.Tensor:
+    """``[H,W,3]`` or ``[B,H,W,3]`` -> ``[B,3,H,W]``."""
+    return image.permute(2, 0, 1)[None] if image.ndim == 3 else image.permute(0, 3, 1, 2)
+
+
+def extract(extractor, images: torch.Tensor, feature_scale: float = 1.0) -> torch.Tensor:
+    """Stacked features ``[B, C, h, w]`` of images ``[B,H,W,3]`` / ``[H,W,3]`` (see :func:`stack_features`)."""
+    from ..services.features import stack_features
+
+    x = to_nchw(images)
+    if feature_scale != 1.0:
+        size = (max(4, round(x.shape[-2] * feature_scale)), max(4, round(x.shape[-1] * feature_scale)))
+        x = F.interpolate(x, size=size, mode="bilinear", align_corners=False, antialias=feature_scale < 1)
+    return stack_features(extractor(x))
+
+
+def tv_loss(image: torch.Tensor) -> torch.Tensor:
+    """Mean squared difference of vertically and horizontally neighbouring pixels of ``[H,W,C]``."""
+    return ((image[1:] - image[:-1]) ** 2).mean() + ((image[:, 1:] - image[:, :-1]) ** 2).mean()
+
+
+def style_loss_kind(cfg: Stage2Config, extractor) -> str:
+    """The style loss ``cfg`` asks for with this extractor (``auto``: NNFM on VGG16 features, else SW)."""
+    if cfg.style_loss != "auto":
+        return cfg.style_loss
+    return "nnfm" if str(getattr(extractor, "name", "")).startswith("vgg16") else "sw"
+
+
+def build_targets(extractor, images: torch.Tensor, labels: Optional[torch.Tensor], cfg: Stage2Config,
+                  size: Optional[tuple[int, int]] = None):
+    """Style targets from style images ``[V,H,W,3]`` (key views or the style image) and their
+    group maps ``[V,H,W]`` (None = global): a :class:`~ssgwarp.stylization.matching.MatchTargets` (NNFM) or a
+    :class:`~ssgwarp.stylization.matching.SlicedTargets` (SW), see :func:`style_loss_kind`. ``size`` resizes
+    the images first (``(H, W)``)."""
+    images = images.detach()
+    if size is not None and tuple(images.shape[1:3]) != tuple(size):
+        x = F.interpolate(to_nchw(images), size=size, mode="bilinear", align_corners=False, antialias=True)
+        images = x.permute(0, 2, 3, 1)
+        if labels is not None:
+            labels = F.interpolate(labels[:, None].float(), size=size, mode="nearest")[:, 0].long()
+    with torch.no_grad():
+        feats = torch.cat([extract(extractor, images[v:v + 1], cfg.feature_scale) for v in range(len(images))])
+    lab = None
+    if labels is not None:
+        lab = downsample_labels(labels.to(feats.device), tuple(feats.shape[-2:]), cfg.label_mode)
+    if style_loss_kind(cfg, extractor) == "sw":
+        return SlicedTargets(feats, lab, cfg.sw_projections, cfg.seed)
+    return MatchTargets(feats, lab, cfg.chunk, cfg.nn_precision)
+
+
+class ViewLoss:
+    """The Stage 2 loss of one training view (``ist`` / ``global``).
+
+    Args:
+        extractor: a :class:`~ssgwarp.services.features.FeatureExtractor`.
+        targets: the style features to match.
+        cfg: weights and knobs.
+        view_labels: ``[C, H, W]`` group maps of the training views (None: global).
+        originals: ``[C, H, W, 3]`` renders of the unstylized scene (content target).
+    """
+
+    def __init__(self, extractor, targets: MatchTargets, cfg: Stage2Config,
+                 view_labels: Optional[torch.Tensor] = None, originals: Optional[torch.Tensor] = None) -> None:
+        self.extractor, self.targets, self.cfg = extractor, targets, cfg
+        self.view_labels, self.originals = view_labels, originals
+        self._labels: dict[int, torch.Tensor] = {}
+        self.last: dict[str, float] = {}
+
+    def labels_at(self, view: int, size: tuple[int, int]) -> Optional[torch.Tensor]:
+        if self.view_labels is None or self.targets.labels is None:
+            return None
+        if view not in self._labels or tuple(self._labels[view].shape) != tuple(size):
+            lab = self.view_labels[view:view + 1].to(self.targets.keys.device)
+            self._labels[view] = downsample_labels(lab, size, self.cfg.label_mode)[0]
+        return self._labels[view]
+
+    def __call__(self, image: torch.Tensor, view: int, step: int = 0) -> torch.Tensor:
+        cfg = self.cfg
+        feats = extract(self.extractor, image, cfg.feature_scale)[0]      # [C,h,w]
+        labels = self.labels_at(view, tuple(feats.shape[-2:]))
+        if isinstance(self.targets, SlicedTargets):
+            style = self.targets.loss(feats, labels, step=step)       # fresh projections each step
+        else:
+            style = self.targets.loss(feats, labels)
+        total = cfg.style_weight * style
+        parts = {"style": float(style.detach())}
+        if self.originals is not None and cfg.content_weight > 0:
+            with torch.no_grad():
+                f0 = extract(self.extractor, self.originals[view].to(image.device), cfg.feature_scale)[0]
+            content = content_loss([feats[None]], [f0[None]], relative=True)[0]
+            total = total + cfg.content_weight * content
+            parts["content"] = float(content.detach())
+        if cfg.tv_weight > 0:
+            tv = tv_loss(image)
+            total = total + cfg.tv_weight * tv
+            parts["tv"] = float(tv.detach())
+        parts["total"] = float(total.detach())
+        self.last = parts
+        return total
+
+
+def finetune_loss(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """``0.8 L1 + 0.2 (1 - SSIM)`` between ``[H,W,3]`` images (the 3DGS photometric loss)."""
+    from ..services.losses import photometric
+
+    return photometric(image[None], target[None])
+
+
+# ----------------------------------------------------------------------------- colour transfer
+@torch.no_grad()
+def transfer_colors(scene: GaussianScene, cameras: Cameras, target: torch.Tensor, *,
+                    labels: Optional[torch.Tensor] = None,
+                    target_labels: Optional[torch.Tensor] = None, assign: Optional[torch.Tensor] = None,
+                    num_groups: Optional[int] = None, min_pixels: int = 64, max_gain: float = 1.3
+                    ) -> tuple[GaussianScene, dict]:
+    """ARF's colour transfer of ``scene``: its renders from ``cameras`` get the colour mean and
+    covariance of ``target [V, H, W, 3]`` (the style image or the stylized key views), by one linear
+    map of the SH coefficients (:mod:`ssgwarp.services.color`; view-consistent by construction).
+
+    Per group when ``labels [C, H, W]`` (group maps of the renders), ``target_labels [V, H, W]``,
+    ``assign [N]`` (each Gaussian's group) and ``num_groups`` are given: group ``g``'s Gaussians get
+    the map from group ``g``'s rendered pixels to group ``g``'s target pixels, or — when ``g`` has
+    fewer than ``min_pixels`` pixels on either side (absent from the key views) — the global map
+    (all rendered pixels -> all target pixels). The source colours are the renders' surface colours
+    (rendered without background and divided by alpha, so that the map is exact on them); pixels with
+    alpha < 0.5 (background) are left out. Returns the recoloured scene and a record of what was done.
+    """
+    from ..services.color import fit_group_transforms, fit_transform, pixel_stats, transform_sh
+
+    renders, alphas = [], []
+    for c in range(len(cameras)):   # rendered without background, un-premultiplied: the surface colour
+        col, alpha, _ = scene.render(cameras[[c]].to(scene.device))
+        renders.append(col[..., :3] / alpha.clamp_min(1e-6))
+        alphas.append(alpha[..., 0])
+    renders, alphas = torch.cat(renders), torch.cat(alphas)
+    grouped = labels is not None and target_labels is not None and assign is not None and num_groups
+    src = pixel_stats(renders, alphas, labels if grouped else None)
+    tgt = pixel_stats(target.to(scene.device), None, target_labels if grouped else None)
+    if grouped:
+        transforms, how = fit_group_transforms(src, tgt, int(num_groups), min_pixels, max_gain=max_gain)
+        out = transform_sh(scene, transforms, assign)
+        info = {"per_group": True, "groups_matched": how.count("group"), "groups_global": how.count("global"),
+                "how": how}
+    else:
+        t = fit_transform(src[0], tgt[0], max_gain=max_gain)
+        out = transform_sh(scene, [t])
+        info = {"per_group": False, "transform": t.to_list()}
+    return out, info
+
+
+# ----------------------------------------------------------------------------- parameters
+def trainable_names(cfg: Stage2Config, scene: GaussianScene) -> list[str]:
+    names = ["sh_dc"]
+    if cfg.sh_rest == "optimise" and scene.sh_rest is not None:
+        names.append("sh_rest")
+    if cfg.free_opacity:
+        names.append("logit_opacities")
+    return names
+
+
+def _lr(name: str, cfg: Stage2Config) -> float:
+    return {"sh_dc": cfg.lr, "sh_rest": cfg.lr / 20.0, "logit_opacities": cfg.lr * 5.0}[name]
+
+
+def view_order(step: int, num_views: int, seed: int) -> int:
+    """The training view of ``step``: a fresh seeded permutation every epoch (stateless, so resumable)."""
+    epoch, k = divmod(step, num_views)
+    g = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
+    return int(torch.randperm(num_views, generator=g)[k])
+
+
+# ----------------------------------------------------------------------------- the optimisation
+@dataclass
+class Stage2Result:
+    scene: GaussianScene
+    history: list[dict] = field(default_factory=list)
+    last: dict = field(default_factory=dict)
+    seconds: float = 0.0
+    iters_done: int = 0
+
+
+def optimise(scene: GaussianScene, cameras: Cameras, cfg: Stage2Config, *,
+             loss: Optional[ViewLoss] = None,
+             finetune_images: Optional[torch.Tensor] = None, finetune_cameras: Optional[Cameras] = None,
+             background: Optional[torch.Tensor] = None, checkpoint: Optional[Path] = None,
+             resume: bool = False, progress: bool = True, log_every: int = 10,
+             render_kwargs: Optional[dict] = None) -> Stage2Result:
+    """Run Stage 2 and return the stylized scene.
+
+    Args:
+        scene: the reconstructed (grouped) scene; its tensors are not modified.
+        cameras: the training cameras (``ist`` / ``global``).
+        cfg: options.
+        loss: the per-view loss (``ist`` / ``global``).
+        finetune_images, finetune_cameras: ``[V,H,W,3]`` stylized key views and their
+            cameras (``finetune`` mode).
+        background: ``[3]`` background colour.
+        checkpoint: file to checkpoint into every ``cfg.checkpoint_every`` steps
+            and on Ctrl-C; with ``resume`` the run continues from it.
+    """
+    from ..core.fileio import atomic_path
+
+    cfg.validate()
+    finetune = cfg.mode == "finetune"
+    if finetune and (finetune_images is None or finetune_cameras is None):
+        raise InputError("finetune mode needs the stylized key views (Stage 1 output)")
+    if not finetune and loss is None:
+        raise InputError(f"{cfg.mode} mode needs a ViewLoss")
+    names = trainable_names(cfg, scene)
+    if cfg.sh_rest == "zero" and scene.sh_rest is not None:
+        scene = scene.replace(sh_rest=torch.zeros_like(scene.sh_rest))
+    params = {n: getattr(scene, n).detach().clone().requires_grad_(True) for n in names}
+    opt = torch.optim.Adam([{"params": [p], "lr": _lr(n, cfg), "name": n} for n, p in params.items()], eps=1e-15)
+    start, history, elapsed = 0, [], 0.0
+    if resume and checkpoint is not None and Path(checkpoint).is_file():
+        state = torch.load(checkpoint, map_location=scene.device, weights_only=False)
+        if state.get("params_names") != names or state.get("n") != len(scene) or state.get("mode") != cfg.mode:
+            raise InputError(f"{checkpoint}: checkpoint is from a different run (mode, scene or options); "
+                             f"use --force to start over")
+        with torch.no_grad():
+            for n in names:
+                params[n].copy_(state["params"][n])
+        opt.load_state_dict(state["optimizer"])
+        start, history, elapsed = int(state["step"]), list(state["history"]), float(state["seconds"])
+
+    def current() -> GaussianScene:
+        return scene.replace(**params)
+
+    rk = dict(render_kwargs or {})
+
+    def render(cam: Cameras) -> torch.Tensor:
+        return render_rgb(current(), cam, background, **rk)
+
+    def save(step: int) -> None:
+        if checkpoint is None:
+            return
+        state = {"step": step, "params": {n: p.detach() for n, p in params.items()}, "params_names": names,
+                 "optimizer": opt.state_dict(), "history": history, "seconds": elapsed + time.perf_counter() - t0,
+                 "n": len(scene), "mode": cfg.mode, "config": asdict(cfg)}
+        with atomic_path(checkpoint) as tmp:
+            torch.save(state, tmp)
+
+    n_views = len(finetune_cameras) if finetune else len(cameras)
+    if n_views == 0:
+        raise InputError("Stage 2: no views to optimise on")
+    t0 = time.perf_counter()
+    prog = {"done": start, "last": history[-1] if history else {}}
+
+    def step_fn() -> dict:
+        step = prog["done"]
+        v = view_order(step, n_views, cfg.seed)
+        opt.zero_grad(set_to_none=True)
+        if finetune:
+            target = finetune_images[v].to(scene.device, scene.dtype)
+            value = direct_backward(render, finetune_cameras[v], lambda img: finetune_loss(img, target))
+            parts = {"total": float(value)}
+        else:
+            fn = lambda img: loss(img, v, step)  # noqa: E731
+            value = (deferred_backward if cfg.deferred else direct_backward)(render, cameras[v], fn)
+            parts = dict(loss.last)
+        if not math.isfinite(float(value)):   # parameters untouched this step: the last good state is saved
+            kept = (f"the state after the last good step ({step} steps) is saved to {checkpoint}"
+                    if checkpoint is not None else "no checkpoint was asked for")
+            raise Diverged(f"Stage 2: loss became {float(value)} at step {step}; last good checkpoint kept: "
+                           f"{kept} (lower --lr and rerun with --resume)")
+        opt.step()
+        prog["done"] = step + 1
+        prog["last"] = {"step": step, "view": v, **parts}
+        if step % log_every == 0:
+            history.append(prog["last"])
+        return parts
+
+    def on_step(parts: dict) -> None:
+        loop.bar.set_postfix({k: f"{val:.4f}" for k, val in parts.items() if k in ("style", "total")})
+
+    keep = (lambda: save(prog["done"])) if checkpoint is not None else None
+    loop = Loop(lambda: prog["done"], save=keep, every=cfg.checkpoint_every, save_last_good=keep,
+                desc=f"stage 2 ({cfg.mode})", total=cfg.iters, progress=progress)
+    loop.run(step_fn, cfg.iters, on_step)   # Ctrl-C: the step finishes, a checkpoint is written (ssgwarp.services.loop)
+    last = prog["last"]
+    seconds = elapsed + time.perf_counter() - t0
+    out = scene.replace(**{n: p.detach().clone() for n, p in params.items()})
+    return Stage2Result(out, history, last, seconds, cfg.iters)

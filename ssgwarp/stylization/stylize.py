@@ -1,0 +1,563 @@
+"""The end-to-end ``ssgwarp stylize`` command: key views, Stage 1 and Stage 2 on a (grouped) run.
+
+:func:`stylize_run` runs one step after the other (each a function of its own, resumable
+through ``run.json``): load the run, the style and the feature extractor
+(:func:`_open`); key views and Stage 1 (:func:`_keyviews_and_stage1`, :mod:`ssgwarp.stylization.keyviews`,
+:mod:`ssgwarp.stylization.diffusion`); Stage 2 (:func:`_stage2`, :mod:`ssgwarp.stylization.stage2`); renders along
+the training cameras and a smooth path (:func:`_renders`); metrics, the contact sheet and
+``metrics.json`` (:func:`_metrics`). The Stage 2 names (:class:`Stage2Config`,
+:func:`optimise`, :class:`ViewLoss`, ...) are re-exported here.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Optional, Sequence
+
+import torch
+
+from ..core.cameras import Cameras
+from ..errors import InputError, WeightsNotFound
+from ..core.imaging import contact_sheet, plot_losses  # noqa: F401  (contact_sheet re-exported)
+from ..raster.scene import GaussianScene
+from .stage2 import (  # noqa: F401  (re-exported: the public Stage 2 API lives in ssgwarp.stylization.stage2)
+    COLOR_TRANSFER, MODES, SH_REST, STYLE_LOSSES, Stage2Config, Stage2Result, ViewLoss, build_targets,
+    deferred_backward, direct_backward, extract, finetune_loss, optimise, render_alphas,
+    render_batched, render_rgb, style_loss_kind, to_nchw, trainable_names, transfer_colors, tv_loss,
+    view_order)
+
+# ----------------------------------------------------------------------------- end to end
+@dataclass
+class StylizeOptions:
+    """Options of :func:`stylize_run` besides Stage 1 and Stage 2 (CLI flags of the same names).
+
+    keyviews / ids / max_side: key-view choice and diffusion resolution (:mod:`ssgwarp.stylization.keyviews`);
+    extractor / vgg16 / layers: the feature extractor (:func:`ssgwarp.services.features.load_extractor`);
+    path_frames: frames of the smooth camera path (0: none); sheet_views: rows of the contact sheet;
+    weights: the config file's ``weights`` mapping.
+    """
+
+    keyviews: int = 4
+    ids: Optional[list[int]] = None
+    max_side: int = 512
+    extractor: str = "auto"
+    vgg16: Optional[str] = None
+    layers: Optional[list[str]] = None
+    path_frames: int = 60
+    sheet_views: int = 3
+    weights: Optional[dict] = None
+
+
+OUTPUTS = ("run.json", "keyviews", "stage2.ckpt", "scene.ply", "renders", "contact_sheet.png", "loss.png",
+           "metrics.json")
+
+
+def _say(msg: str, progress: bool) -> None:
+    if progress:
+        print(f"ssgwarp stylize: {msg}", flush=True)
+
+
+def _signature(style: Path, scene_dir: Path, s2: Stage2Config, opts: StylizeOptions, s1) -> dict:
+    """What must not change between a run and its ``--resume``."""
+    cfg = {k: v for k, v in asdict(s2).items() if k not in ("iters", "checkpoint_every")}
+    s1d = None
+    if s1 is not None:
+        s1d = {k: v for k, v in asdict(s1).items() if k not in ("progress", "weights")}
+    sig = {"scene_dir": str(scene_dir.resolve()), "style": str(style.resolve()), "stage2": cfg,
+           "keyviews": opts.keyviews, "ids": opts.ids, "max_side": opts.max_side, "extractor": opts.extractor,
+           "vgg16": opts.vgg16, "layers": opts.layers, "stage1": s1d}
+    return json.loads(json.dumps(sig, default=str))   # as it reads back from run.json (tuples -> lists)
+
+
+def _prepare_out(out: Path, scene_dir: Path, signature: dict, resume: bool, force: bool) -> dict:
+    """Claim ``out`` (:func:`ssgwarp.services.runs.claim`: the policy every stage shares) and return the run's
+    record: on ``--resume`` the finished stages of the earlier run, which must have had the same options."""
+    from ..core.fileio import read_json
+    from ..services.runs import claim
+
+    if out.resolve() == scene_dir.resolve():
+        raise InputError(f"--out {out}: must differ from the scene folder (it would overwrite its scene.ply)")
+    claimed = claim(out, OUTPUTS, force=force, resume=resume, what="a stylize output", clear=True)
+    state: dict = {"signature": signature, "stages": {}}
+    if claimed.existing and resume and (out / "run.json").is_file():
+        old = read_json(out / "run.json")
+        if old.get("signature") != signature:
+            changed = sorted(k for k in signature if old.get("signature", {}).get(k) != signature[k])
+            raise InputError(f"{out}: --resume with different options ({', '.join(changed)}); "
+                             f"use the same options or --force to start over")
+        state["stages"] = dict(old.get("stages", {}))
+    out.mkdir(parents=True, exist_ok=True)
+    return state
+
+
+def _transfer_text(info: dict, against: str) -> str:
+    if info.get("per_group"):
+        return (f"per group against {against}: {info['groups_matched']} groups matched on their own, "
+                f"{info['groups_global']} by the global map (absent from the key views)")
+    return f"one global linear map against {against}"
+
+
+def _group_maps(scene: GaussianScene, cams: Cameras, classifier, progress: bool) -> torch.Tensor:
+    from ..grouping.stage import render_group_maps
+
+    labels = []
+    for c in range(len(cams)):  # one view at a time: the probabilities are dropped right away
+        lab, _ = render_group_maps(scene, cams[c], classifier)
+        labels.append(lab)
+    return torch.cat(labels)
+
+
+def _check_explicit_stage1_paths(stage1) -> None:
+    """A Stage 1 weight path the user gave explicitly must exist (absent defaults just skip Stage 1)."""
+    from ..services import weights as W
+    from .diffusion import WEIGHT_KEYS
+
+    for key in WEIGHT_KEYS:
+        explicit = getattr(stage1, key, None)
+        if explicit and W.find(key, explicit) is None:
+            raise WeightsNotFound(W.message(key, explicit))
+
+@dataclass
+class _Run:
+    """What the steps of :func:`stylize_run` share: the inputs, the loaded run and the progress record."""
+
+    scene_dir: Path
+    style_path: Path
+    out: Path
+    stage2: Stage2Config
+    stage1: object
+    opts: StylizeOptions
+    device: torch.device
+    resume: bool
+    progress: bool
+    stage1_models: object
+    state: dict
+    scene: GaussianScene
+    data: object
+    extractor: object
+    style_np: object
+    style: torch.Tensor
+    cams: Cameras
+    train_ids: list
+    bg: torch.Tensor
+    classifier: object = None
+    num_groups: Optional[int] = None
+    times: dict = dataclasses.field(default_factory=dict)
+
+    @property
+    def train_cams(self) -> Cameras:
+        return self.cams[self.train_ids]
+
+    def say(self, msg: str) -> None:
+        _say(msg, self.progress)
+
+    def mark(self, stage: str, **info) -> None:
+        from ..core.fileio import write_json
+
+        self.state["stages"][stage] = {"done": True, **info}
+        write_json(self.out / "run.json", self.state)
+
+
+def _open(scene_dir: Path, style_path: Path, out: Path, stage2: Stage2Config, stage1, opts: StylizeOptions,
+          device: torch.device, resume: bool, force: bool, progress: bool, stage1_models) -> _Run:
+    """Read the inputs and the weights (a missing or corrupt one fails before anything is written to OUT),
+    then claim OUT."""
+    from ..capture.datasets import load_run
+    from ..services.features import load_extractor
+    from ..core.fileio import read_image, write_json
+
+    style_np = read_image(style_path, 3)                       # InputError when missing / corrupt
+    scene, data = load_run(scene_dir, device, load_images=False)
+    extractor = load_extractor(opts.vgg16, device, opts.layers, kind=opts.extractor, seed=stage2.seed,
+                               config=opts.weights)
+    if stage1 is not None and stage2.mode != "global" and stage1_models is None:
+        _check_explicit_stage1_paths(stage1)
+    state = _prepare_out(out, scene_dir, _signature(style_path, scene_dir, stage2, opts,
+                                                    stage1 if stage2.mode != "global" else None), resume, force)
+    write_json(out / "run.json", state)
+    cams = data.cameras.to(device)
+    r = _Run(scene_dir, style_path, out, stage2, stage1, opts, device, resume, progress, stage1_models, state,
+             scene, data, extractor, style_np, torch.from_numpy(style_np).to(device), cams,
+             list(data.train_ids) or list(range(len(cams))),
+             torch.tensor(data.background[:3], dtype=scene.dtype, device=device))
+    if (scene_dir / "groups").is_dir():
+        if scene.identities is None:
+            r.say(f"{scene_dir}/groups exists but scene.ply has no identity fields: using one group")
+        else:
+            from ..grouping.stage import load_groups
+            gm = load_groups(scene_dir, device)
+            r.classifier, r.num_groups = gm.classifier, gm.num_groups
+    r.say(f"{len(scene)} Gaussians, {len(r.train_ids)} training views {cams.width}x{cams.height}, "
+          f"{'%d groups' % r.num_groups if r.num_groups else 'no groups (one group)'}, features {extractor.name}, "
+          f"device {device}")
+    return r
+
+
+def _missing_models(stage1) -> list[str]:
+    """The Stage 1 models not (completely) on this machine, by name."""
+    from ..services import weights as W
+    from .diffusion import WEIGHT_KEYS
+
+    out = []
+    for key in WEIGHT_KEYS:
+        found = W.find(key, getattr(stage1, key, None), getattr(stage1, "weights", None))
+        if found is None or any(not (found / f).exists() for f in W.SPECS[key].required):
+            out.append(key)
+    return out
+
+
+def _keyviews(r: _Run):
+    """Select, render and save the key views (or load them on ``--resume``); ``(keyviews, stylized or None)``."""
+    from . import keyviews as K
+
+    kv_dir, t0 = r.out / "keyviews", time.perf_counter()
+    if r.resume and (kv_dir / "keyviews.json").is_file() and r.state["stages"].get("keyviews", {}).get("done"):
+        kv, stylized = K.load_keyviews(kv_dir, r.device)
+        r.times["keyviews"] = r.state["stages"]["keyviews"].get("seconds", 0.0)
+        r.say(f"key views {kv.ids} loaded from {kv_dir}")
+        return kv, stylized
+    ids = K.select_keyviews(r.cams, r.opts.keyviews, r.opts.ids, candidates=r.train_ids)
+    size = K.diffusion_size(r.cams.width, r.cams.height, r.opts.max_side)
+    kv = K.render_keyviews(r.scene, r.cams, ids, size, r.classifier, background=r.data.background)
+    K.save_keyviews(kv, kv_dir)
+    r.times["keyviews"] = time.perf_counter() - t0
+    r.mark("keyviews", seconds=r.times["keyviews"], ids=list(kv.ids))
+    r.say(f"key views {kv.ids} ({', '.join(kv.cameras.names)}) at {size[0]}x{size[1]} -> {kv_dir}")
+    return kv, None
+
+
+def _keyviews_and_stage1(r: _Run):
+    """Key views and Stage 1: ``(keyviews or None, stylized key views or None, the Stage 1 record)``."""
+    if r.stage2.mode == "global":
+        return None, None, {"ran": False, "reason": "global mode matches against the style image (no key views)"}
+    from . import keyviews as K
+
+    kv, stylized = _keyviews(r)
+    stage1, t0 = r.stage1, time.perf_counter()
+    if stylized is not None:
+        r.times["stage1"] = r.state["stages"].get("stage1", {}).get("seconds", 0.0)
+        return kv, stylized, {"ran": True, "cvsa": bool(stage1.cvsa), "resumed": True}
+    from .diffusion import missing_weights, stylize_keyviews
+
+    # check the weights before anything imports diffusers (seconds of import for nothing)
+    missing = [] if r.stage1_models is not None else missing_weights(stage1)
+    if missing:
+        names = ", ".join(_missing_models(stage1)) or "its models"
+        r.say(f"Stage 1 skipped: no local {names}. `ssgwarp weights` shows where they are looked for; "
+              f"`ssgwarp weights --download stage1` fetches them")
+    else:
+        r.say(f"Stage 1: diffusion on {len(kv)} key views (CVSA {'on' if stage1.cvsa else 'off'})")
+        stylized = stylize_keyviews(kv, r.style_np, stage1, r.device, models=r.stage1_models)
+        missing = [] if stylized is not None else missing_weights(stage1)
+    r.times["stage1"] = time.perf_counter() - t0
+    if stylized is None:
+        info = {"ran": False, "reason": "no local diffusion weights: " + " | ".join(missing),
+                "cvsa": bool(stage1.cvsa)}
+    else:
+        info = {"ran": True, "cvsa": bool(stage1.cvsa), "steps": stage1.steps,
+                "guidance": stage1.guidance, "ip_adapter_scale": stage1.ip_adapter_scale}
+        K.save_keyviews(kv, r.out / "keyviews", stylized.to(kv.rgb.device), extra={"stage1": info})
+    r.mark("stage1", seconds=r.times["stage1"], **info)
+    return kv, stylized, info
+
+
+@dataclass
+class _Targets:
+    """What Stage 2 matches: the stylized key views (with their cameras and group maps) or the style image."""
+
+    use_keys: bool
+    key_images: Optional[torch.Tensor] = None
+    key_cams: Optional[Cameras] = None
+    key_labels: Optional[torch.Tensor] = None
+    assign: Optional[torch.Tensor] = None
+
+
+def _targets(r: _Run, kv, stylized) -> _Targets:
+    t = _Targets(stylized is not None and r.stage2.mode in ("ist", "finetune"))
+    if t.use_keys:
+        from .keyviews import from_diffusion
+
+        t.key_images = from_diffusion(stylized.to(r.device).float(), r.cams.width, r.cams.height).to(r.scene.dtype)
+        t.key_cams = r.cams[list(kv.ids)]
+        if r.classifier is not None:
+            from ..grouping.stage import gaussian_groups
+
+            t.key_labels = _group_maps(r.scene, t.key_cams, r.classifier, r.progress)
+            t.assign = gaussian_groups(r.scene, r.classifier)[0]
+    return t
+
+
+def _color_transfer(r: _Run, t: _Targets, sc: GaussianScene) -> tuple[GaussianScene, dict]:
+    """ARF's colour transfer against the stylized key views (per group when grouped) or the style image."""
+    if t.use_keys:
+        return transfer_colors(sc, t.key_cams, t.key_images, labels=t.key_labels, target_labels=t.key_labels,
+                               assign=t.assign, num_groups=r.num_groups, max_gain=r.stage2.color_max_gain)
+    return transfer_colors(sc, r.train_cams, r.style[None].to(r.scene.dtype), max_gain=r.stage2.color_max_gain)
+
+
+def _stage2_loss(r: _Run, t: _Targets, kv, content_ref: torch.Tensor):
+    """``(ViewLoss or None, finetune images, finetune cameras, the matching's description)``."""
+    from ..core.imaging import fit_style
+
+    stage2 = r.stage2
+    if t.use_keys and stage2.mode == "finetune":
+        return None, t.key_images, t.key_cams, "none (fine-tuned on the stylized key views)"
+    if t.use_keys:
+        view_labels = None if r.classifier is None else _group_maps(r.scene, r.train_cams, r.classifier, r.progress)
+        targets = build_targets(r.extractor, t.key_images, t.key_labels, stage2)
+        matching = (f"per group ({r.num_groups} groups) against {len(kv)} stylized key views"
+                    if r.classifier is not None else f"global against {len(kv)} stylized key views (no groups)")
+        return ViewLoss(r.extractor, targets, stage2, view_labels=view_labels, originals=content_ref), \
+            None, None, matching
+    style = fit_style(r.style.to(r.scene.dtype), r.cams.height, r.cams.width).permute(0, 2, 3, 1)
+    targets = build_targets(r.extractor, style, None, stage2)
+    matching = "global against the style image"
+    if stage2.mode != "global":
+        matching += f" (Stage 1 did not run: requested mode '{stage2.mode}' fell back)"
+        r.say("Stage 1 did not run: Stage 2 matches against the style image globally")
+    return ViewLoss(r.extractor, targets, stage2, originals=content_ref), None, None, matching
+
+
+def _stage2(r: _Run, kv, stylized) -> dict:
+    """Colour transfer, the optimisation and colour transfer again; writes ``scene.ply`` and ``loss.png``."""
+    from ..capture.ply import write_ply
+
+    stage2, t0 = r.stage2, time.perf_counter()
+    originals = render_batched(r.scene, r.train_cams, r.bg, desc="original renders" if r.progress else None)
+    t = _targets(r, kv, stylized)
+    transfer: dict = {"setting": stage2.color_transfer,
+                      "against": "the stylized key views" if t.use_keys else "the style image"}
+    work = r.scene
+    if stage2.color_transfer in ("pre", "both"):
+        work, transfer["pre"] = _color_transfer(r, t, r.scene)
+        r.say("colour transfer (pre): " + _transfer_text(transfer["pre"], transfer["against"]))
+    content_ref = originals if work is r.scene else render_batched(work, r.train_cams, r.bg)
+    loss, ft_images, ft_cams, matching = _stage2_loss(r, t, kv, content_ref)
+    run_cfg = stage2
+    if stage2.mode == "finetune" and ft_images is None:   # no stylized key views to fit: global fallback
+        run_cfg = dataclasses.replace(stage2, mode="global")
+    r.say(f"Stage 2 ({stage2.mode}): {stage2.iters} steps, matching {matching}")
+    res = optimise(work, r.train_cams, run_cfg, loss=loss, finetune_images=ft_images, finetune_cameras=ft_cams,
+                   background=r.bg, checkpoint=r.out / "stage2.ckpt", resume=r.resume, progress=r.progress)
+    styled = res.scene
+    if stage2.color_transfer in ("post", "both"):
+        styled, transfer["post"] = _color_transfer(r, t, styled)
+        r.say("colour transfer (post): " + _transfer_text(transfer["post"], transfer["against"]))
+    r.times["stage2"] = time.perf_counter() - t0
+    r.times["stage2_optimisation"] = res.seconds
+    write_ply(r.out / "scene.ply", styled)
+    r.mark("stage2", seconds=r.times["stage2"], iters=stage2.iters)
+    plot_losses(r.out / "loss.png", res.history, f"Stage 2 ({stage2.mode}, {r.extractor.name})")
+    return {"scene": styled, "result": res, "originals": originals, "matching": matching, "transfer": transfer}
+
+
+def _renders(r: _Run, styled: GaussianScene) -> torch.Tensor:
+    """``renders/train/*.png`` and ``renders/path/frame_*.png``; returns the training renders."""
+    from tqdm.auto import tqdm
+
+    from ..core.fileio import write_image
+
+    t0, train_cams = time.perf_counter(), r.train_cams
+    renders = render_batched(styled, train_cams, r.bg, desc="train renders" if r.progress else None)
+    for i, img in enumerate(renders):
+        write_image(r.out / "renders" / "train" / f"{Path(train_cams.names[i]).stem}.png", img.clamp(0, 1))
+    if r.opts.path_frames > 0:
+        from ..evaluation.render import smooth_path
+
+        path = smooth_path(train_cams, r.opts.path_frames).to(r.device)
+        for s in tqdm(range(len(path)), desc="path renders", disable=not r.progress, leave=False):
+            with torch.no_grad():
+                frame = render_rgb(styled, path[[s]], r.bg)[0]
+            write_image(r.out / "renders" / "path" / f"frame_{s:04d}.png", frame.clamp(0, 1))
+    r.times["renders"] = time.perf_counter() - t0
+    return renders
+
+
+def _scores(r: _Run, styled: GaussianScene, renders: torch.Tensor, originals: torch.Tensor) -> dict:
+    """Gram style and content losses and style distances, before and after (the training views)."""
+    from ..evaluation.metrics import StyleDistance, style_content_losses
+
+    t0, style = time.perf_counter(), r.style
+    with torch.no_grad():
+        after = style_content_losses(r.extractor, renders.float(), style.float(), originals.float())
+        before = style_content_losses(r.extractor, originals.float(), style.float())
+        dist = StyleDistance(style.float())          # on the scene's pixels (alpha >= 0.5), not the background
+        alphas = render_alphas(r.scene, r.train_cams)
+        alphas_after = render_alphas(styled, r.train_cams) if r.stage2.free_opacity else alphas
+        dist_after, dist_before = dist.mean(renders.float(), alphas_after), dist.mean(originals.float(), alphas)
+    r.times["metrics"] = time.perf_counter() - t0
+    return {"gram_style_loss": float(after["style"].mean()),
+            "gram_style_loss_original": float(before["style"].mean()),
+            "style_distance": dist_after, "style_distance_original": dist_before,
+            "content_loss": float(after["content"].mean())}
+
+
+def _metrics(r: _Run, s2: dict, renders: torch.Tensor, kv, stage1_info: dict, t_start: float) -> dict:
+    """Scores, the contact sheet and ``metrics.json``; returns the metrics dict."""
+    from ..core.fileio import write_json
+
+    stage2, styled, originals, train_ids, device = r.stage2, s2["scene"], s2["originals"], r.train_ids, r.device
+    scores = _scores(r, styled, renders, originals)
+    rows = sorted({round(i * (len(train_ids) - 1) / max(1, r.opts.sheet_views - 1))
+                   for i in range(min(r.opts.sheet_views, len(train_ids)))})
+    contact_sheet(r.out / "contact_sheet.png", originals[rows], renders[rows], r.style,
+                  [Path(r.train_cams.names[i]).stem for i in rows],
+                  title=f"{stage2.mode}: {s2['matching']}; features {r.extractor.name}")
+    r.times["total"] = time.perf_counter() - t_start
+    metrics = {
+        "source_scene": str(r.scene_dir.resolve()), "style": str(r.style_path.resolve()), "mode": stage2.mode,
+        "matching": s2["matching"], "stage1": stage1_info, "extractor": r.extractor.name,
+        "style_loss": style_loss_kind(stage2, r.extractor),
+        "gram_style_loss": scores["gram_style_loss"], "gram_style_loss_original": scores["gram_style_loss_original"],
+        "style_distance": scores["style_distance"], "style_distance_original": scores["style_distance_original"],
+        "metric_views": f"the {len(train_ids)} training views (ssgwarp evaluate scores novel path views)",
+        "content_loss": scores["content_loss"],
+        "color_transfer": s2["transfer"],
+        "final_losses": s2["result"].last,
+        "keyviews": None if kv is None else {"ids": list(kv.ids), "names": list(kv.cameras.names),
+                                              "size": list(kv.size)},
+        "groups": r.num_groups, "gaussians": len(styled), "views": len(train_ids),
+        "resolution": [r.cams.width, r.cams.height],
+        "optimised": trainable_names(stage2, r.scene),
+        "config": asdict(stage2),
+        "seconds": r.times,
+        "device": str(device) if device.type != "cuda" else f"cuda ({torch.cuda.get_device_name(device)})",
+        "outputs": {"scene": "scene.ply", "renders": "renders/train", "path": "renders/path",
+                    "contact_sheet": "contact_sheet.png", "loss_plot": "loss.png", "keyviews": "keyviews"},
+    }
+    write_json(r.out / "metrics.json", metrics)
+    r.mark("done", seconds=r.times["total"])
+    return metrics
+
+
+def _summary(metrics: dict, out: Path) -> str:
+    d0, d1 = metrics["style_distance_original"], metrics["style_distance"]
+    g = lambda x: "n/a" if x is None else f"{x:.3g}"  # noqa: E731
+    return (f"done in {metrics['seconds']['total']:.1f}s: style distance colour {g(d0['color'])} -> "
+            f"{g(d1['color'])}, texture {g(d0['texture'])} -> {g(d1['texture'])}; Gram style loss "
+            f"{metrics['gram_style_loss_original']:.4g} -> {metrics['gram_style_loss']:.4g}, content "
+            f"{metrics['content_loss']:.4g}; contact sheet {out / 'contact_sheet.png'}")
+
+
+def stylize_run(scene_dir: str | Path, style_path: str | Path, out: str | Path, *,
+                stage2: Optional[Stage2Config] = None, stage1=None, opts: Optional[StylizeOptions] = None,
+                device: torch.device | str = "cpu", resume: bool = False, force: bool = False,
+                progress: bool = True, stage1_models=None) -> dict:
+    """``ssgwarp stylize``: key views, Stage 1 and Stage 2 on a (grouped) run; returns the metrics dict.
+
+    Writes into ``out``: ``keyviews/`` (key views, stylized key views, sheet),
+    ``stage2.ckpt``, ``scene.ply`` (the stylized scene), ``renders/train/*.png``
+    and ``renders/path/frame_*.png``, ``contact_sheet.png``, ``loss.png``,
+    ``metrics.json`` and ``run.json`` (options and finished stages, for ``resume``).
+    ``stage1`` is a :class:`ssgwarp.stylization.diffusion.Stage1Config` (default: its
+    defaults); ``stage1_models`` preloaded Stage 1 models (tests).
+    """
+    t_start = time.perf_counter()
+    stage2 = (stage2 or Stage2Config()).validate()
+    opts = opts or StylizeOptions()
+    if stage1 is None and stage2.mode != "global":
+        from .diffusion import Stage1Config
+        stage1 = Stage1Config(weights=opts.weights)
+    if opts.path_frames < 0 or opts.sheet_views < 1:
+        raise InputError("--path-frames must be >= 0 and the contact sheet needs >= 1 view")
+    r = _open(Path(scene_dir), Path(style_path), Path(out), stage2, stage1, opts, torch.device(device),
+              resume, force, progress, stage1_models)
+    kv, stylized, stage1_info = _keyviews_and_stage1(r)
+    s2 = _stage2(r, kv, stylized)
+    renders = _renders(r, s2["scene"])
+    metrics = _metrics(r, s2, renders, kv, stage1_info, t_start)
+    r.say(_summary(metrics, r.out))
+    return metrics
+
+
+# ----------------------------------------------------------------------------- CLI
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scene_dir", type=Path, help="a reconstruction run (scene.ply, cameras.json, data.json; "
+                                                "groups/ when grouped)")
+    p.add_argument("--style", type=Path, required=True, help="style image (PNG/JPG)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars or stage messages")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--mode", default="ist", choices=MODES,
+                   help="ist: per-group matching to the stylized key views (default); finetune: fit the "
+                        "stylized key views directly; global: ARF-style matching to the style image")
+    p.add_argument("--resume", action="store_true", help="continue an interrupted run in --out")
+    p.add_argument("--force", action="store_true", help="overwrite an existing output in --out")
+    g = p.add_argument_group("key views")
+    g.add_argument("--keyviews", type=int, default=4, metavar="K", help="number of key views (default 4)")
+    g.add_argument("--ids", default=None, help="comma-separated camera indices of the key views (default: chosen)")
+    g.add_argument("--max-side", type=int, default=512, help="key-view (diffusion) longer side (default 512)")
+    from .diffusion import add_stage1_arguments
+
+    add_stage1_arguments(p)
+    d = Stage2Config()
+    g = p.add_argument_group("Stage 2 (instance-level style transfer)")
+    g.add_argument("--iters", type=int, default=d.iters, help=f"optimisation steps (default {d.iters})")
+    g.add_argument("--lr", type=float, default=d.lr, help=f"learning rate of the SH DC colour (default {d.lr})")
+    g.add_argument("--style-weight", type=float, default=d.style_weight, help="NNFM style loss weight")
+    g.add_argument("--content-weight", type=float, default=d.content_weight,
+                   help=f"content loss weight (relative feature MSE; default {d.content_weight})")
+    g.add_argument("--tv-weight", type=float, default=d.tv_weight, help=f"total variation weight (default {d.tv_weight})")
+    g.add_argument("--style-loss", default=d.style_loss, choices=STYLE_LOSSES,
+                   help="nnfm: nearest-neighbour feature matching (the paper's); sw: sliced Wasserstein "
+                        "between feature distributions; auto (default): NNFM on VGG16 features, SW on the "
+                        "weight-free random features")
+    g.add_argument("--sw-projections", type=int, default=d.sw_projections,
+                   help=f"random directions per step of the sw loss (default {d.sw_projections})")
+    g.add_argument("--color-transfer", default=d.color_transfer, choices=COLOR_TRANSFER,
+                   help="ARF's view-consistent colour transfer (colour mean and covariance matched to the "
+                        "stylized key views, per group, or to the style image) before the optimisation, "
+                        f"after it, both or off (default {d.color_transfer})")
+    g.add_argument("--color-max-gain", type=float, default=d.color_max_gain,
+                   help="largest factor by which the colour transfer may stretch colour differences "
+                        f"(default {d.color_max_gain}; higher: closer colours, lower: smaller consistency error)")
+    g.add_argument("--sh-rest", default=d.sh_rest, choices=SH_REST,
+                   help=f"higher SH bands (view-dependent colour): keep, zero at the start, or optimise "
+                        f"(default {d.sh_rest})")
+    g.add_argument("--sh-bands", action="store_true", help="same as --sh-rest optimise")
+    g.add_argument("--free-opacity", action="store_true", help="also optimise opacities")
+    g.add_argument("--label-mode", default=d.label_mode, choices=("majority", "nearest"),
+                   help="group maps to feature resolution (default majority)")
+    g.add_argument("--feature-scale", type=float, default=d.feature_scale,
+                   help="resize images by this factor before the feature extractor (default 1)")
+    g.add_argument("--direct", action="store_true", help="direct back-propagation instead of deferred")
+    g.add_argument("--chunk", type=int, default=d.chunk, help="similarity entries per nearest-neighbour block")
+    g.add_argument("--nn-precision", default=d.nn_precision, choices=("auto", "fp32", "bf16", "fp16"),
+                   help="nearest-neighbour search precision (auto: bf16 on CUDA, fp32 on CPU)")
+    g.add_argument("--checkpoint-every", type=int, default=d.checkpoint_every, help="steps between checkpoints")
+    g.add_argument("--extractor", default="auto", choices=("auto", "vgg16", "random"),
+                   help="features: auto = VGG16 when local weights exist, else seeded random multi-scale")
+    g.add_argument("--vgg16", default=None, help="torchvision VGG16 state dict (or SSGWARP_VGG16)")
+    g.add_argument("--layers", default=None, help="VGG16 layers, comma separated (default conv3 = relu3_1..3)")
+    g = p.add_argument_group("outputs")
+    g.add_argument("--path-frames", type=int, default=60, help="frames along a smooth camera path (0: none)")
+    g.add_argument("--sheet-views", type=int, default=3, help="views in the contact sheet")
+
+
+def run(args) -> int:
+    from .diffusion import config_from_args
+    from .keyviews import parse_ids
+
+    weights = getattr(args, "weights", None)
+    weights = weights if isinstance(weights, dict) else None
+    s2 = Stage2Config(mode=args.mode, iters=args.iters, lr=args.lr, style_weight=args.style_weight,
+                      content_weight=args.content_weight, tv_weight=args.tv_weight,
+                      style_loss=args.style_loss, sw_projections=args.sw_projections,
+                      color_transfer=args.color_transfer, color_max_gain=args.color_max_gain,
+                      sh_rest="optimise" if args.sh_bands else args.sh_rest,
+                      free_opacity=args.free_opacity, label_mode=args.label_mode,
+                      feature_scale=args.feature_scale, deferred=not args.direct, chunk=args.chunk,
+                      nn_precision=args.nn_precision,
+                      checkpoint_every=args.checkpoint_every, seed=args.seed)
+    opts = StylizeOptions(keyviews=args.keyviews, ids=parse_ids(args.ids), max_side=args.max_side,
+                          extractor=args.extractor, vgg16=args.vgg16,
+                          layers=[s.strip() for s in args.layers.split(",")] if args.layers else None,
+                          path_frames=args.path_frames, sheet_views=args.sheet_views, weights=weights)
+    s1 = config_from_args(args) if args.mode != "global" else None
+    stylize_run(args.scene_dir, args.style, args.out, stage2=s2, stage1=s1, opts=opts, device=args.device,
+                resume=args.resume, force=args.force, progress=not args.quiet)
+    return 0
+
