@@ -156,19 +156,90 @@ def projection_params(scalar):
 
 
 @functools.lru_cache(maxsize=None)
-def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = False):
-    """The projection kernel for one precision, launched over ``(C, N)``. ``covariance``:
-    ``"gsplat"`` or ``"factor"`` (see the module docstring); ``fast_math``: approximate division,
-    square roots and logarithm (float32 on CUDA, as gsplat compiles its kernels; then the
-    quaternion norm uses ``rsqrtf``)."""
+def projection_funcs(scalar, native_rsqrt: bool = False):
+    """The projection kernel's maths in pieces for one precision (each a ``wp.func``, so Warp's
+    adjoint of the kernel differentiates through them; the operations, their order and their
+    rounding are the kernel's, unchanged): ``camera_point(V, m)`` (``R m + t``),
+    ``scaled_rotation(q, s)`` (``M = R_q S``), ``jacobian(fx, fy, cx, cy, w, h, p, z, rz)`` (clamped at
+    1.3x the field of view), ``cov_gsplat`` / ``cov_factor(J, R, M, eps2d)`` -> ``(a, b, c,
+    det_orig, det)`` (the blurred 2D covariance ``[[a, b], [b, c]]``, its determinant before and
+    after the blur), ``pixel_radii(op, a, c, alpha_min, sigma_max, opacity_extent)`` -> ``(rx, ry)``
+    and ``cull(i, outputs...)``."""
     t = types_for(scalar)
-    vec2, vec3, vec4, mat33, mat44, mat23, splat = t.vec2, t.vec3, t.vec4, t.mat33, t.mat44, t.mat23, t.splat
-    gsplat_form = covariance == "gsplat"
-    mf = matrix_funcs(scalar, fast_math and scalar == wp.float32)
+    vec2, vec3, vec4, mat33, mat44, mat23 = t.vec2, t.vec3, t.vec4, t.mat33, t.mat44, t.mat23
+    mf = matrix_funcs(scalar, native_rsqrt)
     dot3, mul33, mul33_t, quat_to_rotmat, cov2d = mf.dot3, mf.mul33, mf.mul33_t, mf.quat_to_rotmat, mf.cov2d
-    tile_box = tile_box_func(scalar)
-    check_inputs = inputs_check_func(scalar)
-    Params = projection_params(scalar)
+
+    @wp.func
+    def camera_point(V: mat44, m: vec3):
+        # world to camera: R m + t, products summed in index order
+        return vec3(dot3(V[0, 0], V[0, 1], V[0, 2], m[0], m[1], m[2]) + V[0, 3],
+                    dot3(V[1, 0], V[1, 1], V[1, 2], m[0], m[1], m[2]) + V[1, 3],
+                    dot3(V[2, 0], V[2, 1], V[2, 2], m[0], m[1], m[2]) + V[2, 3])
+
+    @wp.func
+    def scaled_rotation(q: vec4, s: vec3):
+        Rq = quat_to_rotmat(q)
+        return mat33(Rq[0, 0] * s[0], Rq[0, 1] * s[1], Rq[0, 2] * s[2],
+                     Rq[1, 0] * s[0], Rq[1, 1] * s[1], Rq[1, 2] * s[2],
+                     Rq[2, 0] * s[0], Rq[2, 1] * s[1], Rq[2, 2] * s[2])
+
+    @wp.func
+    def jacobian(fx: scalar, fy: scalar, cx: scalar, cy: scalar, w: scalar, h: scalar, p: vec3, z: scalar,
+                 rz: scalar):
+        tan_fovx = scalar(0.5) * w / fx
+        tan_fovy = scalar(0.5) * h / fy
+        lim_x_pos = (w - cx) / fx + scalar(0.3) * tan_fovx
+        lim_x_neg = cx / fx + scalar(0.3) * tan_fovx
+        lim_y_pos = (h - cy) / fy + scalar(0.3) * tan_fovy
+        lim_y_neg = cy / fy + scalar(0.3) * tan_fovy
+        rz2 = rz * rz
+        tx = z * wp.min(lim_x_pos, wp.max(-lim_x_neg, p[0] * rz))
+        ty = z * wp.min(lim_y_pos, wp.max(-lim_y_neg, p[1] * rz))
+        zero = scalar(0.0)
+        return mat23(fx * rz, zero, -fx * tx * rz2,
+                     zero, fy * rz, -fy * ty * rz2)
+
+    @wp.func
+    def cov_gsplat(J: mat23, R: mat33, M: mat33, eps2d: scalar):
+        # gsplat's order: Sigma = M M^T, Sigma_c = (R Sigma) R^T, cov = (J Sigma_c) J^T with
+        # J's zero entries multiplied out, determinant a d - b c
+        Sc = mul33_t(mul33(R, mul33_t(M, M)), R)
+        cv = cov2d(J, Sc)
+        c00 = cv[0]
+        c10 = cv[1]
+        c01 = cv[2]
+        c11 = cv[3]
+        det_orig = fma(c00, c11, -(c10 * c01))
+        a = add_rn(c00, eps2d)
+        cc = add_rn(c11, eps2d)
+        det = fma(a, cc, -(c10 * c01))
+        return a, c10, cc, det_orig, det
+
+    @wp.func
+    def cov_factor(J: mat23, R: mat33, M: mat33, eps2d: scalar):
+        # the 2D covariance from its 2x3 factor A = J R M: sums of squares, and its determinant
+        # as the squared cross product of A's rows (Binet-Cauchy), free of cancellation
+        A = J @ R @ M
+        r0 = vec3(A[0, 0], A[0, 1], A[0, 2])
+        r1 = vec3(A[1, 0], A[1, 1], A[1, 2])
+        a = wp.dot(r0, r0)
+        b = wp.dot(r0, r1)
+        cc = wp.dot(r1, r1)
+        cr = wp.cross(r0, r1)
+        det_orig = wp.dot(cr, cr)
+        det = det_orig + eps2d * (a + cc) + eps2d * eps2d
+        return a + eps2d, b, cc + eps2d, det_orig, det
+
+    @wp.func
+    def pixel_radii(op: scalar, a: scalar, cc: scalar, alpha_min: scalar, sigma_max: scalar, opacity_extent: int):
+        # the extent in standard deviations (gsplat's opacity rule or sigma_max), then per axis in pixels
+        ext = sigma_max
+        if opacity_extent != 0 and alpha_min > scalar(0.0):
+            ext = wp.min(sigma_max, wp.sqrt(scalar(2.0) * wp.log(wp.max(op / alpha_min, scalar(1.0)))))
+        rx = wp.min(wp.ceil(ext * wp.sqrt(a)), scalar(RADIUS_LIMIT))
+        ry = wp.min(wp.ceil(ext * wp.sqrt(cc)), scalar(RADIUS_LIMIT))
+        return rx, ry
 
     @wp.func
     def cull(i: int, means2d: wp.array(dtype=vec2), depths: wp.array(dtype=scalar), conics: wp.array(dtype=vec3),
@@ -184,6 +255,26 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
             counts[i] = 0
         if ends.shape[0] > 0:
             ends[i] = wp.int64(0)
+
+    return SimpleNamespace(camera_point=camera_point, scaled_rotation=scaled_rotation, jacobian=jacobian,
+                           cov_gsplat=cov_gsplat, cov_factor=cov_factor, pixel_radii=pixel_radii, cull=cull)
+
+
+@functools.lru_cache(maxsize=None)
+def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = False):
+    """The projection kernel for one precision, launched over ``(C, N)``. ``covariance``:
+    ``"gsplat"`` or ``"factor"`` (see the module docstring); ``fast_math``: approximate division,
+    square roots and logarithm (float32 on CUDA, as gsplat compiles its kernels; then the
+    quaternion norm uses ``rsqrtf``)."""
+    t = types_for(scalar)
+    vec2, vec3, vec4, mat33, mat44, splat = t.vec2, t.vec3, t.vec4, t.mat33, t.mat44, t.splat
+    fns = projection_funcs(scalar, fast_math and scalar == wp.float32)
+    camera_point, scaled_rotation, jacobian, pixel_radii, cull = (
+        fns.camera_point, fns.scaled_rotation, fns.jacobian, fns.pixel_radii, fns.cull)
+    covariance_2d = fns.cov_gsplat if covariance == "gsplat" else fns.cov_factor
+    tile_box = tile_box_func(scalar)
+    check_inputs = inputs_check_func(scalar)
+    Params = projection_params(scalar)
 
     @wp.kernel(module="unique", module_options={"fast_math": fast_math})
     def project(
@@ -221,22 +312,13 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
         if flags.shape[0] > 0:  # the input value checks, on the values loaded here
             check_inputs(c, n, i, m, quats[c, n], scales[c, n], opacities[c, n], V, Ks[c], colors, color_row,
                          colors_per_camera, backgrounds, background_row, flags)
-        # world to camera: R p + t, products summed in index order
-        p = vec3(dot3(V[0, 0], V[0, 1], V[0, 2], m[0], m[1], m[2]) + V[0, 3],
-                 dot3(V[1, 0], V[1, 1], V[1, 2], m[0], m[1], m[2]) + V[1, 3],
-                 dot3(V[2, 0], V[2, 1], V[2, 2], m[0], m[1], m[2]) + V[2, 3])
+        p = camera_point(V, m)
         z = p[2]
         if z < near_plane or z > far_plane:
             cull(i, means2d, depths, conics, opac_out, radii, counts, ends)
             return
         R = mat33(V[0, 0], V[0, 1], V[0, 2], V[1, 0], V[1, 1], V[1, 2], V[2, 0], V[2, 1], V[2, 2])
-
-        Rq = quat_to_rotmat(quats[c, n])
-        s = scales[c, n]
-        M = mat33(Rq[0, 0] * s[0], Rq[0, 1] * s[1], Rq[0, 2] * s[2],
-                  Rq[1, 0] * s[0], Rq[1, 1] * s[1], Rq[1, 2] * s[2],
-                  Rq[2, 0] * s[0], Rq[2, 1] * s[1], Rq[2, 2] * s[2])
-
+        M = scaled_rotation(quats[c, n], scales[c, n])
         K = Ks[c]
         fx = K[0, 0]
         fy = K[1, 1]
@@ -244,52 +326,9 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
         cy = K[1, 2]
         w = scalar(params.width)
         h = scalar(params.height)
-        tan_fovx = scalar(0.5) * w / fx
-        tan_fovy = scalar(0.5) * h / fy
-        lim_x_pos = (w - cx) / fx + scalar(0.3) * tan_fovx
-        lim_x_neg = cx / fx + scalar(0.3) * tan_fovx
-        lim_y_pos = (h - cy) / fy + scalar(0.3) * tan_fovy
-        lim_y_neg = cy / fy + scalar(0.3) * tan_fovy
         rz = scalar(1.0) / z
-        rz2 = rz * rz
-        tx = z * wp.min(lim_x_pos, wp.max(-lim_x_neg, p[0] * rz))
-        ty = z * wp.min(lim_y_pos, wp.max(-lim_y_neg, p[1] * rz))
-        zero = scalar(0.0)
-        J = mat23(fx * rz, zero, -fx * tx * rz2,
-                  zero, fy * rz, -fy * ty * rz2)
-        a = zero
-        b = zero
-        cc = zero
-        det_orig = zero
-        det = zero
-        if wp.static(gsplat_form):
-            # gsplat's order: Sigma = M M^T, Sigma_c = (R Sigma) R^T, cov = (J Sigma_c) J^T with
-            # J's zero entries multiplied out, determinant a d - b c
-            Sc = mul33_t(mul33(R, mul33_t(M, M)), R)
-            cv = cov2d(J, Sc)
-            c00 = cv[0]
-            c10 = cv[1]
-            c01 = cv[2]
-            c11 = cv[3]
-            det_orig = fma(c00, c11, -(c10 * c01))
-            a = add_rn(c00, eps2d)
-            cc = add_rn(c11, eps2d)
-            b = c10
-            det = fma(a, cc, -(c10 * c01))
-        else:
-            # the 2D covariance from its 2x3 factor A = J R M: sums of squares, and its determinant
-            # as the squared cross product of A's rows (Binet-Cauchy), free of cancellation
-            A = J @ R @ M
-            r0 = vec3(A[0, 0], A[0, 1], A[0, 2])
-            r1 = vec3(A[1, 0], A[1, 1], A[1, 2])
-            a = wp.dot(r0, r0)
-            b = wp.dot(r0, r1)
-            cc = wp.dot(r1, r1)
-            cr = wp.cross(r0, r1)
-            det_orig = wp.dot(cr, cr)
-            det = det_orig + eps2d * (a + cc) + eps2d * eps2d
-            a = a + eps2d
-            cc = cc + eps2d
+        J = jacobian(fx, fy, cx, cy, w, h, p, z, rz)
+        a, b, cc, det_orig, det = covariance_2d(J, R, M, eps2d)
         if det <= scalar(0.0):
             cull(i, means2d, depths, conics, opac_out, radii, counts, ends)
             return
@@ -299,11 +338,7 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
         if op < alpha_min:
             cull(i, means2d, depths, conics, opac_out, radii, counts, ends)
             return
-        ext = sigma_max
-        if params.opacity_extent != 0 and alpha_min > scalar(0.0):
-            ext = wp.min(sigma_max, wp.sqrt(scalar(2.0) * wp.log(wp.max(op / alpha_min, scalar(1.0)))))
-        rx = wp.min(wp.ceil(ext * wp.sqrt(a)), scalar(RADIUS_LIMIT))
-        ry = wp.min(wp.ceil(ext * wp.sqrt(cc)), scalar(RADIUS_LIMIT))
+        rx, ry = pixel_radii(op, a, cc, alpha_min, sigma_max, params.opacity_extent)
         if rx <= params.radius_clip and ry <= params.radius_clip:
             cull(i, means2d, depths, conics, opac_out, radii, counts, ends)
             return
