@@ -213,6 +213,7 @@ ABLATIONS = {
     "SH rest: keep": {"sh_rest": "keep"},
     "SH rest: zero": {"sh_rest": "zero"},
     "SH rest: optimise": {"sh_rest": "optimise"},
+    "TV 0.02 (previous default)": {"tv_weight": 0.02},
     "TV 0.1": {"tv_weight": 0.1},
     "TV 0.5": {"tv_weight": 0.5},
     "colour gain 1.0": {"color_max_gain": 1.0},

@@ -25,10 +25,10 @@ from ..errors import InputError, WeightsNotFound
 from ..core.imaging import contact_sheet, plot_losses  # noqa: F401  (contact_sheet re-exported)
 from ..raster.scene import GaussianScene
 from .stage2 import (  # noqa: F401  (re-exported: the public Stage 2 API lives in ssgwarp.stylization.stage2)
-    COLOR_TRANSFER, MODES, SH_REST, STYLE_LOSSES, Stage2Config, Stage2Result, ViewLoss, build_targets,
-    deferred_backward, direct_backward, extract, finetune_loss, optimise, render_alphas,
+    COLOR_TRANSFER, MODES, SH_REST, STYLE_LOSSES, TV_WEIGHT_FREE, TV_WEIGHT_VGG, Stage2Config, Stage2Result,
+    ViewLoss, build_targets, deferred_backward, direct_backward, extract, finetune_loss, optimise, render_alphas,
     render_batched, render_rgb, style_loss_kind, to_nchw, trainable_names, transfer_colors, tv_loss,
-    view_order)
+    tv_weight_for, view_order)
 
 # ----------------------------------------------------------------------------- end to end
 @dataclass
@@ -411,7 +411,7 @@ def _metrics(r: _Run, s2: dict, renders: torch.Tensor, kv, stage1_info: dict, t_
     metrics = {
         "source_scene": str(r.scene_dir.resolve()), "style": str(r.style_path.resolve()), "mode": stage2.mode,
         "matching": s2["matching"], "stage1": stage1_info, "extractor": r.extractor.name,
-        "style_loss": style_loss_kind(stage2, r.extractor),
+        "style_loss": style_loss_kind(stage2, r.extractor), "tv_weight": tv_weight_for(stage2, r.extractor),
         "gram_style_loss": scores["gram_style_loss"], "gram_style_loss_original": scores["gram_style_loss_original"],
         "style_distance": scores["style_distance"], "style_distance_original": scores["style_distance_original"],
         "metric_views": f"the {len(train_ids)} training views (ssgwarp evaluate scores novel path views)",
@@ -500,7 +500,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--style-weight", type=float, default=d.style_weight, help="NNFM style loss weight")
     g.add_argument("--content-weight", type=float, default=d.content_weight,
                    help=f"content loss weight (relative feature MSE; default {d.content_weight})")
-    g.add_argument("--tv-weight", type=float, default=d.tv_weight, help=f"total variation weight (default {d.tv_weight})")
+    g.add_argument("--tv-weight", type=float, default=d.tv_weight,
+                   help=f"total variation weight (default: {TV_WEIGHT_FREE} with the weight-free random features, "
+                        f"{TV_WEIGHT_VGG} with VGG16)")
     g.add_argument("--style-loss", default=d.style_loss, choices=STYLE_LOSSES,
                    help="nnfm: nearest-neighbour feature matching (the paper's); sw: sliced Wasserstein "
                         "between feature distributions; auto (default): NNFM on VGG16 features, SW on the "
