@@ -55,7 +55,6 @@ def worker(a) -> int:
     from ssgwarp.reconstruct import Recipe, Trainer
 
     group, device = distributed.from_env(a.device)
-    clean = False
     try:
         data = load_dataset(a.data, images=a.images, width=a.width, seed=0)
         b = a.batch_size
@@ -92,9 +91,8 @@ def worker(a) -> int:
                    "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
                    "resolution": [data.width, data.height], "curve": curve}
             Path(a.result).write_text(json.dumps(row))
-        clean = True
     finally:
-        distributed.shutdown(group, clean=clean)
+        distributed.shutdown(group)
     return 0
 
 

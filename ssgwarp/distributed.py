@@ -209,20 +209,10 @@ def from_env(device: Optional[torch.device] = None, timeout_s: float = 1800.0) -
     return Group(rank=rank, world_size=world, local_rank=local, backend=backend), device
 
 
-def shutdown(group: Group, *, clean: bool = True) -> None:
-    """Leave the process group (no-op alone).
-
-    ``clean`` (the run ended normally on this rank): first wait at a barrier until every rank is
-    done, so that all ranks tear gloo / NCCL down together. Without it the ranks that finish
-    early (all but the main one, which still evaluates and writes outputs) destroy their
-    connections and exit while the main rank is still connected to them; under load, the
-    teardown of one rank then overlaps the exit of another and gloo aborts the late rank
-    (SIGABRT, "terminate called without an active exception"), failing a run that had
-    succeeded. After an error (``clean=False``) no barrier: the other ranks may be gone."""
+def shutdown(group: Group) -> None:
+    """Leave the process group (no-op alone)."""
     if group.active:
         import torch.distributed as dist
 
         if dist.is_initialized():
-            if clean:
-                dist.barrier()
             dist.destroy_process_group()

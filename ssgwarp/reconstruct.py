@@ -225,7 +225,6 @@ def run(args) -> int:
         raise InputError(f"--batch-size must be >= 1, got {args.batch_size}")
     group, device = distributed.from_env(args.device)  # under torchrun: join the others
     logging.basicConfig(level=logging.INFO if group.is_main else logging.WARNING, format="ssgwarp: %(message)s")
-    clean = False
     try:
         m = reconstruct(args.data_dir, args.out, iters=args.iters, images=args.images, sh_degree=args.sh_degree,
                         max_gaussians=args.max_gaussians, resume=args.resume, force=args.force, device=device,
@@ -234,9 +233,8 @@ def run(args) -> int:
                         num_random_points=args.random_points, progress=not args.no_progress,
                         strategy=args.strategy, batch_size=args.batch_size,
                         recipe=Recipe(batch_scaling=args.batch_scaling), group=group)
-        clean = True
     finally:
-        distributed.shutdown(group, clean=clean)  # after success: all ranks leave together
+        distributed.shutdown(group)
     if not group.is_main:
         return 0
     ps = "n/a" if m["psnr"] is None else f"{m['psnr']:.2f} dB"

@@ -56,7 +56,6 @@ def main() -> int:
     ap.add_argument("--perturb", action="store_true", help="rank 1 nudges one position (the check must see it)")
     a = ap.parse_args()
     group, _ = distributed.from_env(torch.device("cpu"))
-    clean = False
     try:
         t = make_trainer(a.data_dir, batch_size=group.world_size, group=group, steps=a.steps)
         if a.perturb and group.rank == 1:
@@ -65,9 +64,8 @@ def main() -> int:
         t.train()
         if group.is_main:
             torch.save({"state": t.state_dict(), "calls": t.hooks[0].calls}, a.out)
-        clean = True
     finally:
-        distributed.shutdown(group, clean=clean)
+        distributed.shutdown(group)
     return 0
 
 
