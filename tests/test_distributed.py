@@ -42,7 +42,8 @@ ATOL = 1e-4
 
 
 def _env():
-    env = dict(os.environ, SSGWARP_OFFLINE="1", OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
+    # PYTHONFAULTHANDLER: a worker killed by a signal (SIGABRT, SIGSEGV) prints its Python stacks
+    env = dict(os.environ, SSGWARP_OFFLINE="1", OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1", PYTHONFAULTHANDLER="1")
     for var in ("SSGWARP_LPIPS", "SSGWARP_VGG16", "SSGWARP_WEIGHTS"):
         env.pop(var, None)
     return env
@@ -61,8 +62,19 @@ def _finish(p: subprocess.Popen, timeout: float = 180) -> subprocess.CompletedPr
     except subprocess.TimeoutExpired:
         os.killpg(p.pid, signal.SIGKILL)  # torchrun and its workers
         out, err = p.communicate()
-        raise AssertionError(f"torchrun did not finish in {timeout} s: {err[-3000:]}") from None
+        r = subprocess.CompletedProcess(p.args, p.returncode, out, err)
+        raise AssertionError(f"torchrun did not finish in {timeout} s: {_failure(r)}") from None
     return subprocess.CompletedProcess(p.args, p.returncode, out, err)
+
+
+def _failure(r: subprocess.CompletedProcess) -> str:
+    """What the workers said (their stderr, before torchrun's own report) and torchrun's root cause."""
+    err = r.stderr
+    cut = err.find("torch/distributed/elastic/")  # torchrun's first line about a failed worker
+    workers = err if cut < 0 else err[:err.rfind("\n", 0, cut) + 1]
+    root = err[err.find("Root Cause"):][:1500] if "Root Cause" in err else ""
+    return (f"torchrun exited {r.returncode}\n--- the workers' stderr (end):\n{workers[-6000:]}\n"
+            f"--- stdout (end):\n{r.stdout[-1500:]}\n--- torchrun: {root}")
 
 
 def _torchrun(args, n=2, env=None) -> subprocess.CompletedProcess:
@@ -193,7 +205,7 @@ def test_only_the_main_process_writes(capture, tmp_path, monkeypatch):
 def test_two_processes_with_one_view_each_train_the_scene_of_one_process_with_two(capture, tmp_path):
     env = dict(_env(), SSGWARP_DDP_CHECK="1")  # and the ranks' scenes are compared after every step
     r = _torchrun([str(HERE / "ddp_worker.py"), str(capture), str(tmp_path / "ddp.pt")], env=env)
-    assert r.returncode == 0, r.stderr[-3000:]
+    assert r.returncode == 0, _failure(r)
     got = torch.load(tmp_path / "ddp.pt", weights_only=False)
     ref = make_trainer(capture, batch_size=2)
     n0 = ref.num_gaussians
@@ -240,7 +252,7 @@ def test_torchrun_resumes_a_one_process_checkpoint_and_records_the_world(capture
     t.train(until=4)
     assert read_checkpoint(split / "checkpoint.pt")["step"] == 4
     r = _torchrun(["-m", "ssgwarp"] + _cli(capture, split, "--iters", "8", "--resume"))
-    assert r.returncode == 0, r.stderr[-3000:]
+    assert r.returncode == 0, _failure(r)
     assert r.stdout.count("held-out PSNR") == 1  # one summary line, from the main process
     m = json.loads((split / "metrics.json").read_text())
     assert (m["world_size"], m["batch_size"], m["iters"], m["images_seen"]) == (2, 2, 8, 16)
