@@ -188,4 +188,8 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    code = main()
+    from ssgwarp.services import distributed as _d
+
+    _d.exit_after_group(code)  # (a torchrun worker: see its docstring)
+    sys.exit(code)

@@ -17,7 +17,7 @@ import traceback
 from pathlib import Path
 from typing import Optional, Sequence
 
-from .services import weights
+from .services import distributed, weights
 from .errors import SsgwarpError
 
 # name -> (module, one-line help, examples)
@@ -116,6 +116,12 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
+    code = _main(argv)
+    distributed.exit_after_group(code)  # (under torchrun only: see its docstring)
+    return code
+
+
+def _main(argv: Optional[Sequence[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv or os.environ.get("SSGWARP_DEBUG") == "1"
     try:

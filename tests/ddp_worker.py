@@ -70,4 +70,8 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    code = main()
+    from ssgwarp.services import distributed as _d
+
+    _d.exit_after_group(code)  # as the CLI does under torchrun
+    sys.exit(code)
