@@ -427,6 +427,26 @@ def _resume_state(checkpoint: Path, device, names: list[str], n: int, cfg: Stage
     return state
 
 
+def _start(params: dict, opt, checkpoint: Optional[Path], scene: GaussianScene, cfg: Stage2Config, batch: int,
+           group) -> tuple[int, list, float]:
+    """Load ``checkpoint`` (when there) into the parameters and Adam; with several processes, every one
+    takes the main one's parameters (then they step identically). Returns ``(step, history, seconds)``."""
+    start, history, elapsed = 0, [], 0.0
+    if checkpoint is not None and Path(checkpoint).is_file():
+        state = _resume_state(Path(checkpoint), scene.device, list(params), len(scene), cfg, batch)
+        with torch.no_grad():
+            for n, p in params.items():
+                p.copy_(state["params"][n])
+        opt.load_state_dict(state["optimizer"])
+        start, history, elapsed = int(state["step"]), list(state["history"]), float(state["seconds"])
+    if group.active:
+        mine = group.broadcast({n: p.detach().cpu() for n, p in params.items()})
+        with torch.no_grad():
+            for n, p in params.items():
+                p.copy_(mine[n])
+    return start, history, elapsed
+
+
 def optimise(scene: GaussianScene, cameras: Cameras, cfg: Stage2Config, *,
              loss: Optional[ViewLoss] = None,
              finetune_images: Optional[torch.Tensor] = None, finetune_cameras: Optional[Cameras] = None,
@@ -469,19 +489,7 @@ def optimise(scene: GaussianScene, cameras: Cameras, cfg: Stage2Config, *,
     params = {n: getattr(scene, n).detach().clone().requires_grad_(True) for n in names}
     opt = torch.optim.Adam([{"params": [p], "lr": _lr(n, cfg) * lr_factor, "name": n} for n, p in params.items()],
                            eps=1e-15, betas=betas)
-    start, history, elapsed = 0, [], 0.0
-    if resume and checkpoint is not None and Path(checkpoint).is_file():
-        state = _resume_state(Path(checkpoint), scene.device, names, len(scene), cfg, batch)
-        with torch.no_grad():
-            for n in names:
-                params[n].copy_(state["params"][n])
-        opt.load_state_dict(state["optimizer"])
-        start, history, elapsed = int(state["step"]), list(state["history"]), float(state["seconds"])
-    if group.active:   # every process starts from the main one's parameters (then steps identically)
-        mine = group.broadcast({n: p.detach().cpu() for n, p in params.items()})
-        with torch.no_grad():
-            for n in names:
-                params[n].copy_(mine[n])
+    start, history, elapsed = _start(params, opt, checkpoint if resume else None, scene, cfg, batch, group)
     info = {"batch_size": batch, "world_size": group.world_size, "scaling": cfg.batch_scaling,
             "lr_factor": lr_factor, "betas": list(betas)}
 
@@ -568,7 +576,7 @@ def _backward_share(render, views: list[int], step: int, cfg: Stage2Config, loss
     def match(v):
         def fn(img):
             value = loss(img, v, step)
-            parts.append(dict(loss.last))
+            parts.append({**loss.last, "total": float(value.detach())})   # (the value the gradient is of)
             return value
         return fn
 
