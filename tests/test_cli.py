@@ -418,11 +418,11 @@ def test_ctrl_c_in_stylize_then_resume_matches_an_uninterrupted_run(world, tmp_p
                 "--checkpoint-every", "4", "--path-frames", "0", "--max-side", "32", *FAST]
 
     assert main([str(a) for a in argv(tmp_path / "a")]) == 0
-    orig = fail_on_call(st, "deferred_backward", 7, "interrupt")
+    orig = fail_on_call(st, "backward_views", 7, "interrupt")
     _interrupted(capsys, argv(tmp_path / "b"))
     assert torch.load(tmp_path / "b" / "stage2.ckpt", weights_only=False)["step"] == 6
     assert not (tmp_path / "b" / "scene.ply").exists()
-    monkeypatch.setattr(st, "deferred_backward", orig)
+    monkeypatch.setattr(st, "backward_views", orig)
     assert main([str(a) for a in argv(tmp_path / "b") + ["--resume"]]) == 0
     _same_scene(tmp_path / "a" / "scene.ply", tmp_path / "b" / "scene.ply")
 

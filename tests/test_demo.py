@@ -171,7 +171,7 @@ def test_ctrl_c_in_a_demo_stage_resumes_to_the_uninterrupted_result(demo, tmp_pa
     from ssgwarp.capture.ply import read_ply
 
     _no_weights(monkeypatch)
-    orig = fail_on_call(st, "deferred_backward", 7, "interrupt")
+    orig = fail_on_call(st, "backward_views", 7, "interrupt")
     out = tmp_path / "demo"
     argv = ["demo", "--out", out, "--size", "small", "--quiet", "--device", "cpu"]
     code, _, stderr = _main(argv)
@@ -180,7 +180,7 @@ def test_ctrl_c_in_a_demo_stage_resumes_to_the_uninterrupted_result(demo, tmp_pa
     assert set(stages) == {"data", "reconstruct", "group"}           # the finished stages are recorded
     assert torch.load(out / "stylized" / "stage2.ckpt", weights_only=False)["step"] == 6
     assert not (out / "summary.json").exists() and not (out / "stylized" / "scene.ply").exists()
-    monkeypatch.setattr(st, "deferred_backward", orig)
+    monkeypatch.setattr(st, "backward_views", orig)
     code, stdout, stderr = _main(argv + ["--resume"])
     assert code == 0, stderr
     a, b = read_ply(demo[0] / "stylized" / "scene.ply"), read_ply(out / "stylized" / "scene.ply")

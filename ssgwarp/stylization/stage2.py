@@ -7,7 +7,9 @@ group (:mod:`ssgwarp.stylization.matching`), or of the style image when Stage 1 
 0. **colour transfer** (``pre``, ARF): one linear colour map per group, applied
    to the SH coefficients, gives the renders the colour mean and covariance of
    the targets (:func:`transfer_colors`, :mod:`ssgwarp.services.color`);
-1. for ``iters`` steps, one training view each: render without gradient, treat
+1. for ``iters`` steps, ``batch_size`` training views each (default one; the loss is their
+   mean, Adam adapted by :func:`ssgwarp.reconstruction.recipe.batch_factors`; under ``torchrun``
+   each process renders its share, :mod:`ssgwarp.services.distributed`): render without gradient, treat
    the image as a leaf, compute the loss
    ``style_weight * L_style + content_weight * content + tv_weight * TV`` and
    its gradient ``dL/dimage``, render again with gradient and back-propagate
@@ -48,7 +50,7 @@ import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Callable, Optional, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -56,9 +58,12 @@ import torch.nn.functional as F
 from ..raster import rendering
 from ..core.cameras import Cameras
 from ..errors import InputError
+from ..services.distributed import SINGLE
 from ..services.loop import Diverged, Loop
+from .batches import batch_size_for, batch_views, view_order  # noqa: F401  (view_order re-exported)
 from .matching import DEFAULT_CHUNK, MatchTargets, SlicedTargets, downsample_labels
 from ..evaluation.metrics import content_loss
+from ..reconstruction.recipe import batch_factors
 from ..raster.scene import GaussianScene
 
 MODES = ("ist", "finetune", "global")
@@ -74,7 +79,7 @@ class Stage2Config:
 
     Attributes:
         mode: ``ist`` | ``finetune`` | ``global``.
-        iters: optimisation steps (one training view each).
+        iters: optimisation steps (``batch_size`` training views each).
         lr: Adam learning rate of ``sh_dc`` (higher bands: ``lr / 20``; opacity logits: ``lr * 5``).
         style_weight, content_weight, tv_weight: loss weights; ``tv_weight=None`` (default): by the
             extractor, :func:`tv_weight_for` (0.5 on the weight-free random features, 0.02 on VGG16).
@@ -99,6 +104,9 @@ class Stage2Config:
         nn_precision: dtype of the nearest-neighbour search (``auto``: bf16 on CUDA, fp32 on CPU).
         checkpoint_every: iterations between checkpoints.
         seed: view order.
+        batch_size: training views per step over all processes (None: one per process); the
+            loss is their mean. batch_scaling: Adam for batches (``sqrt``: lr x sqrt(B), ``linear``:
+            x B, both with betas ** B; ``none``), :func:`ssgwarp.reconstruction.recipe.batch_factors`.
     """
 
     mode: str = "ist"
@@ -120,6 +128,8 @@ class Stage2Config:
     nn_precision: str = "auto"
     checkpoint_every: int = 100
     seed: int = 0
+    batch_size: Optional[int] = None
+    batch_scaling: str = "sqrt"
 
     def validate(self) -> "Stage2Config":
         if self.mode not in MODES:
@@ -152,6 +162,10 @@ class Stage2Config:
             raise InputError(f"--chunk {self.chunk}: must be >= 1")
         if self.checkpoint_every < 1:
             raise InputError("--checkpoint-every must be >= 1")
+        if self.batch_size is not None and self.batch_size < 1:
+            raise InputError(f"--batch-size {self.batch_size}: must be >= 1")
+        if self.batch_scaling not in ("sqrt", "linear", "none"):
+            raise InputError(f"--batch-scaling {self.batch_scaling}: use sqrt, linear or none")
         return self
 
 
@@ -186,37 +200,48 @@ def render_alphas(scene: GaussianScene, cams: Cameras) -> torch.Tensor:
         return torch.cat([rendering.render(scene, cams[[c]].to(scene.device))[1][..., 0] for c in range(len(cams))])
 
 
+def backward_views(render: Callable[[Cameras], torch.Tensor], cameras: Cameras,
+                   loss_fns: Sequence[Callable[[torch.Tensor], torch.Tensor]], deferred: bool = True,
+                   weight: float = 1.0) -> list[torch.Tensor]:
+    """Back-propagate ``weight * sum_j loss_fns[j](render(cameras)[j])`` into the scene parameters.
+
+    ``render``: cameras -> ``[C, h, w, 3]`` (differentiable in the parameters); all the cameras are
+    rendered in one call. ``deferred`` (deferred back-propagation): the images are rendered
+    without gradient, each view's ``dL/dimage`` is computed with its image as a leaf (the feature
+    network's graph freed right after, one view at a time), then the images are rendered again
+    with gradient and the stacked ``dL/dimage`` are pushed through the rasterizer alone; else the
+    losses are back-propagated directly (reference). Returns each view's loss (detached);
+    gradients are accumulated into the parameters' ``.grad``."""
+    if not deferred:
+        images = render(cameras)
+        losses = [fn(images[j]) for j, fn in enumerate(loss_fns)]
+        (weight * sum(losses)).backward()
+        return [v.detach() for v in losses]
+    with torch.no_grad():
+        images = render(cameras)
+    grads, values = [], []
+    for j, fn in enumerate(loss_fns):
+        image = images[j].detach().requires_grad_(True)
+        value = fn(image)
+        (grad,) = torch.autograd.grad(value, image)
+        grads.append(grad if weight == 1.0 else grad * weight)
+        values.append(value.detach())
+    del images
+    render(cameras).backward(torch.stack(grads))
+    return values
+
+
 def deferred_backward(render: Callable[[Cameras], torch.Tensor], camera: Cameras,
                       loss_fn: Callable[[torch.Tensor], torch.Tensor]) -> torch.Tensor:
-    """Deferred back-propagation of ``loss_fn(render(camera))`` into the scene parameters.
-
-    The image is rendered without gradient, ``dL/dimage`` is computed with the
-    image as a leaf (the feature network's graph is freed right after), then
-    the image is rendered again with gradient and ``dL/dimage`` is pushed
-    through the rasterizer alone.
-
-    Args:
-        render: cameras -> ``[1, h, w, 3]`` (differentiable in the parameters).
-        camera: one camera.
-        loss_fn: image ``[H, W, 3]`` -> scalar.
-    Returns: the loss (detached). Gradients are accumulated into the parameters' ``.grad``.
-    """
-    with torch.no_grad():
-        image = render(camera)[0]
-    image = image.detach().requires_grad_(True)
-    loss = loss_fn(image)
-    (grad,) = torch.autograd.grad(loss, image)
-    del image
-    render(camera)[0].backward(grad)
-    return loss.detach()
+    """Deferred back-propagation of ``loss_fn(render(camera))`` (one camera, image ``[H, W, 3]`` ->
+    scalar) into the scene parameters (:func:`backward_views`); returns the loss (detached)."""
+    return backward_views(render, camera, [loss_fn], deferred=True)[0]
 
 
 def direct_backward(render: Callable[[Cameras], torch.Tensor], camera: Cameras,
                     loss_fn: Callable[[torch.Tensor], torch.Tensor]) -> torch.Tensor:
     """Plain back-propagation of ``loss_fn(render(camera))`` (reference for :func:`deferred_backward`)."""
-    loss = loss_fn(render(camera)[0])
-    loss.backward()
-    return loss.detach()
+    return backward_views(render, camera, [loss_fn], deferred=False)[0]
 
 
 # ----------------------------------------------------------------------------- losses
@@ -402,13 +427,6 @@ def _lr(name: str, cfg: Stage2Config) -> float:
     return {"sh_dc": cfg.lr, "sh_rest": cfg.lr / 20.0, "logit_opacities": cfg.lr * 5.0}[name]
 
 
-def view_order(step: int, num_views: int, seed: int) -> int:
-    """The training view of ``step``: a fresh seeded permutation every epoch (stateless, so resumable)."""
-    epoch, k = divmod(step, num_views)
-    g = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
-    return int(torch.randperm(num_views, generator=g)[k])
-
-
 # ----------------------------------------------------------------------------- the optimisation
 @dataclass
 class Stage2Result:
@@ -417,6 +435,39 @@ class Stage2Result:
     last: dict = field(default_factory=dict)
     seconds: float = 0.0
     iters_done: int = 0
+    batch: dict = field(default_factory=dict)   # batch_size, world_size, scaling, lr_factor, betas
+
+
+def _resume_state(checkpoint: Path, device, names: list[str], n: int, cfg: Stage2Config, batch: int) -> dict:
+    state = torch.load(checkpoint, map_location=device, weights_only=False)
+    if state.get("params_names") != names or state.get("n") != n or state.get("mode") != cfg.mode:
+        raise InputError(f"{checkpoint}: checkpoint is from a different run (mode, scene or options); "
+                         f"use --force to start over")
+    b = int(state.get("batch_size", 1))
+    if b != batch:
+        raise InputError(f"{checkpoint}: Stage 2 ran with --batch-size {b}, not {batch}; pass --batch-size {b} "
+                         f"to resume it (with any number of processes dividing it) or --force to start over")
+    return state
+
+
+def _start(params: dict, opt, checkpoint: Optional[Path], scene: GaussianScene, cfg: Stage2Config, batch: int,
+           group) -> tuple[int, list, float]:
+    """Load ``checkpoint`` (when there) into the parameters and Adam; with several processes, every one
+    takes the main one's parameters (then they step identically). Returns ``(step, history, seconds)``."""
+    start, history, elapsed = 0, [], 0.0
+    if checkpoint is not None and Path(checkpoint).is_file():
+        state = _resume_state(Path(checkpoint), scene.device, list(params), len(scene), cfg, batch)
+        with torch.no_grad():
+            for n, p in params.items():
+                p.copy_(state["params"][n])
+        opt.load_state_dict(state["optimizer"])
+        start, history, elapsed = int(state["step"]), list(state["history"]), float(state["seconds"])
+    if group.active:
+        mine = group.broadcast({n: p.detach().cpu() for n, p in params.items()})
+        with torch.no_grad():
+            for n, p in params.items():
+                p.copy_(mine[n])
+    return start, history, elapsed
 
 
 def optimise(scene: GaussianScene, cameras: Cameras, cfg: Stage2Config, *,
@@ -424,44 +475,46 @@ def optimise(scene: GaussianScene, cameras: Cameras, cfg: Stage2Config, *,
              finetune_images: Optional[torch.Tensor] = None, finetune_cameras: Optional[Cameras] = None,
              background: Optional[torch.Tensor] = None, checkpoint: Optional[Path] = None,
              resume: bool = False, progress: bool = True, log_every: int = 10,
-             render_kwargs: Optional[dict] = None) -> Stage2Result:
+             render_kwargs: Optional[dict] = None, group=None) -> Stage2Result:
     """Run Stage 2 and return the stylized scene.
 
     Args:
         scene: the reconstructed (grouped) scene; its tensors are not modified.
         cameras: the training cameras (``ist`` / ``global``).
-        cfg: options.
+        cfg: options (``cfg.batch_size`` views per step, their mean loss).
         loss: the per-view loss (``ist`` / ``global``).
         finetune_images, finetune_cameras: ``[V,H,W,3]`` stylized key views and their
             cameras (``finetune`` mode).
         background: ``[3]`` background colour.
         checkpoint: file to checkpoint into every ``cfg.checkpoint_every`` steps
-            and on Ctrl-C; with ``resume`` the run continues from it.
+            and on Ctrl-C; with ``resume`` the run continues from it (with any number of
+            processes dividing its batch size).
+        group: a :class:`ssgwarp.services.distributed.Group` when several processes optimise
+            together: each renders its share of every batch, the gradients are averaged, Ctrl-C or
+            a NaN on any process stops all at the same step, and only the main process writes the
+            checkpoint and shows progress. Default: alone.
     """
     from ..core.fileio import atomic_path
 
     cfg.validate()
+    group = group if group is not None else SINGLE
     finetune = cfg.mode == "finetune"
     if finetune and (finetune_images is None or finetune_cameras is None):
         raise InputError("finetune mode needs the stylized key views (Stage 1 output)")
     if not finetune and loss is None:
         raise InputError(f"{cfg.mode} mode needs a ViewLoss")
+    batch = batch_size_for(cfg.batch_size, group)
+    lr_factor, beta_power = batch_factors(batch, cfg.batch_scaling)
+    betas = (0.9 ** beta_power, 0.999 ** beta_power)
     names = trainable_names(cfg, scene)
     if cfg.sh_rest == "zero" and scene.sh_rest is not None:
         scene = scene.replace(sh_rest=torch.zeros_like(scene.sh_rest))
     params = {n: getattr(scene, n).detach().clone().requires_grad_(True) for n in names}
-    opt = torch.optim.Adam([{"params": [p], "lr": _lr(n, cfg), "name": n} for n, p in params.items()], eps=1e-15)
-    start, history, elapsed = 0, [], 0.0
-    if resume and checkpoint is not None and Path(checkpoint).is_file():
-        state = torch.load(checkpoint, map_location=scene.device, weights_only=False)
-        if state.get("params_names") != names or state.get("n") != len(scene) or state.get("mode") != cfg.mode:
-            raise InputError(f"{checkpoint}: checkpoint is from a different run (mode, scene or options); "
-                             f"use --force to start over")
-        with torch.no_grad():
-            for n in names:
-                params[n].copy_(state["params"][n])
-        opt.load_state_dict(state["optimizer"])
-        start, history, elapsed = int(state["step"]), list(state["history"]), float(state["seconds"])
+    opt = torch.optim.Adam([{"params": [p], "lr": _lr(n, cfg) * lr_factor, "name": n} for n, p in params.items()],
+                           eps=1e-15, betas=betas)
+    start, history, elapsed = _start(params, opt, checkpoint if resume else None, scene, cfg, batch, group)
+    info = {"batch_size": batch, "world_size": group.world_size, "scaling": cfg.batch_scaling,
+            "lr_factor": lr_factor, "betas": list(betas)}
 
     def current() -> GaussianScene:
         return scene.replace(**params)
@@ -472,11 +525,12 @@ def optimise(scene: GaussianScene, cameras: Cameras, cfg: Stage2Config, *,
         return render_rgb(current(), cam, background, **rk)
 
     def save(step: int) -> None:
-        if checkpoint is None:
+        if checkpoint is None or not group.is_main:
             return
         state = {"step": step, "params": {n: p.detach() for n, p in params.items()}, "params_names": names,
                  "optimizer": opt.state_dict(), "history": history, "seconds": elapsed + time.perf_counter() - t0,
-                 "n": len(scene), "mode": cfg.mode, "config": asdict(cfg)}
+                 "n": len(scene), "mode": cfg.mode, "config": asdict(cfg), "batch_size": batch,
+                 "world_size": group.world_size}
         with atomic_path(checkpoint) as tmp:
             torch.save(state, tmp)
 
@@ -484,40 +538,70 @@ def optimise(scene: GaussianScene, cameras: Cameras, cfg: Stage2Config, *,
     if n_views == 0:
         raise InputError("Stage 2: no views to optimise on")
     t0 = time.perf_counter()
-    prog = {"done": start, "last": history[-1] if history else {}}
+    prog = {"done": start, "last": history[-1] if history else {}, "stop": False}
 
     def step_fn() -> dict:
         step = prog["done"]
-        v = view_order(step, n_views, cfg.seed)
+        everyone = batch_views(step, batch, n_views, cfg.seed)
+        views = group.share(everyone)   # this process's views of the step's batch
         opt.zero_grad(set_to_none=True)
-        if finetune:
-            target = finetune_images[v].to(scene.device, scene.dtype)
-            value = direct_backward(render, finetune_cameras[v], lambda img: finetune_loss(img, target))
-            parts = {"total": float(value)}
-        else:
-            fn = lambda img: loss(img, v, step)  # noqa: E731
-            value = (deferred_backward if cfg.deferred else direct_backward)(render, cameras[v], fn)
-            parts = dict(loss.last)
-        if not math.isfinite(float(value)):   # parameters untouched this step: the last good state is saved
+        parts = _backward_share(render, views, step, cfg, loss, cameras, finetune_images, finetune_cameras,
+                                scene, 1.0 / len(views))
+        keys = sorted(parts[0])
+        sums = [sum(p[k] for p in parts) for k in keys]
+        finite = all(math.isfinite(p["total"]) for p in parts)
+        # every process steps with the batch's mean gradient; NaN and Ctrl-C anywhere are seen everywhere
+        flags = group.average_grads(list(params.values()), [0.0 if finite else 1.0,
+                                                            1.0 if loop.stop_requested else 0.0] + sums)
+        prog["stop"] = flags[1] > 0
+        mean = {k: v / batch for k, v in zip(keys, flags[2:])}
+        if flags[0] > 0:   # parameters untouched this step: the last good state is saved
             kept = (f"the state after the last good step ({step} steps) is saved to {checkpoint}"
                     if checkpoint is not None else "no checkpoint was asked for")
-            raise Diverged(f"Stage 2: loss became {float(value)} at step {step}; last good checkpoint kept: "
-                           f"{kept} (lower --lr and rerun with --resume)")
+            where = f" on {int(flags[0])} of {group.world_size} processes" if group.active else ""
+            raise Diverged(f"Stage 2: loss became {mean['total']} at step {step}{where}; last good checkpoint "
+                           f"kept: {kept} (lower --lr and rerun with --resume)")
         opt.step()
         prog["done"] = step + 1
-        prog["last"] = {"step": step, "view": v, **parts}
+        prog["last"] = {"step": step, "view": everyone[0], **({"views": everyone} if batch > 1 else {}), **mean}
         if step % log_every == 0:
             history.append(prog["last"])
-        return parts
+        return mean
 
     def on_step(parts: dict) -> None:
         loop.bar.set_postfix({k: f"{val:.4f}" for k, val in parts.items() if k in ("style", "total")})
 
     keep = (lambda: save(prog["done"])) if checkpoint is not None else None
+    active = group.active
     loop = Loop(lambda: prog["done"], save=keep, every=cfg.checkpoint_every, save_last_good=keep,
-                desc=f"stage 2 ({cfg.mode})", total=cfg.iters, progress=progress)
+                desc=f"stage 2 ({cfg.mode})", total=cfg.iters, progress=progress and group.is_main,
+                sigterm=active, second_raises=not active, stop_agreed=(lambda: prog["stop"]) if active else None,
+                after_stop=group.barrier, say=group.is_main)   # nobody leaves before the checkpoint is written
     loop.run(step_fn, cfg.iters, on_step)   # Ctrl-C: the step finishes, a checkpoint is written (ssgwarp.services.loop)
     last = prog["last"]
     seconds = elapsed + time.perf_counter() - t0
     out = scene.replace(**{n: p.detach().clone() for n, p in params.items()})
-    return Stage2Result(out, history, last, seconds, cfg.iters)
+    return Stage2Result(out, history, last, seconds, cfg.iters, info)
+
+
+def _backward_share(render, views: list[int], step: int, cfg: Stage2Config, loss, cameras, finetune_images,
+                    finetune_cameras, scene: GaussianScene, weight: float) -> list[dict]:
+    """Back-propagate ``weight`` x the summed losses of ``views``; each view's loss parts."""
+    parts: list[dict] = []
+    if cfg.mode == "finetune":
+        def fit(v):
+            target = finetune_images[v].to(scene.device, scene.dtype)
+            return lambda img: finetune_loss(img, target)
+
+        values = backward_views(render, finetune_cameras[views], [fit(v) for v in views], False, weight)
+        return [{"total": float(x)} for x in values]
+
+    def match(v):
+        def fn(img):
+            value = loss(img, v, step)
+            parts.append({**loss.last, "total": float(value.detach())})   # (the value the gradient is of)
+            return value
+        return fn
+
+    backward_views(render, cameras[views], [match(v) for v in views], cfg.deferred, weight)
+    return parts

@@ -63,7 +63,8 @@ def _say(msg: str, progress: bool) -> None:
 
 def _signature(style: Path, scene_dir: Path, s2: Stage2Config, opts: StylizeOptions, s1) -> dict:
     """What must not change between a run and its ``--resume``."""
-    cfg = {k: v for k, v in asdict(s2).items() if k not in ("iters", "checkpoint_every")}
+    # (the batch size is checked by Stage 2's checkpoint, which names the fix)
+    cfg = {k: v for k, v in asdict(s2).items() if k not in ("iters", "checkpoint_every", "batch_size")}
     s1d = None
     if s1 is not None:
         s1d = {k: v for k, v in asdict(s1).items() if k not in ("progress", "weights")}
@@ -73,15 +74,16 @@ def _signature(style: Path, scene_dir: Path, s2: Stage2Config, opts: StylizeOpti
     return json.loads(json.dumps(sig, default=str))   # as it reads back from run.json (tuples -> lists)
 
 
-def _prepare_out(out: Path, scene_dir: Path, signature: dict, resume: bool, force: bool) -> dict:
+def _prepare_out(out: Path, scene_dir: Path, signature: dict, resume: bool, force: bool, group) -> dict:
     """Claim ``out`` (:func:`ssgwarp.services.runs.claim`: the policy every stage shares) and return the run's
-    record: on ``--resume`` the finished stages of the earlier run, which must have had the same options."""
+    record: on ``--resume`` the finished stages of the earlier run, which must have had the same options.
+    Every process checks; only the main one changes ``out``, after all have looked."""
     from ..core.fileio import read_json
     from ..services.runs import claim
 
     if out.resolve() == scene_dir.resolve():
         raise InputError(f"--out {out}: must differ from the scene folder (it would overwrite its scene.ply)")
-    claimed = claim(out, OUTPUTS, force=force, resume=resume, what="a stylize output", clear=True)
+    claimed = claim(out, OUTPUTS, force=force, resume=resume, what="a stylize output")
     state: dict = {"signature": signature, "stages": {}}
     if claimed.existing and resume and (out / "run.json").is_file():
         old = read_json(out / "run.json")
@@ -90,7 +92,10 @@ def _prepare_out(out: Path, scene_dir: Path, signature: dict, resume: bool, forc
             raise InputError(f"{out}: --resume with different options ({', '.join(changed)}); "
                              f"use the same options or --force to start over")
         state["stages"] = dict(old.get("stages", {}))
-    out.mkdir(parents=True, exist_ok=True)
+    group.barrier()
+    if group.is_main:
+        claimed.clear()
+        out.mkdir(parents=True, exist_ok=True)
     return state
 
 
@@ -144,6 +149,7 @@ class _Run:
     cams: Cameras
     train_ids: list
     bg: torch.Tensor
+    group: object = None
     classifier: object = None
     num_groups: Optional[int] = None
     times: dict = dataclasses.field(default_factory=dict)
@@ -163,7 +169,7 @@ class _Run:
 
 
 def _open(scene_dir: Path, style_path: Path, out: Path, stage2: Stage2Config, stage1, opts: StylizeOptions,
-          device: torch.device, resume: bool, force: bool, progress: bool, stage1_models) -> _Run:
+          device: torch.device, resume: bool, force: bool, progress: bool, stage1_models, group) -> _Run:
     """Read the inputs and the weights (a missing or corrupt one fails before anything is written to OUT),
     then claim OUT."""
     from ..capture.datasets import load_run
@@ -177,13 +183,15 @@ def _open(scene_dir: Path, style_path: Path, out: Path, stage2: Stage2Config, st
     if stage1 is not None and stage2.mode != "global" and stage1_models is None:
         _check_explicit_stage1_paths(stage1)
     state = _prepare_out(out, scene_dir, _signature(style_path, scene_dir, stage2, opts,
-                                                    stage1 if stage2.mode != "global" else None), resume, force)
-    write_json(out / "run.json", state)
+                                                    stage1 if stage2.mode != "global" else None), resume, force,
+                         group)
+    if group.is_main:
+        write_json(out / "run.json", state)
     cams = data.cameras.to(device)
     r = _Run(scene_dir, style_path, out, stage2, stage1, opts, device, resume, progress, stage1_models, state,
              scene, data, extractor, style_np, torch.from_numpy(style_np).to(device), cams,
              list(data.train_ids) or list(range(len(cams))),
-             torch.tensor(data.background[:3], dtype=scene.dtype, device=device))
+             torch.tensor(data.background[:3], dtype=scene.dtype, device=device), group)
     if (scene_dir / "groups").is_dir():
         if scene.identities is None:
             r.say(f"{scene_dir}/groups exists but scene.ply has no identity fields: using one group")
@@ -342,7 +350,10 @@ def _stage2(r: _Run, kv, stylized) -> dict:
         run_cfg = dataclasses.replace(stage2, mode="global")
     r.say(f"Stage 2 ({stage2.mode}): {stage2.iters} steps, matching {matching}")
     res = optimise(work, r.train_cams, run_cfg, loss=loss, finetune_images=ft_images, finetune_cameras=ft_cams,
-                   background=r.bg, checkpoint=r.out / "stage2.ckpt", resume=r.resume, progress=r.progress)
+                   background=r.bg, checkpoint=r.out / "stage2.ckpt", resume=r.resume, progress=r.progress,
+                   group=r.group)
+    if not r.group.is_main:   # the others only helped with the optimisation
+        return {}
     styled = res.scene
     if stage2.color_transfer in ("post", "both"):
         styled, transfer["post"] = _color_transfer(r, t, styled)
@@ -399,6 +410,7 @@ def _scores(r: _Run, styled: GaussianScene, renders: torch.Tensor, originals: to
 def _metrics(r: _Run, s2: dict, renders: torch.Tensor, kv, stage1_info: dict, t_start: float) -> dict:
     """Scores, the contact sheet and ``metrics.json``; returns the metrics dict."""
     from ..core.fileio import write_json
+    from .batches import batch_record
 
     stage2, styled, originals, train_ids, device = r.stage2, s2["scene"], s2["originals"], r.train_ids, r.device
     scores = _scores(r, styled, renders, originals)
@@ -424,6 +436,7 @@ def _metrics(r: _Run, s2: dict, renders: torch.Tensor, kv, stage1_info: dict, t_
         "resolution": [r.cams.width, r.cams.height],
         "optimised": trainable_names(stage2, r.scene),
         "config": asdict(stage2),
+        **batch_record(s2["result"]),
         "seconds": r.times,
         "device": str(device) if device.type != "cuda" else f"cuda ({torch.cuda.get_device_name(device)})",
         "outputs": {"scene": "scene.ply", "renders": "renders/train", "path": "renders/path",
@@ -446,7 +459,7 @@ def _summary(metrics: dict, out: Path) -> str:
 def stylize_run(scene_dir: str | Path, style_path: str | Path, out: str | Path, *,
                 stage2: Optional[Stage2Config] = None, stage1=None, opts: Optional[StylizeOptions] = None,
                 device: torch.device | str = "cpu", resume: bool = False, force: bool = False,
-                progress: bool = True, stage1_models=None) -> dict:
+                progress: bool = True, stage1_models=None, group=None) -> dict:
     """``ssgwarp stylize``: key views, Stage 1 and Stage 2 on a (grouped) run; returns the metrics dict.
 
     Writes into ``out``: ``keyviews/`` (key views, stylized key views, sheet),
@@ -454,10 +467,19 @@ def stylize_run(scene_dir: str | Path, style_path: str | Path, out: str | Path, 
     and ``renders/path/frame_*.png``, ``contact_sheet.png``, ``loss.png``,
     ``metrics.json`` and ``run.json`` (options and finished stages, for ``resume``).
     ``stage1`` is a :class:`ssgwarp.stylization.diffusion.Stage1Config` (default: its
-    defaults); ``stage1_models`` preloaded Stage 1 models (tests).
+    defaults); ``stage1_models`` preloaded Stage 1 models (tests). ``group``: a ``torchrun`` launch's
+    :class:`ssgwarp.services.distributed.Group` (:mod:`ssgwarp.stylization.batches`; the others return ``{}``).
     """
+    from ..services.distributed import SINGLE
+    from .batches import on_main_for_all, resumed_batch_size
+
     t_start = time.perf_counter()
+    group = group if group is not None else SINGLE
+    progress = progress and group.is_main
     stage2 = (stage2 or Stage2Config()).validate()
+    if stage2.batch_size is None:
+        b = resumed_batch_size(Path(out) / "stage2.ckpt", resume) or group.world_size
+        stage2 = dataclasses.replace(stage2, batch_size=b)
     opts = opts or StylizeOptions()
     if stage1 is None and stage2.mode != "global":
         from .diffusion import Stage1Config
@@ -465,9 +487,11 @@ def stylize_run(scene_dir: str | Path, style_path: str | Path, out: str | Path, 
     if opts.path_frames < 0 or opts.sheet_views < 1:
         raise InputError("--path-frames must be >= 0 and the contact sheet needs >= 1 view")
     r = _open(Path(scene_dir), Path(style_path), Path(out), stage2, stage1, opts, torch.device(device),
-              resume, force, progress, stage1_models)
-    kv, stylized, stage1_info = _keyviews_and_stage1(r)
+              resume, force, progress, stage1_models, group)
+    kv, stylized, stage1_info = on_main_for_all(group, lambda: _keyviews_and_stage1(r), r.device)  # Stage 1 once
     s2 = _stage2(r, kv, stylized)
+    if not group.is_main:
+        return {}
     renders = _renders(r, s2["scene"])
     metrics = _metrics(r, s2, renders, kv, stage1_info, t_start)
     r.say(_summary(metrics, r.out))
@@ -530,6 +554,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--nn-precision", default=d.nn_precision, choices=("auto", "fp32", "bf16", "fp16"),
                    help="nearest-neighbour search precision (auto: bf16 on CUDA, fp32 on CPU)")
     g.add_argument("--checkpoint-every", type=int, default=d.checkpoint_every, help="steps between checkpoints")
+    g.add_argument("--batch-size", type=int, default=None,
+                   help="training views per Stage 2 step over all processes, their mean loss (default: one per "
+                        "process; on --resume the checkpoint's); under torchrun each process renders its share")
+    g.add_argument("--batch-scaling", choices=("sqrt", "linear", "none"), default=d.batch_scaling,
+                   help="Adam for batches: learning rates x sqrt(B) (default) or x B with betas ** B, or none")
     g.add_argument("--extractor", default="auto", choices=("auto", "vgg16", "random"),
                    help="features: auto = VGG16 when local weights exist, else seeded random multi-scale")
     g.add_argument("--vgg16", default=None, help="torchvision VGG16 state dict (or SSGWARP_VGG16)")
@@ -553,13 +582,20 @@ def run(args) -> int:
                       free_opacity=args.free_opacity, label_mode=args.label_mode,
                       feature_scale=args.feature_scale, deferred=not args.direct, chunk=args.chunk,
                       nn_precision=args.nn_precision,
-                      checkpoint_every=args.checkpoint_every, seed=args.seed)
+                      checkpoint_every=args.checkpoint_every, seed=args.seed,
+                      batch_size=args.batch_size, batch_scaling=args.batch_scaling)
     opts = StylizeOptions(keyviews=args.keyviews, ids=parse_ids(args.ids), max_side=args.max_side,
                           extractor=args.extractor, vgg16=args.vgg16,
                           layers=[s.strip() for s in args.layers.split(",")] if args.layers else None,
                           path_frames=args.path_frames, sheet_views=args.sheet_views, weights=weights)
     s1 = config_from_args(args) if args.mode != "global" else None
-    stylize_run(args.scene_dir, args.style, args.out, stage2=s2, stage1=s1, opts=opts, device=args.device,
-                resume=args.resume, force=args.force, progress=not args.quiet)
+    from ..services import distributed
+
+    group, device = distributed.from_env(args.device)   # under torchrun: join the others
+    try:
+        stylize_run(args.scene_dir, args.style, args.out, stage2=s2, stage1=s1, opts=opts, device=device,
+                    resume=args.resume, force=args.force, progress=not args.quiet, group=group)
+    finally:
+        distributed.shutdown(group)
     return 0
 
