@@ -42,6 +42,7 @@ import torch
 
 from ..errors import InputError
 from ..core.imaging import rgb_to_lab  # noqa: F401  (re-exported: ssgwarp.services.color.rgb_to_lab)
+from ..core.cameras import Cameras
 from ..raster.scene import SH_C0, GaussianScene
 
 Tensor = torch.Tensor
@@ -205,3 +206,43 @@ def fit_group_transforms(source: tuple[ColorStats, dict[int, ColorStats]],
 
 __all__ = ["rgb_to_lab", "ColorStats", "ColorTransform", "fit_transform", "transform_sh", "pixel_stats",
            "fit_group_transforms"]
+
+
+# ----------------------------------------------------------------------------- colour transfer
+@torch.no_grad()
+def transfer_colors(scene: GaussianScene, cameras: Cameras, target: torch.Tensor, *,
+                    labels: Optional[torch.Tensor] = None,
+                    target_labels: Optional[torch.Tensor] = None, assign: Optional[torch.Tensor] = None,
+                    num_groups: Optional[int] = None, min_pixels: int = 64, max_gain: float = 1.3
+                    ) -> tuple[GaussianScene, dict]:
+    """ARF's colour transfer of ``scene``: its renders from ``cameras`` get the colour mean and
+    covariance of ``target [V, H, W, 3]`` (the style image or the stylized key views), by one linear
+    map of the SH coefficients (the functions above; view-consistent by construction).
+
+    Per group when ``labels [C, H, W]`` (group maps of the renders), ``target_labels [V, H, W]``,
+    ``assign [N]`` (each Gaussian's group) and ``num_groups`` are given: group ``g``'s Gaussians get
+    the map from group ``g``'s rendered pixels to group ``g``'s target pixels, or — when ``g`` has
+    fewer than ``min_pixels`` pixels on either side (absent from the key views) — the global map
+    (all rendered pixels -> all target pixels). The source colours are the renders' surface colours
+    (rendered without background and divided by alpha, so that the map is exact on them); pixels with
+    alpha < 0.5 (background) are left out. Returns the recoloured scene and a record of what was done.
+    """
+    renders, alphas = [], []
+    for c in range(len(cameras)):   # rendered without background, un-premultiplied: the surface colour
+        col, alpha, _ = scene.render(cameras[[c]].to(scene.device))
+        renders.append(col[..., :3] / alpha.clamp_min(1e-6))
+        alphas.append(alpha[..., 0])
+    renders, alphas = torch.cat(renders), torch.cat(alphas)
+    grouped = labels is not None and target_labels is not None and assign is not None and num_groups
+    src = pixel_stats(renders, alphas, labels if grouped else None)
+    tgt = pixel_stats(target.to(scene.device), None, target_labels if grouped else None)
+    if grouped:
+        transforms, how = fit_group_transforms(src, tgt, int(num_groups), min_pixels, max_gain=max_gain)
+        out = transform_sh(scene, transforms, assign)
+        info = {"per_group": True, "groups_matched": how.count("group"), "groups_global": how.count("global"),
+                "how": how}
+    else:
+        t = fit_transform(src[0], tgt[0], max_gain=max_gain)
+        out = transform_sh(scene, [t])
+        info = {"per_group": False, "transform": t.to_list()}
+    return out, info

@@ -59,6 +59,7 @@ from ..raster import rendering
 from ..core.cameras import Cameras
 from ..errors import InputError
 from ..services.distributed import SINGLE
+from ..services.color import transfer_colors
 from ..services.loop import Diverged, Loop
 from .batches import batch_size_for, batch_views, view_order  # noqa: F401  (view_order re-exported)
 from .matching import DEFAULT_CHUNK, MatchTargets, SlicedTargets, downsample_labels
@@ -369,48 +370,6 @@ def finetune_loss(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     from ..services.losses import photometric
 
     return photometric(image[None], target[None])
-
-
-# ----------------------------------------------------------------------------- colour transfer
-@torch.no_grad()
-def transfer_colors(scene: GaussianScene, cameras: Cameras, target: torch.Tensor, *,
-                    labels: Optional[torch.Tensor] = None,
-                    target_labels: Optional[torch.Tensor] = None, assign: Optional[torch.Tensor] = None,
-                    num_groups: Optional[int] = None, min_pixels: int = 64, max_gain: float = 1.3
-                    ) -> tuple[GaussianScene, dict]:
-    """ARF's colour transfer of ``scene``: its renders from ``cameras`` get the colour mean and
-    covariance of ``target [V, H, W, 3]`` (the style image or the stylized key views), by one linear
-    map of the SH coefficients (:mod:`ssgwarp.services.color`; view-consistent by construction).
-
-    Per group when ``labels [C, H, W]`` (group maps of the renders), ``target_labels [V, H, W]``,
-    ``assign [N]`` (each Gaussian's group) and ``num_groups`` are given: group ``g``'s Gaussians get
-    the map from group ``g``'s rendered pixels to group ``g``'s target pixels, or — when ``g`` has
-    fewer than ``min_pixels`` pixels on either side (absent from the key views) — the global map
-    (all rendered pixels -> all target pixels). The source colours are the renders' surface colours
-    (rendered without background and divided by alpha, so that the map is exact on them); pixels with
-    alpha < 0.5 (background) are left out. Returns the recoloured scene and a record of what was done.
-    """
-    from ..services.color import fit_group_transforms, fit_transform, pixel_stats, transform_sh
-
-    renders, alphas = [], []
-    for c in range(len(cameras)):   # rendered without background, un-premultiplied: the surface colour
-        col, alpha, _ = scene.render(cameras[[c]].to(scene.device))
-        renders.append(col[..., :3] / alpha.clamp_min(1e-6))
-        alphas.append(alpha[..., 0])
-    renders, alphas = torch.cat(renders), torch.cat(alphas)
-    grouped = labels is not None and target_labels is not None and assign is not None and num_groups
-    src = pixel_stats(renders, alphas, labels if grouped else None)
-    tgt = pixel_stats(target.to(scene.device), None, target_labels if grouped else None)
-    if grouped:
-        transforms, how = fit_group_transforms(src, tgt, int(num_groups), min_pixels, max_gain=max_gain)
-        out = transform_sh(scene, transforms, assign)
-        info = {"per_group": True, "groups_matched": how.count("group"), "groups_global": how.count("global"),
-                "how": how}
-    else:
-        t = fit_transform(src[0], tgt[0], max_gain=max_gain)
-        out = transform_sh(scene, [t])
-        info = {"per_group": False, "transform": t.to_list()}
-    return out, info
 
 
 # ----------------------------------------------------------------------------- parameters

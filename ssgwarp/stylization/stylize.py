@@ -5,8 +5,7 @@ through ``run.json``): load the run, the style and the feature extractor
 (:func:`_open`); key views and Stage 1 (:func:`_keyviews_and_stage1`, :mod:`ssgwarp.stylization.keyviews`,
 :mod:`ssgwarp.stylization.diffusion`); Stage 2 (:func:`_stage2`, :mod:`ssgwarp.stylization.stage2`); renders along
 the training cameras and a smooth path (:func:`_renders`); metrics, the contact sheet and
-``metrics.json`` (:func:`_metrics`). The Stage 2 names (:class:`Stage2Config`,
-:func:`optimise`, :class:`ViewLoss`, ...) are re-exported here.
+``metrics.json`` (:func:`_metrics`). The Stage 2 names (:class:`Stage2Config`, ...) are re-exported.
 """
 from __future__ import annotations
 
