@@ -36,13 +36,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-
-
-def data_root() -> Path:
-    for p in (Path("/root/data"), ROOT.parent / "shared" / "data", Path("/work/shared/data")):
-        if (p / "llff_fern").is_dir():
-            return p
-    return ROOT.parent / "shared" / "data"
+from shared_data import data_root  # noqa: E402
 
 
 # ----------------------------------------------------------------------------- one configuration

@@ -34,7 +34,7 @@ from types import SimpleNamespace
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-from raster import camera, make_scene  # noqa: E402
+from raster import camera, make_scene, pass_closures  # noqa: E402
 
 import ssgwarp  # noqa: E402
 
@@ -73,8 +73,7 @@ def scene(n: int, res: int, device: torch.device):
     # a close camera so the Gaussians cover the small image
     params[0][:, 2] -= 4.0
     vm, K = camera(res, res, device)
-    leaves = [p.clone().requires_grad_(True) for p in params]
-    return params, leaves, vm, K
+    return params, vm, K
 
 
 def clock(device):
@@ -123,21 +122,10 @@ def profile(fn, device, calls: int) -> dict:
 
 
 def run_device(device: torch.device, args, raster, label: str) -> list[dict]:
-    params, leaves, vm, K = scene(args.gaussians, args.res, device)
-    w = h = args.res
+    params, vm, K = scene(args.gaussians, args.res, device)
     # gsplat's layout and tile size on both devices, so every library and version does the same work
     kw = {"tile_size": 16} if label != "gsplat" else {"packed": False, "tile_size": 16}
-
-    def fwd():
-        with torch.no_grad():
-            return raster(*params, vm, K, w, h, **kw)
-
-    def fwd_bwd():
-        for p in leaves:
-            p.grad = None
-        img, alpha, _ = raster(*leaves, vm, K, w, h, **kw)
-        (img.sum() + alpha.sum()).backward()
-
+    fwd, fwd_bwd = pass_closures(raster, params, vm, K, args.res, args.res, **kw)
     rows = []
     for name, fn in (("forward", fwd), ("forward+backward", fwd_bwd)):
         per_call, synced = measure(fn, device, args.calls, args.blocks)
@@ -161,7 +149,7 @@ def launch_paths(device: torch.device, launches: int) -> list[dict]:
     from ssgwarp.raster import launch as L, ops
     from ssgwarp.kernels import projection
 
-    params, _, vm, K = scene(16, 16, device)
+    params, vm, K = scene(16, 16, device)
     C, N = 1, params[0].shape[0]
     cfg = ops._project_cfg(torch.float32, 16, 16, 0.01, 1e10, 0.0, 0.3, False, RasterSettings(), 16, 1, 1)
     outs = [torch.empty(C, N, k, device=device) for k in (2, 1, 3, 1)] + \

@@ -33,13 +33,7 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-
-
-def data_root() -> Path:
-    for p in (Path("/root/data"), ROOT.parent / "shared" / "data", Path("/work/shared/data")):
-        if (p / "llff_fern").is_dir():
-            return p
-    return ROOT.parent / "shared" / "data"
+from shared_data import data_root  # noqa: E402
 
 
 def tensor_bytes(trainer) -> dict:

@@ -70,9 +70,15 @@ def closures(raster, n, w, h, device, sh_degree=None, cameras=1, **kw):
     """``(fwd, fwd_bwd)`` of one renderer on the case's scene."""
     params = make_scene(n, device, sh_degree=sh_degree)
     vm, K = camera(w, h, device, cameras=cameras)
-    leaves = [p.clone().requires_grad_(True) for p in params]
     if sh_degree is not None:
         kw["sh_degree"] = sh_degree
+    return pass_closures(raster, params, vm, K, w, h, **kw)
+
+
+def pass_closures(raster, params, vm, K, w, h, **kw):
+    """``(fwd, fwd_bwd)``: one call of ``raster`` on ``params`` without gradients, and one with the
+    backward of ``image.sum() + alpha.sum()`` into copies of ``params`` (made once, here)."""
+    leaves = [p.clone().requires_grad_(True) for p in params]
 
     def fwd():
         with torch.no_grad():

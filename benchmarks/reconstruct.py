@@ -49,6 +49,7 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from shared_data import data_root  # noqa: E402
 
 from ssgwarp.capture.datasets import load_dataset  # noqa: E402
 from ssgwarp.core.fileio import atomic_path, write_json  # noqa: E402
@@ -58,13 +59,6 @@ from ssgwarp.reconstruction.strategy import DefaultStrategy, MCMCStrategy, Strat
 SCENES = {"fern8": ("llff_fern", "images_8"), "fern4": ("llff_fern", "images_4"), "cup": ("colmap_cup", "images"),
           "lego": ("lego_200", "images")}
 STRATEGIES = ("default", "mcmc", "gsplat-default", "gsplat-mcmc")
-
-
-def data_root() -> Path:
-    for p in (ROOT.parent / "shared" / "data", ROOT / "shared" / "data", Path("/work/shared/data")):
-        if p.is_dir():
-            return p
-    return ROOT.parent / "shared" / "data"
 
 
 def rasterizer(backend: str):
