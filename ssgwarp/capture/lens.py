@@ -39,6 +39,7 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
+from ..core.imaging import resize_nearest
 from ..errors import InputError
 
 # model -> parameter names (COLMAP's order, after fx/fy/cx/cy)
@@ -382,11 +383,8 @@ def undistort_labels(record: dict, i: int, labels: np.ndarray, what: str = "mask
     rows = np.clip(np.floor(sv * (h / H0)).astype(np.int64), 0, h - 1)
     out = labels[rows, cols]
     size = record.get("resized_to")
-    if size is not None and tuple(size) != (W, H):
-        ws, hs = size
-        r = np.minimum(((np.arange(hs) + 0.5) * H / hs).astype(np.int64), H - 1)
-        c = np.minimum(((np.arange(ws) + 0.5) * W / ws).astype(np.int64), W - 1)
-        out = out[r[:, None], c[None, :]]
+    if size is not None:
+        out = resize_nearest(out, *size)
     return np.ascontiguousarray(out)
 
 

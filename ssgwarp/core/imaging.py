@@ -57,6 +57,16 @@ def as_bhwc(img) -> tuple[torch.Tensor, bool, bool]:
     return t, squeeze, was_np
 
 
+def resize_nearest(ids: np.ndarray, width: int, height: int) -> np.ndarray:
+    """``ids [h, w]`` resampled to ``[height, width]`` by nearest neighbour (pixel centres)."""
+    h, w = ids.shape
+    if (w, h) == (width, height):
+        return ids
+    ys = np.minimum(((np.arange(height) + 0.5) * h / height).astype(np.int64), h - 1)
+    xs = np.minimum(((np.arange(width) + 0.5) * w / width).astype(np.int64), w - 1)
+    return ids[ys[:, None], xs[None, :]]
+
+
 def resize_bhwc(t: torch.Tensor, w: int, h: int) -> torch.Tensor:
     """``[B, H, W, C]`` → ``[B, h, w, C]`` bilinear (antialiased when shrinking)."""
     if t.shape[1] == h and t.shape[2] == w:

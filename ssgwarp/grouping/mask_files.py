@@ -16,6 +16,7 @@ import torch
 
 from ..errors import InputError
 from ..capture.lens import undistort_labels
+from ..core.imaging import resize_nearest  # noqa: F401  (re-exported: ssgwarp.grouping.stage)
 from .pseudomasks import IGNORE
 
 Tensor = torch.Tensor
@@ -59,16 +60,6 @@ def read_id_image(path: Path) -> np.ndarray:
         raise InputError(f"{path}: a mask must be a single-channel image of integer ids, "
                          f"got {arr.shape[2]} differing colour channels")
     return arr[..., 0].astype(np.int64)
-
-
-def resize_nearest(ids: np.ndarray, width: int, height: int) -> np.ndarray:
-    """``ids [h, w]`` resampled to ``[height, width]`` by nearest neighbour (pixel centres)."""
-    h, w = ids.shape
-    if (w, h) == (width, height):
-        return ids
-    ys = np.minimum(((np.arange(height) + 0.5) * h / height).astype(np.int64), h - 1)
-    xs = np.minimum(((np.arange(width) + 0.5) * w / width).astype(np.int64), w - 1)
-    return ids[ys[:, None], xs[None, :]]
 
 
 def find_mask(mask_dir: Path, name: str) -> Optional[Path]:
