@@ -18,6 +18,12 @@ Prints a markdown table and writes the rows and PSNR curves to ``--out``.
     # the GPU run (2 GPUs; about 4 minutes on 2 H200s at 7k; data from the lead's machine):
     python benchmarks/ddp.py --data /root/data/llff_fern --images images_4 --iters 7000 --gpus 2 \
         --out ddp_fern4.json
+    # the largest capture (COLMAP, 800x600, 67 training views) at 30k images, the 1-GPU runs of both
+    # captures side by side (one per GPU), then the 2-GPU runs one after the other:
+    CUDA_VISIBLE_DEVICES=0 python benchmarks/ddp.py --data /root/data/llff_fern --iters 30000 --only 1gpu-b1 1gpu-bN --out f.json &
+    CUDA_VISIBLE_DEVICES=1 python benchmarks/ddp.py --data /root/data/colmap_cup --images images --iters 30000 \
+        --only 1gpu-b1 1gpu-bN --out c.json & wait
+    python benchmarks/ddp.py --data /root/data/llff_fern --iters 30000 --only Ngpu-bN --out f.json
     # CPU smoke test (gloo, 2 processes):
     python benchmarks/ddp.py --images images_8 --width 64 --iters 40 --eval-every 20 --device cpu --out /tmp/ddp.json
 
@@ -128,6 +134,9 @@ def main() -> int:
     ap.add_argument("--gpus", type=int, default=2, help="processes of the data-parallel run (default 2)")
     ap.add_argument("--batch-scaling", nargs="+", default=["sqrt"], choices=("sqrt", "linear", "none"))
     ap.add_argument("--no-single-batch", action="store_true", help="skip the 1-GPU batch-N configuration")
+    ap.add_argument("--only", nargs="+", choices=("1gpu-b1", "1gpu-bN", "Ngpu-bN"), default=None,
+                    help="run only these configurations (the others are read from earlier runs into the same "
+                         "--out, or left out); e.g. the 1-GPU ones of two captures side by side, one per GPU")
     ap.add_argument("--device", default="cuda", help="cuda (default) or cpu (gloo; a smoke test)")
     ap.add_argument("--out", type=Path, default=Path("ddp.json"))
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
@@ -138,7 +147,7 @@ def main() -> int:
         a.batch_scaling = a.batch_scaling[0]
         return worker(a)
     a.data = a.data or data_root() / "llff_fern"
-    if a.device == "cuda":
+    if a.device == "cuda" and (a.only is None or "Ngpu-bN" in a.only):
         import torch
 
         if torch.cuda.device_count() < a.gpus:
@@ -153,12 +162,21 @@ def main() -> int:
     tmp.mkdir(parents=True, exist_ok=True)
     rows = []
     for gpus, batch, scaling in runs:
+        name = "1gpu-b1" if batch == 1 else ("1gpu-bN" if gpus == 1 else "Ngpu-bN")
+        part = tmp / f"g{gpus}_b{batch}_{scaling}.json"
+        if a.only is not None and name not in a.only:
+            if part.is_file():  # measured by an earlier --only call
+                rows.append(json.loads(part.read_text()))
+            continue
         print(f"== {gpus} GPU(s), batch {batch}, {scaling}", flush=True)
-        rows.append(launch(a, gpus, batch, scaling, tmp / f"g{gpus}_b{batch}_{scaling}.json"))
+        rows.append(launch(a, gpus, batch, scaling, part))
+    if not rows or rows[0]["batch_size"] != 1:
+        print(f"no reference (1gpu-b1) in {tmp} yet: table left out")
+        return 0
     ref = rows[0]
     target = ref["psnr"] - 0.1
     t_ref = time_to(ref["curve"], target)
-    print(f"\nfern {a.images} {ref['resolution'][0]}x{ref['resolution'][1]}, {a.iters} images per run, "
+    print(f"\n{a.data.name} {a.images} {ref['resolution'][0]}x{ref['resolution'][1]}, {a.iters} images per run, "
           f"target {target:.2f} dB (1 GPU final - 0.1), {ref['device']}\n")
     print("| GPUs | batch | Adam scaling | steps | train time (s) | time to target (s) | speed-up at target "
           "| speed-up (whole run) | held-out PSNR (dB) | Gaussians | peak MiB per GPU |")
