@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import difflib
 import importlib
 import json
 import os
@@ -94,7 +95,23 @@ def _apply_config(parser: argparse.ArgumentParser, argv: list[str]) -> None:
         raise SsgwarpError(f"--config {path}: not valid JSON ({e})") from None
     if not isinstance(cfg, dict):
         raise SsgwarpError(f"--config {path}: expected a JSON object of option defaults")
-    parser.set_defaults(**{k.replace("-", "_"): v for k, v in cfg.items()})
+    names = {}  # every spelling of an option (dest, or any of its flags without dashes) -> its dest
+    for act in parser._actions:
+        if act.dest in ("help", "config"):
+            continue
+        names[act.dest] = act.dest
+        for flag in act.option_strings:
+            names[flag.lstrip("-").replace("-", "_")] = act.dest
+    defaults = {}
+    for k, v in cfg.items():
+        key = str(k).lstrip("-").replace("-", "_")
+        if key not in names:
+            near = difflib.get_close_matches(key, list(names), n=1)
+            hint = f" (did you mean {near[0].replace('_', '-')!r}?)" if near else ""
+            raise SsgwarpError(f"--config {path}: {k!r} is not an option of 'ssgwarp {parser.prog.split()[-1]}'"
+                               f"{hint}; see its --help")
+        defaults[names[key]] = v
+    parser.set_defaults(**defaults)
 
 
 def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParser]]:

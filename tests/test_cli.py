@@ -476,6 +476,13 @@ def test_top_level_help_lists_every_command_with_an_example(capsys):
     assert main([]) == 0 and "COMMAND" in capsys.readouterr().out       # no command: the help, exit 0
 
 
+@pytest.mark.parametrize("command", ["demo", "reconstruct", "masks", "group", "stylize", "render"])
+def test_long_running_commands_take_quiet(command, capsys):
+    with pytest.raises(SystemExit):
+        main([command, "--help"])
+    assert re.search(r"^  --quiet\b", capsys.readouterr().out, re.M), command
+
+
 @pytest.mark.parametrize("command", list(COMMANDS))
 def test_command_help_shows_options_and_an_example(command, capsys):
     with pytest.raises(SystemExit) as e:
@@ -502,6 +509,11 @@ def test_common_flags(world, tmp_path, capsys):
                  str(tmp_path / "cfg.json"), *FAST]) == 0
     m = json.loads((tmp_path / "c" / "metrics.json").read_text())
     assert m["iters"] == 3 and m["sh_degree"] == 0
+    # a key that is no option of the command is an error naming it (not silently ignored)
+    (tmp_path / "typo.json").write_text(json.dumps({"iter": 3}))
+    fails(capsys, ["reconstruct", world.cap, "--out", tmp_path / "t", "--config", tmp_path / "typo.json"],
+          "'iter' is not an option of 'ssgwarp reconstruct'", "did you mean 'iters'")
+    assert not (tmp_path / "t").exists()
     # --debug shows the traceback of a user error
     capsys.readouterr()
     assert main(["render", str(tmp_path / "nowhere"), "--out", str(out), "--debug", "--device", "cpu"]) == 2

@@ -155,7 +155,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--split", choices=("train", "test", "all"), default="all",
                         help="which of the run's cameras to render (default all; with --path: the path's key cameras)")
     parser.add_argument("--open", action="store_true", help="with --path: an open path instead of a loop")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--quiet", "--no-progress", dest="quiet", action="store_true",
+                        help="no progress bar (as the other commands' --quiet)")
     parser.add_argument("--force", action="store_true", help="overwrite an existing, non-empty --out")
 
 
@@ -171,6 +172,6 @@ def run(args) -> int:
     if args.path is not None:
         cams = smooth_path(cams, args.path, closed=not args.open)
         cams.to("cpu").save(args.out / "path_cameras.json")
-    paths = render_to_files(scene, cams, args.out, background=data.background, progress=not args.no_progress)
+    paths = render_to_files(scene, cams, args.out, background=data.background, progress=not args.quiet)
     print(f"{args.out}: {len(paths)} images")
     return 0

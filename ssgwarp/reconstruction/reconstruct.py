@@ -217,7 +217,8 @@ def add_arguments(parser) -> None:
                              "or none (one view's settings)")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     parser.add_argument("--force", action="store_true", help="overwrite an existing run in OUT")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--quiet", "--no-progress", dest="quiet", action="store_true",
+                        help="no progress bar (as the other commands' --quiet)")
 
 
 def run(args) -> int:
@@ -230,7 +231,7 @@ def run(args) -> int:
                         max_gaussians=args.max_gaussians, resume=args.resume, force=args.force, device=device,
                         seed=args.seed, split_every=args.split_every, width=args.width, max_images=args.max_images,
                         background=args.background, checkpoint_every=args.checkpoint_every,
-                        num_random_points=args.random_points, progress=not args.no_progress,
+                        num_random_points=args.random_points, progress=not args.quiet,
                         strategy=args.strategy, batch_size=args.batch_size,
                         recipe=Recipe(batch_scaling=args.batch_scaling), group=group)
     finally:
