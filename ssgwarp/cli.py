@@ -95,7 +95,9 @@ def _apply_config(parser: argparse.ArgumentParser, argv: list[str]) -> None:
         raise SsgwarpError(f"--config {path}: not valid JSON ({e})") from None
     if not isinstance(cfg, dict):
         raise SsgwarpError(f"--config {path}: expected a JSON object of option defaults")
-    names = {}  # every spelling of an option (dest, or any of its flags without dashes) -> its dest
+    # every spelling of an option (dest, or any of its flags without dashes) -> its dest; "weights" is the
+    # mapping of model paths every command may take (ssgwarp.services.weights)
+    names = {"weights": "weights"}
     for act in parser._actions:
         if act.dest in ("help", "config"):
             continue

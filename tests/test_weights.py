@@ -325,6 +325,14 @@ def test_weights_command_table(caches, tmp_path, monkeypatch, capsys):
     assert [c[1] for c in hub.calls] == [W.SPECS["raft"].url, W.SPECS["lpips"].url]
     assert main(["weights", "--download", "vgg19"]) == 2
     assert "known models are" in capsys.readouterr().err
+    # the --config file's "weights" mapping names a model's file (an explicit path wins over the caches)
+    raft = tmp_path / "models" / "raft.pth"
+    raft.parent.mkdir()
+    torch.save({}, raft)
+    (tmp_path / "cfg.json").write_text(json.dumps({"weights": {"raft": str(raft)}}))
+    assert main(["weights", "--config", str(tmp_path / "cfg.json")]) == 0
+    row = [line for line in capsys.readouterr().out.splitlines() if line.startswith("raft")][0]
+    assert str(raft) in row and "missing" not in row
 
 
 def test_sam_spec_resolves_a_loadable_sam_model(caches, monkeypatch):
