@@ -181,3 +181,31 @@ def test_check_finite_names_the_step_and_what_is_kept():
     check_finite(torch.tensor(1.0), 3, "x")
     with pytest.raises(Diverged, match=r"diverged at step 7 \(the loss is NaN/inf\); the checkpoint of step 5"):
         check_finite(torch.tensor([1.0, float("inf")]), 7, "the checkpoint of step 5")
+
+
+# ----------------------------------------------------------------------------- core.optim.adam
+def test_adam_is_fused_on_the_cpu_and_takes_torchs_default_steps():
+    from ssgwarp.core.optim import adam
+
+    torch.manual_seed(0)
+    a = [torch.nn.Parameter(torch.randn(50, 3)), torch.nn.Parameter(torch.randn(50))]
+    b = [torch.nn.Parameter(p.detach().clone()) for p in a]
+    start = [p.detach().clone() for p in a]
+    fused = adam([{"params": [a[0]], "lr": 0.1}, {"params": [a[1]], "lr": 0.01}], eps=1e-15, betas=(0.81, 0.998))
+    plain = torch.optim.Adam([{"params": [b[0]], "lr": 0.1}, {"params": [b[1]], "lr": 0.01}], eps=1e-15,
+                             betas=(0.81, 0.998))
+    assert fused.defaults["fused"] is True and not plain.defaults["fused"]
+    for step in range(5):
+        g = [torch.randn_like(p) for p in a]
+        for p, q, gi in zip(a, b, g):
+            p.grad, q.grad = gi.clone(), gi.clone()
+        fused.step()
+        plain.step()
+    for p, q in zip(a, b):
+        assert (p - q).abs().max() < 1e-6
+    assert all((p - s0).abs().min() > 1e-4 for p, s0 in zip(a, start))      # every entry moved
+    # a state dict of the fused optimiser loads into a plain one and back (checkpoints move between devices)
+    plain.load_state_dict(fused.state_dict())
+    fused.load_state_dict(plain.state_dict())
+    # an explicit choice keeps torch's default
+    assert not adam([torch.nn.Parameter(torch.randn(3))], foreach=False).defaults["fused"]

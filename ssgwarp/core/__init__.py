@@ -1,3 +1,3 @@
 """Torch-only helpers every layer uses: geometry, cameras, atomic files, images, colours.
 
-Modules: cameras, fileio, geometry, imaging, palette."""
+Modules: cameras, fileio, geometry, imaging, optim, palette."""

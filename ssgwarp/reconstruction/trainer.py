@@ -23,6 +23,7 @@ from ..services.distributed import SINGLE, check_every
 from ..errors import InputError
 from ..core.fileio import atomic_path
 from ..core.geometry import knn_mean_distance
+from ..core.optim import adam
 from ..services.loop import Diverged, Loop, diverged_message
 from ..services.losses import photometric, psnr, ssim
 from .recipe import Recipe, batch_factors
@@ -191,11 +192,11 @@ class Trainer:
     def _build_optimizer(self, scene: GaussianScene) -> None:
         params = {k: torch.nn.Parameter(v.detach().clone().contiguous()) for k, v in scene.tensors().items()}
         groups = [{"params": [p], "lr": self._lr(k), "name": k} for k, p in params.items()]
-        self.gaussians = GaussianParams(params, torch.optim.Adam(groups, eps=self.recipe.adam_eps, betas=self.betas))
+        self.gaussians = GaussianParams(params, adam(groups, eps=self.recipe.adam_eps, betas=self.betas))
         hook_groups = []
         for h in self.hooks:
             hook_groups.extend(h.parameters())
-        self.hook_opt = torch.optim.Adam(hook_groups, betas=self.betas) if hook_groups else None
+        self.hook_opt = adam(hook_groups, betas=self.betas) if hook_groups else None
         if self.hook_opt is not None and self.lr_factor != 1.0:
             for g in self.hook_opt.param_groups:
                 g["lr"] *= self.lr_factor

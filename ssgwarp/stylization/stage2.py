@@ -57,6 +57,7 @@ import torch.nn.functional as F
 
 from ..raster import rendering
 from ..core.cameras import Cameras
+from ..core.optim import adam
 from ..errors import InputError
 from ..services.distributed import SINGLE
 from ..services.color import transfer_colors
@@ -469,8 +470,8 @@ def optimise(scene: GaussianScene, cameras: Cameras, cfg: Stage2Config, *,
     if cfg.sh_rest == "zero" and scene.sh_rest is not None:
         scene = scene.replace(sh_rest=torch.zeros_like(scene.sh_rest))
     params = {n: getattr(scene, n).detach().clone().requires_grad_(True) for n in names}
-    opt = torch.optim.Adam([{"params": [p], "lr": _lr(n, cfg) * lr_factor, "name": n} for n, p in params.items()],
-                           eps=1e-15, betas=betas)
+    opt = adam([{"params": [p], "lr": _lr(n, cfg) * lr_factor, "name": n} for n, p in params.items()],
+               eps=1e-15, betas=betas)
     start, history, elapsed = _start(params, opt, checkpoint if resume else None, scene, cfg, batch, group)
     info = {"batch_size": batch, "world_size": group.world_size, "scaling": cfg.batch_scaling,
             "lr_factor": lr_factor, "betas": list(betas)}
