@@ -87,6 +87,17 @@ def test_knn_is_exact_in_any_block_size(block):
     assert knn(pts[:0], pts, 4)[0].shape == (0, 4)
 
 
+def test_knn_in_float32_finds_repeated_points_at_distance_zero():
+    """Far from the origin, ``|a|^2 + |b|^2 - 2ab`` loses the small distances in float32 (cdist's default
+    for large inputs); knn takes coordinate differences, so a repeated point is found at exactly 0."""
+    g = torch.Generator().manual_seed(4)
+    pts = torch.rand(400, 3, generator=g) + 50.0
+    pts = torch.cat([pts, pts[:100] + torch.tensor([0.0, 0.0, 1e-4])])
+    d, i = knn(pts[:100], pts, 1, exclude=torch.arange(100))
+    assert torch.equal(i[:, 0], torch.arange(400, 500))
+    torch.testing.assert_close(d[:, 0], (pts[400:] - pts[:100]).norm(dim=1), atol=1e-6, rtol=0)
+
+
 def test_knn_mean_distance():
     pts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [3, 0, 0], [7, 0, 0]])
     torch.testing.assert_close(knn_mean_distance(pts, k=2), torch.tensor([2.0, 1.5, 2.5, 5.0]))

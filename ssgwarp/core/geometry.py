@@ -122,7 +122,7 @@ def knn(queries: Tensor, points: Tensor, k: int, *, exclude: Optional[Tensor] = 
         best_d = torch.empty(m, 0, dtype=queries.dtype, device=dev)
         best_i = torch.empty(m, 0, dtype=torch.long, device=dev)
         for p0 in range(0, P, pc):
-            d = torch.cdist(q, points[p0:p0 + pc])
+            d = torch.cdist(q, points[p0:p0 + pc], compute_mode="donot_use_mm_for_euclid_dist")  # (exact near 0)
             n = d.shape[1]
             if exclude is not None:  # the excluded point, where it falls in this block, at infinity
                 e = exclude[q0:q0 + m, None] - p0
