@@ -6,7 +6,9 @@
   centres at integer + 0.5 (the rasterizer's): :func:`pixel_centers`, :func:`unproject` (z-depth
   image to world points), :func:`project` (world points to pixels and camera z).
 - Exact k-nearest neighbours in bounded memory: :func:`knn` (distances and indices, chunked over
-  queries and points), :func:`knn_indices`, :func:`knn_mean_distance`.
+  queries and points), :func:`knn_indices`, :func:`knn_mean_distance`; :func:`knn_table`, every
+  3D point's neighbours among the others through a uniform grid (brute force where the grid cannot
+  prove the answer).
 """
 from __future__ import annotations
 
@@ -154,3 +156,73 @@ def knn_mean_distance(xyz: Tensor, k: int = 3) -> Tensor:
         return torch.ones(n, dtype=xyz.dtype, device=xyz.device)
     d, _ = knn(xyz, xyz, k, exclude=torch.arange(n, device=xyz.device))
     return d.mean(dim=1)
+
+
+# points per grid cell that knn_table aims for (on points spread evenly: 27 cells, about 54 candidates)
+GRID_OCCUPANCY = 2.0
+
+
+def knn_table(points: Tensor, k: int, *, chunk: int = 1 << 15) -> Tensor:
+    """``[P, k]`` indices of each of ``points [P, 3]``'s ``k`` nearest other points, nearest first
+    (the same neighbours as :func:`knn_indices` with each point excluded, up to ties of distance).
+
+    The points are binned into a uniform grid of cubes of side ``h`` (about
+    :data:`GRID_OCCUPANCY` points per occupied bounding-box cube); a point's candidates are the
+    points of its own and the 26 surrounding cubes, whose distances are computed directly in
+    float64. The answer is exact when the k-th candidate is nearer than every point outside those
+    cubes (closer than ``h`` plus the point's distance to its own cube's nearest face); the other
+    points (sparse regions, fewer than k candidates) go through :func:`knn` over all points.
+    ``chunk``: queries handled at once (memory: about ``27 * GRID_OCCUPANCY * chunk`` candidates).
+    """
+    P = points.shape[0]
+    k = max(0, min(int(k), P - 1))
+    dev = points.device
+    out = torch.empty(P, k, dtype=torch.long, device=dev)
+    if P == 0 or k == 0:
+        return out
+    x = points.detach().double()
+    lo = x.min(0).values
+    extent = (x.max(0).values - lo).clamp_min(1e-12)
+    h = float((extent.prod() * GRID_OCCUPANCY / P) ** (1.0 / 3.0))
+    h = max(h, float(extent.max()) / 1024.0)    # at most 1024 cubes along an axis (keys fit easily)
+    cell = ((x - lo) / h).floor().long()
+    dims = cell.max(0).values + 1
+    key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+    order = torch.argsort(key, stable=True)
+    skey = key[order]
+    offs = torch.stack(torch.meshgrid(*[torch.arange(-1, 2, device=dev)] * 3, indexing="ij"), -1).reshape(27, 3)
+    # distance from each point to the nearest face of its cube: what the 27 cubes are sure to cover
+    inside = x - lo - cell.double() * h
+    reach = h + torch.minimum(inside, h - inside).min(1).values
+    brute = []
+    for q0 in range(0, P, chunk):
+        q = torch.arange(q0, min(P, q0 + chunk), device=dev)
+        nb = cell[q, None, :] + offs[None]                                    # [Q, 27, 3]
+        ok = ((nb >= 0) & (nb < dims)).all(-1)
+        nkey = (nb[..., 0] * dims[1] + nb[..., 1]) * dims[2] + nb[..., 2]
+        start = torch.searchsorted(skey, nkey)
+        cnt = torch.where(ok, torch.searchsorted(skey, nkey, right=True) - start, 0)
+        per_q = cnt.sum(1)
+        # candidate j of query i: the flat list of its 27 cubes' ranges
+        flat_cnt = cnt.reshape(-1)
+        first = torch.cumsum(flat_cnt, 0) - flat_cnt
+        pos = torch.arange(int(flat_cnt.sum()), device=dev) - torch.repeat_interleave(first, flat_cnt)
+        cand = order[torch.repeat_interleave(start.reshape(-1), flat_cnt) + pos]
+        qi = torch.repeat_interleave(q, per_q)
+        d = (x[cand] - x[qi]).square().sum(1)
+        d = torch.where(cand == qi, float("inf"), d)
+        # group by query, nearest first: sort by distance, then (stably) by query
+        o = torch.argsort(d, stable=True)
+        o = o[torch.argsort(qi[o], stable=True)]
+        seg = torch.cumsum(per_q, 0) - per_q
+        enough = per_q > k                                                    # k others besides itself
+        take = (seg[:, None] + torch.arange(k, device=dev)).clamp_max(max(len(o) - 1, 0))
+        sel = o[take] if len(o) else torch.zeros_like(take)
+        kth = d[sel[:, -1]] if len(o) else torch.full((len(q),), float("inf"), dtype=x.dtype, device=dev)
+        good = enough & (kth.sqrt() < reach[q])
+        out[q[good]] = cand[sel[good]]
+        brute.append(q[~good])
+    rest = torch.cat(brute)
+    if rest.numel():
+        out[rest] = knn_indices(points[rest], points, k, exclude=rest)
+    return out
