@@ -93,16 +93,23 @@ def test_knn_mean_distance():
     assert knn_mean_distance(pts[:1]).tolist() == [1.0]
 
 
-@pytest.mark.parametrize("spread", ["clusters", "line"])
-def test_knn_table_gives_the_brute_force_neighbours(spread):
+@pytest.mark.parametrize("spread", ["clusters", "line", "crowded"])
+def test_knn_table_gives_the_brute_force_neighbours(spread, monkeypatch):
     """Every point's k nearest others through the grid equal the full distance matrix's (by distance:
     the same distances, nearest first), itself never among them, on points the grid suits badly:
     dense clusters with far outliers (cubes with hundreds of points, lone points the grid cannot
-    answer for), and points on a line (a flat bounding box); small query chunks change nothing."""
+    answer for), points on a line (a flat bounding box), and with cubes holding more candidates than
+    the grid takes (those points searched by brute force); small query chunks and candidate batches
+    change nothing."""
+    import ssgwarp.core.geometry as geometry
     from ssgwarp.core.geometry import knn_table
 
+    if spread == "crowded":
+        monkeypatch.setattr(geometry, "GRID_MAX_CANDIDATES", 40)
+        monkeypatch.setattr(geometry, "GRID_BATCH", 500)
+
     g = torch.Generator().manual_seed(4)
-    if spread == "clusters":
+    if spread in ("clusters", "crowded"):
         centres = torch.rand(5, 3, generator=g, dtype=torch.float64) * 10
         pts = torch.cat([centres[torch.randint(0, 5, (900,), generator=g)]
                          + 0.05 * torch.randn(900, 3, generator=g, dtype=torch.float64),

@@ -160,6 +160,9 @@ def knn_mean_distance(xyz: Tensor, k: int = 3) -> Tensor:
 
 # points per grid cell that knn_table aims for (on points spread evenly: 27 cells, about 54 candidates)
 GRID_OCCUPANCY = 2.0
+# a point with more grid candidates than this goes to the brute-force search; candidates per batch
+GRID_MAX_CANDIDATES = 4096
+GRID_BATCH = 1 << 21
 
 
 def knn_table(points: Tensor, k: int, *, chunk: int = 1 << 15) -> Tensor:
@@ -167,12 +170,14 @@ def knn_table(points: Tensor, k: int, *, chunk: int = 1 << 15) -> Tensor:
     (the same neighbours as :func:`knn_indices` with each point excluded, up to ties of distance).
 
     The points are binned into a uniform grid of cubes of side ``h`` (about
-    :data:`GRID_OCCUPANCY` points per occupied bounding-box cube); a point's candidates are the
-    points of its own and the 26 surrounding cubes, whose distances are computed directly in
-    float64. The answer is exact when the k-th candidate is nearer than every point outside those
-    cubes (closer than ``h`` plus the point's distance to its own cube's nearest face); the other
-    points (sparse regions, fewer than k candidates) go through :func:`knn` over all points.
-    ``chunk``: queries handled at once (memory: about ``27 * GRID_OCCUPANCY * chunk`` candidates).
+    :data:`GRID_OCCUPANCY` points per cube of the box holding the middle 90 % of the points along
+    each axis, so that a few far points do not coarsen it); a point's candidates are the points of
+    its own and the 26 surrounding cubes, whose distances are computed directly in float64. The
+    answer is exact when the k-th candidate is nearer than every point outside those cubes (closer
+    than ``h`` plus the point's distance to its own cube's nearest face); the other points (sparse
+    regions, fewer than k candidates, or more than :data:`GRID_MAX_CANDIDATES` in dense ones) go
+    through :func:`knn` over all points. Memory is bounded: ``chunk`` queries' cube ranges and at
+    most :data:`GRID_BATCH` candidates at a time.
     """
     P = points.shape[0]
     k = max(0, min(int(k), P - 1))
@@ -183,7 +188,9 @@ def knn_table(points: Tensor, k: int, *, chunk: int = 1 << 15) -> Tensor:
     x = points.detach().double()
     lo = x.min(0).values
     extent = (x.max(0).values - lo).clamp_min(1e-12)
-    h = float((extent.prod() * GRID_OCCUPANCY / P) ** (1.0 / 3.0))
+    q = torch.quantile(x[:: max(1, P // 100_000)], torch.tensor([0.05, 0.95], dtype=x.dtype, device=dev), dim=0)
+    core = (q[1] - q[0]).clamp_min(1e-12)
+    h = float((core.prod() * GRID_OCCUPANCY / (0.9 ** 3 * P)) ** (1.0 / 3.0))
     h = max(h, float(extent.max()) / 1024.0)    # at most 1024 cubes along an axis (keys fit easily)
     cell = ((x - lo) / h).floor().long()
     dims = cell.max(0).values + 1
@@ -196,33 +203,48 @@ def knn_table(points: Tensor, k: int, *, chunk: int = 1 << 15) -> Tensor:
     reach = h + torch.minimum(inside, h - inside).min(1).values
     brute = []
     for q0 in range(0, P, chunk):
-        q = torch.arange(q0, min(P, q0 + chunk), device=dev)
-        nb = cell[q, None, :] + offs[None]                                    # [Q, 27, 3]
+        qs = torch.arange(q0, min(P, q0 + chunk), device=dev)
+        nb = cell[qs, None, :] + offs[None]                                   # [Q, 27, 3]
         ok = ((nb >= 0) & (nb < dims)).all(-1)
         nkey = (nb[..., 0] * dims[1] + nb[..., 1]) * dims[2] + nb[..., 2]
         start = torch.searchsorted(skey, nkey)
         cnt = torch.where(ok, torch.searchsorted(skey, nkey, right=True) - start, 0)
         per_q = cnt.sum(1)
-        # candidate j of query i: the flat list of its 27 cubes' ranges
-        flat_cnt = cnt.reshape(-1)
-        first = torch.cumsum(flat_cnt, 0) - flat_cnt
-        pos = torch.arange(int(flat_cnt.sum()), device=dev) - torch.repeat_interleave(first, flat_cnt)
-        cand = order[torch.repeat_interleave(start.reshape(-1), flat_cnt) + pos]
-        qi = torch.repeat_interleave(q, per_q)
-        d = (x[cand] - x[qi]).square().sum(1)
-        d = torch.where(cand == qi, float("inf"), d)
-        # group by query, nearest first: sort by distance, then (stably) by query
-        o = torch.argsort(d, stable=True)
-        o = o[torch.argsort(qi[o], stable=True)]
-        seg = torch.cumsum(per_q, 0) - per_q
-        enough = per_q > k                                                    # k others besides itself
-        take = (seg[:, None] + torch.arange(k, device=dev)).clamp_max(max(len(o) - 1, 0))
-        sel = o[take] if len(o) else torch.zeros_like(take)
-        kth = d[sel[:, -1]] if len(o) else torch.full((len(q),), float("inf"), dtype=x.dtype, device=dev)
-        good = enough & (kth.sqrt() < reach[q])
-        out[q[good]] = cand[sel[good]]
-        brute.append(q[~good])
+        light = (per_q > k) & (per_q <= GRID_MAX_CANDIDATES)                  # k others besides itself
+        brute.append(qs[~light])
+        sub = torch.nonzero(light).flatten()
+        ends = torch.cumsum(per_q[sub], 0)
+        b0 = 0
+        while b0 < len(sub):
+            b1 = int(torch.searchsorted(ends, int(ends[b0 - 1] if b0 else 0) + GRID_BATCH, right=True))
+            b1 = max(b1, b0 + 1)
+            rows = sub[b0:b1]
+            good, nbrs = _grid_neighbours(x, qs[rows], start[rows], cnt[rows], order, k, reach)
+            out[qs[rows][good]] = nbrs[good]
+            brute.append(qs[rows][~good])
+            b0 = b1
     rest = torch.cat(brute)
     if rest.numel():
-        out[rest] = knn_indices(points[rest], points, k, exclude=rest)
+        out[rest] = knn_indices(x[rest], x, k, exclude=rest)   # (float64: float32 distance sums cancel)
     return out
+
+
+def _grid_neighbours(x: Tensor, q: Tensor, start: Tensor, cnt: Tensor, order: Tensor, k: int, reach: Tensor):
+    """For queries ``q`` (each with at least k + 1 candidates) whose 27 cubes hold the sorted-point
+    ranges ``start, cnt [Q, 27]``: ``(good [Q] bool, neighbours [Q, k])``, good where the k nearest
+    candidates are provably the k nearest points (the k-th nearer than ``reach``)."""
+    dev = x.device
+    per_q = cnt.sum(1)
+    flat_cnt = cnt.reshape(-1)
+    first = torch.cumsum(flat_cnt, 0) - flat_cnt
+    pos = torch.arange(int(flat_cnt.sum()), device=dev) - torch.repeat_interleave(first, flat_cnt)
+    cand = order[torch.repeat_interleave(start.reshape(-1), flat_cnt) + pos]
+    qi = torch.repeat_interleave(q, per_q)
+    d = (x[cand] - x[qi]).square().sum(1)
+    d = torch.where(cand == qi, float("inf"), d)
+    # grouped by query, nearest first: sort by distance, then (stably) by query
+    o = torch.argsort(d, stable=True)
+    o = o[torch.argsort(qi[o], stable=True)]
+    sel = o[(torch.cumsum(per_q, 0) - per_q)[:, None] + torch.arange(k, device=dev)]
+    good = d[sel[:, -1]].sqrt() < reach[q]
+    return good, cand[sel]
