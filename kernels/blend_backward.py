@@ -72,9 +72,30 @@ def layer_grad_func(scalar, channels: int):
 
 
 @functools.lru_cache(maxsize=None)
-def gather_kernel(scalar, channels: int):
-    """Sum each Gaussian's per-intersection gradient slots in a fixed order (deterministic)."""
-    vecG = channel_vector(scalar, channels + 6)
+def layer_colour_grad_func(scalar, channels: int):
+    """:func:`layer_grad_func`'s layer when only the colours want a gradient (the geometry is
+    frozen), with the same arguments: the same ``T`` and colour gradient ``v_col * alpha T``,
+    rounded the same way, returned alone as ``grad [colour(D)]`` (``S`` passed through); the
+    alpha and geometry terms are not computed."""
+    t = types_for(scalar)
+    splat = t.splat
+    vecD = channel_vector(scalar, channels)
+
+    @wp.func
+    def layer_colour_grad(sp: splat, c: vecD, used: bool, alpha: scalar, g: scalar, dx: scalar, dy: scalar,
+                          alpha_max: scalar, T_next: scalar, S: vecD, v_col: vecD, v_alpha_out: scalar,
+                          T_final: scalar, bg_term: scalar):
+        T = T_next * (scalar(1.0) / (scalar(1.0) - alpha))
+        return T, S, v_col * (alpha * T)
+
+    return layer_colour_grad
+
+
+@functools.lru_cache(maxsize=None)
+def gather_kernel(scalar, width: int):
+    """Sum each Gaussian's per-intersection gradient slots (``width`` values each: ``6 + D``, or
+    ``D`` for colour-only gradients) in a fixed order (deterministic)."""
+    vecG = channel_vector(scalar, width)
 
     @wp.kernel(module="unique")
     def gather(ends: wp.array(dtype=wp.int64), counts: wp.array(dtype=wp.int64),
@@ -91,7 +112,7 @@ def gather_kernel(scalar, channels: int):
 
 @functools.lru_cache(maxsize=None)
 def reduced_backward_kernel(scalar, channels: int, to_slots: bool = False, per_warp: bool = False,
-                            fast_math: bool = False):
+                            fast_math: bool = False, colour_only: bool = False):
     """Backward by blocks of pixels of one tile: the block walks the tile's Gaussians in lockstep
     (from the largest last index of its pixels), sums the pixels' gradients for each Gaussian and
     adds the sum with one atomic per Gaussian (instead of one per pixel). Gradients land packed as
@@ -109,12 +130,13 @@ def reduced_backward_kernel(scalar, channels: int, to_slots: bool = False, per_w
     ``slots[k]`` instead of the Gaussian's: on CUDA exactly one block writes a slot and the block
     reduction has a fixed order, on CPU blocks run in turn, so with :func:`gather_kernel` summing
     the slots in a fixed order the gradients are bit-identical from run to run.
+    ``colour_only=True``: the colours' gradients alone, ``[colour(D)]`` (:func:`layer_colour_grad_func`).
     """
     t = types_for(scalar)
     splat = t.splat
     vecD = channel_vector(scalar, channels)
-    vecG = channel_vector(scalar, channels + 6)
-    layer_grad = layer_grad_func(scalar, channels)
+    vecG = channel_vector(scalar, channels if colour_only else channels + 6)
+    layer_grad = (layer_colour_grad_func if colour_only else layer_grad_func)(scalar, channels)
     splat_alpha, _ = pixel_funcs(scalar)
     # CUDA float32: at most 256 threads per block (true of every launch in ops.py) and registers
     # capped for 5 blocks per SM (measured: 6% faster than the compiler's 4 at 1M Gaussians)

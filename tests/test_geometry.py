@@ -102,3 +102,44 @@ def test_knn_mean_distance():
     pts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [3, 0, 0], [7, 0, 0]])
     torch.testing.assert_close(knn_mean_distance(pts, k=2), torch.tensor([2.0, 1.5, 2.5, 5.0]))
     assert knn_mean_distance(pts[:1]).tolist() == [1.0]
+
+
+@pytest.mark.parametrize("spread", ["clusters", "line", "crowded"])
+def test_knn_table_gives_the_brute_force_neighbours(spread, monkeypatch):
+    """Every point's k nearest others through the grid equal the full distance matrix's (by distance:
+    the same distances, nearest first), itself never among them, on points the grid suits badly:
+    dense clusters with far outliers (cubes with hundreds of points, lone points the grid cannot
+    answer for), points on a line (a flat bounding box), and with cubes holding more candidates than
+    the grid takes (those points searched by brute force); small query chunks and candidate batches
+    change nothing."""
+    import ssgwarp.core.geometry as geometry
+    from ssgwarp.core.geometry import knn_table
+
+    if spread == "crowded":
+        monkeypatch.setattr(geometry, "GRID_MAX_CANDIDATES", 40)
+        monkeypatch.setattr(geometry, "GRID_BATCH", 500)
+
+    g = torch.Generator().manual_seed(4)
+    if spread in ("clusters", "crowded"):
+        centres = torch.rand(5, 3, generator=g, dtype=torch.float64) * 10
+        pts = torch.cat([centres[torch.randint(0, 5, (900,), generator=g)]
+                         + 0.05 * torch.randn(900, 3, generator=g, dtype=torch.float64),
+                         torch.rand(12, 3, generator=g, dtype=torch.float64) * 40 - 15])
+    else:
+        t = torch.rand(600, 1, generator=g, dtype=torch.float64)
+        pts = t * torch.tensor([[1.0, 2.0, -0.5]], dtype=torch.float64)
+    n = len(pts)
+    full = torch.cdist(pts, pts)
+    full.fill_diagonal_(float("inf"))
+    want = full.topk(6, largest=False).values
+    for chunk in (1 << 15, 97):
+        tab = knn_table(pts, 6, chunk=chunk)
+        assert tab.shape == (n, 6)
+        assert not bool((tab == torch.arange(n)[:, None]).any())
+        assert bool((tab[:, 1:] != tab[:, :-1]).all())
+        got = full.gather(1, tab)
+        torch.testing.assert_close(got, want, atol=1e-12, rtol=0)
+    # float32 points: the same neighbours (distances taken in float64)
+    tab32 = knn_table(pts.float(), 6)
+    torch.testing.assert_close(full.gather(1, tab32), want, atol=1e-6, rtol=0)
+    assert knn_table(pts[:3], 10).shape == (3, 2) and knn_table(pts[:1], 4).shape == (1, 0)

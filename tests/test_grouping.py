@@ -165,6 +165,50 @@ def test_mask_loss_and_3d_regulariser():
     assert rough.grad is not None and float(rough.grad.abs().sum()) > 0
 
 
+def test_regulariser_with_a_neighbour_table_equals_the_search():
+    """On positions that do not move, the regulariser given each Gaussian's neighbours once
+    (``neighbour_table``) draws the same samples as the search per call and gives the same value and
+    gradients (identities and classifier) as the definition: the classifier over every Gaussian, the
+    KL of each sample against its k nearest others."""
+    from ssgwarp.core.geometry import knn_indices
+    from ssgwarp.grouping.model import GroupConfig, make_classifier, neighbour_table, regularizer_3d
+
+    g = torch.Generator().manual_seed(6)
+    n, k = 600, 5
+    pts = torch.rand(n, 3, generator=g) * torch.tensor([2.0, 1.0, 0.5])
+    ids0 = torch.randn(n, 8, generator=g)
+    clf = make_classifier(8, 4, generator=g)
+    table = neighbour_table(pts, GroupConfig(reg_k=k))
+    assert table.shape == (n, k)
+
+    def spec(ids, seed):   # the definition, written out (with the per-call search's draws)
+        gen = torch.Generator().manual_seed(seed)
+        q = torch.randperm(n, generator=gen)[:150]
+        nbr = knn_indices(pts[q], pts, k, exclude=q)
+        logp = torch.log_softmax(clf(ids), dim=-1)
+        kl = (logp[q][:, None].exp() * (logp[q][:, None] - logp[nbr])).sum(-1)
+        return kl.mean() / logp.shape[1]
+
+    results = []
+    for how in ("spec", "search", "table"):
+        ids = ids0.clone().requires_grad_(True)
+        clf.zero_grad()
+        if how == "spec":
+            r = spec(ids, 11)
+        else:
+            r = regularizer_3d(ids, pts, clf, generator=torch.Generator().manual_seed(11), k=k, samples=150,
+                               neighbours=table if how == "table" else None)
+        r.backward()
+        results.append((r.detach(), ids.grad, clf.weight.grad.clone(), clf.bias.grad.clone()))
+    assert float(results[0][0]) > 0 and float(results[0][1].abs().sum()) > 0
+    for other in results[1:]:
+        for a, b in zip(results[0], other):
+            torch.testing.assert_close(b, a, atol=1e-6, rtol=1e-6)
+    # no table where the neighbours come from a random pool, or with the regulariser off
+    assert neighbour_table(pts, GroupConfig(reg_max_points=100)) is None
+    assert neighbour_table(pts, GroupConfig(reg_weight=0.0)) is None
+
+
 # -- masks from outside --------------------------------------------------------------------------------
 
 def _write_masks(folder: Path, labels: torch.Tensor, names, values=(0, 10, 20, 30), ignore=255):

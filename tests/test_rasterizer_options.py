@@ -273,3 +273,28 @@ def test_backward_launch_blocks_by_device_and_tile_size():
     assert backward_blocks(40, False, False) == (True, 160)     # 1600 pixels: 160, a multiple of 32 (not 200)
     assert backward_blocks(4, False, False) == (False, 4)       # 16 pixels: half a warp
     assert backward_blocks(12, False, False) == (False, 12)     # 144 pixels: not a multiple of 32
+
+
+@pytest.mark.parametrize("deterministic", [False, True])
+def test_colour_only_backward_equals_the_full_backward(deterministic):
+    """With nothing upstream of the splats wanting a gradient (a frozen scene's colours or
+    identities trained), the backward runs its colour-only variant: the colour gradients are
+    bit-identical to those of the full backward (geometry wanting gradients), for 20 channels, a
+    background and a loss on the alpha; the geometry gets no gradient."""
+    means, quats, scales, opac, _ = make_scene(60)
+    vm, K = make_cameras(2, W, H)
+    g = torch.Generator().manual_seed(8)
+    colors = torch.randn(2, 60, 20, generator=g, dtype=means.dtype)
+    bg = torch.rand(2, 20, generator=g, dtype=means.dtype)
+    weight = torch.randn(2, H, W, 20, generator=g, dtype=means.dtype)
+    out = []
+    for geometry in (True, False):
+        m, c = means.clone().requires_grad_(geometry), colors.clone().requires_grad_(True)
+        img, alpha, _ = rasterization(m, quats, scales, opac, c, vm, K, W, H, backgrounds=bg,
+                                      deterministic=deterministic)
+        ((img * weight).sum() + alpha.square().sum()).backward()
+        out.append((img.detach(), c.grad, m.grad))
+    (img_full, g_full, gm_full), (img_col, g_col, gm_col) = out
+    assert torch.equal(img_full, img_col)
+    assert g_full.abs().max() > 0 and torch.equal(g_full, g_col)
+    assert gm_full.abs().max() > 0 and gm_col is None

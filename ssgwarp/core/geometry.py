@@ -6,7 +6,9 @@
   centres at integer + 0.5 (the rasterizer's): :func:`pixel_centers`, :func:`unproject` (z-depth
   image to world points), :func:`project` (world points to pixels and camera z).
 - Exact k-nearest neighbours in bounded memory: :func:`knn` (distances and indices, chunked over
-  queries and points), :func:`knn_indices`, :func:`knn_mean_distance`.
+  queries and points), :func:`knn_indices`, :func:`knn_mean_distance`; :func:`knn_table`, every
+  3D point's neighbours among the others through a uniform grid (brute force where the grid cannot
+  prove the answer).
 """
 from __future__ import annotations
 
@@ -154,3 +156,95 @@ def knn_mean_distance(xyz: Tensor, k: int = 3) -> Tensor:
         return torch.ones(n, dtype=xyz.dtype, device=xyz.device)
     d, _ = knn(xyz, xyz, k, exclude=torch.arange(n, device=xyz.device))
     return d.mean(dim=1)
+
+
+# points per grid cell that knn_table aims for (on points spread evenly: 27 cells, about 54 candidates)
+GRID_OCCUPANCY = 2.0
+# a point with more grid candidates than this goes to the brute-force search; candidates per batch
+GRID_MAX_CANDIDATES = 4096
+GRID_BATCH = 1 << 21
+
+
+def knn_table(points: Tensor, k: int, *, chunk: int = 1 << 15) -> Tensor:
+    """``[P, k]`` indices of each of ``points [P, 3]``'s ``k`` nearest other points, nearest first
+    (the same neighbours as :func:`knn_indices` with each point excluded, up to ties of distance).
+
+    The points are binned into a uniform grid of cubes of side ``h`` (about
+    :data:`GRID_OCCUPANCY` points per cube of the box holding the middle 90 % of the points along
+    each axis, so that a few far points do not coarsen it); a point's candidates are the points of
+    its own and the 26 surrounding cubes, whose distances are computed directly in float64. The
+    answer is exact when the k-th candidate is nearer than every point outside those cubes (closer
+    than ``h`` plus the point's distance to its own cube's nearest face); the other points (sparse
+    regions, fewer than k candidates, or more than :data:`GRID_MAX_CANDIDATES` in dense ones) go
+    through :func:`knn` over all points. Memory is bounded: ``chunk`` queries' cube ranges and at
+    most :data:`GRID_BATCH` candidates at a time.
+    """
+    P = points.shape[0]
+    k = max(0, min(int(k), P - 1))
+    dev = points.device
+    out = torch.empty(P, k, dtype=torch.long, device=dev)
+    if P == 0 or k == 0:
+        return out
+    x = points.detach().double()
+    lo = x.min(0).values
+    extent = (x.max(0).values - lo).clamp_min(1e-12)
+    q = torch.quantile(x[:: max(1, P // 100_000)], torch.tensor([0.05, 0.95], dtype=x.dtype, device=dev), dim=0)
+    core = (q[1] - q[0]).clamp_min(1e-12)
+    h = float((core.prod() * GRID_OCCUPANCY / (0.9 ** 3 * P)) ** (1.0 / 3.0))
+    h = max(h, float(extent.max()) / 1024.0)    # at most 1024 cubes along an axis (keys fit easily)
+    cell = ((x - lo) / h).floor().long()
+    dims = cell.max(0).values + 1
+    key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+    order = torch.argsort(key, stable=True)
+    skey = key[order]
+    offs = torch.stack(torch.meshgrid(*[torch.arange(-1, 2, device=dev)] * 3, indexing="ij"), -1).reshape(27, 3)
+    # distance from each point to the nearest face of its cube: what the 27 cubes are sure to cover
+    inside = x - lo - cell.double() * h
+    reach = h + torch.minimum(inside, h - inside).min(1).values
+    brute = []
+    for q0 in range(0, P, chunk):
+        qs = torch.arange(q0, min(P, q0 + chunk), device=dev)
+        nb = cell[qs, None, :] + offs[None]                                   # [Q, 27, 3]
+        ok = ((nb >= 0) & (nb < dims)).all(-1)
+        nkey = (nb[..., 0] * dims[1] + nb[..., 1]) * dims[2] + nb[..., 2]
+        start = torch.searchsorted(skey, nkey)
+        cnt = torch.where(ok, torch.searchsorted(skey, nkey, right=True) - start, 0)
+        per_q = cnt.sum(1)
+        light = (per_q > k) & (per_q <= GRID_MAX_CANDIDATES)                  # k others besides itself
+        brute.append(qs[~light])
+        sub = torch.nonzero(light).flatten()
+        ends = torch.cumsum(per_q[sub], 0)
+        b0 = 0
+        while b0 < len(sub):
+            b1 = int(torch.searchsorted(ends, int(ends[b0 - 1] if b0 else 0) + GRID_BATCH, right=True))
+            b1 = max(b1, b0 + 1)
+            rows = sub[b0:b1]
+            good, nbrs = _grid_neighbours(x, qs[rows], start[rows], cnt[rows], order, k, reach)
+            out[qs[rows][good]] = nbrs[good]
+            brute.append(qs[rows][~good])
+            b0 = b1
+    rest = torch.cat(brute)
+    if rest.numel():
+        out[rest] = knn_indices(x[rest], x, k, exclude=rest)   # (float64: float32 distance sums cancel)
+    return out
+
+
+def _grid_neighbours(x: Tensor, q: Tensor, start: Tensor, cnt: Tensor, order: Tensor, k: int, reach: Tensor):
+    """For queries ``q`` (each with at least k + 1 candidates) whose 27 cubes hold the sorted-point
+    ranges ``start, cnt [Q, 27]``: ``(good [Q] bool, neighbours [Q, k])``, good where the k nearest
+    candidates are provably the k nearest points (the k-th nearer than ``reach``)."""
+    dev = x.device
+    per_q = cnt.sum(1)
+    flat_cnt = cnt.reshape(-1)
+    first = torch.cumsum(flat_cnt, 0) - flat_cnt
+    pos = torch.arange(int(flat_cnt.sum()), device=dev) - torch.repeat_interleave(first, flat_cnt)
+    cand = order[torch.repeat_interleave(start.reshape(-1), flat_cnt) + pos]
+    qi = torch.repeat_interleave(q, per_q)
+    d = (x[cand] - x[qi]).square().sum(1)
+    d = torch.where(cand == qi, float("inf"), d)
+    # grouped by query, nearest first: sort by distance, then (stably) by query
+    o = torch.argsort(d, stable=True)
+    o = o[torch.argsort(qi[o], stable=True)]
+    sel = o[(torch.cumsum(per_q, 0) - per_q)[:, None] + torch.arange(k, device=dev)]
+    good = d[sel[:, -1]].sqrt() < reach[q]
+    return good, cand[sel]

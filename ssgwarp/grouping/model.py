@@ -22,7 +22,7 @@ from tqdm.auto import tqdm
 from ..core.cameras import Cameras
 from ..errors import InputError
 from ..core.fileio import read_json
-from ..core.geometry import knn_indices
+from ..core.geometry import knn_indices, knn_table
 from ..raster.scene import GaussianScene
 
 Tensor = torch.Tensor
@@ -162,14 +162,18 @@ def mask_loss(logits: Tensor, targets: Tensor, num_groups: int) -> Tensor:
 
 def regularizer_3d(identities: Tensor, means: Tensor, classifier: torch.nn.Linear, *,
                    generator: torch.Generator, k: int = 5, samples: int = 1000,
-                   max_points: int = 200_000) -> Tensor:
+                   max_points: int = 200_000, neighbours: Optional[Tensor] = None) -> Tensor:
     """The 3D consistency term: mean KL(p_i || p_j) over sampled Gaussians i and their k nearest j, / K.
 
     Args:
         identities: ``[N, E]`` (differentiable). means: ``[N, 3]`` (positions; no gradient taken).
         generator: CPU generator for the samples.
+        neighbours: ``[N, >= k]`` each Gaussian's nearest others, nearest first
+            (:func:`neighbour_table`: positions that do not move, e.g. a frozen scene's), used
+            instead of a search per call when ``N <= max_points``; the same samples and value.
     Neighbours are searched among a random subset of at most ``max_points``
-    Gaussians (all when N is smaller); the sample itself is excluded.
+    Gaussians (all when N is smaller); the sample itself is excluded. Only the sampled
+    Gaussians and their neighbours go through the classifier.
     """
     n = identities.shape[0]
     if n < 2:
@@ -182,15 +186,28 @@ def regularizer_3d(identities: Tensor, means: Tensor, classifier: torch.nn.Linea
     m = min(samples, pool.numel())
     pick = torch.randperm(pool.numel(), generator=generator)[:m].to(dev)
     q = pool[pick]
-    with torch.no_grad():
-        pts = means.detach()[pool]
-        nbr_local = knn_indices(pts[pick], pts, k, exclude=pick)
-    nbr = pool[nbr_local]                                    # [m, k]
-    logp = torch.log_softmax(classifier(identities), dim=-1)  # [N, K]
-    lp_q = logp[q][:, None, :]                               # [m, 1, K]
-    lp_n = logp[nbr]                                         # [m, k, K]
-    kl = (lp_q.exp() * (lp_q - lp_n)).sum(-1)                # [m, k]
-    return kl.mean() / logp.shape[1]
+    if neighbours is not None and n <= max_points and neighbours.shape[1] >= min(k, n - 1):
+        nbr = neighbours[q, :min(k, n - 1)].to(dev)                       # [m, k] (pool is every Gaussian)
+    else:
+        with torch.no_grad():
+            pts = means.detach()[pool]
+            nbr_local = knn_indices(pts[pick], pts, k, exclude=pick)
+        nbr = pool[nbr_local]                                        # [m, k]
+    rows = torch.cat([q[:, None], nbr], dim=1)                       # [m, 1 + k]
+    logp = torch.log_softmax(classifier(identities[rows]), dim=-1)   # [m, 1 + k, K]
+    lp_q, lp_n = logp[:, :1], logp[:, 1:]
+    kl = (lp_q.exp() * (lp_q - lp_n)).sum(-1)                        # [m, k]
+    return kl.mean() / logp.shape[-1]
+
+
+def neighbour_table(means: Tensor, config: "GroupConfig") -> Optional[Tensor]:
+    """``[N, reg_k]`` each Gaussian's nearest others (:func:`ssgwarp.core.geometry.knn_table`) for
+    :func:`regularizer_3d` on positions that stay fixed, or None when the regulariser is off or
+    draws its neighbours from a random pool (``N > reg_max_points``)."""
+    n = means.shape[0]
+    if config.reg_weight <= 0 or config.reg_every <= 0 or n < 2 or n > config.reg_max_points:
+        return None
+    return knn_table(means.detach(), config.reg_k)
 
 
 def load_groups(scene_dir: str | Path, device=None) -> GroupModel:

@@ -17,7 +17,7 @@ from ..core.cameras import Cameras
 from ..errors import InputError
 from ..core.fileio import atomic_path
 from ..services.loop import Loop, check_finite
-from .model import GroupConfig, init_identities, make_classifier, mask_loss, regularizer_3d
+from .model import GroupConfig, init_identities, make_classifier, mask_loss, neighbour_table, regularizer_3d
 from ..raster.scene import GaussianScene
 
 Tensor = torch.Tensor
@@ -69,6 +69,7 @@ def train_identities(scene: GaussianScene, cameras: Cameras, targets: Tensor, nu
     opt = _adam(identities, classifier, config)
     targets = targets.to("cpu", torch.int16 if num_groups < 32767 else torch.long)  # moved per step
     cams = cameras.to(dev)
+    table = neighbour_table(geom.means, config)   # (the positions are frozen: one search, not one per step)
     history: list[dict] = []
     order: list[int] = []
     meta = {"n": n, "dim": config.dim, "num_groups": num_groups, "seed": int(seed), "views": C}
@@ -116,7 +117,7 @@ def train_identities(scene: GaussianScene, cameras: Cameras, targets: Tensor, nu
         reg_v = None
         if config.reg_weight > 0 and config.reg_every > 0 and step % config.reg_every == 0:
             reg = regularizer_3d(identities, geom.means, classifier, generator=gen, k=config.reg_k,
-                                 samples=config.reg_samples, max_points=config.reg_max_points)
+                                 samples=config.reg_samples, max_points=config.reg_max_points, neighbours=table)
             loss = loss + config.reg_weight * reg
             reg_v = float(reg.detach())
         check_finite(loss, step + 1, "the last good state is kept in the checkpoint" if ckpt is not None

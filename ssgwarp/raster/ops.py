@@ -494,24 +494,32 @@ class _Blend(torch.autograd.Function):
             # one block per tile: larger blocks run out of registers on CUDA
             raise ValueError(f"rasterization: deterministic=True needs tile_size <= 16, got {tile_size}")
         per_warp, block = backward_blocks(tile_size, det, tg.cpu)
-        packed = torch.zeros(max(M if det else C * N, 1), 6 + D, dtype=dt, device=dev)
-        L.launch(blend_backward.reduced_backward_kernel(s, D, det, per_warp, _fast(st, s)), n_pix,
+        # nothing upstream of the splats wants a gradient (a frozen scene's colours or identities
+        # trained): the colour gradients alone, the same values, without the geometry terms
+        need = ctx.needs_input_grad
+        geometry = need[0] or need[1] or need[3]
+        lead = 6 if geometry else 0
+        W = lead + D
+        packed = torch.zeros(max(M if det else C * N, 1), W, dtype=dt, device=dev)
+        L.launch(blend_backward.reduced_backward_kernel(s, D, det, per_warp, _fast(st, s), not geometry), n_pix,
                  [*ctx.args, *(NULL if g_colors is None else arr(g_colors, D)),
                   *(NULL if g_alphas is None else arr(g_alphas)), *(arr(tiles["perm"]) if det else NULL),
-                  *arr(packed, 6 + D)],
+                  *arr(packed, W)],
                  tg, block_dim=block)
         if det:
             slots = packed
-            packed = torch.empty(C * N, 6 + D, dtype=dt, device=dev)
-            L.launch(blend_backward.gather_kernel(s, D), C * N,
-                     [*arr(tiles["isect_ends"]), *arr(tiles["tiles_per_gauss"]), *arr(slots, 6 + D), *arr(packed, 6 + D)],
+            packed = torch.empty(C * N, W, dtype=dt, device=dev)
+            L.launch(blend_backward.gather_kernel(s, W), C * N,
+                     [*arr(tiles["isect_ends"]), *arr(tiles["tiles_per_gauss"]), *arr(slots, W), *arr(packed, W)],
                      tg)
-        v_colors = packed[:, 6:].view(C, N, D)
+        v_colors = packed[:, lead:].view(C, N, D)
         if len(ctx.cshape) == 2:  # colours shared by the cameras
             v_colors = v_colors[0] if C == 1 else v_colors.sum(0)
         v_bg = None
         if bg is not None:
             v_bg = (g_colors * out_T[..., None]).sum(dim=(1, 2)) if g_colors is not None else torch.zeros_like(bg)
+        if not geometry:
+            return None, None, v_colors, None, v_bg, None, None, None, None, None, None, None
         return (packed[:, 0:2].view(C, N, 2), packed[:, 2:5].view(C, N, 3), v_colors, packed[:, 5].view(C, N),
                 v_bg, None, None, None, None, None, None, None)
 
