@@ -143,3 +143,26 @@ def test_knn_table_gives_the_brute_force_neighbours(spread, monkeypatch):
     tab32 = knn_table(pts.float(), 6)
     torch.testing.assert_close(full.gather(1, tab32), want, atol=1e-6, rtol=0)
     assert knn_table(pts[:3], 10).shape == (3, 2) and knn_table(pts[:1], 4).shape == (1, 0)
+
+
+def test_knn_mean_distance_of_a_large_cloud_goes_through_the_grid(monkeypatch):
+    """Above KNN_TABLE_MIN points (3-D), the mean neighbour distance comes from knn_table's grid and
+    equals the blocks' answer."""
+    from ssgwarp.core import geometry as G
+
+    g = torch.Generator().manual_seed(7)
+    centres = torch.randn(8, 3, generator=g) * 3
+    pts = centres[torch.randint(0, 8, (3000,), generator=g)] + torch.randn(3000, 3, generator=g) * 0.2
+    want = G.knn(pts, pts, 3, exclude=torch.arange(3000))[0].mean(1)
+    calls = []
+    table = G.knn_table
+    monkeypatch.setattr(G, "knn_table", lambda *a, **kw: calls.append(1) or table(*a, **kw))
+    monkeypatch.setattr(G, "KNN_TABLE_MIN", 1000)
+    got = G.knn_mean_distance(pts, k=3)
+    assert calls and got.dtype == pts.dtype
+    torch.testing.assert_close(got, want, atol=1e-6, rtol=0)
+    monkeypatch.setattr(G, "KNN_TABLE_MIN", 5000)
+    calls.clear()
+    torch.testing.assert_close(G.knn_mean_distance(pts, k=3), want, atol=0, rtol=0)
+    assert not calls
+
