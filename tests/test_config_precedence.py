@@ -30,7 +30,7 @@ def test_flag_beats_config_beats_default(tmp_path, parsed):
     assert parsed["split"] == "train"          # the flag wins over the config's "test"
     assert parsed["path"] == 7                 # the config wins over the default (None)
     assert parsed["seed"] == 11                # also for the common options
-    assert parsed["no_progress"] is True       # keys may be spelled with dashes
+    assert parsed["quiet"] is True             # keys may be spelled with dashes, and as any of a flag's names
     assert parsed["open"] is False             # neither: the default
     parsed.clear()
     # the flag placed before --config wins as well
