@@ -205,7 +205,7 @@ def fit_group_transforms(source: tuple[ColorStats, dict[int, ColorStats]],
 
 
 __all__ = ["rgb_to_lab", "ColorStats", "ColorTransform", "fit_transform", "transform_sh", "pixel_stats",
-           "fit_group_transforms", "transfer_colors", "transfer_background"]
+           "fit_group_transforms", "transfer_colors", "transfer_background", "describe_transfer"]
 
 
 # ----------------------------------------------------------------------------- colour transfer
@@ -246,6 +246,14 @@ def transfer_colors(scene: GaussianScene, cameras: Cameras, target: torch.Tensor
         out = transform_sh(scene, [glob])
         info = {"per_group": False, "transform": glob.to_list()}
     return out, info
+
+
+def describe_transfer(info: dict, against: str) -> str:
+    """One line saying what a :func:`transfer_colors` record ``info`` did, against ``against``."""
+    if info.get("per_group"):
+        return (f"per group against {against}: {info['groups_matched']} groups matched on their own, "
+                f"{info['groups_global']} by the global map (absent from the key views)")
+    return f"one global linear map against {against}"
 
 
 def transfer_background(background: Sequence[float], info: dict) -> list[float]:

@@ -59,7 +59,7 @@ from ..raster import rendering
 from ..core.cameras import Cameras
 from ..errors import InputError
 from ..services.distributed import SINGLE
-from ..services.color import transfer_background, transfer_colors  # noqa: F401  (re-exported)
+from ..services.color import describe_transfer, transfer_background, transfer_colors  # noqa: F401  (re-exported)
 from ..services.loop import Diverged, Loop
 from .batches import batch_size_for, batch_views, view_order  # noqa: F401  (view_order re-exported)
 from .matching import DEFAULT_CHUNK, MatchTargets, SlicedTargets, downsample_labels

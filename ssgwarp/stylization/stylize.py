@@ -27,7 +27,7 @@ from .stage2 import (  # noqa: F401  (re-exported: the public Stage 2 API lives 
     BACKGROUNDS, COLOR_TRANSFER, MODES, SH_REST, STYLE_LOSSES, TV_WEIGHT_FREE, TV_WEIGHT_VGG, Stage2Config,
     Stage2Result, ViewLoss, build_targets, deferred_backward, direct_backward, extract, finetune_loss, optimise,
     render_alphas, render_batched, render_rgb, style_loss_kind, to_nchw, trainable_names, transfer_background,
-    transfer_colors, tv_loss, tv_weight_for, view_order)
+    transfer_colors, tv_loss, tv_weight_for, view_order, describe_transfer)
 
 # ----------------------------------------------------------------------------- end to end
 @dataclass
@@ -96,13 +96,6 @@ def _prepare_out(out: Path, scene_dir: Path, signature: dict, resume: bool, forc
         claimed.clear()
         out.mkdir(parents=True, exist_ok=True)
     return state
-
-
-def _transfer_text(info: dict, against: str) -> str:
-    if info.get("per_group"):
-        return (f"per group against {against}: {info['groups_matched']} groups matched on their own, "
-                f"{info['groups_global']} by the global map (absent from the key views)")
-    return f"one global linear map against {against}"
 
 
 def _group_maps(scene: GaussianScene, cams: Cameras, classifier, progress: bool) -> torch.Tensor:
@@ -299,12 +292,19 @@ def _targets(r: _Run, kv, stylized) -> _Targets:
     return t
 
 
-def _color_transfer(r: _Run, t: _Targets, sc: GaussianScene) -> tuple[GaussianScene, dict]:
-    """ARF's colour transfer against the stylized key views (per group when grouped) or the style image."""
+def _color_transfer(r: _Run, t: _Targets, sc: GaussianScene, when: str, against: str) -> tuple[GaussianScene, dict]:
+    """ARF's colour transfer against the stylized key views (per group when grouped) or the style image;
+    with ``--background transfer`` the stylized scene's background ``r.bg_styled`` goes through its global map."""
     if t.use_keys:
-        return transfer_colors(sc, t.key_cams, t.key_images, labels=t.key_labels, target_labels=t.key_labels,
-                               assign=t.assign, num_groups=r.num_groups, max_gain=r.stage2.color_max_gain)
-    return transfer_colors(sc, r.train_cams, r.style[None].to(r.scene.dtype), max_gain=r.stage2.color_max_gain)
+        out, info = transfer_colors(sc, t.key_cams, t.key_images, labels=t.key_labels, target_labels=t.key_labels,
+                                    assign=t.assign, num_groups=r.num_groups, max_gain=r.stage2.color_max_gain)
+    else:
+        out, info = transfer_colors(sc, r.train_cams, r.style[None].to(r.scene.dtype),
+                                    max_gain=r.stage2.color_max_gain)
+    if r.stage2.background == "transfer":
+        r.bg_styled = r.bg.new_tensor(transfer_background(r.bg_styled.tolist(), info))
+    r.say(f"colour transfer ({when}): " + describe_transfer(info, against))
+    return out, info
 
 
 def _stage2_loss(r: _Run, t: _Targets, kv, content_ref: torch.Tensor):
@@ -339,13 +339,9 @@ def _stage2(r: _Run, kv, stylized) -> dict:
     t = _targets(r, kv, stylized)
     transfer: dict = {"setting": stage2.color_transfer,
                       "against": "the stylized key views" if t.use_keys else "the style image"}
-    work, background = r.scene, [float(v) for v in r.bg]
+    work, r.bg_styled = r.scene, r.bg
     if stage2.color_transfer in ("pre", "both"):
-        work, transfer["pre"] = _color_transfer(r, t, r.scene)
-        r.say("colour transfer (pre): " + _transfer_text(transfer["pre"], transfer["against"]))
-        if stage2.background == "transfer":
-            background = transfer_background(background, transfer["pre"])
-    r.bg_styled = torch.tensor(background, dtype=r.scene.dtype, device=r.device)
+        work, transfer["pre"] = _color_transfer(r, t, r.scene, "pre", transfer["against"])
     content_ref = originals if work is r.scene else render_batched(work, r.train_cams, r.bg_styled)
     loss, ft_images, ft_cams, matching = _stage2_loss(r, t, kv, content_ref)
     run_cfg = stage2
@@ -359,11 +355,7 @@ def _stage2(r: _Run, kv, stylized) -> dict:
         return {}
     styled = res.scene
     if stage2.color_transfer in ("post", "both"):
-        styled, transfer["post"] = _color_transfer(r, t, styled)
-        r.say("colour transfer (post): " + _transfer_text(transfer["post"], transfer["against"]))
-        if stage2.background == "transfer":
-            background = transfer_background(background, transfer["post"])
-            r.bg_styled = torch.tensor(background, dtype=r.scene.dtype, device=r.device)
+        styled, transfer["post"] = _color_transfer(r, t, styled, "post", transfer["against"])
     r.times["stage2"] = time.perf_counter() - t0
     r.times["stage2_optimisation"] = res.seconds
     write_ply(r.out / "scene.ply", styled)
@@ -433,15 +425,12 @@ def _metrics(r: _Run, s2: dict, renders: torch.Tensor, kv, stage1_info: dict, t_
         "gram_style_loss": scores["gram_style_loss"], "gram_style_loss_original": scores["gram_style_loss_original"],
         "style_distance": scores["style_distance"], "style_distance_original": scores["style_distance_original"],
         "metric_views": f"the {len(train_ids)} training views (ssgwarp evaluate scores novel path views)",
-        "content_loss": scores["content_loss"],
-        "color_transfer": s2["transfer"],
-        "final_losses": s2["result"].last,
+        "content_loss": scores["content_loss"], "color_transfer": s2["transfer"], "final_losses": s2["result"].last,
         "keyviews": None if kv is None else {"ids": list(kv.ids), "names": list(kv.cameras.names),
                                               "size": list(kv.size)},
         "background": [float(v) for v in r.bg_styled],
         "groups": r.num_groups, "gaussians": len(styled), "views": len(train_ids),
-        "resolution": [r.cams.width, r.cams.height],
-        "optimised": trainable_names(stage2, r.scene),
+        "resolution": [r.cams.width, r.cams.height], "optimised": trainable_names(stage2, r.scene),
         "config": asdict(stage2),
         **batch_record(s2["result"]),
         "seconds": r.times,
@@ -551,9 +540,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"higher SH bands (view-dependent colour): keep, zero at the start, or optimise "
                         f"(default {d.sh_rest})")
     g.add_argument("--sh-bands", action="store_true", help="same as --sh-rest optimise")
-    g.add_argument("--background", default=d.background, choices=BACKGROUNDS,
-                   help="background of the stylized scene: transfer (default: the capture's background mapped "
-                        "by the colour transfer, like the scene) or keep (the capture's)")
+    g.add_argument("--background", default=d.background, choices=BACKGROUNDS, help="the stylized scene's background: "
+                   "transfer (default: the capture's, colour-transferred like the scene) or keep (the capture's)")
     g.add_argument("--free-opacity", action="store_true", help="also optimise opacities")
     g.add_argument("--label-mode", default=d.label_mode, choices=("majority", "nearest"),
                    help="group maps to feature resolution (default majority)")
