@@ -78,7 +78,7 @@ def stage2_config(args, **over):
     from ssgwarp.stylization.stylize import Stage2Config
 
     kw = {}
-    for k in ("iters", "lr", "content_weight", "tv_weight", "color_transfer", "sh_rest"):
+    for k in ("iters", "lr", "content_weight", "tv_weight", "color_transfer", "sh_rest", "background"):
         v = getattr(args, k)
         if v is not None:
             kw[k] = v
@@ -174,6 +174,7 @@ def sheet(path: Path, run: Path, results_dir: Path, styles: list[Path], device) 
     from ssgwarp.capture.datasets import load_run
     from ssgwarp.core.fileio import atomic_path, read_image
     from ssgwarp.capture.ply import read_ply
+    from ssgwarp.services.runs import Run
     from ssgwarp.stylization.stylize import render_rgb
 
     done = [s for s in styles if (results_dir / s.stem / "scene.ply").is_file()]
@@ -187,8 +188,9 @@ def sheet(path: Path, run: Path, results_dir: Path, styles: list[Path], device) 
     h, w = orig.shape[:2]
     fig, axes = plt.subplots(len(done), 3, figsize=(3 * 2.4, len(done) * 2.4 * h / w + 0.3), dpi=90, squeeze=False)
     for i, s in enumerate(done):
+        bg_s = torch.tensor(Run.open(results_dir / s.stem).background(data.background), dtype=src.dtype, device=device)
         with torch.no_grad():
-            styl = render_rgb(read_ply(results_dir / s.stem / "scene.ply", device=device), cam, bg)[0].clamp(0, 1).cpu()
+            styl = render_rgb(read_ply(results_dir / s.stem / "scene.ply", device=device), cam, bg_s)[0].clamp(0, 1).cpu()
         for j, (img, label) in enumerate([(torch.from_numpy(read_image(s, 3)), s.stem), (orig, "original"),
                                           (styl, "stylized")]):
             axes[i, j].imshow(img.numpy())
@@ -217,6 +219,8 @@ ABLATIONS = {
     "TV 0.1": {"tv_weight": 0.1},
     "TV 0.5": {"tv_weight": 0.5},
     "colour gain 1.0": {"color_max_gain": 1.0},
+    "background: keep": {"background": "keep"},
+    "free opacity": {"free_opacity": True},
 }
 
 
@@ -246,6 +250,7 @@ def main() -> int:
     g.add_argument("--tv-weight", type=float, default=None)
     g.add_argument("--color-transfer", default=None)
     g.add_argument("--sh-rest", default=None)
+    g.add_argument("--background", default=None, choices=("transfer", "keep"))
     args = p.parse_args()
 
     from ssgwarp.cli import resolve_device

@@ -315,12 +315,13 @@ def _stage_sheet(d: _Demo, cams, images, rec: dict, grp: dict, sty: dict) -> Pat
     test = set(Run.open(d.scene_dir).test_ids)
     rows_ids = sorted(test)[:3] if len(test) >= 3 else sorted({round(i * (d.sz.views - 1) / 3) for i in range(3)})
     bg = torch.tensor(P.BACKGROUND, dtype=torch.float32, device=dev)
+    bg_sty = torch.tensor(Run.open(d.styl_dir).background(P.BACKGROUND), dtype=torch.float32, device=dev)
     rows = []
     with torch.no_grad():
         for i in rows_ids:
             cam = cams[[i]].to(dev)
             r, alpha, _ = rec_scene.render(cam, backgrounds=bg[None])
-            s, _, _ = sty_scene.render(cam, backgrounds=bg[None])
+            s, _, _ = sty_scene.render(cam, backgrounds=bg_sty[None])   # its own, recoloured with it
             lab, _ = render_group_maps(rec_scene, cam, gm.classifier)
             groups = torch.from_numpy(colorize_labels(lab[0], gm.num_groups))
             empty = alpha[0, ..., 0].cpu() < 0.5           # no surface there: shown light grey, not as a group

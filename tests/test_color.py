@@ -146,3 +146,46 @@ def test_transfer_colors_on_a_rendered_scene_per_group_and_global():
     src = pixel_stats(col[..., :3] / alpha, alpha[..., 0])
     glob = fit_transform(src[0], pixel_stats(target)[0])
     torch.testing.assert_close(out_g.sh_dc[obj == 1], transform_sh(scene, [glob]).sh_dc[obj == 1])
+
+
+def test_transfer_background_makes_the_colour_map_exact_on_every_pixel():
+    """The background under the same map: the render of the recoloured scene over the mapped
+    background is ``A render + b`` on every pixel, background and outline included (compositing is
+    affine in colour); over the capture's background the outline and the background are not."""
+    from test_stylize import object_labels, ring, two_objects
+
+    from ssgwarp.services.color import transfer_background
+    from ssgwarp.stylization import stylize as st
+
+    scene, obj = two_objects(n=80, dtype=torch.float64)
+    cams = ring(n=3, dtype=torch.float64)
+    white = torch.ones(3, dtype=torch.float64)
+    # a dark style with little colour spread, no stretch: white maps inside [0, 1] (no clamp)
+    style = _cloud(400, [0.25, 0.2, 0.3], [[0.05, 0, 0], [0.02, 0.04, 0], [0.0, 0.01, 0.05]], 6).reshape(1, 20, 20, 3)
+    out, info = st.transfer_colors(scene, cams, style, max_gain=1.0)
+    bg = transfer_background([1.0, 1.0, 1.0], info)
+    t = ColorTransform(torch.tensor(info["transform"]["A"], dtype=torch.float64),
+                       torch.tensor(info["transform"]["b"], dtype=torch.float64))
+    torch.testing.assert_close(torch.tensor(bg, dtype=torch.float64), t(white), atol=1e-12, rtol=0)
+    assert max(bg) < 0.85                                       # white became a darker colour of the style
+    before, alpha, _ = scene.render(cams, backgrounds=white[None].expand(3, 3))
+    after, _, _ = out.render(cams, backgrounds=torch.tensor(bg, dtype=torch.float64)[None].expand(3, 3))
+    partial = (alpha[..., 0] < 0.99)
+    assert int(partial.sum()) > 100                              # the views show background and outlines
+    # exact up to the record's rounding of A and b (6 decimals)
+    torch.testing.assert_close(after[..., :3], t(before[..., :3]), atol=2e-6, rtol=0)
+    kept, _, _ = out.render(cams, backgrounds=white[None].expand(3, 3))
+    assert float((kept[..., :3] - t(before[..., :3])).abs()[partial].max()) > 0.15
+
+    # a map taking white above 1 is clamped into [0, 1]; per group, the global map of the record is used
+    light = _cloud(400, [0.9, 0.85, 0.8], [[0.05, 0, 0], [0, 0.05, 0], [0, 0, 0.05]], 7).reshape(1, 20, 20, 3)
+    _, info_l = st.transfer_colors(scene, cams, light, max_gain=4.0)
+    glob = ColorTransform(torch.tensor(info_l["transform"]["A"], dtype=torch.float64),
+                          torch.tensor(info_l["transform"]["b"], dtype=torch.float64))
+    assert float(glob(white).max()) > 1.0
+    assert transfer_background([1.0, 1.0, 1.0], info_l) == [min(1.0, float(v)) for v in glob(white)]
+    labels = object_labels(scene, obj, cams)
+    _, info_g = st.transfer_colors(scene, cams, style, labels=labels, target_labels=torch.zeros(1, 20, 20).long(),
+                                   assign=obj, num_groups=2, max_gain=1.0)
+    assert info_g["per_group"] and "transform" not in info_g
+    assert transfer_background([1.0, 1.0, 1.0], info_g) == pytest.approx(bg, abs=1e-9)   # the same global map

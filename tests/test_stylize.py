@@ -619,3 +619,42 @@ def test_tv_default_resolves_by_extractor_and_smooths_the_weight_free_renders():
     src, prev, default = score(scene), score(out[0.02]), score(out[None])
     assert default[0] < 0.98 * prev[0], (prev, default)
     assert default[1] < 0.5 * src[1] and default[2] < src[2], (src, default)
+
+
+def test_background_is_recoloured_with_the_scene_and_evaluated_on(tmp_path):
+    """``background="transfer"`` (the default): the capture's background goes through the same colour
+    transfer as the scene (pre and post), the run records it, its renders and ``ssgwarp evaluate``
+    show the scene on it, while the unstylized source is still scored on the capture's; ``keep``
+    leaves it as captured. (Why: on the demo scene a style that darkens the scene otherwise draws a
+    hard outline against the white background, which the texture distance counts: docs/stylize.md.)"""
+    from ssgwarp.core.fileio import read_image, write_image
+    from ssgwarp.evaluation.evaluate import EvalOptions, evaluate_run
+    from ssgwarp.services.color import transfer_background
+    from ssgwarp.services.runs import Run
+
+    assert st.Stage2Config().background == "transfer"
+    run, _ = _write_run(tmp_path, grouped=False)                 # captured on black
+    g = torch.Generator().manual_seed(0)
+    write_image(tmp_path / "light.png", 0.75 + 0.05 * torch.rand(32, 32, 3, generator=g))   # a light, flat style
+    opts = st.StylizeOptions(path_frames=0, sheet_views=1)
+    out = {}
+    for bg in ("transfer", "keep"):
+        m = st.stylize_run(run, tmp_path / "light.png", tmp_path / bg, device="cpu", progress=False, opts=opts,
+                           stage2=st.Stage2Config(mode="global", iters=2, checkpoint_every=1000, background=bg))
+        out[bg] = m
+    assert out["keep"]["background"] == [0.0, 0.0, 0.0]
+    ct = out["transfer"]["color_transfer"]
+    expect = transfer_background(transfer_background([0.0, 0.0, 0.0], ct["pre"]), ct["post"])
+    assert out["transfer"]["background"] == pytest.approx(expect, abs=1e-6)
+    assert min(expect) > 0.15                                    # black became a colour of the light style
+    assert Run.open(tmp_path / "transfer").background([0.0, 0.0, 0.0]) == pytest.approx(expect, abs=1e-6)
+    # the saved renders show it where there is no scene (the image corners of this ring of cameras)
+    img = read_image(next((tmp_path / "transfer" / "renders" / "train").glob("*.png")), 3)
+    assert abs(float(img[0, 0].mean()) - sum(expect) / 3) < 0.02
+    ev = evaluate_run(tmp_path / "transfer", EvalOptions(path_frames=4, max_pairs=2, save_pairs=0), "cpu", write=False)
+    assert ev["background"] == pytest.approx(expect, abs=1e-6)
+    ev_keep = evaluate_run(tmp_path / "keep", EvalOptions(path_frames=4, max_pairs=2, save_pairs=0), "cpu", write=False)
+    # the source is scored on the capture's background in both: the same "before" distances
+    sc, sk = ev["style_content"], ev_keep["style_content"]
+    assert sc["style_distance_color_original"] == pytest.approx(sk["style_distance_color_original"], rel=1e-9)
+    assert sc["style_distance_texture_original"] == pytest.approx(sk["style_distance_texture_original"], rel=1e-9)

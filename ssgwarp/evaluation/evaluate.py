@@ -266,12 +266,13 @@ def evaluate_run(run_dir: str | Path, opts: EvalOptions, device: torch.device | 
     cams, ids, scored = scored_cameras(data.cameras, data.train_ids, data.test_ids, opts)
     cams = _scaled(cams, opts.max_side).to(device)
     names = [Path(n).stem for n in cams.names]
-    bg = list(data.background)
+    bg = list(data.background)                       # the capture's: the unstylized source is shown on it
+    bg_run = info.background(bg)                      # a stylized run's own (recoloured with the scene)
     result.update({"views": len(cams), "view_split": opts.views, "views_scored": scored,
                    "resolution": [cams.width, cams.height],
-                   "gaussians": len(scene), "sh_degree": scene.sh_degree, "background": bg})
+                   "gaussians": len(scene), "sh_degree": scene.sh_degree, "background": bg_run})
 
-    rgb, depth, alpha = render_views(scene, cams, bg, desc=f"render {info.path.name}")
+    rgb, depth, alpha = render_views(scene, cams, bg_run, desc=f"render {info.path.name}")
     result["consistency"] = consistency(rgb, depth, alpha, cams, opts, raft=raft, lpips=lpips,
                                         save_dir=out_dir / "pairs", names=names,
                                         desc=f"pairs {info.path.name}")

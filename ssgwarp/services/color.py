@@ -205,7 +205,7 @@ def fit_group_transforms(source: tuple[ColorStats, dict[int, ColorStats]],
 
 
 __all__ = ["rgb_to_lab", "ColorStats", "ColorTransform", "fit_transform", "transform_sh", "pixel_stats",
-           "fit_group_transforms"]
+           "fit_group_transforms", "transfer_colors", "transfer_background", "describe_transfer"]
 
 
 # ----------------------------------------------------------------------------- colour transfer
@@ -236,13 +236,33 @@ def transfer_colors(scene: GaussianScene, cameras: Cameras, target: torch.Tensor
     grouped = labels is not None and target_labels is not None and assign is not None and num_groups
     src = pixel_stats(renders, alphas, labels if grouped else None)
     tgt = pixel_stats(target.to(scene.device), None, target_labels if grouped else None)
+    glob = fit_transform(src[0], tgt[0], max_gain=max_gain)
     if grouped:
         transforms, how = fit_group_transforms(src, tgt, int(num_groups), min_pixels, max_gain=max_gain)
         out = transform_sh(scene, transforms, assign)
         info = {"per_group": True, "groups_matched": how.count("group"), "groups_global": how.count("global"),
-                "how": how}
+                "how": how, "global": glob.to_list()}
     else:
-        t = fit_transform(src[0], tgt[0], max_gain=max_gain)
-        out = transform_sh(scene, [t])
-        info = {"per_group": False, "transform": t.to_list()}
+        out = transform_sh(scene, [glob])
+        info = {"per_group": False, "transform": glob.to_list()}
     return out, info
+
+
+def describe_transfer(info: dict, against: str) -> str:
+    """One line saying what a :func:`transfer_colors` record ``info`` did, against ``against``."""
+    if info.get("per_group"):
+        return (f"per group against {against}: {info['groups_matched']} groups matched on their own, "
+                f"{info['groups_global']} by the global map (absent from the key views)")
+    return f"one global linear map against {against}"
+
+
+def transfer_background(background: Sequence[float], info: dict) -> list[float]:
+    """The background colour under the global map of a :func:`transfer_colors` record ``info``
+    (``A bg + b``, clamped to [0, 1]): with it, the render of the recoloured scene is the colour map
+    of the original render on every pixel, background included (compositing is affine in colour; up to
+    the clamp and, per group, where the group maps differ from the global one)."""
+    t = info.get("transform") or info["global"]
+    A = torch.tensor(t["A"], dtype=torch.float64)
+    b = torch.tensor(t["b"], dtype=torch.float64)
+    bg = torch.tensor([float(v) for v in background[:3]], dtype=torch.float64)
+    return [float(v) for v in (A @ bg + b).clamp(0.0, 1.0)]

@@ -150,6 +150,15 @@ class Run:
         d = self.data.get("data_dir")
         return Path(d).expanduser() if d else None
 
+    def background(self, capture: Sequence[float]) -> list[float]:
+        """The RGB background the run's scene is shown on: a stylized run's recorded ``background``
+        (Stage 2 recolours it with the scene, ``--background transfer``), else ``capture`` (the
+        capture's, :attr:`ssgwarp.capture.datasets.SceneData.background`)."""
+        bg = self.recorded.get("background") if self.kind == "stylized" else None
+        if isinstance(bg, list) and len(bg) >= 3 and all(isinstance(v, (int, float)) for v in bg[:3]):
+            return [float(v) for v in bg[:3]]
+        return [float(v) for v in capture[:3]]
+
     def scene(self, device=None):
         """The run's :class:`~ssgwarp.raster.scene.GaussianScene` (from ``scene.ply``)."""
         s = read_ply(self.scene_ply)

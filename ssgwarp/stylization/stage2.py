@@ -60,7 +60,7 @@ from ..core.cameras import Cameras
 from ..core.optim import adam
 from ..errors import InputError
 from ..services.distributed import SINGLE
-from ..services.color import transfer_colors
+from ..services.color import describe_transfer, transfer_background, transfer_colors  # noqa: F401  (re-exported)
 from ..services.loop import Diverged, Loop
 from .batches import batch_size_for, batch_views, view_order  # noqa: F401  (view_order re-exported)
 from .matching import DEFAULT_CHUNK, MatchTargets, SlicedTargets, downsample_labels
@@ -72,6 +72,7 @@ MODES = ("ist", "finetune", "global")
 COLOR_TRANSFER = ("both", "pre", "post", "off")
 SH_REST = ("keep", "zero", "optimise")
 STYLE_LOSSES = ("auto", "nnfm", "sw")
+BACKGROUNDS = ("transfer", "keep")
 
 
 # ----------------------------------------------------------------------------- configuration
@@ -98,6 +99,11 @@ class Stage2Config:
             renders become view-independent, lower consistency error at equal style distances,
             docs/stylize.md), ``keep`` them as reconstructed, or ``optimise`` them too.
         free_opacity: also optimise opacities (geometry otherwise frozen).
+        background: the stylized scene's background colour: ``transfer`` (default) maps the capture's
+            background by the same colour transfer as the scene (:func:`ssgwarp.services.color.transfer_background`;
+            the optimisation renders over it and the run records it, ``metrics.json`` ``background``), so that
+            the scene's outline keeps its contrast instead of, e.g., a darkened scene standing out against a
+            white background (measured on the demo scene: docs/stylize.md); ``keep``: the capture's.
         label_mode: group maps to feature resolution by ``majority`` or ``nearest``.
         feature_scale: images are resized by this factor before the feature
             extractor (speed/accuracy knob; 1 = full resolution).
@@ -123,6 +129,7 @@ class Stage2Config:
     color_max_gain: float = 1.3
     sh_rest: str = "zero"
     free_opacity: bool = False
+    background: str = "transfer"
     label_mode: str = "majority"
     feature_scale: float = 1.0
     deferred: bool = True
@@ -154,6 +161,8 @@ class Stage2Config:
             raise InputError(f"--color-transfer {self.color_transfer}: use one of {', '.join(COLOR_TRANSFER)}")
         if not (math.isfinite(self.color_max_gain) and self.color_max_gain > 0):
             raise InputError(f"--color-max-gain {self.color_max_gain}: must be a finite number > 0")
+        if self.background not in BACKGROUNDS:
+            raise InputError(f"--background {self.background}: use one of {', '.join(BACKGROUNDS)}")
         if self.sh_rest not in SH_REST:
             raise InputError(f"--sh-rest {self.sh_rest}: use one of {', '.join(SH_REST)}")
         if self.label_mode not in ("majority", "nearest"):

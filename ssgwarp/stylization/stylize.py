@@ -24,10 +24,10 @@ from ..errors import InputError, WeightsNotFound
 from ..core.imaging import contact_sheet, plot_losses  # noqa: F401  (contact_sheet re-exported)
 from ..raster.scene import GaussianScene
 from .stage2 import (  # noqa: F401  (re-exported: the public Stage 2 API lives in ssgwarp.stylization.stage2)
-    COLOR_TRANSFER, MODES, SH_REST, STYLE_LOSSES, TV_WEIGHT_FREE, TV_WEIGHT_VGG, Stage2Config, Stage2Result,
-    ViewLoss, build_targets, deferred_backward, direct_backward, extract, finetune_loss, optimise, render_alphas,
-    render_batched, render_rgb, style_loss_kind, to_nchw, trainable_names, transfer_colors, tv_loss,
-    tv_weight_for, view_order)
+    BACKGROUNDS, COLOR_TRANSFER, MODES, SH_REST, STYLE_LOSSES, TV_WEIGHT_FREE, TV_WEIGHT_VGG, Stage2Config,
+    Stage2Result, ViewLoss, build_targets, deferred_backward, direct_backward, extract, finetune_loss, optimise,
+    render_alphas, render_batched, render_rgb, style_loss_kind, to_nchw, trainable_names, transfer_background,
+    transfer_colors, tv_loss, tv_weight_for, view_order, describe_transfer)
 
 # ----------------------------------------------------------------------------- end to end
 @dataclass
@@ -98,13 +98,6 @@ def _prepare_out(out: Path, scene_dir: Path, signature: dict, resume: bool, forc
     return state
 
 
-def _transfer_text(info: dict, against: str) -> str:
-    if info.get("per_group"):
-        return (f"per group against {against}: {info['groups_matched']} groups matched on their own, "
-                f"{info['groups_global']} by the global map (absent from the key views)")
-    return f"one global linear map against {against}"
-
-
 def _group_maps(scene: GaussianScene, cams: Cameras, classifier, progress: bool) -> torch.Tensor:
     from ..grouping.stage import render_group_maps
 
@@ -152,6 +145,7 @@ class _Run:
     classifier: object = None
     num_groups: Optional[int] = None
     times: dict = dataclasses.field(default_factory=dict)
+    bg_styled: Optional[torch.Tensor] = None     # the stylized scene's background (Stage2Config.background)
 
     @property
     def train_cams(self) -> Cameras:
@@ -298,12 +292,19 @@ def _targets(r: _Run, kv, stylized) -> _Targets:
     return t
 
 
-def _color_transfer(r: _Run, t: _Targets, sc: GaussianScene) -> tuple[GaussianScene, dict]:
-    """ARF's colour transfer against the stylized key views (per group when grouped) or the style image."""
+def _color_transfer(r: _Run, t: _Targets, sc: GaussianScene, when: str, against: str) -> tuple[GaussianScene, dict]:
+    """ARF's colour transfer against the stylized key views (per group when grouped) or the style image;
+    with ``--background transfer`` the stylized scene's background ``r.bg_styled`` goes through its global map."""
     if t.use_keys:
-        return transfer_colors(sc, t.key_cams, t.key_images, labels=t.key_labels, target_labels=t.key_labels,
-                               assign=t.assign, num_groups=r.num_groups, max_gain=r.stage2.color_max_gain)
-    return transfer_colors(sc, r.train_cams, r.style[None].to(r.scene.dtype), max_gain=r.stage2.color_max_gain)
+        out, info = transfer_colors(sc, t.key_cams, t.key_images, labels=t.key_labels, target_labels=t.key_labels,
+                                    assign=t.assign, num_groups=r.num_groups, max_gain=r.stage2.color_max_gain)
+    else:
+        out, info = transfer_colors(sc, r.train_cams, r.style[None].to(r.scene.dtype),
+                                    max_gain=r.stage2.color_max_gain)
+    if r.stage2.background == "transfer":
+        r.bg_styled = r.bg.new_tensor(transfer_background(r.bg_styled.tolist(), info))
+    r.say(f"colour transfer ({when}): " + describe_transfer(info, against))
+    return out, info
 
 
 def _stage2_loss(r: _Run, t: _Targets, kv, content_ref: torch.Tensor):
@@ -338,25 +339,23 @@ def _stage2(r: _Run, kv, stylized) -> dict:
     t = _targets(r, kv, stylized)
     transfer: dict = {"setting": stage2.color_transfer,
                       "against": "the stylized key views" if t.use_keys else "the style image"}
-    work = r.scene
+    work, r.bg_styled = r.scene, r.bg
     if stage2.color_transfer in ("pre", "both"):
-        work, transfer["pre"] = _color_transfer(r, t, r.scene)
-        r.say("colour transfer (pre): " + _transfer_text(transfer["pre"], transfer["against"]))
-    content_ref = originals if work is r.scene else render_batched(work, r.train_cams, r.bg)
+        work, transfer["pre"] = _color_transfer(r, t, r.scene, "pre", transfer["against"])
+    content_ref = originals if work is r.scene else render_batched(work, r.train_cams, r.bg_styled)
     loss, ft_images, ft_cams, matching = _stage2_loss(r, t, kv, content_ref)
     run_cfg = stage2
     if stage2.mode == "finetune" and ft_images is None:   # no stylized key views to fit: global fallback
         run_cfg = dataclasses.replace(stage2, mode="global")
     r.say(f"Stage 2 ({stage2.mode}): {stage2.iters} steps, matching {matching}")
     res = optimise(work, r.train_cams, run_cfg, loss=loss, finetune_images=ft_images, finetune_cameras=ft_cams,
-                   background=r.bg, checkpoint=r.out / "stage2.ckpt", resume=r.resume, progress=r.progress,
+                   background=r.bg_styled, checkpoint=r.out / "stage2.ckpt", resume=r.resume, progress=r.progress,
                    group=r.group)
     if not r.group.is_main:   # the others only helped with the optimisation
         return {}
     styled = res.scene
     if stage2.color_transfer in ("post", "both"):
-        styled, transfer["post"] = _color_transfer(r, t, styled)
-        r.say("colour transfer (post): " + _transfer_text(transfer["post"], transfer["against"]))
+        styled, transfer["post"] = _color_transfer(r, t, styled, "post", transfer["against"])
     r.times["stage2"] = time.perf_counter() - t0
     r.times["stage2_optimisation"] = res.seconds
     write_ply(r.out / "scene.ply", styled)
@@ -372,7 +371,7 @@ def _renders(r: _Run, styled: GaussianScene) -> torch.Tensor:
     from ..core.fileio import write_image
 
     t0, train_cams = time.perf_counter(), r.train_cams
-    renders = render_batched(styled, train_cams, r.bg, desc="train renders" if r.progress else None)
+    renders = render_batched(styled, train_cams, r.bg_styled, desc="train renders" if r.progress else None)
     for i, img in enumerate(renders):
         write_image(r.out / "renders" / "train" / f"{Path(train_cams.names[i]).stem}.png", img.clamp(0, 1))
     if r.opts.path_frames > 0:
@@ -381,7 +380,7 @@ def _renders(r: _Run, styled: GaussianScene) -> torch.Tensor:
         path = smooth_path(train_cams, r.opts.path_frames).to(r.device)
         for s in tqdm(range(len(path)), desc="path renders", disable=not r.progress, leave=False):
             with torch.no_grad():
-                frame = render_rgb(styled, path[[s]], r.bg)[0]
+                frame = render_rgb(styled, path[[s]], r.bg_styled)[0]
             write_image(r.out / "renders" / "path" / f"frame_{s:04d}.png", frame.clamp(0, 1))
     r.times["renders"] = time.perf_counter() - t0
     return renders
@@ -426,14 +425,12 @@ def _metrics(r: _Run, s2: dict, renders: torch.Tensor, kv, stage1_info: dict, t_
         "gram_style_loss": scores["gram_style_loss"], "gram_style_loss_original": scores["gram_style_loss_original"],
         "style_distance": scores["style_distance"], "style_distance_original": scores["style_distance_original"],
         "metric_views": f"the {len(train_ids)} training views (ssgwarp evaluate scores novel path views)",
-        "content_loss": scores["content_loss"],
-        "color_transfer": s2["transfer"],
-        "final_losses": s2["result"].last,
+        "content_loss": scores["content_loss"], "color_transfer": s2["transfer"], "final_losses": s2["result"].last,
         "keyviews": None if kv is None else {"ids": list(kv.ids), "names": list(kv.cameras.names),
                                               "size": list(kv.size)},
+        "background": [float(v) for v in r.bg_styled],
         "groups": r.num_groups, "gaussians": len(styled), "views": len(train_ids),
-        "resolution": [r.cams.width, r.cams.height],
-        "optimised": trainable_names(stage2, r.scene),
+        "resolution": [r.cams.width, r.cams.height], "optimised": trainable_names(stage2, r.scene),
         "config": asdict(stage2),
         **batch_record(s2["result"]),
         "seconds": r.times,
@@ -543,6 +540,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"higher SH bands (view-dependent colour): keep, zero at the start, or optimise "
                         f"(default {d.sh_rest})")
     g.add_argument("--sh-bands", action="store_true", help="same as --sh-rest optimise")
+    g.add_argument("--background", default=d.background, choices=BACKGROUNDS, help="the stylized scene's background: "
+                   "transfer (default: the capture's, colour-transferred like the scene) or keep (the capture's)")
     g.add_argument("--free-opacity", action="store_true", help="also optimise opacities")
     g.add_argument("--label-mode", default=d.label_mode, choices=("majority", "nearest"),
                    help="group maps to feature resolution (default majority)")
@@ -578,7 +577,7 @@ def run(args) -> int:
                       style_loss=args.style_loss, sw_projections=args.sw_projections,
                       color_transfer=args.color_transfer, color_max_gain=args.color_max_gain,
                       sh_rest="optimise" if args.sh_bands else args.sh_rest,
-                      free_opacity=args.free_opacity, label_mode=args.label_mode,
+                      free_opacity=args.free_opacity, background=args.background, label_mode=args.label_mode,
                       feature_scale=args.feature_scale, deferred=not args.direct, chunk=args.chunk,
                       nn_precision=args.nn_precision,
                       checkpoint_every=args.checkpoint_every, seed=args.seed,
