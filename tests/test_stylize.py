@@ -658,3 +658,32 @@ def test_background_is_recoloured_with_the_scene_and_evaluated_on(tmp_path):
     sc, sk = ev["style_content"], ev_keep["style_content"]
     assert sc["style_distance_color_original"] == pytest.approx(sk["style_distance_color_original"], rel=1e-9)
     assert sc["style_distance_texture_original"] == pytest.approx(sk["style_distance_texture_original"], rel=1e-9)
+
+
+def test_colour_transfer_matches_the_style_as_the_loss_and_the_distance_see_it(tmp_path, monkeypatch):
+    """Against the style image, the colour statistics are those of the style resized to the views
+    (:func:`fit_style`, as the style loss and the style distance take it), not of the full-size file:
+    a style of 1-pixel black and white lines, which at the views' size is a mid grey, must not get the
+    scene stretched to black and white (docs/stylize.md: the demo's line-art styles)."""
+    import ssgwarp.stylization.stylize as stylize_mod
+    from ssgwarp.core.fileio import write_image
+    from ssgwarp.core.imaging import fit_style
+
+    run, _ = _write_run(tmp_path, grouped=False)
+    lines = torch.zeros(256, 256, 3)
+    lines[::2] = 1.0                                              # 1-pixel lines: variance 0.25 at full size
+    write_image(tmp_path / "lines.png", lines)
+    seen = []
+    real = stylize_mod.transfer_colors
+    monkeypatch.setattr(stylize_mod, "transfer_colors", lambda sc, cams, target, **kw: seen.append(target) or
+                        real(sc, cams, target, **kw))
+    st.stylize_run(run, tmp_path / "lines.png", tmp_path / "o", device="cpu", progress=False,
+                   opts=st.StylizeOptions(path_frames=0, sheet_views=1),
+                   stage2=st.Stage2Config(mode="global", iters=2, checkpoint_every=1000))
+    assert len(seen) == 2                                         # before and after the optimisation
+    cams = Cameras.load(run / "cameras.json")
+    want = fit_style(lines, cams.height, cams.width).permute(0, 2, 3, 1)
+    for target in seen:
+        assert target.shape == want.shape and min(target.shape[1:3]) == min(cams.height, cams.width)
+        torch.testing.assert_close(target.float(), want, atol=2e-3, rtol=0)   # (8-bit file)
+        assert float(target.var()) < 0.02                         # grey at that size, not 0.25

@@ -21,7 +21,7 @@ import torch
 
 from ..core.cameras import Cameras
 from ..errors import InputError, WeightsNotFound
-from ..core.imaging import contact_sheet, plot_losses  # noqa: F401  (contact_sheet re-exported)
+from ..core.imaging import contact_sheet, fit_style, plot_losses  # noqa: F401  (contact_sheet re-exported)
 from ..raster.scene import GaussianScene
 from .stage2 import (  # noqa: F401  (re-exported: the public Stage 2 API lives in ssgwarp.stylization.stage2)
     BACKGROUNDS, COLOR_TRANSFER, MODES, SH_REST, STYLE_LOSSES, TV_WEIGHT_FREE, TV_WEIGHT_VGG, Stage2Config,
@@ -299,8 +299,8 @@ def _color_transfer(r: _Run, t: _Targets, sc: GaussianScene, when: str, against:
         out, info = transfer_colors(sc, t.key_cams, t.key_images, labels=t.key_labels, target_labels=t.key_labels,
                                     assign=t.assign, num_groups=r.num_groups, max_gain=r.stage2.color_max_gain)
     else:
-        out, info = transfer_colors(sc, r.train_cams, r.style[None].to(r.scene.dtype),
-                                    max_gain=r.stage2.color_max_gain)
+        style = fit_style(r.style.to(r.scene.dtype), r.cams.height, r.cams.width).permute(0, 2, 3, 1)
+        out, info = transfer_colors(sc, r.train_cams, style, max_gain=r.stage2.color_max_gain)
     if r.stage2.background == "transfer":
         r.bg_styled = r.bg.new_tensor(transfer_background(r.bg_styled.tolist(), info))
     r.say(f"colour transfer ({when}): " + describe_transfer(info, against))
@@ -309,7 +309,6 @@ def _color_transfer(r: _Run, t: _Targets, sc: GaussianScene, when: str, against:
 
 def _stage2_loss(r: _Run, t: _Targets, kv, content_ref: torch.Tensor):
     """``(ViewLoss or None, finetune images, finetune cameras, the matching's description)``."""
-    from ..core.imaging import fit_style
 
     stage2 = r.stage2
     if t.use_keys and stage2.mode == "finetune":
