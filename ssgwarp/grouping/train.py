@@ -16,6 +16,7 @@ import torch
 from ..core.cameras import Cameras
 from ..errors import InputError
 from ..core.fileio import atomic_path
+from ..core.optim import adam
 from ..services.loop import Loop, check_finite
 from .model import GroupConfig, init_identities, make_classifier, mask_loss, neighbour_table, regularizer_3d
 from ..raster.scene import GaussianScene
@@ -24,7 +25,7 @@ Tensor = torch.Tensor
 
 
 def _adam(identities: Tensor, classifier: torch.nn.Linear, config: GroupConfig) -> torch.optim.Adam:
-    return torch.optim.Adam([
+    return adam([
         {"params": [identities], "lr": config.identity_lr, "name": "identities"},
         {"params": list(classifier.parameters()), "lr": config.classifier_lr, "name": "classifier"},
     ])
