@@ -151,6 +151,11 @@ class _Run:
     def train_cams(self) -> Cameras:
         return self.cams[self.train_ids]
 
+    @property
+    def style_at_views(self) -> torch.Tensor:
+        """The style ``[1, H, W, 3]`` as the style loss and the colour transfer take it (:func:`fit_style`)."""
+        return fit_style(self.style.to(self.scene.dtype), self.cams.height, self.cams.width).permute(0, 2, 3, 1)
+
     def say(self, msg: str) -> None:
         _say(msg, self.progress)
 
@@ -299,8 +304,7 @@ def _color_transfer(r: _Run, t: _Targets, sc: GaussianScene, when: str, against:
         out, info = transfer_colors(sc, t.key_cams, t.key_images, labels=t.key_labels, target_labels=t.key_labels,
                                     assign=t.assign, num_groups=r.num_groups, max_gain=r.stage2.color_max_gain)
     else:
-        style = fit_style(r.style.to(r.scene.dtype), r.cams.height, r.cams.width).permute(0, 2, 3, 1)
-        out, info = transfer_colors(sc, r.train_cams, style, max_gain=r.stage2.color_max_gain)
+        out, info = transfer_colors(sc, r.train_cams, r.style_at_views, max_gain=r.stage2.color_max_gain)
     if r.stage2.background == "transfer":
         r.bg_styled = r.bg.new_tensor(transfer_background(r.bg_styled.tolist(), info))
     r.say(f"colour transfer ({when}): " + describe_transfer(info, against))
@@ -309,7 +313,6 @@ def _color_transfer(r: _Run, t: _Targets, sc: GaussianScene, when: str, against:
 
 def _stage2_loss(r: _Run, t: _Targets, kv, content_ref: torch.Tensor):
     """``(ViewLoss or None, finetune images, finetune cameras, the matching's description)``."""
-
     stage2 = r.stage2
     if t.use_keys and stage2.mode == "finetune":
         return None, t.key_images, t.key_cams, "none (fine-tuned on the stylized key views)"
@@ -320,8 +323,7 @@ def _stage2_loss(r: _Run, t: _Targets, kv, content_ref: torch.Tensor):
                     if r.classifier is not None else f"global against {len(kv)} stylized key views (no groups)")
         return ViewLoss(r.extractor, targets, stage2, view_labels=view_labels, originals=content_ref), \
             None, None, matching
-    style = fit_style(r.style.to(r.scene.dtype), r.cams.height, r.cams.width).permute(0, 2, 3, 1)
-    targets = build_targets(r.extractor, style, None, stage2)
+    targets = build_targets(r.extractor, r.style_at_views, None, stage2)
     matching = "global against the style image"
     if stage2.mode != "global":
         matching += f" (Stage 1 did not run: requested mode '{stage2.mode}' fell back)"
