@@ -30,6 +30,7 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from ssgwarp.services.features import EXTRACTOR_KINDS  # noqa: E402
 sys.path.insert(0, str(ROOT / "tests"))   # fakeweights: random-weight Stage 1 models
 DATA = ROOT.parent / "shared" / "data"
 
@@ -87,7 +88,7 @@ def main() -> int:
     p.add_argument("--modes", default="ist", help="comma-separated Stage 2 modes (ist,global,finetune)")
     p.add_argument("--iters", type=int, default=None, help="Stage 2 steps (default: the CLI default)")
     p.add_argument("--keyviews", type=int, default=4)
-    p.add_argument("--extractor", default="auto", choices=("auto", "vgg16", "random"))
+    p.add_argument("--extractor", default="auto", choices=EXTRACTOR_KINDS)
     p.add_argument("--path-frames", type=int, default=30)
     p.add_argument("--random-stage1", choices=("tiny", "sd15"), default=None,
                    help="run Stage 1 on randomly initialised models of this size (timing only)")

@@ -39,6 +39,7 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from ssgwarp.services.features import EXTRACTOR_KINDS  # noqa: E402
 DATA = ROOT.parent / "shared" / "data"
 if not DATA.is_dir():
     DATA = Path("/work/shared/data")
@@ -78,7 +79,8 @@ def stage2_config(args, **over):
     from ssgwarp.stylization.stylize import Stage2Config
 
     kw = {}
-    for k in ("iters", "lr", "content_weight", "tv_weight", "color_transfer", "sh_rest", "background"):
+    for k in ("iters", "lr", "content_weight", "tv_weight", "color_transfer", "color_max_gain", "sh_rest",
+              "background"):
         v = getattr(args, k)
         if v is not None:
             kw[k] = v
@@ -236,7 +238,7 @@ def main() -> int:
     p.add_argument("--fern", type=Path, default=DATA / "llff_fern", help="the LLFF fern capture (--scene fern)")
     p.add_argument("--demo-size", default="default", choices=("small", "default"),
                    help="demo scene size (--scene demo; small: the tests' scene, for a CPU check)")
-    p.add_argument("--extractor", default="auto", choices=("auto", "vgg16", "random"))
+    p.add_argument("--extractor", default="auto", choices=EXTRACTOR_KINDS)
     p.add_argument("--path-frames", type=int, default=30, help="novel path views scored by evaluate")
     p.add_argument("--ablation", action="store_true", help="the Stage 2 ablation table on a few styles")
     p.add_argument("--ablation-rows", default=None,
@@ -249,6 +251,7 @@ def main() -> int:
     g.add_argument("--content-weight", type=float, default=None)
     g.add_argument("--tv-weight", type=float, default=None)
     g.add_argument("--color-transfer", default=None)
+    g.add_argument("--color-max-gain", type=float, default=None)
     g.add_argument("--sh-rest", default=None)
     g.add_argument("--background", default=None, choices=("transfer", "keep"))
     args = p.parse_args()

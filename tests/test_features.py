@@ -92,6 +92,31 @@ def test_random_extractor_deterministic_for_seed_and_differentiable():
     assert x.grad is not None and x.grad.abs().sum() > 0
 
 
+def test_edges_extractor_sees_edges_not_colour():
+    """``edges=True`` (``--extractor random-edges``): first-layer filters with no mean over the window,
+    norms kept, so every flat colour gives the same features, while an edge still responds."""
+    from ssgwarp.services.features import zero_mean_filters
+
+    w = torch.randn(8, 3, 3, 3, generator=torch.Generator().manual_seed(0))
+    z = zero_mean_filters(w)
+    torch.testing.assert_close(z.mean(dim=(2, 3)), torch.zeros(8, 3), atol=1e-6, rtol=0)
+    torch.testing.assert_close(z.flatten(1).norm(dim=1), w.flatten(1).norm(dim=1))
+    plain, edges = RandomMultiScale(seed=0), RandomMultiScale(seed=0, edges=True)
+    assert edges.name == "random-multiscale:seed0,c128s2,edges" and plain.name == "random-multiscale:seed0,c128s2"
+    assert load_extractor(kind="random-edges").name == edges.name
+    red, blue = torch.zeros(1, 3, 32, 32), torch.zeros(1, 3, 32, 32)
+    red[:, 0], blue[:, 2] = 0.9, 0.6
+    for a, b in zip(edges(red), edges(blue)):        # two flat colours: the same features
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=0)
+    assert not torch.allclose(plain(red)[0], plain(blue)[0], atol=1e-3)   # the plain extractor sees colour
+    step = red.clone()
+    step[..., 16:] = blue[..., 16:]
+    f = edges(step)[0]
+    assert (f[..., 8] - f[..., 2]).abs().max() > 0.05    # the edge (feature column 8 = pixel 16) responds
+    with pytest.raises(InputError, match="random-edges"):
+        load_extractor(kind="edges")
+
+
 def test_gram_loss_hand_computed():
     f = torch.tensor([[[[1.0, 2.0], [0.0, 1.0]], [[0.0, 1.0], [1.0, 1.0]]]])  # [1,2,2,2]
     g = gram_matrix(f)

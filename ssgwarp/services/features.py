@@ -194,6 +194,13 @@ class VGG16Features(FeatureExtractor):
         return out
 
 
+def zero_mean_filters(w: torch.Tensor) -> torch.Tensor:
+    """Conv filters ``w [out, in, k, k]`` with each ``k x k`` window's mean removed, rescaled to their norm."""
+    z = w - w.mean(dim=(2, 3), keepdim=True)
+    scale = w.flatten(1).norm(dim=1) / z.flatten(1).norm(dim=1).clamp_min(1e-12)
+    return z * scale[:, None, None, None]
+
+
 class RandomMultiScale(FeatureExtractor):
     """Seeded random shallow multi-scale conv features (weight-free; see module docs).
 
@@ -205,10 +212,16 @@ class RandomMultiScale(FeatureExtractor):
     The defaults (128 channels, stride 2) were chosen by measurement for the sliced Wasserstein
     style loss (docs/stylize.md); ``RandomMultiScale(channels=64, stride=4)`` is the extractor of
     earlier versions.
+
+    ``edges=True`` (``--extractor random-edges``, name suffix ``,edges``): each first-layer filter
+    has its mean over the 3x3 window removed per input channel (its norm kept), so a flat colour
+    gives the same response everywhere and the features follow edges and texture, not the colour
+    itself (which the colour transfer matches). Measured (docs/stylize.md): much more texture,
+    at a higher consistency error.
     """
 
     def __init__(self, seed: int = 0, channels: int = 128, scales: Sequence[int] = (1, 2, 4),
-                 normalize: bool = True, stride: int = 2) -> None:
+                 normalize: bool = True, stride: int = 2, edges: bool = False) -> None:
         super().__init__()
         if channels < 2 or stride < 1 or not scales:
             raise InputError(f"RandomMultiScale: channels >= 2, stride >= 1 and scales needed "
@@ -224,12 +237,18 @@ class RandomMultiScale(FeatureExtractor):
                 with torch.no_grad():
                     c.weight.copy_(torch.randn(c.weight.shape, generator=g) * (2.0 / fan_in) ** 0.5)
                     c.bias.copy_(torch.randn(c.bias.shape, generator=g) * 0.05)
+            if edges:
+                with torch.no_grad():
+                    c1.weight.copy_(zero_mean_filters(c1.weight))
             self.branches.append(nn.Sequential(c1, nn.ReLU(), c2, nn.ReLU()))
         self.normalize = _Normalize() if normalize else None
         parts = [f"seed{self.seed}"]
         if (channels, self.out_stride, self.scales) != (64, 4, (1, 2, 4)):
             parts.append(f"c{channels}s{self.out_stride}"
                          + ("" if self.scales == (1, 2, 4) else "p" + "-".join(map(str, self.scales))))
+        if edges:
+            parts.append("edges")
+        self.edges = bool(edges)
         self.name = "random-multiscale:" + ",".join(parts)
         self.strides = [self.out_stride] * len(self.scales)
 
@@ -246,6 +265,9 @@ class RandomMultiScale(FeatureExtractor):
         return out
 
 
+EXTRACTOR_KINDS = ("auto", "vgg16", "random", "random-edges")
+
+
 def load_extractor(vgg_weights: Optional[str | os.PathLike] = None, device: torch.device | str = "cpu",
                    layers: Optional[Sequence[LayerSpec]] = None, *, kind: str = "auto", seed: int = 0,
                    config: Optional[dict] = None, normalize: bool = True) -> FeatureExtractor:
@@ -256,13 +278,14 @@ def load_extractor(vgg_weights: Optional[str | os.PathLike] = None, device: torc
     ``$SSGWARP_WEIGHTS``, the torch hub cache, else a download unless downloads
     are off — else the random extractor; a failed download says so in one line),
     ``"vgg16"`` (weights required: raises :class:`~ssgwarp.errors.WeightsNotFound`
-    otherwise) or ``"random"``. ``layers`` applies to VGG16 (default the conv3
-    block); ``seed`` to the random extractor.
+    otherwise), ``"random"`` or ``"random-edges"`` (:class:`RandomMultiScale` with
+    ``edges=True``). ``layers`` applies to VGG16 (default the conv3 block); ``seed`` to the
+    random extractor.
     """
     from . import weights
 
-    if kind not in ("auto", "vgg16", "random"):
-        raise InputError(f"feature extractor kind '{kind}': use auto, vgg16 or random")
+    if kind not in EXTRACTOR_KINDS:
+        raise InputError(f"feature extractor kind '{kind}': use {', '.join(EXTRACTOR_KINDS)}")
     path = None
     if kind == "vgg16":
         path = weights.require("vgg16", vgg_weights, config)
@@ -280,7 +303,7 @@ def load_extractor(vgg_weights: Optional[str | os.PathLike] = None, device: torc
             raise weights.load_error("vgg16", path, e, "VGG16 state dict") from None
         ext.load_torchvision(state)
     else:
-        ext = RandomMultiScale(seed=seed, normalize=normalize)
+        ext = RandomMultiScale(seed=seed, normalize=normalize, edges=kind == "random-edges")
     return ext.freeze().to(device)
 
 

@@ -23,6 +23,7 @@ from ..core.cameras import Cameras
 from ..errors import InputError, WeightsNotFound
 from ..core.imaging import contact_sheet, fit_style, plot_losses  # noqa: F401  (contact_sheet re-exported)
 from ..raster.scene import GaussianScene
+from ..services.features import EXTRACTOR_KINDS
 from .stage2 import (  # noqa: F401  (re-exported: the public Stage 2 API lives in ssgwarp.stylization.stage2)
     BACKGROUNDS, COLOR_TRANSFER, MODES, SH_REST, STYLE_LOSSES, TV_WEIGHT_FREE, TV_WEIGHT_VGG, Stage2Config,
     Stage2Result, ViewLoss, build_targets, deferred_backward, direct_backward, extract, finetune_loss, optimise,
@@ -512,7 +513,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--ids", default=None, help="comma-separated camera indices of the key views (default: chosen)")
     g.add_argument("--max-side", type=int, default=512, help="key-view (diffusion) longer side (default 512)")
     from .diffusion import add_stage1_arguments
-
     add_stage1_arguments(p)
     d = Stage2Config()
     g = p.add_argument_group("Stage 2 (instance-level style transfer)")
@@ -558,8 +558,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "process; on --resume the checkpoint's); under torchrun each process renders its share")
     g.add_argument("--batch-scaling", choices=("sqrt", "linear", "none"), default=d.batch_scaling,
                    help="Adam for batches: learning rates x sqrt(B) (default) or x B with betas ** B, or none")
-    g.add_argument("--extractor", default="auto", choices=("auto", "vgg16", "random"),
-                   help="features: auto = VGG16 when local weights exist, else seeded random multi-scale")
+    g.add_argument("--extractor", default="auto", choices=EXTRACTOR_KINDS, help="features: auto = VGG16 when "
+                   "weights are found, else seeded random multi-scale; random-edges: more texture, less consistent")
     g.add_argument("--vgg16", default=None, help="torchvision VGG16 state dict (or SSGWARP_VGG16)")
     g.add_argument("--layers", default=None, help="VGG16 layers, comma separated (default conv3 = relu3_1..3)")
     g = p.add_argument_group("outputs")
