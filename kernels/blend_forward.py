@@ -16,6 +16,10 @@ The pixel's alpha is the sum of the blending weights (equal to ``1 - T`` in
 exact arithmetic, but exact to the last bit for faint pixels where ``1 - T``
 cancels). Outputs what the backward needs: the final transmittance and the
 position of the last blended Gaussian in the sorted list.
+
+``first``: the thread index of this launch's first thread (0 for a whole image; on the CPU a
+launch may cover a run of whole tiles, ``first`` a multiple of ``tile_size^2``, so that several
+launches run side by side on the CPU's cores: ``ssgwarp.raster.cpu_threads``).
 """
 
 import functools
@@ -81,8 +85,9 @@ def forward_kernel(scalar, channels: int, fast_math: bool = False):
         out_T: wp.array(dtype=scalar),
         out_alpha: wp.array(dtype=scalar),
         last_ids: wp.array(dtype=wp.int32),
+        first: int,
     ):
-        p = tile_pixel(wp.tid(), tile_size, tile_width, tile_height)
+        p = tile_pixel(wp.tid() + first, tile_size, tile_width, tile_height)
         rng = p[0]
         cam = p[1]
         x = p[2]
