@@ -419,11 +419,12 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
 # blending
 # ---------------------------------------------------------------------------------------------
 def pack_splats(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, flatten_ids: Tensor,
-                packed: Tensor | None = None):
+                packed: Tensor | None = None, threads: int = 1):
     """Per sorted intersection, contiguous in the order the blending kernels walk them:
     ``splats [M, 6]`` (x, y, conic a, b, c, opacity) and ``colors [M, D]`` (one gather kernel;
     ``colors`` is ``[C, N, D]`` or, the same for every camera, ``[N, D]``; ``packed [C, N, 6]``:
-    the projection's packed splats, read instead of the three arrays)."""
+    the projection's packed splats, read instead of the three arrays). ``threads`` (CPU): launches over
+    equal runs of the intersections side by side (:mod:`.cpu_threads`)."""
     M, D = flatten_ids.shape[0], colors.shape[-1]
     dt = means2d.dtype
     s = _scalar(dt)
@@ -434,9 +435,12 @@ def pack_splats(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tens
     else:  # (the three arrays are not read)
         gauss = [*NULL, *NULL, *NULL]
     ids, cs = _c(flatten_ids), _c(colors)
-    L.launch(blend_forward.pack_kernel(s, D), M,
-             [*arr(ids), *(NULL if packed is None else arr(packed, 6)), *gauss, *arr(cs, D), *arr(splats, 6),
-              *arr(cols, D)], L.target(means2d))
+    kern = blend_forward.pack_kernel(s, D)
+    head = [*arr(ids), *(NULL if packed is None else arr(packed, 6)), *gauss, *arr(cs, D), *arr(splats, 6),
+            *arr(cols, D)]
+    tg = L.target(means2d)
+    cuts = [M * i // threads for i in range(threads + 1)] if tg.cpu and threads > 1 else [0, M]
+    cpu_threads.run([partial(L.launch, kern, b - a, head + [a], tg) for a, b in zip(cuts[:-1], cuts[1:])])
     return splats, cols
 
 
@@ -456,12 +460,12 @@ class _Blend(torch.autograd.Function):
         out_T = torch.empty(C, height, width, dtype=dt, device=dev)
         last = torch.empty(C, height, width, dtype=torch.int32, device=dev)
         bg = _c(backgrounds) if backgrounds is not None else None
-        splats, cols = pack_splats(means2d, conics, opacities, colors, tiles["flatten_ids"], packed)
+        # on the CPU, runs of whole tiles on several threads (cpu_threads.py); else one launch
+        parts = _tile_parts(tg, settings, tiles, C * th * tw, tile_size)
+        splats, cols = pack_splats(means2d, conics, opacities, colors, tiles["flatten_ids"], packed, len(parts))
         a_splats, a_cols, a_bg, a_offsets = arr(splats, 6), arr(cols, D), NULL if bg is None else arr(bg, D), \
             arr(tiles["offsets"])
         a_T, a_last = arr(out_T), arr(last)
-        # on the CPU, runs of whole tiles on several threads (cpu_threads.py); else one launch
-        parts = _tile_parts(tg, settings, tiles, C * th * tw, tile_size)
         kern = blend_forward.forward_kernel(s, D, _fast(settings, s))
         head = [*a_splats, *a_cols, *a_bg, *a_offsets, width, height, tile_size, tw, th, settings.alpha_min,
                 settings.alpha_max, settings.t_min, *arr(out, D), *a_T, *arr(out_alpha), *a_last]
