@@ -8,9 +8,9 @@ Cases (random scenes sized like the project's CPU runs; tile size 8, the CPU def
 - ``demo-group`` / ``demo-rgb``: 6,000 Gaussians, 96x72 (``ssgwarp demo``'s default size).
 
 Per case and thread count: the median wall time of ``--repeats`` calls of one forward (no
-gradients) and of one forward+backward, and the process CPU time of the same calls (on a shared
-machine the wall time of several threads depends on what else runs; the CPU time shows the work
-done). ``--sweep`` times small images at 1 and 2 threads with the work threshold off, to place
+gradients) and of one forward+backward, the process CPU time of the same calls (the work done) and
+their critical path (:class:`CriticalPath`: on a shared machine the wall time of several threads
+depends on what else runs; the critical path estimates it with a free core per thread). ``--sweep`` times small images at 1 and 2 threads with the work threshold off, to place
 ``cpu_threads.MIN_WORK`` (the break-even).
 
     python benchmarks/cpu_threads.py                        # all cases, 1 and 2 threads
@@ -31,9 +31,9 @@ import sys
 import time
 from pathlib import Path
 
-import torch
-
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+import ssgwarp  # noqa: E402,F401  (before torch, as the CLI: its OpenMP wait policy, ssgwarp/__init__.py)
+import torch  # noqa: E402
 import ssgwarp.raster.cpu_threads as CT  # noqa: E402
 from ssgwarp import RasterSettings, rasterization  # noqa: E402
 
@@ -45,7 +45,8 @@ CASES = {
     "demo-rgb": (6_000, 96, 72, 3, True),
 }
 # (Gaussians, width, height): small scenes around the break-even
-SWEEP = [(50, 16, 16), (200, 32, 24), (500, 48, 36), (1000, 64, 48), (3000, 96, 72), (6000, 128, 96)]
+SWEEP = [(50, 16, 16), (100, 24, 16), (150, 24, 24), (200, 32, 24), (500, 48, 36), (1000, 64, 48), (3000, 96, 72),
+         (6000, 128, 96)]
 
 
 def scene(n: int, w: int, h: int, channels: int, seed: int = 0):
@@ -87,16 +88,48 @@ def closures(params, vm, K, w, h, geometry: bool, settings: RasterSettings, dete
     return fwd, fwd_bwd
 
 
-def timed(fn, repeats: int) -> tuple[float, float]:
-    """Median (wall ms, process CPU ms) of ``repeats`` calls after one warm-up call."""
+class CriticalPath:
+    """Wraps ``cpu_threads.run`` to time each of its calls in its own thread's CPU time, so that a call's
+    critical path (the calling thread's CPU time, plus for every split launch how much longer its slowest
+    other run took than the calling thread's own) estimates the wall time with a free core per thread on a
+    machine that other jobs keep busy (an estimate: the pool's wake-up latency is not in it)."""
+
+    def __init__(self):
+        self.extra = 0.0
+        self.run = CT.run
+
+    def __enter__(self):
+        def run(calls):
+            times = [0.0] * len(calls)
+
+            def timed_call(i, c):
+                def f():
+                    t0 = time.thread_time()
+                    c()
+                    times[i] = time.thread_time() - t0
+                return f
+            self.run([timed_call(i, c) for i, c in enumerate(calls)])
+            self.extra += max(0.0, max(times) - times[0])
+        CT.run = run
+        return self
+
+    def __exit__(self, *exc):
+        CT.run = self.run
+
+
+def timed(fn, repeats: int) -> tuple[float, float, float]:
+    """Median (wall ms, process CPU ms, critical path ms) of ``repeats`` calls after a warm-up call."""
     fn()
-    wall, cpu = [], []
-    for _ in range(repeats):
-        w0, c0 = time.perf_counter(), time.process_time()
-        fn()
-        wall.append(time.perf_counter() - w0)
-        cpu.append(time.process_time() - c0)
-    return 1e3 * statistics.median(wall), 1e3 * statistics.median(cpu)
+    wall, cpu, crit = [], [], []
+    with CriticalPath() as cp:
+        for _ in range(repeats):
+            cp.extra = 0.0
+            w0, c0, t0 = time.perf_counter(), time.process_time(), time.thread_time()
+            fn()
+            wall.append(time.perf_counter() - w0)
+            cpu.append(time.process_time() - c0)
+            crit.append(time.thread_time() - t0 + cp.extra)
+    return 1e3 * statistics.median(wall), 1e3 * statistics.median(cpu), 1e3 * statistics.median(crit)
 
 
 def run_cases(names, threads, repeats, deterministic=False) -> list[dict]:
@@ -107,14 +140,15 @@ def run_cases(names, threads, repeats, deterministic=False) -> list[dict]:
         for t in threads:
             st = RasterSettings(cpu_threads=t)
             fwd, fwd_bwd = closures(params, vm, K, w, h, geometry, st, deterministic)
-            f_wall, f_cpu = timed(fwd, repeats)
-            fb_wall, fb_cpu = timed(fwd_bwd, repeats)
+            f_wall, f_cpu, f_crit = timed(fwd, repeats)
+            fb_wall, fb_cpu, fb_crit = timed(fwd_bwd, repeats)
             meta = fwd_bwd()
             used = CT.count(t, -(-w // 8) * -(-h // 8), int(meta["flatten_ids"].numel()), 64)
             rows.append({"case": name, "gaussians": n, "image": f"{w}x{h}", "channels": ch,
                          "backward": "full" if geometry else "colour-only", "threads": t, "threads_used": used,
                          "intersections": int(meta["flatten_ids"].numel()),
-                         "fwd_ms": f_wall, "fwd_cpu_ms": f_cpu, "fwd_bwd_ms": fb_wall, "fwd_bwd_cpu_ms": fb_cpu})
+                         "fwd_ms": f_wall, "fwd_cpu_ms": f_cpu, "fwd_crit_ms": f_crit, "fwd_bwd_ms": fb_wall,
+                         "fwd_bwd_cpu_ms": fb_cpu, "fwd_bwd_crit_ms": fb_crit})
             print(f"  {name} threads {t}: fwd {f_wall:.1f} ms, fwd+bwd {fb_wall:.1f} ms", file=sys.stderr, flush=True)
     return rows
 
@@ -129,13 +163,15 @@ def run_sweep(repeats) -> list[dict]:
             res = {}
             for t in (1, 2):
                 fwd, fwd_bwd = closures(params, vm, K, w, h, True, RasterSettings(cpu_threads=t))
-                res[t] = timed(fwd_bwd, repeats)[0]
+                res[t] = timed(fwd_bwd, repeats)
             meta = fwd_bwd()
             m = int(meta["flatten_ids"].numel())
             tiles = -(-w // 8) * -(-h // 8)
             rows.append({"gaussians": n, "image": f"{w}x{h}", "tiles": tiles, "intersections": m,
-                         "work": (m + CT.TILE_COST * tiles) * 64, "fwd_bwd_ms_1": res[1], "fwd_bwd_ms_2": res[2]})
-            print(f"  sweep {w}x{h}: {res[1]:.2f} / {res[2]:.2f} ms", file=sys.stderr, flush=True)
+                         "work": (m + CT.TILE_COST * tiles) * 64, "fwd_bwd_ms_1": res[1][0], "fwd_bwd_ms_2": res[2][0],
+                         "fwd_bwd_cpu_ms_1": res[1][1], "fwd_bwd_cpu_ms_2": res[2][1],
+                         "fwd_bwd_crit_ms_1": res[1][2], "fwd_bwd_crit_ms_2": res[2][2]})
+            print(f"  sweep {w}x{h}: {res[1][0]:.2f} / {res[2][0]:.2f} ms", file=sys.stderr, flush=True)
     finally:
         CT.MIN_WORK = saved
     return rows
@@ -163,23 +199,26 @@ def main() -> None:
     rows = run_cases(args.cases, args.threads, args.repeats, args.deterministic)
     print(f"\n{info['date']}, {info['machine']}; median of {args.repeats}"
           f"{', deterministic backward' if args.deterministic else ''}\n")
-    print("| case | Gaussians | image | channels | backward | intersections | threads | fwd ms (CPU ms) "
-          "| fwd+bwd ms (CPU ms) | fwd+bwd speed-up |")
+    print("| case | Gaussians | image | channels | backward | intersections | threads | fwd ms wall / CPU / path "
+          "| fwd+bwd ms wall / CPU / path | fwd+bwd speed-up wall / path |")
     print("|---|---:|---|---:|---|---:|---:|---:|---:|---:|")
     base = {}
     for r in rows:
-        base.setdefault(r["case"], r["fwd_bwd_ms"])
+        b = base.setdefault(r["case"], r)
         print(f"| {r['case']} | {r['gaussians']:,} | {r['image']} | {r['channels']} | {r['backward']} | "
-              f"{r['intersections']:,} | {r['threads']} | {r['fwd_ms']:.1f} ({r['fwd_cpu_ms']:.1f}) | "
-              f"{r['fwd_bwd_ms']:.1f} ({r['fwd_bwd_cpu_ms']:.1f}) | {base[r['case']] / r['fwd_bwd_ms']:.2f}x |")
+              f"{r['intersections']:,} | {r['threads']} | {r['fwd_ms']:.1f} / {r['fwd_cpu_ms']:.1f} / "
+              f"{r['fwd_crit_ms']:.1f} | {r['fwd_bwd_ms']:.1f} / {r['fwd_bwd_cpu_ms']:.1f} / {r['fwd_bwd_crit_ms']:.1f} | "
+              f"{b['fwd_bwd_ms'] / r['fwd_bwd_ms']:.2f}x / {b['fwd_bwd_crit_ms'] / r['fwd_bwd_crit_ms']:.2f}x |")
     sweep = run_sweep(args.repeats) if args.sweep else []
     if sweep:
         print("\nBreak-even (forward+backward, 3 channels, split whatever the size):\n")
-        print("| image | Gaussians | tiles | intersections | work (pixel-intersections) | 1 thread ms | 2 threads ms |")
+        print("| image | Gaussians | tiles | intersections | work (pixel-intersections) | 1 thread ms wall / CPU "
+              "| 2 threads ms wall / CPU / path |")
         print("|---|---:|---:|---:|---:|---:|---:|")
         for r in sweep:
             print(f"| {r['image']} | {r['gaussians']:,} | {r['tiles']} | {r['intersections']:,} | {r['work']:,} | "
-                  f"{r['fwd_bwd_ms_1']:.2f} | {r['fwd_bwd_ms_2']:.2f} |")
+                  f"{r['fwd_bwd_ms_1']:.2f} / {r['fwd_bwd_cpu_ms_1']:.2f} | {r['fwd_bwd_ms_2']:.2f} / "
+                  f"{r['fwd_bwd_cpu_ms_2']:.2f} / {r['fwd_bwd_crit_ms_2']:.2f} |")
     if args.out:
         Path(args.out).write_text(json.dumps({**info, "rows": rows, "sweep": sweep}, indent=1))
 

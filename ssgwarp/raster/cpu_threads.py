@@ -27,10 +27,10 @@ from typing import Callable
 
 import torch
 
-# pixel-intersection pairs (tile intersections x pixels of a tile) below which one more thread
-# costs more than it saves (measured on the 2-core machine, docs/benchmarks.md "Blending on
-# several CPU cores")
-MIN_WORK = 200_000
+# pixel-intersection pairs (tile intersections x pixels of a tile) each thread needs: with less, one
+# more thread costs more than it saves (2-core machine, idle, forward+backward: 2 threads 1.4x slower
+# at 13,000 pairs, 1.1x faster at 35,000; docs/benchmarks.md "Blending on several CPU cores")
+MIN_WORK = 15_000
 # an empty tile's cost in intersections (its pixels are still read and written)
 TILE_COST = 2
 # the default backward's extra per-thread gradient buffers: at most this many bytes in all
