@@ -555,7 +555,7 @@ def _tile_parts(tg, settings, tiles, n_ranges: int, tile_size: int) -> list[tupl
 
 
 def _merge_parts(parts: list, n: int) -> list:
-    """``parts`` (consecutive runs of tiles) merged into ``n`` runs (the first ones taking the rest)."""
+    """``parts`` (consecutive runs of tiles) merged into ``n`` consecutive runs of about equally many."""
     if n >= len(parts):
         return parts
     cuts = [round(i * len(parts) / n) for i in range(n + 1)]
