@@ -74,7 +74,8 @@ def test_threads_default_backward_within_rounding(dtype, geometry, launches):
     """The default backward adds each Gaussian's gradient from every thread's own rows, summed afterwards:
     the images are bit-identical, the gradients equal one thread's up to the rounding of that reordered
     sum (at most a few units of the precision relative to the gradient's scale: 1e-6 in float32, 1e-14 in
-    float64), with 16 channels for the colour-only case."""
+    float64), with 16 channels for the colour-only case; and the same bit for bit from run to run at one
+    thread count."""
     params, vm, K = _scene(dtype, 3 if geometry else 16)
     ch = params[4].shape[-1]
     ref = _render_and_grads(params, vm, K, 1, ch, geometry)
@@ -85,6 +86,9 @@ def test_threads_default_backward_within_rounding(dtype, geometry, launches):
         assert len(out) == len(ref) == (7 if geometry else 3)
         for a, b in zip(out[2:], ref[2:]):
             torch.testing.assert_close(a, b, rtol=rtol, atol=atol * float(b.abs().max()))
+        # the same number of threads cuts the same runs and adds in the same order: the same gradients
+        again = _render_and_grads(params, vm, K, threads, ch, geometry)
+        assert all(torch.equal(a, b) for a, b in zip(again, out))
 
 
 def test_default_backward_threads_capped_by_memory(launches, monkeypatch):
