@@ -127,9 +127,12 @@ def reduced_backward_kernel(scalar, channels: int, to_slots: bool = False, per_w
     Gaussian (not the block's); the warps of a tile share the tile's data in the SM's cache.
 
     ``to_slots=True`` (the deterministic option) adds each block sum to the intersection's own slot
-    ``slots[k]`` instead of the Gaussian's: on CUDA exactly one block writes a slot and the block
-    reduction has a fixed order, on CPU blocks run in turn, so with :func:`gather_kernel` summing
-    the slots in a fixed order the gradients are bit-identical from run to run.
+    ``slots[k]`` instead of the Gaussian's: on CUDA (``per_warp=False``, one block per tile) exactly
+    one block writes a slot and the block reduction has a fixed order; on the CPU (``per_warp=True``,
+    one pixel per block) the pixels of a tile add to its slots one after the other in pixel order,
+    and launches over disjoint runs of tiles write disjoint slots; so with :func:`gather_kernel`
+    summing the slots in a fixed order the gradients are bit-identical from run to run (and on the
+    CPU for any number of launches side by side). ``first``: as in :mod:`.blend_forward`.
     ``colour_only=True``: the colours' gradients alone, ``[colour(D)]`` (:func:`layer_colour_grad_func`).
     """
     t = types_for(scalar)
@@ -164,8 +167,9 @@ def reduced_backward_kernel(scalar, channels: int, to_slots: bool = False, per_w
         v_out_alphas: wp.array(dtype=scalar),
         slots: wp.array(dtype=wp.int32),
         v_packed: wp.array(dtype=vecG),
+        first: int,
     ):
-        p = tile_pixel(wp.tid(), tile_size, tile_width, tile_height)
+        p = tile_pixel(wp.tid() + first, tile_size, tile_width, tile_height)
         rng = p[0]
         cam = p[1]
         x = p[2]
@@ -209,7 +213,10 @@ def reduced_backward_kernel(scalar, channels: int, to_slots: bool = False, per_w
                 if warp_any(hit) != 0:
                     T_next, S, pk = layer_grad(sp, colors[k], used, alpha, r[1], r[2], r[3], alpha_max,
                                                T_next, S, v_col, v_alpha_out, T_final, bg_term)
-                    warp_sum_add(pk, v_packed, flatten_ids, k)
+                    if wp.static(to_slots):  # (the CPU's deterministic walk: one pixel per block)
+                        warp_sum_add(pk, v_packed, slots, k)
+                    else:
+                        warp_sum_add(pk, v_packed, flatten_ids, k)
             elif block_any(hit) != 0:
                 T_next, S, pk = layer_grad(sp, colors[k], used, alpha, r[1], r[2], r[3], alpha_max,
                                            T_next, S, v_col, v_alpha_out, T_final, bg_term)

@@ -16,6 +16,10 @@ The pixel's alpha is the sum of the blending weights (equal to ``1 - T`` in
 exact arithmetic, but exact to the last bit for faint pixels where ``1 - T``
 cancels). Outputs what the backward needs: the final transmittance and the
 position of the last blended Gaussian in the sorted list.
+
+``first``: the thread index of this launch's first thread (0 for a whole image; on the CPU a
+launch may cover a run of whole tiles, ``first`` a multiple of ``tile_size^2``, so that several
+launches run side by side on the CPU's cores: ``ssgwarp.raster.cpu_threads``).
 """
 
 import functools
@@ -33,7 +37,8 @@ def pack_kernel(scalar, channels: int):
     opacity) and colour of sorted intersection ``k``, gathered once so the blending loops read
     each intersection's data contiguously (inputs flat over camera x Gaussian; the splats from
     ``packed`` when the projection packed them, else from means, conics and opacities; colours
-    either the same for every camera, ``n_colors = N``, or per camera, ``n_colors = C * N``)."""
+    either the same for every camera, ``n_colors = N``, or per camera, ``n_colors = C * N``).
+    ``first``: the intersection of this launch's first thread (0 for all of them in one launch)."""
     t = types_for(scalar)
     vec2, vec3, splat = t.vec2, t.vec3, t.splat
     vecD = channel_vector(scalar, channels)
@@ -41,8 +46,8 @@ def pack_kernel(scalar, channels: int):
     @wp.kernel(module="unique", module_options={"enable_backward": False})
     def pack(flatten_ids: wp.array(dtype=wp.int32), packed: wp.array(dtype=splat), means2d: wp.array(dtype=vec2),
              conics: wp.array(dtype=vec3), opacities: wp.array(dtype=scalar), colors: wp.array(dtype=vecD),
-             splats: wp.array(dtype=splat), colors_sorted: wp.array(dtype=vecD)):
-        k = wp.tid()
+             splats: wp.array(dtype=splat), colors_sorted: wp.array(dtype=vecD), first: int):
+        k = wp.tid() + first
         g = int(flatten_ids[k])
         if packed.shape[0] > 0:  # the projection packed them already
             splats[k] = packed[g]
@@ -81,8 +86,9 @@ def forward_kernel(scalar, channels: int, fast_math: bool = False):
         out_T: wp.array(dtype=scalar),
         out_alpha: wp.array(dtype=scalar),
         last_ids: wp.array(dtype=wp.int32),
+        first: int,
     ):
-        p = tile_pixel(wp.tid(), tile_size, tile_width, tile_height)
+        p = tile_pixel(wp.tid() + first, tile_size, tile_width, tile_height)
         rng = p[0]
         cam = p[1]
         x = p[2]

@@ -260,12 +260,13 @@ def test_incoming_gradients_of_any_layout_give_the_same_gradients():
 
 
 def test_backward_launch_blocks_by_device_and_tile_size():
-    """``backward_blocks(tile_size, deterministic, cpu) -> (per_warp, block_dim)`` by hand: deterministic, one
-    block per tile; CPU, one pixel per block; CUDA, the largest multiple of 32 up to 256 dividing the tile's
-    pixels, summed per warp, or one tile row per block when the tile is not whole warps."""
+    """``backward_blocks(tile_size, deterministic, cpu) -> (per_warp, block_dim)`` by hand: CPU, one pixel per
+    block (deterministic too: its slots are then written tile by tile, pixel after pixel); CUDA deterministic,
+    one block per tile; else the largest multiple of 32 up to 256 dividing the tile's pixels, summed per warp,
+    or one tile row per block when the tile is not whole warps."""
     from ssgwarp.raster.ops import backward_blocks
 
-    assert backward_blocks(16, True, False) == (False, 256) and backward_blocks(8, True, True) == (False, 64)
+    assert backward_blocks(16, True, False) == (False, 256) and backward_blocks(8, True, True) == (True, 1)
     assert backward_blocks(16, False, True) == (True, 1)
     assert backward_blocks(16, False, False) == (True, 256)
     assert backward_blocks(8, False, False) == (True, 64)

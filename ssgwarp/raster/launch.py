@@ -288,6 +288,7 @@ class _Plan:
 
 
 _LOCAL = threading.local()  # plans per thread: a plan's parameter buffer is filled, then launched
+_RECORD = threading.Lock()  # one recording at a time (Warp's module loading is not made for threads)
 
 
 def launch(kernel, dim, args: list, tg: Target, adj: list | None = None, block_dim: int | None = None) -> None:
@@ -308,7 +309,8 @@ def launch(kernel, dim, args: list, tg: Target, adj: list | None = None, block_d
     key = (kernel, tg.dkey, adj is not None, block_dim)
     plan = plans.get(key)
     if plan is None:
-        plan = plans[key] = _Plan(kernel, tg, dim, args, adj, block_dim)
+        with _RECORD:
+            plan = plans[key] = _Plan(kernel, tg, dim, args, adj, block_dim)
     plan.run(tg, dim, size, args, adj)
 
 

@@ -12,11 +12,13 @@ input checks' flags).
 """
 from __future__ import annotations
 
+from functools import partial
 from typing import NamedTuple
 
 import torch
 import warp as wp
 
+from . import cpu_threads
 from . import launch as L
 from ..kernels import binning, blend_backward, blend_forward, projection, sh, validate
 from .launch import NULL, arr, rows
@@ -417,11 +419,12 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
 # blending
 # ---------------------------------------------------------------------------------------------
 def pack_splats(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, flatten_ids: Tensor,
-                packed: Tensor | None = None):
+                packed: Tensor | None = None, threads: int = 1):
     """Per sorted intersection, contiguous in the order the blending kernels walk them:
     ``splats [M, 6]`` (x, y, conic a, b, c, opacity) and ``colors [M, D]`` (one gather kernel;
     ``colors`` is ``[C, N, D]`` or, the same for every camera, ``[N, D]``; ``packed [C, N, 6]``:
-    the projection's packed splats, read instead of the three arrays)."""
+    the projection's packed splats, read instead of the three arrays). ``threads`` (CPU): launches over
+    equal runs of the intersections side by side (:mod:`.cpu_threads`)."""
     M, D = flatten_ids.shape[0], colors.shape[-1]
     dt = means2d.dtype
     s = _scalar(dt)
@@ -432,9 +435,12 @@ def pack_splats(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tens
     else:  # (the three arrays are not read)
         gauss = [*NULL, *NULL, *NULL]
     ids, cs = _c(flatten_ids), _c(colors)
-    L.launch(blend_forward.pack_kernel(s, D), M,
-             [*arr(ids), *(NULL if packed is None else arr(packed, 6)), *gauss, *arr(cs, D), *arr(splats, 6),
-              *arr(cols, D)], L.target(means2d))
+    kern = blend_forward.pack_kernel(s, D)
+    head = [*arr(ids), *(NULL if packed is None else arr(packed, 6)), *gauss, *arr(cs, D), *arr(splats, 6),
+            *arr(cols, D)]
+    tg = L.target(means2d)
+    cuts = [M * i // threads for i in range(threads + 1)] if tg.cpu and threads > 1 else [0, M]
+    cpu_threads.run([partial(L.launch, kern, b - a, head + [a], tg) for a, b in zip(cuts[:-1], cuts[1:])])
     return splats, cols
 
 
@@ -454,19 +460,24 @@ class _Blend(torch.autograd.Function):
         out_T = torch.empty(C, height, width, dtype=dt, device=dev)
         last = torch.empty(C, height, width, dtype=torch.int32, device=dev)
         bg = _c(backgrounds) if backgrounds is not None else None
-        splats, cols = pack_splats(means2d, conics, opacities, colors, tiles["flatten_ids"], packed)
+        # on the CPU, runs of whole tiles on several threads (cpu_threads.py); else one launch
+        parts = _tile_parts(tg, settings, tiles, C * th * tw, tile_size)
+        splats, cols = pack_splats(means2d, conics, opacities, colors, tiles["flatten_ids"], packed, len(parts))
         a_splats, a_cols, a_bg, a_offsets = arr(splats, 6), arr(cols, D), NULL if bg is None else arr(bg, D), \
             arr(tiles["offsets"])
         a_T, a_last = arr(out_T), arr(last)
-        L.launch(blend_forward.forward_kernel(s, D, _fast(settings, s)), C * th * tw * tile_size * tile_size,
-                 [*a_splats, *a_cols, *a_bg, *a_offsets, width, height, tile_size, tw, th, settings.alpha_min,
-                  settings.alpha_max, settings.t_min, *arr(out, D), *a_T, *arr(out_alpha), *a_last], tg)
+        kern = blend_forward.forward_kernel(s, D, _fast(settings, s))
+        head = [*a_splats, *a_cols, *a_bg, *a_offsets, width, height, tile_size, tw, th, settings.alpha_min,
+                settings.alpha_max, settings.t_min, *arr(out, D), *a_T, *arr(out_alpha), *a_last]
+        tp = tile_size * tile_size
+        cpu_threads.run([partial(L.launch, kern, (b - a) * tp, head + [a * tp], tg) for a, b in parts])
         ctx.save_for_backward(splats, cols, bg, out_T, last)
         # the backward launch's leading arguments: the same tensors (kept by ctx)
         ctx.args = [*a_splats, *a_cols, *a_bg, *arr(tiles["flatten_ids"]), *a_offsets, width, height, tile_size, tw,
                     th, settings.alpha_min, settings.alpha_max, *a_T, *a_last]
         ctx.n_gauss, ctx.cshape = N, colors.shape
         ctx.tiles, ctx.geom, ctx.settings, ctx.det = tiles, (width, height, tile_size, tw, th), settings, deterministic
+        ctx.parts = parts
         return out, out_alpha
 
     @staticmethod
@@ -483,12 +494,12 @@ class _Blend(torch.autograd.Function):
         g_colors = _c(g_colors) if g_colors is not None else None
         g_alphas = _c(g_alphas) if g_alphas is not None else None
         M = tiles["n_isects"]
-        n_pix = C * th * tw * tile_size * tile_size
         # blocks of pixels of one tile walk its Gaussians in lockstep and sum their pixels' gradients
         # before one atomic add per Gaussian: per warp with one block per tile where the tile splits
         # into whole warps (and on CPU, one pixel per block), else per block of one tile row.
         # Deterministic: one block per tile adds into the intersection's own slot (one add per slot
-        # on CUDA; blocks in turn on CPU), then the slots are summed per Gaussian in a fixed order.
+        # on CUDA; on CPU the tile's pixels in turn), then the slots are summed per Gaussian in a
+        # fixed order. On CPU, launches over runs of whole tiles on several threads (cpu_threads.py).
         det = bool(ctx.det)
         if det and tile_size * tile_size > 256:
             # one block per tile: larger blocks run out of registers on CUDA
@@ -500,12 +511,22 @@ class _Blend(torch.autograd.Function):
         geometry = need[0] or need[1] or need[3]
         lead = 6 if geometry else 0
         W = lead + D
-        packed = torch.zeros(max(M if det else C * N, 1), W, dtype=dt, device=dev)
-        L.launch(blend_backward.reduced_backward_kernel(s, D, det, per_warp, _fast(st, s), not geometry), n_pix,
-                 [*ctx.args, *(NULL if g_colors is None else arr(g_colors, D)),
-                  *(NULL if g_alphas is None else arr(g_alphas)), *(arr(tiles["perm"]) if det else NULL),
-                  *arr(packed, W)],
-                 tg, block_dim=block)
+        rows = max(M if det else C * N, 1)
+        parts = ctx.parts
+        if not det:  # (each thread adds into its own rows: within a memory cap)
+            parts = _merge_parts(parts, cpu_threads.extra_buffers(len(parts), W * cols.element_size(), rows))
+        packed = torch.zeros(rows, W, dtype=dt, device=dev)
+        # the default backward's other threads: their own rows, added to the first thread's below
+        extra = torch.zeros(len(parts) - 1, rows, W, dtype=dt, device=dev) if len(parts) > 1 and not det else None
+        kern = blend_backward.reduced_backward_kernel(s, D, det, per_warp, _fast(st, s), not geometry)
+        head = [*ctx.args, *(NULL if g_colors is None else arr(g_colors, D)),
+                *(NULL if g_alphas is None else arr(g_alphas)), *(arr(tiles["perm"]) if det else NULL)]
+        tp = tile_size * tile_size
+        cpu_threads.run([partial(L.launch, kern, (b - a) * tp,
+                                 head + [*arr(packed if (i == 0 or det) else extra[i - 1], W), a * tp], tg, None, block)
+                         for i, (a, b) in enumerate(parts)])
+        if extra is not None:
+            packed += extra.sum(0) if extra.shape[0] > 1 else extra[0]
         if det:
             slots = packed
             packed = torch.empty(C * N, W, dtype=dt, device=dev)
@@ -524,18 +545,37 @@ class _Blend(torch.autograd.Function):
                 v_bg, None, None, None, None, None, None, None)
 
 
+def _tile_parts(tg, settings, tiles, n_ranges: int, tile_size: int) -> list[tuple[int, int]]:
+    """The runs of tile ranges the blending launches cover: on the CPU one per thread
+    (:mod:`.cpu_threads`), on CUDA the whole image in one launch."""
+    if not tg.cpu:
+        return [(0, n_ranges)]
+    n = cpu_threads.count(settings.cpu_threads, n_ranges, tiles["n_isects"], tile_size * tile_size)
+    return cpu_threads.split(tiles["offsets"], n_ranges, n)
+
+
+def _merge_parts(parts: list, n: int) -> list:
+    """``parts`` (consecutive runs of tiles) merged into ``n`` consecutive runs of about equally many."""
+    if n >= len(parts):
+        return parts
+    cuts = [round(i * len(parts) / n) for i in range(n + 1)]
+    return [(parts[cuts[i]][0], parts[cuts[i + 1] - 1][1]) for i in range(n)]
+
+
 def backward_blocks(tile_size: int, deterministic: bool, cpu: bool) -> tuple[bool, int]:
     """``(per_warp, block_dim)`` of the blending backward launch.
 
-    Deterministic: one block per tile (a fixed-order block sum per intersection). Otherwise on CPU
-    one pixel per block; on CUDA, when the tile splits into whole warps (``tile_size^2`` a multiple
-    of 32), blocks of up to 256 pixels of one tile (the whole tile at tile_size 16) summed per warp,
+    On the CPU one pixel per block (the pixels of a tile walk in turn, in pixel order; the
+    deterministic option adds into per-intersection slots the same way, so threads over disjoint
+    tiles never share a slot). On CUDA: deterministic, one block per tile (a fixed-order block sum
+    per intersection); else, when the tile splits into whole warps (``tile_size^2`` a multiple of
+    32), blocks of up to 256 pixels of one tile (the whole tile at tile_size 16) summed per warp,
     else blocks of one tile row summed per block (a warp would straddle two tiles)."""
     pixels = tile_size * tile_size
-    if deterministic:
-        return False, pixels
     if cpu:
         return True, 1
+    if deterministic:
+        return False, pixels
     if pixels % 32 == 0:
         # the largest multiple of 32 up to 256 that divides the tile
         return True, max(b for b in range(32, 257, 32) if pixels % b == 0)

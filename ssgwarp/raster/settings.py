@@ -44,6 +44,12 @@ class RasterSettings:
         anisotropic Gaussians (ratio of scales beyond ~1e3) in float32 to cancellation.
         ``"factor"``: from its 2x3 factor with a cancellation-free determinant (accurate at
         anisotropy 1e6 in float32; docs/numerics.md). Same values in exact arithmetic.
+    cpu_threads: threads the CPU blending kernels (forward and backward) run on, each launch
+        covering a run of whole tiles; ``None``: ``torch.get_num_threads()`` (``OMP_NUM_THREADS``,
+        ``torch.set_num_threads``). Capped by the number of tiles and by the work (small images
+        stay on one thread; :mod:`ssgwarp.raster.cpu_threads`). Images and the deterministic
+        backward's gradients are bit-identical for any count; the default backward's gradients
+        differ by float rounding (per-thread sums added afterwards). No effect on CUDA.
     """
 
     alpha_min: float = 1.0 / 255.0
@@ -53,6 +59,7 @@ class RasterSettings:
     sigma_max: float = 3.33
     fast_math: bool = True
     covariance: Literal["gsplat", "factor"] = "gsplat"
+    cpu_threads: int | None = None
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.alpha_min < 1.0:
@@ -67,6 +74,8 @@ class RasterSettings:
             raise ValueError(f"RasterSettings.covariance must be 'gsplat' or 'factor', got {self.covariance!r}")
         if not self.sigma_max > 0.0:
             raise ValueError(f"RasterSettings.sigma_max must be > 0, got {self.sigma_max}")
+        if self.cpu_threads is not None and (type(self.cpu_threads) is not int or self.cpu_threads < 1):
+            raise ValueError(f"RasterSettings.cpu_threads must be None or an int >= 1, got {self.cpu_threads!r}")
 
     def for_dtype(self, dtype: torch.dtype) -> "RasterSettings":
         """These settings with ``t_min`` raised to the precision's floor (see ``T_MIN_FLOOR``)."""
