@@ -1,4 +1,5 @@
-"""The CPU blending kernels on several cores: one launch per thread, each over a run of whole tiles.
+"""The CPU kernels on several cores: one launch per thread, each over a run of whole tiles (blending)
+or of elements (the per-Gaussian and per-intersection kernels).
 
 Warp's CPU backend runs a launch's threads one after the other on the calling core. The blending
 kernels (forward and backward) are almost all of a CPU render's time, and their launches hold no
@@ -11,6 +12,12 @@ How many threads (:func:`count`): ``RasterSettings.cpu_threads``, by default
 ``torch.get_num_threads()`` (so ``OMP_NUM_THREADS`` and ``torch.set_num_threads`` govern it as they
 govern torch), at most one per tile, and only as many as the work pays for (:data:`MIN_WORK`: a
 launch on another thread costs tens of microseconds). One thread is the single launch of before.
+
+The per-element kernels (projection and its adjoint, SH colours and theirs, the tile binning's key
+writes and range offsets, the blending's gather) split their index range into equal runs
+(:func:`ranges`, at least :data:`MIN_ITEMS` elements a thread), with the same ``first`` argument:
+each element is computed by one thread with the same operations and written to its own slots, so
+their results are bit-identical for any number of threads.
 
 What stays the same: every pixel is computed by one thread with the same operations, so images
 are bit-identical for any number of threads; the deterministic backward's per-intersection slots
@@ -31,6 +38,9 @@ import torch
 # more thread costs more than it saves (2-core machine, idle, forward+backward: 2 threads 1.4x slower
 # at 13,000 pairs, 1.1x faster at 35,000; docs/benchmarks.md "Blending on several CPU cores")
 MIN_WORK = 15_000
+# elements each thread of a per-element kernel needs (projection, SH, binning, gather): measured on
+# the 2-core machine, a launch on another thread costs ~30-60 us, a projected Gaussian ~80 ns
+MIN_ITEMS = 4096
 # an empty tile's cost in intersections (its pixels are still read and written)
 TILE_COST = 2
 # the default backward's extra per-thread gradient buffers: at most this many bytes in all
@@ -52,6 +62,16 @@ def count(cpu_threads: int | None, n_ranges: int, n_isects: int, tile_pixels: in
     :data:`MIN_WORK` pixel-intersection pairs."""
     work = (n_isects + TILE_COST * n_ranges) * tile_pixels
     return max(1, min(wanted(cpu_threads), n_ranges, work // MIN_WORK))
+
+
+def ranges(cpu_threads: int | None, n: int, min_items: int | None = None) -> list[tuple[int, int]]:
+    """``[(first, end), ...]``: ``n`` elements cut into equal consecutive, non-empty runs, one per
+    thread (:func:`wanted`, at most one per ``min_items`` elements, default :data:`MIN_ITEMS`);
+    ``[(0, n)]`` for one."""
+    per = MIN_ITEMS if min_items is None else min_items
+    parts = max(1, min(wanted(cpu_threads), n // max(1, per)))
+    cuts = [n * i // parts for i in range(parts + 1)]
+    return [(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a] or [(0, n)]
 
 
 def split(offsets: torch.Tensor, n_ranges: int, parts: int) -> list[tuple[int, int]]:

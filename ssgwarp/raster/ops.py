@@ -47,6 +47,20 @@ def _c(t: Tensor) -> Tensor:
     return t if t.is_contiguous() else t.detach().contiguous()
 
 
+def _runs(tg, threads, n: int) -> list[tuple[int, int]]:
+    """The runs of ``n`` elements that a per-element kernel's launches cover: on the CPU one per
+    thread (:func:`.cpu_threads.ranges`; ``threads``: ``RasterSettings.cpu_threads``), on CUDA one."""
+    return cpu_threads.ranges(threads, n) if tg.cpu else [(0, n)]
+
+
+def _launch_runs(kern, lead: tuple, runs, args: list, tg, adj: list | None = None) -> None:
+    """``kern`` over ``(*lead, end - first)`` for each run ``(first, end)`` of its last dimension,
+    side by side (:func:`.cpu_threads.run`), ``first`` appended to ``args`` as the kernel's last
+    parameter (and 0 to ``adj``, that parameter's adjoint, for an adjoint launch)."""
+    cpu_threads.run([partial(L.launch, kern, (*lead, b - a), args + [a], tg, None if adj is None else adj + [0])
+                     for a, b in runs])
+
+
 def _adj(g, inner: int, n: int):
     """``(descriptor, tensor)`` of an incoming gradient read as ``n`` rows of ``inner`` values
     (row-strided views, e.g. column blocks of the blending's packed gradients, are read in place);
@@ -119,20 +133,23 @@ class _Project(torch.autograd.Function):
         tail = [*arr(means2d, 2), *arr(depths), *arr(conics, 3), *arr(opac), *arr(radii, 2)]
         checks, keep = _check_args(extra, C, N)
         ends = None if extra is None else extra.get("ends")
-        L.launch(kern, (C, N), head + checks + tail + [*(arr(counts) if counts is not None else NULL),
-                                                       *(arr(ends) if ends is not None else NULL),
-                                                       *(arr(splats, 6) if splats is not None else NULL)], tg)
+        # on the CPU, runs of Gaussians (in every camera) on several threads; else one launch
+        runs = _runs(tg, cfg["cpu_threads"], N)
+        _launch_runs(kern, (C,), runs, head + checks + tail + [*(arr(counts) if counts is not None else NULL),
+                                                               *(arr(ends) if ends is not None else NULL),
+                                                               *(arr(splats, 6) if splats is not None else NULL)], tg)
         del keep  # (contiguous copies made for the checks: needed until the launch is queued)
         colors = colour_args = None
         if coeffs is not None:
             coeffs, campos = _c(coeffs), _c(campos)
             colors = torch.empty(C, N, 3, dtype=dt, device=dev)
             colour_args = _colour_args(ins[0], campos, coeffs, radii, C, N)
-            L.launch(sh.colour_kernel(s, cfg["sh_degree"]), (C, N), colour_args + [*arr(colors, 3)], tg)
+            _launch_runs(sh.colour_kernel(s, cfg["sh_degree"]), (C,), runs, colour_args + [*arr(colors, 3)], tg)
         ctx.save_for_backward(*ins, *outs, coeffs, campos)
         # the backward launches read the same tensors (kept by ctx): their descriptors are kept too
         # (without the checks, and without the tile counts and ends, which the binning has scanned)
         ctx.cfg, ctx.args, ctx.colour_args = cfg, head + _NO_CHECKS + tail + [*NULL, *NULL, *NULL], colour_args
+        ctx.runs = runs
         ctx.mark_non_differentiable(*(t for t in (radii, counts, splats) if t is not None))
         return radii, means2d, depths, conics, opac, colors, counts, splats
 
@@ -162,14 +179,14 @@ class _Project(torch.autograd.Function):
             adj = [*_grid(v_means, C, N, 3), *_grid(v_campos, C, N, 3),
                    *(NULL if v_coeffs is None else L.grid3(v_coeffs, C, N, K, 3, True)), *NULL, *g]
             # (array stores are not replayed in Warp's adjoints: the colour output is not needed)
-            L.launch(sh.colour_kernel(s, cfg["sh_degree"]), (C, N), ctx.colour_args + [*NULL], tg, adj=adj)
+            _launch_runs(sh.colour_kernel(s, cfg["sh_degree"]), (C,), ctx.runs, ctx.colour_args + [*NULL], tg, adj)
             del g_t
         grads = [_adj(g, k, C * N) for g, k in ((g_means2d, 2), (g_depths, 1), (g_conics, 3), (g_opac, 1))]
         if any(g[1] is not None for g in grads) and any(need[:5]):
             adj = [*_grid(v_means, C, N, 3), *_grid(v_quats, C, N, 4), *_grid(v_scales, C, N, 3), *_grid(v_opac, C, N, 1),
                    *_grid(v_view, C, N, 16), *NULL, *_ADJ_PARAMS, *_NO_CHECKS, *grads[0][0], *grads[1][0],
                    *grads[2][0], *grads[3][0], *NULL, *NULL, *NULL, *NULL]
-            L.launch(projection.projection_kernel(s, *cfg["variant"]), (C, N), ctx.args, tg, adj=adj)
+            _launch_runs(projection.projection_kernel(s, *cfg["variant"]), (C,), ctx.runs, ctx.args, tg, adj)
         if C > 1:
             v_means, v_quats, v_scales, v_opac = (None if v is None else v.sum(0)
                                                   for v in (v_means, v_quats, v_scales, v_opac))
@@ -281,7 +298,7 @@ def _project_cfg(dtype, width, height, near_plane, far_plane, radius_clip, eps2d
         antialiased=int(bool(antialiased)), tile_size=int(tile_size), tile_width=int(tile_width),
         tile_height=int(tile_height))
     return {"params": params, "variant": (settings.covariance, _fast(settings, _scalar(dtype))),
-            "tile_size": int(tile_size), "sh_degree": sh_degree}
+            "tile_size": int(tile_size), "sh_degree": sh_degree, "cpu_threads": settings.cpu_threads}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -327,7 +344,7 @@ def spherical_harmonics_warp(degree: int, dirs: Tensor, coeffs: Tensor) -> Tenso
 # ---------------------------------------------------------------------------------------------
 def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, tile_width: int, tile_height: int,
               pending=None, counts: Tensor | None = None, scan: Tensor | None = None, keep_perm: bool = True,
-              counts_in_scan: bool = False) -> dict:
+              counts_in_scan: bool = False, threads: int | None = None) -> dict:
     """Tile intersections of projected Gaussians, sorted by (camera, tile, depth).
 
     Returns ``tiles_per_gauss [C,N]`` (int32), ``isect_ids [M]`` (int64 keys), ``flatten_ids [M]``
@@ -343,7 +360,8 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
     validation. The
     intersection count and the flags are read back together (the one synchronisation) and the
     flags checked before anything else. Without ``keep_perm`` the sort carries the Gaussian ids
-    themselves (as gsplat's does), so the sorted values are the flattened ids.
+    themselves (as gsplat's does), so the sorted values are the flattened ids. ``threads`` (CPU):
+    ``RasterSettings.cpu_threads`` for the key writes and the range offsets (:mod:`.cpu_threads`).
     """
     C, N = depths.shape
     s = _scalar(means2d.dtype)
@@ -394,13 +412,14 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
         a_gauss, a_flat = arr(gauss), L.at(flatten_ids.data_ptr(), n_isects, 4)
     else:
         flatten_ids, a_gauss, a_flat = values[:n_isects], NULL, NULL
-    L.launch(binning.write_kernel(s), CN,
-             [*arr(m2, 2), *arr(rd, 2), *arr(dp), *arr(ends), *arr(counts), N, tile_size, tile_width, tile_height,
-              *arr(keys), *arr(values), *a_gauss], tg)
+    # (on the CPU, runs of Gaussians and of intersections on several threads)
+    _launch_runs(binning.write_kernel(s), (), _runs(tg, threads, CN),
+                 [*arr(m2, 2), *arr(rd, 2), *arr(dp), *arr(ends), *arr(counts), N, tile_size, tile_width, tile_height,
+                  *arr(keys), *arr(values), *a_gauss], tg)
     if n_isects > 0:
         L.sort_pairs(keys, values, n_isects, 32 + max(1, int(n_ranges).bit_length()), tg)
-        L.launch(binning.offsets_kernel, n_isects, [*arr(keys), *arr(values), *a_gauss, n_isects, n_ranges,
-                                                    *arr(offsets), *a_flat], tg)
+        _launch_runs(binning.offsets_kernel, (), _runs(tg, threads, n_isects),
+                     [*arr(keys), *arr(values), *a_gauss, n_isects, n_ranges, *arr(offsets), *a_flat], tg)
     else:
         offsets.zero_()
     return {
@@ -439,8 +458,7 @@ def pack_splats(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tens
     head = [*arr(ids), *(NULL if packed is None else arr(packed, 6)), *gauss, *arr(cs, D), *arr(splats, 6),
             *arr(cols, D)]
     tg = L.target(means2d)
-    cuts = [M * i // threads for i in range(threads + 1)] if tg.cpu and threads > 1 else [0, M]
-    cpu_threads.run([partial(L.launch, kern, b - a, head + [a], tg) for a, b in zip(cuts[:-1], cuts[1:])])
+    _launch_runs(kern, (), cpu_threads.ranges(threads, M, 1) if tg.cpu else [(0, M)], head, tg)
     return splats, cols
 
 
