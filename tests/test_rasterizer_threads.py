@@ -25,6 +25,7 @@ def split_calls(monkeypatch):
     ``["blending"]`` the blending's, ``["elements"]`` ``(kernel key, launches)`` of the per-element kernels'."""
     monkeypatch.setattr(CT, "MIN_WORK", 1)
     monkeypatch.setattr(CT, "MIN_ITEMS", 1)
+    monkeypatch.setattr(CT, "MIN_ITEMS_LIGHT", 1)
     seen = {"blending": [], "elements": []}
     run = CT.run
 

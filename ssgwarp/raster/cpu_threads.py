@@ -38,9 +38,11 @@ import torch
 # more thread costs more than it saves (2-core machine, idle, forward+backward: 2 threads 1.4x slower
 # at 13,000 pairs, 1.1x faster at 35,000; docs/benchmarks.md "Blending on several CPU cores")
 MIN_WORK = 15_000
-# elements each thread of a per-element kernel needs (projection, SH, binning, gather): measured on
-# the 2-core machine, a launch on another thread costs ~30-60 us, a projected Gaussian ~80 ns
+# elements each thread of a per-element kernel needs: a launch on another thread costs ~30-60 us on
+# the 2-core machine; a projected Gaussian ~80 ns, a Gaussian's key writes ~10-20 ns (lego_200, 2026-11-23)
 MIN_ITEMS = 4096
+# the same for kernels of a few ns an element (the binning's range offsets, one per intersection)
+MIN_ITEMS_LIGHT = 8 * MIN_ITEMS
 # an empty tile's cost in intersections (its pixels are still read and written)
 TILE_COST = 2
 # the default backward's extra per-thread gradient buffers: at most this many bytes in all

@@ -47,10 +47,10 @@ def _c(t: Tensor) -> Tensor:
     return t if t.is_contiguous() else t.detach().contiguous()
 
 
-def _runs(tg, threads, n: int) -> list[tuple[int, int]]:
+def _runs(tg, threads, n: int, min_items: int | None = None) -> list[tuple[int, int]]:
     """The runs of ``n`` elements that a per-element kernel's launches cover: on the CPU one per
     thread (:func:`.cpu_threads.ranges`; ``threads``: ``RasterSettings.cpu_threads``), on CUDA one."""
-    return cpu_threads.ranges(threads, n) if tg.cpu else [(0, n)]
+    return cpu_threads.ranges(threads, n, min_items) if tg.cpu else [(0, n)]
 
 
 def _launch_runs(kern, lead: tuple, runs, args: list, tg, adj: list | None = None) -> None:
@@ -418,7 +418,7 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
                   *arr(keys), *arr(values), *a_gauss], tg)
     if n_isects > 0:
         L.sort_pairs(keys, values, n_isects, 32 + max(1, int(n_ranges).bit_length()), tg)
-        _launch_runs(binning.offsets_kernel, (), _runs(tg, threads, n_isects),
+        _launch_runs(binning.offsets_kernel, (), _runs(tg, threads, n_isects, cpu_threads.MIN_ITEMS_LIGHT),
                      [*arr(keys), *arr(values), *a_gauss, n_isects, n_ranges, *arr(offsets), *a_flat], tg)
     else:
         offsets.zero_()
