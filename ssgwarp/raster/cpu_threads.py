@@ -30,9 +30,12 @@ from __future__ import annotations
 import concurrent.futures as cf
 import os
 import threading
+from functools import partial
 from typing import Callable
 
 import torch
+
+from . import launch as L
 
 # pixel-intersection pairs (tile intersections x pixels of a tile) each thread needs: with less, one
 # more thread costs more than it saves (2-core machine, idle, forward+backward: 2 threads 1.4x slower
@@ -76,6 +79,20 @@ def ranges(cpu_threads: int | None, n: int, min_items: int | None = None) -> lis
     return [(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a] or [(0, n)]
 
 
+def element_runs(tg, cpu_threads: int | None, n: int, min_items: int | None = None) -> list[tuple[int, int]]:
+    """The runs of ``n`` elements that a per-element kernel's launches on target ``tg`` cover: on
+    the CPU :func:`ranges` (one per thread), on CUDA one."""
+    return ranges(cpu_threads, n, min_items) if tg.cpu else [(0, n)]
+
+
+def launch_runs(kern, lead: tuple, runs: list[tuple[int, int]], args: list, tg, adj: list | None = None) -> None:
+    """``kern`` over ``(*lead, end - first)`` for each run ``(first, end)`` of its last dimension,
+    side by side (:func:`run`), ``first`` appended to ``args`` as the kernel's last parameter (and 0
+    to ``adj``, that parameter's adjoint, for an adjoint launch; :func:`ssgwarp.raster.launch.launch`)."""
+    run([partial(L.launch, kern, (*lead, b - a), args + [a], tg, None if adj is None else adj + [0])
+         for a, b in runs])
+
+
 def split(offsets: torch.Tensor, n_ranges: int, parts: int) -> list[tuple[int, int]]:
     """``[(first, end), ...]``: up to ``parts`` consecutive, non-empty runs of the ``n_ranges`` tile
     ranges covering them all, cut where the cumulative cost (intersections, ``offsets [n_ranges+1]``
@@ -88,6 +105,14 @@ def split(offsets: torch.Tensor, n_ranges: int, parts: int) -> list[tuple[int, i
     cuts = torch.searchsorted(cum, targets).clamp_(1, n_ranges - 1).tolist()
     bounds = [0] + sorted(set(cuts)) + [n_ranges]
     return [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+
+
+def merge(parts: list, n: int) -> list:
+    """``parts`` (consecutive runs of tiles) merged into ``n`` consecutive runs of about equally many."""
+    if n >= len(parts):
+        return parts
+    cuts = [round(i * len(parts) / n) for i in range(n + 1)]
+    return [(parts[cuts[i]][0], parts[cuts[i + 1] - 1][1]) for i in range(n)]
 
 
 def extra_buffers(parts: int, row_bytes: int, rows: int) -> int:

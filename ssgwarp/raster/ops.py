@@ -47,20 +47,6 @@ def _c(t: Tensor) -> Tensor:
     return t if t.is_contiguous() else t.detach().contiguous()
 
 
-def _runs(tg, threads, n: int, min_items: int | None = None) -> list[tuple[int, int]]:
-    """The runs of ``n`` elements that a per-element kernel's launches cover: on the CPU one per
-    thread (:func:`.cpu_threads.ranges`; ``threads``: ``RasterSettings.cpu_threads``), on CUDA one."""
-    return cpu_threads.ranges(threads, n, min_items) if tg.cpu else [(0, n)]
-
-
-def _launch_runs(kern, lead: tuple, runs, args: list, tg, adj: list | None = None) -> None:
-    """``kern`` over ``(*lead, end - first)`` for each run ``(first, end)`` of its last dimension,
-    side by side (:func:`.cpu_threads.run`), ``first`` appended to ``args`` as the kernel's last
-    parameter (and 0 to ``adj``, that parameter's adjoint, for an adjoint launch)."""
-    cpu_threads.run([partial(L.launch, kern, (*lead, b - a), args + [a], tg, None if adj is None else adj + [0])
-                     for a, b in runs])
-
-
 def _adj(g, inner: int, n: int):
     """``(descriptor, tensor)`` of an incoming gradient read as ``n`` rows of ``inner`` values
     (row-strided views, e.g. column blocks of the blending's packed gradients, are read in place);
@@ -134,8 +120,8 @@ class _Project(torch.autograd.Function):
         checks, keep = _check_args(extra, C, N)
         ends = None if extra is None else extra.get("ends")
         # on the CPU, runs of Gaussians (in every camera) on several threads; else one launch
-        runs = _runs(tg, cfg["cpu_threads"], N)
-        _launch_runs(kern, (C,), runs, head + checks + tail + [*(arr(counts) if counts is not None else NULL),
+        runs = cpu_threads.element_runs(tg, cfg["cpu_threads"], N)
+        cpu_threads.launch_runs(kern, (C,), runs, head + checks + tail + [*(arr(counts) if counts is not None else NULL),
                                                                *(arr(ends) if ends is not None else NULL),
                                                                *(arr(splats, 6) if splats is not None else NULL)], tg)
         del keep  # (contiguous copies made for the checks: needed until the launch is queued)
@@ -144,7 +130,7 @@ class _Project(torch.autograd.Function):
             coeffs, campos = _c(coeffs), _c(campos)
             colors = torch.empty(C, N, 3, dtype=dt, device=dev)
             colour_args = _colour_args(ins[0], campos, coeffs, radii, C, N)
-            _launch_runs(sh.colour_kernel(s, cfg["sh_degree"]), (C,), runs, colour_args + [*arr(colors, 3)], tg)
+            cpu_threads.launch_runs(sh.colour_kernel(s, cfg["sh_degree"]), (C,), runs, colour_args + [*arr(colors, 3)], tg)
         ctx.save_for_backward(*ins, *outs, coeffs, campos)
         # the backward launches read the same tensors (kept by ctx): their descriptors are kept too
         # (without the checks, and without the tile counts and ends, which the binning has scanned)
@@ -179,14 +165,14 @@ class _Project(torch.autograd.Function):
             adj = [*_grid(v_means, C, N, 3), *_grid(v_campos, C, N, 3),
                    *(NULL if v_coeffs is None else L.grid3(v_coeffs, C, N, K, 3, True)), *NULL, *g]
             # (array stores are not replayed in Warp's adjoints: the colour output is not needed)
-            _launch_runs(sh.colour_kernel(s, cfg["sh_degree"]), (C,), ctx.runs, ctx.colour_args + [*NULL], tg, adj)
+            cpu_threads.launch_runs(sh.colour_kernel(s, cfg["sh_degree"]), (C,), ctx.runs, ctx.colour_args + [*NULL], tg, adj)
             del g_t
         grads = [_adj(g, k, C * N) for g, k in ((g_means2d, 2), (g_depths, 1), (g_conics, 3), (g_opac, 1))]
         if any(g[1] is not None for g in grads) and any(need[:5]):
             adj = [*_grid(v_means, C, N, 3), *_grid(v_quats, C, N, 4), *_grid(v_scales, C, N, 3), *_grid(v_opac, C, N, 1),
                    *_grid(v_view, C, N, 16), *NULL, *_ADJ_PARAMS, *_NO_CHECKS, *grads[0][0], *grads[1][0],
                    *grads[2][0], *grads[3][0], *NULL, *NULL, *NULL, *NULL]
-            _launch_runs(projection.projection_kernel(s, *cfg["variant"]), (C,), ctx.runs, ctx.args, tg, adj)
+            cpu_threads.launch_runs(projection.projection_kernel(s, *cfg["variant"]), (C,), ctx.runs, ctx.args, tg, adj)
         if C > 1:
             v_means, v_quats, v_scales, v_opac = (None if v is None else v.sum(0)
                                                   for v in (v_means, v_quats, v_scales, v_opac))
@@ -413,12 +399,12 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
     else:
         flatten_ids, a_gauss, a_flat = values[:n_isects], NULL, NULL
     # (on the CPU, runs of Gaussians and of intersections on several threads)
-    _launch_runs(binning.write_kernel(s), (), _runs(tg, threads, CN),
+    cpu_threads.launch_runs(binning.write_kernel(s), (), cpu_threads.element_runs(tg, threads, CN),
                  [*arr(m2, 2), *arr(rd, 2), *arr(dp), *arr(ends), *arr(counts), N, tile_size, tile_width, tile_height,
                   *arr(keys), *arr(values), *a_gauss], tg)
     if n_isects > 0:
         L.sort_pairs(keys, values, n_isects, 32 + max(1, int(n_ranges).bit_length()), tg)
-        _launch_runs(binning.offsets_kernel, (), _runs(tg, threads, n_isects, cpu_threads.MIN_ITEMS_LIGHT),
+        cpu_threads.launch_runs(binning.offsets_kernel, (), cpu_threads.element_runs(tg, threads, n_isects, cpu_threads.MIN_ITEMS_LIGHT),
                      [*arr(keys), *arr(values), *a_gauss, n_isects, n_ranges, *arr(offsets), *a_flat], tg)
     else:
         offsets.zero_()
@@ -458,7 +444,7 @@ def pack_splats(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tens
     head = [*arr(ids), *(NULL if packed is None else arr(packed, 6)), *gauss, *arr(cs, D), *arr(splats, 6),
             *arr(cols, D)]
     tg = L.target(means2d)
-    _launch_runs(kern, (), cpu_threads.ranges(threads, M, 1) if tg.cpu else [(0, M)], head, tg)
+    cpu_threads.launch_runs(kern, (), cpu_threads.element_runs(tg, threads, M, 1), head, tg)
     return splats, cols
 
 
@@ -488,7 +474,7 @@ class _Blend(torch.autograd.Function):
         head = [*a_splats, *a_cols, *a_bg, *a_offsets, width, height, tile_size, tw, th, settings.alpha_min,
                 settings.alpha_max, settings.t_min, *arr(out, D), *a_T, *arr(out_alpha), *a_last]
         tp = tile_size * tile_size
-        cpu_threads.run([partial(L.launch, kern, (b - a) * tp, head + [a * tp], tg) for a, b in parts])
+        cpu_threads.launch_runs(kern, (), [(a * tp, b * tp) for a, b in parts], head, tg)
         ctx.save_for_backward(splats, cols, bg, out_T, last)
         # the backward launch's leading arguments: the same tensors (kept by ctx)
         ctx.args = [*a_splats, *a_cols, *a_bg, *arr(tiles["flatten_ids"]), *a_offsets, width, height, tile_size, tw,
@@ -532,7 +518,7 @@ class _Blend(torch.autograd.Function):
         rows = max(M if det else C * N, 1)
         parts = ctx.parts
         if not det:  # (each thread adds into its own rows: within a memory cap)
-            parts = _merge_parts(parts, cpu_threads.extra_buffers(len(parts), W * cols.element_size(), rows))
+            parts = cpu_threads.merge(parts, cpu_threads.extra_buffers(len(parts), W * cols.element_size(), rows))
         packed = torch.zeros(rows, W, dtype=dt, device=dev)
         # the default backward's other threads: their own rows, added to the first thread's below
         extra = torch.zeros(len(parts) - 1, rows, W, dtype=dt, device=dev) if len(parts) > 1 and not det else None
@@ -570,14 +556,6 @@ def _tile_parts(tg, settings, tiles, n_ranges: int, tile_size: int) -> list[tupl
         return [(0, n_ranges)]
     n = cpu_threads.count(settings.cpu_threads, n_ranges, tiles["n_isects"], tile_size * tile_size)
     return cpu_threads.split(tiles["offsets"], n_ranges, n)
-
-
-def _merge_parts(parts: list, n: int) -> list:
-    """``parts`` (consecutive runs of tiles) merged into ``n`` consecutive runs of about equally many."""
-    if n >= len(parts):
-        return parts
-    cuts = [round(i * len(parts) / n) for i in range(n + 1)]
-    return [(parts[cuts[i]][0], parts[cuts[i + 1] - 1][1]) for i in range(n)]
 
 
 def backward_blocks(tile_size: int, deterministic: bool, cpu: bool) -> tuple[bool, int]:
