@@ -160,7 +160,7 @@ def launch_paths(device: torch.device, launches: int) -> list[dict]:
     def flat():  # the projection kernel's parameters (no input checks)
         return ops._project_args(ins, C, N) + list(cfg["params"]) + ops._NO_CHECKS + [
             *L.arr(outs[0], 2), *L.arr(outs[1]), *L.arr(outs[2], 3), *L.arr(outs[3]), *L.arr(outs[4], 2),
-            *L.arr(outs[5]), *L.arr(outs[6]), *L.arr(outs[7], 6)]
+            *L.arr(outs[5]), *L.arr(outs[6]), *L.arr(outs[7], 6), 0]
 
     kern = projection.projection_kernel(wp.float32, *cfg["variant"])
     tg = L.target(params[0])

@@ -90,8 +90,8 @@ def write_kernel(scalar):
                      depths: wp.array(dtype=scalar), ends: wp.array(dtype=wp.int64),
                      counts: wp.array(dtype=wp.int32), n_gauss: int, tile_size: int, tile_width: int,
                      tile_height: int, keys: wp.array(dtype=wp.int64), values: wp.array(dtype=wp.int32),
-                     gauss_of_isect: wp.array(dtype=wp.int32)):
-        i = wp.tid()
+                     gauss_of_isect: wp.array(dtype=wp.int32), first: int):
+        i = wp.tid() + first
         cnt = counts[i]
         if cnt == 0:
             return
@@ -121,11 +121,13 @@ def write_kernel(scalar):
 @wp.kernel
 def offsets_kernel(keys: wp.array(dtype=wp.int64), perm: wp.array(dtype=wp.int32),
                    gauss_of_isect: wp.array(dtype=wp.int32), n_isects: int, n_ranges: int,
-                   offsets: wp.array(dtype=wp.int32), flatten_ids: wp.array(dtype=wp.int32)):
+                   offsets: wp.array(dtype=wp.int32), flatten_ids: wp.array(dtype=wp.int32), first: int):
     """Per sorted intersection ``k``: ``offsets[r]`` = first sorted position of range r (= camera *
     n_tiles + tile), and when ``gauss_of_isect`` is given, ``flatten_ids[k]``, its Gaussian
-    (``perm[k]`` is its slot before the sort)."""
-    k = wp.tid()
+    (``perm[k]`` is its slot before the sort). ``first``: the intersection of the launch's first
+    thread (runs side by side on the CPU's cores; each range's offsets are written by the thread of
+    the intersection that starts it, or the last one)."""
+    k = wp.tid() + first
     if gauss_of_isect.shape[0] > 0:
         flatten_ids[k] = gauss_of_isect[perm[k]]
     cur = wp.int32(keys[k] >> wp.int64(32))

@@ -38,6 +38,11 @@ and given a ``splats`` array, each visible Gaussian's screen mean, conic and
 opacity packed together (what the blending gathers per intersection: one load
 instead of three).
 Culled Gaussians get zeros in every output, so no output needs clearing first.
+
+``first``: the Gaussian of this launch's first thread (0 for all of them in one launch; on the CPU a
+launch may cover a run of Gaussians in every camera, so that several launches, and their adjoints,
+run side by side on the CPU's cores: ``ssgwarp.raster.cpu_threads``). Every output and adjoint slot
+belongs to one (camera, Gaussian) pair, so the runs never share one.
 """
 
 import functools
@@ -299,8 +304,10 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
         counts: wp.array(dtype=wp.int32),
         ends: wp.array(dtype=wp.int64),
         splats: wp.array(dtype=splat),
+        first: int,
     ):
-        c, n = wp.tid()
+        c, t = wp.tid()
+        n = t + first
         i = c * means.shape[1] + n
         near_plane = params.near_plane
         far_plane = params.far_plane

@@ -76,14 +76,17 @@ def sh_kernel(scalar, degree: int):
 @functools.lru_cache(maxsize=None)
 def colour_kernel(scalar, degree: int):
     """``sh_colour(means [C, N], campos [C, N], coeffs [C, N, K], radii [C*N], colors [C*N])``,
-    launched over ``(C, N)``: ``max(sh(means - campos) + 0.5, 0)``, 0 where culled (radii 0)."""
+    launched over ``(C, N)``: ``max(sh(means - campos) + 0.5, 0)``, 0 where culled (radii 0).
+    ``first``: the Gaussian of the launch's first thread (as the projection's: runs of Gaussians
+    side by side on the CPU's cores; 0 for one launch over all)."""
     vec3 = types_for(scalar).vec3
     sh_eval = sh_eval_func(scalar, degree)
 
     @wp.kernel(module="unique")
     def sh_colour(means: wp.array2d(dtype=vec3), campos: wp.array2d(dtype=vec3), coeffs: wp.array3d(dtype=vec3),
-                  radii: wp.array(dtype=wp.vec2i), colors: wp.array(dtype=vec3)):
-        c, n = wp.tid()
+                  radii: wp.array(dtype=wp.vec2i), colors: wp.array(dtype=vec3), first: int):
+        c, t = wp.tid()
+        n = t + first
         i = c * means.shape[1] + n
         r = radii[i]
         if r[0] <= 0 or r[1] <= 0:

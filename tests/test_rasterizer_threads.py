@@ -15,19 +15,36 @@ from test_rasterizer import make_cameras, make_scene
 W, H = 64, 48  # 8 x 6 tiles of 8 pixels per camera
 
 
+# the blending's split calls: the gather, the forward, the backward (their kernels' Warp keys end so)
+BLENDING = ("pack", "blend_forward", "blend_backward_reduced")
+
+
 @pytest.fixture
-def launches(monkeypatch):
-    """Split whatever the size (no work threshold); records the number of launches of each split call."""
+def split_calls(monkeypatch):
+    """Split whatever the size (no work thresholds); records the number of launches of each split call:
+    ``["blending"]`` the blending's, ``["elements"]`` ``(kernel key, launches)`` of the per-element kernels'."""
     monkeypatch.setattr(CT, "MIN_WORK", 1)
-    seen = []
+    monkeypatch.setattr(CT, "MIN_ITEMS", 1)
+    monkeypatch.setattr(CT, "MIN_ITEMS_LIGHT", 1)
+    seen = {"blending": [], "elements": []}
     run = CT.run
 
     def counting(calls):
-        seen.append(len(calls))
+        key = calls[0].args[0].key
+        if key.endswith(BLENDING):
+            seen["blending"].append(len(calls))
+        else:
+            seen["elements"].append((key, len(calls)))
         return run(calls)
 
     monkeypatch.setattr(CT, "run", counting)
     return seen
+
+
+@pytest.fixture
+def launches(split_calls):
+    """The number of launches of each of the blending's split calls."""
+    return split_calls["blending"]
 
 
 def _render_and_grads(params, vm, K, threads, channels=3, geometry=True, **kw):
@@ -66,6 +83,49 @@ def test_threads_give_the_same_images_and_deterministic_gradients(dtype, launche
         assert launches == [n] * 3 and (n == threads if threads < 96 else 40 < n <= 96)
         for a, b in zip(out, ref):
             assert b.abs().max() > 0 and torch.equal(a, b)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("cameras", [1, 2])
+def test_per_element_kernels_on_threads_bit_identical(dtype, cameras, split_calls):
+    """The projection (with the input checks, tile counts and packed splats), the SH colours, the binning's
+    key writes and range offsets, and the adjoints of the projection and the SH, in runs of Gaussians or
+    intersections on several threads: every output, the binning and the gradients of every input, the view
+    matrices included (deterministic backward), equal one thread's bit for bit, at 2, 3 and 7 threads and
+    at more threads than the 300 Gaussians (one Gaussian per launch); one camera (the gradients written
+    straight) and two (per-camera slots)."""
+    g = torch.Generator().manual_seed(7)
+    n = 300
+    means, quats, scales, opac, _ = make_scene(n, dtype=dtype, seed=4)
+    coeffs = (torch.randn(n, 16, 3, generator=g) * 0.3).to(dtype)
+    vm, K = make_cameras(cameras, W, H, dtype=dtype)
+
+    def run(threads):
+        leaves = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, coeffs, vm)]
+        img, alpha, meta = rasterization(*leaves[:5], leaves[5], K, W, H, sh_degree=3, deterministic=True,
+                                         settings=RasterSettings(cpu_threads=threads))
+        gen = torch.Generator().manual_seed(3)
+        ((img * torch.rand(img.shape, generator=gen, dtype=dtype)).sum()
+         + (alpha * torch.rand(alpha.shape, generator=gen, dtype=dtype)).sum()).backward()
+        keys = ("radii", "means2d", "depths", "conics", "opacities", "tiles_per_gauss", "isect_ids", "flatten_ids",
+                "isect_offsets")
+        return [img.detach(), alpha.detach()] + [meta[k].detach() for k in keys] + [p.grad for p in leaves]
+
+    ref = run(1)
+    assert all(k == 1 for _, k in split_calls["elements"])
+    assert all(r.abs().max() > 0 for r in ref[:2] + ref[11:])
+    for threads in (2, 3, 7, 500):
+        split_calls["elements"].clear()
+        out = run(threads)
+        runs = {}
+        for key, k in split_calls["elements"]:
+            runs.setdefault(key.split("__")[-1], []).append(k)
+        # forward and adjoint of the projection and the SH over runs of the Gaussians (in every camera);
+        # the key writes over (camera, Gaussian) pairs, the offsets over the intersections
+        assert runs["project"] == [min(threads, n)] * 2 and runs["sh_colour"] == [min(threads, n)] * 2
+        assert runs["write_isects"] == [min(threads, cameras * n)] and runs["offsets_kernel"] == [threads]
+        for a, b in zip(out, ref):
+            assert a.dtype == b.dtype and torch.equal(a, b)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -128,6 +188,12 @@ def test_thread_count_and_split():
         assert parts[0][0] == 0 and parts[-1][1] == 10 and len(parts) <= min(n, 10)
         assert all(a < b for a, b in parts) and all(p[1] == q[0] for p, q in zip(parts, parts[1:]))
     assert CT.split(torch.zeros(11, dtype=torch.int32), 10, 5) == [(0, 2), (2, 4), (4, 6), (6, 8), (8, 10)]
+    # ``ranges``: equal consecutive runs of elements, one per thread, at most one per MIN_ITEMS elements
+    assert CT.ranges(2, 10 * CT.MIN_ITEMS) == [(0, 5 * CT.MIN_ITEMS), (5 * CT.MIN_ITEMS, 10 * CT.MIN_ITEMS)]
+    m = 3 * CT.MIN_ITEMS - 1  # two whole MIN_ITEMS only: two runs over all of them
+    assert CT.ranges(4, m) == [(0, m // 2), (m // 2, m)]
+    assert CT.ranges(8, 100) == [(0, 100)] and CT.ranges(1, 10**9) == [(0, 10**9)]
+    assert CT.ranges(5, 3, 1) == [(0, 1), (1, 2), (2, 3)] and CT.ranges(3, 0) == [(0, 0)]
 
 
 def test_run_waits_for_every_launch_on_error_and_interrupt():

@@ -1,4 +1,5 @@
-"""The CPU blending kernels on several cores: one launch per thread, each over a run of whole tiles.
+"""The CPU kernels on several cores: one launch per thread, each over a run of whole tiles (blending)
+or of elements (the per-Gaussian and per-intersection kernels).
 
 Warp's CPU backend runs a launch's threads one after the other on the calling core. The blending
 kernels (forward and backward) are almost all of a CPU render's time, and their launches hold no
@@ -12,6 +13,12 @@ How many threads (:func:`count`): ``RasterSettings.cpu_threads``, by default
 govern torch), at most one per tile, and only as many as the work pays for (:data:`MIN_WORK`: a
 launch on another thread costs tens of microseconds). One thread is the single launch of before.
 
+The per-element kernels (projection and its adjoint, SH colours and theirs, the tile binning's key
+writes and range offsets, the blending's gather) split their index range into equal runs
+(:func:`ranges`, at least :data:`MIN_ITEMS` elements a thread), with the same ``first`` argument:
+each element is computed by one thread with the same operations and written to its own slots, so
+their results are bit-identical for any number of threads.
+
 What stays the same: every pixel is computed by one thread with the same operations, so images
 are bit-identical for any number of threads; the deterministic backward's per-intersection slots
 belong to one tile each, so its gradients are bit-identical too. The default backward adds into
@@ -23,14 +30,22 @@ from __future__ import annotations
 import concurrent.futures as cf
 import os
 import threading
+from functools import partial
 from typing import Callable
 
 import torch
+
+from . import launch as L
 
 # pixel-intersection pairs (tile intersections x pixels of a tile) each thread needs: with less, one
 # more thread costs more than it saves (2-core machine, idle, forward+backward: 2 threads 1.4x slower
 # at 13,000 pairs, 1.1x faster at 35,000; docs/benchmarks.md "Blending on several CPU cores")
 MIN_WORK = 15_000
+# elements each thread of a per-element kernel needs: a launch on another thread costs ~30-60 us on
+# the 2-core machine; a projected Gaussian ~80 ns, a Gaussian's key writes ~10-20 ns (lego_200, 2026-11-23)
+MIN_ITEMS = 4096
+# the same for kernels of a few ns an element (the binning's range offsets, one per intersection)
+MIN_ITEMS_LIGHT = 8 * MIN_ITEMS
 # an empty tile's cost in intersections (its pixels are still read and written)
 TILE_COST = 2
 # the default backward's extra per-thread gradient buffers: at most this many bytes in all
@@ -54,6 +69,30 @@ def count(cpu_threads: int | None, n_ranges: int, n_isects: int, tile_pixels: in
     return max(1, min(wanted(cpu_threads), n_ranges, work // MIN_WORK))
 
 
+def ranges(cpu_threads: int | None, n: int, min_items: int | None = None) -> list[tuple[int, int]]:
+    """``[(first, end), ...]``: ``n`` elements cut into equal consecutive, non-empty runs, one per
+    thread (:func:`wanted`, at most one per ``min_items`` elements, default :data:`MIN_ITEMS`);
+    ``[(0, n)]`` for one."""
+    per = MIN_ITEMS if min_items is None else min_items
+    parts = max(1, min(wanted(cpu_threads), n // max(1, per)))
+    cuts = [n * i // parts for i in range(parts + 1)]
+    return [(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a] or [(0, n)]
+
+
+def element_runs(tg, cpu_threads: int | None, n: int, min_items: int | None = None) -> list[tuple[int, int]]:
+    """The runs of ``n`` elements that a per-element kernel's launches on target ``tg`` cover: on
+    the CPU :func:`ranges` (one per thread), on CUDA one."""
+    return ranges(cpu_threads, n, min_items) if tg.cpu else [(0, n)]
+
+
+def launch_runs(kern, lead: tuple, runs: list[tuple[int, int]], args: list, tg, adj: list | None = None) -> None:
+    """``kern`` over ``(*lead, end - first)`` for each run ``(first, end)`` of its last dimension,
+    side by side (:func:`run`), ``first`` appended to ``args`` as the kernel's last parameter (and 0
+    to ``adj``, that parameter's adjoint, for an adjoint launch; :func:`ssgwarp.raster.launch.launch`)."""
+    run([partial(L.launch, kern, (*lead, b - a), args + [a], tg, None if adj is None else adj + [0])
+         for a, b in runs])
+
+
 def split(offsets: torch.Tensor, n_ranges: int, parts: int) -> list[tuple[int, int]]:
     """``[(first, end), ...]``: up to ``parts`` consecutive, non-empty runs of the ``n_ranges`` tile
     ranges covering them all, cut where the cumulative cost (intersections, ``offsets [n_ranges+1]``
@@ -66,6 +105,14 @@ def split(offsets: torch.Tensor, n_ranges: int, parts: int) -> list[tuple[int, i
     cuts = torch.searchsorted(cum, targets).clamp_(1, n_ranges - 1).tolist()
     bounds = [0] + sorted(set(cuts)) + [n_ranges]
     return [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+
+
+def merge(parts: list, n: int) -> list:
+    """``parts`` (consecutive runs of tiles) merged into ``n`` consecutive runs of about equally many."""
+    if n >= len(parts):
+        return parts
+    cuts = [round(i * len(parts) / n) for i in range(n + 1)]
+    return [(parts[cuts[i]][0], parts[cuts[i + 1] - 1][1]) for i in range(n)]
 
 
 def extra_buffers(parts: int, row_bytes: int, rows: int) -> int:

@@ -119,20 +119,23 @@ class _Project(torch.autograd.Function):
         tail = [*arr(means2d, 2), *arr(depths), *arr(conics, 3), *arr(opac), *arr(radii, 2)]
         checks, keep = _check_args(extra, C, N)
         ends = None if extra is None else extra.get("ends")
-        L.launch(kern, (C, N), head + checks + tail + [*(arr(counts) if counts is not None else NULL),
-                                                       *(arr(ends) if ends is not None else NULL),
-                                                       *(arr(splats, 6) if splats is not None else NULL)], tg)
+        # on the CPU, runs of Gaussians (in every camera) on several threads; else one launch
+        runs = cpu_threads.element_runs(tg, cfg["cpu_threads"], N)
+        cpu_threads.launch_runs(kern, (C,), runs, head + checks + tail + [*(arr(counts) if counts is not None else NULL),
+                                                               *(arr(ends) if ends is not None else NULL),
+                                                               *(arr(splats, 6) if splats is not None else NULL)], tg)
         del keep  # (contiguous copies made for the checks: needed until the launch is queued)
         colors = colour_args = None
         if coeffs is not None:
             coeffs, campos = _c(coeffs), _c(campos)
             colors = torch.empty(C, N, 3, dtype=dt, device=dev)
             colour_args = _colour_args(ins[0], campos, coeffs, radii, C, N)
-            L.launch(sh.colour_kernel(s, cfg["sh_degree"]), (C, N), colour_args + [*arr(colors, 3)], tg)
+            cpu_threads.launch_runs(sh.colour_kernel(s, cfg["sh_degree"]), (C,), runs, colour_args + [*arr(colors, 3)], tg)
         ctx.save_for_backward(*ins, *outs, coeffs, campos)
         # the backward launches read the same tensors (kept by ctx): their descriptors are kept too
         # (without the checks, and without the tile counts and ends, which the binning has scanned)
         ctx.cfg, ctx.args, ctx.colour_args = cfg, head + _NO_CHECKS + tail + [*NULL, *NULL, *NULL], colour_args
+        ctx.runs = runs
         ctx.mark_non_differentiable(*(t for t in (radii, counts, splats) if t is not None))
         return radii, means2d, depths, conics, opac, colors, counts, splats
 
@@ -162,14 +165,14 @@ class _Project(torch.autograd.Function):
             adj = [*_grid(v_means, C, N, 3), *_grid(v_campos, C, N, 3),
                    *(NULL if v_coeffs is None else L.grid3(v_coeffs, C, N, K, 3, True)), *NULL, *g]
             # (array stores are not replayed in Warp's adjoints: the colour output is not needed)
-            L.launch(sh.colour_kernel(s, cfg["sh_degree"]), (C, N), ctx.colour_args + [*NULL], tg, adj=adj)
+            cpu_threads.launch_runs(sh.colour_kernel(s, cfg["sh_degree"]), (C,), ctx.runs, ctx.colour_args + [*NULL], tg, adj)
             del g_t
         grads = [_adj(g, k, C * N) for g, k in ((g_means2d, 2), (g_depths, 1), (g_conics, 3), (g_opac, 1))]
         if any(g[1] is not None for g in grads) and any(need[:5]):
             adj = [*_grid(v_means, C, N, 3), *_grid(v_quats, C, N, 4), *_grid(v_scales, C, N, 3), *_grid(v_opac, C, N, 1),
                    *_grid(v_view, C, N, 16), *NULL, *_ADJ_PARAMS, *_NO_CHECKS, *grads[0][0], *grads[1][0],
                    *grads[2][0], *grads[3][0], *NULL, *NULL, *NULL, *NULL]
-            L.launch(projection.projection_kernel(s, *cfg["variant"]), (C, N), ctx.args, tg, adj=adj)
+            cpu_threads.launch_runs(projection.projection_kernel(s, *cfg["variant"]), (C,), ctx.runs, ctx.args, tg, adj)
         if C > 1:
             v_means, v_quats, v_scales, v_opac = (None if v is None else v.sum(0)
                                                   for v in (v_means, v_quats, v_scales, v_opac))
@@ -281,7 +284,7 @@ def _project_cfg(dtype, width, height, near_plane, far_plane, radius_clip, eps2d
         antialiased=int(bool(antialiased)), tile_size=int(tile_size), tile_width=int(tile_width),
         tile_height=int(tile_height))
     return {"params": params, "variant": (settings.covariance, _fast(settings, _scalar(dtype))),
-            "tile_size": int(tile_size), "sh_degree": sh_degree}
+            "tile_size": int(tile_size), "sh_degree": sh_degree, "cpu_threads": settings.cpu_threads}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -327,7 +330,7 @@ def spherical_harmonics_warp(degree: int, dirs: Tensor, coeffs: Tensor) -> Tenso
 # ---------------------------------------------------------------------------------------------
 def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, tile_width: int, tile_height: int,
               pending=None, counts: Tensor | None = None, scan: Tensor | None = None, keep_perm: bool = True,
-              counts_in_scan: bool = False) -> dict:
+              counts_in_scan: bool = False, threads: int | None = None) -> dict:
     """Tile intersections of projected Gaussians, sorted by (camera, tile, depth).
 
     Returns ``tiles_per_gauss [C,N]`` (int32), ``isect_ids [M]`` (int64 keys), ``flatten_ids [M]``
@@ -343,7 +346,8 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
     validation. The
     intersection count and the flags are read back together (the one synchronisation) and the
     flags checked before anything else. Without ``keep_perm`` the sort carries the Gaussian ids
-    themselves (as gsplat's does), so the sorted values are the flattened ids.
+    themselves (as gsplat's does), so the sorted values are the flattened ids. ``threads`` (CPU):
+    ``RasterSettings.cpu_threads`` for the key writes and the range offsets (:mod:`.cpu_threads`).
     """
     C, N = depths.shape
     s = _scalar(means2d.dtype)
@@ -394,13 +398,14 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
         a_gauss, a_flat = arr(gauss), L.at(flatten_ids.data_ptr(), n_isects, 4)
     else:
         flatten_ids, a_gauss, a_flat = values[:n_isects], NULL, NULL
-    L.launch(binning.write_kernel(s), CN,
-             [*arr(m2, 2), *arr(rd, 2), *arr(dp), *arr(ends), *arr(counts), N, tile_size, tile_width, tile_height,
-              *arr(keys), *arr(values), *a_gauss], tg)
+    # (on the CPU, runs of Gaussians and of intersections on several threads)
+    cpu_threads.launch_runs(binning.write_kernel(s), (), cpu_threads.element_runs(tg, threads, CN),
+                 [*arr(m2, 2), *arr(rd, 2), *arr(dp), *arr(ends), *arr(counts), N, tile_size, tile_width, tile_height,
+                  *arr(keys), *arr(values), *a_gauss], tg)
     if n_isects > 0:
         L.sort_pairs(keys, values, n_isects, 32 + max(1, int(n_ranges).bit_length()), tg)
-        L.launch(binning.offsets_kernel, n_isects, [*arr(keys), *arr(values), *a_gauss, n_isects, n_ranges,
-                                                    *arr(offsets), *a_flat], tg)
+        cpu_threads.launch_runs(binning.offsets_kernel, (), cpu_threads.element_runs(tg, threads, n_isects, cpu_threads.MIN_ITEMS_LIGHT),
+                     [*arr(keys), *arr(values), *a_gauss, n_isects, n_ranges, *arr(offsets), *a_flat], tg)
     else:
         offsets.zero_()
     return {
@@ -439,8 +444,7 @@ def pack_splats(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tens
     head = [*arr(ids), *(NULL if packed is None else arr(packed, 6)), *gauss, *arr(cs, D), *arr(splats, 6),
             *arr(cols, D)]
     tg = L.target(means2d)
-    cuts = [M * i // threads for i in range(threads + 1)] if tg.cpu and threads > 1 else [0, M]
-    cpu_threads.run([partial(L.launch, kern, b - a, head + [a], tg) for a, b in zip(cuts[:-1], cuts[1:])])
+    cpu_threads.launch_runs(kern, (), cpu_threads.element_runs(tg, threads, M, 1), head, tg)
     return splats, cols
 
 
@@ -470,7 +474,7 @@ class _Blend(torch.autograd.Function):
         head = [*a_splats, *a_cols, *a_bg, *a_offsets, width, height, tile_size, tw, th, settings.alpha_min,
                 settings.alpha_max, settings.t_min, *arr(out, D), *a_T, *arr(out_alpha), *a_last]
         tp = tile_size * tile_size
-        cpu_threads.run([partial(L.launch, kern, (b - a) * tp, head + [a * tp], tg) for a, b in parts])
+        cpu_threads.launch_runs(kern, (), [(a * tp, b * tp) for a, b in parts], head, tg)
         ctx.save_for_backward(splats, cols, bg, out_T, last)
         # the backward launch's leading arguments: the same tensors (kept by ctx)
         ctx.args = [*a_splats, *a_cols, *a_bg, *arr(tiles["flatten_ids"]), *a_offsets, width, height, tile_size, tw,
@@ -514,7 +518,7 @@ class _Blend(torch.autograd.Function):
         rows = max(M if det else C * N, 1)
         parts = ctx.parts
         if not det:  # (each thread adds into its own rows: within a memory cap)
-            parts = _merge_parts(parts, cpu_threads.extra_buffers(len(parts), W * cols.element_size(), rows))
+            parts = cpu_threads.merge(parts, cpu_threads.extra_buffers(len(parts), W * cols.element_size(), rows))
         packed = torch.zeros(rows, W, dtype=dt, device=dev)
         # the default backward's other threads: their own rows, added to the first thread's below
         extra = torch.zeros(len(parts) - 1, rows, W, dtype=dt, device=dev) if len(parts) > 1 and not det else None
@@ -552,14 +556,6 @@ def _tile_parts(tg, settings, tiles, n_ranges: int, tile_size: int) -> list[tupl
         return [(0, n_ranges)]
     n = cpu_threads.count(settings.cpu_threads, n_ranges, tiles["n_isects"], tile_size * tile_size)
     return cpu_threads.split(tiles["offsets"], n_ranges, n)
-
-
-def _merge_parts(parts: list, n: int) -> list:
-    """``parts`` (consecutive runs of tiles) merged into ``n`` consecutive runs of about equally many."""
-    if n >= len(parts):
-        return parts
-    cuts = [round(i * len(parts) / n) for i in range(n + 1)]
-    return [(parts[cuts[i]][0], parts[cuts[i + 1] - 1][1]) for i in range(n)]
 
 
 def backward_blocks(tile_size: int, deterministic: bool, cpu: bool) -> tuple[bool, int]:

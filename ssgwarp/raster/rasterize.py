@@ -178,7 +178,8 @@ def _rasterize_warp(means, quats, scales, opacities, colors, viewmats, Ks, width
         "tile_size": tile_size, "n_cameras": C, "settings": settings, "backend": "warp",
     }
     tiles = ops.bin_tiles(means2d, radii, depths, tile_size, tile_width, tile_height, pending=pending, counts=counts,
-                          scan=scan, keep_perm=deterministic, counts_in_scan=True)
+                          scan=scan, keep_perm=deterministic, counts_in_scan=True,
+                          threads=settings.cpu_threads)
     # gsplat's binning outputs; the backward's internal arrays (offsets, perm, isect_ends) stay in ``tiles``
     meta.update({k: tiles[k] for k in PUBLIC_TILE_KEYS})
     render_colors, render_alphas = ops.blend_warp(means2d, conics, colors, opacs, backgrounds, tiles, width, height,
