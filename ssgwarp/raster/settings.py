@@ -44,12 +44,14 @@ class RasterSettings:
         anisotropic Gaussians (ratio of scales beyond ~1e3) in float32 to cancellation.
         ``"factor"``: from its 2x3 factor with a cancellation-free determinant (accurate at
         anisotropy 1e6 in float32; docs/numerics.md). Same values in exact arithmetic.
-    cpu_threads: threads the CPU blending kernels (forward and backward) run on, each launch
-        covering a run of whole tiles; ``None``: ``torch.get_num_threads()`` (``OMP_NUM_THREADS``,
-        ``torch.set_num_threads``). Capped by the number of tiles and by the work (small images
-        stay on one thread; :mod:`ssgwarp.raster.cpu_threads`). Images and the deterministic
-        backward's gradients are bit-identical for any count; the default backward's gradients
-        differ by float rounding (per-thread sums added afterwards). No effect on CUDA.
+    cpu_threads: threads the CPU kernels run on: the blending (forward and backward), each launch
+        covering a run of whole tiles, and the projection, SH colours and binning, each launch a run
+        of elements; ``None``: ``torch.get_num_threads()`` (``OMP_NUM_THREADS``,
+        ``torch.set_num_threads``). Capped by the number of tiles / elements and by the work (small
+        images stay on one thread; :mod:`ssgwarp.raster.cpu_threads`). Images, the projection's
+        outputs and gradients and the deterministic backward's gradients are bit-identical for any
+        count; the default blending backward's gradients differ by float rounding (per-thread sums
+        added afterwards). No effect on CUDA.
     """
 
     alpha_min: float = 1.0 / 255.0

@@ -248,7 +248,6 @@ class RandomMultiScale(FeatureExtractor):
                          + ("" if self.scales == (1, 2, 4) else "p" + "-".join(map(str, self.scales))))
         if edges:
             parts.append("edges")
-        self.edges = bool(edges)
         self.name = "random-multiscale:" + ",".join(parts)
         self.strides = [self.out_stride] * len(self.scales)
 
