@@ -79,8 +79,8 @@ def stage2_config(args, **over):
     from ssgwarp.stylization.stylize import Stage2Config
 
     kw = {}
-    for k in ("iters", "lr", "content_weight", "tv_weight", "color_transfer", "color_max_gain", "sh_rest",
-              "background"):
+    for k in ("iters", "lr", "content_weight", "tv_weight", "blend_weight", "color_transfer", "color_max_gain",
+              "sh_rest", "background"):
         v = getattr(args, k)
         if v is not None:
             kw[k] = v
@@ -250,6 +250,7 @@ def main() -> int:
     g.add_argument("--lr", type=float, default=None)
     g.add_argument("--content-weight", type=float, default=None)
     g.add_argument("--tv-weight", type=float, default=None)
+    g.add_argument("--blend-weight", type=float, default=None)
     g.add_argument("--color-transfer", default=None)
     g.add_argument("--color-max-gain", type=float, default=None)
     g.add_argument("--sh-rest", default=None)

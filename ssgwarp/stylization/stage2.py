@@ -30,6 +30,8 @@ features ``phi`` = the extractor's layers concatenated at the coarsest resolutio
 - TV: mean squared difference of neighbouring pixels; ``tv_weight=None`` (default) resolves by the
   extractor, like ``style_loss="auto"`` (:func:`tv_weight_for`): 0.5 on the weight-free random features
   (measured on 25 styles, fern and the demo scene: docs/stylize.md), 0.02 on VGG16 (unchanged).
+- blend spread (``blend_weight``, default 0): the weighted variance of the colours each pixel mixes
+  (:mod:`ssgwarp.stylization.spread`; the view is then rendered with those channels too).
 
 Only colour is optimised (``sh_dc``); the higher SH bands are zeroed first by
 default (``sh_rest="zero"``: view-independent stylized colour, measured in
@@ -63,6 +65,7 @@ from ..services.distributed import SINGLE
 from ..services.color import describe_transfer, transfer_background, transfer_colors  # noqa: F401  (re-exported)
 from ..services.loop import Diverged, Loop
 from .batches import batch_size_for, batch_views, view_order  # noqa: F401  (view_order re-exported)
+from .spread import SPREAD_CHANNELS, blend_spread, render_with_spread
 from .matching import DEFAULT_CHUNK, MatchTargets, SlicedTargets, downsample_labels
 from ..evaluation.metrics import content_loss
 from ..reconstruction.recipe import batch_factors
@@ -86,6 +89,7 @@ class Stage2Config:
         lr: Adam learning rate of ``sh_dc`` (higher bands: ``lr / 20``; opacity logits: ``lr * 5``).
         style_weight, content_weight, tv_weight: loss weights; ``tv_weight=None`` (default): by the
             extractor, :func:`tv_weight_for` (0.5 on the weight-free random features, 0.02 on VGG16).
+        blend_weight: weight of the blend spread (:func:`ssgwarp.stylization.spread.blend_spread`; 0: off).
         style_loss: ``nnfm`` (nearest-neighbour feature matching, the paper's), ``sw`` (sliced
             Wasserstein between the feature distributions, :class:`ssgwarp.stylization.matching.SlicedTargets`) or
             ``auto``: NNFM on VGG16 features, SW on the weight-free random features (measured:
@@ -123,6 +127,7 @@ class Stage2Config:
     style_weight: float = 1.0
     content_weight: float = 0.05
     tv_weight: Optional[float] = None
+    blend_weight: float = 0.0
     style_loss: str = "auto"
     sw_projections: int = 64
     color_transfer: str = "both"
@@ -145,7 +150,7 @@ class Stage2Config:
             raise InputError(f"--mode {self.mode}: use one of {', '.join(MODES)}")
         if self.iters < 0:
             raise InputError(f"--iters {self.iters}: must be >= 0")
-        for k in ("lr", "style_weight", "content_weight", "tv_weight"):
+        for k in ("lr", "style_weight", "content_weight", "tv_weight", "blend_weight"):
             v = getattr(self, k)
             if v is None and k == "tv_weight":
                 continue
@@ -352,6 +357,7 @@ class ViewLoss:
 
     def __call__(self, image: torch.Tensor, view: int, step: int = 0) -> torch.Tensor:
         cfg = self.cfg
+        channels, image = image, image[..., :3]     # [..., 10] when rendered with the blend spread
         feats = extract(self.extractor, image, cfg.feature_scale)[0]      # [C,h,w]
         labels = self.labels_at(view, tuple(feats.shape[-2:]))
         if isinstance(self.targets, SlicedTargets):
@@ -370,6 +376,10 @@ class ViewLoss:
             tv = tv_loss(image)
             total = total + self.tv_weight * tv
             parts["tv"] = float(tv.detach())
+        if cfg.blend_weight > 0 and channels.shape[-1] == SPREAD_CHANNELS:
+            spread = blend_spread(channels)
+            total = total + cfg.blend_weight * spread
+            parts["spread"] = float(spread.detach())
         parts["total"] = float(total.detach())
         self.last = parts
         return total
@@ -490,8 +500,10 @@ def optimise(scene: GaussianScene, cameras: Cameras, cfg: Stage2Config, *,
 
     rk = dict(render_kwargs or {})
 
+    draw = render_with_spread if cfg.blend_weight > 0 and not finetune else render_rgb
+
     def render(cam: Cameras) -> torch.Tensor:
-        return render_rgb(current(), cam, background, **rk)
+        return draw(current(), cam, background, **rk)
 
     def save(step: int) -> None:
         if checkpoint is None or not group.is_main:

@@ -524,6 +524,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--tv-weight", type=float, default=d.tv_weight,
                    help=f"total variation weight (default: {TV_WEIGHT_FREE} with the weight-free random features, "
                         f"{TV_WEIGHT_VGG} with VGG16)")
+    g.add_argument("--blend-weight", type=float, default=d.blend_weight, help="weight of the blend spread (colours "
+                   f"mixed on one ray kept alike: fewer view-dependent colours; default {d.blend_weight})")
     g.add_argument("--style-loss", default=d.style_loss, choices=STYLE_LOSSES,
                    help="nnfm: nearest-neighbour feature matching (the paper's); sw: sliced Wasserstein "
                         "between feature distributions; auto (default): NNFM on VGG16 features, SW on the "
@@ -573,16 +575,9 @@ def run(args) -> int:
 
     weights = getattr(args, "weights", None)
     weights = weights if isinstance(weights, dict) else None
-    s2 = Stage2Config(mode=args.mode, iters=args.iters, lr=args.lr, style_weight=args.style_weight,
-                      content_weight=args.content_weight, tv_weight=args.tv_weight,
-                      style_loss=args.style_loss, sw_projections=args.sw_projections,
-                      color_transfer=args.color_transfer, color_max_gain=args.color_max_gain,
-                      sh_rest="optimise" if args.sh_bands else args.sh_rest,
-                      free_opacity=args.free_opacity, background=args.background, label_mode=args.label_mode,
-                      feature_scale=args.feature_scale, deferred=not args.direct, chunk=args.chunk,
-                      nn_precision=args.nn_precision,
-                      checkpoint_every=args.checkpoint_every, seed=args.seed,
-                      batch_size=args.batch_size, batch_scaling=args.batch_scaling)
+    over = {"sh_rest": "optimise" if args.sh_bands else args.sh_rest, "deferred": not args.direct}
+    s2 = Stage2Config(**{f.name: over[f.name] if f.name in over else getattr(args, f.name)
+                         for f in dataclasses.fields(Stage2Config)})    # the flags carry the fields' names
     opts = StylizeOptions(keyviews=args.keyviews, ids=parse_ids(args.ids), max_side=args.max_side,
                           extractor=args.extractor, vgg16=args.vgg16,
                           layers=[s.strip() for s in args.layers.split(",")] if args.layers else None,

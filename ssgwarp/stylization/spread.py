@@ -1,0 +1,53 @@
+"""The blend-spread term of Stage 2: colours that differ along a ray are colours that differ between views.
+
+A pixel's colour is the blend ``sum_i w_i c_i`` of the Gaussians its ray crosses, with weights
+``w_i = alpha_i T_i`` that change with the viewpoint. When those Gaussians carry the same colour the
+pixel is the same from every view; when Stage 2 paints texture by giving overlapping Gaussians
+different colours (the front one red, the one behind it blue), one view sees red and the next one
+purple: the stylized scene flickers even though every colour is view-independent. The spread of the
+colours along a ray, weighted as the blend weighs them,
+
+    spread = sum_i w_i c_i^2 - (sum_i w_i c_i)^2 / alpha        (alpha = sum_i w_i, per channel)
+
+is ``alpha`` times the weighted variance of the colours the pixel mixes: 0 when they agree, whatever
+their colour, so the term leaves the texture *between* surfaces free and penalises only texture that
+exists in one view's blend. It is rendered in the same rasterizer pass as the image, as extra
+channels (``c``, ``c^2`` and a constant 1, with no background: :func:`render_with_spread`), and
+:func:`blend_spread` turns those channels into the mean spread over the pixels.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+
+from ..core.cameras import Cameras
+from ..raster import rendering
+
+SPREAD_CHANNELS = 10    # composited RGB (3), sum w c (3), sum w c^2 (3), alpha (1)
+
+
+def render_with_spread(scene, cams: Cameras, background: Optional[torch.Tensor] = None, **kwargs) -> torch.Tensor:
+    """``[C, H, W, 10]``: the RGB render composited over ``background`` (as Stage 2's plain render),
+    then ``sum w c``, ``sum w c^2`` and ``alpha``, from one differentiable rasterizer call of 7
+    channels (the colours as :func:`ssgwarp.raster.rendering.gaussian_colors` gives them)."""
+    cams = cams.to(scene.device)
+    colors = rendering.gaussian_colors(scene, cams)                              # [C, N, 3]
+    rows = torch.cat([colors, colors * colors, torch.ones_like(colors[..., :1])], dim=-1)
+    out, _, _ = rendering.render(scene, cams, rgb=False, extra=rows, **kwargs)   # no background
+    c, alpha = out[..., :3], out[..., 6:7]
+    if background is not None:
+        bg = background.to(out.device, out.dtype).reshape(1, 1, 1, 3)
+        rgb = c + (1.0 - alpha) * bg
+    else:
+        rgb = c
+    return torch.cat([rgb, out[..., :7]], dim=-1)
+
+
+def blend_spread(channels: torch.Tensor, eps: float = 1e-4) -> torch.Tensor:
+    """Mean over pixels of ``sum_ch (sum w c^2 - (sum w c)^2 / alpha)`` from the channels of
+    :func:`render_with_spread` (``[..., 10]``); pixels with ``alpha < eps`` count as 0."""
+    c, c2, alpha = channels[..., 3:6], channels[..., 6:9], channels[..., 9:10]
+    spread = c2 - c * c / alpha.clamp_min(eps)
+    spread = torch.where(alpha > eps, spread, torch.zeros_like(spread))
+    return spread.sum(-1).mean()
