@@ -74,6 +74,8 @@ def ranges(cpu_threads: int | None, n: int, min_items: int | None = None) -> lis
     thread (:func:`wanted`, at most one per ``min_items`` elements, default :data:`MIN_ITEMS`);
     ``[(0, n)]`` for one."""
     per = MIN_ITEMS if min_items is None else min_items
+    if n < 2 * per:  # (one run whatever the threads: the common small case without asking torch)
+        return [(0, n)]
     parts = max(1, min(wanted(cpu_threads), n // max(1, per)))
     cuts = [n * i // parts for i in range(parts + 1)]
     return [(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a] or [(0, n)]

@@ -104,6 +104,19 @@ def _array_t(v: tuple):
     return array_t(v[0], v[1], nd, v[2:2 + nd], v[6:6 + nd], v[11])
 
 
+def apply(fn, *args):
+    """``fn.apply(*args)`` for an autograd Function without the per-call Python of
+    ``torch.autograd.Function.apply`` (argument binding, functorch unwrapping), which only matters
+    under functorch transforms: those still go through ``fn.apply``."""
+    if _functorch_active():
+        return fn.apply(*args)
+    return _BASE_APPLY.__get__(None, fn)(*args)
+
+
+_functorch_active = torch._C._are_functorch_transforms_active
+_BASE_APPLY = torch._C._FunctionBase.__dict__["apply"]  # (what Function.apply ends in)
+
+
 # ---------------------------------------------------------------------------------------------
 # where launches go
 # ---------------------------------------------------------------------------------------------

@@ -21,7 +21,7 @@ import warp as wp
 from . import cpu_threads
 from . import launch as L
 from ..kernels import binning, blend_backward, blend_forward, projection, sh, validate
-from .launch import NULL, arr, rows
+from .launch import NULL, apply, arr, rows
 
 Tensor = torch.Tensor
 MAX_CHANNELS = 64
@@ -103,6 +103,7 @@ class _Project(torch.autograd.Function):
         dt, dev = means.dtype, means.device
         s = _scalar(dt)
         tg = L.target(means)
+        ctx.set_materialize_grads(False)  # (outputs without a gradient arrive as None: no zero tensors)
         ins = [_c(t) for t in (means, quats, scales, opacities, viewmats, Ks)]
         means2d = torch.empty(C, N, 2, dtype=dt, device=dev)
         depths = torch.empty(C, N, dtype=dt, device=dev)
@@ -267,7 +268,7 @@ def project_warp(means, quats, scales, opacities, viewmats, Ks, width, height, *
                  far_plane=1e10, radius_clip=0.0, eps2d=0.3, antialiased=False, settings=None):
     """Warp version of :func:`ssgwarp.raster.reference.project_reference` (same outputs)."""
     cfg = _project_cfg(means.dtype, width, height, near_plane, far_plane, radius_clip, eps2d, antialiased, settings)
-    radii, means2d, depths, conics, opac, _, _, _ = _Project.apply(means, quats, scales, opacities, viewmats, Ks,
+    radii, means2d, depths, conics, opac, _, _, _ = apply(_Project, means, quats, scales, opacities, viewmats, Ks,
                                                                    None, None, cfg, None)
     return radii, means2d, depths, conics, opac
 
@@ -458,6 +459,7 @@ class _Blend(torch.autograd.Function):
         s = _scalar(dt)
         th, tw = tiles["isect_offsets"].shape[1:]
         tg = L.target(colors)
+        ctx.set_materialize_grads(False)
         # the kernel writes every pixel
         out = torch.empty(C, height, width, D, dtype=dt, device=dev)
         out_alpha = torch.empty(C, height, width, 1, dtype=dt, device=dev)
@@ -590,5 +592,5 @@ def blend_warp(means2d, conics, colors, opacities, backgrounds, tiles, width, he
                              tiles, width, height, tile_size, settings, deterministic, packed)
                   for i in range(0, D, MAX_CHANNELS)]
         return torch.cat([c[0] for c in chunks], dim=-1), chunks[0][1]
-    return _Blend.apply(means2d, conics, colors, opacities, backgrounds, tiles, width, height, tile_size,
+    return apply(_Blend, means2d, conics, colors, opacities, backgrounds, tiles, width, height, tile_size,
                         settings, deterministic, packed)

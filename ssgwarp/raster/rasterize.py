@@ -167,8 +167,8 @@ def _rasterize_warp(means, quats, scales, opacities, colors, viewmats, Ks, width
         # inv_ex: no singularity check, so no device synchronisation per call
         campos = torch.linalg.inv_ex(viewmats).inverse[:, :3, 3]
         coeffs = colors
-    radii, means2d, depths, conics, opacs, sh_colors, counts, packed = ops._Project.apply(
-        means, quats, scales, opacities, viewmats, Ks, coeffs, campos, cfg, extra)
+    radii, means2d, depths, conics, opacs, sh_colors, counts, packed = ops.apply(
+        ops._Project, means, quats, scales, opacities, viewmats, Ks, coeffs, campos, cfg, extra)
     if sh_colors is not None:
         colors = sh_colors
     colors, backgrounds = reference.mode_channels(colors, depths, backgrounds, render_mode, C)
