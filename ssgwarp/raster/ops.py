@@ -53,7 +53,7 @@ def _adj(g, inner: int, n: int):
     :data:`NULL` when there is none."""
     if g is None:
         return NULL, None
-    g = g.detach().reshape(n, inner) if inner > 1 else g.detach().reshape(n, 1)
+    g = g.reshape(n, inner)  # (a view where it can be; the kernels read the values, not the graph)
     if g.stride(1) != 1 and inner > 1:
         g = g.contiguous()
     return rows(g, inner), g
@@ -539,16 +539,19 @@ class _Blend(torch.autograd.Function):
             L.launch(blend_backward.gather_kernel(s, W), C * N,
                      [*arr(tiles["isect_ends"]), *arr(tiles["tiles_per_gauss"]), *arr(slots, W), *arr(packed, W)],
                      tg)
-        v_colors = packed[:, lead:].view(C, N, D)
+        # (the gradients as views of the packed rows, in as few torch calls as may be)
+        v_m2d = v_conics = v_opac = None
+        if geometry:
+            v_m2d, v_conics, v_opac, v_colors = packed.view(C, N, W).split((2, 3, 1, D), -1)
+            v_opac = v_opac.squeeze(-1)
+        else:
+            v_colors = packed.view(C, N, D)
         if len(ctx.cshape) == 2:  # colours shared by the cameras
             v_colors = v_colors[0] if C == 1 else v_colors.sum(0)
         v_bg = None
         if bg is not None:
             v_bg = (g_colors * out_T[..., None]).sum(dim=(1, 2)) if g_colors is not None else torch.zeros_like(bg)
-        if not geometry:
-            return None, None, v_colors, None, v_bg, None, None, None, None, None, None, None
-        return (packed[:, 0:2].view(C, N, 2), packed[:, 2:5].view(C, N, 3), v_colors, packed[:, 5].view(C, N),
-                v_bg, None, None, None, None, None, None, None)
+        return v_m2d, v_conics, v_colors, v_opac, v_bg, None, None, None, None, None, None, None
 
 
 def _tile_parts(tg, settings, tiles, n_ranges: int, tile_size: int) -> list[tuple[int, int]]:
