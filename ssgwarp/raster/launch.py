@@ -107,14 +107,16 @@ def _array_t(v: tuple):
 def apply(fn, *args):
     """``fn.apply(*args)`` for an autograd Function without the per-call Python of
     ``torch.autograd.Function.apply`` (argument binding, functorch unwrapping), which only matters
-    under functorch transforms: those still go through ``fn.apply``."""
-    if _functorch_active():
+    under functorch transforms: those still go through ``fn.apply`` (so does a torch without the
+    private entry point)."""
+    if _BASE_APPLY is None or _functorch_active():
         return fn.apply(*args)
     return _BASE_APPLY.__get__(None, fn)(*args)
 
 
-_functorch_active = torch._C._are_functorch_transforms_active
-_BASE_APPLY = torch._C._FunctionBase.__dict__["apply"]  # (what Function.apply ends in)
+_functorch_active = getattr(torch._C, "_are_functorch_transforms_active", lambda: True)
+# what Function.apply ends in (None where this torch has no such entry point)
+_BASE_APPLY = getattr(getattr(torch._C, "_FunctionBase", None), "__dict__", {}).get("apply")
 
 
 # ---------------------------------------------------------------------------------------------
