@@ -103,7 +103,9 @@ def test_edges_extractor_sees_edges_not_colour():
     torch.testing.assert_close(z.flatten(1).norm(dim=1), w.flatten(1).norm(dim=1))
     plain, edges = RandomMultiScale(seed=0), RandomMultiScale(seed=0, edges=True)
     assert edges.name == "random-multiscale:seed0,c128s2,edges" and plain.name == "random-multiscale:seed0,c128s2"
-    assert load_extractor(kind="random-edges").name == edges.name
+    coarse = load_extractor(kind="random-edges")      # the CLI's option: branches at 1/2, 1/4, 1/8
+    assert coarse.name == "random-multiscale:seed0,c128s2p2-4-8,edges" and coarse.scales == (2, 4, 8)
+    assert [b[0].weight.mean(dim=(2, 3)).abs().max() < 1e-6 for b in coarse.branches] == [True] * 3
     red, blue = torch.zeros(1, 3, 32, 32), torch.zeros(1, 3, 32, 32)
     red[:, 0], blue[:, 2] = 0.9, 0.6
     for a, b in zip(edges(red), edges(blue)):        # two flat colours: the same features

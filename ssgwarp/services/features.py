@@ -265,6 +265,9 @@ class RandomMultiScale(FeatureExtractor):
 
 
 EXTRACTOR_KINDS = ("auto", "vgg16", "random", "random-edges")
+# branches of ``random-edges``: 1/2, 1/4, 1/8 (measured against 1, 1/2, 1/4 with the blend spread, docs/stylize.md:
+# more texture and a lower consistency error on the demo scene, 25 styles)
+EDGE_SCALES = (2, 4, 8)
 
 
 def load_extractor(vgg_weights: Optional[str | os.PathLike] = None, device: torch.device | str = "cpu",
@@ -278,8 +281,8 @@ def load_extractor(vgg_weights: Optional[str | os.PathLike] = None, device: torc
     are off — else the random extractor; a failed download says so in one line),
     ``"vgg16"`` (weights required: raises :class:`~ssgwarp.errors.WeightsNotFound`
     otherwise), ``"random"`` or ``"random-edges"`` (:class:`RandomMultiScale` with
-    ``edges=True``). ``layers`` applies to VGG16 (default the conv3 block); ``seed`` to the
-    random extractor.
+    ``edges=True`` and branches at :data:`EDGE_SCALES`). ``layers`` applies to VGG16 (default the
+    conv3 block); ``seed`` to the random extractor.
     """
     from . import weights
 
@@ -302,7 +305,8 @@ def load_extractor(vgg_weights: Optional[str | os.PathLike] = None, device: torc
             raise weights.load_error("vgg16", path, e, "VGG16 state dict") from None
         ext.load_torchvision(state)
     else:
-        ext = RandomMultiScale(seed=seed, normalize=normalize, edges=kind == "random-edges")
+        edges = kind == "random-edges"
+        ext = RandomMultiScale(seed=seed, normalize=normalize, edges=edges, scales=EDGE_SCALES if edges else (1, 2, 4))
     return ext.freeze().to(device)
 
 

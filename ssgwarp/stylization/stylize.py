@@ -561,7 +561,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--batch-scaling", choices=("sqrt", "linear", "none"), default=d.batch_scaling,
                    help="Adam for batches: learning rates x sqrt(B) (default) or x B with betas ** B, or none")
     g.add_argument("--extractor", default="auto", choices=EXTRACTOR_KINDS, help="features: auto = VGG16 when "
-                   "weights are found, else seeded random multi-scale; random-edges: more texture, less consistent")
+                   "weights are found, else seeded random multi-scale; random-edges: more texture (docs/stylize.md)")
     g.add_argument("--vgg16", default=None, help="torchvision VGG16 state dict (or SSGWARP_VGG16)")
     g.add_argument("--layers", default=None, help="VGG16 layers, comma separated (default conv3 = relu3_1..3)")
     g = p.add_argument_group("outputs")
