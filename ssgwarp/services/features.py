@@ -305,8 +305,8 @@ def load_extractor(vgg_weights: Optional[str | os.PathLike] = None, device: torc
             raise weights.load_error("vgg16", path, e, "VGG16 state dict") from None
         ext.load_torchvision(state)
     else:
-        edges = kind == "random-edges"
-        ext = RandomMultiScale(seed=seed, normalize=normalize, edges=edges, scales=EDGE_SCALES if edges else (1, 2, 4))
+        coarse = {"edges": True, "scales": EDGE_SCALES} if kind == "random-edges" else {}
+        ext = RandomMultiScale(seed=seed, normalize=normalize, **coarse)
     return ext.freeze().to(device)
 
 

@@ -35,12 +35,9 @@ def render_with_spread(scene, cams: Cameras, background: Optional[torch.Tensor] 
     colors = rendering.gaussian_colors(scene, cams)                              # [C, N, 3]
     rows = torch.cat([colors, colors * colors, torch.ones_like(colors[..., :1])], dim=-1)
     out, _, _ = rendering.render(scene, cams, rgb=False, extra=rows, **kwargs)   # no background
-    c, alpha = out[..., :3], out[..., 6:7]
-    if background is not None:
-        bg = background.to(out.device, out.dtype).reshape(1, 1, 1, 3)
-        rgb = c + (1.0 - alpha) * bg
-    else:
-        rgb = c
+    rgb = out[..., :3]
+    if background is not None:   # composited as the rasterizer composites: + (1 - alpha) background
+        rgb = rgb + (1.0 - out[..., 6:7]) * background.to(out.device, out.dtype).reshape(1, 1, 1, 3)
     return torch.cat([rgb, out[..., :7]], dim=-1)
 
 
