@@ -88,6 +88,8 @@ def main() -> int:
     p.add_argument("--modes", default="ist", help="comma-separated Stage 2 modes (ist,global,finetune)")
     p.add_argument("--iters", type=int, default=None, help="Stage 2 steps (default: the CLI default)")
     p.add_argument("--keyviews", type=int, default=4)
+    p.add_argument("--stage2", default=None, metavar="K=V,...",
+                   help="other Stage 2 options, e.g. blend_weight=0.65,color_max_gain=1.0 (default: the CLI's)")
     p.add_argument("--extractor", default="auto", choices=EXTRACTOR_KINDS)
     p.add_argument("--path-frames", type=int, default=30)
     p.add_argument("--random-stage1", choices=("tiny", "sd15"), default=None,
@@ -133,7 +135,12 @@ def main() -> int:
         s1 = Stage1Config(steps=args.stage1_steps)
     results = {}
     for mode in [m.strip() for m in args.modes.split(",") if m.strip()]:
-        s2 = Stage2Config(mode=mode) if args.iters is None else Stage2Config(mode=mode, iters=args.iters)
+        over = {} if args.iters is None else {"iters": args.iters}
+        for kv in filter(None, (args.stage2 or "").split(",")):
+            k, _, v = kv.partition("=")
+            kind = type(getattr(Stage2Config(), k.strip().replace("-", "_"), ""))
+            over[k.strip().replace("-", "_")] = float(v) if kind in (float, type(None)) else kind(v)
+        s2 = Stage2Config(mode=mode, **over)
         opts = StylizeOptions(keyviews=args.keyviews, extractor=args.extractor, path_frames=args.path_frames)
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)

@@ -80,7 +80,7 @@ def stage2_config(args, **over):
 
     kw = {}
     for k in ("iters", "lr", "content_weight", "tv_weight", "blend_weight", "color_transfer", "color_max_gain",
-              "sh_rest", "background"):
+              "color_detail", "sh_rest", "background"):
         v = getattr(args, k)
         if v is not None:
             kw[k] = v
@@ -253,6 +253,7 @@ def main() -> int:
     g.add_argument("--blend-weight", type=float, default=None)
     g.add_argument("--color-transfer", default=None)
     g.add_argument("--color-max-gain", type=float, default=None)
+    g.add_argument("--color-detail", default=None, choices=("keep", "off"))
     g.add_argument("--sh-rest", default=None)
     g.add_argument("--background", default=None, choices=("transfer", "keep"))
     args = p.parse_args()

@@ -189,3 +189,118 @@ def test_transfer_background_makes_the_colour_map_exact_on_every_pixel():
                                    assign=obj, num_groups=2, max_gain=1.0)
     assert info_g["per_group"] and "transform" not in info_g
     assert transfer_background([1.0, 1.0, 1.0], info_g) == pytest.approx(bg, abs=1e-9)   # the same global map
+
+
+# ----------------------------------------------------------------------------- texture kept through the map
+def test_lightness_contrast_hand_cases():
+    """RMS L* differences of pixel pairs: 1-px black/white stripes differ by 100 across and 0 along them."""
+    from ssgwarp.services.color import detail_contrast, lightness_contrast
+
+    img = torch.zeros(1, 4, 6, 3, dtype=torch.float64)
+    img[:, :, 1::2] = 1.0                                       # columns alternate black, white
+    # horizontal pairs: 4 x 5 differences of 100; vertical pairs: 3 x 6 of 0 (white: L* 100)
+    assert lightness_contrast(img) == pytest.approx(100 * (20 / 38) ** 0.5, rel=1e-6)
+    assert lightness_contrast(img, offset=2) == 0.0              # two columns apart: the same colour
+    assert detail_contrast(img, offsets=(1, 2)) == 0.0           # no texture at 2 px: none counted
+    assert detail_contrast(img) == pytest.approx(lightness_contrast(img), rel=1e-12)   # default: 1 px
+    # only kept pixels pair up: keep columns 0-1 -> horizontal pairs 4 x 1 (100), vertical 3 x 2 (0)
+    alpha = torch.zeros(1, 4, 6, dtype=torch.float64)
+    alpha[:, :, :2] = 1.0
+    assert lightness_contrast(img, alpha) == pytest.approx(100 * (4 / 10) ** 0.5, rel=1e-6)
+    assert lightness_contrast(img, torch.zeros_like(alpha)) == 0.0          # no pair at all
+    assert lightness_contrast(torch.full((2, 5, 5, 3), 0.3, dtype=torch.float64)) == 0.0   # flat
+    # values outside [0, 1] count as the clamped colour a render shows
+    assert lightness_contrast(img * 3 - 1) == pytest.approx(lightness_contrast(img), rel=1e-12)
+    # geometric mean over the offsets
+    g = torch.Generator().manual_seed(0)
+    noise = (0.5 + 0.1 * torch.randn(2, 24, 24, 1, generator=g, dtype=torch.float64)).expand(-1, -1, -1, 3)
+    vals = [lightness_contrast(noise, offset=o) for o in (1, 2, 4)]
+    assert min(vals) > 0
+    assert detail_contrast(noise, offsets=(1, 2, 4)) == pytest.approx((vals[0] * vals[1] * vals[2]) ** (1 / 3),
+                                                                      rel=1e-9)
+
+
+def test_stretch_lightness_scales_luminance_about_the_center_and_keeps_chroma():
+    from ssgwarp.services.color import LUMA
+
+    g = torch.Generator().manual_seed(1)
+    A = torch.randn(3, 3, generator=g, dtype=torch.float64) * 0.3 + torch.eye(3, dtype=torch.float64)
+    t = ColorTransform(A, torch.tensor([0.1, -0.05, 0.2], dtype=torch.float64))
+    c = torch.tensor([0.4, 0.5, 0.6], dtype=torch.float64)
+    s = t.stretch_lightness(1.7, c)
+    x = torch.rand(50, 3, generator=g, dtype=torch.float64)
+    w = torch.tensor(LUMA, dtype=torch.float64)
+    torch.testing.assert_close((s(x) - c) @ w, 1.7 * ((t(x) - c) @ w))      # luminance about c: x 1.7
+    d = s(x) - t(x)                                                      # the change is a grey shift
+    torch.testing.assert_close(d[:, 0], d[:, 1])
+    torch.testing.assert_close(d[:, 1], d[:, 2])
+    torch.testing.assert_close(s(c[None]) - t(c[None]), (t(c[None]) - c) @ w * 0.7 * torch.ones(1, 3, dtype=torch.float64))
+    torch.testing.assert_close(t.stretch_lightness(1.0, c)(x), t(x))
+
+
+def _textured(v: int, h: int, w: int, seed: int, mean: float, layout: float, grain: float) -> torch.Tensor:
+    """Grey images: a left-right ramp of amplitude ``layout`` plus pixel noise of std ``grain``."""
+    g = torch.Generator().manual_seed(seed)
+    ramp = torch.linspace(-layout, layout, w, dtype=torch.float64).expand(v, h, w)
+    y = mean + ramp + grain * torch.randn(v, h, w, generator=g, dtype=torch.float64)
+    return y[..., None].expand(-1, -1, -1, 3).clone()
+
+
+def test_detail_gain_restores_texture_the_plain_map_flattens():
+    """A scene whose lightness varies mostly at large scale, a style with more grain but less variance:
+    the plain map shrinks the scene's grain below both; the stretch brings it to min(style, scene)."""
+    from ssgwarp.services.color import detail_contrast, detail_gain
+
+    renders = _textured(2, 32, 32, 0, 0.5, 0.15, 0.02)        # strong layout, fine grain
+    alphas = torch.ones(2, 32, 32, dtype=torch.float64)
+    style = _textured(1, 32, 32, 1, 0.6, 0.0, 0.05)           # no layout, more grain, smaller variance
+    t = fit_transform(pixel_stats(renders, alphas)[0], pixel_stats(style)[0])
+    plain = detail_contrast(t(renders), alphas)
+    d = detail_gain(renders, alphas, style, [t], [pixel_stats(style)[0].mean])
+    assert d["mapped"] == pytest.approx(plain, rel=1e-12)
+    assert plain < 0.6 * min(d["style"], d["scene"]), d             # the plain map flattened the grain
+    assert d["gain"] > 1.5 and d["kept"] == pytest.approx(min(d["style"], d["scene"]), rel=0.011), d
+    stretched = t.stretch_lightness(d["gain"], pixel_stats(style)[0].mean)
+    assert detail_contrast(stretched(renders), alphas) == pytest.approx(d["kept"], rel=1e-9)
+    # a flat style asks for no texture: nothing is stretched
+    flat = torch.full((1, 16, 16, 3), 0.6, dtype=torch.float64)
+    assert detail_gain(renders, alphas, flat, [t], [pixel_stats(style)[0].mean])["gain"] == 1.0
+    # a map that keeps the texture already: no stretch
+    ident = ColorTransform.identity()
+    assert detail_gain(renders, alphas, style, [ident], [pixel_stats(style)[0].mean])["gain"] == 1.0
+
+
+def test_transfer_colors_keep_detail_on_a_rendered_scene():
+    """stylize.transfer_colors(keep_detail=True): the recoloured scene's renders hold the texture the
+    record says (min of style and scene, within the tolerance), their mean colour stays the target's,
+    and the record and its description say what was done; without it nothing is stretched."""
+    from test_stylize import ring, two_objects
+
+    from ssgwarp.services.color import describe_transfer, detail_contrast
+    from ssgwarp.stylization import stylize as st
+
+    from ssgwarp.raster.scene import rgb_to_sh_dc
+
+    scene, obj = two_objects(n=80, dtype=torch.float64)       # recoloured: a darker and a lighter grey object
+    g = torch.Generator().manual_seed(3)
+    grey = torch.where(obj == 0, 0.35, 0.65).double() + 0.1 * torch.randn(len(obj), generator=g, dtype=torch.float64)
+    scene = scene.replace(sh_dc=rgb_to_sh_dc(grey[:, None].expand(-1, 3).clamp(0.02, 0.98)).reshape(scene.sh_dc.shape))
+    cams = ring(n=3, dtype=torch.float64)
+    style = _textured(1, 32, 48, 2, 0.55, 0.0, 0.08)            # one grey with a grain: less variance, more grain
+    plain, info_p = st.transfer_colors(scene, cams, style, max_gain=4.0)
+    kept, info_k = st.transfer_colors(scene, cams, style, max_gain=4.0, keep_detail=True)
+    assert "detail" not in info_p and "texture" not in describe_transfer(info_p, "the style")
+    d = info_k["detail"]
+    assert d["gain"] > 1.0 and "texture" in describe_transfer(info_k, "the style")
+
+    def surface(sc):
+        col, alpha, _ = sc.render(cams)
+        return col[..., :3] / alpha.clamp_min(1e-9), alpha[..., 0]
+
+    s_p, a = surface(plain)
+    s_k, _ = surface(kept)
+    assert detail_contrast(s_p, a) == pytest.approx(d["mapped"], rel=1e-3)
+    assert detail_contrast(s_k, a) == pytest.approx(d["kept"], rel=1e-3)
+    assert d["kept"] == pytest.approx(min(d["style"], d["scene"]), rel=0.011)
+    keep = a >= 0.5
+    torch.testing.assert_close(s_k[keep].mean(0), s_p[keep].mean(0), atol=2e-3, rtol=0)   # about the target mean

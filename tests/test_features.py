@@ -73,6 +73,11 @@ def test_default_is_random_when_no_weights(monkeypatch):
     monkeypatch.delenv("SSGWARP_WEIGHTS", raising=False)
     ext = load_extractor()
     assert ext.name == "random-multiscale:seed0,c128s2"
+    # ssgwarp stylize's weight-free default: the edge features
+    assert load_extractor(fallback="random-edges").name == "random-multiscale:seed0,c128s2p2-4-8,edges"
+    assert load_extractor(kind="random", fallback="random-edges").name == "random-multiscale:seed0,c128s2"
+    with pytest.raises(InputError, match="fallback"):
+        load_extractor(fallback="vgg16")
     with pytest.raises(WeightsNotFound):
         load_extractor(kind="vgg16")
 

@@ -32,6 +32,19 @@ Per group (:func:`fit_group_transforms`): each group's transform maps that
 group's pixels in the source views to its pixels in the target views; a
 group with too few target pixels (absent from the key views) falls back to
 the global transform, as group matching does.
+
+**Texture** (``keep_detail``): matching the covariance scales every
+lightness difference of the scene by one factor, its texture with its
+layout. When a capture's lightness varies mostly at large scale (dark
+background, bright leaves) and the style's mostly at small scale (pencil
+hatching), the map flattens the scene's texture below both its own and the
+style's (measured on fern: docs/stylize.md). With ``keep_detail`` the map's
+lightness output is then stretched about each group's target mean, chroma
+untouched, until the mapped renders' fine texture (:func:`detail_contrast`:
+RMS L* difference of neighbouring pixels; in L* because brightening a scene
+also flattens its texture as seen) reaches the smaller of the style's and the
+scene's own: it never adds texture the capture did not have, nor more than
+the style has.
 """
 from __future__ import annotations
 
@@ -104,6 +117,14 @@ class ColorTransform:
         """The composition ``other(self(x))``."""
         return ColorTransform(other.A @ self.A, other.A @ self.b + other.b)
 
+    def stretch_lightness(self, k: float, center: Tensor) -> "ColorTransform":
+        """This map followed by a stretch of its output's luminance (:data:`LUMA`) by ``k`` about ``center``
+        (a grey shift per pixel: ``y -> y + (k - 1) Y(y - center) (1, 1, 1)``; chroma unchanged)."""
+        w = torch.tensor(LUMA, dtype=self.A.dtype, device=self.A.device)
+        M = torch.eye(3, dtype=self.A.dtype, device=self.A.device) + (k - 1.0) * torch.ones_like(w)[:, None] * w[None]
+        c = center.to(self.A)
+        return ColorTransform(M @ self.A, M @ self.b + c - M @ c)
+
     def to_list(self) -> dict:
         return {"A": [[round(float(v), 6) for v in row] for row in self.A], "b": [round(float(v), 6) for v in self.b]}
 
@@ -159,6 +180,88 @@ def transform_sh(scene: GaussianScene, transforms: Sequence[ColorTransform],
     return scene.replace(sh_dc=dc, sh_rest=rest) if rest is not None else scene.replace(sh_dc=dc)
 
 
+# ----------------------------------------------------------------------------- texture kept through the map
+LUMA = (0.2126, 0.7152, 0.0722)   # Rec. 709 luminance weights (they sum to 1: a grey shift moves Y by its size)
+
+
+
+DETAIL_OFFSETS = (1,)   # pixel distances at which :func:`detail_contrast` compares lightness (measured: 1 px)
+
+
+def lightness_contrast(images: Tensor, alphas: Optional[Tensor] = None, offset: int = 1,
+                       alpha_min: float = 0.5) -> float:
+    """RMS difference of CIE L* (perceptual lightness, 0-100) between pixels ``offset`` apart,
+    horizontally and vertically, of ``images [V, H, W, 3]`` (sRGB, clamped to [0, 1] as renders are),
+    both pixels kept (``alphas [V, H, W]`` >= ``alpha_min`` when given); 0 with no such pair.
+
+    In L*, not RGB: L* compresses differences in bright regions, so brightening a scene flattens its
+    texture as seen even when its RGB differences stay.
+    """
+    y = rgb_to_lab(images.to(torch.float64).clamp(0.0, 1.0))[..., 0]
+    keep = torch.ones_like(y, dtype=torch.bool)
+    if alphas is not None:
+        keep = alphas.reshape(y.shape).to(images.device) >= alpha_min
+    o = int(offset)
+    total, count = y.new_zeros(()), 0
+    for d, m in ((y[:, :, o:] - y[:, :, :-o], keep[:, :, o:] & keep[:, :, :-o]),
+                 (y[:, o:] - y[:, :-o], keep[:, o:] & keep[:, :-o])):
+        total = total + (d[m] ** 2).sum()
+        count += int(m.sum())
+    return float((total / count).sqrt()) if count else 0.0
+
+
+def detail_contrast(images: Tensor, alphas: Optional[Tensor] = None, offsets: Sequence[int] = DETAIL_OFFSETS
+                    ) -> float:
+    """How much fine texture an image holds: the geometric mean of :func:`lightness_contrast` over
+    ``offsets`` (default 1 px; the median, and the mean over 1, 2 and 4 px, measured worse:
+    docs/stylize.md); 0 when any of them is 0."""
+    vals = [lightness_contrast(images, alphas, o) for o in offsets]
+    return float(torch.tensor(vals, dtype=torch.float64).log().mean().exp()) if min(vals) > 0 else 0.0
+
+
+def _mapped(images: Tensor, transforms: Sequence["ColorTransform"], labels: Optional[Tensor]) -> Tensor:
+    """``images [V, H, W, 3]`` under one transform, or per pixel under its group's (``labels [V, H, W]``)."""
+    if labels is None:
+        return transforms[0](images)
+    out = torch.empty_like(images)
+    lab = labels.to(images.device).long()
+    for g, t in enumerate(transforms):
+        m = lab == g
+        if bool(m.any()):
+            out[m] = t(images[m])
+    return out
+
+
+DETAIL_MAX_GAIN = 3.0   # the lightness stretch of ``keep_detail`` is at most this
+
+
+def detail_gain(renders: Tensor, alphas: Tensor, target: Tensor, transforms: Sequence["ColorTransform"],
+                centers: Sequence[Tensor], labels: Optional[Tensor] = None, tol: float = 0.01,
+                max_gain: float = DETAIL_MAX_GAIN) -> dict:
+    """The lightness stretch that keeps texture through the colour maps (see module docs).
+
+    ``renders [V, H, W, 3]`` (surface colours, ``alphas [V, H, W]``) are what ``transforms`` apply to
+    (per group with ``labels``), ``target [T, H', W', 3]`` what they match; ``centers``: each map's
+    target mean (the stretch's fixed point). The stretch ``k`` (:meth:`ColorTransform.stretch_lightness`)
+    is found by fixed-point steps ``k <- k * want / mapped(k)`` (L* is not linear in ``k``) until the mapped
+    renders' texture (:func:`detail_contrast`) is within ``tol`` of ``want = min(style, scene)``; 1 when
+    it is there already; at most ``max_gain``. Returns ``{"style", "scene", "mapped", "gain", "kept"}``:
+    the texture of the target, of the renders and of the plain-mapped renders, ``k``, and the texture
+    the stretched maps give.
+    """
+    style, scene = detail_contrast(target), detail_contrast(renders, alphas)
+    want = min(style, scene)
+    mapped = kept = detail_contrast(_mapped(renders, transforms, labels), alphas)
+    k = 1.0
+    for _ in range(12):
+        if kept <= 0 or kept >= want * (1 - tol) or k >= max_gain:
+            break
+        k = min(max_gain, k * want / kept)
+        kept = detail_contrast(_mapped(renders, [t.stretch_lightness(k, c) for t, c in zip(transforms, centers)],
+                                     labels), alphas)
+    return {"style": style, "scene": scene, "mapped": mapped, "gain": k, "kept": kept}
+
+
 # ----------------------------------------------------------------------------- fitting from images
 def pixel_stats(images: Tensor, alphas: Optional[Tensor] = None, labels: Optional[Tensor] = None,
                 num_groups: Optional[int] = None, alpha_min: float = 0.5
@@ -205,6 +308,7 @@ def fit_group_transforms(source: tuple[ColorStats, dict[int, ColorStats]],
 
 
 __all__ = ["rgb_to_lab", "ColorStats", "ColorTransform", "fit_transform", "transform_sh", "pixel_stats",
+           "LUMA", "lightness_contrast", "detail_contrast", "detail_gain",
            "fit_group_transforms", "transfer_colors", "transfer_background", "describe_transfer"]
 
 
@@ -213,8 +317,8 @@ __all__ = ["rgb_to_lab", "ColorStats", "ColorTransform", "fit_transform", "trans
 def transfer_colors(scene: GaussianScene, cameras: Cameras, target: torch.Tensor, *,
                     labels: Optional[torch.Tensor] = None,
                     target_labels: Optional[torch.Tensor] = None, assign: Optional[torch.Tensor] = None,
-                    num_groups: Optional[int] = None, min_pixels: int = 64, max_gain: float = 1.3
-                    ) -> tuple[GaussianScene, dict]:
+                    num_groups: Optional[int] = None, min_pixels: int = 64, max_gain: float = 1.3,
+                    keep_detail: bool = False) -> tuple[GaussianScene, dict]:
     """ARF's colour transfer of ``scene``: its renders from ``cameras`` get the colour mean and
     covariance of ``target [V, H, W, 3]`` (the style image or the stylized key views), by one linear
     map of the SH coefficients (the functions above; view-consistent by construction).
@@ -225,8 +329,13 @@ def transfer_colors(scene: GaussianScene, cameras: Cameras, target: torch.Tensor
     fewer than ``min_pixels`` pixels on either side (absent from the key views) — the global map
     (all rendered pixels -> all target pixels). The source colours are the renders' surface colours
     (rendered without background and divided by alpha, so that the map is exact on them); pixels with
-    alpha < 0.5 (background) are left out. Returns the recoloured scene and a record of what was done.
+    alpha < 0.5 (background) are left out. ``keep_detail``: stretch the maps' lightness so that the
+    scene's fine texture is not flattened below the style's (:func:`detail_gain`; module docs); the record's
+    ``detail`` says by how much. Returns the recoloured scene and a record of what was done.
     """
+    if max_gain is None or not max_gain > 0:
+        raise InputError(f"transfer_colors: max_gain must be a number > 0, got {max_gain!r} (Stage 2 leaves "
+                         "None to the features: ssgwarp.stylization.stage2.resolve_for makes it concrete)")
     renders, alphas = [], []
     for c in range(len(cameras)):   # rendered without background, un-premultiplied: the surface colour
         col, alpha, _ = scene.render(cameras[[c]].to(scene.device))
@@ -239,21 +348,38 @@ def transfer_colors(scene: GaussianScene, cameras: Cameras, target: torch.Tensor
     glob = fit_transform(src[0], tgt[0], max_gain=max_gain)
     if grouped:
         transforms, how = fit_group_transforms(src, tgt, int(num_groups), min_pixels, max_gain=max_gain)
+        centers = [tgt[1][g].mean if h == "group" else tgt[0].mean for g, h in enumerate(how)]
+    else:
+        transforms, how, centers = [glob], [], [tgt[0].mean]
+    detail = None
+    if keep_detail:
+        detail = detail_gain(renders, alphas, target.to(scene.device), transforms, centers,
+                             labels if grouped else None)
+        if detail["gain"] > 1.0:
+            transforms = [t.stretch_lightness(detail["gain"], c) for t, c in zip(transforms, centers)]
+            glob = glob.stretch_lightness(detail["gain"], tgt[0].mean)
+    if grouped:
         out = transform_sh(scene, transforms, assign)
         info = {"per_group": True, "groups_matched": how.count("group"), "groups_global": how.count("global"),
                 "how": how, "global": glob.to_list()}
     else:
-        out = transform_sh(scene, [glob])
+        out = transform_sh(scene, transforms)
         info = {"per_group": False, "transform": glob.to_list()}
+    if detail is not None:
+        info["detail"] = {k: round(v, 6) for k, v in detail.items()}
     return out, info
 
 
 def describe_transfer(info: dict, against: str) -> str:
     """One line saying what a :func:`transfer_colors` record ``info`` did, against ``against``."""
+    d = info.get("detail")
+    kept = "" if d is None else (
+        f"; texture {d['mapped']:.2f} -> {d['kept']:.2f} L* (lightness x{d['gain']:.2f}; scene {d['scene']:.2f}, "
+        f"style {d['style']:.2f})" if d["gain"] > 1 else f"; texture kept ({d['mapped']:.2f} L*, style {d['style']:.2f})")
     if info.get("per_group"):
         return (f"per group against {against}: {info['groups_matched']} groups matched on their own, "
-                f"{info['groups_global']} by the global map (absent from the key views)")
-    return f"one global linear map against {against}"
+                f"{info['groups_global']} by the global map (absent from the key views)" + kept)
+    return f"one global linear map against {against}" + kept
 
 
 def transfer_background(background: Sequence[float], info: dict) -> list[float]:

@@ -272,7 +272,8 @@ EDGE_SCALES = (2, 4, 8)
 
 def load_extractor(vgg_weights: Optional[str | os.PathLike] = None, device: torch.device | str = "cpu",
                    layers: Optional[Sequence[LayerSpec]] = None, *, kind: str = "auto", seed: int = 0,
-                   config: Optional[dict] = None, normalize: bool = True) -> FeatureExtractor:
+                   config: Optional[dict] = None, normalize: bool = True,
+                   fallback: str = "random") -> FeatureExtractor:
     """The feature extractor to use, frozen and on ``device``.
 
     ``kind``: ``"auto"`` (VGG16 when :mod:`ssgwarp.services.weights` finds or downloads
@@ -282,12 +283,16 @@ def load_extractor(vgg_weights: Optional[str | os.PathLike] = None, device: torc
     ``"vgg16"`` (weights required: raises :class:`~ssgwarp.errors.WeightsNotFound`
     otherwise), ``"random"`` or ``"random-edges"`` (:class:`RandomMultiScale` with
     ``edges=True`` and branches at :data:`EDGE_SCALES`). ``layers`` applies to VGG16 (default the
-    conv3 block); ``seed`` to the random extractor.
+    conv3 block); ``seed`` to the random extractor. ``fallback``: what ``"auto"`` gives without VGG16
+    weights, ``"random"`` or ``"random-edges"`` (``ssgwarp stylize``'s weight-free default, measured:
+    docs/stylize.md).
     """
     from . import weights
 
     if kind not in EXTRACTOR_KINDS:
         raise InputError(f"feature extractor kind '{kind}': use {', '.join(EXTRACTOR_KINDS)}")
+    if fallback not in ("random", "random-edges"):
+        raise InputError(f"feature extractor fallback '{fallback}': use random or random-edges")
     path = None
     if kind == "vgg16":
         path = weights.require("vgg16", vgg_weights, config)
@@ -305,7 +310,8 @@ def load_extractor(vgg_weights: Optional[str | os.PathLike] = None, device: torc
             raise weights.load_error("vgg16", path, e, "VGG16 state dict") from None
         ext.load_torchvision(state)
     else:
-        coarse = {"edges": True, "scales": EDGE_SCALES} if kind == "random-edges" else {}
+        edges = kind == "random-edges" or (kind == "auto" and fallback == "random-edges")
+        coarse = {"edges": True, "scales": EDGE_SCALES} if edges else {}
         ext = RandomMultiScale(seed=seed, normalize=normalize, **coarse)
     return ext.freeze().to(device)
 

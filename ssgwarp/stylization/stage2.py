@@ -50,7 +50,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Optional, Sequence
 
@@ -62,6 +62,9 @@ from ..core.cameras import Cameras
 from ..core.optim import adam
 from ..errors import InputError
 from ..services.distributed import SINGLE
+from .feature_defaults import (  # noqa: F401  (re-exported: Stage 2's options left to the features)
+    BLEND_WEIGHT_EDGES, COLOR_GAIN_EDGES, COLOR_GAIN_OTHER, TV_WEIGHT_FREE, TV_WEIGHT_VGG, resolve_for,
+    style_loss_kind, tv_weight_for)
 from ..services.color import describe_transfer, transfer_background, transfer_colors  # noqa: F401  (re-exported)
 from ..services.loop import Diverged, Loop
 from .batches import batch_size_for, batch_views, view_order  # noqa: F401  (view_order re-exported)
@@ -73,6 +76,7 @@ from ..raster.scene import GaussianScene
 
 MODES = ("ist", "finetune", "global")
 COLOR_TRANSFER = ("both", "pre", "post", "off")
+COLOR_DETAIL = ("auto", "keep", "off")
 SH_REST = ("keep", "zero", "optimise")
 STYLE_LOSSES = ("auto", "nnfm", "sw")
 BACKGROUNDS = ("transfer", "keep")
@@ -89,7 +93,9 @@ class Stage2Config:
         lr: Adam learning rate of ``sh_dc`` (higher bands: ``lr / 20``; opacity logits: ``lr * 5``).
         style_weight, content_weight, tv_weight: loss weights; ``tv_weight=None`` (default): by the
             extractor, :func:`tv_weight_for` (0.5 on the weight-free random features, 0.02 on VGG16).
-        blend_weight: weight of the blend spread (:func:`ssgwarp.stylization.spread.blend_spread`; 0: off).
+        blend_weight: weight of the blend spread (:func:`ssgwarp.stylization.spread.blend_spread`; 0: off);
+            ``None`` (default): by the extractor, :func:`resolve_for` (0.65 on the weight-free edge features,
+            0 otherwise).
         style_loss: ``nnfm`` (nearest-neighbour feature matching, the paper's), ``sw`` (sliced
             Wasserstein between the feature distributions, :class:`ssgwarp.stylization.matching.SlicedTargets`) or
             ``auto``: NNFM on VGG16 features, SW on the weight-free random features (measured:
@@ -98,7 +104,12 @@ class Stage2Config:
         color_transfer: ARF's view-consistent colour transfer (:mod:`ssgwarp.services.color`) ``pre`` (before
             the optimisation), ``post`` (after it), ``both`` or ``off``.
         color_max_gain: the colour transfer's map may stretch colour differences by at most this
-            factor (its largest eigenvalue; the consistency figures grow with it, see docs/stylize.md).
+            factor (its largest eigenvalue; the consistency figures grow with it, see docs/stylize.md);
+            ``None`` (default): by the extractor (1.0 on the weight-free edge features, 1.3 otherwise).
+        color_detail: ``keep``: the colour transfer does not flatten the scene's lightness texture below
+            the style's (nor raise it above the scene's own), by stretching its lightness output
+            (:func:`ssgwarp.services.color.detail_gain`); ``off``: the plain mean-and-covariance map;
+            ``auto`` (default): ``keep`` on the weight-free edge features, ``off`` otherwise.
         sh_rest: the higher SH bands (view-dependent colour): ``zero`` them at the start (default:
             renders become view-independent, lower consistency error at equal style distances,
             docs/stylize.md), ``keep`` them as reconstructed, or ``optimise`` them too.
@@ -127,11 +138,12 @@ class Stage2Config:
     style_weight: float = 1.0
     content_weight: float = 0.05
     tv_weight: Optional[float] = None
-    blend_weight: float = 0.0
+    blend_weight: Optional[float] = None
     style_loss: str = "auto"
     sw_projections: int = 64
     color_transfer: str = "both"
-    color_max_gain: float = 1.3
+    color_max_gain: Optional[float] = None
+    color_detail: str = "auto"
     sh_rest: str = "zero"
     free_opacity: bool = False
     background: str = "transfer"
@@ -152,7 +164,7 @@ class Stage2Config:
             raise InputError(f"--iters {self.iters}: must be >= 0")
         for k in ("lr", "style_weight", "content_weight", "tv_weight", "blend_weight"):
             v = getattr(self, k)
-            if v is None and k == "tv_weight":
+            if v is None and k in ("tv_weight", "blend_weight"):
                 continue
             if not math.isfinite(v) or v < 0:
                 raise InputError(f"--{k.replace('_', '-')} {v}: must be a finite number >= 0")
@@ -164,8 +176,10 @@ class Stage2Config:
             raise InputError(f"--sw-projections {self.sw_projections}: must be >= 1")
         if self.color_transfer not in COLOR_TRANSFER:
             raise InputError(f"--color-transfer {self.color_transfer}: use one of {', '.join(COLOR_TRANSFER)}")
-        if not (math.isfinite(self.color_max_gain) and self.color_max_gain > 0):
+        if self.color_max_gain is not None and not (math.isfinite(self.color_max_gain) and self.color_max_gain > 0):
             raise InputError(f"--color-max-gain {self.color_max_gain}: must be a finite number > 0")
+        if self.color_detail not in COLOR_DETAIL:
+            raise InputError(f"--color-detail {self.color_detail}: use one of {', '.join(COLOR_DETAIL)}")
         if self.background not in BACKGROUNDS:
             raise InputError(f"--background {self.background}: use one of {', '.join(BACKGROUNDS)}")
         if self.sh_rest not in SH_REST:
@@ -282,30 +296,6 @@ def tv_loss(image: torch.Tensor) -> torch.Tensor:
     return ((image[1:] - image[:-1]) ** 2).mean() + ((image[:, 1:] - image[:, :-1]) ** 2).mean()
 
 
-def style_loss_kind(cfg: Stage2Config, extractor) -> str:
-    """The style loss ``cfg`` asks for with this extractor (``auto``: NNFM on VGG16 features, else SW)."""
-    if cfg.style_loss != "auto":
-        return cfg.style_loss
-    return "nnfm" if _is_vgg(extractor) else "sw"
-
-
-def _is_vgg(extractor) -> bool:
-    return str(getattr(extractor, "name", "")).startswith("vgg16")
-
-
-TV_WEIGHT_FREE = 0.5    # weight-free random features (fern, 25 styles: worst consistency 1.29x/1.36x vs 1.55x/1.63x at 0.02)
-TV_WEIGHT_VGG = 0.02    # VGG16 features (the weighted path; not re-measured, unchanged)
-
-
-def tv_weight_for(cfg: Stage2Config, extractor) -> float:
-    """The TV weight ``cfg`` asks for with this extractor: ``cfg.tv_weight`` when set, else
-    :data:`TV_WEIGHT_FREE` on the weight-free random features and :data:`TV_WEIGHT_VGG` on VGG16
-    (the same rule as ``style_loss="auto"``, :func:`style_loss_kind`)."""
-    if cfg.tv_weight is not None:
-        return float(cfg.tv_weight)
-    return TV_WEIGHT_VGG if _is_vgg(extractor) else TV_WEIGHT_FREE
-
-
 def build_targets(extractor, images: torch.Tensor, labels: Optional[torch.Tensor], cfg: Stage2Config,
                   size: Optional[tuple[int, int]] = None):
     """Style targets from style images ``[V,H,W,3]`` (key views or the style image) and their
@@ -341,6 +331,7 @@ class ViewLoss:
 
     def __init__(self, extractor, targets: MatchTargets, cfg: Stage2Config,
                  view_labels: Optional[torch.Tensor] = None, originals: Optional[torch.Tensor] = None) -> None:
+        cfg = resolve_for(cfg, extractor)
         self.extractor, self.targets, self.cfg = extractor, targets, cfg
         self.tv_weight = tv_weight_for(cfg, extractor)
         self.view_labels, self.originals = view_labels, originals
@@ -500,6 +491,8 @@ def optimise(scene: GaussianScene, cameras: Cameras, cfg: Stage2Config, *,
 
     rk = dict(render_kwargs or {})
 
+    if cfg.blend_weight is None:    # left to the extractor: the loss knows it (finetune has no loss: no spread)
+        cfg = replace(cfg, blend_weight=loss.cfg.blend_weight if loss is not None else 0.0)
     draw = render_with_spread if cfg.blend_weight > 0 and not finetune else render_rgb
 
     def render(cam: Cameras) -> torch.Tensor:

@@ -25,10 +25,11 @@ from ..core.imaging import contact_sheet, fit_style, plot_losses  # noqa: F401  
 from ..raster.scene import GaussianScene
 from ..services.features import EXTRACTOR_KINDS
 from .stage2 import (  # noqa: F401  (re-exported: the public Stage 2 API lives in ssgwarp.stylization.stage2)
-    BACKGROUNDS, COLOR_TRANSFER, MODES, SH_REST, STYLE_LOSSES, TV_WEIGHT_FREE, TV_WEIGHT_VGG, Stage2Config,
-    Stage2Result, ViewLoss, build_targets, deferred_backward, direct_backward, extract, finetune_loss, optimise,
-    render_alphas, render_batched, render_rgb, style_loss_kind, to_nchw, trainable_names, transfer_background,
-    transfer_colors, tv_loss, tv_weight_for, view_order, describe_transfer)
+    BACKGROUNDS, BLEND_WEIGHT_EDGES, COLOR_DETAIL, COLOR_GAIN_EDGES, COLOR_GAIN_OTHER, COLOR_TRANSFER, MODES, SH_REST,
+    STYLE_LOSSES, TV_WEIGHT_FREE, TV_WEIGHT_VGG, Stage2Config, Stage2Result, ViewLoss, build_targets, deferred_backward,
+    direct_backward, extract, finetune_loss, optimise, render_alphas, render_batched, render_rgb, style_loss_kind,
+    to_nchw, trainable_names, transfer_background, transfer_colors, tv_loss, tv_weight_for, view_order,
+    describe_transfer, resolve_for)
 
 # ----------------------------------------------------------------------------- end to end
 @dataclass
@@ -178,7 +179,8 @@ def _open(scene_dir: Path, style_path: Path, out: Path, stage2: Stage2Config, st
     style_np = read_image(style_path, 3)                       # InputError when missing / corrupt
     scene, data = load_run(scene_dir, device, load_images=False)
     extractor = load_extractor(opts.vgg16, device, opts.layers, kind=opts.extractor, seed=stage2.seed,
-                               config=opts.weights)
+                               config=opts.weights, fallback="random-edges")
+    stage2 = resolve_for(stage2, extractor)      # the options left to the extractor, made concrete
     if stage1 is not None and stage2.mode != "global" and stage1_models is None:
         _check_explicit_stage1_paths(stage1)
     state = _prepare_out(out, scene_dir, _signature(style_path, scene_dir, stage2, opts,
@@ -301,11 +303,12 @@ def _targets(r: _Run, kv, stylized) -> _Targets:
 def _color_transfer(r: _Run, t: _Targets, sc: GaussianScene, when: str, against: str) -> tuple[GaussianScene, dict]:
     """ARF's colour transfer against the stylized key views (per group when grouped) or the style image;
     with ``--background transfer`` the stylized scene's background ``r.bg_styled`` goes through its global map."""
+    kw = {"max_gain": r.stage2.color_max_gain, "keep_detail": r.stage2.color_detail == "keep"}
     if t.use_keys:
         out, info = transfer_colors(sc, t.key_cams, t.key_images, labels=t.key_labels, target_labels=t.key_labels,
-                                    assign=t.assign, num_groups=r.num_groups, max_gain=r.stage2.color_max_gain)
+                                    assign=t.assign, num_groups=r.num_groups, **kw)
     else:
-        out, info = transfer_colors(sc, r.train_cams, r.style_at_views, max_gain=r.stage2.color_max_gain)
+        out, info = transfer_colors(sc, r.train_cams, r.style_at_views, **kw)
     if r.stage2.background == "transfer":
         r.bg_styled = r.bg.new_tensor(transfer_background(r.bg_styled.tolist(), info))
     r.say(f"colour transfer ({when}): " + describe_transfer(info, against))
@@ -525,7 +528,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"total variation weight (default: {TV_WEIGHT_FREE} with the weight-free random features, "
                         f"{TV_WEIGHT_VGG} with VGG16)")
     g.add_argument("--blend-weight", type=float, default=d.blend_weight, help="weight of the blend spread (colours "
-                   f"mixed on one ray kept alike: fewer view-dependent colours; default {d.blend_weight})")
+                   f"mixed on one ray kept alike; default {BLEND_WEIGHT_EDGES} with the edge features, else 0)")
     g.add_argument("--style-loss", default=d.style_loss, choices=STYLE_LOSSES,
                    help="nnfm: nearest-neighbour feature matching (the paper's); sw: sliced Wasserstein "
                         "between feature distributions; auto (default): NNFM on VGG16 features, SW on the "
@@ -536,9 +539,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="ARF's view-consistent colour transfer (colour mean and covariance matched to the "
                         "stylized key views, per group, or to the style image) before the optimisation, "
                         f"after it, both or off (default {d.color_transfer})")
-    g.add_argument("--color-max-gain", type=float, default=d.color_max_gain,
-                   help="largest factor by which the colour transfer may stretch colour differences "
-                        f"(default {d.color_max_gain}; higher: closer colours, lower: smaller consistency error)")
+    g.add_argument("--color-max-gain", type=float, default=d.color_max_gain, help="largest stretch of colour "
+                   f"differences by the colour map (default {COLOR_GAIN_EDGES} on edge features, else {COLOR_GAIN_OTHER})")
+    g.add_argument("--color-detail", default=d.color_detail, choices=COLOR_DETAIL, help="keep: the colour map does not "
+                   "flatten texture below the style's; off: plain map; auto (default): keep on edge features, else off")
     g.add_argument("--sh-rest", default=d.sh_rest, choices=SH_REST,
                    help=f"higher SH bands (view-dependent colour): keep, zero at the start, or optimise "
                         f"(default {d.sh_rest})")
@@ -561,7 +565,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--batch-scaling", choices=("sqrt", "linear", "none"), default=d.batch_scaling,
                    help="Adam for batches: learning rates x sqrt(B) (default) or x B with betas ** B, or none")
     g.add_argument("--extractor", default="auto", choices=EXTRACTOR_KINDS, help="features: auto = VGG16 when "
-                   "weights are found, else seeded random multi-scale; random-edges: more texture (docs/stylize.md)")
+                   "weights are found, else random-edges (weight-free, zero-mean random filters); random: the "
+                   "earlier weight-free default (docs/stylize.md)")
     g.add_argument("--vgg16", default=None, help="torchvision VGG16 state dict (or SSGWARP_VGG16)")
     g.add_argument("--layers", default=None, help="VGG16 layers, comma separated (default conv3 = relu3_1..3)")
     g = p.add_argument_group("outputs")
