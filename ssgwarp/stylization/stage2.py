@@ -30,8 +30,10 @@ features ``phi`` = the extractor's layers concatenated at the coarsest resolutio
 - TV: mean squared difference of neighbouring pixels; ``tv_weight=None`` (default) resolves by the
   extractor, like ``style_loss="auto"`` (:func:`tv_weight_for`): 0.5 on the weight-free random features
   (measured on 25 styles, fern and the demo scene: docs/stylize.md), 0.02 on VGG16 (unchanged).
-- blend spread (``blend_weight``, default 0): the weighted variance of the colours each pixel mixes
-  (:mod:`ssgwarp.stylization.spread`; the view is then rendered with those channels too).
+- blend spread (``blend_weight``; default by the extractor, :func:`resolve_for` in
+  :mod:`ssgwarp.stylization.feature_defaults`: 0.65 on the weight-free edge features, else 0): the weighted
+  variance of the colours each pixel mixes (:mod:`ssgwarp.stylization.spread`; the view is then rendered
+  with those channels too).
 
 Only colour is optimised (``sh_dc``); the higher SH bands are zeroed first by
 default (``sh_rest="zero"``: view-independent stylized colour, measured in
