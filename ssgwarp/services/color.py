@@ -182,9 +182,6 @@ def transform_sh(scene: GaussianScene, transforms: Sequence[ColorTransform],
 
 # ----------------------------------------------------------------------------- texture kept through the map
 LUMA = (0.2126, 0.7152, 0.0722)   # Rec. 709 luminance weights (they sum to 1: a grey shift moves Y by its size)
-
-
-
 DETAIL_OFFSETS = (1,)   # pixel distances at which :func:`detail_contrast` compares lightness (measured: 1 px)
 
 
@@ -213,8 +210,8 @@ def lightness_contrast(images: Tensor, alphas: Optional[Tensor] = None, offset: 
 def detail_contrast(images: Tensor, alphas: Optional[Tensor] = None, offsets: Sequence[int] = DETAIL_OFFSETS
                     ) -> float:
     """How much fine texture an image holds: the geometric mean of :func:`lightness_contrast` over
-    ``offsets`` (default 1 px; the median, and the mean over 1, 2 and 4 px, measured worse:
-    docs/stylize.md); 0 when any of them is 0."""
+    ``offsets`` (default 1 px; the median difference over 1, 2 and 4 px measured worse: docs/stylize.md);
+    0 when any of them is 0."""
     vals = [lightness_contrast(images, alphas, o) for o in offsets]
     return float(torch.tensor(vals, dtype=torch.float64).log().mean().exp()) if min(vals) > 0 else 0.0
 
