@@ -138,8 +138,10 @@ def main() -> int:
         over = {} if args.iters is None else {"iters": args.iters}
         for kv in filter(None, (args.stage2 or "").split(",")):
             k, _, v = kv.partition("=")
-            kind = type(getattr(Stage2Config(), k.strip().replace("-", "_"), ""))
-            over[k.strip().replace("-", "_")] = float(v) if kind in (float, type(None)) else kind(v)
+            k = k.strip().replace("-", "_")
+            kind = type(getattr(Stage2Config(), k, ""))
+            over[k] = (v.strip().lower() in ("1", "true", "yes") if kind is bool
+                       else float(v) if kind in (float, type(None)) else kind(v))
         s2 = Stage2Config(mode=mode, **over)
         opts = StylizeOptions(keyviews=args.keyviews, extractor=args.extractor, path_frames=args.path_frames)
         if device.type == "cuda":

@@ -40,7 +40,7 @@ background, bright leaves) and the style's mostly at small scale (pencil
 hatching), the map flattens the scene's texture below both its own and the
 style's (measured on fern: docs/stylize.md). With ``keep_detail`` the map's
 lightness output is then stretched about each group's target mean, chroma
-untouched, until the mapped renders' fine texture (:func:`detail_contrast`:
+untouched, until the mapped renders' fine texture (:func:`lightness_contrast`:
 RMS L* difference of neighbouring pixels; in L* because brightening a scene
 also flattens its texture as seen) reaches the smaller of the style's and the
 scene's own: it never adds texture the capture did not have, nor more than
@@ -182,7 +182,6 @@ def transform_sh(scene: GaussianScene, transforms: Sequence[ColorTransform],
 
 # ----------------------------------------------------------------------------- texture kept through the map
 LUMA = (0.2126, 0.7152, 0.0722)   # Rec. 709 luminance weights (they sum to 1: a grey shift moves Y by its size)
-DETAIL_OFFSETS = (1,)   # pixel distances at which :func:`detail_contrast` compares lightness (measured: 1 px)
 
 
 def lightness_contrast(images: Tensor, alphas: Optional[Tensor] = None, offset: int = 1,
@@ -192,7 +191,8 @@ def lightness_contrast(images: Tensor, alphas: Optional[Tensor] = None, offset: 
     both pixels kept (``alphas [V, H, W]`` >= ``alpha_min`` when given); 0 with no such pair.
 
     In L*, not RGB: L* compresses differences in bright regions, so brightening a scene flattens its
-    texture as seen even when its RGB differences stay.
+    texture as seen even when its RGB differences stay. ``keep_detail`` uses ``offset=1`` (the RMS, not
+    the median, and 1 px, not the mean over 1, 2 and 4 px: measured, docs/stylize.md).
     """
     y = rgb_to_lab(images.to(torch.float64).clamp(0.0, 1.0))[..., 0]
     keep = torch.ones_like(y, dtype=torch.bool)
@@ -205,15 +205,6 @@ def lightness_contrast(images: Tensor, alphas: Optional[Tensor] = None, offset: 
         total = total + (d[m] ** 2).sum()
         count += int(m.sum())
     return float((total / count).sqrt()) if count else 0.0
-
-
-def detail_contrast(images: Tensor, alphas: Optional[Tensor] = None, offsets: Sequence[int] = DETAIL_OFFSETS
-                    ) -> float:
-    """How much fine texture an image holds: the geometric mean of :func:`lightness_contrast` over
-    ``offsets`` (default 1 px; the median difference over 1, 2 and 4 px measured worse: docs/stylize.md);
-    0 when any of them is 0."""
-    vals = [lightness_contrast(images, alphas, o) for o in offsets]
-    return float(torch.tensor(vals, dtype=torch.float64).log().mean().exp()) if min(vals) > 0 else 0.0
 
 
 def _mapped(images: Tensor, transforms: Sequence["ColorTransform"], labels: Optional[Tensor]) -> Tensor:
@@ -241,21 +232,21 @@ def detail_gain(renders: Tensor, alphas: Tensor, target: Tensor, transforms: Seq
     (per group with ``labels``), ``target [T, H', W', 3]`` what they match; ``centers``: each map's
     target mean (the stretch's fixed point). The stretch ``k`` (:meth:`ColorTransform.stretch_lightness`)
     is found by fixed-point steps ``k <- k * want / mapped(k)`` (L* is not linear in ``k``) until the mapped
-    renders' texture (:func:`detail_contrast`) is within ``tol`` of ``want = min(style, scene)``; 1 when
+    renders' fine texture (:func:`lightness_contrast`) is within ``tol`` of ``want = min(style, scene)``; 1 when
     it is there already; at most ``max_gain``. Returns ``{"style", "scene", "mapped", "gain", "kept"}``:
     the texture of the target, of the renders and of the plain-mapped renders, ``k``, and the texture
     the stretched maps give.
     """
-    style, scene = detail_contrast(target), detail_contrast(renders, alphas)
+    style, scene = lightness_contrast(target), lightness_contrast(renders, alphas)
     want = min(style, scene)
-    mapped = kept = detail_contrast(_mapped(renders, transforms, labels), alphas)
+    mapped = kept = lightness_contrast(_mapped(renders, transforms, labels), alphas)
     k = 1.0
     for _ in range(12):
         if kept <= 0 or kept >= want * (1 - tol) or k >= max_gain:
             break
         k = min(max_gain, k * want / kept)
-        kept = detail_contrast(_mapped(renders, [t.stretch_lightness(k, c) for t, c in zip(transforms, centers)],
-                                     labels), alphas)
+        kept = lightness_contrast(_mapped(renders, [t.stretch_lightness(k, c) for t, c in zip(transforms, centers)],
+                                          labels), alphas)
     return {"style": style, "scene": scene, "mapped": mapped, "gain": k, "kept": kept}
 
 
@@ -305,7 +296,7 @@ def fit_group_transforms(source: tuple[ColorStats, dict[int, ColorStats]],
 
 
 __all__ = ["rgb_to_lab", "ColorStats", "ColorTransform", "fit_transform", "transform_sh", "pixel_stats",
-           "LUMA", "lightness_contrast", "detail_contrast", "detail_gain",
+           "LUMA", "lightness_contrast", "detail_gain",
            "fit_group_transforms", "transfer_colors", "transfer_background", "describe_transfer"]
 
 
@@ -354,7 +345,7 @@ def transfer_colors(scene: GaussianScene, cameras: Cameras, target: torch.Tensor
                              labels if grouped else None)
         if detail["gain"] > 1.0:
             transforms = [t.stretch_lightness(detail["gain"], c) for t, c in zip(transforms, centers)]
-            glob = glob.stretch_lightness(detail["gain"], tgt[0].mean)
+            glob = glob.stretch_lightness(detail["gain"], tgt[0].mean) if grouped else transforms[0]
     if grouped:
         out = transform_sh(scene, transforms, assign)
         info = {"per_group": True, "groups_matched": how.count("group"), "groups_global": how.count("global"),
