@@ -192,28 +192,33 @@ def test_transfer_background_makes_the_colour_map_exact_on_every_pixel():
 
 
 # ----------------------------------------------------------------------------- texture kept through the map
-def test_lightness_contrast_hand_cases():
-    """RMS L* differences of pixel pairs: 1-px black/white stripes differ by 100 across and 0 along them."""
-    from ssgwarp.services.color import lightness_contrast
+def test_texture_bands_hand_cases():
+    """Band-passes of L* (level minus its sigma-1 blur) on a Gaussian pyramid: 1-px black/white stripes
+    have a closed form at the finest band and almost nothing at the coarser ones."""
+    import math
 
-    img = torch.zeros(1, 4, 6, 3, dtype=torch.float64)
-    img[:, :, 1::2] = 1.0                                       # columns alternate black, white
-    # horizontal pairs: 4 x 5 differences of 100; vertical pairs: 3 x 6 of 0 (white: L* 100)
-    assert lightness_contrast(img) == pytest.approx(100 * (20 / 38) ** 0.5, rel=1e-6)
-    assert lightness_contrast(img, offset=2) == 0.0              # two columns apart: the same colour
-    # only kept pixels pair up: keep columns 0-1 -> horizontal pairs 4 x 1 (100), vertical 3 x 2 (0)
-    alpha = torch.zeros(1, 4, 6, dtype=torch.float64)
-    alpha[:, :, :2] = 1.0
-    assert lightness_contrast(img, alpha) == pytest.approx(100 * (4 / 10) ** 0.5, rel=1e-6)
-    assert lightness_contrast(img, torch.zeros_like(alpha)) == 0.0          # no pair at all
-    assert lightness_contrast(torch.full((2, 5, 5, 3), 0.3, dtype=torch.float64)) == 0.0   # flat
+    from ssgwarp.services.color import texture_bands
+
+    img = torch.zeros(1, 24, 24, 3, dtype=torch.float64)
+    img[:, :, 1::2] = 1.0                                       # columns alternate black (L* 0) and white (100)
+    frame = torch.zeros(1, 24, 24, dtype=torch.float64)
+    frame[:, 2:-2, 2:-2] = 1.0                                  # counted: pixels >= 2 px inside the kept part
+    e1, e2 = math.exp(-0.5), math.exp(-2.0)
+    g1 = e1 / (1 + 2 * e1 + 2 * e2)                             # the blur's weight at +-1 px
+    # at every counted pixel: white minus its blur = 100 (1 - g0 - 2 g2) = 2 g1 100, black = -2 g1 100
+    b = texture_bands(img, frame)
+    assert b[0] == pytest.approx(200 * g1, rel=1e-6)             # (L* of white: 100 to 1e-7)
+    assert b[1] < 0.05 * b[0] and b[2] < 0.05 * b[0], b        # blurred away before the coarser bands
+    assert texture_bands(torch.full((2, 16, 16, 3), 0.3, dtype=torch.float64)) == [0.0, 0.0, 0.0]   # flat
+    assert texture_bands(img, torch.zeros_like(frame)) == [0.0, 0.0, 0.0]                     # nothing kept
+    assert texture_bands(img[:, :8, :8], levels=3)[2] == 0.0   # a level under 5 px has no band
     # values outside [0, 1] count as the clamped colour a render shows
-    assert lightness_contrast(img * 3 - 1) == pytest.approx(lightness_contrast(img), rel=1e-12)
-    # independent pixel noise differs alike at every offset (about sqrt(2) times its L* spread)
-    g = torch.Generator().manual_seed(0)
-    noise = (0.5 + 0.1 * torch.randn(2, 24, 24, 1, generator=g, dtype=torch.float64)).expand(-1, -1, -1, 3)
-    vals = [lightness_contrast(noise, offset=o) for o in (1, 2, 4)]
-    assert min(vals) > 0 and max(vals) < 1.15 * min(vals), vals
+    assert texture_bands(img * 3 - 1, frame) == pytest.approx(texture_bands(img, frame), rel=1e-12)
+    # a coarse pattern (8-px stripes) has its texture in the coarser bands, not the finest
+    coarse = torch.zeros(1, 64, 64, 3, dtype=torch.float64)
+    coarse[:, :, (torch.arange(64) // 8) % 2 == 1] = 1.0
+    c = texture_bands(coarse)
+    assert c[2] > c[0], c
 
 
 def test_stretch_lightness_scales_luminance_about_the_center_and_keeps_chroma():
@@ -244,26 +249,63 @@ def _textured(v: int, h: int, w: int, seed: int, mean: float, layout: float, gra
 
 def test_detail_gain_restores_texture_the_plain_map_flattens():
     """A scene whose lightness varies mostly at large scale, a style with more grain but less variance:
-    the plain map shrinks the scene's grain below both; the stretch brings it to min(style, scene)."""
-    from ssgwarp.services.color import detail_gain, lightness_contrast
+    the plain map shrinks the scene's grain below both; the stretch brings the finest band to
+    min(style, scene), or to the reference's when one is given."""
+    from ssgwarp.services.color import detail_gain, texture_bands
 
     renders = _textured(2, 32, 32, 0, 0.5, 0.15, 0.02)        # strong layout, fine grain
     alphas = torch.ones(2, 32, 32, dtype=torch.float64)
     style = _textured(1, 32, 32, 1, 0.6, 0.0, 0.05)           # no layout, more grain, smaller variance
+    g = torch.Generator().manual_seed(2)                        # ... and blotches: texture at every scale
+    blotch = torch.nn.functional.interpolate(torch.randn(1, 1, 8, 8, generator=g, dtype=torch.float64),
+                                             size=(32, 32), mode="bilinear", align_corners=False)[0, 0]
+    style = style + 0.025 * blotch[None, :, :, None]
     t = fit_transform(pixel_stats(renders, alphas)[0], pixel_stats(style)[0])
-    plain = lightness_contrast(t(renders), alphas)
-    d = detail_gain(renders, alphas, style, [t], [pixel_stats(style)[0].mean])
-    assert d["mapped"] == pytest.approx(plain, rel=1e-12)
-    assert plain < 0.6 * min(d["style"], d["scene"]), d             # the plain map flattened the grain
-    assert d["gain"] > 1.5 and d["kept"] == pytest.approx(min(d["style"], d["scene"]), rel=0.011), d
-    stretched = t.stretch_lightness(d["gain"], pixel_stats(style)[0].mean)
-    assert lightness_contrast(stretched(renders), alphas) == pytest.approx(d["kept"], rel=1e-9)
+    center = pixel_stats(style)[0].mean
+    plain = texture_bands(t(renders), alphas)
+    d = detail_gain(renders, alphas, style, [t], [center])
+    assert d["mapped"] == pytest.approx(plain, rel=1e-12) and d["reference"] == d["scene"]
+    assert plain[0] < 0.6 * min(d["style"][0], d["scene"][0]), d   # the plain map flattened the grain
+    assert d["gain"] > 1.5 and d["kept"][0] == pytest.approx(min(d["style"][0], d["scene"][0]), rel=0.011), d
+    assert texture_bands(t.stretch_lightness(d["gain"], center)(renders), alphas) == pytest.approx(d["kept"], rel=1e-9)
+    # a reference (the capture's texture, when the renders are of a stylized scene) bounds it instead
+    low = [0.8 * x for x in d["scene"]]
+    r = detail_gain(renders, alphas, style, [t], [center], reference=low)
+    assert r["reference"] == low and 1.0 < r["gain"] < d["gain"]
+    assert r["kept"][0] == pytest.approx(low[0], rel=0.011), r
     # a flat style asks for no texture: nothing is stretched
     flat = torch.full((1, 16, 16, 3), 0.6, dtype=torch.float64)
-    assert detail_gain(renders, alphas, flat, [t], [pixel_stats(style)[0].mean])["gain"] == 1.0
+    assert detail_gain(renders, alphas, flat, [t], [center])["gain"] == 1.0
     # a map that keeps the texture already: no stretch
-    ident = ColorTransform.identity()
-    assert detail_gain(renders, alphas, style, [ident], [pixel_stats(style)[0].mean])["gain"] == 1.0
+    assert detail_gain(renders, alphas, style, [ColorTransform.identity()], [center])["gain"] == 1.0
+
+
+def test_detail_gain_stops_where_a_coarser_band_would_pass_the_style():
+    """A style of thin lines on flat fields (much fine texture, little coarse) and a scene with a large
+    layout and texture at every scale, which the plain map flattens: stretching up to the fine target would push the coarse
+    bands past the style's, so the stretch stops where the first band reaches the style's there."""
+    from ssgwarp.services.color import detail_gain, texture_bands
+
+    g = torch.Generator().manual_seed(5)
+    base = torch.randn(2, 1, 16, 16, generator=g, dtype=torch.float64)
+    coarse = torch.nn.functional.interpolate(base, scale_factor=4, mode="bilinear", align_corners=False)[:, 0]
+    fine = torch.randn(2, 64, 64, generator=g, dtype=torch.float64)
+    ramp = torch.linspace(-0.25, 0.25, 64, dtype=torch.float64).expand(2, 64, 64)   # a layout: the map shrinks it
+    renders = (0.5 + ramp + 0.03 * coarse + 0.03 * fine).clamp(0, 1)[..., None].expand(-1, -1, -1, 3).clone()
+    alphas = torch.ones(2, 64, 64, dtype=torch.float64)
+    style = torch.full((1, 64, 64, 3), 0.5, dtype=torch.float64)
+    style[:, 3::8] = 0.62                                       # 1-px light lines every 8 rows
+    style[:, :, 5::8] = 0.4                                     # and dark ones every 8 columns
+    t = fit_transform(pixel_stats(renders, alphas)[0], pixel_stats(style)[0])
+    center = pixel_stats(style)[0].mean
+    d = detail_gain(renders, alphas, style, [t], [center])
+    s, m, kept = d["style"], d["mapped"], d["kept"]
+    assert s[0] > 1.5 * s[2] and m[0] < min(s[0], d["scene"][0]), d     # fine lines; the map flattened
+    assert 1.0 < d["gain"], d
+    assert all(k <= max(a, b) * 1.011 for k, a, b in zip(kept, s, m)), d  # no band above the style's
+    assert max(k / max(a, b) for k, a, b in zip(kept, s, m)) > 0.98, d     # ... and one band at it
+    assert kept[0] < 0.98 * min(s[0], d["scene"][0]), d                     # short of the fine target
+    assert texture_bands(t.stretch_lightness(d["gain"], center)(renders), alphas) == pytest.approx(kept, rel=1e-9)
 
 
 def test_transfer_colors_keep_detail_on_a_rendered_scene():
@@ -272,7 +314,7 @@ def test_transfer_colors_keep_detail_on_a_rendered_scene():
     and the record and its description say what was done; without it nothing is stretched."""
     from test_stylize import ring, two_objects
 
-    from ssgwarp.services.color import describe_transfer, lightness_contrast
+    from ssgwarp.services.color import describe_transfer, texture_bands
     from ssgwarp.stylization import stylize as st
 
     from ssgwarp.raster.scene import rgb_to_sh_dc
@@ -282,7 +324,11 @@ def test_transfer_colors_keep_detail_on_a_rendered_scene():
     grey = torch.where(obj == 0, 0.35, 0.65).double() + 0.1 * torch.randn(len(obj), generator=g, dtype=torch.float64)
     scene = scene.replace(sh_dc=rgb_to_sh_dc(grey[:, None].expand(-1, 3).clamp(0.02, 0.98)).reshape(scene.sh_dc.shape))
     cams = ring(n=3, dtype=torch.float64)
-    style = _textured(1, 32, 48, 2, 0.55, 0.0, 0.08)            # one grey with a grain: less variance, more grain
+    style = _textured(1, 32, 48, 2, 0.55, 0.0, 0.08)            # one grey with a grain: less variance, more grain,
+    g = torch.Generator().manual_seed(4)                        # ... and blotches: more texture at every scale
+    blotch = torch.nn.functional.interpolate(torch.randn(1, 1, 8, 12, generator=g, dtype=torch.float64),
+                                             size=(32, 48), mode="bilinear", align_corners=False)[0, 0]
+    style = style + 0.12 * blotch[None, :, :, None]
     plain, info_p = st.transfer_colors(scene, cams, style, max_gain=4.0)
     kept, info_k = st.transfer_colors(scene, cams, style, max_gain=4.0, keep_detail=True)
     assert "detail" not in info_p and "texture" not in describe_transfer(info_p, "the style")
@@ -295,8 +341,16 @@ def test_transfer_colors_keep_detail_on_a_rendered_scene():
 
     s_p, a = surface(plain)
     s_k, _ = surface(kept)
-    assert lightness_contrast(s_p, a) == pytest.approx(d["mapped"], rel=1e-3)
-    assert lightness_contrast(s_k, a) == pytest.approx(d["kept"], rel=1e-3)
-    assert d["kept"] == pytest.approx(min(d["style"], d["scene"]), rel=0.011)
+    assert texture_bands(s_p, a) == pytest.approx(d["mapped"], rel=1e-3, abs=1e-3)
+    assert texture_bands(s_k, a) == pytest.approx(d["kept"], rel=1e-3, abs=1e-3)
+    assert d["kept"][0] == pytest.approx(min(d["style"][0], d["scene"][0]), rel=0.011)
     keep = a >= 0.5
     torch.testing.assert_close(s_k[keep].mean(0), s_p[keep].mean(0), atol=2e-3, rtol=0)   # about the target mean
+    # recolouring a scene that is already flatter than the capture (Stage 2's output, the `post` transfer):
+    # with `capture`, the stretch is bounded by the capture's texture, not by the flattened scene's own
+    again, info_c = st.transfer_colors(plain, cams, style, max_gain=4.0, keep_detail=True, capture=scene)
+    own, info_o = st.transfer_colors(plain, cams, style, max_gain=4.0, keep_detail=True)
+    c, o = info_c["detail"], info_o["detail"]
+    assert c["reference"] == pytest.approx(d["scene"], rel=1e-3)         # the capture's bands
+    assert o["reference"] == o["scene"] and o["scene"][0] < 0.9 * c["reference"][0]
+    assert c["gain"] > o["gain"] and c["kept"][0] > o["kept"][0]

@@ -72,9 +72,11 @@ def test_demo_runs_every_stage_and_prints_a_summary(demo):
     assert "Stage 2 path: weight-free (no Stage 1, random features random-multiscale" in stdout
     assert summary["weight_free"] is True and summary["style_loss"] == "sw" and summary["color_transfer"] == "both"
     # ... and it moves the scene toward the style by the weight-free distances (measured 2026-11-23 on
-    # this small demo: colour x0.82, texture x0.83; asserted with about half those margins)
+    # this small 48x36 demo with the weight-free defaults: colour x0.91, texture x0.92 — x0.91 / x0.90 with
+    # the single-band texture rule before; asserted with about half those margins. The default-size demo
+    # and fern over 25 styles: docs/stylize.md)
     for k in ("color", "texture"):
-        assert 0 < summary["style_distance"][k] < 0.92 * summary["style_distance_original"][k], (k, summary)
+        assert 0 < summary["style_distance"][k] < 0.96 * summary["style_distance_original"][k], (k, summary)
     last = stdout.strip().splitlines()[-1]
     assert last == f"contact sheet: {summary['contact_sheet']}"
     sheet = Path(summary["contact_sheet"])

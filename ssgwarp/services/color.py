@@ -40,11 +40,14 @@ background, bright leaves) and the style's mostly at small scale (pencil
 hatching), the map flattens the scene's texture below both its own and the
 style's (measured on fern: docs/stylize.md). With ``keep_detail`` the map's
 lightness output is then stretched about each group's target mean, chroma
-untouched, until the mapped renders' fine texture (:func:`lightness_contrast`:
-RMS L* difference of neighbouring pixels; in L* because brightening a scene
-also flattens its texture as seen) reaches the smaller of the style's and the
-scene's own: it never adds texture the capture did not have, nor more than
-the style has.
+untouched, until the mapped renders' finest texture band
+(:func:`texture_bands`: band-passes of L* at 1, 2 and 4 px; in L* because
+brightening a scene also flattens its texture as seen) reaches the smaller
+of the style's and the capture's own — it never adds texture the capture
+did not have, nor more than the style has — and no coarser band ends above
+the style's there (a style of thin lines on flat fields does not get the
+scene's coarse contrast stretched). After Stage 2 the bound is the capture's
+texture, not the optimised scene's (``capture`` of :func:`transfer_colors`).
 """
 from __future__ import annotations
 
@@ -184,27 +187,44 @@ def transform_sh(scene: GaussianScene, transforms: Sequence[ColorTransform],
 LUMA = (0.2126, 0.7152, 0.0722)   # Rec. 709 luminance weights (they sum to 1: a grey shift moves Y by its size)
 
 
-def lightness_contrast(images: Tensor, alphas: Optional[Tensor] = None, offset: int = 1,
-                       alpha_min: float = 0.5) -> float:
-    """RMS difference of CIE L* (perceptual lightness, 0-100) between pixels ``offset`` apart,
-    horizontally and vertically, of ``images [V, H, W, 3]`` (sRGB, clamped to [0, 1] as renders are),
-    both pixels kept (``alphas [V, H, W]`` >= ``alpha_min`` when given); 0 with no such pair.
+DETAIL_LEVELS = 3       # texture bands of ``keep_detail``: 1, 2 and 4 px
+DETAIL_MAX_GAIN = 3.0   # the lightness stretch of ``keep_detail`` is at most this
+
+
+def _blur5(t: Tensor) -> Tensor:
+    """Separable 5-tap Gaussian blur (sigma 1 px, replicate padding) of ``t [N, 1, H, W]``."""
+    ax = torch.arange(-2, 3, dtype=t.dtype, device=t.device)
+    g = torch.exp(-ax ** 2 / 2.0)
+    g = g / g.sum()
+    t = torch.nn.functional.conv2d(torch.nn.functional.pad(t, (2, 2, 0, 0), mode="replicate"), g.view(1, 1, 1, 5))
+    return torch.nn.functional.conv2d(torch.nn.functional.pad(t, (0, 0, 2, 2), mode="replicate"), g.view(1, 1, 5, 1))
+
+
+def texture_bands(images: Tensor, alphas: Optional[Tensor] = None, levels: int = DETAIL_LEVELS,
+                  alpha_min: float = 0.5) -> list[float]:
+    """Lightness texture per scale of ``images [V, H, W, 3]`` (sRGB, clamped to [0, 1] as renders are):
+    for level ``k`` of a Gaussian pyramid of CIE L* (blurred, sigma 1 px, and halved ``k`` times: scale
+    ``2^k`` px), the RMS of the level minus its own blur — a band-pass of the lightness, 0 on flat or
+    linearly shaded regions. With ``alphas [V, H, W]`` only pixels whose whole 5x5 neighbourhood is kept
+    (alpha >= ``alpha_min``) count, so a scene's outline against the background is not texture; 0 for a
+    level with no such pixel or smaller than 5 px.
 
     In L*, not RGB: L* compresses differences in bright regions, so brightening a scene flattens its
-    texture as seen even when its RGB differences stay. ``keep_detail`` uses ``offset=1`` (the RMS, not
-    the median, and 1 px, not the mean over 1, 2 and 4 px: measured, docs/stylize.md).
+    texture as seen even when its RGB differences stay.
     """
-    y = rgb_to_lab(images.to(torch.float64).clamp(0.0, 1.0))[..., 0]
-    keep = torch.ones_like(y, dtype=torch.bool)
-    if alphas is not None:
-        keep = alphas.reshape(y.shape).to(images.device) >= alpha_min
-    o = int(offset)
-    total, count = y.new_zeros(()), 0
-    for d, m in ((y[:, :, o:] - y[:, :, :-o], keep[:, :, o:] & keep[:, :, :-o]),
-                 (y[:, o:] - y[:, :-o], keep[:, o:] & keep[:, :-o])):
-        total = total + (d[m] ** 2).sum()
-        count += int(m.sum())
-    return float((total / count).sqrt()) if count else 0.0
+    y = rgb_to_lab(images.to(torch.float64).clamp(0.0, 1.0))[..., 0][:, None]
+    m = torch.ones_like(y) if alphas is None else (alphas.reshape(y.shape).to(y.device) >= alpha_min).to(y.dtype)
+    out = []
+    for k in range(levels):
+        if k:
+            y, m = _blur5(y)[..., ::2, ::2], _blur5(m)[..., ::2, ::2]
+        if min(y.shape[-2:]) < 5:
+            out.append(0.0)
+            continue
+        keep = _blur5(m) >= 0.999
+        band = (y - _blur5(y))[keep]
+        out.append(float(band.pow(2).mean().sqrt()) if band.numel() else 0.0)
+    return out
 
 
 def _mapped(images: Tensor, transforms: Sequence["ColorTransform"], labels: Optional[Tensor]) -> Tensor:
@@ -220,34 +240,46 @@ def _mapped(images: Tensor, transforms: Sequence["ColorTransform"], labels: Opti
     return out
 
 
-DETAIL_MAX_GAIN = 3.0   # the lightness stretch of ``keep_detail`` is at most this
-
-
 def detail_gain(renders: Tensor, alphas: Tensor, target: Tensor, transforms: Sequence["ColorTransform"],
-                centers: Sequence[Tensor], labels: Optional[Tensor] = None, tol: float = 0.01,
-                max_gain: float = DETAIL_MAX_GAIN) -> dict:
+                centers: Sequence[Tensor], labels: Optional[Tensor] = None, reference: Optional[Sequence[float]] = None,
+                tol: float = 0.01, max_gain: float = DETAIL_MAX_GAIN) -> dict:
     """The lightness stretch that keeps texture through the colour maps (see module docs).
 
     ``renders [V, H, W, 3]`` (surface colours, ``alphas [V, H, W]``) are what ``transforms`` apply to
     (per group with ``labels``), ``target [T, H', W', 3]`` what they match; ``centers``: each map's
-    target mean (the stretch's fixed point). The stretch ``k`` (:meth:`ColorTransform.stretch_lightness`)
-    is found by fixed-point steps ``k <- k * want / mapped(k)`` (L* is not linear in ``k``) until the mapped
-    renders' fine texture (:func:`lightness_contrast`) is within ``tol`` of ``want = min(style, scene)``; 1 when
-    it is there already; at most ``max_gain``. Returns ``{"style", "scene", "mapped", "gain", "kept"}``:
-    the texture of the target, of the renders and of the plain-mapped renders, ``k``, and the texture
-    the stretched maps give.
+    target mean (the stretch's fixed point); ``reference``: the capture's :func:`texture_bands` (default:
+    the renders' own — pass the capture's when the renders are of an already stylized scene). The
+    stretch ``k`` (:meth:`ColorTransform.stretch_lightness`) is found in two steps on the
+    :func:`texture_bands` of the mapped renders: fixed-point steps ``k <- k * want / band0(k)`` (L* is not
+    linear in ``k``) until the finest band is within ``tol`` of ``want = min(style, reference)`` there (1
+    when it is there already; at most ``max_gain``); then ``k`` is lowered until no band ends above
+    ``max(style, plain map)`` at that scale — a style whose texture is fine lines on flat fields does not
+    get the scene's coarser contrast stretched beyond its own. Returns ``{"style", "scene", "reference",
+    "mapped", "kept", "gain"}``: the bands of the target, of the renders, the reference, of the
+    plain-mapped and of the stretched renders, and ``k``.
     """
-    style, scene = lightness_contrast(target), lightness_contrast(renders, alphas)
-    want = min(style, scene)
-    mapped = kept = lightness_contrast(_mapped(renders, transforms, labels), alphas)
+    style, scene = texture_bands(target), texture_bands(renders, alphas)
+    ref = list(scene if reference is None else reference)
+
+    def bands_at(k: float) -> list[float]:
+        ts = transforms if k == 1.0 else [t.stretch_lightness(k, c) for t, c in zip(transforms, centers)]
+        return texture_bands(_mapped(renders, ts, labels), alphas)
+
+    mapped = kept = bands_at(1.0)
+    want = min(style[0], ref[0])
     k = 1.0
     for _ in range(12):
-        if kept <= 0 or kept >= want * (1 - tol) or k >= max_gain:
+        if kept[0] <= 0 or kept[0] >= want * (1 - tol) or k >= max_gain:
             break
-        k = min(max_gain, k * want / kept)
-        kept = lightness_contrast(_mapped(renders, [t.stretch_lightness(k, c) for t, c in zip(transforms, centers)],
-                                          labels), alphas)
-    return {"style": style, "scene": scene, "mapped": mapped, "gain": k, "kept": kept}
+        k = min(max_gain, k * want / kept[0])
+        kept = bands_at(k)
+    for _ in range(12):
+        over = max((b / max(s, m) for b, s, m in zip(kept, style, mapped) if max(s, m) > 0), default=1.0)
+        if over <= 1 + tol or k <= 1.0:
+            break
+        k = max(1.0, k / over)
+        kept = bands_at(k)
+    return {"style": style, "scene": scene, "reference": ref, "mapped": mapped, "kept": kept, "gain": k}
 
 
 # ----------------------------------------------------------------------------- fitting from images
@@ -296,17 +328,29 @@ def fit_group_transforms(source: tuple[ColorStats, dict[int, ColorStats]],
 
 
 __all__ = ["rgb_to_lab", "ColorStats", "ColorTransform", "fit_transform", "transform_sh", "pixel_stats",
-           "LUMA", "lightness_contrast", "detail_gain",
+           "LUMA", "texture_bands", "detail_gain", "surface_renders",
            "fit_group_transforms", "transfer_colors", "transfer_background", "describe_transfer"]
 
 
 # ----------------------------------------------------------------------------- colour transfer
 @torch.no_grad()
+def surface_renders(scene: GaussianScene, cameras: Cameras) -> tuple[Tensor, Tensor]:
+    """``(colours [C, H, W, 3], alphas [C, H, W])`` of ``scene`` from ``cameras``, rendered without
+    background and un-premultiplied: the surface colour, which a colour map of the scene maps exactly."""
+    renders, alphas = [], []
+    for c in range(len(cameras)):
+        col, alpha, _ = scene.render(cameras[[c]].to(scene.device))
+        renders.append(col[..., :3] / alpha.clamp_min(1e-6))
+        alphas.append(alpha[..., 0])
+    return torch.cat(renders), torch.cat(alphas)
+
+
+@torch.no_grad()
 def transfer_colors(scene: GaussianScene, cameras: Cameras, target: torch.Tensor, *,
                     labels: Optional[torch.Tensor] = None,
                     target_labels: Optional[torch.Tensor] = None, assign: Optional[torch.Tensor] = None,
                     num_groups: Optional[int] = None, min_pixels: int = 64, max_gain: float = 1.3,
-                    keep_detail: bool = False) -> tuple[GaussianScene, dict]:
+                    keep_detail: bool = False, capture: Optional[GaussianScene] = None) -> tuple[GaussianScene, dict]:
     """ARF's colour transfer of ``scene``: its renders from ``cameras`` get the colour mean and
     covariance of ``target [V, H, W, 3]`` (the style image or the stylized key views), by one linear
     map of the SH coefficients (the functions above; view-consistent by construction).
@@ -318,18 +362,14 @@ def transfer_colors(scene: GaussianScene, cameras: Cameras, target: torch.Tensor
     (all rendered pixels -> all target pixels). The source colours are the renders' surface colours
     (rendered without background and divided by alpha, so that the map is exact on them); pixels with
     alpha < 0.5 (background) are left out. ``keep_detail``: stretch the maps' lightness so that the
-    scene's fine texture is not flattened below the style's (:func:`detail_gain`; module docs); the record's
-    ``detail`` says by how much. Returns the recoloured scene and a record of what was done.
+    scene's fine texture is not flattened below the style's nor the capture's (:func:`detail_gain`; module
+    docs); ``capture``: the unstylized scene whose texture bounds the stretch (default: ``scene`` itself;
+    pass it when recolouring an optimised scene). The record's ``detail`` says by how much. Returns the recoloured scene and a record of what was done.
     """
     if max_gain is None or not max_gain > 0:
         raise InputError(f"transfer_colors: max_gain must be a number > 0, got {max_gain!r} (Stage 2 leaves "
                          "None to the features: ssgwarp.stylization.stage2.resolve_for makes it concrete)")
-    renders, alphas = [], []
-    for c in range(len(cameras)):   # rendered without background, un-premultiplied: the surface colour
-        col, alpha, _ = scene.render(cameras[[c]].to(scene.device))
-        renders.append(col[..., :3] / alpha.clamp_min(1e-6))
-        alphas.append(alpha[..., 0])
-    renders, alphas = torch.cat(renders), torch.cat(alphas)
+    renders, alphas = surface_renders(scene, cameras)
     grouped = labels is not None and target_labels is not None and assign is not None and num_groups
     src = pixel_stats(renders, alphas, labels if grouped else None)
     tgt = pixel_stats(target.to(scene.device), None, target_labels if grouped else None)
@@ -341,8 +381,9 @@ def transfer_colors(scene: GaussianScene, cameras: Cameras, target: torch.Tensor
         transforms, how, centers = [glob], [], [tgt[0].mean]
     detail = None
     if keep_detail:
+        reference = None if capture is None or capture is scene else texture_bands(*surface_renders(capture, cameras))
         detail = detail_gain(renders, alphas, target.to(scene.device), transforms, centers,
-                             labels if grouped else None)
+                             labels if grouped else None, reference=reference)
         if detail["gain"] > 1.0:
             transforms = [t.stretch_lightness(detail["gain"], c) for t, c in zip(transforms, centers)]
             glob = glob.stretch_lightness(detail["gain"], tgt[0].mean) if grouped else transforms[0]
@@ -354,16 +395,18 @@ def transfer_colors(scene: GaussianScene, cameras: Cameras, target: torch.Tensor
         out = transform_sh(scene, transforms)
         info = {"per_group": False, "transform": glob.to_list()}
     if detail is not None:
-        info["detail"] = {k: round(v, 6) for k, v in detail.items()}
+        info["detail"] = {k: round(v, 6) if k == "gain" else [round(x, 4) for x in v] for k, v in detail.items()}
     return out, info
 
 
 def describe_transfer(info: dict, against: str) -> str:
     """One line saying what a :func:`transfer_colors` record ``info`` did, against ``against``."""
     d = info.get("detail")
+    b = lambda v: "/".join(f"{x:.2f}" for x in v)   # noqa: E731
     kept = "" if d is None else (
-        f"; texture {d['mapped']:.2f} -> {d['kept']:.2f} L* (lightness x{d['gain']:.2f}; scene {d['scene']:.2f}, "
-        f"style {d['style']:.2f})" if d["gain"] > 1 else f"; texture kept ({d['mapped']:.2f} L*, style {d['style']:.2f})")
+        f"; texture (L* bands 1/2/4 px) {b(d['mapped'])} -> {b(d['kept'])} (lightness x{d['gain']:.2f}; capture "
+        f"{b(d['reference'])}, style {b(d['style'])})" if d["gain"] > 1
+        else f"; texture kept ({b(d['mapped'])} L*, style {b(d['style'])})")
     if info.get("per_group"):
         return (f"per group against {against}: {info['groups_matched']} groups matched on their own, "
                 f"{info['groups_global']} by the global map (absent from the key views)" + kept)

@@ -303,7 +303,7 @@ def _targets(r: _Run, kv, stylized) -> _Targets:
 def _color_transfer(r: _Run, t: _Targets, sc: GaussianScene, when: str, against: str) -> tuple[GaussianScene, dict]:
     """ARF's colour transfer against the stylized key views (per group when grouped) or the style image;
     with ``--background transfer`` the stylized scene's background ``r.bg_styled`` goes through its global map."""
-    kw = {"max_gain": r.stage2.color_max_gain, "keep_detail": r.stage2.color_detail == "keep"}
+    kw = {"max_gain": r.stage2.color_max_gain, "keep_detail": r.stage2.color_detail == "keep", "capture": r.scene}
     if t.use_keys:
         out, info = transfer_colors(sc, t.key_cams, t.key_images, labels=t.key_labels, target_labels=t.key_labels,
                                     assign=t.assign, num_groups=r.num_groups, **kw)
