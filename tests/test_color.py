@@ -221,6 +221,24 @@ def test_texture_bands_hand_cases():
     assert c[2] > c[0], c
 
 
+def test_texture_bands_by_chunks_and_the_view_sample():
+    """Views taken a few at a time give the bands of all at once (the RMS of every counted pixel);
+    ``detail_views`` keeps every view of a small capture and an even spread of a large one."""
+    from ssgwarp.services.color import DETAIL_VIEWS, detail_views, texture_bands
+
+    g = torch.Generator().manual_seed(7)
+    imgs = torch.rand(7, 20, 24, 3, generator=g, dtype=torch.float64)
+    alphas = (torch.rand(7, 20, 24, generator=g, dtype=torch.float64) > 0.1).double()
+    whole = texture_bands(imgs, alphas, chunk=7)
+    assert texture_bands(imgs, alphas, chunk=3) == pytest.approx(whole, rel=1e-12)
+    assert texture_bands(imgs, alphas, chunk=1) == pytest.approx(whole, rel=1e-12)
+    assert detail_views(5) == [0, 1, 2, 3, 4] and detail_views(DETAIL_VIEWS) == list(range(DETAIL_VIEWS))
+    big = detail_views(100, most=24)
+    assert len(big) == 24 and big[0] == 0 and big[-1] == 99 and big == sorted(set(big))
+    gaps = [b - a for a, b in zip(big, big[1:])]
+    assert max(gaps) - min(gaps) <= 1, gaps                     # evenly spaced
+
+
 def test_stretch_lightness_scales_luminance_about_the_center_and_keeps_chroma():
     from ssgwarp.services.color import LUMA
 
@@ -282,8 +300,9 @@ def test_detail_gain_restores_texture_the_plain_map_flattens():
 
 def test_detail_gain_stops_where_a_coarser_band_would_pass_the_style():
     """A style of thin lines on flat fields (much fine texture, little coarse) and a scene with a large
-    layout and texture at every scale, which the plain map flattens: stretching up to the fine target would push the coarse
-    bands past the style's, so the stretch stops where the first band reaches the style's there."""
+    layout and texture at every scale, which the plain map flattens: stretching up to the fine target
+    would push the coarse bands past the style's, so the stretch stops where the first band reaches the
+    style's there."""
     from ssgwarp.services.color import detail_gain, texture_bands
 
     g = torch.Generator().manual_seed(5)
@@ -354,3 +373,25 @@ def test_transfer_colors_keep_detail_on_a_rendered_scene():
     assert c["reference"] == pytest.approx(d["scene"], rel=1e-3)         # the capture's bands
     assert o["reference"] == o["scene"] and o["scene"][0] < 0.9 * c["reference"][0]
     assert c["gain"] > o["gain"] and c["kept"][0] > o["kept"][0]
+
+
+def test_transfer_colors_measures_texture_on_the_view_sample(monkeypatch):
+    """With more cameras than the sample, the record's bands are those of the sampled views only (the
+    scene's and the capture's alike)."""
+    from test_stylize import ring, two_objects
+
+    import ssgwarp.services.color as color
+
+    scene, _ = two_objects(n=60, dtype=torch.float64)
+    cams = ring(n=3, dtype=torch.float64)
+    style = _textured(1, 32, 48, 2, 0.55, 0.0, 0.08)
+    orig = color.detail_views
+    monkeypatch.setattr(color, "detail_views", lambda n: orig(n, most=2))
+    _, info = color.transfer_colors(scene, cams, style, max_gain=4.0, keep_detail=True,
+                                    capture=scene.replace(sh_dc=scene.sh_dc * 0.5))
+    sample = cams[[0, 2]]
+    assert info["detail"]["scene"] == pytest.approx(color.texture_bands(*color.surface_renders(scene, sample)), abs=1e-4)
+    half = scene.replace(sh_dc=scene.sh_dc * 0.5)
+    assert info["detail"]["reference"] == pytest.approx(color.texture_bands(*color.surface_renders(half, sample)),
+                                                        abs=1e-4)
+    assert info["detail"]["scene"] != pytest.approx(color.texture_bands(*color.surface_renders(scene, cams)), abs=1e-4)

@@ -189,6 +189,7 @@ LUMA = (0.2126, 0.7152, 0.0722)   # Rec. 709 luminance weights (they sum to 1: a
 
 DETAIL_LEVELS = 3       # texture bands of ``keep_detail``: 1, 2 and 4 px
 DETAIL_MAX_GAIN = 3.0   # the lightness stretch of ``keep_detail`` is at most this
+DETAIL_VIEWS = 24       # ... measured on at most this many views (:func:`detail_views`)
 
 
 def _blur5(t: Tensor) -> Tensor:
@@ -201,30 +202,39 @@ def _blur5(t: Tensor) -> Tensor:
 
 
 def texture_bands(images: Tensor, alphas: Optional[Tensor] = None, levels: int = DETAIL_LEVELS,
-                  alpha_min: float = 0.5) -> list[float]:
+                  alpha_min: float = 0.5, chunk: int = 4) -> list[float]:
     """Lightness texture per scale of ``images [V, H, W, 3]`` (sRGB, clamped to [0, 1] as renders are):
     for level ``k`` of a Gaussian pyramid of CIE L* (blurred, sigma 1 px, and halved ``k`` times: scale
     ``2^k`` px), the RMS of the level minus its own blur — a band-pass of the lightness, 0 on flat or
     linearly shaded regions. With ``alphas [V, H, W]`` only pixels whose whole 5x5 neighbourhood is kept
     (alpha >= ``alpha_min``) count, so a scene's outline against the background is not texture; 0 for a
-    level with no such pixel or smaller than 5 px.
+    level with no such pixel or smaller than 5 px. ``chunk`` views at a time (float64 work arrays).
 
     In L*, not RGB: L* compresses differences in bright regions, so brightening a scene flattens its
     texture as seen even when its RGB differences stay.
     """
-    y = rgb_to_lab(images.to(torch.float64).clamp(0.0, 1.0))[..., 0][:, None]
-    m = torch.ones_like(y) if alphas is None else (alphas.reshape(y.shape).to(y.device) >= alpha_min).to(y.dtype)
-    out = []
-    for k in range(levels):
-        if k:
-            y, m = _blur5(y)[..., ::2, ::2], _blur5(m)[..., ::2, ::2]
-        if min(y.shape[-2:]) < 5:
-            out.append(0.0)
-            continue
-        keep = _blur5(m) >= 0.999
-        band = (y - _blur5(y))[keep]
-        out.append(float(band.pow(2).mean().sqrt()) if band.numel() else 0.0)
-    return out
+    total, count = [0.0] * levels, [0] * levels
+    for v in range(0, images.shape[0], max(1, int(chunk))):
+        y = rgb_to_lab(images[v:v + chunk].to(torch.float64).clamp(0.0, 1.0))[..., 0][:, None]
+        m = torch.ones_like(y) if alphas is None else \
+            (alphas[v:v + chunk].reshape(y.shape).to(y.device) >= alpha_min).to(y.dtype)
+        for k in range(levels):
+            if k:
+                y, m = _blur5(y)[..., ::2, ::2], _blur5(m)[..., ::2, ::2]
+            if min(y.shape[-2:]) < 5:
+                break
+            band = (y - _blur5(y))[_blur5(m) >= 0.999]
+            total[k] += float(band.pow(2).sum())
+            count[k] += band.numel()
+    return [(t / n) ** 0.5 if n else 0.0 for t, n in zip(total, count)]
+
+
+def detail_views(n: int, most: int = DETAIL_VIEWS) -> list[int]:
+    """Indices of the views ``keep_detail`` measures texture on: all ``n`` when ``n <= most``, else
+    ``most`` evenly spaced ones (texture statistics need a sample of views, not all of a large capture)."""
+    if n <= most:
+        return list(range(n))
+    return sorted({round(i * (n - 1) / (most - 1)) for i in range(most)})
 
 
 def _mapped(images: Tensor, transforms: Sequence["ColorTransform"], labels: Optional[Tensor]) -> Tensor:
@@ -328,7 +338,7 @@ def fit_group_transforms(source: tuple[ColorStats, dict[int, ColorStats]],
 
 
 __all__ = ["rgb_to_lab", "ColorStats", "ColorTransform", "fit_transform", "transform_sh", "pixel_stats",
-           "LUMA", "texture_bands", "detail_gain", "surface_renders",
+           "LUMA", "texture_bands", "detail_views", "detail_gain", "surface_renders",
            "fit_group_transforms", "transfer_colors", "transfer_background", "describe_transfer"]
 
 
@@ -364,7 +374,9 @@ def transfer_colors(scene: GaussianScene, cameras: Cameras, target: torch.Tensor
     alpha < 0.5 (background) are left out. ``keep_detail``: stretch the maps' lightness so that the
     scene's fine texture is not flattened below the style's nor the capture's (:func:`detail_gain`; module
     docs); ``capture``: the unstylized scene whose texture bounds the stretch (default: ``scene`` itself;
-    pass it when recolouring an optimised scene). The record's ``detail`` says by how much. Returns the recoloured scene and a record of what was done.
+    pass it when recolouring an optimised scene); texture is measured on at most :data:`DETAIL_VIEWS`
+    evenly spaced views (:func:`detail_views`). The record's ``detail`` says by how much. Returns the
+    recoloured scene and a record of what was done.
     """
     if max_gain is None or not max_gain > 0:
         raise InputError(f"transfer_colors: max_gain must be a number > 0, got {max_gain!r} (Stage 2 leaves "
@@ -381,9 +393,11 @@ def transfer_colors(scene: GaussianScene, cameras: Cameras, target: torch.Tensor
         transforms, how, centers = [glob], [], [tgt[0].mean]
     detail = None
     if keep_detail:
-        reference = None if capture is None or capture is scene else texture_bands(*surface_renders(capture, cameras))
-        detail = detail_gain(renders, alphas, target.to(scene.device), transforms, centers,
-                             labels if grouped else None, reference=reference)
+        idx = detail_views(len(cameras))
+        reference = None if capture is None or capture is scene else \
+            texture_bands(*surface_renders(capture, cameras[idx]))
+        detail = detail_gain(renders[idx], alphas[idx], target.to(scene.device), transforms, centers,
+                             labels[idx] if grouped else None, reference=reference)
         if detail["gain"] > 1.0:
             transforms = [t.stretch_lightness(detail["gain"], c) for t, c in zip(transforms, centers)]
             glob = glob.stretch_lightness(detail["gain"], tgt[0].mean) if grouped else transforms[0]
