@@ -42,6 +42,21 @@ def rgb_to_lab(rgb: torch.Tensor) -> torch.Tensor:
     return torch.stack([L, a, b], dim=-1)
 
 
+def blur5(t: torch.Tensor) -> torch.Tensor:
+    """Separable 5-tap Gaussian blur (sigma 1 px, replicate padding) of ``t [N, 1, H, W]``: one step of
+    the Gaussian pyramids of the texture measures (style distance, the colour map's texture bands)."""
+    ax = torch.arange(-2, 3, dtype=t.dtype, device=t.device)
+    g = torch.exp(-ax ** 2 / 2.0)
+    g = g / g.sum()
+    t = F.conv2d(F.pad(t, (2, 2, 0, 0), mode="replicate"), g.view(1, 1, 1, 5))
+    return F.conv2d(F.pad(t, (0, 0, 2, 2), mode="replicate"), g.view(1, 1, 5, 1))
+
+
+def pyramid_down(t: torch.Tensor) -> torch.Tensor:
+    """The next (half-size) level of a Gaussian pyramid: :func:`blur5`, then every other pixel."""
+    return blur5(t)[..., ::2, ::2]
+
+
 def as_bhwc(img) -> tuple[torch.Tensor, bool, bool]:
     """``(batch [B, H, W, C] tensor, was a single image, was numpy)`` of an image or a batch
     (numpy or torch): what a function taking either form works on."""

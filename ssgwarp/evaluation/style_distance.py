@@ -11,7 +11,7 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import InputError
-from ..core.imaging import fit_style, rgb_to_lab
+from ..core.imaging import fit_style, pyramid_down, rgb_to_lab
 
 Tensor = torch.Tensor
 
@@ -144,13 +144,6 @@ def filter_responses(lightness: Tensor, levels: int = TEXTURE_LEVELS, orientatio
     m = None if mask is None else mask.to(x.dtype)[None, None]
     bank = _gaussian_derivative_bank(orientations, 1.0, x.dtype, x.device)
     r = bank.shape[-1] // 2
-    ax = torch.arange(-2, 3, dtype=x.dtype, device=x.device)
-    g1 = torch.exp(-ax ** 2 / 2.0)
-    g1 = g1 / g1.sum()
-
-    def blur_halve(t: Tensor) -> Tensor:
-        t = F.conv2d(F.pad(t, (2, 2, 2, 2), mode="replicate"), g1.view(1, 1, 1, 5))
-        return F.conv2d(t, g1.view(1, 1, 5, 1))[..., ::2, ::2]
 
     out = []
     for k in range(levels):
@@ -166,8 +159,8 @@ def filter_responses(lightness: Tensor, levels: int = TEXTURE_LEVELS, orientatio
                 break
         out.append(resp)
         if k + 1 < levels:
-            x = blur_halve(x)
-            m = None if m is None else blur_halve(m)
+            x = pyramid_down(x)
+            m = None if m is None else pyramid_down(m)
     return out
 
 

@@ -57,7 +57,7 @@ from typing import Optional, Sequence
 import torch
 
 from ..errors import InputError
-from ..core.imaging import rgb_to_lab  # noqa: F401  (re-exported: ssgwarp.services.color.rgb_to_lab)
+from ..core.imaging import blur5, pyramid_down, rgb_to_lab  # noqa: F401  (rgb_to_lab re-exported)
 from ..core.cameras import Cameras
 from ..raster.scene import SH_C0, GaussianScene
 
@@ -192,15 +192,6 @@ DETAIL_MAX_GAIN = 3.0   # the lightness stretch of ``keep_detail`` is at most th
 DETAIL_VIEWS = 24       # ... measured on at most this many views (:func:`detail_views`)
 
 
-def _blur5(t: Tensor) -> Tensor:
-    """Separable 5-tap Gaussian blur (sigma 1 px, replicate padding) of ``t [N, 1, H, W]``."""
-    ax = torch.arange(-2, 3, dtype=t.dtype, device=t.device)
-    g = torch.exp(-ax ** 2 / 2.0)
-    g = g / g.sum()
-    t = torch.nn.functional.conv2d(torch.nn.functional.pad(t, (2, 2, 0, 0), mode="replicate"), g.view(1, 1, 1, 5))
-    return torch.nn.functional.conv2d(torch.nn.functional.pad(t, (0, 0, 2, 2), mode="replicate"), g.view(1, 1, 5, 1))
-
-
 def texture_bands(images: Tensor, alphas: Optional[Tensor] = None, levels: int = DETAIL_LEVELS,
                   alpha_min: float = 0.5, chunk: int = 4) -> list[float]:
     """Lightness texture per scale of ``images [V, H, W, 3]`` (sRGB, clamped to [0, 1] as renders are):
@@ -220,10 +211,10 @@ def texture_bands(images: Tensor, alphas: Optional[Tensor] = None, levels: int =
             (alphas[v:v + chunk].reshape(y.shape).to(y.device) >= alpha_min).to(y.dtype)
         for k in range(levels):
             if k:
-                y, m = _blur5(y)[..., ::2, ::2], _blur5(m)[..., ::2, ::2]
+                y, m = pyramid_down(y), pyramid_down(m)
             if min(y.shape[-2:]) < 5:
                 break
-            band = (y - _blur5(y))[_blur5(m) >= 0.999]
+            band = (y - blur5(y))[blur5(m) >= 0.999]
             total[k] += float(band.pow(2).sum())
             count[k] += band.numel()
     return [(t / n) ** 0.5 if n else 0.0 for t, n in zip(total, count)]

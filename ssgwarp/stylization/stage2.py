@@ -111,7 +111,8 @@ class Stage2Config:
         color_detail: ``keep``: the colour transfer does not flatten the scene's lightness texture below
             the style's (nor raise it above the capture's own, nor any scale above the style's), by
             stretching its lightness output (:func:`ssgwarp.services.color.detail_gain`); ``off``: the
-            plain mean-and-covariance map; ``auto`` (default): ``keep`` on the weight-free edge features, ``off`` otherwise.
+            plain mean-and-covariance map; ``auto`` (default): ``keep`` on the weight-free edge features,
+            ``off`` otherwise.
         sh_rest: the higher SH bands (view-dependent colour): ``zero`` them at the start (default:
             renders become view-independent, lower consistency error at equal style distances,
             docs/stylize.md), ``keep`` them as reconstructed, or ``optimise`` them too.
