@@ -7,7 +7,8 @@ centre to the Gaussian, the SH sum, ``+ 0.5`` clamped at 0, and 0 for Gaussians 
 culled (gsplat's rule). Both are differentiable by Warp's generated adjoint (with respect to the
 coefficients and the directions, or the means and camera centres). Inputs are read through 2-D
 ``[camera, Gaussian]`` arrays (stride 0 over what is shared), so the adjoint writes one slot per
-pair (see :mod:`.projection`).
+pair (see :mod:`.projection`). :func:`centres_kernel` gives the camera centres the directions
+start from.
 """
 
 import functools
@@ -99,3 +100,21 @@ def colour_kernel(scalar, degree: int):
                          wp.where(v[2] >= zero, v[2], zero))
 
     return sh_colour
+
+
+@functools.lru_cache(maxsize=None)
+def centres_kernel(scalar):
+    """``camera_centres(viewmats [C], centres [C])``: each camera's centre in world space, the
+    translation column of the inverse world-to-camera matrix (one thread per camera; not
+    differentiated: a caller that needs gradients with respect to the view matrices inverts them
+    in torch)."""
+    t = types_for(scalar)
+    vec3, mat44 = t.vec3, t.mat44
+
+    @wp.kernel(module="unique", module_options={"enable_backward": False})
+    def camera_centres(viewmats: wp.array(dtype=mat44), centres: wp.array(dtype=vec3)):
+        c = wp.tid()
+        inv = wp.inverse(viewmats[c])
+        centres[c] = vec3(inv[0, 3], inv[1, 3], inv[2, 3])
+
+    return camera_centres

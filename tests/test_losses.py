@@ -12,7 +12,7 @@ import torch
 
 from ssgwarp.core.cameras import Cameras, intrinsics, look_at
 from ssgwarp.capture.datasets import SceneData
-from ssgwarp.services.losses import dssim, photometric
+from ssgwarp.services.losses import dssim, gaussian_window, photometric, ssim_map
 from ssgwarp.reconstruction.reconstruct import Recipe, Trainer, render_views
 from ssgwarp.raster.scene import GaussianScene
 
@@ -33,6 +33,31 @@ def test_dssim_is_one_minus_ssim():
     assert float(dssim(a, a)) == pytest.approx(0.0, abs=1e-6)
     assert float(dssim(a, 1.0 - a)) > 1.8  # SSIM ~ -1 against the negative
     assert float(dssim(a, b)) == pytest.approx(1.0 - float(_ssim(a, b)), abs=1e-6)
+
+
+@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_ssim_map_is_kornias_map_with_its_gradient(dtype, tol):
+    # the map CUDA images take (one stacked filtering, the window made once): kornia's map and gradient
+    g = torch.Generator().manual_seed(1)
+    a = torch.rand(2, 3, 20, 27, generator=g, dtype=dtype, requires_grad=True)
+    b = (a.detach() + 0.2 * torch.rand(a.shape, generator=g, dtype=dtype) - 0.1).clamp(0, 1)
+    ref = kornia.metrics.ssim(a, b, 11, max_val=1.0, padding="same")
+    got = ssim_map(a, b)
+    assert got.shape == ref.shape and (got - ref).abs().max() < tol
+    ga, = torch.autograd.grad(ref.mean(), a)
+    gb, = torch.autograd.grad(got.mean(), a)
+    assert (ga - gb).abs().max() < tol * ga.abs().max()
+    assert ssim_map(b, b).sub(1).abs().max() < 1e-6  # identical images: 1 everywhere (up to eps / den)
+
+
+def test_gaussian_window_is_normalised_and_made_once():
+    w = gaussian_window(11, "cpu", torch.float32)
+    x = torch.arange(11, dtype=torch.float64) - 5
+    expect = torch.exp(-x * x / 4.5)
+    assert torch.allclose(w.double(), expect / expect.sum(), atol=1e-7) and abs(float(w.sum()) - 1) < 1e-6
+    assert gaussian_window(11, torch.device("cpu"), torch.float32) is w     # cached per device and dtype
+    with pytest.raises(ValueError, match="one shape"):
+        ssim_map(torch.rand(1, 3, 8, 8), torch.rand(1, 3, 8, 9))
 
 
 def test_photometric_loss_weights():

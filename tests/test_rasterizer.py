@@ -127,7 +127,7 @@ def test_many_channels_split_in_chunks():
 
 
 def test_sh_kernel_matches_torch():
-    from ssgwarp.raster.ops import spherical_harmonics_warp
+    from ssgwarp.raster.sh_ops import spherical_harmonics_warp
     from ssgwarp.raster.sh import spherical_harmonics
 
     g = torch.Generator().manual_seed(0)
@@ -143,6 +143,33 @@ def test_sh_kernel_matches_torch():
             outs.append((y.detach(), dg, c.grad))
         for a, b in zip(*outs):
             assert torch.allclose(a, b, atol=1e-12, rtol=0)
+
+
+def test_camera_centres_kernel_and_both_sh_paths():
+    """The camera centres the SH directions start from: one Warp kernel when the view matrices need
+    no gradient (the inverse's translation: ``-R^T t`` for a rigid camera, any invertible matrix
+    too), torch's inverse when they do; both give the same image."""
+    from ssgwarp.raster.sh_ops import camera_centres
+
+    eyes = torch.tensor([[3.0, -1.0, 0.5], [-2.0, 2.5, 1.0], [0.1, 0.2, -4.0]])
+    vm = look_at(eyes, torch.zeros(3, 3))
+    for dt, tol in ((torch.float64, 1e-12), (torch.float32, 2e-6)):
+        got = camera_centres(vm.to(dt))
+        assert got.dtype == dt and got.shape == (3, 3)
+        assert (got - eyes.to(dt)).abs().max() < tol * 4
+        assert (got - torch.linalg.inv(vm.to(dt))[:, :3, 3]).abs().max() < tol * 4
+    general = torch.randn(4, 4, 4, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    assert torch.allclose(camera_centres(general), torch.linalg.inv(general)[:, :3, 3], atol=1e-10, rtol=0)
+    # the two paths in a render: same image; the differentiable one gives the view matrices a gradient
+    means, quats, scales, opac, _ = make_scene(40)
+    sh = torch.randn(40, 9, 3, generator=torch.Generator().manual_seed(4), dtype=torch.float64) * 0.4
+    vm2, K = make_cameras(2, 20, 16)
+    img_fast, _, _ = rasterization(means, quats, scales, opac, sh, vm2, K, 20, 16, sh_degree=2)
+    vml = vm2.clone().requires_grad_(True)
+    img_grad, _, _ = rasterization(means, quats, scales, opac, sh, vml, K, 20, 16, sh_degree=2)
+    assert torch.allclose(img_fast, img_grad.detach(), atol=1e-12, rtol=0)
+    img_grad.sum().backward()
+    assert vml.grad is not None and vml.grad.abs().sum() > 0
 
 
 def test_densification_gradient_in_meta():

@@ -222,7 +222,7 @@ def test_incoming_gradients_of_any_layout_give_the_same_gradients():
     a broadcast gradient (``.sum()``: stride 0) and a column-strided one (a transposed tensor) give the
     gradients of the same gradient made contiguous, for the SH op and for a loss on the projected
     Gaussians of ``meta`` (means2d, depths, conics, opacities)."""
-    from ssgwarp.raster.ops import spherical_harmonics_warp
+    from ssgwarp.raster.sh_ops import spherical_harmonics_warp
 
     g = torch.Generator().manual_seed(5)
     dirs = torch.randn(2, 30, 3, generator=g, dtype=torch.float64)

@@ -175,6 +175,10 @@ def test_nan_stops_with_the_step_and_keeps_the_last_checkpoint(tmp_path):
                 identity_dim=3, checkpoint_path=tmp_path / "ck.pt", checkpoint_every=5, progress=False, device="cpu")
     with pytest.raises(SsgwarpError, match=r"diverged at step 13 .*last good checkpoint \(step 10\)"):
         t.train()
+    # the NaN step's gradients were never applied: the loss is checked after the backward is queued
+    # but before the optimiser steps
+    assert t.step == 12
+    assert all(bool(torch.isfinite(p).all()) for p in [*t.params.values(), *t._hook_params()])
     t2 = Trainer(data, scene=_toy_scene().replace(identities=None), iters=50, sh_degree=1, hooks=[IdentityHook(3)],
                  identity_dim=3, checkpoint_path=tmp_path / "ck.pt", progress=False, device="cpu")
     t2.load_checkpoint()

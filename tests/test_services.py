@@ -209,3 +209,9 @@ def test_adam_is_fused_on_the_cpu_and_takes_torchs_default_steps():
     fused.load_state_dict(plain.state_dict())
     # an explicit choice keeps torch's default
     assert not adam([torch.nn.Parameter(torch.randn(3))], foreach=False).defaults["fused"]
+    # which parameter sets are fused: one device type with a fused Adam, float32 / float64 only
+    from ssgwarp.core.optim import fusable
+    f32, f64, f16 = torch.float32, torch.float64, torch.float16
+    assert fusable({("cpu", f32)}) and fusable({("cuda", f32), ("cuda", f64)})
+    assert not fusable({("cpu", f32), ("cuda", f32)})                       # mixed devices
+    assert not fusable({("cuda", f16)}) and not fusable({("mps", f32)}) and not fusable(set())

@@ -60,7 +60,9 @@ class Cameras:
             ids = torch.arange(len(self))[idx.cpu()].tolist() if idx.dtype == torch.bool else idx.cpu().tolist()
         else:
             ids = list(idx)
-        ids_t = torch.as_tensor(ids, dtype=torch.long, device=self.viewmats.device)
+        # (copied without waiting for the device: a blocking host-to-device copy synchronises the
+        # stream, which a training step pays once per view batch)
+        ids_t = torch.as_tensor(ids, dtype=torch.long).to(self.viewmats.device, non_blocking=True)
         return Cameras(self.viewmats[ids_t], self.Ks[ids_t], self.width, self.height, [self.names[i] for i in ids])
 
     def to(self, device=None, dtype=None) -> "Cameras":

@@ -289,44 +289,6 @@ def _project_cfg(dtype, width, height, near_plane, far_plane, radius_clip, eps2d
 
 
 # ---------------------------------------------------------------------------------------------
-# spherical harmonics
-# ---------------------------------------------------------------------------------------------
-class _SH(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, degree, dirs, coeffs):
-        shape = dirs.shape[:-1]
-        d = _c(dirs).reshape(-1, 3)
-        c = _c(coeffs).reshape(d.shape[0], -1, 3)
-        M = c.shape[0]
-        s = _scalar(dirs.dtype)
-        out = torch.empty_like(d)
-        L.launch(sh.sh_kernel(s, degree), (1, M), [*L.grid(d, 1, M, 3, True), *_coeff_rows(c), *arr(out, 3)], L.target(d))
-        ctx.save_for_backward(d, c, out)
-        ctx.degree, ctx.shape, ctx.cshape = degree, shape, coeffs.shape
-        return out.reshape(*shape, 3)
-
-    @staticmethod
-    def backward(ctx, g):
-        d, c, out = ctx.saved_tensors
-        s = _scalar(d.dtype)
-        M = d.shape[0]
-        vd, vc = torch.zeros_like(d), torch.zeros_like(c)
-        ga, g = _adj(g, 3, M)
-        L.launch(sh.sh_kernel(s, ctx.degree), (1, M), [*L.grid(d, 1, M, 3, True), *_coeff_rows(c), *arr(out, 3)],
-                 L.target(d), adj=[*L.grid(vd, 1, M, 3, True), *_coeff_rows(vc), *ga])
-        return None, vd.reshape(*ctx.shape, 3), vc.reshape(ctx.cshape)
-
-
-def _coeff_rows(c):
-    return L.grid3(c, 1, c.shape[0], c.shape[1], 3, False)
-
-
-def spherical_harmonics_warp(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
-    """Warp version of :func:`ssgwarp.raster.sh.spherical_harmonics`: ``dirs [...,3]``, ``coeffs [...,K,3]`` → ``[...,3]``."""
-    return _SH.apply(int(degree), dirs, coeffs)
-
-
-# ---------------------------------------------------------------------------------------------
 # tile binning
 # ---------------------------------------------------------------------------------------------
 def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, tile_width: int, tile_height: int,
@@ -344,9 +306,8 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
     here. ``scan``: an int64 tensor ``[C*N + N_FLAGS]`` to hold the scan, whose tail holds the
     input checks' flags, and with ``counts_in_scan`` whose head already holds the counts (the
     projection wrote them; scanned in place); ``pending``: ``(flags, check)`` from deferred input
-    validation. The
-    intersection count and the flags are read back together (the one synchronisation) and the
-    flags checked before anything else. Without ``keep_perm`` the sort carries the Gaussian ids
+    validation. The intersection count and the flags are read back together (the one
+    synchronisation) and the flags checked before anything else. Without ``keep_perm`` the sort carries the Gaussian ids
     themselves (as gsplat's does), so the sorted values are the flattened ids. ``threads`` (CPU):
     ``RasterSettings.cpu_threads`` for the key writes and the range offsets (:mod:`.cpu_threads`).
     """

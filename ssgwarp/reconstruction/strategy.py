@@ -380,7 +380,9 @@ def accumulate_grad2d(stats: dict[str, torch.Tensor], meta: dict) -> None:
         vis, r = (radii > 0).all(dim=-1), radii.max(dim=-1).values
     else:
         vis, r = radii > 0, radii
-    norms = (g * torch.tensor([w / 2.0 * c, h / 2.0 * c], device=g.device, dtype=g.dtype)).norm(dim=-1) * vis
+    # (the scale goes to the device without a blocking copy, which would synchronise every step)
+    scale = torch.tensor([w / 2.0 * c, h / 2.0 * c], dtype=g.dtype).to(g.device, non_blocking=True)
+    norms = (g * scale).norm(dim=-1) * vis
     r = (r * vis).to(torch.float32) / max(w, h)
     ids = meta.get("gaussian_ids")
     if g.ndim == 2:  # packed: one row per (camera, visible Gaussian), ``gaussian_ids`` says which

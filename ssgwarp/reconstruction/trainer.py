@@ -282,10 +282,14 @@ class Trainer:
                 per_view = [h.loss(self.step, vi, out[j, ..., 3:], **extra) for j, vi in enumerate(views)]
                 hook_losses.append(sum(per_view) / len(per_view))
         total = loss + sum(hook_losses) if hook_losses else loss
-        finite = bool(torch.isfinite(total.detach()))
+        finite_t = torch.isfinite(total.detach())
+        total.backward()
+        # read once the backward is queued: the GPU works through the forward while the host queues
+        # the backward (read before it, the check would leave the GPU idle for the backward's host
+        # work). A NaN/inf loss still stops before the optimiser step: nothing is applied.
+        finite = bool(finite_t)
         if not finite and not self.group.active:
             self._diverged("the loss is NaN/inf")
-        total.backward()
         # every process steps with the batch's mean gradient; NaN and Ctrl-C anywhere are seen everywhere
         bad, stop = self.group.average_grads(list(self.params.values()) + self._hook_params(),
                                              [0.0 if finite else 1.0, 1.0 if self._stop_requested else 0.0])
