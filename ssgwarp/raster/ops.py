@@ -510,7 +510,7 @@ class _Blend(torch.autograd.Function):
         if len(ctx.cshape) == 2:  # colours shared by the cameras
             v_colors = v_colors[0] if C == 1 else v_colors.sum(0)
         v_bg = None
-        if bg is not None:
+        if bg is not None and need[4]:  # (a constant background, as training passes: no gradient to form)
             v_bg = (g_colors * out_T[..., None]).sum(dim=(1, 2)) if g_colors is not None else torch.zeros_like(bg)
         return v_m2d, v_conics, v_colors, v_opac, v_bg, None, None, None, None, None, None, None
 
