@@ -91,7 +91,8 @@ def main(argv=None) -> int:
     p.add_argument("--scene", default="fern8", help="fern8, fern4, cup, lego or PATH[:IMAGES]")
     p.add_argument("--data-root", type=Path, default=None)
     p.add_argument("--backend", nargs="+", choices=("ssgwarp", "gsplat"), default=["ssgwarp", "gsplat"])
-    p.add_argument("--warm", type=int, default=700, help="steps before the timing (default 700: past 7k's refinements at 117..700)")
+    p.add_argument("--warm", type=int, default=700,
+                   help="steps before the timing (default 700: past the 7k schedule's refinements at 117..700)")
     p.add_argument("--steps", type=int, default=90, help="timed steps (default 90: up to the next refinement)")
     p.add_argument("--iters", type=int, default=7000, help="the run's length, which sets the schedule")
     p.add_argument("--seed", type=int, default=0)

@@ -307,8 +307,9 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
     input checks' flags, and with ``counts_in_scan`` whose head already holds the counts (the
     projection wrote them; scanned in place); ``pending``: ``(flags, check)`` from deferred input
     validation. The intersection count and the flags are read back together (the one
-    synchronisation) and the flags checked before anything else. Without ``keep_perm`` the sort carries the Gaussian ids
-    themselves (as gsplat's does), so the sorted values are the flattened ids. ``threads`` (CPU):
+    synchronisation) and the flags checked before anything else. Without ``keep_perm`` the sort
+    carries the Gaussian ids themselves (as gsplat's does), so the sorted values are the flattened
+    ids. ``threads`` (CPU):
     ``RasterSettings.cpu_threads`` for the key writes and the range offsets (:mod:`.cpu_threads`).
     """
     C, N = depths.shape
