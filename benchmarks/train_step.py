@@ -82,7 +82,7 @@ def measure(data, backend: str, args, device: torch.device) -> dict:
             for _ in range(5):
                 t.train_step()
             sync()
-        row["profile"] = p.key_averages().table(sort_by="cpu_time_total", row_limit=30)
+        row["profile"] = p.key_averages().table(sort_by="cpu_time_total", row_limit=60)
     return row
 
 
