@@ -175,14 +175,31 @@ def test_nan_stops_with_the_step_and_keeps_the_last_checkpoint(tmp_path):
                 identity_dim=3, checkpoint_path=tmp_path / "ck.pt", checkpoint_every=5, progress=False, device="cpu")
     with pytest.raises(SsgwarpError, match=r"diverged at step 13 .*last good checkpoint \(step 10\)"):
         t.train()
-    # the NaN step's gradients were never applied: the loss is checked after the backward is queued
-    # but before the optimiser steps
-    assert t.step == 12
+    # the NaN step's updates were never applied: the optimisers skip them on the device (no
+    # synchronisation), the flag is read at the next step, which stops before its own update
+    assert t.step == 13
     assert all(bool(torch.isfinite(p).all()) for p in [*t.params.values(), *t._hook_params()])
+    assert max(int(st["step"]) for st in t.opt.state.values()) == 12            # Adam's count not advanced
     t2 = Trainer(data, scene=_toy_scene().replace(identities=None), iters=50, sh_degree=1, hooks=[IdentityHook(3)],
                  identity_dim=3, checkpoint_path=tmp_path / "ck.pt", progress=False, device="cpu")
     t2.load_checkpoint()
     assert t2.step == 10 and all(bool(torch.isfinite(p).all()) for p in t2.params.values())
+
+
+@pytest.mark.parametrize("nan_at, kept, saved", [(9, r"last good checkpoint \(step 5\)", 5),
+                                                  (4, "no checkpoint was written yet", None)])
+def test_a_nan_step_is_never_checkpointed_nor_returned(tmp_path, nan_at, kept, saved):
+    # the last step's loss (step 10 of 10, then the final checkpoint) and a checkpoint step's (step 5,
+    # checkpoints every 5) are read before the checkpoint is written and before train() returns
+    data = _toy_data()
+    t = Trainer(data, scene=_toy_scene().replace(identities=None), iters=10, sh_degree=1,
+                hooks=[IdentityHook(3, nan_at=nan_at)], identity_dim=3, checkpoint_path=tmp_path / "ck.pt",
+                checkpoint_every=5, progress=False, device="cpu")
+    with pytest.raises(SsgwarpError, match=rf"diverged at step {nan_at + 1} .*{kept}"):
+        t.train()
+    ck = tmp_path / "ck.pt"
+    assert (torch.load(ck, weights_only=False)["step"] if ck.exists() else None) == saved
+    assert all(bool(torch.isfinite(p).all()) for p in t.params.values())
 
 
 def _write_tiny_colmap(root: Path):

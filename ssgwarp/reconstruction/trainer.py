@@ -126,6 +126,9 @@ class Trainer:
         self.last_checkpoint_step: Optional[int] = None
         self._loop: Optional[Loop] = None
         self._agreed_stop = False  # the stop request as all processes agreed on it (in the gradient all-reduce)
+        # the loss flag of a step not read yet: (step, flag on the host or being copied there, CUDA event)
+        self._loss_pending = None
+        self._loss_host = None
         self.check_every = check_every() if self.group.active else 0
         self.history: list[dict] = []
 
@@ -231,7 +234,8 @@ class Trainer:
                              p.get("sh_rest"), p.get("identities"), self.sh_degree)
 
     def final_scene(self) -> GaussianScene:
-        """A detached copy of the scene."""
+        """A detached copy of the scene (after the last step's loss check)."""
+        self._settle_loss()
         return self.scene.detach()
 
     # -- training -------------------------------------------------------------------------------
@@ -283,13 +287,17 @@ class Trainer:
                 hook_losses.append(sum(per_view) / len(per_view))
         total = loss + sum(hook_losses) if hook_losses else loss
         finite_t = torch.isfinite(total.detach())
+        self._settle_loss()  # the previous step's flag (long computed: no wait)
+        deferred = self._watch_loss(finite_t)
         total.backward()
-        # read once the backward is queued: the GPU works through the forward while the host queues
-        # the backward (read before it, the check would leave the GPU idle for the backward's host
-        # work). A NaN/inf loss still stops before the optimiser step: nothing is applied.
-        finite = bool(finite_t)
-        if not finite and not self.group.active:
-            self._diverged("the loss is NaN/inf")
+        if deferred:
+            finite = True  # (known on the host next step: see _watch_loss)
+        else:
+            # read once the backward is queued: the GPU works through the forward while the host
+            # queues the backward. A NaN/inf loss still stops before the optimiser step.
+            finite = bool(finite_t)
+            if not finite and not self.group.active:
+                self._diverged("the loss is NaN/inf")
         # every process steps with the batch's mean gradient; NaN and Ctrl-C anywhere are seen everywhere
         bad, stop = self.group.average_grads(list(self.params.values()) + self._hook_params(),
                                              [0.0 if finite else 1.0, 1.0 if self._stop_requested else 0.0])
@@ -337,10 +345,50 @@ class Trainer:
     def _stop_requested(self) -> bool:
         return self._loop is not None and self._loop.stop_requested
 
-    def _diverged(self, why: str) -> None:
+    def _optimisers(self) -> list:
+        return [o for o in (self.opt, self.hook_opt) if o is not None]
+
+    def _watch_loss(self, finite: torch.Tensor) -> bool:
+        """Check this step's loss without a device synchronisation (one process, fused optimisers):
+        the optimisers skip their update on the device when ``finite`` is false (fused Adam's
+        ``found_inf``, as torch's gradient scaler uses it: parameters, moments and step count
+        unchanged), and the flag goes to the host with the step, read at the next step, checkpoint,
+        or end (:meth:`_settle_loss`, which raises :class:`Diverged` naming this step). False: not
+        possible here (several processes, whose flags travel with the gradients; an optimiser that is
+        not fused); the caller reads the flag now."""
+        opts = self._optimisers()
+        if self.group.active or not all(o.defaults.get("fused") for o in opts):
+            return False
+        skip = (~finite).to(torch.float32)
+        for o in opts:
+            o.found_inf = skip
+        event = None
+        if finite.is_cuda:  # copied into pinned host memory behind the loss, an event marking it
+            if self._loss_host is None:
+                self._loss_host = torch.empty((), dtype=torch.bool, pin_memory=True)
+            self._loss_host.copy_(finite, non_blocking=True)
+            event = torch.cuda.Event()
+            event.record()
+            finite = self._loss_host
+        self._loss_pending = (self.step + 1, finite, event)
+        return True
+
+    def _settle_loss(self) -> None:
+        """Raise :class:`Diverged` if the step whose loss flag is pending had a NaN/inf loss (its
+        updates were skipped; the last good checkpoint is kept)."""
+        if self._loss_pending is None:
+            return
+        step, flag, event = self._loss_pending
+        self._loss_pending = None
+        if event is not None:
+            event.synchronize()  # (the loss of that step: computed long before the next step reads it)
+        if not bool(flag):
+            self._diverged("the loss is NaN/inf", step)
+
+    def _diverged(self, why: str, step: Optional[int] = None) -> None:
         where = (f"the last good checkpoint (step {self.last_checkpoint_step}) is kept at {self.checkpoint_path}"
                  if self.last_checkpoint_step is not None else "no checkpoint was written yet")
-        raise Diverged(diverged_message(self.step + 1, where, why))
+        raise Diverged(diverged_message(self.step + 1 if step is None else step, where, why))
 
     def train(self, until: Optional[int] = None) -> GaussianScene:
         """Train up to step ``until`` (default ``iters``) under :mod:`ssgwarp.services.loop`'s policy:
@@ -403,7 +451,9 @@ class Trainer:
         }
 
     def save_checkpoint(self, path: Optional[str | Path] = None) -> Path:
-        """Write the checkpoint (with several processes: the main one writes, the others only note the step)."""
+        """Write the checkpoint (with several processes: the main one writes, the others only note the step).
+        A step whose loss was NaN/inf is never written: its flag is read first (:meth:`_settle_loss`)."""
+        self._settle_loss()
         path = Path(path) if path is not None else self.checkpoint_path
         if path is None:
             raise ValueError("no checkpoint path")
