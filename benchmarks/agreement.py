@@ -18,7 +18,7 @@ import torch
 import ssgwarp
 from raster import camera, make_scene
 from ssgwarp import RasterSettings
-from ssgwarp.raster import ops
+from ssgwarp.raster import blend_ops, ops
 
 
 def compare(n: int, w: int, h: int, gsplat) -> None:
@@ -41,7 +41,7 @@ def compare(n: int, w: int, h: int, gsplat) -> None:
     with torch.no_grad():
         tiles = ops.bin_tiles(theirs["means2d"].contiguous(), theirs["radii"].to(torch.int32).contiguous(),
                               theirs["depths"].contiguous(), 16, tw, th)
-        mixed = ops.blend_warp(theirs["means2d"].contiguous(), theirs["conics"].contiguous(),
+        mixed = blend_ops.blend_warp(theirs["means2d"].contiguous(), theirs["conics"].contiguous(),
                                colors[None].contiguous(), theirs["opacities"].contiguous(), None, tiles, w, h, 16,
                                RasterSettings().for_dtype(torch.float32))[0]
     d = (mixed - gimg).abs()

@@ -17,6 +17,11 @@ exact arithmetic, but exact to the last bit for faint pixels where ``1 - T``
 cancels). Outputs what the backward needs: the final transmittance and the
 position of the last blended Gaussian in the sorted list.
 
+On CUDA, :func:`batched_forward_kernel` runs the same rule with one block per tile: the block
+loads the tile's next Gaussians into shared memory together (one per thread, through the sorted
+ids with no gather before it, or from the gathered arrays) and stops once all its pixels have
+ended, as gsplat's kernel does; which one runs is ``ssgwarp.raster.blend_ops``'s choice.
+
 ``first``: the thread index of this launch's first thread (0 for a whole image; on the CPU a
 launch may cover a run of whole tiles, ``first`` a multiple of ``tile_size^2``, so that several
 launches run side by side on the CPU's cores: ``ssgwarp.raster.cpu_threads``).
@@ -27,6 +32,7 @@ import functools
 import warp as wp
 
 from .fmath import fma
+from .block import block_all
 from .pixel import pixel_funcs, tile_pixel
 from .types import channel_vector, splat_at, types_for
 
@@ -61,11 +67,28 @@ def pack_kernel(scalar, channels: int):
 
 
 @functools.lru_cache(maxsize=None)
+def accumulate_func(scalar, channels: int):
+    """``accumulate(acc, c, w) -> acc + w c``, rounded once per channel (one fused multiply-add,
+    as gsplat's nvcc build rounds it): the blending step both forward kernels take."""
+    vecD = channel_vector(scalar, channels)
+
+    @wp.func
+    def accumulate(acc: vecD, c: vecD, w: scalar):
+        out = acc
+        for d in range(wp.static(channels)):
+            out[d] = fma(c[d], w, acc[d])
+        return out
+
+    return accumulate
+
+
+@functools.lru_cache(maxsize=None)
 def forward_kernel(scalar, channels: int, fast_math: bool = False):
     t = types_for(scalar)
     splat = t.splat
     vecD = channel_vector(scalar, channels)
     splat_alpha, ends_pixel = pixel_funcs(scalar)
+    accumulate = accumulate_func(scalar, channels)
 
     # no FMA contraction: the gating in pixel.py must decide identically in both passes
     @wp.kernel(module="unique", module_options={"fuse_fp": False, "enable_backward": False, "fast_math": fast_math})
@@ -109,9 +132,7 @@ def forward_kernel(scalar, channels: int, fast_math: bool = False):
             if ends_pixel(T, alpha, t_min):
                 break
             w = alpha * T
-            c = colors[k]
-            for d in range(wp.static(channels)):
-                acc[d] = fma(c[d], w, acc[d])  # rounded once per channel, as gsplat's nvcc build
+            acc = accumulate(acc, colors[k], w)
             wsum = wsum + w
             T = T * (scalar(1.0) - alpha)
             last = wp.int32(k)
@@ -126,3 +147,105 @@ def forward_kernel(scalar, channels: int, fast_math: bool = False):
         last_ids[pix] = last
 
     return blend_forward
+
+
+@functools.lru_cache(maxsize=None)
+def batched_forward_kernel(scalar, channels: int, fast_math: bool, block: int, through_ids: bool):
+    """The blending forward on CUDA with one block per tile (``block = tile_size^2`` threads): the
+    block loads the tile's next ``block`` projected Gaussians into shared memory together, one per
+    thread, and every pixel walks them from there; the walk ends once every pixel of the tile has
+    ended. The same per-pixel rule, order and roundings as :func:`forward_kernel`.
+
+    ``through_ids=False``: ``splats`` and ``colors`` are the gathered per-intersection arrays
+    (:func:`pack_kernel`); ``through_ids=True``: ``splats`` are the projection's packed splats
+    ``[C * N]``, read through the sorted ids, with no gather before the launch, and ``colors``
+    ``[C * N]`` (``color_shift = 0``) or, the same for every camera, ``[N]`` (``color_shift = N``:
+    camera ``c``'s ids are ``c * N + g``)."""
+    t = types_for(scalar)
+    splat = t.splat
+    vecD = channel_vector(scalar, channels)
+    splat_alpha, ends_pixel = pixel_funcs(scalar)
+    accumulate = accumulate_func(scalar, channels)
+    B = int(block)
+    IDS = bool(through_ids)
+
+    @wp.kernel(module="unique", module_options={"fuse_fp": False, "enable_backward": False, "fast_math": fast_math})
+    def blend_forward_batched(
+        splats: wp.array(dtype=splat),
+        colors: wp.array(dtype=vecD),
+        flatten_ids: wp.array(dtype=wp.int32),
+        color_shift: int,
+        backgrounds: wp.array(dtype=vecD),
+        offsets: wp.array(dtype=wp.int32),
+        width: int,
+        height: int,
+        tile_size: int,
+        tile_width: int,
+        tile_height: int,
+        alpha_min: scalar,
+        alpha_max: scalar,
+        t_min: scalar,
+        out_colors: wp.array(dtype=vecD),
+        out_T: wp.array(dtype=scalar),
+        out_alpha: wp.array(dtype=scalar),
+        last_ids: wp.array(dtype=wp.int32),
+    ):
+        p = tile_pixel(wp.tid(), tile_size, tile_width, tile_height)
+        rng = p[0]
+        cam = p[1]
+        x = p[2]
+        y = p[3]
+        inside = x < width and y < height
+        px = scalar(x) + scalar(0.5)
+        py = scalar(y) + scalar(0.5)
+        T = scalar(1.0)
+        acc = vecD()
+        wsum = scalar(0.0)
+        last = wp.int32(-1)
+        done = int(0)
+        if not inside:  # (kept to load and to vote: every thread of the block takes part)
+            done = 1
+        shift = cam * color_shift
+        b = offsets[rng]
+        end = offsets[rng + 1]
+        while b < end:
+            if block_all(done) != 0:
+                break
+            if wp.static(IDS):
+                ids = wp.tile_load(flatten_ids, shape=(B,), offset=(b,), storage="shared")
+                sps = wp.tile_load_indexed(splats, indices=ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+            else:
+                sps = wp.tile_load(splats, shape=(B,), offset=(b,), storage="shared")
+            if done == 0:
+                n = wp.min(B, end - b)
+                j = int(0)
+                while j < n:
+                    r = splat_alpha(sps[j], px, py, alpha_min, alpha_max)
+                    alpha = r[0]
+                    if alpha >= scalar(0.0):
+                        if ends_pixel(T, alpha, t_min):
+                            done = 1
+                            break
+                        w = alpha * T
+                        if wp.static(IDS):
+                            c = colors[ids[j] - shift]
+                        else:
+                            c = colors[b + j]
+                        acc = accumulate(acc, c, w)
+                        wsum = wsum + w
+                        T = T * (scalar(1.0) - alpha)
+                        last = wp.int32(b + j)
+                    j += 1
+            b += B
+        if inside:
+            pix = (cam * height + y) * width + x
+            if backgrounds.shape[0] > 0:  # (an absent background: a null array)
+                bg = backgrounds[cam]
+                for d in range(wp.static(channels)):
+                    acc[d] = fma(T, bg[d], acc[d])
+            out_colors[pix] = acc
+            out_T[pix] = T
+            out_alpha[pix] = wsum
+            last_ids[pix] = last
+
+    return blend_forward_batched

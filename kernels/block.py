@@ -27,6 +27,21 @@ def block_any(flag: int) -> int:
     ...
 
 
+@wp.func_native(
+    """
+#if defined(__CUDA_ARCH__)
+return __syncthreads_and(flag);
+#else
+return flag;
+#endif
+"""
+)
+def block_all(flag: int) -> int:
+    """Non-zero when ``flag`` is non-zero in every thread of the block (a barrier: every thread of
+    the block must call it); on the CPU (one thread per block) the thread's own flag."""
+    ...
+
+
 _WARP_SUM_ADD = r"""
 const int n = (int)(sizeof(v.c) / sizeof(v.c[0]));
 #if defined(__CUDA_ARCH__)

@@ -12,11 +12,9 @@ from __future__ import annotations
 
 import contextlib
 import io
-import json
 import math
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 

@@ -80,7 +80,7 @@ def test_gradcheck_antialiased_expected_depth():
 def test_gradcheck_blending_to_means2d():
     """The blending op alone: gradients to the screen-space means (the densification statistic),
     conics, colours, opacities and backgrounds, for two cameras."""
-    from ssgwarp.raster import ops
+    from ssgwarp.raster import blend_ops, ops
 
     g = torch.Generator().manual_seed(11)
     C, N, D = 2, 4, 2
@@ -96,6 +96,6 @@ def test_gradcheck_blending_to_means2d():
     tiles = ops.bin_tiles(means2d, radii, depths, 16, 1, 1)
 
     def f(means2d, conics, colors, opac, bg):
-        return ops.blend_warp(means2d, conics, colors, opac, bg, tiles, SIZE, SIZE, 16, EXACT)
+        return blend_ops.blend_warp(means2d, conics, colors, opac, bg, tiles, SIZE, SIZE, 16, EXACT)
 
     check(f, [means2d, conics, colors, opac, bg])

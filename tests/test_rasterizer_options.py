@@ -264,7 +264,7 @@ def test_backward_launch_blocks_by_device_and_tile_size():
     block (deterministic too: its slots are then written tile by tile, pixel after pixel); CUDA deterministic,
     one block per tile; else the largest multiple of 32 up to 256 dividing the tile's pixels, summed per warp,
     or one tile row per block when the tile is not whole warps."""
-    from ssgwarp.raster.ops import backward_blocks
+    from ssgwarp.raster.blend_ops import backward_blocks
 
     assert backward_blocks(16, True, False) == (False, 256) and backward_blocks(8, True, True) == (True, 1)
     assert backward_blocks(16, False, True) == (True, 1)

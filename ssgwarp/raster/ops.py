@@ -5,14 +5,13 @@ a tensor's pointer (:mod:`ssgwarp.raster.launch`), and launches replay a recorde
 tensors run on Warp's CPU device, CUDA tensors on the same CUDA device and on torch's current
 stream. float32 and float64 use the same kernel source, built per precision.
 
-:func:`rasterize_warp` is the rasterizer's Warp path: two autograd ops (:class:`_Project`:
-projection, tile counts and SH colours; :class:`_Blend`: blending) around the tile binning,
-with one device synchronisation per call (the intersection count, read back together with the
-input checks' flags).
+:func:`ssgwarp.raster.rasterize.rasterization`'s Warp path: two autograd ops (:class:`_Project`
+here: projection, tile counts and SH colours; :class:`ssgwarp.raster.blend_ops._Blend`: blending)
+around the tile binning (:func:`bin_tiles`), with one device synchronisation per call (the
+intersection count, read back together with the input checks' flags).
 """
 from __future__ import annotations
 
-from functools import partial
 from typing import NamedTuple
 
 import torch
@@ -20,11 +19,10 @@ import warp as wp
 
 from . import cpu_threads
 from . import launch as L
-from ..kernels import binning, blend_backward, blend_forward, projection, sh, validate
+from ..kernels import binning, projection, sh, validate
 from .launch import NULL, apply, arr, rows
 
 Tensor = torch.Tensor
-MAX_CHANNELS = 64
 INT32_MAX = 2**31 - 1
 
 
@@ -381,181 +379,3 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
         "isect_ends": ends,
         "n_isects": n_isects,
     }
-
-
-# ---------------------------------------------------------------------------------------------
-# blending
-# ---------------------------------------------------------------------------------------------
-def pack_splats(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, flatten_ids: Tensor,
-                packed: Tensor | None = None, threads: int = 1):
-    """Per sorted intersection, contiguous in the order the blending kernels walk them:
-    ``splats [M, 6]`` (x, y, conic a, b, c, opacity) and ``colors [M, D]`` (one gather kernel;
-    ``colors`` is ``[C, N, D]`` or, the same for every camera, ``[N, D]``; ``packed [C, N, 6]``:
-    the projection's packed splats, read instead of the three arrays). ``threads`` (CPU): launches over
-    equal runs of the intersections side by side (:mod:`.cpu_threads`)."""
-    M, D = flatten_ids.shape[0], colors.shape[-1]
-    dt = means2d.dtype
-    s = _scalar(dt)
-    splats = torch.empty(M, 6, dtype=dt, device=means2d.device)
-    cols = torch.empty(M, D, dtype=dt, device=means2d.device)
-    if packed is None:
-        gauss = [*arr(_c(means2d), 2), *arr(_c(conics), 3), *arr(_c(opacities))]
-    else:  # (the three arrays are not read)
-        gauss = [*NULL, *NULL, *NULL]
-    ids, cs = _c(flatten_ids), _c(colors)
-    kern = blend_forward.pack_kernel(s, D)
-    head = [*arr(ids), *(NULL if packed is None else arr(packed, 6)), *gauss, *arr(cs, D), *arr(splats, 6),
-            *arr(cols, D)]
-    tg = L.target(means2d)
-    cpu_threads.launch_runs(kern, (), cpu_threads.element_runs(tg, threads, M, 1), head, tg)
-    return splats, cols
-
-
-class _Blend(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, means2d, conics, colors, opacities, backgrounds, tiles, width, height, tile_size, settings,
-                deterministic, packed):
-        C, N = means2d.shape[:2]
-        D = colors.shape[-1]
-        dt, dev = colors.dtype, colors.device
-        s = _scalar(dt)
-        th, tw = tiles["isect_offsets"].shape[1:]
-        tg = L.target(colors)
-        ctx.set_materialize_grads(False)
-        # the kernel writes every pixel
-        out = torch.empty(C, height, width, D, dtype=dt, device=dev)
-        out_alpha = torch.empty(C, height, width, 1, dtype=dt, device=dev)
-        out_T = torch.empty(C, height, width, dtype=dt, device=dev)
-        last = torch.empty(C, height, width, dtype=torch.int32, device=dev)
-        bg = _c(backgrounds) if backgrounds is not None else None
-        # on the CPU, runs of whole tiles on several threads (cpu_threads.py); else one launch
-        parts = _tile_parts(tg, settings, tiles, C * th * tw, tile_size)
-        splats, cols = pack_splats(means2d, conics, opacities, colors, tiles["flatten_ids"], packed, len(parts))
-        a_splats, a_cols, a_bg, a_offsets = arr(splats, 6), arr(cols, D), NULL if bg is None else arr(bg, D), \
-            arr(tiles["offsets"])
-        a_T, a_last = arr(out_T), arr(last)
-        kern = blend_forward.forward_kernel(s, D, _fast(settings, s))
-        head = [*a_splats, *a_cols, *a_bg, *a_offsets, width, height, tile_size, tw, th, settings.alpha_min,
-                settings.alpha_max, settings.t_min, *arr(out, D), *a_T, *arr(out_alpha), *a_last]
-        tp = tile_size * tile_size
-        cpu_threads.launch_runs(kern, (), [(a * tp, b * tp) for a, b in parts], head, tg)
-        ctx.save_for_backward(splats, cols, bg, out_T, last)
-        # the backward launch's leading arguments: the same tensors (kept by ctx)
-        ctx.args = [*a_splats, *a_cols, *a_bg, *arr(tiles["flatten_ids"]), *a_offsets, width, height, tile_size, tw,
-                    th, settings.alpha_min, settings.alpha_max, *a_T, *a_last]
-        ctx.n_gauss, ctx.cshape = N, colors.shape
-        ctx.tiles, ctx.geom, ctx.settings, ctx.det = tiles, (width, height, tile_size, tw, th), settings, deterministic
-        ctx.parts = parts
-        return out, out_alpha
-
-    @staticmethod
-    def backward(ctx, g_colors, g_alphas):
-        splats, cols, bg, out_T, last = ctx.saved_tensors
-        width, height, tile_size, tw, th = ctx.geom
-        tiles, st = ctx.tiles, ctx.settings
-        N, D = ctx.n_gauss, cols.shape[-1]
-        C = out_T.shape[0]
-        dt, dev = cols.dtype, cols.device
-        s = _scalar(dt)
-        tg = L.target(cols)
-        # an image without a gradient is passed as a null array (read as zeros)
-        g_colors = _c(g_colors) if g_colors is not None else None
-        g_alphas = _c(g_alphas) if g_alphas is not None else None
-        M = tiles["n_isects"]
-        # blocks of pixels of one tile walk its Gaussians in lockstep and sum their pixels' gradients
-        # before one atomic add per Gaussian: per warp with one block per tile where the tile splits
-        # into whole warps (and on CPU, one pixel per block), else per block of one tile row.
-        # Deterministic: one block per tile adds into the intersection's own slot (one add per slot
-        # on CUDA; on CPU the tile's pixels in turn), then the slots are summed per Gaussian in a
-        # fixed order. On CPU, launches over runs of whole tiles on several threads (cpu_threads.py).
-        det = bool(ctx.det)
-        if det and tile_size * tile_size > 256:
-            # one block per tile: larger blocks run out of registers on CUDA
-            raise ValueError(f"rasterization: deterministic=True needs tile_size <= 16, got {tile_size}")
-        per_warp, block = backward_blocks(tile_size, det, tg.cpu)
-        # nothing upstream of the splats wants a gradient (a frozen scene's colours or identities
-        # trained): the colour gradients alone, the same values, without the geometry terms
-        need = ctx.needs_input_grad
-        geometry = need[0] or need[1] or need[3]
-        lead = 6 if geometry else 0
-        W = lead + D
-        rows = max(M if det else C * N, 1)
-        parts = ctx.parts
-        if not det:  # (each thread adds into its own rows: within a memory cap)
-            parts = cpu_threads.merge(parts, cpu_threads.extra_buffers(len(parts), W * cols.element_size(), rows))
-        packed = torch.zeros(rows, W, dtype=dt, device=dev)
-        # the default backward's other threads: their own rows, added to the first thread's below
-        extra = torch.zeros(len(parts) - 1, rows, W, dtype=dt, device=dev) if len(parts) > 1 and not det else None
-        kern = blend_backward.reduced_backward_kernel(s, D, det, per_warp, _fast(st, s), not geometry)
-        head = [*ctx.args, *(NULL if g_colors is None else arr(g_colors, D)),
-                *(NULL if g_alphas is None else arr(g_alphas)), *(arr(tiles["perm"]) if det else NULL)]
-        tp = tile_size * tile_size
-        cpu_threads.run([partial(L.launch, kern, (b - a) * tp,
-                                 head + [*arr(packed if (i == 0 or det) else extra[i - 1], W), a * tp], tg, None, block)
-                         for i, (a, b) in enumerate(parts)])
-        if extra is not None:
-            packed += extra.sum(0) if extra.shape[0] > 1 else extra[0]
-        if det:
-            slots = packed
-            packed = torch.empty(C * N, W, dtype=dt, device=dev)
-            L.launch(blend_backward.gather_kernel(s, W), C * N,
-                     [*arr(tiles["isect_ends"]), *arr(tiles["tiles_per_gauss"]), *arr(slots, W), *arr(packed, W)],
-                     tg)
-        # (the gradients as views of the packed rows, in as few torch calls as may be)
-        v_m2d = v_conics = v_opac = None
-        if geometry:
-            v_m2d, v_conics, v_opac, v_colors = packed.view(C, N, W).split((2, 3, 1, D), -1)
-            v_opac = v_opac.squeeze(-1)
-        else:
-            v_colors = packed.view(C, N, D)
-        if len(ctx.cshape) == 2:  # colours shared by the cameras
-            v_colors = v_colors[0] if C == 1 else v_colors.sum(0)
-        v_bg = None
-        if bg is not None and need[4]:  # (a constant background, as training passes: no gradient to form)
-            v_bg = (g_colors * out_T[..., None]).sum(dim=(1, 2)) if g_colors is not None else torch.zeros_like(bg)
-        return v_m2d, v_conics, v_colors, v_opac, v_bg, None, None, None, None, None, None, None
-
-
-def _tile_parts(tg, settings, tiles, n_ranges: int, tile_size: int) -> list[tuple[int, int]]:
-    """The runs of tile ranges the blending launches cover: on the CPU one per thread
-    (:mod:`.cpu_threads`), on CUDA the whole image in one launch."""
-    if not tg.cpu:
-        return [(0, n_ranges)]
-    n = cpu_threads.count(settings.cpu_threads, n_ranges, tiles["n_isects"], tile_size * tile_size)
-    return cpu_threads.split(tiles["offsets"], n_ranges, n)
-
-
-def backward_blocks(tile_size: int, deterministic: bool, cpu: bool) -> tuple[bool, int]:
-    """``(per_warp, block_dim)`` of the blending backward launch.
-
-    On the CPU one pixel per block (the pixels of a tile walk in turn, in pixel order; the
-    deterministic option adds into per-intersection slots the same way, so threads over disjoint
-    tiles never share a slot). On CUDA: deterministic, one block per tile (a fixed-order block sum
-    per intersection); else, when the tile splits into whole warps (``tile_size^2`` a multiple of
-    32), blocks of up to 256 pixels of one tile (the whole tile at tile_size 16) summed per warp,
-    else blocks of one tile row summed per block (a warp would straddle two tiles)."""
-    pixels = tile_size * tile_size
-    if cpu:
-        return True, 1
-    if deterministic:
-        return False, pixels
-    if pixels % 32 == 0:
-        # the largest multiple of 32 up to 256 that divides the tile
-        return True, max(b for b in range(32, 257, 32) if pixels % b == 0)
-    return False, tile_size
-
-
-def blend_warp(means2d, conics, colors, opacities, backgrounds, tiles, width, height, tile_size, settings,
-               deterministic=False, packed=None):
-    """Front-to-back blending in Warp: ``colors [C,N,D]`` (or ``[N,D]``, the same for every
-    camera) → ``(image [C,H,W,D], alpha [C,H,W,1])``. ``packed``: the projection's packed splats
-    (the same values as means2d, conics and opacities; read instead of them)."""
-    D = colors.shape[-1]
-    if D > MAX_CHANNELS:
-        chunks = [blend_warp(means2d, conics, colors[..., i:i + MAX_CHANNELS], opacities,
-                             None if backgrounds is None else backgrounds[..., i:i + MAX_CHANNELS],
-                             tiles, width, height, tile_size, settings, deterministic, packed)
-                  for i in range(0, D, MAX_CHANNELS)]
-        return torch.cat([c[0] for c in chunks], dim=-1), chunks[0][1]
-    return apply(_Blend, means2d, conics, colors, opacities, backgrounds, tiles, width, height, tile_size,
-                        settings, deterministic, packed)

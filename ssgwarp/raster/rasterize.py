@@ -22,9 +22,9 @@ from .settings import (  # noqa: F401 (re-exported: their historical home)
     resolve_arguments)
 
 try:  # the Warp path; without warp-lang only backend="torch" is available
-    from . import ops, sh_ops
+    from . import blend_ops, ops, sh_ops
 except ImportError:  # pragma: no cover - warp-lang missing
-    ops = sh_ops = None
+    blend_ops = ops = sh_ops = None
 
 Tensor = torch.Tensor
 # the binning outputs that ``meta`` carries (gsplat's names)
@@ -186,6 +186,6 @@ def _rasterize_warp(means, quats, scales, opacities, colors, viewmats, Ks, width
                           threads=settings.cpu_threads)
     # gsplat's binning outputs; the backward's internal arrays (offsets, perm, isect_ends) stay in ``tiles``
     meta.update({k: tiles[k] for k in PUBLIC_TILE_KEYS})
-    render_colors, render_alphas = ops.blend_warp(means2d, conics, colors, opacs, backgrounds, tiles, width, height,
+    render_colors, render_alphas = blend_ops.blend_warp(means2d, conics, colors, opacs, backgrounds, tiles, width, height,
                                                   tile_size, settings, deterministic=deterministic, packed=packed)
     return reference.expected_depth(render_colors, render_alphas, render_mode), render_alphas, meta

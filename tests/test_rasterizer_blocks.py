@@ -1,0 +1,121 @@
+"""The blending forward with one block per tile (``kernels/blend_forward.py: batched_forward_kernel``).
+
+On CUDA it replaces the per-pixel walk: the tile's next projected Gaussians are loaded into shared
+memory together, read through the sorted ids when no backward can follow (no per-intersection
+gather at all) or from the gathered arrays when one can. It must be the same image, to the bit,
+as the per-pixel walk (same rule, order and roundings), and the same gradients. The CPU runs the
+per-pixel walk by default; here the block kernels are also run on Warp's CPU device (one thread
+per block: the block vote is the thread's own flag), so their logic is tested wherever the suite
+runs, and on CUDA (``-m cuda``) against the per-pixel walk there.
+"""
+from __future__ import annotations
+
+import pytest
+import torch
+import warp as wp
+
+from ssgwarp import rasterization
+from ssgwarp.kernels import blend_forward
+from ssgwarp.raster import blend_ops as ops, launch as L
+
+from conftest import CUDA_ONLY
+from test_rasterizer import make_cameras, make_scene
+
+DEVICES = ["cpu", pytest.param("cuda", marks=CUDA_ONLY)]
+
+
+@pytest.fixture
+def blocks_everywhere(monkeypatch):
+    """Let the block kernels run on the CPU too (the rule otherwise keeps them to CUDA)."""
+    monkeypatch.setattr(ops, "batched", lambda tg, packed, tile_size: (
+        ops.BATCHED and packed is not None and tile_size * tile_size <= 1024))
+    monkeypatch.setattr(ops, "one_wave", lambda tg, n_tiles, block: True)
+
+
+def render(params, vm, K, w, h, grad, bg=None, **kw):
+    """Image, alpha and (with ``grad``) the gradients of every input, the screen means included."""
+    leaves = [p.clone().requires_grad_(grad) for p in params]
+    bgl = None if bg is None else bg.clone().requires_grad_(grad)
+    with torch.set_grad_enabled(grad):
+        img, alpha, meta = rasterization(*leaves, vm, K, w, h, backgrounds=bgl, **kw)
+    if not grad:
+        return [img, alpha, meta["radii"]]
+    meta["means2d"].retain_grad()
+    g = torch.Generator().manual_seed(3)
+    wi = torch.randn(img.shape, generator=g, dtype=img.dtype).to(img.device)
+    wa = torch.randn(alpha.shape, generator=g, dtype=img.dtype).to(img.device)
+    ((img * wi).sum() + (alpha * wa).sum()).backward()
+    return [img.detach(), alpha.detach()] + [p.grad for p in leaves] + [meta["means2d"].grad] + (
+        [bgl.grad] if bgl is not None else [])
+
+
+CASES = [  # (tile size, cameras, SH degree, backgrounds, dtype)
+    (16, 1, None, False, torch.float32),
+    (16, 3, None, True, torch.float32),  # colours shared by the cameras: ids c*N + g
+    (8, 2, 3, False, torch.float32),  # SH: colours per camera
+    (12, 2, None, True, torch.float64),  # 144-thread blocks (warps straddle tiles)
+]
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("grad", [False, True], ids=["no-grad", "grad"])
+@pytest.mark.parametrize("tile,cams,sh,with_bg,dtype", CASES)
+def test_block_kernels_equal_the_per_pixel_walk(blocks_everywhere, monkeypatch, device, grad, tile, cams, sh,
+                                                with_bg, dtype):
+    w, h = 61, 45  # partial tiles at the right and bottom edges
+    means, quats, scales, opac, colors = make_scene(300, dtype, seed=5, scale=0.25)
+    if sh is not None:
+        g = torch.Generator().manual_seed(6)
+        colors = torch.cat([colors[:, None] / 0.28209479177387814,
+                            0.3 * torch.randn(colors.shape[0], (sh + 1) ** 2 - 1, 3, generator=g, dtype=dtype)], 1)
+    params = [t.to(device) for t in (means, quats, scales, opac, colors)]
+    vm, K = (t.to(device) for t in make_cameras(cams, w, h, dtype))
+    bg = torch.rand(cams, 3, dtype=dtype, generator=torch.Generator().manual_seed(7)).to(device) if with_bg else None
+    # (the default backward's atomic adds sum in a varying order on CUDA: the fixed-order one here)
+    kw = dict(tile_size=tile, sh_degree=sh, deterministic=grad)
+    out = {}
+    for on in (False, True):
+        monkeypatch.setattr(ops, "BATCHED", on)
+        out[on] = render(params, vm, K, w, h, grad, bg, **kw)
+    assert out[True][0].abs().sum() > 0 and (out[True][1] > 0.5).any()  # a scene that covers the image
+    for a, b in zip(out[False], out[True]):
+        assert (a is None) == (b is None)
+        if a is not None:
+            assert torch.equal(a, b)
+
+
+def test_gather_only_where_a_backward_can_follow(blocks_everywhere, monkeypatch):
+    """No grad: the block kernel reads through the ids and nothing is gathered. With a gradient the
+    gather runs once, in the forward, and the backward walks it (no second gather)."""
+    kernels = []
+    real = L.launch
+
+    def spy(kernel, *a, **k):
+        kernels.append(kernel.key)
+        return real(kernel, *a, **k)
+
+    monkeypatch.setattr(L, "launch", spy)
+    params = list(make_scene(120, torch.float32, seed=2))
+    vm, K = make_cameras(2, 40, 32, torch.float32)
+    pack = blend_forward.pack_kernel(wp.float32, 3).key
+    render(params, vm, K, 40, 32, grad=False, tile_size=16)
+    assert pack not in kernels
+    assert blend_forward.batched_forward_kernel(wp.float32, 3, True, 256, True).key in kernels
+    kernels.clear()
+    render(params, vm, K, 40, 32, grad=True, tile_size=16)
+    assert kernels.count(pack) == 1
+    assert blend_forward.batched_forward_kernel(wp.float32, 3, True, 256, False).key in kernels
+
+
+def test_block_kernels_only_on_cuda_with_packed_splats_and_tiles_of_one_block():
+    cpu = L.target(torch.zeros(1))
+    packed = torch.zeros(1, 1, 6)
+    assert not ops.batched(cpu, packed, 16)  # the CPU walks per pixel
+    cuda = type("T", (), {"cpu": False, "device": type("D", (), {"sm_count": 132})()})()
+    assert ops.batched(cuda, packed, 16) and ops.batched(cuda, packed, 32)
+    assert not ops.batched(cuda, packed, 33)  # 1089 threads: more than a block holds
+    assert not ops.batched(cuda, None, 16)  # no packed splats to read
+    # reading the gathered arrays (a backward follows): only where all tiles' blocks fit at once
+    assert ops.one_wave(cuda, 132 * 8, 256) and not ops.one_wave(cuda, 132 * 8 + 1, 256)
+    assert ops.one_wave(cuda, 132 * 32, 64)  # 8x8 tiles: 32 blocks of 64 threads per multiprocessor
+    assert not ops.one_wave(cpu, 1, 256)
