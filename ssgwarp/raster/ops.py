@@ -154,17 +154,16 @@ class _Project(torch.autograd.Function):
         v_coeffs = v_campos = None
         if g_colors is not None and coeffs is not None:
             g, g_t = _adj(g_colors, 3, C * N)
-            per_cam = coeffs.ndim == 4
-            if need[6]:
-                v_coeffs = torch.zeros(C, *coeffs.shape[-3:], dtype=dt, device=dev) if (C > 1 and not per_cam) \
-                    else torch.zeros_like(coeffs)
+            shared = coeffs.ndim == 3  # (the same coefficients for every camera)
+            K, degree = coeffs.shape[-2], cfg["sh_degree"]
+            if need[6]:  # (every used row is written; unused higher bands stay 0)
+                v_coeffs = (torch.empty_like if K == sh.n_coeffs(degree) else torch.zeros_like)(coeffs)
             if need[7]:
-                v_campos = torch.zeros(C, N, 3, dtype=dt, device=dev)
-            K = coeffs.shape[-2]
-            adj = [*_grid(v_means, C, N, 3), *_grid(v_campos, C, N, 3),
-                   *(NULL if v_coeffs is None else L.grid3(v_coeffs, C, N, K, 3, True)), *NULL, *g]
-            # (array stores are not replayed in Warp's adjoints: the colour output is not needed)
-            cpu_threads.launch_runs(sh.colour_kernel(s, cfg["sh_degree"]), (C,), ctx.runs, ctx.colour_args + [*NULL], tg, adj)
+                v_campos = torch.empty(C, N, 3, dtype=dt, device=dev)
+            # one thread per Gaussian over the cameras (kernels/sh.py: colour_backward_kernel)
+            cpu_threads.launch_runs(sh.colour_backward_kernel(s, degree, shared), (), ctx.runs,
+                                    [*ctx.colour_args, *g, *_grid(v_means, C, N, 3), *_grid(v_campos, C, N, 3),
+                                     *(NULL if v_coeffs is None else L.grid3(v_coeffs, C, N, K, 3, not shared))], tg)
             del g_t
         grads = [_adj(g, k, C * N) for g, k in ((g_means2d, 2), (g_depths, 1), (g_conics, 3), (g_opac, 1))]
         if any(g[1] is not None for g in grads) and any(need[:5]):
@@ -175,8 +174,6 @@ class _Project(torch.autograd.Function):
         if C > 1:
             v_means, v_quats, v_scales, v_opac = (None if v is None else v.sum(0)
                                                   for v in (v_means, v_quats, v_scales, v_opac))
-            if v_coeffs is not None and coeffs.ndim == 3:
-                v_coeffs = v_coeffs.sum(0)
         if v_view is not None:
             v_view = v_view.sum(1)
         if v_campos is not None:
