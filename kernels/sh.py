@@ -5,8 +5,9 @@ kernels): :func:`sh_kernel` evaluates it for given directions; :func:`colour_ker
 rasterizer's colour step, one thread per (camera, Gaussian): the direction from the camera
 centre to the Gaussian, the SH sum, ``+ 0.5`` clamped at 0, and 0 for Gaussians the projection
 culled (gsplat's rule). :func:`sh_kernel` is differentiated by Warp's generated adjoint;
-:func:`colour_kernel` by the hand-written :func:`colour_backward_kernel` (one thread per Gaussian
-over the cameras: plain stores, no per-camera copies of the coefficients' gradient). Inputs are
+:func:`colour_kernel` by it too, except for coefficients shared by several cameras: the
+hand-written :func:`colour_backward_kernel` (one thread per Gaussian over the cameras, no
+per-camera copies of the coefficients' gradient). Inputs are
 read through 2-D ``[camera, Gaussian]`` arrays (stride 0 over what is shared). :func:`centres_kernel` gives the camera centres the directions
 start from.
 """
@@ -187,22 +188,23 @@ def colour_kernel(scalar, degree: int):
 
 
 @functools.lru_cache(maxsize=None)
-def colour_backward_kernel(scalar, degree: int, shared: bool):
-    """The hand-written backward of :func:`colour_kernel`, one thread per Gaussian looping over the
-    cameras: ``v_coeffs`` (``shared``: the coefficients are the same for every camera, their
-    gradient summed over the cameras in a fixed order and stored once; else one row per camera),
-    ``v_means [C, N]`` (added to: the projection's backward adds its own terms to the same slots)
-    and ``v_campos [C, N]`` (stored). The gradient passes the clamp where the colour before it is
-    ``>= 0`` (as the forward's ``where`` passes it) and is 0 for culled Gaussians; absent outputs
-    come as null arrays. ``first``: as in :func:`colour_kernel`. Only the first :func:`n_coeffs`
-    coefficients are written."""
+def colour_backward_kernel(scalar, degree: int):
+    """A hand-written backward of :func:`colour_kernel` for coefficients shared by several cameras:
+    one thread per Gaussian looping over the cameras, the coefficients' gradient summed there in a
+    fixed order and stored once (``v_coeffs[0, n]``; Warp's generated adjoint needs a per-camera
+    copy, zero-filled, and a sum after it: 0.38 against 1.06 ms for 300,000 Gaussians in 4 cameras
+    on an H100; with one camera the adjoint is the faster, 0.21 against 0.22 ms at 200,000,
+    docs/benchmarks.md). Also ``v_means [C, N]`` (added to: the projection's backward adds its
+    own terms to the same slots) and ``v_campos [C, N]`` (stored). The gradient passes the clamp
+    where the colour before it is ``>= 0`` (as the forward's ``where`` passes it) and is 0 for
+    culled Gaussians; absent outputs come as null arrays. ``first``: as in :func:`colour_kernel`.
+    Only the first :func:`n_coeffs` coefficients are written."""
     t = types_for(scalar)
     vec3 = t.vec3
     K = n_coeffs(degree)
     vecK = wp.types.vector(K, scalar)
     matK3 = wp.types.matrix(shape=(K, 3), dtype=scalar)
     sh_basis, sh_basis_vjp = sh_basis_funcs(scalar, degree)
-    SHARED = bool(shared)
 
     @wp.kernel(module="unique", module_options={"enable_backward": False})
     def sh_colour_backward(means: wp.array2d(dtype=vec3), campos: wp.array2d(dtype=vec3),
@@ -218,10 +220,6 @@ def colour_backward_kernel(scalar, degree: int, shared: bool):
             i = c * N + n
             r = radii[i]
             if r[0] <= 0 or r[1] <= 0:  # culled: no colour, no gradient
-                if wp.static(not SHARED):
-                    if v_coeffs.shape[0] > 0:
-                        for k in range(wp.static(K)):
-                            v_coeffs[c, n, k] = vec3()
                 if v_campos.shape[0] > 0:
                     v_campos[c, n] = vec3()
                 continue
@@ -239,10 +237,7 @@ def colour_backward_kernel(scalar, degree: int, shared: bool):
                      wp.where(v[2] + half >= zero, g[2], zero))
             if v_coeffs.shape[0] > 0:
                 for k in range(wp.static(K)):
-                    if wp.static(SHARED):
-                        acc[k] = acc[k] + b[k] * g
-                    else:
-                        v_coeffs[c, n, k] = b[k] * g
+                    acc[k] = acc[k] + b[k] * g
             if v_means.shape[0] > 0 or v_campos.shape[0] > 0:
                 w = vecK()
                 for k in range(wp.static(K)):
@@ -256,10 +251,9 @@ def colour_backward_kernel(scalar, degree: int, shared: bool):
                     v_means[c, n] = v_means[c, n] + v_d
                 if v_campos.shape[0] > 0:
                     v_campos[c, n] = -v_d
-        if wp.static(SHARED):
-            if v_coeffs.shape[0] > 0:
-                for k in range(wp.static(K)):
-                    v_coeffs[0, n, k] = acc[k]
+        if v_coeffs.shape[0] > 0:
+            for k in range(wp.static(K)):
+                v_coeffs[0, n, k] = acc[k]
 
     return sh_colour_backward
 

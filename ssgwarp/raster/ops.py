@@ -154,16 +154,24 @@ class _Project(torch.autograd.Function):
         v_coeffs = v_campos = None
         if g_colors is not None and coeffs is not None:
             g, g_t = _adj(g_colors, 3, C * N)
-            shared = coeffs.ndim == 3  # (the same coefficients for every camera)
             K, degree = coeffs.shape[-2], cfg["sh_degree"]
-            if need[6]:  # (every used row is written; unused higher bands stay 0)
-                v_coeffs = (torch.empty_like if K == sh.n_coeffs(degree) else torch.zeros_like)(coeffs)
             if need[7]:
-                v_campos = torch.empty(C, N, 3, dtype=dt, device=dev)
-            # one thread per Gaussian over the cameras (kernels/sh.py: colour_backward_kernel)
-            cpu_threads.launch_runs(sh.colour_backward_kernel(s, degree, shared), (), ctx.runs,
-                                    [*ctx.colour_args, *g, *_grid(v_means, C, N, 3), *_grid(v_campos, C, N, 3),
-                                     *(NULL if v_coeffs is None else L.grid3(v_coeffs, C, N, K, 3, not shared))], tg)
+                v_campos = torch.zeros(C, N, 3, dtype=dt, device=dev)
+            if coeffs.ndim == 3 and C > 1:
+                # the same coefficients for several cameras: summed over them in one hand-written
+                # kernel (kernels/sh.py: colour_backward_kernel; every used row written)
+                if need[6]:
+                    v_coeffs = (torch.empty_like if K == sh.n_coeffs(degree) else torch.zeros_like)(coeffs)
+                cpu_threads.launch_runs(sh.colour_backward_kernel(s, degree), (), ctx.runs,
+                                        [*ctx.colour_args, *g, *_grid(v_means, C, N, 3), *_grid(v_campos, C, N, 3),
+                                         *(NULL if v_coeffs is None else L.grid3(v_coeffs, C, N, K, 3, False))], tg)
+            else:  # one row per (camera, Gaussian): Warp's generated adjoint (the faster one there)
+                if need[6]:
+                    v_coeffs = torch.zeros_like(coeffs)
+                adj = [*_grid(v_means, C, N, 3), *_grid(v_campos, C, N, 3),
+                       *(NULL if v_coeffs is None else L.grid3(v_coeffs, C, N, K, 3, True)), *NULL, *g]
+                # (array stores are not replayed in Warp's adjoints: the colour output is not needed)
+                cpu_threads.launch_runs(sh.colour_kernel(s, degree), (C,), ctx.runs, ctx.colour_args + [*NULL], tg, adj)
             del g_t
         grads = [_adj(g, k, C * N) for g, k in ((g_means2d, 2), (g_depths, 1), (g_conics, 3), (g_opac, 1))]
         if any(g[1] is not None for g in grads) and any(need[:5]):
