@@ -17,7 +17,6 @@ from . import cpu_threads
 from . import launch as L
 from ..kernels import blend_backward, blend_forward
 from .launch import NULL, apply, arr
-from .ops import _c, _fast, _scalar
 
 Tensor = torch.Tensor
 MAX_CHANNELS = 64
@@ -32,14 +31,14 @@ def pack_splats(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tens
     equal runs of the intersections side by side (:mod:`.cpu_threads`)."""
     M, D = flatten_ids.shape[0], colors.shape[-1]
     dt = means2d.dtype
-    s = _scalar(dt)
+    s = L.scalar_of(dt)
     splats = torch.empty(M, 6, dtype=dt, device=means2d.device)
     cols = torch.empty(M, D, dtype=dt, device=means2d.device)
     if packed is None:
-        gauss = [*arr(_c(means2d), 2), *arr(_c(conics), 3), *arr(_c(opacities))]
+        gauss = [*arr(L.dense(means2d), 2), *arr(L.dense(conics), 3), *arr(L.dense(opacities))]
     else:  # (the three arrays are not read)
         gauss = [*NULL, *NULL, *NULL]
-    ids, cs = _c(flatten_ids), _c(colors)
+    ids, cs = L.dense(flatten_ids), L.dense(colors)
     kern = blend_forward.pack_kernel(s, D)
     head = [*arr(ids), *(NULL if packed is None else arr(packed, 6)), *gauss, *arr(cs, D), *arr(splats, 6),
             *arr(cols, D)]
@@ -55,7 +54,7 @@ class _Blend(torch.autograd.Function):
         C, N = means2d.shape[:2]
         D = colors.shape[-1]
         dt, dev = colors.dtype, colors.device
-        s = _scalar(dt)
+        s = L.scalar_of(dt)
         th, tw = tiles["isect_offsets"].shape[1:]
         tg = L.target(colors)
         ctx.set_materialize_grads(False)
@@ -64,7 +63,7 @@ class _Blend(torch.autograd.Function):
         out_alpha = torch.empty(C, height, width, 1, dtype=dt, device=dev)
         out_T = torch.empty(C, height, width, dtype=dt, device=dev)
         last = torch.empty(C, height, width, dtype=torch.int32, device=dev)
-        bg = _c(backgrounds) if backgrounds is not None else None
+        bg = L.dense(backgrounds) if backgrounds is not None else None
         # on the CPU, runs of whole tiles on several threads (cpu_threads.py); else one launch
         parts = _tile_parts(tg, settings, tiles, C * th * tw, tile_size)
         a_bg, a_offsets, a_T, a_last = NULL if bg is None else arr(bg, D), arr(tiles["offsets"]), arr(out_T), arr(last)
@@ -77,7 +76,7 @@ class _Blend(torch.autograd.Function):
         through_ids = mode and not gather  # (then no input needs a gradient: no backward follows)
         mode = through_ids or (mode and one_wave(tg, C * th * tw, tp))
         if through_ids:
-            cs = _c(colors)
+            cs = L.dense(colors)
             shift = N if cs.ndim == 2 else 0  # (colours shared by the cameras)
             splats, cols = packed, cs
         else:
@@ -86,9 +85,9 @@ class _Blend(torch.autograd.Function):
         head = [*arr(splats, 6), *arr(cols, D)]
         if mode:
             head += [*arr(ids), shift]
-            kern = blend_forward.batched_forward_kernel(s, D, _fast(settings, s), tp, through_ids)
+            kern = blend_forward.batched_forward_kernel(s, D, L.fast_math(settings, s), tp, through_ids)
         else:
-            kern = blend_forward.forward_kernel(s, D, _fast(settings, s))
+            kern = blend_forward.forward_kernel(s, D, L.fast_math(settings, s))
         head += [*a_bg, *a_offsets, width, height, tile_size, tw, th, settings.alpha_min, settings.alpha_max,
                  settings.t_min, *arr(out, D), *a_T, *arr(out_alpha), *a_last]
         if mode:
@@ -112,11 +111,11 @@ class _Blend(torch.autograd.Function):
         N, D = ctx.n_gauss, cols.shape[-1]
         C = out_T.shape[0]
         dt, dev = cols.dtype, cols.device
-        s = _scalar(dt)
+        s = L.scalar_of(dt)
         tg = L.target(cols)
         # an image without a gradient is passed as a null array (read as zeros)
-        g_colors = _c(g_colors) if g_colors is not None else None
-        g_alphas = _c(g_alphas) if g_alphas is not None else None
+        g_colors = L.dense(g_colors) if g_colors is not None else None
+        g_alphas = L.dense(g_alphas) if g_alphas is not None else None
         M = tiles["n_isects"]
         # blocks of pixels of one tile walk its Gaussians in lockstep and sum their pixels' gradients
         # before one atomic add per Gaussian: per warp with one block per tile where the tile splits
@@ -142,7 +141,7 @@ class _Blend(torch.autograd.Function):
         packed = torch.zeros(rows, W, dtype=dt, device=dev)
         # the default backward's other threads: their own rows, added to the first thread's below
         extra = torch.zeros(len(parts) - 1, rows, W, dtype=dt, device=dev) if len(parts) > 1 and not det else None
-        kern = blend_backward.reduced_backward_kernel(s, D, det, per_warp, _fast(st, s), not geometry)
+        kern = blend_backward.reduced_backward_kernel(s, D, det, per_warp, L.fast_math(st, s), not geometry)
         head = [*arr(splats, 6), *arr(cols, D), *ctx.args, *(NULL if g_colors is None else arr(g_colors, D)),
                 *(NULL if g_alphas is None else arr(g_alphas)), *(arr(tiles["perm"]) if det else NULL)]
         tp = tile_size * tile_size

@@ -120,6 +120,41 @@ _BASE_APPLY = getattr(getattr(torch._C, "_FunctionBase", None), "__dict__", {}).
 
 
 # ---------------------------------------------------------------------------------------------
+# what kernels read: precision, fast maths, dense tensors, incoming gradients
+# ---------------------------------------------------------------------------------------------
+def scalar_of(dtype: torch.dtype):
+    """The Warp scalar type of a torch float dtype (the kernels are built for float32 and float64)."""
+    if dtype == torch.float32:
+        return wp.float32
+    if dtype == torch.float64:
+        return wp.float64
+    raise ValueError(f"ssgwarp kernels support float32 and float64, got {dtype}")
+
+
+def fast_math(settings, scalar) -> bool:
+    """Fast maths (approximate exp, log, division, square roots) in the CUDA kernels: float32 only
+    (a CUDA compile option; the CPU build ignores it)."""
+    return bool(settings.fast_math) and scalar == wp.float32
+
+
+def dense(t: torch.Tensor) -> torch.Tensor:
+    """``t`` itself when contiguous, else a contiguous copy (outside autograd): what kernels read."""
+    return t if t.is_contiguous() else t.detach().contiguous()
+
+
+def grad_rows(g, inner: int, n: int):
+    """``(descriptor, tensor)`` of an incoming gradient read as ``n`` rows of ``inner`` values
+    (row-strided views, e.g. column blocks of the blending's packed gradients, are read in place);
+    :data:`NULL` when there is none. Keep the tensor alive until the launch is queued."""
+    if g is None:
+        return NULL, None
+    g = g.reshape(n, inner)  # (a view where it can be; the kernels read the values, not the graph)
+    if g.stride(1) != 1 and inner > 1:
+        g = g.contiguous()
+    return rows(g, inner), g
+
+
+# ---------------------------------------------------------------------------------------------
 # where launches go
 # ---------------------------------------------------------------------------------------------
 class Target:

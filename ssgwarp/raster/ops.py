@@ -15,46 +15,14 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import torch
-import warp as wp
 
 from . import cpu_threads
 from . import launch as L
 from ..kernels import binning, projection, sh, validate
-from .launch import NULL, apply, arr, rows
+from .launch import NULL, apply, arr
 
 Tensor = torch.Tensor
 INT32_MAX = 2**31 - 1
-
-
-def _scalar(dtype: torch.dtype):
-    if dtype == torch.float32:
-        return wp.float32
-    if dtype == torch.float64:
-        return wp.float64
-    raise ValueError(f"ssgwarp kernels support float32 and float64, got {dtype}")
-
-
-def _fast(settings, scalar) -> bool:
-    """Fast maths (approximate exp, log, division, square roots) in the CUDA kernels: float32 only
-    (a CUDA compile option; the CPU build ignores it)."""
-    return bool(settings.fast_math) and scalar == wp.float32
-
-
-def _c(t: Tensor) -> Tensor:
-    """``t`` itself when contiguous, else a contiguous copy (outside autograd): what kernels read."""
-    return t if t.is_contiguous() else t.detach().contiguous()
-
-
-def _adj(g, inner: int, n: int):
-    """``(descriptor, tensor)`` of an incoming gradient read as ``n`` rows of ``inner`` values
-    (row-strided views, e.g. column blocks of the blending's packed gradients, are read in place);
-    :data:`NULL` when there is none."""
-    if g is None:
-        return NULL, None
-    g = g.reshape(n, inner)  # (a view where it can be; the kernels read the values, not the graph)
-    if g.stride(1) != 1 and inner > 1:
-        g = g.contiguous()
-    return rows(g, inner), g
 
 
 # ---------------------------------------------------------------------------------------------
@@ -66,15 +34,15 @@ def check_values(means, quats, scales, opacities, colors, viewmats, Ks, backgrou
     < 8: NaN/Inf in ``validate.INPUTS[i]``; then zero quaternion, negative scale, opacity outside
     [0, 1], non-positive focal length). Shapes must already be consistent. ``flags``: a zeroed
     int64 tensor ``[N_FLAGS]`` to write into (else one is made)."""
-    flat = [_c(t) for t in (means, quats, scales, opacities, colors, viewmats, Ks)]
+    flat = [L.dense(t) for t in (means, quats, scales, opacities, colors, viewmats, Ks)]
     if backgrounds is not None:
-        flat.append(_c(backgrounds))
+        flat.append(L.dense(backgrounds))
     if flags is None:
         flags = torch.zeros(validate.N_FLAGS, dtype=torch.int64, device=means.device)
     descs = [v for t in flat for v in arr(t)]
     if backgrounds is None:
         descs += NULL
-    L.launch(validate.check_kernel(_scalar(means.dtype)), max(t.numel() for t in flat),
+    L.launch(validate.check_kernel(L.scalar_of(means.dtype)), max(t.numel() for t in flat),
              [*descs, means.shape[0], viewmats.shape[0], *arr(flags)], L.target(means))
     return flags
 
@@ -99,10 +67,10 @@ class _Project(torch.autograd.Function):
     def forward(ctx, means, quats, scales, opacities, viewmats, Ks, coeffs, campos, cfg, extra):
         C, N = viewmats.shape[0], means.shape[0]
         dt, dev = means.dtype, means.device
-        s = _scalar(dt)
+        s = L.scalar_of(dt)
         tg = L.target(means)
         ctx.set_materialize_grads(False)  # (outputs without a gradient arrive as None: no zero tensors)
-        ins = [_c(t) for t in (means, quats, scales, opacities, viewmats, Ks)]
+        ins = [L.dense(t) for t in (means, quats, scales, opacities, viewmats, Ks)]
         means2d = torch.empty(C, N, 2, dtype=dt, device=dev)
         depths = torch.empty(C, N, dtype=dt, device=dev)
         conics = torch.empty(C, N, 3, dtype=dt, device=dev)
@@ -126,7 +94,7 @@ class _Project(torch.autograd.Function):
         del keep  # (contiguous copies made for the checks: needed until the launch is queued)
         colors = colour_args = None
         if coeffs is not None:
-            coeffs, campos = _c(coeffs), _c(campos)
+            coeffs, campos = L.dense(coeffs), L.dense(campos)
             colors = torch.empty(C, N, 3, dtype=dt, device=dev)
             colour_args = _colour_args(ins[0], campos, coeffs, radii, C, N)
             cpu_threads.launch_runs(sh.colour_kernel(s, cfg["sh_degree"]), (C,), runs, colour_args + [*arr(colors, 3)], tg)
@@ -145,7 +113,7 @@ class _Project(torch.autograd.Function):
         cfg, need = ctx.cfg, ctx.needs_input_grad
         C, N = viewmats.shape[0], means.shape[0]
         dt, dev = means.dtype, means.device
-        s = _scalar(dt)
+        s = L.scalar_of(dt)
         tg = L.target(means)
         # one adjoint slot per (camera, Gaussian); the per-Gaussian gradients share one zeroed buffer
         lead = (C, N) if C > 1 else (N,)
@@ -153,7 +121,7 @@ class _Project(torch.autograd.Function):
         v_view = torch.zeros(C, N, 4, 4, dtype=dt, device=dev) if need[4] else None
         v_coeffs = v_campos = None
         if g_colors is not None and coeffs is not None:
-            g, g_t = _adj(g_colors, 3, C * N)
+            g, g_t = L.grad_rows(g_colors, 3, C * N)
             K, degree = coeffs.shape[-2], cfg["sh_degree"]
             if need[7]:
                 v_campos = torch.zeros(C, N, 3, dtype=dt, device=dev)
@@ -173,7 +141,7 @@ class _Project(torch.autograd.Function):
                 # (array stores are not replayed in Warp's adjoints: the colour output is not needed)
                 cpu_threads.launch_runs(sh.colour_kernel(s, degree), (C,), ctx.runs, ctx.colour_args + [*NULL], tg, adj)
             del g_t
-        grads = [_adj(g, k, C * N) for g, k in ((g_means2d, 2), (g_depths, 1), (g_conics, 3), (g_opac, 1))]
+        grads = [L.grad_rows(g, k, C * N) for g, k in ((g_means2d, 2), (g_depths, 1), (g_conics, 3), (g_opac, 1))]
         if any(g[1] is not None for g in grads) and any(need[:5]):
             adj = [*_grid(v_means, C, N, 3), *_grid(v_quats, C, N, 4), *_grid(v_scales, C, N, 3), *_grid(v_opac, C, N, 1),
                    *_grid(v_view, C, N, 16), *NULL, *_ADJ_PARAMS, *_NO_CHECKS, *grads[0][0], *grads[1][0],
@@ -220,10 +188,10 @@ def _check_args(extra, C, N):
     ``extra["flags"]``): the colours read flat in rows (per camera or shared), the backgrounds."""
     if extra is None or extra.get("flags") is None:
         return _NO_CHECKS, ()
-    colors, bg = _c(extra["colors"]), extra.get("backgrounds")
+    colors, bg = L.dense(extra["colors"]), extra.get("backgrounds")
     per_cam = colors.shape[0] == C and colors.ndim == (4 if extra.get("sh") else 3)
     row = colors.numel() // (C * N if per_cam else N) if N else 0
-    bg = _c(bg) if bg is not None else None
+    bg = L.dense(bg) if bg is not None else None
     args = [*arr(colors), row, int(per_cam), *(arr(bg) if bg is not None else NULL),
             bg.shape[-1] if bg is not None else 0, *arr(extra["flags"])]
     return args, (colors, bg)
@@ -287,7 +255,7 @@ def _project_cfg(dtype, width, height, near_plane, far_plane, radius_clip, eps2d
         sigma_max=float(settings.sigma_max), opacity_extent=int(settings.extent == "opacity"),
         antialiased=int(bool(antialiased)), tile_size=int(tile_size), tile_width=int(tile_width),
         tile_height=int(tile_height))
-    return {"params": params, "variant": (settings.covariance, _fast(settings, _scalar(dtype))),
+    return {"params": params, "variant": (settings.covariance, L.fast_math(settings, L.scalar_of(dtype))),
             "tile_size": int(tile_size), "sh_degree": sh_degree, "cpu_threads": settings.cpu_threads}
 
 
@@ -316,7 +284,7 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
     ``RasterSettings.cpu_threads`` for the key writes and the range offsets (:mod:`.cpu_threads`).
     """
     C, N = depths.shape
-    s = _scalar(means2d.dtype)
+    s = L.scalar_of(means2d.dtype)
     dev = means2d.device
     tg = L.target(means2d)
     n_ranges = C * tile_width * tile_height
@@ -324,7 +292,7 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
         raise ValueError(f"rasterization: {C} cameras x {tile_width * tile_height} tiles exceed the 2^31 tile "
                          "ranges one call can index; render fewer cameras per call or use a larger tile_size")
     CN = C * N
-    m2, rd, dp = _c(means2d), _c(radii), _c(depths)
+    m2, rd, dp = L.dense(means2d), L.dense(radii), L.dense(depths)
     if counts is None:
         counts = torch.empty(C, N, dtype=torch.int32, device=dev)
         L.launch(binning.count_kernel(s), CN, [*arr(m2, 2), *arr(rd, 2), tile_size, tile_width, tile_height,

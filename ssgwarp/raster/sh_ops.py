@@ -12,7 +12,6 @@ import torch
 from . import launch as L
 from ..kernels import sh
 from .launch import arr
-from .ops import _adj, _c, _scalar
 
 Tensor = torch.Tensor
 
@@ -20,9 +19,9 @@ Tensor = torch.Tensor
 def camera_centres(viewmats: Tensor) -> Tensor:
     """Camera centres ``[C, 3]`` (the inverses' translations) of world-to-camera matrices ``[C, 4, 4]``
     in one kernel, no gradient (torch's batched inverse costs ~0.4 ms of host time per call on CUDA)."""
-    vm = _c(viewmats.detach())
+    vm = L.dense(viewmats.detach())
     out = torch.empty(vm.shape[0], 3, dtype=vm.dtype, device=vm.device)
-    L.launch(sh.centres_kernel(_scalar(vm.dtype)), vm.shape[0], [*arr(vm, 16), *arr(out, 3)], L.target(vm))
+    L.launch(sh.centres_kernel(L.scalar_of(vm.dtype)), vm.shape[0], [*arr(vm, 16), *arr(out, 3)], L.target(vm))
     return out
 
 
@@ -30,10 +29,10 @@ class _SH(torch.autograd.Function):
     @staticmethod
     def forward(ctx, degree, dirs, coeffs):
         shape = dirs.shape[:-1]
-        d = _c(dirs).reshape(-1, 3)
-        c = _c(coeffs).reshape(d.shape[0], -1, 3)
+        d = L.dense(dirs).reshape(-1, 3)
+        c = L.dense(coeffs).reshape(d.shape[0], -1, 3)
         M = c.shape[0]
-        s = _scalar(dirs.dtype)
+        s = L.scalar_of(dirs.dtype)
         out = torch.empty_like(d)
         L.launch(sh.sh_kernel(s, degree), (1, M), [*L.grid(d, 1, M, 3, True), *_coeff_rows(c), *arr(out, 3)], L.target(d))
         ctx.save_for_backward(d, c, out)
@@ -43,10 +42,10 @@ class _SH(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g):
         d, c, out = ctx.saved_tensors
-        s = _scalar(d.dtype)
+        s = L.scalar_of(d.dtype)
         M = d.shape[0]
         vd, vc = torch.zeros_like(d), torch.zeros_like(c)
-        ga, g = _adj(g, 3, M)
+        ga, g = L.grad_rows(g, 3, M)
         L.launch(sh.sh_kernel(s, ctx.degree), (1, M), [*L.grid(d, 1, M, 3, True), *_coeff_rows(c), *arr(out, 3)],
                  L.target(d), adj=[*L.grid(vd, 1, M, 3, True), *_coeff_rows(vc), *ga])
         return None, vd.reshape(*ctx.shape, 3), vc.reshape(ctx.cshape)
