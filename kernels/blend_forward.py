@@ -14,8 +14,9 @@ opacity, laid out in sorted order) with one contiguous load. Per pixel::
 
 The pixel's alpha is the sum of the blending weights (equal to ``1 - T`` in
 exact arithmetic, but exact to the last bit for faint pixels where ``1 - T``
-cancels). Outputs what the backward needs: the final transmittance and the
-position of the last blended Gaussian in the sorted list.
+cancels). Outputs what the backward needs, where one can follow (else null
+arrays): the final transmittance and the position of the last blended Gaussian
+in the sorted list.
 
 On CUDA, :func:`batched_forward_kernel` runs the same rule with one block per tile: the block
 loads the tile's next Gaussians into shared memory together (one per thread, through the sorted
@@ -142,9 +143,10 @@ def forward_kernel(scalar, channels: int, fast_math: bool = False):
             for d in range(wp.static(channels)):
                 acc[d] = fma(T, bg[d], acc[d])
         out_colors[pix] = acc
-        out_T[pix] = T
         out_alpha[pix] = wsum
-        last_ids[pix] = last
+        if out_T.shape[0] > 0:  # (what the backward reads: null arrays when none can follow)
+            out_T[pix] = T
+            last_ids[pix] = last
 
     return blend_forward
 
@@ -244,8 +246,9 @@ def batched_forward_kernel(scalar, channels: int, fast_math: bool, block: int, t
                 for d in range(wp.static(channels)):
                     acc[d] = fma(T, bg[d], acc[d])
             out_colors[pix] = acc
-            out_T[pix] = T
             out_alpha[pix] = wsum
-            last_ids[pix] = last
+            if out_T.shape[0] > 0:  # (what the backward reads: null arrays when none can follow)
+                out_T[pix] = T
+                last_ids[pix] = last
 
     return blend_forward_batched

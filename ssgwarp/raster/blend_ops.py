@@ -61,12 +61,17 @@ class _Blend(torch.autograd.Function):
         # the kernel writes every pixel
         out = torch.empty(C, height, width, D, dtype=dt, device=dev)
         out_alpha = torch.empty(C, height, width, 1, dtype=dt, device=dev)
-        out_T = torch.empty(C, height, width, dtype=dt, device=dev)
-        last = torch.empty(C, height, width, dtype=torch.int32, device=dev)
+        # the final transmittance and last blended Gaussian per pixel: only where a backward can follow
+        out_T = last = None
+        a_T = a_last = NULL
+        if gather:
+            out_T = torch.empty(C, height, width, dtype=dt, device=dev)
+            last = torch.empty(C, height, width, dtype=torch.int32, device=dev)
+            a_T, a_last = arr(out_T), arr(last)
         bg = L.dense(backgrounds) if backgrounds is not None else None
         # on the CPU, runs of whole tiles on several threads (cpu_threads.py); else one launch
         parts = _tile_parts(tg, settings, tiles, C * th * tw, tile_size)
-        a_bg, a_offsets, a_T, a_last = NULL if bg is None else arr(bg, D), arr(tiles["offsets"]), arr(out_T), arr(last)
+        a_bg, a_offsets = NULL if bg is None else arr(bg, D), arr(tiles["offsets"])
         ids = tiles["flatten_ids"]
         tp = tile_size * tile_size
         # on CUDA one block per tile (kernels/blend_forward.py): where a backward may follow, the
