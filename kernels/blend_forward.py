@@ -68,19 +68,40 @@ def pack_kernel(scalar, channels: int):
 
 
 @functools.lru_cache(maxsize=None)
-def accumulate_func(scalar, channels: int):
-    """``accumulate(acc, c, w) -> acc + w c``, rounded once per channel (one fused multiply-add,
-    as gsplat's nvcc build rounds it): the blending step both forward kernels take."""
+def compositing_funcs(scalar, channels: int):
+    """``(blend, finish)``: what both forward kernels do with a pixel, written once.
+
+    ``blend(acc, wsum, T, c, alpha) -> (acc, wsum, T)``: one Gaussian composited front to back,
+    ``acc + alpha T c`` rounded once per channel (one fused multiply-add, as gsplat's nvcc build
+    rounds it). ``finish(acc, wsum, T, last, cam, pix, backgrounds, out_colors, out_T, out_alpha,
+    last_ids)``: the background under the remaining transmittance, and the pixel's outputs (the
+    transmittance and last Gaussian only where the backward needs them: null arrays otherwise)."""
     vecD = channel_vector(scalar, channels)
 
     @wp.func
-    def accumulate(acc: vecD, c: vecD, w: scalar):
+    def blend(acc: vecD, wsum: scalar, T: scalar, c: vecD, alpha: scalar):
+        w = alpha * T
         out = acc
         for d in range(wp.static(channels)):
             out[d] = fma(c[d], w, acc[d])
-        return out
+        return out, wsum + w, T * (scalar(1.0) - alpha)
 
-    return accumulate
+    @wp.func
+    def finish(acc: vecD, wsum: scalar, T: scalar, last: wp.int32, cam: int, pix: int,
+               backgrounds: wp.array(dtype=vecD), out_colors: wp.array(dtype=vecD), out_T: wp.array(dtype=scalar),
+               out_alpha: wp.array(dtype=scalar), last_ids: wp.array(dtype=wp.int32)):
+        out = acc
+        if backgrounds.shape[0] > 0:  # (an absent background: a null array)
+            bg = backgrounds[cam]
+            for d in range(wp.static(channels)):
+                out[d] = fma(T, bg[d], acc[d])
+        out_colors[pix] = out
+        out_alpha[pix] = wsum
+        if out_T.shape[0] > 0:
+            out_T[pix] = T
+            last_ids[pix] = last
+
+    return blend, finish
 
 
 @functools.lru_cache(maxsize=None)
@@ -89,7 +110,7 @@ def forward_kernel(scalar, channels: int, fast_math: bool = False):
     splat = t.splat
     vecD = channel_vector(scalar, channels)
     splat_alpha, ends_pixel = pixel_funcs(scalar)
-    accumulate = accumulate_func(scalar, channels)
+    blend, finish = compositing_funcs(scalar, channels)
 
     # no FMA contraction: the gating in pixel.py must decide identically in both passes
     @wp.kernel(module="unique", module_options={"fuse_fp": False, "enable_backward": False, "fast_math": fast_math})
@@ -132,21 +153,10 @@ def forward_kernel(scalar, channels: int, fast_math: bool = False):
                 continue
             if ends_pixel(T, alpha, t_min):
                 break
-            w = alpha * T
-            acc = accumulate(acc, colors[k], w)
-            wsum = wsum + w
-            T = T * (scalar(1.0) - alpha)
+            acc, wsum, T = blend(acc, wsum, T, colors[k], alpha)
             last = wp.int32(k)
-        pix = (cam * height + y) * width + x
-        if backgrounds.shape[0] > 0:  # (an absent background: a null array)
-            bg = backgrounds[cam]
-            for d in range(wp.static(channels)):
-                acc[d] = fma(T, bg[d], acc[d])
-        out_colors[pix] = acc
-        out_alpha[pix] = wsum
-        if out_T.shape[0] > 0:  # (what the backward reads: null arrays when none can follow)
-            out_T[pix] = T
-            last_ids[pix] = last
+        finish(acc, wsum, T, last, cam, (cam * height + y) * width + x, backgrounds, out_colors, out_T, out_alpha,
+               last_ids)
 
     return blend_forward
 
@@ -167,7 +177,7 @@ def batched_forward_kernel(scalar, channels: int, fast_math: bool, block: int, t
     splat = t.splat
     vecD = channel_vector(scalar, channels)
     splat_alpha, ends_pixel = pixel_funcs(scalar)
-    accumulate = accumulate_func(scalar, channels)
+    blend, finish = compositing_funcs(scalar, channels)
     B = int(block)
     IDS = bool(through_ids)
 
@@ -228,27 +238,16 @@ def batched_forward_kernel(scalar, channels: int, fast_math: bool, block: int, t
                         if ends_pixel(T, alpha, t_min):
                             done = 1
                             break
-                        w = alpha * T
                         if wp.static(IDS):
                             c = colors[ids[j] - shift]
                         else:
                             c = colors[b + j]
-                        acc = accumulate(acc, c, w)
-                        wsum = wsum + w
-                        T = T * (scalar(1.0) - alpha)
+                        acc, wsum, T = blend(acc, wsum, T, c, alpha)
                         last = wp.int32(b + j)
                     j += 1
             b += B
         if inside:
-            pix = (cam * height + y) * width + x
-            if backgrounds.shape[0] > 0:  # (an absent background: a null array)
-                bg = backgrounds[cam]
-                for d in range(wp.static(channels)):
-                    acc[d] = fma(T, bg[d], acc[d])
-            out_colors[pix] = acc
-            out_alpha[pix] = wsum
-            if out_T.shape[0] > 0:  # (what the backward reads: null arrays when none can follow)
-                out_T[pix] = T
-                last_ids[pix] = last
+            finish(acc, wsum, T, last, cam, (cam * height + y) * width + x, backgrounds, out_colors, out_T,
+                   out_alpha, last_ids)
 
     return blend_forward_batched

@@ -7,9 +7,9 @@ centre to the Gaussian, the SH sum, ``+ 0.5`` clamped at 0, and 0 for Gaussians 
 culled (gsplat's rule). :func:`sh_kernel` is differentiated by Warp's generated adjoint;
 :func:`colour_kernel` by it too, except for coefficients shared by several cameras: the
 hand-written :func:`colour_backward_kernel` (one thread per Gaussian over the cameras, no
-per-camera copies of the coefficients' gradient). Inputs are
-read through 2-D ``[camera, Gaussian]`` arrays (stride 0 over what is shared). :func:`centres_kernel` gives the camera centres the directions
-start from.
+per-camera copies of the coefficients' gradient). Inputs are read through 2-D
+``[camera, Gaussian]`` arrays (stride 0 over what is shared). :func:`centres_kernel` gives the
+camera centres the directions start from.
 """
 
 import functools
@@ -131,18 +131,32 @@ def sh_eval_func(scalar, degree: int):
     summed from the lowest band up)."""
     vec3 = types_for(scalar).vec3
     sh_basis, _ = sh_basis_funcs(scalar, degree)
-    K = n_coeffs(degree)
+    sh_sum = sh_sum_func(scalar, degree)
 
     @wp.func
     def sh_eval(d: vec3, coeffs: wp.array3d(dtype=vec3), c: int, n: int):
         u = d / wp.max(wp.length(d), scalar(1e-30))
-        b = sh_basis(u)
+        return sh_sum(sh_basis(u), coeffs, c, n)
+
+    return sh_eval
+
+
+@functools.lru_cache(maxsize=None)
+def sh_sum_func(scalar, degree: int):
+    """``sh_sum(b, coeffs, c, n)``: ``sum_k b_k coeffs[c, n, k]`` from the lowest band up (the
+    colour before the ``+ 0.5``; the forward and the hand-written backward round it alike)."""
+    vec3 = types_for(scalar).vec3
+    K = n_coeffs(degree)
+    vecK = wp.types.vector(K, scalar)
+
+    @wp.func
+    def sh_sum(b: vecK, coeffs: wp.array3d(dtype=vec3), c: int, n: int):
         out = b[0] * coeffs[c, n, 0]
         for k in range(1, wp.static(K)):
             out = out + b[k] * coeffs[c, n, k]
         return out
 
-    return sh_eval
+    return sh_sum
 
 
 @functools.lru_cache(maxsize=None)
@@ -205,6 +219,7 @@ def colour_backward_kernel(scalar, degree: int):
     vecK = wp.types.vector(K, scalar)
     matK3 = wp.types.matrix(shape=(K, 3), dtype=scalar)
     sh_basis, sh_basis_vjp = sh_basis_funcs(scalar, degree)
+    sh_sum = sh_sum_func(scalar, degree)
 
     @wp.kernel(module="unique", module_options={"enable_backward": False})
     def sh_colour_backward(means: wp.array2d(dtype=vec3), campos: wp.array2d(dtype=vec3),
@@ -228,9 +243,7 @@ def colour_backward_kernel(scalar, degree: int):
             u = d / wp.max(length, scalar(1e-30))  # (as the forward rounds it)
             inv = scalar(1.0) / wp.max(length, scalar(1e-30))
             b = sh_basis(u)
-            v = b[0] * coeffs[c, n, 0]
-            for k in range(1, wp.static(K)):
-                v = v + b[k] * coeffs[c, n, k]
+            v = sh_sum(b, coeffs, c, n)
             g = v_colors[i]
             half = scalar(0.5)
             g = vec3(wp.where(v[0] + half >= zero, g[0], zero), wp.where(v[1] + half >= zero, g[1], zero),

@@ -10,6 +10,8 @@ runs, and on CUDA (``-m cuda``) against the per-pixel walk there.
 """
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import pytest
 import torch
 import warp as wp
@@ -27,8 +29,9 @@ DEVICES = ["cpu", pytest.param("cuda", marks=CUDA_ONLY)]
 @pytest.fixture
 def blocks_everywhere(monkeypatch):
     """Let the block kernels run on the CPU too (the rule otherwise keeps them to CUDA)."""
-    monkeypatch.setattr(ops, "batched", lambda tg, packed, tile_size: (
-        ops.BATCHED and packed is not None and tile_size * tile_size <= 1024))
+    rule = ops.batched
+    monkeypatch.setattr(ops, "batched",
+                        lambda tg, packed, tile_size: rule(SimpleNamespace(cpu=False), packed, tile_size))
     monkeypatch.setattr(ops, "one_wave", lambda tg, n_tiles, block: True)
 
 

@@ -77,9 +77,9 @@ class _Blend(torch.autograd.Function):
         # on CUDA one block per tile (kernels/blend_forward.py): where a backward may follow, the
         # per-intersection gather it walks is made here and read contiguously; else the kernel reads
         # the projection's packed splats through the ids and nothing is gathered
-        mode = batched(tg, packed, tile_size)
-        through_ids = mode and not gather  # (then no input needs a gradient: no backward follows)
-        mode = through_ids or (mode and one_wave(tg, C * th * tw, tp))
+        allowed = batched(tg, packed, tile_size)
+        through_ids = allowed and not gather  # (then no input needs a gradient: no backward follows)
+        block = through_ids or (allowed and one_wave(tg, C * th * tw, tp))
         if through_ids:
             cs = L.dense(colors)
             shift = N if cs.ndim == 2 else 0  # (colours shared by the cameras)
@@ -88,14 +88,14 @@ class _Blend(torch.autograd.Function):
             splats, cols = pack_splats(means2d, conics, opacities, colors, ids, packed, len(parts))
             shift = 0
         head = [*arr(splats, 6), *arr(cols, D)]
-        if mode:
+        if block:
             head += [*arr(ids), shift]
             kern = blend_forward.batched_forward_kernel(s, D, L.fast_math(settings, s), tp, through_ids)
         else:
             kern = blend_forward.forward_kernel(s, D, L.fast_math(settings, s))
         head += [*a_bg, *a_offsets, width, height, tile_size, tw, th, settings.alpha_min, settings.alpha_max,
                  settings.t_min, *arr(out, D), *a_T, *arr(out_alpha), *a_last]
-        if mode:
+        if block:
             L.launch(kern, C * th * tw * tp, head, tg, None, tp)
         else:
             cpu_threads.launch_runs(kern, (), [(a * tp, b * tp) for a, b in parts], head, tg)
