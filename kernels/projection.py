@@ -22,7 +22,9 @@ other outputs 0) when its depth is outside [near, far], the blurred
 determinant is <= 0, its opacity is below ``alpha_min``, both radii are <=
 ``radius_clip``, or its extent box is off-screen.
 
-The kernel is differentiable by Warp's generated adjoint. Per-Gaussian inputs
+The rasterizer's backward is the hand-written :mod:`.projection_backward`; this kernel
+is also differentiable by Warp's generated adjoint (the tests hold the hand kernel to it),
+whose slots are laid out the same way. Per-Gaussian inputs
 and the view matrices are read through 2-D ``[camera, Gaussian]`` arrays (camera
 stride 0 for the Gaussians' inputs, Gaussian stride 0 for the view matrices:
 no copies), so the adjoint writes each (camera, Gaussian) pair into its own slot

@@ -120,11 +120,12 @@ def test_per_element_kernels_on_threads_bit_identical(dtype, cameras, split_call
         runs = {}
         for key, k in split_calls["elements"]:
             runs.setdefault(key.split("__")[-1], []).append(k)
-        # forward and adjoint of the projection and the SH colours (with shared coefficients and several
-        # cameras, the SH colours' hand-written backward) over runs of the Gaussians (in every camera);
-        # the key writes over (camera, Gaussian) pairs, the offsets over the intersections
+        # forward and backward of the projection (hand-written) and the SH colours (with shared coefficients
+        # and several cameras, the SH colours' hand-written backward) over runs of the Gaussians (in every
+        # camera); the key writes over (camera, Gaussian) pairs, the offsets over the intersections
         sh_runs = runs["sh_colour"] + runs.get("sh_colour_backward", [])
-        assert runs["project"] == [min(threads, n)] * 2 and sh_runs == [min(threads, n)] * 2
+        assert runs["project"] == [min(threads, n)] and runs["project_backward"] == [min(threads, n)]
+        assert sh_runs == [min(threads, n)] * 2
         assert ("sh_colour_backward" in runs) == (cameras > 1)
         assert runs["write_isects"] == [min(threads, cameras * n)] and runs["offsets_kernel"] == [threads]
         for a, b in zip(out, ref):

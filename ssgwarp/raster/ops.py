@@ -18,11 +18,14 @@ import torch
 
 from . import cpu_threads
 from . import launch as L
-from ..kernels import binning, projection, sh, validate
+from ..kernels import binning, projection, projection_backward, sh, validate
 from .launch import NULL, apply, arr
 
 Tensor = torch.Tensor
 INT32_MAX = 2**31 - 1
+# the projection's backward: the hand-written kernel (True) or Warp's generated adjoint of the
+# forward kernel (False; slower, kept as the tests' yardstick and for before/after benchmarks)
+HAND_BACKWARD = True
 
 
 # ---------------------------------------------------------------------------------------------
@@ -59,9 +62,9 @@ class _Project(torch.autograd.Function):
     blending's packed splats) when ``cfg["tile_size"] > 0``, else None. ``extra`` (or None):
     ``flags`` (int64 ``[N_FLAGS]``, zeroed) to run the input value checks in the projection, with
     the ``colors`` and ``backgrounds`` they also cover; ``ends`` (int64 ``[C*N]``) to receive the
-    tile counts for the binning's in-place scan. Backward: the SH adjoint then the projection
-    adjoint, both into per-(camera, Gaussian) slots when C > 1 (summed here in a fixed order),
-    straight into the gradients when C = 1."""
+    tile counts for the binning's in-place scan. Backward: the SH colour's backward then the
+    projection's (``kernels/projection_backward.py``), both into per-(camera, Gaussian) slots
+    when C > 1 (summed here in a fixed order), straight into the gradients when C = 1."""
 
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, viewmats, Ks, coeffs, campos, cfg, extra):
@@ -102,6 +105,7 @@ class _Project(torch.autograd.Function):
         # the backward launches read the same tensors (kept by ctx): their descriptors are kept too
         # (without the checks, and without the tile counts and ends, which the binning has scanned)
         ctx.cfg, ctx.args, ctx.colour_args = cfg, head + _NO_CHECKS + tail + [*NULL, *NULL, *NULL], colour_args
+        ctx.hand_args = head + [*arr(radii, 2)]
         ctx.runs = runs
         ctx.mark_non_differentiable(*(t for t in (radii, counts, splats) if t is not None))
         return radii, means2d, depths, conics, opac, colors, counts, splats
@@ -143,10 +147,16 @@ class _Project(torch.autograd.Function):
             del g_t
         grads = [L.grad_rows(g, k, C * N) for g, k in ((g_means2d, 2), (g_depths, 1), (g_conics, 3), (g_opac, 1))]
         if any(g[1] is not None for g in grads) and any(need[:5]):
-            adj = [*_grid(v_means, C, N, 3), *_grid(v_quats, C, N, 4), *_grid(v_scales, C, N, 3), *_grid(v_opac, C, N, 1),
-                   *_grid(v_view, C, N, 16), *NULL, *_ADJ_PARAMS, *_NO_CHECKS, *grads[0][0], *grads[1][0],
-                   *grads[2][0], *grads[3][0], *NULL, *NULL, *NULL, *NULL]
-            cpu_threads.launch_runs(projection.projection_kernel(s, *cfg["variant"]), (C,), ctx.runs, ctx.args, tg, adj)
+            outs = [*_grid(v_means, C, N, 3), *_grid(v_quats, C, N, 4), *_grid(v_scales, C, N, 3),
+                    *_grid(v_opac, C, N, 1), *_grid(v_view, C, N, 16)]
+            if HAND_BACKWARD:  # kernels/projection_backward.py
+                cpu_threads.launch_runs(projection_backward.projection_backward_kernel(s, *cfg["variant"]), (C,),
+                                        ctx.runs, ctx.hand_args + [v for g in grads for v in g[0]] + outs, tg)
+            else:  # Warp's generated adjoint of the forward kernel (the hand kernel's yardstick in the tests)
+                adj = [*outs, *NULL, *_ADJ_PARAMS, *_NO_CHECKS, *grads[0][0], *grads[1][0],
+                       *grads[2][0], *grads[3][0], *NULL, *NULL, *NULL, *NULL]
+                cpu_threads.launch_runs(projection.projection_kernel(s, *cfg["variant"]), (C,), ctx.runs, ctx.args, tg,
+                                        adj)
         if C > 1:
             v_means, v_quats, v_scales, v_opac = (None if v is None else v.sum(0)
                                                   for v in (v_means, v_quats, v_scales, v_opac))

@@ -1,0 +1,282 @@
+"""Projection backward, written by hand: one thread per (camera, Gaussian).
+
+The chain rule of :mod:`.projection`'s forward, from the gradients of its outputs (screen
+mean, depth, conic, opacity) to the Gaussian's mean, quaternion, scales and opacity and to the
+view matrix. Each thread recomputes what it needs of the forward (camera point, rotation,
+Jacobian, 2D covariance) and nothing else: no input checks, tile counts or culling tests
+(a Gaussian the forward culled has zero radii and gets no gradient). Warp's generated adjoint
+of the forward kernel computes the same derivatives (the tests hold this kernel to it) but
+replays the whole forward first and keeps every intermediate, which costs it about half as
+much again on the GPU.
+
+With ``v`` a gradient, ``Conic = Sigma2d^-1``, ``G`` the conic gradient as a symmetric matrix
+(off-diagonal halved)::
+
+    v_Sigma2d   = -Conic G Conic                       (+ the antialiasing factor's terms)
+    cov = J Sc J^T:  v_Sc = J^T v_cov J,   v_J = 2 v_cov J Sc
+    Sc = R Sigma R^T: v_Sigma = R^T v_Sc R, v_R += 2 v_Sc R Sigma
+    Sigma = M M^T:   v_M = 2 v_Sigma M;  M = R_q diag(s): v_s, v_R_q, then the unit quaternion
+    p = R m + t:     v_m = R^T v_p,     v_R += v_p m^T,  v_t = v_p
+
+(the ``"factor"`` covariance form goes through ``A = J R M`` instead: ``v_A = 2 v_cov A``).
+The Jacobian's x/y clamp at 1.3x the field of view passes no gradient to the camera point
+where it clamps, as in the forward's maths. Every output slot belongs to one (camera,
+Gaussian) pair and is added to (the SH colour backward may have written the means' slots
+already), so the gradients are deterministic.
+"""
+
+import functools
+
+import warp as wp
+
+from .projection import matrix_funcs, projection_funcs, projection_params
+from .types import types_for
+
+
+@functools.lru_cache(maxsize=None)
+def quat_backward_func(scalar):
+    """``quat_backward(q, G) -> v_q``: the gradient to a (not necessarily unit) quaternion
+    ``q = (w, x, y, z)`` of ``G``, the gradient of the rotation matrix of ``q / |q|``
+    (``projection.matrix_funcs``' ``quat_to_rotmat``)."""
+    t = types_for(scalar)
+    vec4, mat33 = t.vec4, t.mat33
+
+    @wp.func
+    def quat_backward(q: vec4, G: mat33):
+        inv = scalar(1.0) / wp.sqrt(wp.dot(q, q))
+        w = q[0] * inv
+        x = q[1] * inv
+        y = q[2] * inv
+        z = q[3] * inv
+        two = scalar(2.0)
+        vw = two * (-z * G[0, 1] + y * G[0, 2] + z * G[1, 0] - x * G[1, 2] - y * G[2, 0] + x * G[2, 1])
+        vx = two * (y * G[0, 1] + z * G[0, 2] + y * G[1, 0] - two * x * G[1, 1] - w * G[1, 2] + z * G[2, 0]
+                    + w * G[2, 1] - two * x * G[2, 2])
+        vy = two * (-two * y * G[0, 0] + x * G[0, 1] + w * G[0, 2] + x * G[1, 0] + z * G[1, 2] - w * G[2, 0]
+                    + z * G[2, 1] - two * y * G[2, 2])
+        vz = two * (-two * z * G[0, 0] - w * G[0, 1] + x * G[0, 2] + w * G[1, 0] - two * z * G[1, 1]
+                    + y * G[1, 2] + x * G[2, 0] + y * G[2, 1])
+        vn = vec4(vw, vx, vy, vz)
+        qn = vec4(w, x, y, z)
+        # through the normalisation: the part of the gradient along q is lost
+        return (vn - qn * wp.dot(qn, vn)) * inv
+
+    return quat_backward
+
+
+@functools.lru_cache(maxsize=None)
+def projection_backward_kernel(scalar, covariance: str = "gsplat", fast_math: bool = False):
+    """The projection backward for one precision, launched over ``(C, N)`` (or a run of
+    Gaussians, ``first``). Inputs as the forward kernel reads them (2-D ``[camera, Gaussian]``
+    arrays), the forward's ``radii`` (flat ``[C * N]``), the outputs' gradients
+    (flat, null arrays where none came). Outputs (each a null array when not wanted): the
+    gradients of means, quaternions, scales, opacities and view matrices, one ``[camera,
+    Gaussian]`` slot each, added to."""
+    t = types_for(scalar)
+    vec2, vec3, vec4, mat22, mat33, mat44, mat23 = t.vec2, t.vec3, t.vec4, t.mat22, t.mat33, t.mat44, t.mat23
+    native_rsqrt = fast_math and scalar == wp.float32
+    camera_point = projection_funcs(scalar, native_rsqrt).camera_point
+    quat_to_rotmat = matrix_funcs(scalar, native_rsqrt).quat_to_rotmat
+    quat_backward = quat_backward_func(scalar)
+    Params = projection_params(scalar)
+    FACTOR = covariance == "factor"
+
+    @wp.kernel(module="unique", module_options={"fast_math": fast_math, "enable_backward": False})
+    def project_backward(
+        means: wp.array2d(dtype=vec3),
+        quats: wp.array2d(dtype=vec4),
+        scales: wp.array2d(dtype=vec3),
+        opacities: wp.array2d(dtype=scalar),
+        viewmats: wp.array2d(dtype=mat44),
+        Ks: wp.array(dtype=mat33),
+        params: Params,
+        radii: wp.array(dtype=wp.vec2i),
+        v_means2d: wp.array(dtype=vec2),
+        v_depths: wp.array(dtype=scalar),
+        v_conics: wp.array(dtype=vec3),
+        v_opac: wp.array(dtype=scalar),
+        v_means: wp.array2d(dtype=vec3),
+        v_quats: wp.array2d(dtype=vec4),
+        v_scales: wp.array2d(dtype=vec3),
+        v_opacities: wp.array2d(dtype=scalar),
+        v_viewmats: wp.array2d(dtype=mat44),
+        first: int,
+    ):
+        c, tt = wp.tid()
+        n = tt + first
+        i = c * means.shape[1] + n
+        r = radii[i]
+        if r[0] == 0 and r[1] == 0:  # culled: no gradient
+            return
+        zero = scalar(0.0)
+        one = scalar(1.0)
+        two = scalar(2.0)
+        # the outputs' gradients (zero where none came)
+        g_xy = vec2()
+        if v_means2d.shape[0] > 0:
+            g_xy = v_means2d[i]
+        g_z = zero
+        if v_depths.shape[0] > 0:
+            g_z = v_depths[i]
+        g_con = vec3()
+        if v_conics.shape[0] > 0:
+            g_con = v_conics[i]
+        g_op = zero
+        if v_opac.shape[0] > 0:
+            g_op = v_opac[i]
+
+        # the forward, recomputed
+        V = viewmats[c, n]
+        m = means[c, n]
+        R = mat33(V[0, 0], V[0, 1], V[0, 2], V[1, 0], V[1, 1], V[1, 2], V[2, 0], V[2, 1], V[2, 2])
+        p = camera_point(V, m)
+        z = p[2]
+        rz = one / z
+        K = Ks[c]
+        fx = K[0, 0]
+        fy = K[1, 1]
+        cx = K[0, 2]
+        cy = K[1, 2]
+        w = scalar(params.width)
+        h = scalar(params.height)
+        tan_fovx = scalar(0.5) * w / fx
+        tan_fovy = scalar(0.5) * h / fy
+        lim_x_pos = (w - cx) / fx + scalar(0.3) * tan_fovx
+        lim_x_neg = cx / fx + scalar(0.3) * tan_fovx
+        lim_y_pos = (h - cy) / fy + scalar(0.3) * tan_fovy
+        lim_y_neg = cy / fy + scalar(0.3) * tan_fovy
+        ux = p[0] * rz
+        uy = p[1] * rz
+        tx = z * wp.min(lim_x_pos, wp.max(-lim_x_neg, ux))
+        ty = z * wp.min(lim_y_pos, wp.max(-lim_y_neg, uy))
+        rz2 = rz * rz
+        J = mat23(fx * rz, zero, -fx * tx * rz2,
+                  zero, fy * rz, -fy * ty * rz2)
+        q = quats[c, n]
+        s = scales[c, n]
+        Rq = quat_to_rotmat(q)
+        M = mat33(Rq[0, 0] * s[0], Rq[0, 1] * s[1], Rq[0, 2] * s[2],
+                  Rq[1, 0] * s[0], Rq[1, 1] * s[1], Rq[1, 2] * s[2],
+                  Rq[2, 0] * s[0], Rq[2, 1] * s[1], Rq[2, 2] * s[2])
+        RM = R @ M
+        Sigma = M @ wp.transpose(M)
+        eps2d = params.eps2d
+        # the 2D covariance as the forward forms it: (a, b, cc) blurred, det_orig and det
+        A2 = mat23()
+        r0 = vec3()
+        r1 = vec3()
+        cr = vec3()
+        Sc = mat33()
+        c00 = zero
+        c10 = zero
+        c01 = zero
+        c11 = zero
+        if wp.static(FACTOR):  # from the factor A = J R M: sums of squares, det by Binet-Cauchy
+            A2 = J @ RM
+            r0 = vec3(A2[0, 0], A2[0, 1], A2[0, 2])
+            r1 = vec3(A2[1, 0], A2[1, 1], A2[1, 2])
+            cr = wp.cross(r0, r1)
+            c00 = wp.dot(r0, r0)
+            c10 = wp.dot(r0, r1)
+            c11 = wp.dot(r1, r1)
+        else:  # J (R Sigma R^T) J^T, det as ad - bc
+            Sc = R @ Sigma @ wp.transpose(R)
+            cov = J @ Sc @ wp.transpose(J)
+            c00 = cov[0, 0]
+            c10 = cov[1, 0]
+            c01 = cov[0, 1]
+            c11 = cov[1, 1]
+        a = c00 + eps2d
+        cc = c11 + eps2d
+        det_orig = zero
+        det = zero
+        if wp.static(FACTOR):
+            det_orig = wp.dot(cr, cr)
+            det = det_orig + eps2d * (c00 + c11) + eps2d * eps2d
+        else:
+            det_orig = c00 * c11 - c10 * c01
+            det = a * cc - c10 * c01
+
+        # conic = (cc, -b, a) / det
+        inv_det = one / det
+        v_a = g_con[2] * inv_det
+        v_cc = g_con[0] * inv_det
+        v_b = -g_con[1] * inv_det
+        v_det = -(g_con[0] * cc - g_con[1] * c10 + g_con[2] * a) * inv_det * inv_det
+        v_do = zero
+        v_o = g_op
+        if params.antialiased != 0:  # op = o sqrt(det_orig / det)
+            ratio = det_orig / det
+            v_o = zero
+            if ratio > zero:
+                f = wp.sqrt(ratio)
+                v_o = g_op * f
+                v_ratio = g_op * opacities[c, n] * scalar(0.5) / f
+                v_do = v_ratio / det
+                v_det -= v_ratio * ratio / det
+
+        # to the factor (rows r0, r1) or to the camera-space covariance, then to R and M
+        v_R = mat33()
+        v_M = mat33()
+        v_J = mat23()
+        if wp.static(FACTOR):
+            v_D = v_det + v_do  # det_orig = |r0 x r1|^2, det = det_orig + eps2d (c00 + c11) + eps2d^2
+            v_c00 = v_a + v_det * eps2d
+            v_c11 = v_cc + v_det * eps2d
+            v_cr = two * v_D * cr
+            v_r0 = wp.cross(r1, v_cr) + two * v_c00 * r0 + v_b * r1
+            v_r1 = wp.cross(v_cr, r0) + two * v_c11 * r1 + v_b * r0
+            v_A = mat23(v_r0[0], v_r0[1], v_r0[2], v_r1[0], v_r1[1], v_r1[2])
+            v_J = v_A @ wp.transpose(RM)
+            v_RM = wp.transpose(J) @ v_A
+            v_R = v_RM @ wp.transpose(M)
+            v_M = wp.transpose(R) @ v_RM
+        else:
+            v_cov = mat22(v_a + v_det * cc + v_do * c11, -(v_det + v_do) * c10,
+                          v_b - (v_det + v_do) * c01, v_cc + v_det * a + v_do * c00)
+            v_Sc = wp.transpose(J) @ v_cov @ J
+            v_J = v_cov @ J @ wp.transpose(Sc) + wp.transpose(v_cov) @ J @ Sc
+            v_R = v_Sc @ R @ wp.transpose(Sigma) + wp.transpose(v_Sc) @ R @ Sigma
+            v_Sigma = wp.transpose(R) @ v_Sc @ R
+            v_M = (v_Sigma + wp.transpose(v_Sigma)) @ M
+
+        # the camera point: screen mean, depth, and the Jacobian's entries
+        v_p = vec3(g_xy[0] * fx * rz, g_xy[1] * fy * rz, g_z)
+        v_rz = g_xy[0] * fx * p[0] + g_xy[1] * fy * p[1]
+        v_rz += fx * v_J[0, 0] + fy * v_J[1, 1] - two * fx * tx * rz * v_J[0, 2] - two * fy * ty * rz * v_J[1, 2]
+        v_tx = -fx * rz2 * v_J[0, 2]
+        v_ty = -fy * rz2 * v_J[1, 2]
+        v_z = v_tx * wp.min(lim_x_pos, wp.max(-lim_x_neg, ux)) + v_ty * wp.min(lim_y_pos, wp.max(-lim_y_neg, uy))
+        if ux > -lim_x_neg and ux < lim_x_pos:  # (clamped: no gradient to the point through it)
+            v_ux = v_tx * z
+            v_p[0] += v_ux * rz
+            v_rz += v_ux * p[0]
+        if uy > -lim_y_neg and uy < lim_y_pos:
+            v_uy = v_ty * z
+            v_p[1] += v_uy * rz
+            v_rz += v_uy * p[1]
+        v_p[2] += v_z - v_rz * rz2
+
+        if v_means.shape[0] > 0:
+            v_means[c, n] = v_means[c, n] + wp.transpose(R) @ v_p
+        if v_viewmats.shape[0] > 0:
+            v_R += wp.outer(v_p, m)
+            v_viewmats[c, n] = v_viewmats[c, n] + mat44(
+                v_R[0, 0], v_R[0, 1], v_R[0, 2], v_p[0],
+                v_R[1, 0], v_R[1, 1], v_R[1, 2], v_p[1],
+                v_R[2, 0], v_R[2, 1], v_R[2, 2], v_p[2],
+                zero, zero, zero, zero)
+        if v_scales.shape[0] > 0:
+            v_scales[c, n] = v_scales[c, n] + vec3(
+                v_M[0, 0] * Rq[0, 0] + v_M[1, 0] * Rq[1, 0] + v_M[2, 0] * Rq[2, 0],
+                v_M[0, 1] * Rq[0, 1] + v_M[1, 1] * Rq[1, 1] + v_M[2, 1] * Rq[2, 1],
+                v_M[0, 2] * Rq[0, 2] + v_M[1, 2] * Rq[1, 2] + v_M[2, 2] * Rq[2, 2])
+        if v_quats.shape[0] > 0:
+            G_R = mat33(v_M[0, 0] * s[0], v_M[0, 1] * s[1], v_M[0, 2] * s[2],
+                        v_M[1, 0] * s[0], v_M[1, 1] * s[1], v_M[1, 2] * s[2],
+                        v_M[2, 0] * s[0], v_M[2, 1] * s[1], v_M[2, 2] * s[2])
+            v_quats[c, n] = v_quats[c, n] + quat_backward(q, G_R)
+        if v_opacities.shape[0] > 0:
+            v_opacities[c, n] = v_opacities[c, n] + v_o
+
+    return project_backward
