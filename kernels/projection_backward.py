@@ -65,21 +65,168 @@ def quat_backward_func(scalar):
 
 
 @functools.lru_cache(maxsize=None)
+def covariance_backward_func(scalar, covariance: str):
+    """``covariance_backward(J, R, M, eps2d, antialiased, o, g_con, g_op) -> (v_J, v_R, v_M, v_o)``:
+    the 2D covariance recomputed as the forward forms it (``covariance``: ``"gsplat"``,
+    ``J (R M M^T R^T) J^T`` with the determinant as ``ad - bc``; ``"factor"``, from ``A = J R M``
+    with the determinant by Binet-Cauchy), then the gradients of the conic ``(cc, -b, a) / det``
+    (``g_con``) and of the opacity (``g_op``, through the antialiasing factor
+    ``sqrt(det_orig / det)`` when ``antialiased``) back to the Jacobian ``J``, the camera rotation
+    ``R``, the scaled rotation ``M`` and the input opacity ``o``."""
+    t = types_for(scalar)
+    vec3, mat22, mat33, mat23 = t.vec3, t.mat22, t.mat33, t.mat23
+    FACTOR = covariance == "factor"
+
+    @wp.func
+    def covariance_backward(J: mat23, R: mat33, M: mat33, eps2d: scalar, antialiased: int, o: scalar, g_con: vec3,
+                            g_op: scalar):
+        zero = scalar(0.0)
+        one = scalar(1.0)
+        two = scalar(2.0)
+        RM = R @ M
+        Sigma = M @ wp.transpose(M)
+        A2 = mat23()
+        r0 = vec3()
+        r1 = vec3()
+        cr = vec3()
+        Sc = mat33()
+        c00 = zero
+        c10 = zero
+        c01 = zero
+        c11 = zero
+        det_orig = zero
+        if wp.static(FACTOR):  # rows of the factor: sums of squares, det_orig = |r0 x r1|^2
+            A2 = J @ RM
+            r0 = vec3(A2[0, 0], A2[0, 1], A2[0, 2])
+            r1 = vec3(A2[1, 0], A2[1, 1], A2[1, 2])
+            cr = wp.cross(r0, r1)
+            c00 = wp.dot(r0, r0)
+            c10 = wp.dot(r0, r1)
+            c11 = wp.dot(r1, r1)
+            det_orig = wp.dot(cr, cr)
+        else:
+            Sc = R @ Sigma @ wp.transpose(R)
+            cov = J @ Sc @ wp.transpose(J)
+            c00 = cov[0, 0]
+            c10 = cov[1, 0]
+            c01 = cov[0, 1]
+            c11 = cov[1, 1]
+            det_orig = c00 * c11 - c10 * c01
+        a = c00 + eps2d
+        cc = c11 + eps2d
+        det = zero
+        if wp.static(FACTOR):
+            det = det_orig + eps2d * (c00 + c11) + eps2d * eps2d
+        else:
+            det = a * cc - c10 * c01
+
+        # conic = (cc, -b, a) / det
+        inv_det = one / det
+        v_a = g_con[2] * inv_det
+        v_cc = g_con[0] * inv_det
+        v_b = -g_con[1] * inv_det
+        v_det = -(g_con[0] * cc - g_con[1] * c10 + g_con[2] * a) * inv_det * inv_det
+        v_do = zero
+        v_o = g_op
+        if antialiased != 0:  # op = o sqrt(det_orig / det)
+            ratio = det_orig / det
+            v_o = zero
+            if ratio > zero:
+                f = wp.sqrt(ratio)
+                v_o = g_op * f
+                v_ratio = g_op * o * scalar(0.5) / f
+                v_do = v_ratio / det
+                v_det -= v_ratio * ratio / det
+
+        v_R = mat33()
+        v_M = mat33()
+        v_J = mat23()
+        if wp.static(FACTOR):
+            v_D = v_det + v_do  # det = det_orig + eps2d (c00 + c11) + eps2d^2
+            v_c00 = v_a + v_det * eps2d
+            v_c11 = v_cc + v_det * eps2d
+            v_cr = two * v_D * cr
+            v_r0 = wp.cross(r1, v_cr) + two * v_c00 * r0 + v_b * r1
+            v_r1 = wp.cross(v_cr, r0) + two * v_c11 * r1 + v_b * r0
+            v_A = mat23(v_r0[0], v_r0[1], v_r0[2], v_r1[0], v_r1[1], v_r1[2])
+            v_J = v_A @ wp.transpose(RM)
+            v_RM = wp.transpose(J) @ v_A
+            v_R = v_RM @ wp.transpose(M)
+            v_M = wp.transpose(R) @ v_RM
+        else:
+            v_cov = mat22(v_a + v_det * cc + v_do * c11, -(v_det + v_do) * c10,
+                          v_b - (v_det + v_do) * c01, v_cc + v_det * a + v_do * c00)
+            v_Sc = wp.transpose(J) @ v_cov @ J
+            v_J = v_cov @ J @ wp.transpose(Sc) + wp.transpose(v_cov) @ J @ Sc
+            v_R = v_Sc @ R @ wp.transpose(Sigma) + wp.transpose(v_Sc) @ R @ Sigma
+            v_Sigma = wp.transpose(R) @ v_Sc @ R
+            v_M = (v_Sigma + wp.transpose(v_Sigma)) @ M
+        return v_J, v_R, v_M, v_o
+
+    return covariance_backward
+
+
+@functools.lru_cache(maxsize=None)
+def point_backward_func(scalar, native_rsqrt: bool = False):
+    """``point_backward(p, K, w, h, g_xy, g_z, v_J) -> v_p``: the gradient to the camera point ``p``
+    of the screen mean (``g_xy``), the depth (``g_z``) and the entries of the forward's Jacobian
+    (``v_J``; where its x/y clamp is active, none through the clamped coordinate)."""
+    t = types_for(scalar)
+    vec2, vec3, mat33, mat23 = t.vec2, t.vec3, t.mat33, t.mat23
+    fov_limits = projection_funcs(scalar, native_rsqrt).fov_limits
+
+    @wp.func
+    def point_backward(p: vec3, K: mat33, w: scalar, h: scalar, g_xy: vec2, g_z: scalar, v_J: mat23):
+        fx = K[0, 0]
+        fy = K[1, 1]
+        lim = fov_limits(fx, fy, K[0, 2], K[1, 2], w, h)
+        z = p[2]
+        rz = scalar(1.0) / z
+        rz2 = rz * rz
+        two = scalar(2.0)
+        ux = p[0] * rz
+        uy = p[1] * rz
+        kx = wp.min(lim[0], wp.max(-lim[1], ux))
+        ky = wp.min(lim[2], wp.max(-lim[3], uy))
+        tx = z * kx
+        ty = z * ky
+        # screen mean (fx x / z + cx, fy y / z + cy) and depth z
+        v_p = vec3(g_xy[0] * fx * rz, g_xy[1] * fy * rz, g_z)
+        v_rz = g_xy[0] * fx * p[0] + g_xy[1] * fy * p[1]
+        # J = [[fx rz, 0, -fx tx rz^2], [0, fy rz, -fy ty rz^2]], tx = z clamp(x rz)
+        v_rz += fx * v_J[0, 0] + fy * v_J[1, 1] - two * fx * tx * rz * v_J[0, 2] - two * fy * ty * rz * v_J[1, 2]
+        v_tx = -fx * rz2 * v_J[0, 2]
+        v_ty = -fy * rz2 * v_J[1, 2]
+        if ux > -lim[1] and ux < lim[0]:  # (clamped: no gradient to the point through it)
+            v_p[0] += v_tx * z * rz
+            v_rz += v_tx * z * p[0]
+        if uy > -lim[3] and uy < lim[2]:
+            v_p[1] += v_ty * z * rz
+            v_rz += v_ty * z * p[1]
+        v_p[2] += v_tx * kx + v_ty * ky - v_rz * rz2
+        return v_p
+
+    return point_backward
+
+
+@functools.lru_cache(maxsize=None)
 def projection_backward_kernel(scalar, covariance: str = "gsplat", fast_math: bool = False):
     """The projection backward for one precision, launched over ``(C, N)`` (or a run of
     Gaussians, ``first``). Inputs as the forward kernel reads them (2-D ``[camera, Gaussian]``
-    arrays), the forward's ``radii`` (flat ``[C * N]``), the outputs' gradients
-    (flat, null arrays where none came). Outputs (each a null array when not wanted): the
-    gradients of means, quaternions, scales, opacities and view matrices, one ``[camera,
-    Gaussian]`` slot each, added to."""
+    arrays), the forward's ``radii`` (flat ``[C * N]``), the outputs' gradients (flat, null
+    arrays where none came). Outputs (each a null array when not wanted): the gradients of
+    means, quaternions, scales, opacities and view matrices, one ``[camera, Gaussian]`` slot
+    each, added to."""
     t = types_for(scalar)
-    vec2, vec3, vec4, mat22, mat33, mat44, mat23 = t.vec2, t.vec3, t.vec4, t.mat22, t.mat33, t.mat44, t.mat23
+    vec2, vec3, vec4, mat33, mat44 = t.vec2, t.vec3, t.vec4, t.mat33, t.mat44
     native_rsqrt = fast_math and scalar == wp.float32
-    camera_point = projection_funcs(scalar, native_rsqrt).camera_point
+    fns = projection_funcs(scalar, native_rsqrt)
+    camera_point, jacobian, scaled_rotation = fns.camera_point, fns.jacobian, fns.scaled_rotation
     quat_to_rotmat = matrix_funcs(scalar, native_rsqrt).quat_to_rotmat
     quat_backward = quat_backward_func(scalar)
+    covariance_backward = covariance_backward_func(scalar, covariance)
+    point_backward = point_backward_func(scalar, native_rsqrt)
     Params = projection_params(scalar)
-    FACTOR = covariance == "factor"
 
     @wp.kernel(module="unique", module_options={"fast_math": fast_math, "enable_backward": False})
     def project_backward(
@@ -109,8 +256,6 @@ def projection_backward_kernel(scalar, covariance: str = "gsplat", fast_math: bo
         if r[0] == 0 and r[1] == 0:  # culled: no gradient
             return
         zero = scalar(0.0)
-        one = scalar(1.0)
-        two = scalar(2.0)
         # the outputs' gradients (zero where none came)
         g_xy = vec2()
         if v_means2d.shape[0] > 0:
@@ -125,148 +270,32 @@ def projection_backward_kernel(scalar, covariance: str = "gsplat", fast_math: bo
         if v_opac.shape[0] > 0:
             g_op = v_opac[i]
 
-        # the forward, recomputed
         V = viewmats[c, n]
         m = means[c, n]
         R = mat33(V[0, 0], V[0, 1], V[0, 2], V[1, 0], V[1, 1], V[1, 2], V[2, 0], V[2, 1], V[2, 2])
         p = camera_point(V, m)
-        z = p[2]
-        rz = one / z
         K = Ks[c]
-        fx = K[0, 0]
-        fy = K[1, 1]
-        cx = K[0, 2]
-        cy = K[1, 2]
         w = scalar(params.width)
         h = scalar(params.height)
-        tan_fovx = scalar(0.5) * w / fx
-        tan_fovy = scalar(0.5) * h / fy
-        lim_x_pos = (w - cx) / fx + scalar(0.3) * tan_fovx
-        lim_x_neg = cx / fx + scalar(0.3) * tan_fovx
-        lim_y_pos = (h - cy) / fy + scalar(0.3) * tan_fovy
-        lim_y_neg = cy / fy + scalar(0.3) * tan_fovy
-        ux = p[0] * rz
-        uy = p[1] * rz
-        tx = z * wp.min(lim_x_pos, wp.max(-lim_x_neg, ux))
-        ty = z * wp.min(lim_y_pos, wp.max(-lim_y_neg, uy))
-        rz2 = rz * rz
-        J = mat23(fx * rz, zero, -fx * tx * rz2,
-                  zero, fy * rz, -fy * ty * rz2)
+        J = jacobian(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, p, p[2], scalar(1.0) / p[2])
         q = quats[c, n]
         s = scales[c, n]
         Rq = quat_to_rotmat(q)
-        M = mat33(Rq[0, 0] * s[0], Rq[0, 1] * s[1], Rq[0, 2] * s[2],
-                  Rq[1, 0] * s[0], Rq[1, 1] * s[1], Rq[1, 2] * s[2],
-                  Rq[2, 0] * s[0], Rq[2, 1] * s[1], Rq[2, 2] * s[2])
-        RM = R @ M
-        Sigma = M @ wp.transpose(M)
-        eps2d = params.eps2d
-        # the 2D covariance as the forward forms it: (a, b, cc) blurred, det_orig and det
-        A2 = mat23()
-        r0 = vec3()
-        r1 = vec3()
-        cr = vec3()
-        Sc = mat33()
-        c00 = zero
-        c10 = zero
-        c01 = zero
-        c11 = zero
-        if wp.static(FACTOR):  # from the factor A = J R M: sums of squares, det by Binet-Cauchy
-            A2 = J @ RM
-            r0 = vec3(A2[0, 0], A2[0, 1], A2[0, 2])
-            r1 = vec3(A2[1, 0], A2[1, 1], A2[1, 2])
-            cr = wp.cross(r0, r1)
-            c00 = wp.dot(r0, r0)
-            c10 = wp.dot(r0, r1)
-            c11 = wp.dot(r1, r1)
-        else:  # J (R Sigma R^T) J^T, det as ad - bc
-            Sc = R @ Sigma @ wp.transpose(R)
-            cov = J @ Sc @ wp.transpose(J)
-            c00 = cov[0, 0]
-            c10 = cov[1, 0]
-            c01 = cov[0, 1]
-            c11 = cov[1, 1]
-        a = c00 + eps2d
-        cc = c11 + eps2d
-        det_orig = zero
-        det = zero
-        if wp.static(FACTOR):
-            det_orig = wp.dot(cr, cr)
-            det = det_orig + eps2d * (c00 + c11) + eps2d * eps2d
-        else:
-            det_orig = c00 * c11 - c10 * c01
-            det = a * cc - c10 * c01
-
-        # conic = (cc, -b, a) / det
-        inv_det = one / det
-        v_a = g_con[2] * inv_det
-        v_cc = g_con[0] * inv_det
-        v_b = -g_con[1] * inv_det
-        v_det = -(g_con[0] * cc - g_con[1] * c10 + g_con[2] * a) * inv_det * inv_det
-        v_do = zero
-        v_o = g_op
-        if params.antialiased != 0:  # op = o sqrt(det_orig / det)
-            ratio = det_orig / det
-            v_o = zero
-            if ratio > zero:
-                f = wp.sqrt(ratio)
-                v_o = g_op * f
-                v_ratio = g_op * opacities[c, n] * scalar(0.5) / f
-                v_do = v_ratio / det
-                v_det -= v_ratio * ratio / det
-
-        # to the factor (rows r0, r1) or to the camera-space covariance, then to R and M
-        v_R = mat33()
-        v_M = mat33()
-        v_J = mat23()
-        if wp.static(FACTOR):
-            v_D = v_det + v_do  # det_orig = |r0 x r1|^2, det = det_orig + eps2d (c00 + c11) + eps2d^2
-            v_c00 = v_a + v_det * eps2d
-            v_c11 = v_cc + v_det * eps2d
-            v_cr = two * v_D * cr
-            v_r0 = wp.cross(r1, v_cr) + two * v_c00 * r0 + v_b * r1
-            v_r1 = wp.cross(v_cr, r0) + two * v_c11 * r1 + v_b * r0
-            v_A = mat23(v_r0[0], v_r0[1], v_r0[2], v_r1[0], v_r1[1], v_r1[2])
-            v_J = v_A @ wp.transpose(RM)
-            v_RM = wp.transpose(J) @ v_A
-            v_R = v_RM @ wp.transpose(M)
-            v_M = wp.transpose(R) @ v_RM
-        else:
-            v_cov = mat22(v_a + v_det * cc + v_do * c11, -(v_det + v_do) * c10,
-                          v_b - (v_det + v_do) * c01, v_cc + v_det * a + v_do * c00)
-            v_Sc = wp.transpose(J) @ v_cov @ J
-            v_J = v_cov @ J @ wp.transpose(Sc) + wp.transpose(v_cov) @ J @ Sc
-            v_R = v_Sc @ R @ wp.transpose(Sigma) + wp.transpose(v_Sc) @ R @ Sigma
-            v_Sigma = wp.transpose(R) @ v_Sc @ R
-            v_M = (v_Sigma + wp.transpose(v_Sigma)) @ M
-
-        # the camera point: screen mean, depth, and the Jacobian's entries
-        v_p = vec3(g_xy[0] * fx * rz, g_xy[1] * fy * rz, g_z)
-        v_rz = g_xy[0] * fx * p[0] + g_xy[1] * fy * p[1]
-        v_rz += fx * v_J[0, 0] + fy * v_J[1, 1] - two * fx * tx * rz * v_J[0, 2] - two * fy * ty * rz * v_J[1, 2]
-        v_tx = -fx * rz2 * v_J[0, 2]
-        v_ty = -fy * rz2 * v_J[1, 2]
-        v_z = v_tx * wp.min(lim_x_pos, wp.max(-lim_x_neg, ux)) + v_ty * wp.min(lim_y_pos, wp.max(-lim_y_neg, uy))
-        if ux > -lim_x_neg and ux < lim_x_pos:  # (clamped: no gradient to the point through it)
-            v_ux = v_tx * z
-            v_p[0] += v_ux * rz
-            v_rz += v_ux * p[0]
-        if uy > -lim_y_neg and uy < lim_y_pos:
-            v_uy = v_ty * z
-            v_p[1] += v_uy * rz
-            v_rz += v_uy * p[1]
-        v_p[2] += v_z - v_rz * rz2
+        M = scaled_rotation(q, s)
+        v_J, v_R, v_M, v_o = covariance_backward(J, R, M, params.eps2d, params.antialiased, opacities[c, n], g_con,
+                                                 g_op)
+        v_p = point_backward(p, K, w, h, g_xy, g_z, v_J)
 
         if v_means.shape[0] > 0:
             v_means[c, n] = v_means[c, n] + wp.transpose(R) @ v_p
-        if v_viewmats.shape[0] > 0:
+        if v_viewmats.shape[0] > 0:  # p = R m + t
             v_R += wp.outer(v_p, m)
             v_viewmats[c, n] = v_viewmats[c, n] + mat44(
                 v_R[0, 0], v_R[0, 1], v_R[0, 2], v_p[0],
                 v_R[1, 0], v_R[1, 1], v_R[1, 2], v_p[1],
                 v_R[2, 0], v_R[2, 1], v_R[2, 2], v_p[2],
                 zero, zero, zero, zero)
-        if v_scales.shape[0] > 0:
+        if v_scales.shape[0] > 0:  # M = Rq diag(s)
             v_scales[c, n] = v_scales[c, n] + vec3(
                 v_M[0, 0] * Rq[0, 0] + v_M[1, 0] * Rq[1, 0] + v_M[2, 0] * Rq[2, 0],
                 v_M[0, 1] * Rq[0, 1] + v_M[1, 1] * Rq[1, 1] + v_M[2, 1] * Rq[2, 1],

@@ -155,8 +155,8 @@ class _Project(torch.autograd.Function):
             else:  # Warp's generated adjoint of the forward kernel (the hand kernel's yardstick in the tests)
                 adj = [*outs, *NULL, *_ADJ_PARAMS, *_NO_CHECKS, *grads[0][0], *grads[1][0],
                        *grads[2][0], *grads[3][0], *NULL, *NULL, *NULL, *NULL]
-                cpu_threads.launch_runs(projection.projection_kernel(s, *cfg["variant"]), (C,), ctx.runs, ctx.args, tg,
-                                        adj)
+                cpu_threads.launch_runs(projection.projection_kernel(s, *cfg["variant"], True), (C,), ctx.runs,
+                                        ctx.args, tg, adj)
         if C > 1:
             v_means, v_quats, v_scales, v_opac = (None if v is None else v.sum(0)
                                                   for v in (v_means, v_quats, v_scales, v_opac))
