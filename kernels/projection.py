@@ -164,14 +164,16 @@ def projection_params(scalar):
 
 @functools.lru_cache(maxsize=None)
 def projection_funcs(scalar, native_rsqrt: bool = False):
-    """The projection kernel's maths in pieces for one precision (each a ``wp.func``, so Warp's
-    adjoint of the kernel differentiates through them; the operations, their order and their
-    rounding are the kernel's, unchanged): ``camera_point(V, m)`` (``R m + t``),
-    ``scaled_rotation(q, s)`` (``M = R_q S``), ``fov_limits(fx, fy, cx, cy, w, h)`` (where the
-    Jacobian's x/z and y/z clamp, at 1.3x the field of view), ``jacobian(fx, fy, cx, cy, w, h, p, z, rz)``, ``cov_gsplat`` / ``cov_factor(J, R, M, eps2d)`` -> ``(a, b, c,
-    det_orig, det)`` (the blurred 2D covariance ``[[a, b], [b, c]]``, its determinant before and
-    after the blur), ``pixel_radii(op, a, c, alpha_min, sigma_max, opacity_extent)`` -> ``(rx, ry)``
-    and ``cull(i, outputs...)``."""
+    """The projection kernel's maths in pieces for one precision (each a ``wp.func``; the
+    hand-written backward recomputes the forward with the same ones, so its intermediate values
+    are the forward's to the bit): ``camera_point(V, m)`` (``R m + t``), ``scaled_rotation(q, s)``
+    (``M = R_q S``), ``fov_limits(fx, fy, cx, cy, w, h)`` (where the Jacobian's x/z and y/z clamp,
+    at 1.3x the field of view), ``jacobian(fx, fy, cx, cy, w, h, p, z, rz)``, ``cov_gsplat`` /
+    ``cov_factor(J, R, M, eps2d)`` -> ``(a, b, c, det_orig, det)`` (the blurred 2D covariance
+    ``[[a, b], [b, c]]``, its determinant before and after the blur; in pieces: ``cov_camera(R, M)``
+    and ``blur_gsplat(cov2d(J, Sc), eps2d)``, ``factor_rows(J, R, M)`` and ``blur_factor(r0, r1,
+    eps2d)``), ``pixel_radii(op, a, c, alpha_min, sigma_max, opacity_extent)`` -> ``(rx, ry)`` and
+    ``cull(i, outputs...)``."""
     t = types_for(scalar)
     vec2, vec3, vec4, mat33, mat44, mat23 = t.vec2, t.vec3, t.vec4, t.mat33, t.mat44, t.mat23
     mf = matrix_funcs(scalar, native_rsqrt)
@@ -212,11 +214,13 @@ def projection_funcs(scalar, native_rsqrt: bool = False):
                      zero, fy * rz, -fy * ty * rz2)
 
     @wp.func
-    def cov_gsplat(J: mat23, R: mat33, M: mat33, eps2d: scalar):
-        # gsplat's order: Sigma = M M^T, Sigma_c = (R Sigma) R^T, cov = (J Sigma_c) J^T with
-        # J's zero entries multiplied out, determinant a d - b c
-        Sc = mul33_t(mul33(R, mul33_t(M, M)), R)
-        cv = cov2d(J, Sc)
+    def cov_camera(R: mat33, M: mat33):
+        # gsplat's order: Sigma = M M^T, Sigma_c = (R Sigma) R^T
+        return mul33_t(mul33(R, mul33_t(M, M)), R)
+
+    @wp.func
+    def blur_gsplat(cv: vec4, eps2d: scalar):
+        # cv = (c00, c10, c01, c11) of (J Sigma_c) J^T; eps2d on the diagonal, determinants a d - b c
         c00 = cv[0]
         c10 = cv[1]
         c01 = cv[2]
@@ -228,12 +232,21 @@ def projection_funcs(scalar, native_rsqrt: bool = False):
         return a, c10, cc, det_orig, det
 
     @wp.func
-    def cov_factor(J: mat23, R: mat33, M: mat33, eps2d: scalar):
-        # the 2D covariance from its 2x3 factor A = J R M: sums of squares, and its determinant
-        # as the squared cross product of A's rows (Binet-Cauchy), free of cancellation
+    def cov_gsplat(J: mat23, R: mat33, M: mat33, eps2d: scalar):
+        # cov = (J Sigma_c) J^T with J's zero entries multiplied out
+        a, b, cc, det_orig, det = blur_gsplat(cov2d(J, cov_camera(R, M)), eps2d)
+        return a, b, cc, det_orig, det
+
+    @wp.func
+    def factor_rows(J: mat23, R: mat33, M: mat33):
+        # the rows of the 2D covariance's 2x3 factor A = J R M
         A = J @ R @ M
-        r0 = vec3(A[0, 0], A[0, 1], A[0, 2])
-        r1 = vec3(A[1, 0], A[1, 1], A[1, 2])
+        return vec3(A[0, 0], A[0, 1], A[0, 2]), vec3(A[1, 0], A[1, 1], A[1, 2])
+
+    @wp.func
+    def blur_factor(r0: vec3, r1: vec3, eps2d: scalar):
+        # sums of squares, and the determinant as the squared cross product of the rows
+        # (Binet-Cauchy), free of cancellation
         a = wp.dot(r0, r0)
         b = wp.dot(r0, r1)
         cc = wp.dot(r1, r1)
@@ -241,6 +254,12 @@ def projection_funcs(scalar, native_rsqrt: bool = False):
         det_orig = wp.dot(cr, cr)
         det = det_orig + eps2d * (a + cc) + eps2d * eps2d
         return a + eps2d, b, cc + eps2d, det_orig, det
+
+    @wp.func
+    def cov_factor(J: mat23, R: mat33, M: mat33, eps2d: scalar):
+        r0, r1 = factor_rows(J, R, M)
+        a, b, cc, det_orig, det = blur_factor(r0, r1, eps2d)
+        return a, b, cc, det_orig, det
 
     @wp.func
     def pixel_radii(op: scalar, a: scalar, cc: scalar, alpha_min: scalar, sigma_max: scalar, opacity_extent: int):
@@ -268,7 +287,8 @@ def projection_funcs(scalar, native_rsqrt: bool = False):
             ends[i] = wp.int64(0)
 
     return SimpleNamespace(camera_point=camera_point, scaled_rotation=scaled_rotation, fov_limits=fov_limits,
-                           jacobian=jacobian,
+                           jacobian=jacobian, cov_camera=cov_camera, blur_gsplat=blur_gsplat, factor_rows=factor_rows,
+                           blur_factor=blur_factor,
                            cov_gsplat=cov_gsplat, cov_factor=cov_factor, pixel_radii=pixel_radii, cull=cull)
 
 

@@ -65,17 +65,22 @@ def quat_backward_func(scalar):
 
 
 @functools.lru_cache(maxsize=None)
-def covariance_backward_func(scalar, covariance: str):
+def covariance_backward_func(scalar, covariance: str, native_rsqrt: bool = False):
     """``covariance_backward(J, R, M, eps2d, antialiased, o, g_con, g_op) -> (v_J, v_R, v_M, v_o)``:
-    the 2D covariance recomputed as the forward forms it (``covariance``: ``"gsplat"``,
+    the 2D covariance recomputed with the forward's own functions (``covariance``: ``"gsplat"``,
     ``J (R M M^T R^T) J^T`` with the determinant as ``ad - bc``; ``"factor"``, from ``A = J R M``
-    with the determinant by Binet-Cauchy), then the gradients of the conic ``(cc, -b, a) / det``
-    (``g_con``) and of the opacity (``g_op``, through the antialiasing factor
-    ``sqrt(det_orig / det)`` when ``antialiased``) back to the Jacobian ``J``, the camera rotation
-    ``R``, the scaled rotation ``M`` and the input opacity ``o``."""
+    with the determinant by Binet-Cauchy), so every value, rounding included, is the forward's,
+    then the gradients of the conic ``(cc, -b, a) / det`` (``g_con``) and of the opacity (``g_op``,
+    through the antialiasing factor ``sqrt(det_orig / det)`` when ``antialiased``) back to the
+    Jacobian ``J``, the camera rotation ``R``, the scaled rotation ``M`` and the input opacity
+    ``o``."""
     t = types_for(scalar)
     vec3, mat22, mat33, mat23 = t.vec3, t.mat22, t.mat33, t.mat23
     FACTOR = covariance == "factor"
+    fns = projection_funcs(scalar, native_rsqrt)
+    mf = matrix_funcs(scalar, native_rsqrt)
+    cov_camera, blur_gsplat, factor_rows, blur_factor = fns.cov_camera, fns.blur_gsplat, fns.factor_rows, fns.blur_factor
+    cov2d, mul33_t = mf.cov2d, mf.mul33_t
 
     @wp.func
     def covariance_backward(J: mat23, R: mat33, M: mat33, eps2d: scalar, antialiased: int, o: scalar, g_con: vec3,
@@ -83,42 +88,27 @@ def covariance_backward_func(scalar, covariance: str):
         zero = scalar(0.0)
         one = scalar(1.0)
         two = scalar(2.0)
-        RM = R @ M
-        Sigma = M @ wp.transpose(M)
-        A2 = mat23()
         r0 = vec3()
         r1 = vec3()
-        cr = vec3()
         Sc = mat33()
         c00 = zero
         c10 = zero
         c01 = zero
         c11 = zero
+        a = zero
+        cc = zero
         det_orig = zero
-        if wp.static(FACTOR):  # rows of the factor: sums of squares, det_orig = |r0 x r1|^2
-            A2 = J @ RM
-            r0 = vec3(A2[0, 0], A2[0, 1], A2[0, 2])
-            r1 = vec3(A2[1, 0], A2[1, 1], A2[1, 2])
-            cr = wp.cross(r0, r1)
-            c00 = wp.dot(r0, r0)
-            c10 = wp.dot(r0, r1)
-            c11 = wp.dot(r1, r1)
-            det_orig = wp.dot(cr, cr)
-        else:
-            Sc = R @ Sigma @ wp.transpose(R)
-            cov = J @ Sc @ wp.transpose(J)
-            c00 = cov[0, 0]
-            c10 = cov[1, 0]
-            c01 = cov[0, 1]
-            c11 = cov[1, 1]
-            det_orig = c00 * c11 - c10 * c01
-        a = c00 + eps2d
-        cc = c11 + eps2d
         det = zero
         if wp.static(FACTOR):
-            det = det_orig + eps2d * (c00 + c11) + eps2d * eps2d
+            r0, r1 = factor_rows(J, R, M)
+            a, c10, cc, det_orig, det = blur_factor(r0, r1, eps2d)
         else:
-            det = a * cc - c10 * c01
+            Sc = cov_camera(R, M)
+            cv = cov2d(J, Sc)
+            a, c10, cc, det_orig, det = blur_gsplat(cv, eps2d)
+            c00 = cv[0]
+            c01 = cv[2]
+            c11 = cv[3]
 
         # conic = (cc, -b, a) / det
         inv_det = one / det
@@ -142,10 +132,11 @@ def covariance_backward_func(scalar, covariance: str):
         v_M = mat33()
         v_J = mat23()
         if wp.static(FACTOR):
-            v_D = v_det + v_do  # det = det_orig + eps2d (c00 + c11) + eps2d^2
+            RM = R @ M
+            v_D = v_det + v_do  # det = det_orig + eps2d (c00 + c11) + eps2d^2, det_orig = |r0 x r1|^2
             v_c00 = v_a + v_det * eps2d
             v_c11 = v_cc + v_det * eps2d
-            v_cr = two * v_D * cr
+            v_cr = two * v_D * wp.cross(r0, r1)
             v_r0 = wp.cross(r1, v_cr) + two * v_c00 * r0 + v_b * r1
             v_r1 = wp.cross(v_cr, r0) + two * v_c11 * r1 + v_b * r0
             v_A = mat23(v_r0[0], v_r0[1], v_r0[2], v_r1[0], v_r1[1], v_r1[2])
@@ -156,6 +147,7 @@ def covariance_backward_func(scalar, covariance: str):
         else:
             v_cov = mat22(v_a + v_det * cc + v_do * c11, -(v_det + v_do) * c10,
                           v_b - (v_det + v_do) * c01, v_cc + v_det * a + v_do * c00)
+            Sigma = mul33_t(M, M)
             v_Sc = wp.transpose(J) @ v_cov @ J
             v_J = v_cov @ J @ wp.transpose(Sc) + wp.transpose(v_cov) @ J @ Sc
             v_R = v_Sc @ R @ wp.transpose(Sigma) + wp.transpose(v_Sc) @ R @ Sigma
@@ -224,7 +216,7 @@ def projection_backward_kernel(scalar, covariance: str = "gsplat", fast_math: bo
     camera_point, jacobian, scaled_rotation = fns.camera_point, fns.jacobian, fns.scaled_rotation
     quat_to_rotmat = matrix_funcs(scalar, native_rsqrt).quat_to_rotmat
     quat_backward = quat_backward_func(scalar)
-    covariance_backward = covariance_backward_func(scalar, covariance)
+    covariance_backward = covariance_backward_func(scalar, covariance, native_rsqrt)
     point_backward = point_backward_func(scalar, native_rsqrt)
     Params = projection_params(scalar)
 
