@@ -163,55 +163,16 @@ def projection_params(scalar):
 
 
 @functools.lru_cache(maxsize=None)
-def projection_funcs(scalar, native_rsqrt: bool = False):
-    """The projection kernel's maths in pieces for one precision (each a ``wp.func``; the
-    hand-written backward recomputes the forward with the same ones, so its intermediate values
-    are the forward's to the bit): ``camera_point(V, m)`` (``R m + t``), ``scaled_rotation(q, s)``
-    (``M = R_q S``), ``fov_limits(fx, fy, cx, cy, w, h)`` (where the Jacobian's x/z and y/z clamp,
-    at 1.3x the field of view), ``jacobian(fx, fy, cx, cy, w, h, p, z, rz)``, ``cov_gsplat`` /
+def covariance_funcs(scalar, native_rsqrt: bool = False):
+    """The 2D covariance's two forms for one precision (``wp.func``s), whole and in pieces (the
+    hand-written backward recomputes the forward with the pieces): ``cov_gsplat`` /
     ``cov_factor(J, R, M, eps2d)`` -> ``(a, b, c, det_orig, det)`` (the blurred 2D covariance
-    ``[[a, b], [b, c]]``, its determinant before and after the blur; in pieces: ``cov_camera(R, M)``
-    and ``blur_gsplat(cov2d(J, Sc), eps2d)``, ``factor_rows(J, R, M)`` and ``blur_factor(r0, r1,
-    eps2d)``), ``pixel_radii(op, a, c, alpha_min, sigma_max, opacity_extent)`` -> ``(rx, ry)`` and
-    ``cull(i, outputs...)``."""
+    ``[[a, b], [b, c]]``, its determinant before and after the blur); ``cov_camera(R, M)`` and
+    ``blur_gsplat(cov2d(J, Sc), eps2d)``; ``factor_rows(J, R, M)`` and ``blur_factor(r0, r1, eps2d)``."""
     t = types_for(scalar)
-    vec2, vec3, vec4, mat33, mat44, mat23 = t.vec2, t.vec3, t.vec4, t.mat33, t.mat44, t.mat23
+    vec3, vec4, mat33, mat23 = t.vec3, t.vec4, t.mat33, t.mat23
     mf = matrix_funcs(scalar, native_rsqrt)
-    dot3, mul33, mul33_t, quat_to_rotmat, cov2d = mf.dot3, mf.mul33, mf.mul33_t, mf.quat_to_rotmat, mf.cov2d
-
-    @wp.func
-    def camera_point(V: mat44, m: vec3):
-        # world to camera: R m + t, products summed in index order
-        return vec3(dot3(V[0, 0], V[0, 1], V[0, 2], m[0], m[1], m[2]) + V[0, 3],
-                    dot3(V[1, 0], V[1, 1], V[1, 2], m[0], m[1], m[2]) + V[1, 3],
-                    dot3(V[2, 0], V[2, 1], V[2, 2], m[0], m[1], m[2]) + V[2, 3])
-
-    @wp.func
-    def scaled_rotation(q: vec4, s: vec3):
-        Rq = quat_to_rotmat(q)
-        return mat33(Rq[0, 0] * s[0], Rq[0, 1] * s[1], Rq[0, 2] * s[2],
-                     Rq[1, 0] * s[0], Rq[1, 1] * s[1], Rq[1, 2] * s[2],
-                     Rq[2, 0] * s[0], Rq[2, 1] * s[1], Rq[2, 2] * s[2])
-
-    @wp.func
-    def fov_limits(fx: scalar, fy: scalar, cx: scalar, cy: scalar, w: scalar, h: scalar):
-        # how far x/z and y/z may go before the Jacobian clamps them: (x+, x-, y+, y-), 1.3x the
-        # field of view
-        tan_fovx = scalar(0.5) * w / fx
-        tan_fovy = scalar(0.5) * h / fy
-        return vec4((w - cx) / fx + scalar(0.3) * tan_fovx, cx / fx + scalar(0.3) * tan_fovx,
-                    (h - cy) / fy + scalar(0.3) * tan_fovy, cy / fy + scalar(0.3) * tan_fovy)
-
-    @wp.func
-    def jacobian(fx: scalar, fy: scalar, cx: scalar, cy: scalar, w: scalar, h: scalar, p: vec3, z: scalar,
-                 rz: scalar):
-        lim = fov_limits(fx, fy, cx, cy, w, h)
-        rz2 = rz * rz
-        tx = z * wp.min(lim[0], wp.max(-lim[1], p[0] * rz))
-        ty = z * wp.min(lim[2], wp.max(-lim[3], p[1] * rz))
-        zero = scalar(0.0)
-        return mat23(fx * rz, zero, -fx * tx * rz2,
-                     zero, fy * rz, -fy * ty * rz2)
+    mul33, mul33_t, cov2d = mf.mul33, mf.mul33_t, mf.cov2d
 
     @wp.func
     def cov_camera(R: mat33, M: mat33):
@@ -261,6 +222,58 @@ def projection_funcs(scalar, native_rsqrt: bool = False):
         a, b, cc, det_orig, det = blur_factor(r0, r1, eps2d)
         return a, b, cc, det_orig, det
 
+    return SimpleNamespace(cov_camera=cov_camera, blur_gsplat=blur_gsplat, factor_rows=factor_rows,
+                           blur_factor=blur_factor, cov_gsplat=cov_gsplat, cov_factor=cov_factor)
+
+
+@functools.lru_cache(maxsize=None)
+def projection_funcs(scalar, native_rsqrt: bool = False):
+    """The projection kernel's maths in pieces for one precision (each a ``wp.func``; the
+    hand-written backward recomputes the forward with the same ones, so its intermediate values
+    are the forward's to the bit): ``camera_point(V, m)`` (``R m + t``), ``scaled_rotation(q, s)``
+    (``M = R_q S``), ``fov_limits(fx, fy, cx, cy, w, h)`` (where the Jacobian's x/z and y/z clamp,
+    at 1.3x the field of view), ``jacobian(fx, fy, cx, cy, w, h, p, z, rz)``, ``cov_gsplat`` /
+    ``cov_factor`` (:func:`covariance_funcs`), ``pixel_radii(op, a, c, alpha_min, sigma_max,
+    opacity_extent)`` -> ``(rx, ry)`` and ``cull(i, outputs...)``."""
+    t = types_for(scalar)
+    vec2, vec3, vec4, mat33, mat44, mat23 = t.vec2, t.vec3, t.vec4, t.mat33, t.mat44, t.mat23
+    mf = matrix_funcs(scalar, native_rsqrt)
+    dot3, quat_to_rotmat = mf.dot3, mf.quat_to_rotmat
+
+    @wp.func
+    def camera_point(V: mat44, m: vec3):
+        # world to camera: R m + t, products summed in index order
+        return vec3(dot3(V[0, 0], V[0, 1], V[0, 2], m[0], m[1], m[2]) + V[0, 3],
+                    dot3(V[1, 0], V[1, 1], V[1, 2], m[0], m[1], m[2]) + V[1, 3],
+                    dot3(V[2, 0], V[2, 1], V[2, 2], m[0], m[1], m[2]) + V[2, 3])
+
+    @wp.func
+    def scaled_rotation(q: vec4, s: vec3):
+        Rq = quat_to_rotmat(q)
+        return mat33(Rq[0, 0] * s[0], Rq[0, 1] * s[1], Rq[0, 2] * s[2],
+                     Rq[1, 0] * s[0], Rq[1, 1] * s[1], Rq[1, 2] * s[2],
+                     Rq[2, 0] * s[0], Rq[2, 1] * s[1], Rq[2, 2] * s[2])
+
+    @wp.func
+    def fov_limits(fx: scalar, fy: scalar, cx: scalar, cy: scalar, w: scalar, h: scalar):
+        # how far x/z and y/z may go before the Jacobian clamps them: (x+, x-, y+, y-), 1.3x the
+        # field of view
+        tan_fovx = scalar(0.5) * w / fx
+        tan_fovy = scalar(0.5) * h / fy
+        return vec4((w - cx) / fx + scalar(0.3) * tan_fovx, cx / fx + scalar(0.3) * tan_fovx,
+                    (h - cy) / fy + scalar(0.3) * tan_fovy, cy / fy + scalar(0.3) * tan_fovy)
+
+    @wp.func
+    def jacobian(fx: scalar, fy: scalar, cx: scalar, cy: scalar, w: scalar, h: scalar, p: vec3, z: scalar,
+                 rz: scalar):
+        lim = fov_limits(fx, fy, cx, cy, w, h)
+        rz2 = rz * rz
+        tx = z * wp.min(lim[0], wp.max(-lim[1], p[0] * rz))
+        ty = z * wp.min(lim[2], wp.max(-lim[3], p[1] * rz))
+        zero = scalar(0.0)
+        return mat23(fx * rz, zero, -fx * tx * rz2,
+                     zero, fy * rz, -fy * ty * rz2)
+
     @wp.func
     def pixel_radii(op: scalar, a: scalar, cc: scalar, alpha_min: scalar, sigma_max: scalar, opacity_extent: int):
         # the extent in standard deviations (gsplat's opacity rule or sigma_max), then per axis in pixels
@@ -286,10 +299,10 @@ def projection_funcs(scalar, native_rsqrt: bool = False):
         if ends.shape[0] > 0:
             ends[i] = wp.int64(0)
 
+    cf = covariance_funcs(scalar, native_rsqrt)
     return SimpleNamespace(camera_point=camera_point, scaled_rotation=scaled_rotation, fov_limits=fov_limits,
-                           jacobian=jacobian, cov_camera=cov_camera, blur_gsplat=blur_gsplat, factor_rows=factor_rows,
-                           blur_factor=blur_factor,
-                           cov_gsplat=cov_gsplat, cov_factor=cov_factor, pixel_radii=pixel_radii, cull=cull)
+                           jacobian=jacobian, cov_gsplat=cf.cov_gsplat, cov_factor=cf.cov_factor,
+                           pixel_radii=pixel_radii, cull=cull)
 
 
 @functools.lru_cache(maxsize=None)

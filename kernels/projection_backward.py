@@ -29,7 +29,7 @@ import functools
 
 import warp as wp
 
-from .projection import matrix_funcs, projection_funcs, projection_params
+from .projection import covariance_funcs, matrix_funcs, projection_funcs, projection_params
 from .types import types_for
 
 
@@ -77,9 +77,9 @@ def covariance_backward_func(scalar, covariance: str, native_rsqrt: bool = False
     t = types_for(scalar)
     vec3, mat22, mat33, mat23 = t.vec3, t.mat22, t.mat33, t.mat23
     FACTOR = covariance == "factor"
-    fns = projection_funcs(scalar, native_rsqrt)
+    cf = covariance_funcs(scalar, native_rsqrt)
     mf = matrix_funcs(scalar, native_rsqrt)
-    cov_camera, blur_gsplat, factor_rows, blur_factor = fns.cov_camera, fns.blur_gsplat, fns.factor_rows, fns.blur_factor
+    cov_camera, blur_gsplat, factor_rows, blur_factor = cf.cov_camera, cf.blur_gsplat, cf.factor_rows, cf.blur_factor
     cov2d, mul33_t = mf.cov2d, mf.mul33_t
 
     @wp.func
