@@ -121,6 +121,22 @@ def profile(fn, device, calls: int) -> dict:
     return {k: v / total for k, v in cats.items()}
 
 
+def top_functions(fn, device, calls: int, k: int) -> list[tuple[str, float, float]]:
+    """``(function, own microseconds per call, calls per call)`` of the ``k`` functions with the most
+    own time under cProfile (whose times are inflated, roughly uniformly)."""
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    pr = cProfile.Profile(clock(device))
+    sync()
+    pr.enable()
+    for _ in range(calls):
+        fn()
+    sync()
+    pr.disable()
+    rows = [(f"{Path(fname).name}:{func}", tt / calls * 1e6, nc / calls)
+            for (fname, _line, func), (_cc, nc, tt, _ct, _callers) in pstats.Stats(pr).stats.items()]
+    return sorted(rows, key=lambda r: -r[1])[:k]
+
+
 def run_device(device: torch.device, args, raster, label: str) -> list[dict]:
     params, vm, K = scene(args.gaussians, args.res, device)
     # gsplat's layout and tile size on both devices, so every library and version does the same work
@@ -134,6 +150,10 @@ def run_device(device: torch.device, args, raster, label: str) -> list[dict]:
                "us_per_call_synced": synced, "split_us": {k: v * per_call for k, v in shares.items()}}
         rows.append(row)
         print(json.dumps(row), flush=True)
+        if args.top:
+            print(f"  {label} {name}, own time under cProfile (us per call, calls per call):")
+            for fname, us, nc in top_functions(fn, device, max(200, args.calls), args.top):
+                print(f"    {us:8.1f}  {nc:5.1f}  {fname}")
     return rows
 
 
@@ -218,6 +238,7 @@ def main() -> None:
     ap.add_argument("--gsplat", action="store_true", help="also time gsplat.rasterization (CUDA)")
     ap.add_argument("--launch-paths", action="store_true",
                     help="also time one kernel launch by wp.launch, Warp's recorded launch and ssgwarp.raster.launch")
+    ap.add_argument("--top", type=int, default=0, help="also list the K functions with the most own time, per library")
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (1: host cost, not parallelism)")
     ap.add_argument("--out", default=None, help="raw rows as JSON")
     ap.add_argument("--markdown", default=None)

@@ -54,11 +54,17 @@ def init() -> None:
 NULL = (0,) * 12  # an absent array (null pointer, shape 0)
 
 
+_ITEMSIZE: dict = {}  # bytes per element of each dtype seen (a dict lookup is cheaper than element_size())
+
+
 def arr(t: torch.Tensor, inner: int = 1) -> tuple:
     """1-D Warp array over a contiguous tensor, ``inner`` scalars per element (a Warp
     vector/matrix of that many components, or 1 for scalars). The tensor must stay alive until
     the launch has been queued."""
-    es = t.element_size()
+    try:
+        es = _ITEMSIZE[t.dtype]
+    except KeyError:
+        es = _ITEMSIZE[t.dtype] = t.element_size()
     return (t.data_ptr(), 0, t.numel() // inner, 0, 0, 0, es * inner, 0, 0, 0, 1, 0)
 
 
