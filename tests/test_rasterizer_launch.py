@@ -234,3 +234,37 @@ def test_value_checks_in_the_projection(device, per_camera):
     empty = [t[:0] for t in (means, quats, scales, opac)] + [colors[..., :0, :]]
     with pytest.raises(ValueError, match="Ks has NaN/Inf"):
         rasterization(*empty, vm, last(K, float("nan")), 16, 16)
+
+
+def test_no_autograd_node_where_no_backward_can_follow(monkeypatch):
+    """Gradients off, or on with no input requiring one: the ops' forwards run without an autograd
+    node (``launch.apply``), giving the same image as a call that records one; with an input that
+    requires a gradient the node is there and the backward runs."""
+    means, quats, scales, opac, colors = make_scene(40, seed=5)
+    vm, K = make_cameras(1, 24, 18)
+    entered = []
+    monkeypatch.setattr(L, "_BASE_APPLY", _counting(L._BASE_APPLY, entered))
+    with torch.no_grad():
+        img0, alpha0, _ = rasterization(means, quats, scales, opac, colors, vm, K, 24, 18)
+    img1, alpha1, meta1 = rasterization(means, quats, scales, opac, colors, vm, K, 24, 18)
+    assert entered == [] and img1.grad_fn is None and meta1["means2d"].grad_fn is None
+    m = means.clone().requires_grad_(True)
+    img2, alpha2, meta2 = rasterization(m, quats, scales, opac, colors, vm, K, 24, 18)
+    assert len(entered) == 2 and img2.grad_fn is not None and meta2["means2d"].grad_fn is not None
+    img2.sum().backward()
+    assert m.grad is not None and m.grad.abs().sum() > 0
+    for a, b in ((img0, img1), (img1, img2.detach()), (alpha0, alpha2.detach())):
+        assert torch.equal(a, b)
+
+
+def _counting(base, calls):
+    """A stand-in for Function.apply's entry point that records each call, then calls it."""
+    class Counting:
+        def __get__(self, obj, cls):
+            bound = base.__get__(obj, cls)
+
+            def call(*args):
+                calls.append(cls.__name__)
+                return bound(*args)
+            return call
+    return Counting()

@@ -110,13 +110,31 @@ def _array_t(v: tuple):
     return array_t(v[0], v[1], nd, v[2:2 + nd], v[6:6 + nd], v[11])
 
 
+class _NoBackward:
+    """What a Function's forward is handed for a context when no backward can follow: what it
+    records for the backward (attributes, saved tensors) goes nowhere."""
+
+    def save_for_backward(self, *tensors) -> None:
+        pass
+
+    def mark_non_differentiable(self, *tensors) -> None:
+        pass
+
+    def set_materialize_grads(self, value: bool) -> None:
+        pass
+
+
 def apply(fn, *args):
     """``fn.apply(*args)`` for an autograd Function without the per-call Python of
     ``torch.autograd.Function.apply`` (argument binding, functorch unwrapping), which only matters
     under functorch transforms: those still go through ``fn.apply`` (so does a torch without the
-    private entry point)."""
+    private entry point). Where no backward can follow (gradients off, or no tensor argument
+    requires one), ``fn.forward`` runs on its own, without an autograd node: the same outputs,
+    which then need no gradient either way."""
     if _BASE_APPLY is None or _functorch_active():
         return fn.apply(*args)
+    if not torch.is_grad_enabled() or not any(isinstance(a, torch.Tensor) and a.requires_grad for a in args):
+        return fn.forward(_NoBackward(), *args)
     return _BASE_APPLY.__get__(None, fn)(*args)
 
 
