@@ -81,6 +81,23 @@ def test_blend_weight_pulls_the_colours_a_ray_mixes_together():
     assert after0 == pytest.approx(before0, abs=1e-12)
 
 
+def test_loss_with_blend_weight_refuses_an_image_without_the_spread_channels():
+    """A loss built with blend_weight > 0 given a plain RGB render says so (it used to drop the term
+    silently); given the spread channels it adds the term."""
+    scene = _pair((0.9, 0.1, 0.1), (0.1, 0.2, 0.9))
+    cam = _front_camera()
+    ext = _Identity()
+    cfg = st.Stage2Config(mode="global", style_weight=0.0, content_weight=0.0, tv_weight=0.0, blend_weight=1.0,
+                          style_loss="nnfm", color_transfer="off")
+    loss = st.ViewLoss(ext, st.build_targets(ext, torch.rand(1, 4, 4, 3, dtype=torch.float64), None, cfg), cfg)
+    with torch.no_grad():
+        rgb = st.render_rgb(scene, cam)[0]
+        channels = render_with_spread(scene, cam)[0]
+    with pytest.raises(ValueError, match="blend spread"):
+        loss(rgb, 0)
+    assert float(loss(channels, 0)) == pytest.approx(float(blend_spread(channels)), rel=1e-9)
+
+
 def test_blend_weight_must_be_a_finite_non_negative_number():
     for bad in (-1.0, float("nan"), float("inf")):
         with pytest.raises(InputError, match="blend-weight"):

@@ -370,7 +370,11 @@ class ViewLoss:
             tv = tv_loss(image)
             total = total + self.tv_weight * tv
             parts["tv"] = float(tv.detach())
-        if cfg.blend_weight > 0 and channels.shape[-1] == SPREAD_CHANNELS:
+        if cfg.blend_weight > 0:
+            if channels.shape[-1] != SPREAD_CHANNELS:
+                raise ValueError(f"Stage 2 loss: blend_weight={cfg.blend_weight} needs the image rendered with the "
+                                 f"blend spread ([..., {SPREAD_CHANNELS}] channels: spread.render_with_spread), got "
+                                 f"[..., {channels.shape[-1]}]; render with it, or set blend_weight=0")
             spread = blend_spread(channels)
             total = total + cfg.blend_weight * spread
             parts["spread"] = float(spread.detach())
