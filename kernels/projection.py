@@ -230,8 +230,8 @@ def covariance_funcs(scalar, native_rsqrt: bool = False):
 def projection_funcs(scalar, native_rsqrt: bool = False):
     """The projection kernel's maths in pieces for one precision (each a ``wp.func``; the
     hand-written backward recomputes the forward with the same ones, so its intermediate values
-    are the forward's to the bit): ``camera_point(V, m)`` (``R m + t``), ``scaled_rotation(q, s)``
-    (``M = R_q S``), ``fov_limits(fx, fy, cx, cy, w, h)`` (where the Jacobian's x/z and y/z clamp,
+    are the forward's to the bit): ``camera_point(V, m)`` (``R m + t``), ``camera_rotation(V)``,
+    ``scale_columns(A, s)`` (``A diag(s)``), ``scaled_rotation(q, s)`` (``M = R_q S``), ``fov_limits(fx, fy, cx, cy, w, h)`` (where the Jacobian's x/z and y/z clamp,
     at 1.3x the field of view), ``jacobian(fx, fy, cx, cy, w, h, p, z, rz)``, ``cov_gsplat`` /
     ``cov_factor`` (:func:`covariance_funcs`), ``pixel_radii(op, a, c, alpha_min, sigma_max,
     opacity_extent)`` -> ``(rx, ry)`` and ``cull(i, outputs...)``."""
@@ -248,11 +248,20 @@ def projection_funcs(scalar, native_rsqrt: bool = False):
                     dot3(V[2, 0], V[2, 1], V[2, 2], m[0], m[1], m[2]) + V[2, 3])
 
     @wp.func
+    def scale_columns(A: mat33, s: vec3):
+        # A diag(s)
+        return mat33(A[0, 0] * s[0], A[0, 1] * s[1], A[0, 2] * s[2],
+                     A[1, 0] * s[0], A[1, 1] * s[1], A[1, 2] * s[2],
+                     A[2, 0] * s[0], A[2, 1] * s[1], A[2, 2] * s[2])
+
+    @wp.func
     def scaled_rotation(q: vec4, s: vec3):
-        Rq = quat_to_rotmat(q)
-        return mat33(Rq[0, 0] * s[0], Rq[0, 1] * s[1], Rq[0, 2] * s[2],
-                     Rq[1, 0] * s[0], Rq[1, 1] * s[1], Rq[1, 2] * s[2],
-                     Rq[2, 0] * s[0], Rq[2, 1] * s[1], Rq[2, 2] * s[2])
+        return scale_columns(quat_to_rotmat(q), s)
+
+    @wp.func
+    def camera_rotation(V: mat44):
+        # the rotation block of a world-to-camera matrix
+        return mat33(V[0, 0], V[0, 1], V[0, 2], V[1, 0], V[1, 1], V[1, 2], V[2, 0], V[2, 1], V[2, 2])
 
     @wp.func
     def fov_limits(fx: scalar, fy: scalar, cx: scalar, cy: scalar, w: scalar, h: scalar):
@@ -300,7 +309,8 @@ def projection_funcs(scalar, native_rsqrt: bool = False):
             ends[i] = wp.int64(0)
 
     cf = covariance_funcs(scalar, native_rsqrt)
-    return SimpleNamespace(camera_point=camera_point, scaled_rotation=scaled_rotation, fov_limits=fov_limits,
+    return SimpleNamespace(camera_point=camera_point, scale_columns=scale_columns, scaled_rotation=scaled_rotation,
+                           camera_rotation=camera_rotation, fov_limits=fov_limits,
                            jacobian=jacobian, cov_gsplat=cf.cov_gsplat, cov_factor=cf.cov_factor,
                            pixel_radii=pixel_radii, cull=cull)
 
@@ -315,8 +325,8 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
     t = types_for(scalar)
     vec2, vec3, vec4, mat33, mat44, splat = t.vec2, t.vec3, t.vec4, t.mat33, t.mat44, t.splat
     fns = projection_funcs(scalar, fast_math and scalar == wp.float32)
-    camera_point, scaled_rotation, jacobian, pixel_radii, cull = (
-        fns.camera_point, fns.scaled_rotation, fns.jacobian, fns.pixel_radii, fns.cull)
+    camera_point, camera_rotation, scaled_rotation, jacobian, pixel_radii, cull = (
+        fns.camera_point, fns.camera_rotation, fns.scaled_rotation, fns.jacobian, fns.pixel_radii, fns.cull)
     covariance_2d = fns.cov_gsplat if covariance == "gsplat" else fns.cov_factor
     tile_box = tile_box_func(scalar)
     check_inputs = inputs_check_func(scalar)
@@ -365,7 +375,7 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
         if z < near_plane or z > far_plane:
             cull(i, means2d, depths, conics, opac_out, radii, counts, ends)
             return
-        R = mat33(V[0, 0], V[0, 1], V[0, 2], V[1, 0], V[1, 1], V[1, 2], V[2, 0], V[2, 1], V[2, 2])
+        R = camera_rotation(V)
         M = scaled_rotation(quats[c, n], scales[c, n])
         K = Ks[c]
         fx = K[0, 0]

@@ -217,7 +217,8 @@ def projection_backward_kernel(scalar, covariance: str = "gsplat", fast_math: bo
     vec2, vec3, vec4, mat33, mat44 = t.vec2, t.vec3, t.vec4, t.mat33, t.mat44
     native_rsqrt = fast_math and scalar == wp.float32
     fns = projection_funcs(scalar, native_rsqrt)
-    camera_point, jacobian, scaled_rotation = fns.camera_point, fns.jacobian, fns.scaled_rotation
+    camera_point, camera_rotation, jacobian, scale_columns = (fns.camera_point, fns.camera_rotation, fns.jacobian,
+                                                              fns.scale_columns)
     quat_to_rotmat = matrix_funcs(scalar, native_rsqrt).quat_to_rotmat
     quat_backward = quat_backward_func(scalar)
     covariance_backward = covariance_backward_func(scalar, covariance, native_rsqrt)
@@ -268,7 +269,7 @@ def projection_backward_kernel(scalar, covariance: str = "gsplat", fast_math: bo
 
         V = viewmats[c, n]
         m = means[c, n]
-        R = mat33(V[0, 0], V[0, 1], V[0, 2], V[1, 0], V[1, 1], V[1, 2], V[2, 0], V[2, 1], V[2, 2])
+        R = camera_rotation(V)
         p = camera_point(V, m)
         K = Ks[c]
         w = scalar(params.width)
@@ -277,7 +278,7 @@ def projection_backward_kernel(scalar, covariance: str = "gsplat", fast_math: bo
         q = quats[c, n]
         s = scales[c, n]
         Rq = quat_to_rotmat(q)
-        M = scaled_rotation(q, s)
+        M = scale_columns(Rq, s)  # (the forward's scaled_rotation(q, s), its rotation kept)
         v_J, v_R, v_M, v_o = covariance_backward(J, R, M, params.eps2d, params.antialiased, opacities[c, n], g_con,
                                                  g_op)
         v_p = point_backward(p, K, w, h, g_xy, g_z, v_J)
@@ -297,10 +298,7 @@ def projection_backward_kernel(scalar, covariance: str = "gsplat", fast_math: bo
                 v_M[0, 1] * Rq[0, 1] + v_M[1, 1] * Rq[1, 1] + v_M[2, 1] * Rq[2, 1],
                 v_M[0, 2] * Rq[0, 2] + v_M[1, 2] * Rq[1, 2] + v_M[2, 2] * Rq[2, 2])
         if v_quats.shape[0] > 0:
-            G_R = mat33(v_M[0, 0] * s[0], v_M[0, 1] * s[1], v_M[0, 2] * s[2],
-                        v_M[1, 0] * s[0], v_M[1, 1] * s[1], v_M[1, 2] * s[2],
-                        v_M[2, 0] * s[0], v_M[2, 1] * s[1], v_M[2, 2] * s[2])
-            v_quats[c, n] = v_quats[c, n] + quat_backward(q, G_R)
+            v_quats[c, n] = v_quats[c, n] + quat_backward(q, scale_columns(v_M, s))
         if v_opacities.shape[0] > 0:
             v_opacities[c, n] = v_opacities[c, n] + v_o
 
