@@ -17,38 +17,18 @@ import argparse
 
 import torch
 
-from raster import CASES, closures, interleaved, warm_gpu
+from raster import CASES, closures, interleaved, optional_gsplat, warm_gpu, with_setting
+from timing import cuda_kernel_ms
 
 import ssgwarp
 from ssgwarp.raster import blend_ops
 
 
-def switched(fn, on: bool):
-    """``fn`` with the block-per-tile forward on or off for its call."""
-    def run():
-        blend_ops.BATCHED = on
-        try:
-            return fn()
-        finally:
-            blend_ops.BATCHED = True
-    return run
-
-
 def kernel_split(fn, calls: int = 5) -> tuple[float, list]:
     """(GPU milliseconds per call, the six longest kernels with their milliseconds per call)."""
-    from torch.profiler import ProfilerActivity, profile
-
-    for _ in range(3):
-        fn()
-    torch.cuda.synchronize()
-    with profile(activities=[ProfilerActivity.CUDA]) as p:
-        for _ in range(calls):
-            fn()
-        torch.cuda.synchronize()
-    per = {}
-    for e in p.events():
-        if e.device_type.name == "CUDA":
-            per[e.name[:50]] = per.get(e.name[:50], 0.0) + e.device_time / calls / 1e3
+    per: dict = {}
+    for name, ms in cuda_kernel_ms(fn, calls).items():
+        per[name[:50]] = per.get(name[:50], 0.0) + ms
     return sum(per.values()), sorted(per.items(), key=lambda kv: -kv[1])[:6]
 
 
@@ -60,12 +40,7 @@ def main() -> None:
     args = ap.parse_args()
     if not torch.cuda.is_available():
         raise SystemExit("blend_forward.py compares CUDA kernels: run it on a machine with a GPU")
-    gsplat = None
-    if not args.no_gsplat:
-        try:
-            import gsplat
-        except Exception as e:  # noqa: BLE001
-            print(f"gsplat not available ({e}); its columns stay empty")
+    gsplat = optional_gsplat(args.no_gsplat)
     dev = torch.device("cuda")
     warm_gpu()
     lines = ["| N | image | SH | cameras | per-pixel walk fwd / fwd+bwd ms | block per tile fwd / fwd+bwd ms | "
@@ -76,7 +51,8 @@ def main() -> None:
         fns = {}
         for on, name in ((False, "walk"), (True, "block")):
             f, fb = closures(ssgwarp.rasterization, n, w, h, dev, packed=False, **case)
-            fns[name + "_f"], fns[name + "_fb"] = switched(f, on), switched(fb, on)
+            fns[name + "_f"], fns[name + "_fb"] = (with_setting(f, blend_ops, "BATCHED", on),
+                                                   with_setting(fb, blend_ops, "BATCHED", on))
         if gsplat is not None:
             fns.update(zip(("gs_f", "gs_fb"), closures(gsplat.rasterization, n, w, h, dev, packed=False, **case)))
         t = interleaved(fns, dev, args.repeats)

@@ -27,27 +27,11 @@ import argparse
 import torch
 
 from raster import camera, make_scene, warm_gpu
-from timing import timed
+from timing import per_call_us, timed
 
 import ssgwarp
 from ssgwarp import RasterSettings
 from ssgwarp.raster import blend_ops, ops
-
-
-def per_call_us(fn, calls: int = 500, blocks: int = 5) -> float:
-    """Fastest block's microseconds per call (one synchronisation per block)."""
-    import time
-    for _ in range(50):
-        fn()
-    torch.cuda.synchronize()
-    best = float("inf")
-    for _ in range(blocks):
-        t0 = time.perf_counter()
-        for _ in range(calls):
-            fn()
-        torch.cuda.synchronize()
-        best = min(best, (time.perf_counter() - t0) / calls * 1e6)
-    return best
 
 
 def captured(fn):
@@ -106,8 +90,9 @@ def case(n: int, w: int, h: int, dev) -> list[str]:
                 graph.replay()
                 return [o.clone() for o in outs]
 
-            rows.append((name, per_call_us(fn), per_call_us(graph.replay), per_call_us(replay_copies), len(outs)))
-        whole = per_call_us(lambda: ssgwarp.rasterization(means, quats, scales, opac, colors, vm, K, w, h))
+            rows.append((name, *(per_call_us(f, dev, 500, 5) for f in (fn, graph.replay, replay_copies)), len(outs)))
+        whole = per_call_us(lambda: ssgwarp.rasterization(means, quats, scales, opac, colors, vm, K, w, h),
+                            dev, 500, 5)
         gpu_ms = timed(lambda: ssgwarp.rasterization(means, quats, scales, opac, colors, vm, K, w, h), dev, 20)
     lines = [f"| {n:,} | {w}x{h} | {name} | {d:.0f} | {r:.0f} | {rc:.0f} | {k} |" for name, d, r, rc, k in rows]
     lines.append(f"| {n:,} | {w}x{h} | whole call (`rasterization`, for scale; {gpu_ms:.2f} ms synchronised) | "

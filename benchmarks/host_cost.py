@@ -35,6 +35,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 from raster import camera, make_scene, pass_closures  # noqa: E402
+from timing import per_call_us  # noqa: E402
 
 import ssgwarp  # noqa: E402
 
@@ -88,26 +89,18 @@ def measure(fn, device, calls: int, blocks: int) -> tuple[float, float]:
     per-call microseconds with one synchronisation per call)."""
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     now = clock(device)
-    for _ in range(max(20, calls // 10)):
-        fn()
-    sync()
-    per_block = []
-    for _ in range(blocks):
-        t0 = now()
-        for _ in range(calls):
-            fn()
-        sync()
-        per_block.append((now() - t0) / calls * 1e6)
+    fastest = per_call_us(fn, device, calls, blocks, now)
     synced = []
     for _ in range(min(calls, 200)):
         t0 = now()
         fn()
         sync()
         synced.append((now() - t0) * 1e6)
-    return min(per_block), statistics.median(synced)
+    return fastest, statistics.median(synced)
 
 
-def profile(fn, device, calls: int) -> dict:
+def profiled(fn, device, calls: int) -> pstats.Stats:
+    """cProfile's statistics of ``calls`` calls of ``fn`` (on the device's clock)."""
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     pr = cProfile.Profile(clock(device))
     sync()
@@ -116,7 +109,11 @@ def profile(fn, device, calls: int) -> dict:
         fn()
     sync()
     pr.disable()
-    cats = categorise(pstats.Stats(pr))
+    return pstats.Stats(pr)
+
+
+def profile(fn, device, calls: int) -> dict:
+    cats = categorise(profiled(fn, device, calls))
     total = sum(cats.values())
     return {k: v / total for k, v in cats.items()}
 
@@ -124,16 +121,8 @@ def profile(fn, device, calls: int) -> dict:
 def top_functions(fn, device, calls: int, k: int) -> list[tuple[str, float, float]]:
     """``(function, own microseconds per call, calls per call)`` of the ``k`` functions with the most
     own time under cProfile (whose times are inflated, roughly uniformly)."""
-    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-    pr = cProfile.Profile(clock(device))
-    sync()
-    pr.enable()
-    for _ in range(calls):
-        fn()
-    sync()
-    pr.disable()
     rows = [(f"{Path(fname).name}:{func}", tt / calls * 1e6, nc / calls)
-            for (fname, _line, func), (_cc, nc, tt, _ct, _callers) in pstats.Stats(pr).stats.items()]
+            for (fname, _line, func), (_cc, nc, tt, _ct, _callers) in profiled(fn, device, calls).stats.items()]
     return sorted(rows, key=lambda r: -r[1])[:k]
 
 

@@ -17,22 +17,15 @@ import argparse
 
 import torch
 
-from raster import CASES, camera, closures, interleaved, make_scene, warm_gpu
+from raster import CASES, camera, closures, interleaved, make_scene, optional_gsplat, warm_gpu, with_setting
+from timing import cuda_kernel_ms
 
 import ssgwarp
 from ssgwarp import RasterSettings
 from ssgwarp.raster import ops
 
 
-def switched(fn, hand: bool):
-    """``fn`` with the hand-written projection backward on or off for its call."""
-    def run():
-        ops.HAND_BACKWARD = hand
-        try:
-            return fn()
-        finally:
-            ops.HAND_BACKWARD = True
-    return run
+KINDS = (("hand", True), ("adj", False))  # the two projection backwards: ops.HAND_BACKWARD on / off
 
 
 def projection_closure(gsplat, n, w, h, cameras, dev):
@@ -57,17 +50,7 @@ def projection_closure(gsplat, n, w, h, cameras, dev):
 
 def backward_kernel_ms(fn, calls: int = 5) -> float:
     """GPU milliseconds per call of ``fn``'s projection backward kernels (torch profiler)."""
-    from torch.profiler import ProfilerActivity, profile
-
-    for _ in range(3):
-        fn()
-    torch.cuda.synchronize()
-    with profile(activities=[ProfilerActivity.CUDA]) as p:
-        for _ in range(calls):
-            fn()
-        torch.cuda.synchronize()
-    return sum(e.device_time for e in p.events() if e.device_type.name == "CUDA"
-               and ("backward" in e.name or "bwd" in e.name)) / calls / 1e3
+    return sum(ms for name, ms in cuda_kernel_ms(fn, calls).items() if "backward" in name or "bwd" in name)
 
 
 def main() -> None:
@@ -77,12 +60,7 @@ def main() -> None:
     args = ap.parse_args()
     if not torch.cuda.is_available():
         raise SystemExit("projection_backward.py compares CUDA kernels: run it on a machine with a GPU")
-    gsplat = None
-    if not args.no_gsplat:
-        try:
-            import gsplat
-        except Exception as e:  # noqa: BLE001
-            print(f"gsplat not available ({e}); its columns stay empty")
+    gsplat = optional_gsplat(args.no_gsplat)
     dev = torch.device("cuda")
     warm_gpu()
     proj = ["| N | cameras | projection fwd+bwd ms: hand / Warp adjoint / gsplat | backward kernel ms: hand / "
@@ -91,16 +69,16 @@ def main() -> None:
             "Warp adjoint |", "|---|---|---|---|---|---|"]
     profiled = []  # (the profiler runs last: it slows the host side of later calls in the process)
     for n, w, h, deg, cams in CASES["issue"]:
-        fns = {"hand": switched(projection_closure(None, n, w, h, cams, dev), True),
-               "adj": switched(projection_closure(None, n, w, h, cams, dev), False)}
+        fns = {k: with_setting(projection_closure(None, n, w, h, cams, dev), ops, "HAND_BACKWARD", hand)
+               for k, hand in KINDS}
         if gsplat is not None:
             fns["gs"] = projection_closure(gsplat, n, w, h, cams, dev)
         t = interleaved(fns, dev, args.repeats)
         profiled.append((n, cams, t, fns))
 
         case = dict(sh_degree=deg, cameras=cams)
-        fns = {"hand": switched(closures(ssgwarp.rasterization, n, w, h, dev, **case)[1], True),
-               "adj": switched(closures(ssgwarp.rasterization, n, w, h, dev, **case)[1], False)}
+        fns = {k: with_setting(closures(ssgwarp.rasterization, n, w, h, dev, **case)[1], ops, "HAND_BACKWARD", hand)
+               for k, hand in KINDS}
         if gsplat is not None:
             fns["gs"] = closures(gsplat.rasterization, n, w, h, dev, packed=False, **case)[1]
         t = interleaved(fns, dev, args.repeats)

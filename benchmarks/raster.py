@@ -119,6 +119,31 @@ def interleaved(fns: dict, device, repeats: int, rounds: int = 4) -> dict:
     return {k: statistics.median(v) for k, v in out.items()}
 
 
+def optional_gsplat(skip: bool = False):
+    """The gsplat module, or None (asked to skip it, or not importable: then said so once)."""
+    if skip:
+        return None
+    try:
+        import gsplat
+    except Exception as e:  # noqa: BLE001
+        print(f"gsplat not available ({e}); its columns stay empty")
+        return None
+    return gsplat
+
+
+def with_setting(fn, owner, name: str, value):
+    """``fn`` run with ``owner.name`` set to ``value`` for the call (restored after it): one
+    function, two code paths of a switch such as ``blend_ops.BATCHED``."""
+    def run():
+        saved = getattr(owner, name)
+        setattr(owner, name, value)
+        try:
+            return fn()
+        finally:
+            setattr(owner, name, saved)
+    return run
+
+
 def warm_gpu(seconds: float = 1.0) -> None:
     """Busy the GPU for a moment so its clocks are up before the first timing."""
     x = torch.randn(4096, 4096, device="cuda")
@@ -139,13 +164,7 @@ def main() -> None:
     ap.add_argument("--markdown", default=None)
     args = ap.parse_args()
 
-    gsplat = None
-    if not args.no_gsplat:
-        try:
-            import gsplat as _g
-            gsplat = _g
-        except Exception as e:  # noqa: BLE001
-            print(f"gsplat not available ({e}); its columns stay empty")
+    gsplat = optional_gsplat(args.no_gsplat)
     cuda = torch.cuda.is_available()
     dev_name = torch.cuda.get_device_name() if cuda else "cpu only"
     rows = []
