@@ -103,9 +103,8 @@ class _Project(torch.autograd.Function):
             cpu_threads.launch_runs(sh.colour_kernel(s, cfg["sh_degree"]), (C,), runs, colour_args + [*arr(colors, 3)], tg)
         ctx.save_for_backward(*ins, *outs, coeffs, campos)
         # the backward launches read the same tensors (kept by ctx): their descriptors are kept too
-        # (without the checks, and without the tile counts and ends, which the binning has scanned)
-        ctx.cfg, ctx.args, ctx.colour_args = cfg, head + _NO_CHECKS + tail + [*NULL, *NULL, *NULL], colour_args
-        ctx.hand_args = head + [*arr(radii, 2)]
+        # (inputs and parameters, outputs; not the checks' nor the tile counts', which the binning has scanned)
+        ctx.cfg, ctx.head, ctx.tail, ctx.colour_args = cfg, head, tail, colour_args
         ctx.runs = runs
         ctx.mark_non_differentiable(*(t for t in (radii, counts, splats) if t is not None))
         return radii, means2d, depths, conics, opac, colors, counts, splats
@@ -151,12 +150,14 @@ class _Project(torch.autograd.Function):
                     *_grid(v_opac, C, N, 1), *_grid(v_view, C, N, 16)]
             if HAND_BACKWARD:  # kernels/projection_backward.py
                 cpu_threads.launch_runs(projection_backward.projection_backward_kernel(s, *cfg["variant"]), (C,),
-                                        ctx.runs, ctx.hand_args + [v for g in grads for v in g[0]] + outs, tg)
+                                        ctx.runs, ctx.head + ctx.tail[-12:] + [v for g in grads for v in g[0]] + outs,
+                                        tg)  # (the tail's last descriptor: the radii)
             else:  # Warp's generated adjoint of the forward kernel (the hand kernel's yardstick in the tests)
                 adj = [*outs, *NULL, *_ADJ_PARAMS, *_NO_CHECKS, *grads[0][0], *grads[1][0],
                        *grads[2][0], *grads[3][0], *NULL, *NULL, *NULL, *NULL]
-                cpu_threads.launch_runs(projection.projection_kernel(s, *cfg["variant"], True), (C,), ctx.runs,
-                                        ctx.args, tg, adj)
+                args = ctx.head + _NO_CHECKS + ctx.tail + [*NULL, *NULL, *NULL]  # (the forward's, checks off)
+                cpu_threads.launch_runs(projection.projection_kernel(s, *cfg["variant"], True), (C,), ctx.runs, args,
+                                        tg, adj)
         if C > 1:
             v_means, v_quats, v_scales, v_opac = (None if v is None else v.sum(0)
                                                   for v in (v_means, v_quats, v_scales, v_opac))
