@@ -3,7 +3,7 @@
 On the issue's five cases (``raster.py``), in one process and in turns: ssgwarp with
 ``ssgwarp.raster.blend_ops.BATCHED`` off (the per-intersection gather, then one thread per pixel walking
 it) and on (one block per tile: through the sorted ids without a gather when no backward can follow,
-else from the gather where all tiles fit in one wave), and gsplat 1.5.3. Per case: forward and
+else from the gather), and gsplat 1.5.3. Per case: forward and
 forward+backward milliseconds (median of synchronised calls), their ratios to gsplat, the largest
 image difference between the two ssgwarp paths (0: they are bit-identical) and, with ``--kernels``,
 each pass's GPU kernel time split by kernel (torch profiler).

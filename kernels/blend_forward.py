@@ -7,7 +7,7 @@ opacity, laid out in sorted order) with one contiguous load. Per pixel::
 
     T = 1
     for each Gaussian of the tile, front to back:
-        alpha = splat_alpha(...)            # -1: skipped (pixel.py)
+        alpha, keep = splat_alpha(...)      # keep False: skipped (pixel.py)
         if ends_pixel(T, alpha): break      # not blended
         out += colors[g] * alpha * T;  T *= 1 - alpha
     out += T * background
@@ -35,7 +35,7 @@ import warp as wp
 from .fmath import fma
 from .block import block_all
 from .pixel import pixel_funcs, tile_pixel
-from .types import channel_vector, splat_at, types_for
+from .types import channel_vector, element_at, splat_at, types_for
 
 
 @functools.lru_cache(maxsize=None)
@@ -111,6 +111,7 @@ def forward_kernel(scalar, channels: int, fast_math: bool = False):
     vecD = channel_vector(scalar, channels)
     splat_alpha, ends_pixel = pixel_funcs(scalar)
     blend, finish = compositing_funcs(scalar, channels)
+    colour_at = element_at(vecD)
 
     # no FMA contraction: the gating in pixel.py must decide identically in both passes
     @wp.kernel(module="unique", module_options={"fuse_fp": False, "enable_backward": False, "fast_math": fast_math})
@@ -147,13 +148,12 @@ def forward_kernel(scalar, channels: int, fast_math: bool = False):
         wsum = scalar(0.0)
         last = wp.int32(-1)
         for k in range(offsets[rng], offsets[rng + 1]):
-            r = splat_alpha(splat_at(splats, k), px, py, alpha_min, alpha_max)
-            alpha = r[0]
-            if alpha < scalar(0.0):
+            alpha, g, dx, dy, keep = splat_alpha(splat_at(splats, k), px, py, alpha_min, alpha_max)
+            if not keep:
                 continue
             if ends_pixel(T, alpha, t_min):
                 break
-            acc, wsum, T = blend(acc, wsum, T, colors[k], alpha)
+            acc, wsum, T = blend(acc, wsum, T, colour_at(colors, k), alpha)
             last = wp.int32(k)
         finish(acc, wsum, T, last, cam, (cam * height + y) * width + x, backgrounds, out_colors, out_T, out_alpha,
                last_ids)
@@ -178,6 +178,7 @@ def batched_forward_kernel(scalar, channels: int, fast_math: bool, block: int, t
     vecD = channel_vector(scalar, channels)
     splat_alpha, ends_pixel = pixel_funcs(scalar)
     blend, finish = compositing_funcs(scalar, channels)
+    colour_at = element_at(vecD)
     B = int(block)
     IDS = bool(through_ids)
 
@@ -231,20 +232,22 @@ def batched_forward_kernel(scalar, channels: int, fast_math: bool, block: int, t
             if done == 0:
                 n = wp.min(B, end - b)
                 j = int(0)
+                # (a skipped Gaussian continues the loop at once: nothing assigned on its path, so
+                # no per-Gaussian selects of the pixel's state)
                 while j < n:
-                    r = splat_alpha(sps[j], px, py, alpha_min, alpha_max)
-                    alpha = r[0]
-                    if alpha >= scalar(0.0):
-                        if ends_pixel(T, alpha, t_min):
-                            done = 1
-                            break
-                        if wp.static(IDS):
-                            c = colors[ids[j] - shift]
-                        else:
-                            c = colors[b + j]
-                        acc, wsum, T = blend(acc, wsum, T, c, alpha)
-                        last = wp.int32(b + j)
+                    alpha, g, dx, dy, keep = splat_alpha(sps[j], px, py, alpha_min, alpha_max)
                     j += 1
+                    if not keep:
+                        continue
+                    if ends_pixel(T, alpha, t_min):
+                        done = 1
+                        break
+                    if wp.static(IDS):
+                        c = colour_at(colors, ids[j - 1] - shift)
+                    else:
+                        c = colour_at(colors, b + j - 1)
+                    acc, wsum, T = blend(acc, wsum, T, c, alpha)
+                    last = wp.int32(b + j - 1)
             b += B
         if inside:
             finish(acc, wsum, T, last, cam, (cam * height + y) * width + x, backgrounds, out_colors, out_T,

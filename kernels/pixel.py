@@ -46,23 +46,25 @@ def tile_pixel(tid: int, tile_size: int, tile_width: int, tile_height: int):
 def pixel_funcs(scalar):
     """``(splat_alpha, ends_pixel)`` for one precision.
 
-    ``splat_alpha(splat, px, py, alpha_min, alpha_max) -> vec4(alpha, g, dx, dy)`` for a packed
-    projected Gaussian ``splat = (x, y, a, b, c, opacity)``, with ``g = exp(-sigma)``; ``alpha`` is
-    -1 when the contribution is skipped.
+    ``splat_alpha(splat, px, py, alpha_min, alpha_max) -> (alpha, g, dx, dy, keep)`` for a packed
+    projected Gaussian ``splat = (x, y, a, b, c, opacity)``, with ``g = exp(-sigma)``; ``keep`` is
+    False when the contribution is skipped (``sigma < 0`` or ``alpha < alpha_min``, or a NaN alpha).
+    The exponent is formed as ``-0.5 q - b dx dy`` (the same bits as ``-sigma``: negation is exact
+    and round-to-nearest is symmetric), and the callers branch on ``keep`` itself: no negation
+    and no sentinel value in the loops that run this once per (pixel, Gaussian).
     """
     t = types_for(scalar)
-    vec4, splat = t.vec4, t.splat
+    splat = t.splat
 
     @wp.func
     def splat_alpha(sp: splat, px: scalar, py: scalar, alpha_min: scalar, alpha_max: scalar):
         dx = sp[0] - px
         dy = sp[1] - py
-        sigma = scalar(0.5) * fma(sp[2] * dx, dx, sp[4] * dy * dy) + sp[3] * dx * dy
-        g = wp.exp(-sigma)
+        nsigma = scalar(-0.5) * fma(sp[2] * dx, dx, sp[4] * dy * dy) - sp[3] * dx * dy
+        g = wp.exp(nsigma)
         alpha = wp.min(alpha_max, sp[5] * g)
-        if sigma < scalar(0.0) or alpha < alpha_min:
-            alpha = scalar(-1.0)
-        return vec4(alpha, g, dx, dy)
+        keep = alpha >= alpha_min and not (nsigma > scalar(0.0))
+        return alpha, g, dx, dy, keep
 
     @wp.func
     def ends_pixel(T: scalar, alpha: scalar, t_min: scalar):

@@ -59,3 +59,16 @@ def splat_at(a: wp.array(dtype=_SPLAT32), k: int) -> _SPLAT32:
 def splat_at(a: wp.array(dtype=_SPLAT64), k: int) -> _SPLAT64:  # noqa: F811 (the float64 overload)
     """``a[k]`` for a contiguous array of packed splats with ``0 <= k < len(a)`` (unchecked)."""
     ...
+
+
+@functools.lru_cache(maxsize=None)
+def element_at(dtype):
+    """``element_at(a, k)``: ``a[k]`` for a contiguous array of ``dtype`` with ``0 <= k < len(a)``
+    (unchecked): a plain pointer read, without the negative-index wrap and the strided 64-bit
+    address arithmetic of ``a[k]``, for the per-intersection colours the blending loops read."""
+
+    @wp.func_native("return a.data[k];")
+    def element_at(a: wp.array(dtype=dtype), k: int) -> dtype:
+        ...
+
+    return element_at

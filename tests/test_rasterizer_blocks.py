@@ -32,7 +32,6 @@ def blocks_everywhere(monkeypatch):
     rule = ops.batched
     monkeypatch.setattr(ops, "batched",
                         lambda tg, packed, tile_size: rule(SimpleNamespace(cpu=False), packed, tile_size))
-    monkeypatch.setattr(ops, "one_wave", lambda tg, n_tiles, block: True)
 
 
 def render(params, vm, K, w, h, grad, bg=None, **kw):
@@ -114,11 +113,7 @@ def test_block_kernels_only_on_cuda_with_packed_splats_and_tiles_of_one_block():
     cpu = L.target(torch.zeros(1))
     packed = torch.zeros(1, 1, 6)
     assert not ops.batched(cpu, packed, 16)  # the CPU walks per pixel
-    cuda = type("T", (), {"cpu": False, "device": type("D", (), {"sm_count": 132})()})()
+    cuda = SimpleNamespace(cpu=False)
     assert ops.batched(cuda, packed, 16) and ops.batched(cuda, packed, 32)
     assert not ops.batched(cuda, packed, 33)  # 1089 threads: more than a block holds
     assert not ops.batched(cuda, None, 16)  # no packed splats to read
-    # reading the gathered arrays (a backward follows): only where all tiles' blocks fit at once
-    assert ops.one_wave(cuda, 132 * 8, 256) and not ops.one_wave(cuda, 132 * 8 + 1, 256)
-    assert ops.one_wave(cuda, 132 * 32, 64)  # 8x8 tiles: 32 blocks of 64 threads per multiprocessor
-    assert not ops.one_wave(cpu, 1, 256)

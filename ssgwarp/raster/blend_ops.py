@@ -77,9 +77,8 @@ class _Blend(torch.autograd.Function):
         # on CUDA one block per tile (kernels/blend_forward.py): where a backward may follow, the
         # per-intersection gather it walks is made here and read contiguously; else the kernel reads
         # the projection's packed splats through the ids and nothing is gathered
-        allowed = batched(tg, packed, tile_size)
-        through_ids = allowed and not gather  # (then no input needs a gradient: no backward follows)
-        block = through_ids or (allowed and one_wave(tg, C * th * tw, tp))
+        block = batched(tg, packed, tile_size)
+        through_ids = block and not gather  # (then no input needs a gradient: no backward follows)
         if through_ids:
             cs = L.dense(colors)
             shift = N if cs.ndim == 2 else 0  # (colours shared by the cameras)
@@ -185,14 +184,6 @@ def batched(tg, packed, tile_size: int) -> bool:
     """Whether the blending forward runs :func:`ssgwarp.kernels.blend_forward.batched_forward_kernel`:
     on CUDA, with the projection's packed splats, for tiles of at most 1024 pixels (one block)."""
     return BATCHED and not tg.cpu and packed is not None and tile_size * tile_size <= 1024
-
-
-def one_wave(tg, n_tiles: int, block: int) -> bool:
-    """Whether every tile's block is resident on the GPU at once (at most 2048 threads per
-    multiprocessor). Reading the gathered arrays, the block kernel is the faster one then (an H100,
-    2026-11-23: 0.24 against 0.33 ms at 768 tiles) and the per-pixel walk over several waves of
-    tiles (1.07 against 1.13 ms at 11,904 tiles; docs/benchmarks.md)."""
-    return n_tiles <= getattr(tg.device, "sm_count", 0) * max(1, 2048 // block)
 
 
 def _tile_parts(tg, settings, tiles, n_ranges: int, tile_size: int) -> list[tuple[int, int]]:
