@@ -117,8 +117,9 @@ def reduced_backward_kernel(scalar, channels: int, to_slots: bool = False, per_w
     (from the largest last index of its pixels), sums the pixels' gradients for each Gaussian and
     adds the sum with one atomic per Gaussian (instead of one per pixel). Gradients land packed as
     ``[xy(2), conic(3), opacity(1), colour(D)]``; per-intersection data is read in sorted order
-    (``splats[k]``, ``colors[k]``). Launch with a ``block_dim`` that divides ``tile_size^2``
-    (blocks never straddle tiles); on CPU the block width is 1 and this is the per-pixel walk.
+    (``splats[k]``, ``colors[k]``), the images' gradients in place through their strides (``[pixels, D]``,
+    ``[pixels]``). Launch with a ``block_dim`` that divides ``tile_size^2`` (blocks never straddle
+    tiles); on CPU the block width is 1 and this is the per-pixel walk.
 
     ``per_warp=False``: the sum runs over the whole block (a tile reduction), after a block vote
     that skips Gaussians none of the block's pixels blended. ``per_warp=True`` (CUDA blocks whose
@@ -164,7 +165,7 @@ def reduced_backward_kernel(scalar, channels: int, to_slots: bool = False, per_w
         alpha_max: scalar,
         out_T: wp.array(dtype=scalar),
         last_ids: wp.array(dtype=wp.int32),
-        v_out_colors: wp.array(dtype=vecD),
+        v_out_colors: wp.array2d(dtype=scalar),
         v_out_alphas: wp.array(dtype=scalar),
         slots: wp.array(dtype=wp.int32),
         v_packed: wp.array(dtype=vecG),
@@ -185,7 +186,8 @@ def reduced_backward_kernel(scalar, channels: int, to_slots: bool = False, per_w
             T_final = out_T[pix]
             # (an image without a gradient comes as a null array: zeros)
             if v_out_colors.shape[0] > 0:
-                v_col = v_out_colors[pix]
+                for d in range(wp.static(channels)):
+                    v_col[d] = v_out_colors[pix, d]
             if v_out_alphas.shape[0] > 0:
                 v_alpha_out = v_out_alphas[pix]
         bg_term = scalar(0.0)

@@ -9,7 +9,7 @@ several threads (:mod:`.cpu_threads`).
 """
 from __future__ import annotations
 
-from functools import partial
+from functools import lru_cache, partial
 
 import torch
 
@@ -104,7 +104,7 @@ class _Blend(torch.autograd.Function):
                     settings.alpha_max, *a_T, *a_last]
         ctx.n_gauss, ctx.cshape = N, colors.shape
         ctx.tiles, ctx.geom, ctx.settings, ctx.det = tiles, (width, height, tile_size, tw, th), settings, deterministic
-        ctx.parts = parts
+        ctx.parts, ctx.tg = parts, tg  # (a backward runs on its forward's stream)
         return out, out_alpha
 
     @staticmethod
@@ -116,10 +116,11 @@ class _Blend(torch.autograd.Function):
         C = out_T.shape[0]
         dt, dev = cols.dtype, cols.device
         s = L.scalar_of(dt)
-        tg = L.target(cols)
-        # an image without a gradient is passed as a null array (read as zeros)
-        g_colors = L.dense(g_colors) if g_colors is not None else None
-        g_alphas = L.dense(g_alphas) if g_alphas is not None else None
+        tg = ctx.tg
+        # the images' gradients read in place where their strides allow (an image without a
+        # gradient is passed as a null array, read as zeros)
+        a_gc, g_colors_kept = L.pixel_rows(g_colors, D)
+        a_ga, g_alphas_kept = L.pixel_rows(g_alphas, 1)
         M = tiles["n_isects"]
         # blocks of pixels of one tile walk its Gaussians in lockstep and sum their pixels' gradients
         # before one atomic add per Gaussian: per warp with one block per tile where the tile splits
@@ -140,18 +141,18 @@ class _Blend(torch.autograd.Function):
         W = lead + D
         rows = max(M if det else C * N, 1)
         parts = ctx.parts
-        if not det:  # (each thread adds into its own rows: within a memory cap)
+        if not det and len(parts) > 1:  # (each thread adds into its own rows: within a memory cap)
             parts = cpu_threads.merge(parts, cpu_threads.extra_buffers(len(parts), W * cols.element_size(), rows))
         packed = torch.zeros(rows, W, dtype=dt, device=dev)
         # the default backward's other threads: their own rows, added to the first thread's below
         extra = torch.zeros(len(parts) - 1, rows, W, dtype=dt, device=dev) if len(parts) > 1 and not det else None
         kern = blend_backward.reduced_backward_kernel(s, D, det, per_warp, L.fast_math(st, s), not geometry)
-        head = [*arr(splats, 6), *arr(cols, D), *ctx.args, *(NULL if g_colors is None else arr(g_colors, D)),
-                *(NULL if g_alphas is None else arr(g_alphas)), *(arr(tiles["perm"]) if det else NULL)]
+        head = [*arr(splats, 6), *arr(cols, D), *ctx.args, *a_gc, *a_ga, *(arr(tiles["perm"]) if det else NULL)]
         tp = tile_size * tile_size
         cpu_threads.run([partial(L.launch, kern, (b - a) * tp,
                                  head + [*arr(packed if (i == 0 or det) else extra[i - 1], W), a * tp], tg, None, block)
                          for i, (a, b) in enumerate(parts)])
+        del g_colors_kept, g_alphas_kept  # (kept alive until the launches were queued)
         if extra is not None:
             packed += extra.sum(0) if extra.shape[0] > 1 else extra[0]
         if det:
@@ -195,6 +196,7 @@ def _tile_parts(tg, settings, tiles, n_ranges: int, tile_size: int) -> list[tupl
     return cpu_threads.split(tiles["offsets"], n_ranges, n)
 
 
+@lru_cache(maxsize=None)
 def backward_blocks(tile_size: int, deterministic: bool, cpu: bool) -> tuple[bool, int]:
     """``(per_warp, block_dim)`` of the blending backward launch.
 

@@ -178,6 +178,27 @@ def grad_rows(g, inner: int, n: int):
     return rows(g, inner), g
 
 
+def pixel_rows(g, inner: int):
+    """``(descriptor, tensor)`` of an image's incoming gradient ``g [..., inner]`` read as one row
+    of ``inner`` scalars per pixel, in place over its own strides where its pixel axes merge into
+    one (contiguous; expanded from a scalar, as the gradient of ``image.sum()`` is; channels first
+    in one camera): a 2-D scalar descriptor ``[pixels, inner]``, 1-D ``[pixels]`` for ``inner =
+    1``; else over a contiguous copy. :data:`NULL` when there is none. Keep the tensor alive until
+    the launch is queued."""
+    if g is None:
+        return NULL, None
+    try:
+        v = g.view(-1, inner)
+    except RuntimeError:  # (pixel axes that do not merge: copied)
+        g = g.contiguous()
+        v = g.view(-1, inner)
+    es = v.element_size()
+    sp, sc = v.stride()
+    if inner == 1:
+        return (v.data_ptr(), 0, v.shape[0], 0, 0, 0, sp * es, 0, 0, 0, 1, 0), g
+    return (v.data_ptr(), 0, v.shape[0], inner, 0, 0, sp * es, sc * es, 0, 0, 2, 0), g
+
+
 # ---------------------------------------------------------------------------------------------
 # where launches go
 # ---------------------------------------------------------------------------------------------

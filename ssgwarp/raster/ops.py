@@ -105,7 +105,7 @@ class _Project(torch.autograd.Function):
         # the backward launches read the same tensors (kept by ctx): their descriptors are kept too
         # (inputs and parameters, outputs; not the checks' nor the tile counts', which the binning has scanned)
         ctx.cfg, ctx.head, ctx.tail, ctx.colour_args = cfg, head, tail, colour_args
-        ctx.runs = runs
+        ctx.runs, ctx.tg = runs, tg  # (a backward runs on its forward's stream)
         ctx.mark_non_differentiable(*(t for t in (radii, counts, splats) if t is not None))
         return radii, means2d, depths, conics, opac, colors, counts, splats
 
@@ -117,7 +117,7 @@ class _Project(torch.autograd.Function):
         C, N = viewmats.shape[0], means.shape[0]
         dt, dev = means.dtype, means.device
         s = L.scalar_of(dt)
-        tg = L.target(means)
+        tg = ctx.tg
         # one adjoint slot per (camera, Gaussian); the per-Gaussian gradients share one zeroed buffer
         lead = (C, N) if C > 1 else (N,)
         v_means, v_quats, v_scales, v_opac = _zeros_split([3, 4, 3, 1], need[:4], lead, dt, dev)
