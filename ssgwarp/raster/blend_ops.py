@@ -164,7 +164,7 @@ class _Blend(torch.autograd.Function):
         # (the gradients as views of the packed rows, in as few torch calls as may be)
         v_m2d = v_conics = v_opac = None
         if geometry:
-            v_m2d, v_conics, v_opac, v_colors = packed.view(C, N, W).split((2, 3, 1, D), -1)
+            v_m2d, v_conics, v_opac, v_colors = packed.view(C, N, W).split_with_sizes((2, 3, 1, D), -1)
             v_opac = v_opac.squeeze(-1)
         else:
             v_colors = packed.view(C, N, D)

@@ -214,18 +214,12 @@ def _zeros_split(widths, wanted, lead, dt, dev):
     n = 1
     for d in lead:
         n *= d
-    total = sum(w for w, on in zip(widths, wanted) if on)
-    if total == 0:
+    sizes = [n * w for w, on in zip(widths, wanted) if on]
+    if not sizes:
         return [None] * len(widths)
-    buf = torch.zeros(n * total, dtype=dt, device=dev)
-    out, pos = [], 0
-    for w, on in zip(widths, wanted):
-        if on:
-            out.append(buf[pos:pos + n * w].view(*lead, w) if w > 1 else buf[pos:pos + n].view(*lead))
-            pos += n * w
-        else:
-            out.append(None)
-    return out
+    parts = iter(torch.zeros(sum(sizes), dtype=dt, device=dev).split_with_sizes(sizes))
+    return [(next(parts).view(*lead, w) if w > 1 else next(parts).view(*lead)) if on else None
+            for w, on in zip(widths, wanted)]
 
 
 def _grid(t, C, N, inner):
