@@ -13,9 +13,10 @@ intersection count (on CUDA that read-back also waits for the GPU).
 Per device and pass (forward under ``torch.no_grad()``; forward+backward of ``img.sum() +
 alpha.sum()``): the time per call (the fastest of several blocks of calls; CUDA synchronised after
 each block only, so queued GPU work overlaps the host as in a training loop; plus the median of
-calls synchronised one by one). On CUDA wall time; on the CPU the thread's CPU time, which leaves
-out the load of other processes on a shared machine., and the split of a cProfile run into the categories below, scaled to the wall time (the
-profiler slows Python down roughly uniformly; its shares are what it measures).
+calls synchronised one by one; on CUDA wall time, on the CPU the thread's CPU time, which leaves
+out the load of other processes on a shared machine), and the split of a cProfile run into the
+categories below, scaled to the wall time (the profiler slows Python down roughly uniformly; its
+shares are what it measures).
 """
 from __future__ import annotations
 
