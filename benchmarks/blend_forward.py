@@ -17,7 +17,7 @@ import argparse
 
 import torch
 
-from raster import CASES, closures, interleaved, optional_gsplat, warm_gpu, with_setting
+from raster import CASES, closures, cuda_only, interleaved, optional_gsplat, with_setting
 from timing import cuda_kernel_ms
 
 import ssgwarp
@@ -38,11 +38,8 @@ def main() -> None:
     ap.add_argument("--kernels", action="store_true", help="also split each pass's GPU time by kernel")
     ap.add_argument("--no-gsplat", action="store_true")
     args = ap.parse_args()
-    if not torch.cuda.is_available():
-        raise SystemExit("blend_forward.py compares CUDA kernels: run it on a machine with a GPU")
+    dev = cuda_only("blend_forward.py", "compares CUDA kernels")
     gsplat = optional_gsplat(args.no_gsplat)
-    dev = torch.device("cuda")
-    warm_gpu()
     lines = ["| N | image | SH | cameras | per-pixel walk fwd / fwd+bwd ms | block per tile fwd / fwd+bwd ms | "
              "gsplat fwd / fwd+bwd ms | walk ratio fwd / fwd+bwd | block ratio fwd / fwd+bwd | max image diff walk vs block |",
              "|---|---|---|---|---|---|---|---|---|---|"]

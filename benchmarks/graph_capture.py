@@ -26,7 +26,7 @@ import argparse
 
 import torch
 
-from raster import camera, make_scene, warm_gpu
+from raster import camera, cuda_only, make_scene
 from timing import per_call_us, timed
 
 import ssgwarp
@@ -103,10 +103,7 @@ def case(n: int, w: int, h: int, dev) -> list[str]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.parse_args()
-    if not torch.cuda.is_available():
-        raise SystemExit("graph_capture.py measures CUDA graphs: run it on a machine with a GPU")
-    dev = torch.device("cuda")
-    warm_gpu()
+    dev = cuda_only("graph_capture.py", "measures CUDA graphs")
     lines = ["| N | image | part | direct µs | graph replay µs | replay + inputs in / outputs out µs | outputs |",
              "|---|---|---|---|---|---|---|"]
     for n, w, h in ((16, 16, 16), (100_000, 1920, 1080)):

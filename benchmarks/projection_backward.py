@@ -17,7 +17,7 @@ import argparse
 
 import torch
 
-from raster import CASES, camera, closures, interleaved, make_scene, optional_gsplat, warm_gpu, with_setting
+from raster import CASES, camera, closures, cuda_only, interleaved, make_scene, optional_gsplat, with_setting
 from timing import cuda_kernel_ms
 
 import ssgwarp
@@ -58,11 +58,8 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=40)
     ap.add_argument("--no-gsplat", action="store_true")
     args = ap.parse_args()
-    if not torch.cuda.is_available():
-        raise SystemExit("projection_backward.py compares CUDA kernels: run it on a machine with a GPU")
+    dev = cuda_only("projection_backward.py", "compares CUDA kernels")
     gsplat = optional_gsplat(args.no_gsplat)
-    dev = torch.device("cuda")
-    warm_gpu()
     proj = ["| N | cameras | projection fwd+bwd ms: hand / Warp adjoint / gsplat | backward kernel ms: hand / "
             "Warp adjoint / gsplat |", "|---|---|---|---|"]
     full = ["| N | image | SH | cameras | fwd+bwd ms: hand / Warp adjoint / gsplat | ratio to gsplat: hand / "

@@ -153,6 +153,15 @@ def warm_gpu(seconds: float = 1.0) -> None:
     torch.cuda.synchronize()
 
 
+def cuda_only(script: str, measures: str) -> torch.device:
+    """The CUDA device, its clocks warmed (:func:`warm_gpu`), for a script that only measures CUDA;
+    without a GPU, exit saying so (``measures``: what the script measures)."""
+    if not torch.cuda.is_available():
+        raise SystemExit(f"{script} {measures}: run it on a machine with a GPU")
+    warm_gpu()
+    return torch.device("cuda")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cases", choices=sorted(CASES), default="issue")
