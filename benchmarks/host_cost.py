@@ -42,7 +42,9 @@ import ssgwarp  # noqa: E402
 
 # (category, predicate on (file, function name)); first match wins
 CATEGORIES = [
-    ("readback (tolist/item; waits for the GPU)", lambda f, n: n in ("tolist", "item", "cpu", "_local_scalar_dense")),
+    ("readback (tolist/item; waits for the GPU)", lambda f, n: n in ("tolist", "item", "cpu", "_local_scalar_dense",
+                                                                   "read_int64", "wp_memcpy_d2h",
+                                                                   "wp_cuda_stream_synchronize")),
     ("input checks", lambda f, n: ("rasterize.py" in f and n in ("validate_inputs", "check"))
      or n in ("check_values", "__post_init__", "for_dtype")),
     ("launch arguments (array views)", lambda f, n: n in ("_wp", "from_torch", "arr", "arr2", "_arr", "array_t",

@@ -31,9 +31,12 @@ no copies), so the adjoint writes each (camera, Gaussian) pair into its own slot
 of a ``[C, N]`` buffer: one writer per slot, bit-identical gradients (with one
 camera the buffer is the gradient itself).
 
-Given a ``flags`` array the kernel also runs the input value checks on the values
-it loads (:func:`.validate.inputs_check_func`; colour rows and backgrounds are read
-for them). With ``tile_size > 0`` it writes each Gaussian's number of intersected
+With ``check`` set the kernel also runs the input value checks on the values it
+loads (:func:`.validate.inputs_check_func`; colour rows and backgrounds are read for
+them) and writes :data:`CHECK_FAILED` into ``ends`` for a Gaussian that fails one, so
+that the intersection total the binning reads back also reports the checks. Culling
+is written to hold for NaN too (each test passes only on values in range), so without
+a failed check every count written is a number of tiles. With ``tile_size > 0`` it writes each Gaussian's number of intersected
 tiles (the binning's first step, :func:`.binning.tile_box_func`; also as int64
 into ``ends``, which the binning scans in place),
 and given a ``splats`` array, each visible Gaussian's screen mean, conic and
@@ -57,6 +60,11 @@ from .fmath import add_rn, fma, rsqrt
 from .types import types_for
 from .validate import inputs_check_func
 
+# what a Gaussian that fails an input check adds to the intersection total instead of its count:
+# larger than any sum of real counts the binning accepts (it refuses totals above 2^30), and
+# summed over fewer than 2^30 (camera, Gaussian) pairs it cannot overflow int64
+CHECK_FAILED = wp.constant(wp.int64(2**32))
+CHECK_MAX_PAIRS = 2**30  # (more pairs per call: the checks run as a pass of their own)
 RADIUS_LIMIT = 1073741824.0  # radii saturate here (2^30 px) so the int32 cast never overflows
 
 
@@ -346,7 +354,7 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
         colors_per_camera: int,
         backgrounds: wp.array(dtype=scalar),
         background_row: int,
-        flags: wp.array(dtype=wp.int64),
+        check: int,
         means2d: wp.array(dtype=vec2),
         depths: wp.array(dtype=scalar),
         conics: wp.array(dtype=vec3),
@@ -367,12 +375,16 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
         sigma_max = params.sigma_max
         V = viewmats[c, n]
         m = means[c, n]
-        if flags.shape[0] > 0:  # the input value checks, on the values loaded here
-            check_inputs(c, n, i, m, quats[c, n], scales[c, n], opacities[c, n], V, Ks[c], colors, color_row,
-                         colors_per_camera, backgrounds, background_row, flags)
+        if check != 0:  # the input value checks, on the values loaded here
+            if check_inputs(c, n, i, m, quats[c, n], scales[c, n], opacities[c, n], V, Ks[c], colors, color_row,
+                            colors_per_camera, backgrounds, background_row):
+                cull(i, means2d, depths, conics, opac_out, radii, counts, ends)
+                if ends.shape[0] > 0:
+                    ends[i] = CHECK_FAILED
+                return
         p = camera_point(V, m)
         z = p[2]
-        if z < near_plane or z > far_plane:
+        if not (z >= near_plane and z <= far_plane):
             cull(i, means2d, depths, conics, opac_out, radii, counts, ends)
             return
         R = camera_rotation(V)
@@ -402,7 +414,7 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
             return
         mx = fx * p[0] * rz + cx
         my = fy * p[1] * rz + cy
-        if mx + rx <= scalar(0.0) or mx - rx >= w or my + ry <= scalar(0.0) or my - ry >= h:
+        if not (mx + rx > scalar(0.0) and mx - rx < w and my + ry > scalar(0.0) and my - ry < h):
             cull(i, means2d, depths, conics, opac_out, radii, counts, ends)
             return
         means2d[i] = vec2(mx, my)

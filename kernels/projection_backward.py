@@ -206,13 +206,39 @@ def point_backward_func(scalar, native_rsqrt: bool = False):
 
 
 @functools.lru_cache(maxsize=None)
+def zero_slots_func(scalar):
+    """``zero_slots(c, n, v_means, v_quats, v_scales, v_opacities, v_viewmats)``: zeros in the
+    (camera, Gaussian) slot of each present gradient (a culled Gaussian's, when nothing cleared them)."""
+    t = types_for(scalar)
+    vec3, vec4, mat44 = t.vec3, t.vec4, t.mat44
+
+    @wp.func
+    def zero_slots(c: int, n: int, v_means: wp.array2d(dtype=vec3), v_quats: wp.array2d(dtype=vec4),
+                   v_scales: wp.array2d(dtype=vec3), v_opacities: wp.array2d(dtype=scalar),
+                   v_viewmats: wp.array2d(dtype=mat44)):
+        if v_means.shape[0] > 0:
+            v_means[c, n] = vec3()
+        if v_quats.shape[0] > 0:
+            v_quats[c, n] = vec4()
+        if v_scales.shape[0] > 0:
+            v_scales[c, n] = vec3()
+        if v_opacities.shape[0] > 0:
+            v_opacities[c, n] = scalar(0.0)
+        if v_viewmats.shape[0] > 0:
+            v_viewmats[c, n] = mat44()
+
+    return zero_slots
+
+
+@functools.lru_cache(maxsize=None)
 def projection_backward_kernel(scalar, covariance: str = "gsplat", fast_math: bool = False):
     """The projection backward for one precision, launched over ``(C, N)`` (or a run of
     Gaussians, ``first``). Inputs as the forward kernel reads them (2-D ``[camera, Gaussian]``
     arrays), the forward's ``radii`` (flat ``[C * N]``), the outputs' gradients (flat, null
     arrays where none came). Outputs (each a null array when not wanted): the gradients of
     means, quaternions, scales, opacities and view matrices, one ``[camera, Gaussian]`` slot
-    each, added to."""
+    each: added to with ``accumulate`` (another kernel wrote there first: the SH colours'
+    backward), else written, zeros for culled Gaussians included (no clearing first)."""
     t = types_for(scalar)
     vec2, vec3, vec4, mat33, mat44 = t.vec2, t.vec3, t.vec4, t.mat33, t.mat44
     native_rsqrt = fast_math and scalar == wp.float32
@@ -223,6 +249,7 @@ def projection_backward_kernel(scalar, covariance: str = "gsplat", fast_math: bo
     quat_backward = quat_backward_func(scalar)
     covariance_backward = covariance_backward_func(scalar, covariance, native_rsqrt)
     point_backward = point_backward_func(scalar, native_rsqrt)
+    zero_slots = zero_slots_func(scalar)
     Params = projection_params(scalar)
 
     @wp.kernel(module="unique", module_options={"fast_math": fast_math, "enable_backward": False})
@@ -244,6 +271,7 @@ def projection_backward_kernel(scalar, covariance: str = "gsplat", fast_math: bo
         v_scales: wp.array2d(dtype=vec3),
         v_opacities: wp.array2d(dtype=scalar),
         v_viewmats: wp.array2d(dtype=mat44),
+        accumulate: int,
         first: int,
     ):
         c, tt = wp.tid()
@@ -251,6 +279,8 @@ def projection_backward_kernel(scalar, covariance: str = "gsplat", fast_math: bo
         i = c * means.shape[1] + n
         r = radii[i]
         if r[0] == 0 and r[1] == 0:  # culled: no gradient
+            if accumulate == 0:  # (slots not cleared: their zeros written here)
+                zero_slots(c, n, v_means, v_quats, v_scales, v_opacities, v_viewmats)
             return
         zero = scalar(0.0)
         # the outputs' gradients (zero where none came)
@@ -284,22 +314,37 @@ def projection_backward_kernel(scalar, covariance: str = "gsplat", fast_math: bo
         v_p = point_backward(p, K, w, h, g_xy, g_z, v_J)
 
         if v_means.shape[0] > 0:
-            v_means[c, n] = v_means[c, n] + wp.transpose(R) @ v_p
+            gm = wp.transpose(R) @ v_p
+            if accumulate != 0:
+                gm = v_means[c, n] + gm
+            v_means[c, n] = gm
         if v_viewmats.shape[0] > 0:  # p = R m + t
             v_R += wp.outer(v_p, m)
-            v_viewmats[c, n] = v_viewmats[c, n] + mat44(
+            gv = mat44(
                 v_R[0, 0], v_R[0, 1], v_R[0, 2], v_p[0],
                 v_R[1, 0], v_R[1, 1], v_R[1, 2], v_p[1],
                 v_R[2, 0], v_R[2, 1], v_R[2, 2], v_p[2],
                 zero, zero, zero, zero)
+            if accumulate != 0:
+                gv = v_viewmats[c, n] + gv
+            v_viewmats[c, n] = gv
         if v_scales.shape[0] > 0:  # M = Rq diag(s)
-            v_scales[c, n] = v_scales[c, n] + vec3(
+            gs = vec3(
                 v_M[0, 0] * Rq[0, 0] + v_M[1, 0] * Rq[1, 0] + v_M[2, 0] * Rq[2, 0],
                 v_M[0, 1] * Rq[0, 1] + v_M[1, 1] * Rq[1, 1] + v_M[2, 1] * Rq[2, 1],
                 v_M[0, 2] * Rq[0, 2] + v_M[1, 2] * Rq[1, 2] + v_M[2, 2] * Rq[2, 2])
+            if accumulate != 0:
+                gs = v_scales[c, n] + gs
+            v_scales[c, n] = gs
         if v_quats.shape[0] > 0:
-            v_quats[c, n] = v_quats[c, n] + quat_backward(q, scale_columns(v_M, s))
+            gq = quat_backward(q, scale_columns(v_M, s))
+            if accumulate != 0:
+                gq = v_quats[c, n] + gq
+            v_quats[c, n] = gq
         if v_opacities.shape[0] > 0:
-            v_opacities[c, n] = v_opacities[c, n] + v_o
+            go = v_o
+            if accumulate != 0:
+                go = v_opacities[c, n] + go
+            v_opacities[c, n] = go
 
     return project_backward

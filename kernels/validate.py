@@ -1,12 +1,15 @@
-"""Input value checks: each check that fails sets its own flag (a plain store of 1: threads that
-find the same problem write the same value). The flags are read back once, together with the
-intersection count, and turned into errors on the host (``ssgwarp.raster.rasterize``).
+"""Input value checks, in two forms.
 
-Two forms of the same checks: :func:`inputs_check_func`, called by the projection kernel on the
-values it loads anyway (the rasterizer's path: no pass of its own), and :func:`check_kernel`, one
-thread per element index with every input read flat (for calls that do not project: no
-Gaussians, the torch backend). Finiteness is tested on the bit pattern (:func:`finite`), so it
-holds in kernels compiled with fast maths too.
+:func:`inputs_check_func`, called by the projection kernel on the values it loads anyway (the
+rasterizer's path: no pass of its own), answers only whether a check failed; the projection then
+marks the Gaussian's intersection count (``projection.CHECK_FAILED``), so that the one value the
+rasterizer reads back per call, the intersection total, also says whether every check passed.
+:func:`check_kernel`, one thread per element index with every input read flat, sets one flag per
+kind of failure (a plain store of 1: threads that find the same problem write the same value);
+it runs where nothing is projected (no Gaussians) and, once a call's total has come back marked,
+to name the failed check in the error (``ssgwarp.raster.settings.raise_for_flags``).
+Finiteness is tested on the bit pattern (:func:`finite`), so it holds in kernels compiled with
+fast maths too.
 """
 
 import functools
@@ -60,57 +63,57 @@ def finite(x: wp.float64) -> bool:  # noqa: F811 (the float64 overload)
 @functools.lru_cache(maxsize=None)
 def inputs_check_func(scalar):
     """``check_inputs(c, n, i, mean, quat, scale, opacity, viewmat, K, colors, row, per_camera,
-    backgrounds, bg_row, flags)``: the value checks of Gaussian ``n`` seen from camera ``c``
-    (flat index ``i``), from values the projection has loaded: the Gaussian's own inputs once
-    (camera 0), its colour row (``row`` values of the flat ``colors``, per camera or shared), and
-    camera ``c``'s view matrix, intrinsics and background row once (Gaussian 0)."""
+    backgrounds, bg_row) -> bool``: whether a value check fails for Gaussian ``n`` seen from
+    camera ``c`` (flat index ``i``), from values the projection has loaded: the Gaussian's own
+    inputs once (camera 0), its colour row (``row`` values of the flat ``colors``, per camera or
+    shared), and camera ``c``'s view matrix, intrinsics and background row once (Gaussian 0).
+    Which check failed is not kept: a call that fails runs :func:`check_kernel` for the message."""
     t = types_for(scalar)
     vec3, vec4, mat33, mat44 = t.vec3, t.vec4, t.mat33, t.mat44
 
     @wp.func
+    def colour_row_finite(colors: wp.array(dtype=scalar), base: int, row: int) -> bool:
+        for j in range(row):
+            if not finite(colors[base + j]):
+                return False
+        return True
+
+    @wp.func
     def check_inputs(c: int, n: int, i: int, m: vec3, q: vec4, s: vec3, o: scalar, V: mat44, K: mat33,
                      colors: wp.array(dtype=scalar), row: int, per_camera: int,
-                     backgrounds: wp.array(dtype=scalar), bg_row: int, flags: wp.array(dtype=wp.int64)):
-        one = wp.int64(1)
+                     backgrounds: wp.array(dtype=scalar), bg_row: int) -> bool:
         zero = scalar(0.0)
         if c == 0:
             for j in range(3):
-                if not finite(m[j]):
-                    flags[0] = one
-                if not finite(s[j]):
-                    flags[2] = one
-                if s[j] < zero:
-                    flags[NEGATIVE_SCALE] = one
+                if not finite(m[j]) or not finite(s[j]) or s[j] < zero:
+                    return True
             for j in range(4):
                 if not finite(q[j]):
-                    flags[1] = one
+                    return True
             if q[0] == zero and q[1] == zero and q[2] == zero and q[3] == zero:
-                flags[ZERO_QUAT] = one
-            if not finite(o):
-                flags[3] = one
-            if o < zero or o > scalar(1.0):
-                flags[OPACITY_RANGE] = one
+                return True
+            if not finite(o) or o < zero or o > scalar(1.0):
+                return True
         if c == 0 or per_camera != 0:
             base = n * row
             if per_camera != 0:
                 base = i * row
-            for j in range(row):
-                if not finite(colors[base + j]):
-                    flags[4] = one
+            if not colour_row_finite(colors, base, row):
+                return True
         if n == 0:
             for r in range(4):
                 for col in range(4):
                     if not finite(V[r, col]):
-                        flags[5] = one
+                        return True
             for r in range(3):
                 for col in range(3):
                     if not finite(K[r, col]):
-                        flags[6] = one
+                        return True
             if K[0, 0] <= zero or K[1, 1] <= zero:
-                flags[FOCAL] = one
-            for j in range(bg_row):
-                if not finite(backgrounds[c * bg_row + j]):
-                    flags[7] = one
+                return True
+            if not colour_row_finite(backgrounds, c * bg_row, bg_row):
+                return True
+        return False
 
     return check_inputs
 

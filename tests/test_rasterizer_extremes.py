@@ -390,6 +390,75 @@ def test_value_checks_each_message(backend, dtype):
             run(**change)
 
 
+def test_failed_check_marks_the_intersection_total():
+    """The projection runs the value checks on what it loads: a Gaussian that fails one writes
+    CHECK_FAILED into its slot of the scan instead of its tile count (camera 0 checks the Gaussian's
+    own inputs, Gaussian 0 its camera's), the others their counts; without checks nothing is marked."""
+    from ssgwarp.raster import ops
+
+    params, vm, K = _good()
+    vm = torch.cat([vm, vm])
+    K = torch.cat([K, K])
+    means, quats, scales, opac, colors = params
+    scales = scales.clone()
+    scales[4, 1] = -0.5  # Gaussian 4: a negative scale
+    cfg = ops._project_cfg(torch.float32, 16, 16, 0.01, 1e10, 0.0, 0.3, False, RasterSettings(), 16, 1, 1)
+
+    def ends(check):
+        e = torch.full((2 * 10,), -7, dtype=torch.int64)
+        extra = {"ends": e, "check": check, "colors": colors, "backgrounds": None, "sh": False}
+        out = ops.apply(ops._Project, means, quats, scales, opac, vm, K, None, None, cfg, extra)
+        return e, out[6].view(-1)
+
+    e, counts = ends(True)
+    assert e[4] == ops.CHECK_FAILED and counts[4] == 0
+    others = [i for i in range(20) if i != 4]
+    assert torch.equal(e[others], counts[others].long()) and counts[others].sum() > 0
+    e, counts = ends(False)
+    assert (e < ops.CHECK_FAILED).all() and torch.equal(e, counts.long())
+
+
+def test_non_finite_gaussians_are_culled_without_checks():
+    """With validate=False a NaN mean or a NaN view matrix culls what it touches (radii and tile counts
+    0: no garbage intersection counts), and the other Gaussians and cameras render as without them."""
+    params, vm, K = _good()
+    vm = torch.cat([vm, vm])
+    K = torch.cat([K, K])
+    bad = [t.clone() for t in params]
+    bad[0][3] = float("nan")
+    bad_vm = vm.clone()
+    bad_vm[1, 0, 3] = float("nan")
+    img, _, meta = rasterization(*bad, bad_vm, K, 16, 16, validate=False)
+    assert (meta["radii"][:, 3] == 0).all() and (meta["tiles_per_gauss"][:, 3] == 0).all()
+    assert (meta["radii"][1] == 0).all() and (meta["tiles_per_gauss"][1] == 0).all()
+    keep = [i for i in range(10) if i != 3]
+    ref, _, _ = rasterization(*[t[keep] for t in params], vm[:1], K[:1], 16, 16)
+    assert torch.equal(img[0], ref[0]) and img[0].abs().max() > 0
+
+
+def test_checks_on_their_own_and_false_alarms(monkeypatch):
+    """Above CHECK_MAX_PAIRS (camera, Gaussian) pairs the checks run as a pass of their own (bad input
+    still named, good input renders the same); a total that reaches CHECK_FAILED without a failed check
+    (here: the mark lowered to 1) re-runs the checks, which pass, and the call goes on."""
+    from ssgwarp.raster import ops
+
+    params, vm, K = _good()
+    ref = rasterization(*params, vm, K, 16, 16)[0]
+    monkeypatch.setattr(ops, "CHECK_MAX_PAIRS", 5)
+    assert torch.equal(rasterization(*params, vm, K, 16, 16)[0], ref)
+    bad = list(params)
+    bad[3] = bad[3] + 2.0
+    with pytest.raises(ValueError, match="opacities"):
+        rasterization(*bad, vm, K, 16, 16)
+    monkeypatch.undo()
+    calls = []
+    check_values = ops.check_values
+    monkeypatch.setattr(ops, "CHECK_FAILED", 1)
+    monkeypatch.setattr(ops, "check_values", lambda *a, **k: calls.append(1) or check_values(*a, **k))
+    assert torch.equal(rasterization(*params, vm, K, 16, 16)[0], ref)
+    assert calls == [1]
+
+
 def test_bad_cameras_and_modes():
     params, vm, K = _good()
     with pytest.raises(ValueError, match="Ks"):

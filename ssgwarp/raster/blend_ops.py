@@ -23,12 +23,13 @@ MAX_CHANNELS = 64
 
 
 def pack_splats(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor, flatten_ids: Tensor,
-                packed: Tensor | None = None, threads: int = 1):
+                packed: Tensor | None = None, threads: int = 1, tg=None):
     """Per sorted intersection, contiguous in the order the blending kernels walk them:
     ``splats [M, 6]`` (x, y, conic a, b, c, opacity) and ``colors [M, D]`` (one gather kernel;
     ``colors`` is ``[C, N, D]`` or, the same for every camera, ``[N, D]``; ``packed [C, N, 6]``:
     the projection's packed splats, read instead of the three arrays). ``threads`` (CPU): launches over
-    equal runs of the intersections side by side (:mod:`.cpu_threads`)."""
+    equal runs of the intersections side by side (:mod:`.cpu_threads`). ``tg``: the launch target
+    (:func:`ssgwarp.raster.launch.target` of ``means2d`` when not given)."""
     M, D = flatten_ids.shape[0], colors.shape[-1]
     dt = means2d.dtype
     s = L.scalar_of(dt)
@@ -42,7 +43,7 @@ def pack_splats(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tens
     kern = blend_forward.pack_kernel(s, D)
     head = [*arr(ids), *(NULL if packed is None else arr(packed, 6)), *gauss, *arr(cs, D), *arr(splats, 6),
             *arr(cols, D)]
-    tg = L.target(means2d)
+    tg = tg or L.target(means2d)
     cpu_threads.launch_runs(kern, (), cpu_threads.element_runs(tg, threads, M, 1), head, tg)
     return splats, cols
 
@@ -56,7 +57,7 @@ class _Blend(torch.autograd.Function):
         dt, dev = colors.dtype, colors.device
         s = L.scalar_of(dt)
         th, tw = tiles["isect_offsets"].shape[1:]
-        tg = L.target(colors)
+        tg = tiles.get("target") or L.target(colors)
         ctx.set_materialize_grads(False)
         # the kernel writes every pixel
         out = torch.empty(C, height, width, D, dtype=dt, device=dev)
@@ -84,7 +85,7 @@ class _Blend(torch.autograd.Function):
             shift = N if cs.ndim == 2 else 0  # (colours shared by the cameras)
             splats, cols = packed, cs
         else:
-            splats, cols = pack_splats(means2d, conics, opacities, colors, ids, packed, len(parts))
+            splats, cols = pack_splats(means2d, conics, opacities, colors, ids, packed, len(parts), tg)
             shift = 0
         head = [*arr(splats, 6), *arr(cols, D)]
         if block:

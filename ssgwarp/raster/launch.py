@@ -57,6 +57,14 @@ NULL = (0,) * 12  # an absent array (null pointer, shape 0)
 _ITEMSIZE: dict = {}  # bytes per element of each dtype seen (a dict lookup is cheaper than element_size())
 
 
+def _itemsize(t: torch.Tensor) -> int:
+    try:
+        return _ITEMSIZE[t.dtype]
+    except KeyError:
+        es = _ITEMSIZE[t.dtype] = t.element_size()
+        return es
+
+
 def arr(t: torch.Tensor, inner: int = 1) -> tuple:
     """1-D Warp array over a contiguous tensor, ``inner`` scalars per element (a Warp
     vector/matrix of that many components, or 1 for scalars). The tensor must stay alive until
@@ -172,6 +180,8 @@ def grad_rows(g, inner: int, n: int):
     :data:`NULL` when there is none. Keep the tensor alive until the launch is queued."""
     if g is None:
         return NULL, None
+    if g.is_contiguous():  # (the usual case: no view needed)
+        return arr(g, inner), g
     g = g.reshape(n, inner)  # (a view where it can be; the kernels read the values, not the graph)
     if g.stride(1) != 1 and inner > 1:
         g = g.contiguous()
@@ -187,6 +197,11 @@ def pixel_rows(g, inner: int):
     the launch is queued."""
     if g is None:
         return NULL, None
+    if g.is_contiguous():  # (the usual case: rows of ``inner`` values, no view needed)
+        es = _itemsize(g)
+        if inner == 1:
+            return (g.data_ptr(), 0, g.numel(), 0, 0, 0, es, 0, 0, 0, 1, 0), g
+        return (g.data_ptr(), 0, g.numel() // inner, inner, 0, 0, inner * es, es, 0, 0, 2, 0), g
     try:
         v = g.view(-1, inner)
     except RuntimeError:  # (pixel axes that do not merge: copied)
@@ -417,6 +432,29 @@ def _stream(tg: Target):
     if ws is None:
         ws = _STREAMS[tg.key] = wp.Stream(tg.device, cuda_stream=tg.stream)
     return ws
+
+
+_PINNED = threading.local()  # per thread: a pinned host int64 that read-backs land in
+
+
+def read_int64(t: torch.Tensor, index: int, tg: Target) -> int:
+    """``int(t[index])`` of a contiguous int64 tensor once the target's queued work has written it:
+    on CUDA one 8-byte copy into pinned host memory on the target's stream, then a wait for that
+    stream (the call's one synchronisation); on the CPU the value in place (launches there have
+    finished when they return). No torch call either way."""
+    if tg.cpu:
+        return ctypes.c_int64.from_address(t.data_ptr() + 8 * index).value
+    if not FAST:
+        return int(t[index].item())
+    host = getattr(_PINNED, "buf", None)
+    if host is None:
+        host = _PINNED.buf = torch.empty(1, dtype=torch.int64, pin_memory=True)
+    core = _wpc.runtime.core
+    if not core.wp_memcpy_d2h(tg.context, host.data_ptr(), t.data_ptr() + 8 * index, 8, tg.stream):
+        raise RuntimeError(f"ssgwarp: reading a count back from {tg.device} failed: {_wpc.runtime.get_error_string()}")
+    if not core.wp_cuda_stream_synchronize(tg.stream):
+        raise RuntimeError(f"ssgwarp: waiting for {tg.device} failed: {_wpc.runtime.get_error_string()}")
+    return ctypes.c_int64.from_address(host.data_ptr()).value
 
 
 def sort_pairs(keys: torch.Tensor, values: torch.Tensor, count: int, end_bit: int, tg: Target) -> None:

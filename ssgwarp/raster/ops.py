@@ -8,10 +8,11 @@ stream. float32 and float64 use the same kernel source, built per precision.
 :func:`ssgwarp.raster.rasterize.rasterization`'s Warp path: two autograd ops (:class:`_Project`
 here: projection, tile counts and SH colours; :class:`ssgwarp.raster.blend_ops._Blend`: blending)
 around the tile binning (:func:`bin_tiles`), with one device synchronisation per call (the
-intersection count, read back together with the input checks' flags).
+intersection total, which also reports the input value checks run in the projection).
 """
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import torch
@@ -23,6 +24,8 @@ from .launch import NULL, apply, arr
 
 Tensor = torch.Tensor
 INT32_MAX = 2**31 - 1
+CHECK_FAILED = int(projection.CHECK_FAILED)  # (what a failed input check adds to the intersection total)
+CHECK_MAX_PAIRS = projection.CHECK_MAX_PAIRS  # (more (camera, Gaussian) pairs: the checks run on their own)
 # the projection's backward: the hand-written kernel (True) or Warp's generated adjoint of the
 # forward kernel (False; slower, kept as the tests' yardstick and for before/after benchmarks)
 HAND_BACKWARD = True
@@ -60,9 +63,10 @@ class _Project(torch.autograd.Function):
     ``colors [C, N, 3]`` (SH colour, ``+ 0.5`` clamped, 0 where culled) when ``coeffs`` is given,
     else None; ``counts [C, N]`` (int32 tiles per Gaussian) and ``splats [C, N, 6]`` (the
     blending's packed splats) when ``cfg["tile_size"] > 0``, else None. ``extra`` (or None):
-    ``flags`` (int64 ``[N_FLAGS]``, zeroed) to run the input value checks in the projection, with
-    the ``colors`` and ``backgrounds`` they also cover; ``ends`` (int64 ``[C*N]``) to receive the
-    tile counts for the binning's in-place scan. Backward: the SH colour's backward then the
+    ``ends`` (int64 ``[C*N]``) to receive the tile counts for the binning's in-place scan;
+    ``check=True`` to run the input value checks in the projection (a Gaussian that fails one
+    marks its count in ``ends``: ``kernels/projection.py: CHECK_FAILED``), with the ``colors``
+    and ``backgrounds`` they also cover. Backward: the SH colour's backward then the
     projection's (``kernels/projection_backward.py``), both into per-(camera, Gaussian) slots
     when C > 1 (summed here in a fixed order), straight into the gradients when C = 1."""
 
@@ -101,7 +105,9 @@ class _Project(torch.autograd.Function):
             colors = torch.empty(C, N, 3, dtype=dt, device=dev)
             colour_args = _colour_args(ins[0], campos, coeffs, radii, C, N)
             cpu_threads.launch_runs(sh.colour_kernel(s, cfg["sh_degree"]), (C,), runs, colour_args + [*arr(colors, 3)], tg)
-        ctx.save_for_backward(*ins, *outs, coeffs, campos)
+        # (the hand-written backward reads the radii of the outputs; Warp's adjoint all of them)
+        ctx.hand = HAND_BACKWARD
+        ctx.save_for_backward(*ins, coeffs, campos, *((radii,) if ctx.hand else outs))
         # the backward launches read the same tensors (kept by ctx): their descriptors are kept too
         # (inputs and parameters, outputs; not the checks' nor the tile counts', which the binning has scanned)
         ctx.cfg, ctx.head, ctx.tail, ctx.colour_args = cfg, head, tail, colour_args
@@ -111,19 +117,28 @@ class _Project(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, _g_radii, g_means2d, g_depths, g_conics, g_opac, g_colors, _g_counts, _g_splats):
-        means, quats, scales, opacities, viewmats, Ks, means2d, depths, conics, opac, radii, coeffs, campos = \
-            ctx.saved_tensors
-        cfg, need = ctx.cfg, ctx.needs_input_grad
+        means, quats, scales, opacities, viewmats, Ks, coeffs, campos = ctx.saved_tensors[:8]
+        cfg, need, hand = ctx.cfg, ctx.needs_input_grad, ctx.hand
         C, N = viewmats.shape[0], means.shape[0]
         dt, dev = means.dtype, means.device
         s = L.scalar_of(dt)
         tg = ctx.tg
-        # one adjoint slot per (camera, Gaussian); the per-Gaussian gradients share one zeroed buffer
+        # one adjoint slot per (camera, Gaussian). Where the projection's backward is the only
+        # kernel to write them it writes every slot (no clearing); after the SH colours' backward
+        # (which adds into the means' slots) or Warp's adjoint they start from zeros, in one buffer
         lead = (C, N) if C > 1 else (N,)
-        v_means, v_quats, v_scales, v_opac = _zeros_split([3, 4, 3, 1], need[:4], lead, dt, dev)
-        v_view = torch.zeros(C, N, 4, 4, dtype=dt, device=dev) if need[4] else None
+        sh_back = g_colors is not None and coeffs is not None
+        grads = [L.grad_rows(g, k, C * N) for g, k in ((g_means2d, 2), (g_depths, 1), (g_conics, 3), (g_opac, 1))]
+        project = any(g[1] is not None for g in grads) and any(need[:5])
+        written = project and hand and not sh_back
+        if written:
+            v_means, v_quats, v_scales, v_opac = (torch.empty(*lead, *((w,) if w > 1 else ()), dtype=dt, device=dev)
+                                                  if on else None for w, on in zip((3, 4, 3, 1), need[:4]))
+        else:
+            v_means, v_quats, v_scales, v_opac = _zeros_split([3, 4, 3, 1], need[:4], lead, dt, dev)
+        v_view = (torch.empty if written else torch.zeros)(C, N, 4, 4, dtype=dt, device=dev) if need[4] else None
         v_coeffs = v_campos = None
-        if g_colors is not None and coeffs is not None:
+        if sh_back:
             g, g_t = L.grad_rows(g_colors, 3, C * N)
             K, degree = coeffs.shape[-2], cfg["sh_degree"]
             if need[7]:
@@ -144,14 +159,13 @@ class _Project(torch.autograd.Function):
                 # (array stores are not replayed in Warp's adjoints: the colour output is not needed)
                 cpu_threads.launch_runs(sh.colour_kernel(s, degree), (C,), ctx.runs, ctx.colour_args + [*NULL], tg, adj)
             del g_t
-        grads = [L.grad_rows(g, k, C * N) for g, k in ((g_means2d, 2), (g_depths, 1), (g_conics, 3), (g_opac, 1))]
-        if any(g[1] is not None for g in grads) and any(need[:5]):
+        if project:
             outs = [*_grid(v_means, C, N, 3), *_grid(v_quats, C, N, 4), *_grid(v_scales, C, N, 3),
                     *_grid(v_opac, C, N, 1), *_grid(v_view, C, N, 16)]
-            if HAND_BACKWARD:  # kernels/projection_backward.py
+            if hand:  # kernels/projection_backward.py
                 cpu_threads.launch_runs(projection_backward.projection_backward_kernel(s, *cfg["variant"]), (C,),
-                                        ctx.runs, ctx.head + ctx.tail[-12:] + [v for g in grads for v in g[0]] + outs,
-                                        tg)  # (the tail's last descriptor: the radii)
+                                        ctx.runs, ctx.head + ctx.tail[-12:] + [v for g in grads for v in g[0]] + outs
+                                        + [int(not written)], tg)  # (the tail's last descriptor: the radii)
             else:  # Warp's generated adjoint of the forward kernel (the hand kernel's yardstick in the tests)
                 adj = [*outs, *NULL, *_ADJ_PARAMS, *_NO_CHECKS, *grads[0][0], *grads[1][0],
                        *grads[2][0], *grads[3][0], *NULL, *NULL, *NULL, *NULL]
@@ -190,21 +204,21 @@ class ProjectionParams(NamedTuple):
 assert ProjectionParams._fields == tuple(name for name, _ in projection.PARAM_FIELDS)
 # the adjoint of the parameter block (not read: nothing is differentiated with respect to it)
 _ADJ_PARAMS = ProjectionParams(0, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0)
-# the projection's check parameters when it runs no checks: colours, row, per camera, backgrounds, row, flags
-_NO_CHECKS = [*NULL, 0, 0, *NULL, 0, *NULL]
+# the projection's check parameters when it runs no checks: colours, row, per camera, backgrounds, row, check
+_NO_CHECKS = [*NULL, 0, 0, *NULL, 0, 0]
 
 
 def _check_args(extra, C, N):
     """``(flat arguments, tensors to keep alive)`` of the projection's input checks (none without
-    ``extra["flags"]``): the colours read flat in rows (per camera or shared), the backgrounds."""
-    if extra is None or extra.get("flags") is None:
+    ``extra["check"]``): the colours read flat in rows (per camera or shared), the backgrounds."""
+    if extra is None or not extra.get("check"):
         return _NO_CHECKS, ()
     colors, bg = L.dense(extra["colors"]), extra.get("backgrounds")
     per_cam = colors.shape[0] == C and colors.ndim == (4 if extra.get("sh") else 3)
     row = colors.numel() // (C * N if per_cam else N) if N else 0
     bg = L.dense(bg) if bg is not None else None
     args = [*arr(colors), row, int(per_cam), *(arr(bg) if bg is not None else NULL),
-            bg.shape[-1] if bg is not None else 0, *arr(extra["flags"])]
+            bg.shape[-1] if bg is not None else 0, 1]
     return args, (colors, bg)
 
 
@@ -249,11 +263,19 @@ def project_warp(means, quats, scales, opacities, viewmats, Ks, width, height, *
     return radii, means2d, depths, conics, opac
 
 
-def _project_cfg(dtype, width, height, near_plane, far_plane, radius_clip, eps2d, antialiased, settings,
-                 tile_size=0, tile_width=0, tile_height=0, sh_degree=None) -> dict:
+def _project_cfg(*args) -> dict:
     """What :class:`_Project` needs besides tensors: ``params`` (:class:`ProjectionParams`),
     ``variant`` (the kernel's build: covariance form, fast maths), ``tile_size`` and
-    ``sh_degree``."""
+    ``sh_degree``; arguments as :func:`_build_project_cfg`'s. The same arguments give the same
+    dict (cached; read only)."""
+    try:
+        return _cached_project_cfg(*args)
+    except TypeError:  # (an unhashable argument)
+        return _build_project_cfg(*args)
+
+
+def _build_project_cfg(dtype, width, height, near_plane, far_plane, radius_clip, eps2d, antialiased, settings,
+                       tile_size=0, tile_width=0, tile_height=0, sh_degree=None) -> dict:
     params = ProjectionParams(
         width=int(width), height=int(height), near_plane=float(near_plane), far_plane=float(far_plane),
         eps2d=float(eps2d), radius_clip=float(radius_clip), alpha_min=float(settings.alpha_min),
@@ -264,11 +286,14 @@ def _project_cfg(dtype, width, height, near_plane, far_plane, radius_clip, eps2d
             "tile_size": int(tile_size), "sh_degree": sh_degree, "cpu_threads": settings.cpu_threads}
 
 
+_cached_project_cfg = functools.lru_cache(maxsize=256)(_build_project_cfg)
+
+
 # ---------------------------------------------------------------------------------------------
 # tile binning
 # ---------------------------------------------------------------------------------------------
 def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, tile_width: int, tile_height: int,
-              pending=None, counts: Tensor | None = None, scan: Tensor | None = None, keep_perm: bool = True,
+              recheck=None, counts: Tensor | None = None, scan: Tensor | None = None, keep_perm: bool = True,
               counts_in_scan: bool = False, threads: int | None = None) -> dict:
     """Tile intersections of projected Gaussians, sorted by (camera, tile, depth).
 
@@ -279,14 +304,15 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
     [C*N]`` (int64 inclusive scan of the counts).
 
     ``counts``: the tile counts when already known (the projection writes them), else counted
-    here. ``scan``: an int64 tensor ``[C*N + N_FLAGS]`` to hold the scan, whose tail holds the
-    input checks' flags, and with ``counts_in_scan`` whose head already holds the counts (the
-    projection wrote them; scanned in place); ``pending``: ``(flags, check)`` from deferred input
-    validation. The intersection count and the flags are read back together (the one
-    synchronisation) and the flags checked before anything else. Without ``keep_perm`` the sort
-    carries the Gaussian ids themselves (as gsplat's does), so the sorted values are the flattened
-    ids. ``threads`` (CPU):
-    ``RasterSettings.cpu_threads`` for the key writes and the range offsets (:mod:`.cpu_threads`).
+    here. ``scan``: an int64 tensor ``[C*N]`` to hold the scan, with ``counts_in_scan`` already
+    holding the counts (the projection wrote them; scanned in place). The intersection total is
+    the one value read back (the one synchronisation); where the projection ran the input checks,
+    a Gaussian that failed one added ``kernels/projection.py: CHECK_FAILED`` to it, and then
+    ``recheck()`` runs before anything else: it raises the failed check's error (and returns when
+    every check passes: the total is then a real, too large, count). Without ``keep_perm`` the
+    sort carries the Gaussian ids themselves (as gsplat's does), so the sorted values are the
+    flattened ids. ``threads`` (CPU): ``RasterSettings.cpu_threads`` for the key writes and the
+    range offsets (:mod:`.cpu_threads`).
     """
     C, N = depths.shape
     s = L.scalar_of(means2d.dtype)
@@ -302,23 +328,16 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
         counts = torch.empty(C, N, dtype=torch.int32, device=dev)
         L.launch(binning.count_kernel(s), CN, [*arr(m2, 2), *arr(rd, 2), tile_size, tile_width, tile_height,
                                                 *arr(counts)], tg)
-    n_flags = 0 if pending is None else pending[0].numel()
-    if scan is None or scan.numel() != CN + n_flags:
-        scan, counts_in_scan = torch.empty(CN + n_flags, dtype=torch.int64, device=dev), False
-        if n_flags:
-            scan[CN:] = pending[0]
-    ends = scan[:CN]
+    if scan is None or scan.numel() != CN:
+        scan, counts_in_scan = torch.empty(CN, dtype=torch.int64, device=dev), False
+    ends = scan
     if CN and counts_in_scan:
         ends.cumsum_(0)
     elif CN:
         torch.cumsum(counts.view(-1), 0, dtype=torch.int64, out=ends)
-    if CN:
-        host = scan[CN - 1:].tolist()
-    else:
-        host = [0] + (scan.tolist() if n_flags else [])
-    if pending is not None:
-        pending[1](host[1:])
-    n_isects = int(host[0])
+    n_isects = L.read_int64(scan, CN - 1, tg) if CN else 0
+    if n_isects >= CHECK_FAILED and recheck is not None:
+        recheck()
     if n_isects > INT32_MAX // 2:
         raise ValueError(
             f"rasterization: {n_isects:,} Gaussian-tile intersections exceed the {INT32_MAX // 2:,} one call can "
@@ -356,4 +375,5 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
         "perm": values[:n_isects] if keep_perm else None,
         "isect_ends": ends,
         "n_isects": n_isects,
+        "target": tg,  # (where the blending launches: the same device and stream)
     }

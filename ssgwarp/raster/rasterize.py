@@ -12,6 +12,7 @@ rule shared by both in ``kernels/pixel.py``.
 """
 from __future__ import annotations
 
+from functools import partial
 from typing import Optional
 
 import torch
@@ -131,6 +132,12 @@ def rasterization(
         eps2d, sh_degree, tile_size, backgrounds, render_mode, rasterize_mode, settings, validate)
 
 
+def _recheck(inputs) -> None:
+    """The value checks as a pass of their own (:func:`ssgwarp.raster.ops.check_values`, one
+    synchronisation): raises the first failed check's error, returns when all pass."""
+    raise_for_flags(ops.check_values(*inputs).tolist())
+
+
 def _rasterize_warp(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane, far_plane,
                     radius_clip, eps2d, sh_degree, tile_size, backgrounds, render_mode, rasterize_mode, settings,
                     deterministic, validate):
@@ -139,27 +146,26 @@ def _rasterize_warp(means, quats, scales, opacities, colors, viewmats, Ks, width
     if ops is None:
         raise ImportError("rasterization: backend='warp' needs warp-lang (pip install warp-lang), "
                           "or use backend='torch'")
-    pending = None
     if validate:
         check_shapes(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds,
                      render_mode, rasterize_mode, tile_size, near_plane)
     C, N = viewmats.shape[0], means.shape[0]
     CN = C * N
     tile_width, tile_height = -(-width // tile_size), -(-height // tile_size)
-    # the projection writes each Gaussian's tile count into the head of ``scan`` (scanned there in
-    # place into the intersection ends) and the value checks their flags into its tail, so the
-    # intersection count and the flags come back in one read: one synchronisation per call, and
-    # nothing is allocated from the inputs' values before it
-    scan = torch.empty(CN + (N_FLAGS if validate else 0), dtype=torch.int64, device=means.device)
-    extra = {"ends": scan[:CN]}
+    # the projection writes each Gaussian's tile count into ``scan`` (scanned there in place into
+    # the intersection ends) and runs the value checks on what it loads: a Gaussian that fails one
+    # marks its count, so the intersection total, read back once, also says whether all passed
+    # (then a pass of the checks names the failure); nothing is allocated from the inputs' values
+    # before that one synchronisation
+    scan = torch.empty(CN, dtype=torch.int64, device=means.device)
+    extra = {"ends": scan}
+    recheck = None
     if validate:
-        flags = scan[CN:]
-        flags.zero_()
-        if CN:  # the projection runs the checks on the values it loads
-            extra.update(flags=flags, colors=colors, backgrounds=backgrounds, sh=sh_degree is not None)
-        else:  # nothing to project: the checks on their own
-            ops.check_values(means, quats, scales, opacities, colors, viewmats, Ks, backgrounds, flags)
-        pending = (flags, raise_for_flags)
+        recheck = partial(_recheck, (means, quats, scales, opacities, colors, viewmats, Ks, backgrounds))
+        if 0 < CN < ops.CHECK_MAX_PAIRS:  # the projection runs the checks on the values it loads
+            extra.update(check=True, colors=colors, backgrounds=backgrounds, sh=sh_degree is not None)
+        else:  # nothing to project (or more pairs than the mark can count): the checks on their own
+            recheck()
     cfg = ops._project_cfg(means.dtype, width, height, near_plane, far_plane, radius_clip, eps2d,
                            rasterize_mode == "antialiased", settings, tile_size, tile_width, tile_height, sh_degree)
     coeffs = campos = None
@@ -181,7 +187,7 @@ def _rasterize_warp(means, quats, scales, opacities, colors, viewmats, Ks, width
         "tile_width": tile_width, "tile_height": tile_height, "width": width, "height": height,
         "tile_size": tile_size, "n_cameras": C, "settings": settings, "backend": "warp",
     }
-    tiles = ops.bin_tiles(means2d, radii, depths, tile_size, tile_width, tile_height, pending=pending, counts=counts,
+    tiles = ops.bin_tiles(means2d, radii, depths, tile_size, tile_width, tile_height, recheck=recheck, counts=counts,
                           scan=scan, keep_perm=deterministic, counts_in_scan=True,
                           threads=settings.cpu_threads)
     # gsplat's binning outputs; the backward's internal arrays (offsets, perm, isect_ends) stay in ``tiles``
