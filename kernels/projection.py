@@ -36,12 +36,13 @@ loads (:func:`.validate.inputs_check_func`; colour rows and backgrounds are read
 them) and writes :data:`CHECK_FAILED` into ``ends`` for a Gaussian that fails one, so
 that the intersection total the binning reads back also reports the checks. Culling
 is written to hold for NaN too (each test passes only on values in range), so without
-a failed check every count written is a number of tiles. With ``tile_size > 0`` it writes each Gaussian's number of intersected
-tiles (the binning's first step, :func:`.binning.tile_box_func`; also as int64
-into ``ends``, which the binning scans in place),
-and given a ``splats`` array, each visible Gaussian's screen mean, conic and
-opacity packed together (what the blending gathers per intersection: one load
-instead of three).
+a failed check every count written is a number of tiles.
+
+With ``tile_size > 0`` it writes each Gaussian's number of intersected tiles (the
+binning's first step, :func:`.binning.tile_box_func`; also as int64 into ``ends``,
+which the binning scans in place), and given a ``splats`` array, each visible
+Gaussian's screen mean, conic and opacity packed together (what the blending
+gathers per intersection: one load instead of three).
 Culled Gaussians get zeros in every output, so no output needs clearing first.
 
 ``first``: the Gaussian of this launch's first thread (0 for all of them in one launch; on the CPU a

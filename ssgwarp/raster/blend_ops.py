@@ -144,7 +144,7 @@ class _Blend(torch.autograd.Function):
         parts = ctx.parts
         if not det and len(parts) > 1:  # (each thread adds into its own rows: within a memory cap)
             parts = cpu_threads.merge(parts, cpu_threads.extra_buffers(len(parts), W * cols.element_size(), rows))
-        packed = torch.zeros(rows, W, dtype=dt, device=dev)
+        packed = L.zeros((rows, W), dt, tg)  # (CUDA: one memset on the stream)
         # the default backward's other threads: their own rows, added to the first thread's below
         extra = torch.zeros(len(parts) - 1, rows, W, dtype=dt, device=dev) if len(parts) > 1 and not det else None
         kern = blend_backward.reduced_backward_kernel(s, D, det, per_warp, L.fast_math(st, s), not geometry)

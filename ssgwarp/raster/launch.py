@@ -220,12 +220,13 @@ def pixel_rows(g, inner: int):
 class Target:
     """A torch device (and on CUDA torch's current stream there) as Warp launch target."""
 
-    __slots__ = ("key", "dkey", "cpu", "device", "context", "stream", "primary")
+    __slots__ = ("key", "dkey", "cpu", "device", "device_torch", "context", "stream", "primary")
 
     def __init__(self, key, device, stream):
         self.key = key
         self.dkey = key[0]  # the device alone (recorded launches do not depend on the stream)
         self.device = device
+        self.device_torch = torch.device("cpu") if key[0] == "cpu" else torch.device("cuda", key[0])
         self.cpu = device.is_cpu
         self.context = None if self.cpu else device.context
         self.primary = self.cpu or bool(getattr(device, "is_primary", False))
@@ -432,6 +433,19 @@ def _stream(tg: Target):
     if ws is None:
         ws = _STREAMS[tg.key] = wp.Stream(tg.device, cuda_stream=tg.stream)
     return ws
+
+
+def zeros(shape: tuple, dtype: torch.dtype, tg: Target) -> torch.Tensor:
+    """``torch.zeros(shape)`` on the target's device: on CUDA an uninitialised tensor cleared by one
+    ``cudaMemsetAsync`` on the target's stream (Warp's native call: one call instead of torch's fill
+    kernel and its dispatch, what a backward's gradient buffer costs on every training step)."""
+    if tg.cpu or not FAST:
+        return torch.zeros(shape, dtype=dtype, device=tg.device_torch)
+    t = torch.empty(shape, dtype=dtype, device=tg.device_torch)
+    n = t.numel() * _itemsize(t)
+    if n and not _wpc.runtime.core.wp_memset_device(tg.context, t.data_ptr(), 0, n, tg.stream):
+        raise RuntimeError(f"ssgwarp: clearing a buffer on {tg.device} failed: {_wpc.runtime.get_error_string()}")
+    return t
 
 
 _PINNED = threading.local()  # per thread: a pinned host int64 that read-backs land in

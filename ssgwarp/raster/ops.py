@@ -135,25 +135,27 @@ class _Project(torch.autograd.Function):
             v_means, v_quats, v_scales, v_opac = (torch.empty(*lead, *((w,) if w > 1 else ()), dtype=dt, device=dev)
                                                   if on else None for w, on in zip((3, 4, 3, 1), need[:4]))
         else:
-            v_means, v_quats, v_scales, v_opac = _zeros_split([3, 4, 3, 1], need[:4], lead, dt, dev)
-        v_view = (torch.empty if written else torch.zeros)(C, N, 4, 4, dtype=dt, device=dev) if need[4] else None
+            v_means, v_quats, v_scales, v_opac = _zeros_split([3, 4, 3, 1], need[:4], lead, dt, tg)
+        v_view = None if not need[4] else (torch.empty(C, N, 4, 4, dtype=dt, device=dev) if written
+                                           else L.zeros((C, N, 4, 4), dt, tg))
         v_coeffs = v_campos = None
         if sh_back:
             g, g_t = L.grad_rows(g_colors, 3, C * N)
             K, degree = coeffs.shape[-2], cfg["sh_degree"]
             if need[7]:
-                v_campos = torch.zeros(C, N, 3, dtype=dt, device=dev)
+                v_campos = L.zeros((C, N, 3), dt, tg)
             if coeffs.ndim == 3 and C > 1:
                 # the same coefficients for several cameras: summed over them in one hand-written
                 # kernel (kernels/sh.py: colour_backward_kernel; every used row written)
                 if need[6]:
-                    v_coeffs = (torch.empty_like if K == sh.n_coeffs(degree) else torch.zeros_like)(coeffs)
+                    v_coeffs = (torch.empty_like(coeffs) if K == sh.n_coeffs(degree)
+                                else L.zeros(tuple(coeffs.shape), dt, tg))
                 cpu_threads.launch_runs(sh.colour_backward_kernel(s, degree), (), ctx.runs,
                                         [*ctx.colour_args, *g, *_grid(v_means, C, N, 3), *_grid(v_campos, C, N, 3),
                                          *(NULL if v_coeffs is None else L.grid3(v_coeffs, C, N, K, 3, False))], tg)
             else:  # one row per (camera, Gaussian): Warp's generated adjoint (the faster one there)
                 if need[6]:
-                    v_coeffs = torch.zeros_like(coeffs)
+                    v_coeffs = L.zeros(tuple(coeffs.shape), dt, tg)
                 adj = [*_grid(v_means, C, N, 3), *_grid(v_campos, C, N, 3),
                        *(NULL if v_coeffs is None else L.grid3(v_coeffs, C, N, K, 3, True)), *NULL, *g]
                 # (array stores are not replayed in Warp's adjoints: the colour output is not needed)
@@ -222,16 +224,16 @@ def _check_args(extra, C, N):
     return args, (colors, bg)
 
 
-def _zeros_split(widths, wanted, lead, dt, dev):
+def _zeros_split(widths, wanted, lead, dt, tg):
     """Zeroed ``[*lead, w]`` tensors for the wanted widths (None for the others), as contiguous
-    views of one buffer (one allocation and one fill)."""
+    views of one buffer (one allocation and one clear, :func:`ssgwarp.raster.launch.zeros`)."""
     n = 1
     for d in lead:
         n *= d
     sizes = [n * w for w, on in zip(widths, wanted) if on]
     if not sizes:
         return [None] * len(widths)
-    parts = iter(torch.zeros(sum(sizes), dtype=dt, device=dev).split_with_sizes(sizes))
+    parts = iter(L.zeros((sum(sizes),), dt, tg).split_with_sizes(sizes))
     return [(next(parts).view(*lead, w) if w > 1 else next(parts).view(*lead)) if on else None
             for w, on in zip(widths, wanted)]
 
