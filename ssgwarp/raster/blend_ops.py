@@ -144,7 +144,8 @@ class _Blend(torch.autograd.Function):
         parts = ctx.parts
         if not det and len(parts) > 1:  # (each thread adds into its own rows: within a memory cap)
             parts = cpu_threads.merge(parts, cpu_threads.extra_buffers(len(parts), W * cols.element_size(), rows))
-        packed = L.zeros((rows, W), dt, tg)  # (CUDA: one memset on the stream)
+        # (CUDA: one memset on the stream; the default backward's rows as [C, N, W] from the start)
+        packed = L.zeros((C, N, W) if not det and C * N else (rows, W), dt, tg)
         # the default backward's other threads: their own rows, added to the first thread's below
         extra = torch.zeros(len(parts) - 1, rows, W, dtype=dt, device=dev) if len(parts) > 1 and not det else None
         kern = blend_backward.reduced_backward_kernel(s, D, det, per_warp, L.fast_math(st, s), not geometry)
@@ -155,7 +156,7 @@ class _Blend(torch.autograd.Function):
                          for i, (a, b) in enumerate(parts)])
         del g_colors_kept, g_alphas_kept  # (kept alive until the launches were queued)
         if extra is not None:
-            packed += extra.sum(0) if extra.shape[0] > 1 else extra[0]
+            packed.view(rows, W).add_(extra.sum(0) if extra.shape[0] > 1 else extra[0])
         if det:
             slots = packed
             packed = torch.empty(C * N, W, dtype=dt, device=dev)
@@ -165,16 +166,21 @@ class _Blend(torch.autograd.Function):
         # (the gradients as views of the packed rows, in as few torch calls as may be)
         v_m2d = v_conics = v_opac = None
         if geometry:
-            v_m2d, v_conics, v_opac, v_colors = packed.view(C, N, W).split_with_sizes((2, 3, 1, D), -1)
+            v_m2d, v_conics, v_opac, v_colors = _rows(packed, C, N, W).split_with_sizes((2, 3, 1, D), -1)
             v_opac = v_opac.squeeze(-1)
         else:
-            v_colors = packed.view(C, N, D)
+            v_colors = _rows(packed, C, N, D)
         if len(ctx.cshape) == 2:  # colours shared by the cameras
             v_colors = v_colors[0] if C == 1 else v_colors.sum(0)
         v_bg = None
         if bg is not None and need[4]:  # (a constant background, as training passes: no gradient to form)
             v_bg = (g_colors * out_T[..., None]).sum(dim=(1, 2)) if g_colors is not None else torch.zeros_like(bg)
         return v_m2d, v_conics, v_colors, v_opac, v_bg, None, None, None, None, None, None, None, None
+
+
+def _rows(packed: Tensor, C: int, N: int, W: int) -> Tensor:
+    """The per-Gaussian gradient rows as ``[C, N, W]`` (a view unless they are already)."""
+    return packed if packed.dim() == 3 else packed.view(C, N, W)
 
 
 # the blending forward on CUDA with one block per tile (False: the per-intersection gather and the

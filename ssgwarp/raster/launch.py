@@ -180,8 +180,15 @@ def grad_rows(g, inner: int, n: int):
     :data:`NULL` when there is none. Keep the tensor alive until the launch is queued."""
     if g is None:
         return NULL, None
-    if g.is_contiguous():  # (the usual case: no view needed)
+    if g.is_contiguous():  # (a gradient of its own: no view needed)
         return arr(g, inner), g
+    # a column block of a wider buffer (the blending backward's packed rows: the usual case), read
+    # where it lies when its rows are evenly spaced: no torch call
+    st, shape = g.stride(), g.shape
+    lead = len(shape) - (1 if inner > 1 else 0)
+    if lead >= 1 and (inner == 1 or (st[-1] == 1 and shape[-1] == inner)) and all(
+            shape[d] == 1 or st[d] == st[d + 1] * shape[d + 1] for d in range(lead - 1)):
+        return (g.data_ptr(), 0, n, 0, 0, 0, st[lead - 1] * _itemsize(g), 0, 0, 0, 1, 0), g
     g = g.reshape(n, inner)  # (a view where it can be; the kernels read the values, not the graph)
     if g.stride(1) != 1 and inner > 1:
         g = g.contiguous()
