@@ -446,7 +446,7 @@ def zeros(shape: tuple, dtype: torch.dtype, tg: Target) -> torch.Tensor:
     """``torch.zeros(shape)`` on the target's device: on CUDA an uninitialised tensor cleared by one
     ``cudaMemsetAsync`` on the target's stream (Warp's native call: one call instead of torch's fill
     kernel and its dispatch, what a backward's gradient buffer costs on every training step)."""
-    if tg.cpu or not FAST:
+    if tg.cpu or not FAST or not tg.primary:
         return torch.zeros(shape, dtype=dtype, device=tg.device_torch)
     t = torch.empty(shape, dtype=dtype, device=tg.device_torch)
     n = t.numel() * _itemsize(t)
@@ -465,7 +465,7 @@ def read_int64(t: torch.Tensor, index: int, tg: Target) -> int:
     finished when they return). No torch call either way."""
     if tg.cpu:
         return ctypes.c_int64.from_address(t.data_ptr() + 8 * index).value
-    if not FAST:
+    if not FAST or not tg.primary:
         return int(t[index].item())
     host = getattr(_PINNED, "buf", None)
     if host is None:
