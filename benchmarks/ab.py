@@ -30,7 +30,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 from raster import camera, make_scene, pass_closures  # noqa: E402
-from timing import sync  # noqa: E402
+from timing import sync, timed  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 CASES = {"16": (16, 16, 16), "10k": (10_000, 256, 256), "100k": (100_000, 1920, 1080)}
@@ -65,16 +65,6 @@ def block_us(fn, device, calls: int) -> float:
     return (time.perf_counter() - t0) / calls * 1e6
 
 
-def synced_us(fn, device, calls: int) -> float:
-    times = []
-    for _ in range(calls):
-        t0 = time.perf_counter()
-        fn()
-        sync(device)
-        times.append((time.perf_counter() - t0) * 1e6)
-    return statistics.median(times)
-
-
 def run_case(libs: dict, n: int, w: int, h: int, device, rounds: int, calls: int) -> list[dict]:
     params = make_scene(n, device)
     if n <= 64:  # (a close camera so that the few Gaussians cover the small image)
@@ -90,7 +80,7 @@ def run_case(libs: dict, n: int, w: int, h: int, device, rounds: int, calls: int
         for name in (list(fns) if r % 2 == 0 else list(fns)[::-1]):
             for pname, fn in zip(("forward", "forward+backward"), fns[name]):
                 times.setdefault((name, pname, "block"), []).append(block_us(fn, device, calls))
-                times.setdefault((name, pname, "synced"), []).append(synced_us(fn, device, max(5, calls // 4)))
+                times.setdefault((name, pname, "synced"), []).append(timed(fn, device, max(5, calls // 4)) * 1e3)
     rows = []
     for pname in ("forward", "forward+backward"):
         for mode in ("block", "synced"):

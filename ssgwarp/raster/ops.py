@@ -90,7 +90,8 @@ class _Project(torch.autograd.Function):
         outs = [means2d, depths, conics, opac, radii]
         kern = projection.projection_kernel(s, *cfg["variant"])
         head = _project_args(ins, C, N) + list(cfg["params"])
-        tail = [*arr(means2d, 2), *arr(depths), *arr(conics, 3), *arr(opac), *arr(radii, 2)]
+        a_radii = arr(radii, 2)
+        tail = [*arr(means2d, 2), *arr(depths), *arr(conics, 3), *arr(opac), *a_radii]
         checks, keep = _check_args(extra, C, N)
         ends = None if extra is None else extra.get("ends")
         # on the CPU, runs of Gaussians (in every camera) on several threads; else one launch
@@ -110,7 +111,7 @@ class _Project(torch.autograd.Function):
         ctx.save_for_backward(*ins, coeffs, campos, *((radii,) if ctx.hand else outs))
         # the backward launches read the same tensors (kept by ctx): their descriptors are kept too
         # (inputs and parameters, outputs; not the checks' nor the tile counts', which the binning has scanned)
-        ctx.cfg, ctx.head, ctx.tail, ctx.colour_args = cfg, head, tail, colour_args
+        ctx.cfg, ctx.head, ctx.tail, ctx.a_radii, ctx.colour_args = cfg, head, tail, a_radii, colour_args
         ctx.runs, ctx.tg = runs, tg  # (a backward runs on its forward's stream)
         ctx.mark_non_differentiable(*(t for t in (radii, counts, splats) if t is not None))
         return radii, means2d, depths, conics, opac, colors, counts, splats
@@ -166,8 +167,8 @@ class _Project(torch.autograd.Function):
                     *_grid(v_opac, C, N, 1), *_grid(v_view, C, N, 16)]
             if hand:  # kernels/projection_backward.py
                 cpu_threads.launch_runs(projection_backward.projection_backward_kernel(s, *cfg["variant"]), (C,),
-                                        ctx.runs, ctx.head + ctx.tail[-12:] + [v for g in grads for v in g[0]] + outs
-                                        + [int(not written)], tg)  # (the tail's last descriptor: the radii)
+                                        ctx.runs, [*ctx.head, *ctx.a_radii, *(v for g in grads for v in g[0]), *outs,
+                                                   int(not written)], tg)
             else:  # Warp's generated adjoint of the forward kernel (the hand kernel's yardstick in the tests)
                 adj = [*outs, *NULL, *_ADJ_PARAMS, *_NO_CHECKS, *grads[0][0], *grads[1][0],
                        *grads[2][0], *grads[3][0], *NULL, *NULL, *NULL, *NULL]
@@ -337,7 +338,7 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
         ends.cumsum_(0)
     elif CN:
         torch.cumsum(counts.view(-1), 0, dtype=torch.int64, out=ends)
-    n_isects = L.read_int64(scan, CN - 1, tg) if CN else 0
+    n_isects = L.read_int64(ends, CN - 1, tg) if CN else 0
     if n_isects >= CHECK_FAILED and recheck is not None:
         recheck()
     if n_isects > INT32_MAX // 2:
