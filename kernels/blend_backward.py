@@ -17,7 +17,29 @@ the tile's Gaussians in lockstep and sum their gradients (per 32-pixel warp, or
 per block) before one atomic add per Gaussian; a vote skips the sum and the add
 for Gaussians none of the pixels blended (on CPU the block width is 1: the plain
 per-pixel walk). With per-intersection slots plus :func:`gather_kernel` it is the
-deterministic option on both devices.
+deterministic option on both devices. Its variants:
+
+* ``per_warp=False``: the sum runs over the whole block (a tile reduction), after a block vote that
+  skips Gaussians none of the block's pixels blended. ``per_warp=True`` (CUDA blocks whose size is a
+  multiple of 32, e.g. one block per tile): each warp sums its 32 pixels with shuffles and adds,
+  skipping Gaussians none of its pixels blended, and starts at its own pixels' last Gaussian (not the
+  block's); the warps of a tile share the tile's data in the SM's cache.
+* ``to_slots=True`` (the deterministic option) adds each block sum to the intersection's own slot
+  ``slots[k]`` instead of the Gaussian's: on CUDA (``per_warp=False``, one block per tile) exactly one
+  block writes a slot and the block reduction has a fixed order; on the CPU (``per_warp=True``, one
+  pixel per block) the pixels of a tile add to its slots one after the other in pixel order, and
+  launches over disjoint runs of tiles write disjoint slots; so with :func:`gather_kernel` summing the
+  slots in a fixed order the gradients are bit-identical from run to run (and on the CPU for any
+  number of launches side by side).
+* ``colour_only=True``: the colours' gradients alone, ``[colour(D)]`` (:func:`layer_colour_grad_func`).
+* ``through_ids=False``: per-intersection data is read in sorted order from the forward's gather
+  (``splats[k]``, ``colors[k]``); ``True``: ``splats`` and ``colors`` are the projection's
+  per-(camera, Gaussian) arrays, read through the sorted ids as the forward's
+  :func:`.blend_forward.batched_forward_kernel` reads them (``color_shift`` as there).
+* ``split_colours=True`` (with the geometry, not with ``to_slots``): the colours' gradients go to rows
+  of their own, ``v_colours [C*N, D]``, and ``v_packed`` holds ``[xy(2), conic(3), opacity(1)]``: the
+  colours' gradient is then a contiguous tensor autograd keeps as it is (no copy); two atomic adds
+  per Gaussian instead of one (slower at millions of intersections).
 """
 
 import functools
@@ -92,6 +114,31 @@ def layer_colour_grad_func(scalar, channels: int):
 
 
 @functools.lru_cache(maxsize=None)
+def split_funcs(scalar, channels: int):
+    """``(geometry_of, colour_of)``: the ``[xy(2), conic(3), opacity(1)]`` and ``[colour(D)]`` parts of
+    a gradient packed as :func:`layer_grad_func` returns it."""
+    vecG = channel_vector(scalar, channels + 6)
+    vec6 = channel_vector(scalar, 6)
+    vecD = channel_vector(scalar, channels)
+
+    @wp.func
+    def geometry_of(pk: vecG) -> vec6:
+        out = vec6()
+        for i in range(6):
+            out[i] = pk[i]
+        return out
+
+    @wp.func
+    def colour_of(pk: vecG) -> vecD:
+        out = vecD()
+        for d in range(wp.static(channels)):
+            out[d] = pk[6 + d]
+        return out
+
+    return geometry_of, colour_of
+
+
+@functools.lru_cache(maxsize=None)
 def gather_kernel(scalar, width: int):
     """Sum each Gaussian's per-intersection gradient slots (``width`` values each: ``6 + D``, or
     ``D`` for colour-only gradients) in a fixed order (deterministic)."""
@@ -112,40 +159,27 @@ def gather_kernel(scalar, width: int):
 
 @functools.lru_cache(maxsize=None)
 def reduced_backward_kernel(scalar, channels: int, to_slots: bool = False, per_warp: bool = False,
-                            fast_math: bool = False, colour_only: bool = False):
-    """Backward by blocks of pixels of one tile: the block walks the tile's Gaussians in lockstep
-    (from the largest last index of its pixels), sums the pixels' gradients for each Gaussian and
-    adds the sum with one atomic per Gaussian (instead of one per pixel). Gradients land packed as
-    ``[xy(2), conic(3), opacity(1), colour(D)]``; per-intersection data is read in sorted order
-    (``splats[k]``, ``colors[k]``), the images' gradients in place through their strides (``[pixels, D]``,
-    ``[pixels]``). Launch with a ``block_dim`` that divides ``tile_size^2`` (blocks never straddle
-    tiles); on CPU the block width is 1 and this is the per-pixel walk.
-
-    ``per_warp=False``: the sum runs over the whole block (a tile reduction), after a block vote
-    that skips Gaussians none of the block's pixels blended. ``per_warp=True`` (CUDA blocks whose
-    size is a multiple of 32, e.g. one block per tile): each warp sums its 32 pixels with shuffles
-    and adds, skipping Gaussians none of its pixels blended, and starts at its own pixels' last
-    Gaussian (not the block's); the warps of a tile share the tile's data in the SM's cache.
-
-    ``to_slots=True`` (the deterministic option) adds each block sum to the intersection's own slot
-    ``slots[k]`` instead of the Gaussian's: on CUDA (``per_warp=False``, one block per tile) exactly
-    one block writes a slot and the block reduction has a fixed order; on the CPU (``per_warp=True``,
-    one pixel per block) the pixels of a tile add to its slots one after the other in pixel order,
-    and launches over disjoint runs of tiles write disjoint slots; so with :func:`gather_kernel`
-    summing the slots in a fixed order the gradients are bit-identical from run to run (and on the
-    CPU for any number of launches side by side). ``first``: as in :mod:`.blend_forward`.
-    ``colour_only=True``: the colours' gradients alone, ``[colour(D)]`` (:func:`layer_colour_grad_func`).
-    """
-    t = types_for(scalar)
-    splat = t.splat
+                            fast_math: bool = False, colour_only: bool = False, through_ids: bool = False,
+                            split_colours: bool = False):
+    """Backward by blocks of pixels of one tile (the variants: the module's docstring): the block walks
+    the tile's Gaussians in lockstep (from the largest last index of its pixels), sums the pixels'
+    gradients for each Gaussian and adds the sum with one atomic per Gaussian. Gradients land packed
+    as ``[xy(2), conic(3), opacity(1), colour(D)]``; the images' gradients are read in place through
+    their strides (``[pixels, D]``, ``[pixels]``). Launch with a ``block_dim`` that divides ``tile_size^2``
+    (on CPU the block width is 1: the per-pixel walk); ``first``: as in :mod:`.blend_forward`."""
+    splat = types_for(scalar).splat
+    IDS = bool(through_ids)
+    SPLIT = bool(split_colours) and not colour_only and not to_slots
     vecD = channel_vector(scalar, channels)
-    vecG = channel_vector(scalar, channels if colour_only else channels + 6)
+    # the packed rows: the colours alone, the geometry alone (colours in rows of their own), or both
+    vecG = channel_vector(scalar, channels if colour_only else 6 if SPLIT else channels + 6)
     layer_grad = (layer_colour_grad_func if colour_only else layer_grad_func)(scalar, channels)
     splat_alpha, _ = pixel_funcs(scalar)
     colour_at = element_at(vecD)
     # CUDA float32: at most 256 threads per block (true of every launch in ops.py) and registers
     # capped for 5 blocks per SM (measured: 6% faster than the compiler's 4 at 1M Gaussians)
     bounds = (256, 5) if scalar == wp.float32 else None
+    geometry_of, colour_of = split_funcs(scalar, channels)
 
     # no FMA contraction: the gating in pixel.py must decide as in the forward pass
     @wp.kernel(module="unique", module_options={"fuse_fp": False, "enable_backward": False, "fast_math": fast_math},
@@ -155,6 +189,7 @@ def reduced_backward_kernel(scalar, channels: int, to_slots: bool = False, per_w
         colors: wp.array(dtype=vecD),
         backgrounds: wp.array(dtype=vecD),
         flatten_ids: wp.array(dtype=wp.int32),
+        color_shift: int,
         offsets: wp.array(dtype=wp.int32),
         width: int,
         height: int,
@@ -169,6 +204,7 @@ def reduced_backward_kernel(scalar, channels: int, to_slots: bool = False, per_w
         v_out_alphas: wp.array(dtype=scalar),
         slots: wp.array(dtype=wp.int32),
         v_packed: wp.array(dtype=vecG),
+        v_colours: wp.array(dtype=vecD),
         first: int,
     ):
         p = tile_pixel(wp.tid() + first, tile_size, tile_width, tile_height)
@@ -203,8 +239,12 @@ def reduced_backward_kernel(scalar, channels: int, to_slots: bool = False, per_w
         start = offsets[rng]
         T_next = T_final
         S = vecD()
+        shift = cam * color_shift
         while k >= start:
-            sp = splat_at(splats, k)
+            at = k  # (where this intersection's splat and colour are read: the gather, or through the ids)
+            if wp.static(IDS):
+                at = int(flatten_ids[k])
+            sp = splat_at(splats, at)
             a, g, dx, dy, keep = splat_alpha(sp, px, py, alpha_min, alpha_max)
             # not used: this pixel did not blend this Gaussian (skipped, or behind its last one)
             used = k <= last and keep
@@ -214,20 +254,26 @@ def reduced_backward_kernel(scalar, channels: int, to_slots: bool = False, per_w
             # are reached by all of them or by none
             if wp.static(per_warp):
                 if warp_any(hit) != 0:
-                    T_next, S, pk = layer_grad(sp, colour_at(colors, k), used, alpha, g, dx, dy, alpha_max,
+                    T_next, S, pk = layer_grad(sp, colour_at(colors, at - shift), used, alpha, g, dx, dy, alpha_max,
                                                T_next, S, v_col, v_alpha_out, T_final, bg_term)
                     if wp.static(to_slots):  # (the CPU's deterministic walk: one pixel per block)
                         warp_sum_add(pk, v_packed, slots, k)
+                    elif wp.static(SPLIT):
+                        warp_sum_add(geometry_of(pk), v_packed, flatten_ids, k)
+                        warp_sum_add(colour_of(pk), v_colours, flatten_ids, k)
                     else:
                         warp_sum_add(pk, v_packed, flatten_ids, k)
             elif block_any(hit) != 0:
-                T_next, S, pk = layer_grad(sp, colour_at(colors, k), used, alpha, g, dx, dy, alpha_max,
+                T_next, S, pk = layer_grad(sp, colour_at(colors, at - shift), used, alpha, g, dx, dy, alpha_max,
                                            T_next, S, v_col, v_alpha_out, T_final, bg_term)
-                total = wp.tile_sum(wp.tile(pk, preserve_type=True))
                 dst = int(flatten_ids[k])
                 if wp.static(to_slots):
                     dst = int(slots[k])
-                wp.tile_atomic_add(v_packed, total, offset=(dst,))
+                if wp.static(SPLIT):
+                    wp.tile_atomic_add(v_packed, wp.tile_sum(wp.tile(geometry_of(pk), preserve_type=True)), offset=(dst,))
+                    wp.tile_atomic_add(v_colours, wp.tile_sum(wp.tile(colour_of(pk), preserve_type=True)), offset=(dst,))
+                else:
+                    wp.tile_atomic_add(v_packed, wp.tile_sum(wp.tile(pk, preserve_type=True)), offset=(dst,))
             k -= 1
 
     return blend_backward_reduced

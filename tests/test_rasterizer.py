@@ -5,7 +5,7 @@ import torch
 from ssgwarp import rasterization
 from ssgwarp.core.cameras import intrinsics, look_at
 
-from conftest import assert_close_elementwise
+from conftest import CUDA_ONLY, assert_close_elementwise
 
 
 def make_scene(n, dtype=torch.float64, seed=0, spread=0.6, scale=0.15):
@@ -189,3 +189,37 @@ def test_densification_gradient_in_meta():
         assert key in meta
     assert int(meta["tiles_per_gauss"].sum()) == meta["flatten_ids"].numel()
 
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=CUDA_ONLY)])
+@pytest.mark.parametrize("cams,sh", [(1, False), (2, False), (1, True)])
+def test_backward_buffers_are_used_once(cams, sh, device):
+    """The backwards' gradient buffers made in the forward (the blending's zeroed rows, the projection's
+    slots) serve one backward: two backwards of different losses through one retained graph, and two
+    renders of the same leaves in one loss, give the sum of the two losses' gradients (nothing
+    written over what autograd already holds, nothing added into rows that are no longer zero)."""
+    means, quats, scales, opac, colors = make_scene(50, seed=3)
+    if sh:
+        colors = torch.randn(50, 4, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64) * 0.3
+    means, quats, scales, opac, colors = (t.to(device) for t in (means, quats, scales, opac, colors))
+    vm, K = (t.to(device) for t in make_cameras(cams, 24, 20))
+    kw = {"sh_degree": 1} if sh else {}
+    losses = (lambda img, alpha: img.sum() + 0.5 * alpha.sum(), lambda img, alpha: (img * img).sum())
+
+    def run(pairs):
+        """``pairs``: (render index, loss index) per backward; renders made first, then the backwards."""
+        leaves = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, colors)]
+        outs = [rasterization(*leaves, vm, K, 24, 20, **kw) for _ in range(1 + max(r for r, _ in pairs))]
+        for o in outs:
+            o[2]["means2d"].retain_grad()
+        for i, (r, k) in enumerate(pairs):
+            losses[k](*outs[r][:2]).backward(retain_graph=i + 1 < len(pairs))
+        return [t.grad for t in leaves], [o[2]["means2d"].grad for o in outs]
+
+    (a, (ma,)), (b, (mb,)) = run([(0, 0)]), run([(0, 1)])
+    for grads, screen, expected_screen in ((*run([(0, 0), (0, 1)]), [ma + mb]), (*run([(0, 0), (1, 1)]), [ma, mb])):
+        for x, y, g in zip(a, b, grads):
+            assert x.abs().sum() > 0 and y.abs().sum() > 0
+            assert torch.allclose(x + y, g, atol=1e-12, rtol=1e-10)
+        for e, g in zip(expected_screen, screen):
+            assert torch.allclose(e, g, atol=1e-12, rtol=1e-10)

@@ -16,8 +16,8 @@ import pytest
 import torch
 import warp as wp
 
-from ssgwarp import rasterization
-from ssgwarp.kernels import blend_forward
+from ssgwarp import RasterSettings, rasterization
+from ssgwarp.kernels import blend_backward, blend_forward
 from ssgwarp.raster import blend_ops as ops, launch as L
 
 from conftest import CUDA_ONLY
@@ -76,37 +76,74 @@ def test_block_kernels_equal_the_per_pixel_walk(blocks_everywhere, monkeypatch, 
     # (the default backward's atomic adds sum in a varying order on CUDA: the fixed-order one here)
     kw = dict(tile_size=tile, sh_degree=sh, deterministic=grad)
     out = {}
-    for on in (False, True):
+    # the per-pixel walk; the block kernels reading the gather, and (both passes) through the ids
+    for key, on, limit in (("walk", False, 0), ("gather", True, 0), ("ids", True, 1 << 62)):
         monkeypatch.setattr(ops, "BATCHED", on)
-        out[on] = render(params, vm, K, w, h, grad, bg, **kw)
-    assert out[True][0].abs().sum() > 0 and (out[True][1] > 0.5).any()  # a scene that covers the image
-    for a, b in zip(out[False], out[True]):
-        assert (a is None) == (b is None)
-        if a is not None:
-            assert torch.equal(a, b)
+        monkeypatch.setattr(ops, "IDS_BACKWARD_MAX", limit)
+        out[key] = render(params, vm, K, w, h, grad, bg, **kw)
+    assert out["ids"][0].abs().sum() > 0 and (out["ids"][1] > 0.5).any()  # a scene that covers the image
+    for key in ("gather", "ids"):
+        for a, b in zip(out["walk"], out[key]):
+            assert (a is None) == (b is None)
+            if a is not None:
+                assert torch.equal(a, b)
 
 
 def test_gather_only_where_a_backward_can_follow(blocks_everywhere, monkeypatch):
-    """No grad: the block kernel reads through the ids and nothing is gathered. With a gradient the
-    gather runs once, in the forward, and the backward walks it (no second gather)."""
+    """No grad: the block kernel reads through the ids and nothing is gathered. With a gradient and
+    more intersections than ``IDS_BACKWARD_MAX`` the gather runs once, in the forward, and the
+    backward walks it (no second gather); up to it both passes read through the ids, no gather."""
     kernels = []
     real = L.launch
 
     def spy(kernel, *a, **k):
-        kernels.append(kernel.key)
+        kernels.append(kernel)  # (the objects: every variant of a kernel has one key)
         return real(kernel, *a, **k)
 
     monkeypatch.setattr(L, "launch", spy)
     params = list(make_scene(120, torch.float32, seed=2))
     vm, K = make_cameras(2, 40, 32, torch.float32)
-    pack = blend_forward.pack_kernel(wp.float32, 3).key
+    pack = blend_forward.pack_kernel(wp.float32, 3)
+    through, gathered = (blend_forward.batched_forward_kernel(wp.float32, 3, True, 256, ids) for ids in (True, False))
+    # (through the ids the colours' gradients also get rows of their own)
+    backward = {ids: blend_backward.reduced_backward_kernel(wp.float32, 3, False, True, True, False, ids, ids)
+                for ids in (True, False)}
     render(params, vm, K, 40, 32, grad=False, tile_size=16)
-    assert pack not in kernels
-    assert blend_forward.batched_forward_kernel(wp.float32, 3, True, 256, True).key in kernels
-    kernels.clear()
-    render(params, vm, K, 40, 32, grad=True, tile_size=16)
-    assert kernels.count(pack) == 1
-    assert blend_forward.batched_forward_kernel(wp.float32, 3, True, 256, False).key in kernels
+    assert pack not in kernels and through in kernels
+    for limit, ids in ((0, False), (1 << 62, True)):
+        monkeypatch.setattr(ops, "IDS_BACKWARD_MAX", limit)
+        kernels.clear()
+        render(params, vm, K, 40, 32, grad=True, tile_size=16)
+        assert kernels.count(pack) == (0 if ids else 1)
+        assert (through if ids else gathered) in kernels and backward[ids] in kernels
+        assert backward[not ids] not in kernels
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("cams,shared,tile", [(1, True, 16), (3, True, 16), (2, False, 16), (2, True, 12)])
+def test_reads_through_the_ids_give_the_gathers_gradients(blocks_everywhere, monkeypatch, device, cams, shared, tile):
+    """The default (non-deterministic) backward through the ids, its colours' gradients in rows of
+    their own, against the gather's packed rows: the same gradients (bit-equal on the CPU, where the
+    adds run in one order; to rounding on CUDA, whose atomic adds do not), for colours shared by the
+    cameras and per camera, with sums per warp (tile 16) and per block (tile 12, on CUDA); and the
+    colours' gradient contiguous as autograd keeps it."""
+    dt = torch.float32 if device == "cuda" else torch.float64
+    means, quats, scales, opac, colors = make_scene(200, dt, seed=8, scale=0.25)
+    if not shared:
+        colors = torch.rand(cams, 200, 3, dtype=dt, generator=torch.Generator().manual_seed(9))
+    params = [t.to(device) for t in (means, quats, scales, opac, colors)]
+    vm, K = (t.to(device) for t in make_cameras(cams, 45, 37, dt))
+    out = {}
+    for limit in (0, 1 << 62):
+        monkeypatch.setattr(ops, "IDS_BACKWARD_MAX", limit)
+        out[limit] = render(params, vm, K, 45, 37, True, settings=RasterSettings(cpu_threads=1), tile_size=tile)
+    for a, b in zip(out[0], out[1 << 62]):
+        assert a.abs().sum() > 0
+        if device == "cpu":
+            assert torch.equal(a, b)
+        else:
+            assert torch.allclose(a, b, atol=1e-5, rtol=1e-4)
+    assert out[1 << 62][6].is_contiguous() and out[1 << 62][6].shape == colors.shape
 
 
 def test_block_kernels_only_on_cuda_with_packed_splats_and_tiles_of_one_block():
