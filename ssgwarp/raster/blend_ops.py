@@ -162,7 +162,8 @@ class _Blend(torch.autograd.Function):
         if split:
             es, ptr = packed.element_size(), packed.data_ptr()
             rows_args = [*L.at(ptr, C * N, 6 * es), *L.at(ptr + C * N * 6 * es, C * N, D * es)]
-            L.launch(kern, parts[0][1] * tp, head + rows_args + [0], tg, None, block)
+            (a, b), = parts
+            L.launch(kern, (b - a) * tp, head + rows_args + [a * tp], tg, None, block)
         else:
             cpu_threads.run([partial(L.launch, kern, (b - a) * tp,
                                      head + [*arr(packed if (i == 0 or det) else extra[i - 1], W), *NULL, a * tp],
@@ -208,10 +209,10 @@ def _rows(packed: Tensor, C: int, N: int, W: int) -> Tensor:
 BATCHED = True
 # up to this many intersections, a forward on CUDA that a backward may follow makes no
 # per-intersection gather: both passes read the projection's splats and the colours through the
-# sorted ids (one launch and two buffers fewer per call: 10k Gaussians at 256x256, 15k
-# intersections, forward+backward 14 % faster; 100k at 1080p, 0.3M, 3 % faster). Above it the
-# backward's contiguous reads of the gather win (3M intersections: 6 % slower through the ids).
-# Measured on an H100, docs/benchmarks.md
+# sorted ids (one launch, two buffers and the colour gradient's copy fewer per call: 10k Gaussians
+# at 256x256, 15k intersections, forward+backward 3-14 % faster; at 0.3M a wash). Above it the
+# backward's contiguous reads of the gather win (2.5-3M intersections: 6-8 % slower through the
+# ids). Measured on H100s, docs/benchmarks.md (benchmarks/blend_ids.py)
 IDS_BACKWARD_MAX = 1 << 19
 
 
