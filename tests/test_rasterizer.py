@@ -193,11 +193,11 @@ def test_densification_gradient_in_meta():
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=CUDA_ONLY)])
 @pytest.mark.parametrize("cams,sh", [(1, False), (2, False), (1, True)])
-def test_backward_buffers_are_used_once(cams, sh, device):
-    """The backwards' gradient buffers made in the forward (the blending's zeroed rows, the projection's
-    slots) serve one backward: two backwards of different losses through one retained graph, and two
-    renders of the same leaves in one loss, give the sum of the two losses' gradients (nothing
-    written over what autograd already holds, nothing added into rows that are no longer zero)."""
+def test_retained_graph_and_repeated_renders_add_up(cams, sh, device):
+    """Two backwards of different losses through one retained graph, and two renders of the same leaves
+    in one loss, give the sum of the two losses' gradients: each backward starts from zeroed rows of
+    its own and writes gradients autograd does not already hold (the blending's rows, the
+    projection's slots, the colours' rows of their own)."""
     means, quats, scales, opac, colors = make_scene(50, seed=3)
     if sh:
         colors = torch.randn(50, 4, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64) * 0.3
