@@ -7,11 +7,18 @@ import warp as wp
 import ssgwarp.raster.launch as L
 from ssgwarp import RasterSettings, rasterization
 
+from conftest import CUDA_ONLY
 from test_rasterizer import assert_match, make_cameras, make_scene, run_both
 
-CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 WARP_LAYOUT = pytest.mark.skipif(not L.FAST, reason="Warp's internal array/launch layout differs: launches use wp.launch")
-DEVICES = ["cpu", pytest.param("cuda", marks=CUDA)]
+DEVICES = ["cpu", pytest.param("cuda", marks=CUDA_ONLY)]
+
+
+def CUDA(test):
+    """A test that needs a CUDA device: in ``pytest -m cuda``'s selection, skipped without one."""
+    for mark in CUDA_ONLY:
+        test = mark(test)
+    return test
 
 
 def _render_and_grads(params, vm, K, w, h, **kw):
@@ -268,3 +275,56 @@ def _counting(base, calls):
                 return bound(*args)
             return call
     return Counting()
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_blend_outputs_are_made_while_the_count_comes_back(device, monkeypatch):
+    """The call's one read-back is split: the blending's outputs are made after the copy is queued
+    and before the wait (host work that would otherwise wait for the GPU), and are the very tensors
+    the call returns; a call without gradients makes no transmittance / last-index buffers. Images
+    equal those of a call whose outputs the blending makes itself (the chunked path, which bypasses
+    the early outputs, gives the same per channel block too)."""
+    import ssgwarp.raster.blend_ops as B
+    params = [t.to(device) for t in make_scene(60, seed=8)]
+    vm, K = (t.to(device) for t in make_cameras(1, 40, 28))
+    events, made = [], []
+    start, finish, outputs = L.start_read_int64, L.finish_read_int64, B.blend_outputs
+
+    def rec_start(*a):
+        events.append("start")
+        return start(*a)
+
+    def rec_finish(*a):
+        events.append("finish")
+        return finish(*a)
+
+    def rec_outputs(*a):
+        events.append("outputs")
+        made.append(outputs(*a))
+        return made[-1]
+
+    monkeypatch.setattr(L, "start_read_int64", rec_start)
+    monkeypatch.setattr(L, "finish_read_int64", rec_finish)
+    monkeypatch.setattr(B, "blend_outputs", rec_outputs)
+    leaves = [p.clone().requires_grad_(True) for p in params]
+    img, alpha, _ = rasterization(*leaves, vm, K, 40, 28)
+    assert events == ["start", "outputs", "finish"]
+    out, a, T, last = made[0]
+    assert img.data_ptr() == out.data_ptr() and alpha.data_ptr() == a.data_ptr()
+    assert T is not None and last is not None
+    (img.sum() + alpha.sum()).backward()
+    assert all(p.grad is not None for p in leaves)
+    events.clear()
+    with torch.no_grad():
+        img0, alpha0, _ = rasterization(*params, vm, K, 40, 28)
+    assert events == ["start", "outputs", "finish"] and made[1][2] is None and made[1][3] is None
+    assert torch.equal(img0, img.detach()) and torch.equal(alpha0, alpha.detach())
+    # outputs made for a call without a backward, handed to one with: refused
+    from ssgwarp.raster import ops
+    _, _, meta = rasterization(*params, vm, K, 40, 28, tile_size=16)
+    tiles = ops.bin_tiles(meta["means2d"], meta["radii"], meta["depths"], 16, meta["tile_width"],
+                          meta["tile_height"])
+    colors = params[4].clone().requires_grad_(True)
+    with pytest.raises(ValueError, match="outputs made for another case"):
+        B.blend_warp(meta["means2d"], meta["conics"], colors, meta["opacities"], None, tiles, 40, 28, 16,
+                     RasterSettings(), outputs=made[1])

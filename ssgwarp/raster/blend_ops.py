@@ -52,7 +52,7 @@ def pack_splats(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tens
 class _Blend(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, colors, opacities, backgrounds, tiles, width, height, tile_size, settings,
-                deterministic, packed, gather):
+                deterministic, packed, gather, outputs):
         C, N = means2d.shape[:2]
         D = colors.shape[-1]
         dt, dev = colors.dtype, colors.device
@@ -60,16 +60,8 @@ class _Blend(torch.autograd.Function):
         th, tw = tiles["isect_offsets"].shape[1:]
         tg = tiles.get("target") or L.target(colors)
         ctx.set_materialize_grads(False)
-        # the kernel writes every pixel
-        out = torch.empty(C, height, width, D, dtype=dt, device=dev)
-        out_alpha = torch.empty(C, height, width, 1, dtype=dt, device=dev)
-        # the final transmittance and last blended Gaussian per pixel: only where a backward can follow
-        out_T = last = None
-        a_T = a_last = NULL
-        if gather:
-            out_T = torch.empty(C, height, width, dtype=dt, device=dev)
-            last = torch.empty(C, height, width, dtype=torch.int32, device=dev)
-            a_T, a_last = arr(out_T), arr(last)
+        out, out_alpha, out_T, last = outputs or blend_outputs(C, height, width, D, dt, dev, gather)
+        a_T, a_last = (arr(out_T), arr(last)) if gather else (NULL, NULL)
         bg = L.dense(backgrounds) if backgrounds is not None else None
         # on the CPU, runs of whole tiles on several threads (cpu_threads.py); else one launch
         parts = _tile_parts(tg, settings, tiles, C * th * tw, tile_size)
@@ -196,7 +188,28 @@ class _Blend(torch.autograd.Function):
         v_bg = None
         if bg is not None and need[4]:  # (a constant background, as training passes: no gradient to form)
             v_bg = (g_colors * out_T[..., None]).sum(dim=(1, 2)) if g_colors is not None else torch.zeros_like(bg)
-        return v_m2d, v_conics, v_colors, v_opac, v_bg, None, None, None, None, None, None, None, None
+        return v_m2d, v_conics, v_colors, v_opac, v_bg, None, None, None, None, None, None, None, None, None
+
+
+def blend_outputs(C: int, height: int, width: int, D: int, dtype, device, gather: bool) -> tuple:
+    """``(image [C,H,W,D], alpha [C,H,W,1], T [C,H,W], last [C,H,W])``: what the blending forward
+    writes (every pixel), made before it runs (also ahead of the binning's read-back, where the host
+    would wait); the final transmittance and last blended Gaussian per pixel only where a backward
+    can follow (``gather``), else None."""
+    out = torch.empty(C, height, width, D, dtype=dtype, device=device)
+    alpha = torch.empty(C, height, width, 1, dtype=dtype, device=device)
+    if not gather:
+        return out, alpha, None, None
+    return (out, alpha, torch.empty(C, height, width, dtype=dtype, device=device),
+            torch.empty(C, height, width, dtype=torch.int32, device=device))
+
+
+def backward_may_follow(means2d, conics, colors, opacities, backgrounds) -> bool:
+    """Whether a backward can follow the blending of these tensors (gradients on, one of them
+    requiring one): the forward then keeps what the backward reads."""
+    return torch.is_grad_enabled() and (means2d.requires_grad or conics.requires_grad or colors.requires_grad
+                                        or opacities.requires_grad
+                                        or (backgrounds is not None and backgrounds.requires_grad))
 
 
 def _rows(packed: Tensor, C: int, N: int, W: int) -> Tensor:
@@ -253,10 +266,11 @@ def backward_blocks(tile_size: int, deterministic: bool, cpu: bool) -> tuple[boo
 
 
 def blend_warp(means2d, conics, colors, opacities, backgrounds, tiles, width, height, tile_size, settings,
-               deterministic=False, packed=None):
+               deterministic=False, packed=None, outputs=None):
     """Front-to-back blending in Warp: ``colors [C,N,D]`` (or ``[N,D]``, the same for every
     camera) → ``(image [C,H,W,D], alpha [C,H,W,1])``. ``packed``: the projection's packed splats
-    (the same values as means2d, conics and opacities; read instead of them)."""
+    (the same values as means2d, conics and opacities; read instead of them). ``outputs``: what
+    :func:`blend_outputs` made for this call (``D <= MAX_CHANNELS``), else made here."""
     D = colors.shape[-1]
     if D > MAX_CHANNELS:
         chunks = [blend_warp(means2d, conics, colors[..., i:i + MAX_CHANNELS], opacities,
@@ -264,9 +278,10 @@ def blend_warp(means2d, conics, colors, opacities, backgrounds, tiles, width, he
                              tiles, width, height, tile_size, settings, deterministic, packed)
                   for i in range(0, D, MAX_CHANNELS)]
         return torch.cat([c[0] for c in chunks], dim=-1), chunks[0][1]
-    # whether a backward can follow (it walks the per-intersection gather, made in the forward then)
-    gather = torch.is_grad_enabled() and (means2d.requires_grad or conics.requires_grad or colors.requires_grad
-                                          or opacities.requires_grad
-                                          or (backgrounds is not None and backgrounds.requires_grad))
+    # whether a backward can follow (the forward keeps what it reads)
+    gather = backward_may_follow(means2d, conics, colors, opacities, backgrounds)
+    if outputs is not None and (outputs[2] is not None) != gather:
+        raise ValueError("blend_warp: outputs made for another case (blend_outputs(..., gather) must say whether a "
+                         "backward can follow, as backward_may_follow does)")
     return apply(_Blend, means2d, conics, colors, opacities, backgrounds, tiles, width, height, tile_size,
-                 settings, deterministic, packed, gather)
+                 settings, deterministic, packed, gather, outputs)

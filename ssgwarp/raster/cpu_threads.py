@@ -91,6 +91,10 @@ def launch_runs(kern, lead: tuple, runs: list[tuple[int, int]], args: list, tg, 
     """``kern`` over ``(*lead, end - first)`` for each run ``(first, end)`` of its last dimension,
     side by side (:func:`run`), ``first`` appended to ``args`` as the kernel's last parameter (and 0
     to ``adj``, that parameter's adjoint, for an adjoint launch; :func:`ssgwarp.raster.launch.launch`)."""
+    if len(runs) == 1:  # (one run, as on CUDA: launched here, without the thread machinery)
+        (a, b), = runs
+        L.launch(kern, (*lead, b - a), args + [a], tg, None if adj is None else adj + [0])
+        return
     run([partial(L.launch, kern, (*lead, b - a), args + [a], tg, None if adj is None else adj + [0])
          for a, b in runs])
 

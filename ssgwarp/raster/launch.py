@@ -462,26 +462,41 @@ def read_int64(t: torch.Tensor, index: int, tg: Target) -> int:
     """``int(t[index])`` of a contiguous int64 tensor once the target's queued work has written it:
     on CUDA one 8-byte copy into pinned host memory on the target's stream, then a wait for that
     stream (the call's one synchronisation); on the CPU the value in place (launches there have
-    finished when they return). No torch call either way."""
+    finished when they return). No torch call either way. :func:`start_read_int64` and
+    :func:`finish_read_int64` are its two halves, for host work in between."""
+    return finish_read_int64(start_read_int64(t, index, tg), tg)
+
+
+def start_read_int64(t: torch.Tensor, index: int, tg: Target):
+    """The first half of :func:`read_int64`: queues the copy of ``t[index]`` (CUDA) and returns at
+    once; hand what it returns to :func:`finish_read_int64` (one read at a time per thread)."""
     if tg.cpu:
         return ctypes.c_int64.from_address(t.data_ptr() + 8 * index).value
     if not FAST or not tg.primary:
-        return int(t[index].item())
+        return t[index:index + 1].clone()  # (the value as the stream has it now; read in the second half)
     host = getattr(_PINNED, "buf", None)
     if host is None:
         host = _PINNED.buf = torch.empty(1, dtype=torch.int64, pin_memory=True)
-    core = _wpc.runtime.core
-    if not core.wp_memcpy_d2h(tg.context, host.data_ptr(), t.data_ptr() + 8 * index, 8, tg.stream):
+    if not _wpc.runtime.core.wp_memcpy_d2h(tg.context, host.data_ptr(), t.data_ptr() + 8 * index, 8, tg.stream):
         raise RuntimeError(f"ssgwarp: reading a count back from {tg.device} failed: {_wpc.runtime.get_error_string()}")
-    if not core.wp_cuda_stream_synchronize(tg.stream):
+    return host
+
+
+def finish_read_int64(pending, tg: Target) -> int:
+    """The value :func:`start_read_int64` queued, once it has arrived (waits for the target's stream)."""
+    if tg.cpu:
+        return pending
+    if not FAST or not tg.primary:
+        return int(pending.item())
+    if not _wpc.runtime.core.wp_cuda_stream_synchronize(tg.stream):
         raise RuntimeError(f"ssgwarp: waiting for {tg.device} failed: {_wpc.runtime.get_error_string()}")
-    return ctypes.c_int64.from_address(host.data_ptr()).value
+    return ctypes.c_int64.from_address(pending.data_ptr()).value
 
 
 def sort_pairs(keys: torch.Tensor, values: torch.Tensor, count: int, end_bit: int, tg: Target) -> None:
-    """Stable radix sort of ``count`` int64 ``keys`` with their 4-byte ``values`` over key bits
-    ``[0, end_bit)``, in place (both tensors hold ``2 * count`` elements: the upper halves are
-    scratch), on the target's stream."""
+    """Stable radix sort of the first ``count`` int64 ``keys`` with their 4-byte ``values`` over key
+    bits ``[0, end_bit)``, in place (both tensors hold at least ``2 * count`` elements: the next
+    ``count`` are scratch), on the target's stream."""
     if count == 0:
         return
     if not FAST or not tg.primary:

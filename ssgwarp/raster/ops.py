@@ -297,7 +297,7 @@ _cached_project_cfg = functools.lru_cache(maxsize=256)(_build_project_cfg)
 # ---------------------------------------------------------------------------------------------
 def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, tile_width: int, tile_height: int,
               recheck=None, counts: Tensor | None = None, scan: Tensor | None = None, keep_perm: bool = True,
-              counts_in_scan: bool = False, threads: int | None = None) -> dict:
+              counts_in_scan: bool = False, threads: int | None = None, during_wait=None) -> dict:
     """Tile intersections of projected Gaussians, sorted by (camera, tile, depth).
 
     Returns ``tiles_per_gauss [C,N]`` (int32), ``isect_ids [M]`` (int64 keys), ``flatten_ids [M]``
@@ -315,7 +315,8 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
     every check passes: the total is then a real, too large, count). Without ``keep_perm`` the
     sort carries the Gaussian ids themselves (as gsplat's does), so the sorted values are the
     flattened ids. ``threads`` (CPU): ``RasterSettings.cpu_threads`` for the key writes and the
-    range offsets (:mod:`.cpu_threads`).
+    range offsets (:mod:`.cpu_threads`). ``during_wait``: host work (a callable, no read-back of
+    its own) run while the total is on its way back, where the host would otherwise wait.
     """
     C, N = depths.shape
     s = L.scalar_of(means2d.dtype)
@@ -326,11 +327,10 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
         raise ValueError(f"rasterization: {C} cameras x {tile_width * tile_height} tiles exceed the 2^31 tile "
                          "ranges one call can index; render fewer cameras per call or use a larger tile_size")
     CN = C * N
-    m2, rd, dp = L.dense(means2d), L.dense(radii), L.dense(depths)
     if counts is None:
         counts = torch.empty(C, N, dtype=torch.int32, device=dev)
-        L.launch(binning.count_kernel(s), CN, [*arr(m2, 2), *arr(rd, 2), tile_size, tile_width, tile_height,
-                                                *arr(counts)], tg)
+        L.launch(binning.count_kernel(s), CN, [*arr(L.dense(means2d), 2), *arr(L.dense(radii), 2), tile_size,
+                                                tile_width, tile_height, *arr(counts)], tg)
     if scan is None or scan.numel() != CN:
         scan, counts_in_scan = torch.empty(CN, dtype=torch.int64, device=dev), False
     ends = scan
@@ -338,7 +338,11 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
         ends.cumsum_(0)
     elif CN:
         torch.cumsum(counts.view(-1), 0, dtype=torch.int64, out=ends)
-    n_isects = L.read_int64(ends, CN - 1, tg) if CN else 0
+    pending = L.start_read_int64(ends, CN - 1, tg) if CN else 0
+    m2, rd, dp = L.dense(means2d), L.dense(radii), L.dense(depths)
+    if during_wait is not None:
+        during_wait()
+    n_isects = L.finish_read_int64(pending, tg) if CN else 0
     if n_isects >= CHECK_FAILED and recheck is not None:
         recheck()
     if n_isects > INT32_MAX // 2:
@@ -353,27 +357,30 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
     keys = torch.empty(2 * M, dtype=torch.int64, device=dev)
     extra = 2 * M if keep_perm else 0
     ints = torch.empty(2 * M + extra + n_ranges + 1, dtype=torch.int32, device=dev)
-    values, offsets = ints[:2 * M], ints[2 * M + extra:]
+    # (the views in one torch call: each costs as much as an allocation in the middle of a call)
     if keep_perm:
-        gauss, flatten_ids = ints[2 * M:3 * M], ints[3 * M:3 * M + n_isects]
-        a_gauss, a_flat = arr(gauss), L.at(flatten_ids.data_ptr(), n_isects, 4)
+        values, gauss, flatten_ids, _, offsets = ints.split_with_sizes((2 * M, M, n_isects, M - n_isects,
+                                                                        n_ranges + 1))
+        a_gauss, a_flat = arr(gauss), arr(flatten_ids)
     else:
-        flatten_ids, a_gauss, a_flat = values[:n_isects], NULL, NULL
+        flatten_ids, _, offsets = ints.split_with_sizes((n_isects, 2 * M - n_isects, n_ranges + 1))
+        values, a_gauss, a_flat = None, NULL, NULL
+    a_values = L.at(ints.data_ptr(), 2 * M, 4)  # (the sort's values and their scratch: the buffer's head)
     # (on the CPU, runs of Gaussians and of intersections on several threads)
     cpu_threads.launch_runs(binning.write_kernel(s), (), cpu_threads.element_runs(tg, threads, CN),
                  [*arr(m2, 2), *arr(rd, 2), *arr(dp), *arr(ends), *arr(counts), N, tile_size, tile_width, tile_height,
-                  *arr(keys), *arr(values), *a_gauss], tg)
+                  *arr(keys), *a_values, *a_gauss], tg)
     if n_isects > 0:
-        L.sort_pairs(keys, values, n_isects, 32 + max(1, int(n_ranges).bit_length()), tg)
+        L.sort_pairs(keys, ints, n_isects, 32 + max(1, int(n_ranges).bit_length()), tg)
         cpu_threads.launch_runs(binning.offsets_kernel, (), cpu_threads.element_runs(tg, threads, n_isects, cpu_threads.MIN_ITEMS_LIGHT),
-                     [*arr(keys), *arr(values), *a_gauss, n_isects, n_ranges, *arr(offsets), *a_flat], tg)
+                     [*arr(keys), *a_values, *a_gauss, n_isects, n_ranges, *arr(offsets), *a_flat], tg)
     else:
         offsets.zero_()
     return {
         "tiles_per_gauss": counts,
         "isect_ids": keys[:n_isects],
         "flatten_ids": flatten_ids,
-        "isect_offsets": offsets[:-1].view(C, tile_height, tile_width),
+        "isect_offsets": offsets.as_strided((C, tile_height, tile_width), (tile_height * tile_width, tile_width, 1)),
         "offsets": offsets,
         "perm": values[:n_isects] if keep_perm else None,
         "isect_ends": ends,

@@ -187,11 +187,23 @@ def _rasterize_warp(means, quats, scales, opacities, colors, viewmats, Ks, width
         "tile_width": tile_width, "tile_height": tile_height, "width": width, "height": height,
         "tile_size": tile_size, "n_cameras": C, "settings": settings, "backend": "warp",
     }
+    # the blending's outputs are made while the intersection total is on its way back (host work
+    # that would otherwise wait for the GPU)
+    made = []
+    D = colors.shape[-1]
+    if D <= blend_ops.MAX_CHANNELS:
+        def make_outputs():
+            made.append(blend_ops.blend_outputs(C, height, width, D, colors.dtype, colors.device,
+                                                blend_ops.backward_may_follow(means2d, conics, colors, opacs,
+                                                                              backgrounds)))
+    else:
+        make_outputs = None
     tiles = ops.bin_tiles(means2d, radii, depths, tile_size, tile_width, tile_height, recheck=recheck, counts=counts,
                           scan=scan, keep_perm=deterministic, counts_in_scan=True,
-                          threads=settings.cpu_threads)
+                          threads=settings.cpu_threads, during_wait=make_outputs)
     # gsplat's binning outputs; the backward's internal arrays (offsets, perm, isect_ends) stay in ``tiles``
     meta.update({k: tiles[k] for k in PUBLIC_TILE_KEYS})
     render_colors, render_alphas = blend_ops.blend_warp(means2d, conics, colors, opacs, backgrounds, tiles, width, height,
-                                                  tile_size, settings, deterministic=deterministic, packed=packed)
+                                                        tile_size, settings, deterministic=deterministic, packed=packed,
+                                                        outputs=made[0] if made else None)
     return reference.expected_depth(render_colors, render_alphas, render_mode), render_alphas, meta
