@@ -284,4 +284,4 @@ def blend_warp(means2d, conics, colors, opacities, backgrounds, tiles, width, he
         raise ValueError("blend_warp: outputs made for another case (blend_outputs(..., gather) must say whether a "
                          "backward can follow, as backward_may_follow does)")
     return apply(_Blend, means2d, conics, colors, opacities, backgrounds, tiles, width, height, tile_size,
-                 settings, deterministic, packed, gather, outputs)
+                 settings, deterministic, packed, gather, outputs, needs_grad=gather)

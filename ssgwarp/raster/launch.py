@@ -132,16 +132,19 @@ class _NoBackward:
         pass
 
 
-def apply(fn, *args):
+def apply(fn, *args, needs_grad: bool | None = None):
     """``fn.apply(*args)`` for an autograd Function without the per-call Python of
     ``torch.autograd.Function.apply`` (argument binding, functorch unwrapping), which only matters
     under functorch transforms: those still go through ``fn.apply`` (so does a torch without the
     private entry point). Where no backward can follow (gradients off, or no tensor argument
     requires one), ``fn.forward`` runs on its own, without an autograd node: the same outputs,
-    which then need no gradient either way."""
+    which then need no gradient either way. ``needs_grad``: whether a backward can follow, where
+    the caller knows it already (else found from ``args``)."""
     if _BASE_APPLY is None or _functorch_active():
         return fn.apply(*args)
-    if not torch.is_grad_enabled() or not any(isinstance(a, torch.Tensor) and a.requires_grad for a in args):
+    if needs_grad is None:
+        needs_grad = torch.is_grad_enabled() and any(isinstance(a, torch.Tensor) and a.requires_grad for a in args)
+    if not needs_grad:
         return fn.forward(_NoBackward(), *args)
     return _BASE_APPLY.__get__(None, fn)(*args)
 
