@@ -328,3 +328,29 @@ def test_blend_outputs_are_made_while_the_count_comes_back(device, monkeypatch):
     with pytest.raises(ValueError, match="outputs made for another case"):
         B.blend_warp(meta["means2d"], meta["conics"], colors, meta["opacities"], None, tiles, 40, 28, 16,
                      RasterSettings(), outputs=made[1])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("sh", [None, 2])
+@pytest.mark.parametrize("which", ["means", "quats", "scales", "opacities", "colors", "viewmats"])
+def test_one_input_requiring_a_gradient_gets_it(device, sh, which):
+    """A call where only one input requires a gradient (a frozen scene whose camera poses are refined,
+    colours fine-tuned on frozen geometry) makes the autograd nodes and gives that input the
+    gradient it gets when every input requires one."""
+    names = ["means", "quats", "scales", "opacities", "colors"]
+    params = [t.to(device) for t in make_scene(50, dtype=torch.float64, seed=9)]
+    if sh is not None:
+        g = torch.Generator().manual_seed(4)
+        params[4] = (torch.randn(50, (sh + 1) ** 2, 3, generator=g, dtype=torch.float64) * 0.3).to(device)
+    vm, K = (t.to(device) for t in make_cameras(2, 28, 20, dtype=torch.float64))
+    inputs = dict(zip(names, params), viewmats=vm)
+
+    def grad_of(trainable):
+        leaves = {k: v.clone().requires_grad_(k in trainable) for k, v in inputs.items()}
+        img, alpha, _ = rasterization(*(leaves[k] for k in names), leaves["viewmats"], K, 28, 20, sh_degree=sh)
+        (img.square().sum() + alpha.sum()).backward()
+        return leaves[which].grad
+
+    alone, together = grad_of({which}), grad_of(set(inputs))
+    assert alone is not None and alone.abs().sum() > 0
+    torch.testing.assert_close(alone, together, rtol=1e-10, atol=1e-12)
