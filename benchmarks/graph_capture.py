@@ -67,12 +67,13 @@ def case(n: int, w: int, h: int, dev) -> list[str]:
 
     def before():  # projection (+ tile counts, packed splats) and the scan of the counts
         scan = torch.empty(n, dtype=torch.int64, device=dev)
-        outs = ops.apply(ops._Project, means, quats, scales, opac, vm, K, None, None, cfg, {"ends": scan})
+        side = {"ends": scan}
+        m2, depths, conics, op2, _ = ops.apply(ops._Project, means, quats, scales, opac, vm, K, None, None, cfg, side)
         scan.cumsum_(0)
-        return outs, scan
+        return (side["radii"], m2, depths, conics, op2, side["counts"], side["splats"]), scan
 
     with torch.no_grad():
-        (radii, m2, depths, conics, op2, _, counts, packed), scan = before()
+        (radii, m2, depths, conics, op2, counts, packed), scan = before()
         tiles = ops.bin_tiles(m2, radii, depths, ts, tw, th, counts=counts, keep_perm=False)
 
         def after():  # the blending forward for this intersection count (no gradient: through the ids)

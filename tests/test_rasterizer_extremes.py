@@ -407,8 +407,8 @@ def test_failed_check_marks_the_intersection_total():
     def ends(check):
         e = torch.full((2 * 10,), -7, dtype=torch.int64)
         extra = {"ends": e, "check": check, "colors": colors, "backgrounds": None, "sh": False}
-        out = ops.apply(ops._Project, means, quats, scales, opac, vm, K, None, None, cfg, extra)
-        return e, out[6].view(-1)
+        ops.apply(ops._Project, means, quats, scales, opac, vm, K, None, None, cfg, extra)
+        return e, extra["counts"].view(-1)
 
     e, counts = ends(True)
     assert e[4] == ops.CHECK_FAILED and counts[4] == 0

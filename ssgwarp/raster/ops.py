@@ -57,12 +57,13 @@ def check_values(means, quats, scales, opacities, colors, viewmats, Ks, backgrou
 # projection (+ tile counts, + SH colours)
 # ---------------------------------------------------------------------------------------------
 class _Project(torch.autograd.Function):
-    """``(radii, means2d, depths, conics, opacities, colors, counts, splats)`` of N Gaussians in C
-    cameras.
+    """``(means2d, depths, conics, opacities, colors)`` of N Gaussians in C cameras; the results
+    without a gradient go to ``extra`` (a dict) instead of through the autograd op (each output
+    costs it host time): ``radii [C, N, 2]``, and ``counts [C, N]`` (int32 tiles per Gaussian) and
+    ``splats [C, N, 6]`` (the blending's packed splats) when ``cfg["tile_size"] > 0``, else None.
 
     ``colors [C, N, 3]`` (SH colour, ``+ 0.5`` clamped, 0 where culled) when ``coeffs`` is given,
-    else None; ``counts [C, N]`` (int32 tiles per Gaussian) and ``splats [C, N, 6]`` (the
-    blending's packed splats) when ``cfg["tile_size"] > 0``, else None. ``extra`` (or None):
+    else None. ``extra`` may also hold, on the way in,
     ``ends`` (int64 ``[C*N]``) to receive the tile counts for the binning's in-place scan;
     ``check=True`` to run the input value checks in the projection (a Gaussian that fails one
     marks its count in ``ends``: ``kernels/projection.py: CHECK_FAILED``), with the ``colors``
@@ -93,7 +94,7 @@ class _Project(torch.autograd.Function):
         a_radii = arr(radii, 2)
         tail = [*arr(means2d, 2), *arr(depths), *arr(conics, 3), *arr(opac), *a_radii]
         checks, keep = _check_args(extra, C, N)
-        ends = None if extra is None else extra.get("ends")
+        ends = extra.get("ends")
         # on the CPU, runs of Gaussians (in every camera) on several threads; else one launch
         runs = cpu_threads.element_runs(tg, cfg["cpu_threads"], N)
         cpu_threads.launch_runs(kern, (C,), runs, head + checks + tail + [*(arr(counts) if counts is not None else NULL),
@@ -113,11 +114,11 @@ class _Project(torch.autograd.Function):
         # (inputs and parameters, outputs; not the checks' nor the tile counts', which the binning has scanned)
         ctx.cfg, ctx.head, ctx.tail, ctx.a_radii, ctx.colour_args = cfg, head, tail, a_radii, colour_args
         ctx.runs, ctx.tg = runs, tg  # (a backward runs on its forward's stream)
-        ctx.mark_non_differentiable(*(t for t in (radii, counts, splats) if t is not None))
-        return radii, means2d, depths, conics, opac, colors, counts, splats
+        extra["radii"], extra["counts"], extra["splats"] = radii, counts, splats
+        return means2d, depths, conics, opac, colors
 
     @staticmethod
-    def backward(ctx, _g_radii, g_means2d, g_depths, g_conics, g_opac, g_colors, _g_counts, _g_splats):
+    def backward(ctx, g_means2d, g_depths, g_conics, g_opac, g_colors):
         means, quats, scales, opacities, viewmats, Ks, coeffs, campos = ctx.saved_tensors[:8]
         cfg, need, hand = ctx.cfg, ctx.needs_input_grad, ctx.hand
         C, N = viewmats.shape[0], means.shape[0]
@@ -214,7 +215,7 @@ _NO_CHECKS = [*NULL, 0, 0, *NULL, 0, 0]
 def _check_args(extra, C, N):
     """``(flat arguments, tensors to keep alive)`` of the projection's input checks (none without
     ``extra["check"]``): the colours read flat in rows (per camera or shared), the backgrounds."""
-    if extra is None or not extra.get("check"):
+    if not extra.get("check"):
         return _NO_CHECKS, ()
     colors, bg = L.dense(extra["colors"]), extra.get("backgrounds")
     per_cam = colors.shape[0] == C and colors.ndim == (4 if extra.get("sh") else 3)
@@ -261,9 +262,10 @@ def project_warp(means, quats, scales, opacities, viewmats, Ks, width, height, *
                  far_plane=1e10, radius_clip=0.0, eps2d=0.3, antialiased=False, settings=None):
     """Warp version of :func:`ssgwarp.raster.reference.project_reference` (same outputs)."""
     cfg = _project_cfg(means.dtype, width, height, near_plane, far_plane, radius_clip, eps2d, antialiased, settings)
-    radii, means2d, depths, conics, opac, _, _, _ = apply(_Project, means, quats, scales, opacities, viewmats, Ks,
-                                                                   None, None, cfg, None)
-    return radii, means2d, depths, conics, opac
+    side: dict = {}
+    means2d, depths, conics, opac, _ = apply(_Project, means, quats, scales, opacities, viewmats, Ks, None, None, cfg,
+                                             side)
+    return side["radii"], means2d, depths, conics, opac
 
 
 def _project_cfg(*args) -> dict:

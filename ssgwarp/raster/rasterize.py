@@ -182,8 +182,9 @@ def _rasterize_warp(means, quats, scales, opacities, colors, viewmats, Ks, width
                                         or opacities.requires_grad or viewmats.requires_grad or Ks.requires_grad
                                         or (coeffs is not None and coeffs.requires_grad)
                                         or (campos is not None and campos.requires_grad))
-    radii, means2d, depths, conics, opacs, sh_colors, counts, packed = ops.apply(
+    means2d, depths, conics, opacs, sh_colors = ops.apply(
         ops._Project, means, quats, scales, opacities, viewmats, Ks, coeffs, campos, cfg, extra, needs_grad=grad)
+    radii, counts, packed = extra["radii"], extra["counts"], extra["splats"]  # (no gradient: beside the op)
     if sh_colors is not None:
         colors = sh_colors
     colors, backgrounds = reference.mode_channels(colors, depths, backgrounds, render_mode, C)
