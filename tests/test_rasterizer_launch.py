@@ -141,6 +141,20 @@ def test_tile_counts_and_ids_are_consistent():
         assert torch.equal(tiles, torch.sort(tiles).values)
 
 
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("size", [32, 40])
+def test_the_sort_covers_every_key_bit_in_use(device, size):
+    """The keys (camera-tile range, depth) come out fully sorted, also where the number of ranges is a
+    power of two (2 cameras x 16 tiles: the sort stops at the largest range index's top bit) and where
+    it is not."""
+    params = [t.to(device) for t in make_scene(400, dtype=torch.float32, seed=11, spread=0.9)]
+    vm, K = (t.to(device) for t in make_cameras(2, size, size, dtype=torch.float32))
+    _, _, meta = rasterization(*params, vm, K, size, size, tile_size=8)
+    keys = meta["isect_ids"]
+    assert keys.numel() > 1000 and int((keys >> 32).max()) >= 16  # (both cameras' last tiles in use)
+    assert torch.equal(keys, torch.sort(keys).values)
+
+
 @CUDA
 def test_cuda_launches_follow_torchs_current_stream():
     """On a side stream the rasterizer's launches (and the sort) run on that stream: the result

@@ -373,7 +373,9 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
                  [*arr(m2, 2), *arr(rd, 2), *arr(dp), *arr(ends), *arr(counts), N, tile_size, tile_width, tile_height,
                   *arr(keys), *a_values, *a_gauss], tg)
     if n_isects > 0:
-        L.sort_pairs(keys, ints, n_isects, 32 + max(1, int(n_ranges).bit_length()), tg)
+        # the key bits in use: 32 of depth, then as many as the largest range index needs (one radix
+        # pass fewer than counting the ranges' number where that is a power of two, e.g. 256 tiles)
+        L.sort_pairs(keys, ints, n_isects, 32 + max(1, int(n_ranges - 1).bit_length()), tg)
         cpu_threads.launch_runs(binning.offsets_kernel, (), cpu_threads.element_runs(tg, threads, n_isects, cpu_threads.MIN_ITEMS_LIGHT),
                      [*arr(keys), *a_values, *a_gauss, n_isects, n_ranges, *arr(offsets), *a_flat], tg)
     else:
