@@ -374,7 +374,9 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
                   *arr(keys), *a_values, *a_gauss], tg)
     if n_isects > 0:
         # the key bits in use: 32 of depth, then as many as the largest range index needs (one radix
-        # pass fewer than counting the ranges' number where that is a power of two, e.g. 256 tiles)
+        # pass fewer than counting the ranges' number where that is a power of two, e.g. 256 tiles;
+        # Warp's sort copies an odd pass count's result back: 5 passes + 2 device copies, 2.4 µs of
+        # GPU time, against 6 passes, measured at 10k on an H100)
         L.sort_pairs(keys, ints, n_isects, 32 + max(1, int(n_ranges - 1).bit_length()), tg)
         cpu_threads.launch_runs(binning.offsets_kernel, (), cpu_threads.element_runs(tg, threads, n_isects, cpu_threads.MIN_ITEMS_LIGHT),
                      [*arr(keys), *a_values, *a_gauss, n_isects, n_ranges, *arr(offsets), *a_flat], tg)
