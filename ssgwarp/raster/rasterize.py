@@ -177,13 +177,8 @@ def _rasterize_warp(means, quats, scales, opacities, colors, viewmats, Ks, width
         else:  # one small kernel (torch's batched inverse costs ~0.4 ms of host time on CUDA)
             campos = sh_ops.camera_centres(viewmats)
         coeffs = colors
-    # (whether a backward can follow: the projection's node is made only then)
-    grad = torch.is_grad_enabled() and (means.requires_grad or quats.requires_grad or scales.requires_grad
-                                        or opacities.requires_grad or viewmats.requires_grad or Ks.requires_grad
-                                        or (coeffs is not None and coeffs.requires_grad)
-                                        or (campos is not None and campos.requires_grad))
     means2d, depths, conics, opacs, sh_colors = ops.apply(
-        ops._Project, means, quats, scales, opacities, viewmats, Ks, coeffs, campos, cfg, extra, needs_grad=grad)
+        ops._Project, means, quats, scales, opacities, viewmats, Ks, coeffs, campos, cfg, extra)
     radii, counts, packed = extra["radii"], extra["counts"], extra["splats"]  # (no gradient: beside the op)
     if sh_colors is not None:
         colors = sh_colors
