@@ -8,7 +8,9 @@
    with the 64-bit key ``(camera * n_tiles + tile) << 32 | depth bits`` (the depth's float32
    bit pattern orders positive depths; camera-major like gsplat's keys), value = the Gaussian
    (so the sorted values are the flattened ids), or for the deterministic backward the
-   intersection's own position (so the sort also yields the permutation).
+   intersection's own position (so the sort also yields the permutation). It also clears, when
+   given, a buffer of a fixed number of values per Gaussian (the blending backward's gradient
+   rows: one memset call fewer on the host).
 4. (host) Warp's stable radix sort of (key, value) pairs.
 5. :func:`offsets_kernel`: the start of each (camera, tile) range in the sorted
    list, ``offsets[C * n_tiles] = n_isects`` (and with the permutation, the flattened ids).
@@ -90,8 +92,16 @@ def write_kernel(scalar):
                      depths: wp.array(dtype=scalar), ends: wp.array(dtype=wp.int64),
                      counts: wp.array(dtype=wp.int32), n_gauss: int, tile_size: int, tile_width: int,
                      tile_height: int, keys: wp.array(dtype=wp.int64), values: wp.array(dtype=wp.int32),
-                     gauss_of_isect: wp.array(dtype=wp.int32), first: int):
+                     gauss_of_isect: wp.array(dtype=wp.int32), clear: wp.array(dtype=scalar), clear_width: int,
+                     first: int):
         i = wp.tid() + first
+        # ``clear`` (``clear_width`` values per camera and Gaussian, e.g. the rows the blending backward
+        # adds its gradients into, which then needs no clearing of its own), when given, zeroed by the
+        # threads together: thread i the values i, i + n, i + 2n, ... (coalesced stores)
+        if clear.shape[0] > 0:
+            n_rows = clear.shape[0] // clear_width
+            for j in range(clear_width):
+                clear[j * n_rows + i] = scalar(0.0)
         cnt = counts[i]
         if cnt == 0:
             return

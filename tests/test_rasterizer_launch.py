@@ -323,15 +323,15 @@ def test_blend_outputs_are_made_while_the_count_comes_back(device, monkeypatch):
     leaves = [p.clone().requires_grad_(True) for p in params]
     img, alpha, _ = rasterization(*leaves, vm, K, 40, 28)
     assert events == ["start", "outputs", "finish"]
-    out, a, T, last = made[0]
+    out, a, T, last, rows = made[0]
     assert img.data_ptr() == out.data_ptr() and alpha.data_ptr() == a.data_ptr()
-    assert T is not None and last is not None
+    assert T is not None and last is not None and rows is not None
     (img.sum() + alpha.sum()).backward()
     assert all(p.grad is not None for p in leaves)
     events.clear()
     with torch.no_grad():
         img0, alpha0, _ = rasterization(*params, vm, K, 40, 28)
-    assert events == ["start", "outputs", "finish"] and made[1][2] is None and made[1][3] is None
+    assert events == ["start", "outputs", "finish"] and all(t is None for t in made[1][2:])
     assert torch.equal(img0, img.detach()) and torch.equal(alpha0, alpha.detach())
     # outputs made for a call without a backward, handed to one with: refused
     from ssgwarp.raster import ops
@@ -368,3 +368,74 @@ def test_one_input_requiring_a_gradient_gets_it(device, sh, which):
     alone, together = grad_of({which}), grad_of(set(inputs))
     assert alone is not None and alone.abs().sum() > 0
     torch.testing.assert_close(alone, together, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("threads", [1, 3])
+def test_key_writes_clear_the_buffer_handed_back_during_the_wait(device, threads):
+    """A buffer that ``bin_tiles``' ``during_wait`` returns is zeroed by the key-writing kernel, every
+    value of it (a whole number per camera and Gaussian; filled with NaN first), also over several
+    CPU runs, and the binning is the same as without it."""
+    from ssgwarp.raster import ops
+    params = [t.to(device) for t in make_scene(70, seed=4)]
+    vm, K = (t.to(device) for t in make_cameras(2, 40, 28))
+    _, _, meta = rasterization(*params, vm, K, 40, 28, tile_size=8)
+    C, N = meta["depths"].shape
+    buf = torch.full((C * N * 9,), float("nan"), dtype=meta["means2d"].dtype, device=device)
+    args = (meta["means2d"], meta["radii"], meta["depths"], 8, meta["tile_width"], meta["tile_height"])
+    cleared = ops.bin_tiles(*args, threads=threads, during_wait=lambda: buf)
+    plain = ops.bin_tiles(*args, threads=threads)
+    assert torch.equal(buf, torch.zeros_like(buf))
+    assert torch.equal(cleared["isect_ids"], plain["isect_ids"]) and torch.equal(cleared["flatten_ids"],
+                                                                                  plain["flatten_ids"])
+    with pytest.raises(ValueError, match="buffer to clear must be"):  # (the kernel would address another type)
+        ops.bin_tiles(*args, threads=threads, during_wait=lambda: buf.float() if buf.dtype != torch.float32
+                      else buf.double())
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_blending_backward_adds_into_the_rows_the_forward_made(device, monkeypatch):
+    """Where a backward can follow, the call makes the blending backward's gradient rows with its
+    outputs (zeroed by the key writes), and the backward adds into them instead of clearing a buffer
+    of its own: the same gradients as a call without them; a second backward through the same graph
+    (retain_graph) clears rows of its own again (reusing the first's would add onto its gradients);
+    the deterministic backward, whose rows are per intersection, makes none."""
+    import ssgwarp.raster.blend_ops as B
+    params = [t.to(device) for t in make_scene(90, seed=6)]
+    vm, K = (t.to(device) for t in make_cameras(1, 40, 28))
+    cleared = []
+    zeros = L.zeros
+
+    def rec_zeros(*a):
+        cleared.append(a[0])
+        return zeros(*a)
+    monkeypatch.setattr(L, "zeros", rec_zeros)
+
+    def grads(retain=False, **kw):
+        leaves = [p.clone().requires_grad_(True) for p in params]
+        img, alpha, _ = rasterization(*leaves, vm, K, 40, 28, **kw)
+        loss = (img * torch.linspace(0, 1, img.numel(), device=device).view(img.shape)).sum() + alpha.sum()
+        loss.backward(retain_graph=retain)
+        first = [p.grad.clone() for p in leaves]
+        if not retain:
+            return first, None
+        for p in leaves:
+            p.grad = None
+        loss.backward()
+        return first, [p.grad for p in leaves]
+
+    made, again = grads(retain=True)
+    assert cleared == [(90 * 9,)] or cleared == [(1, 90, 9)]  # (the second backward's, not the first's)
+    cleared.clear()
+    monkeypatch.setattr(B, "gradient_rows_size", lambda *a: 0)  # (calls that make no rows)
+    own, _ = grads()
+    assert len(cleared) == 1
+    for a, b, c in zip(made, again, own):
+        torch.testing.assert_close(a, c, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(b, c, rtol=1e-5, atol=1e-6)
+    monkeypatch.undo()
+    seen = []
+    outputs = B.blend_outputs
+    monkeypatch.setattr(B, "blend_outputs", lambda *a: seen.append(a[-1]) or outputs(*a))
+    grads(deterministic=True)
+    assert seen == [0]

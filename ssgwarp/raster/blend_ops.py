@@ -60,7 +60,7 @@ class _Blend(torch.autograd.Function):
         th, tw = tiles["isect_offsets"].shape[1:]
         tg = tiles.get("target") or L.target(colors)
         ctx.set_materialize_grads(False)
-        out, out_alpha, out_T, last = outputs or blend_outputs(C, height, width, D, dt, dev, gather)
+        out, out_alpha, out_T, last, rows = outputs or blend_outputs(C, height, width, D, dt, dev, gather)
         a_T, a_last = (arr(out_T), arr(last)) if gather else (NULL, NULL)
         bg = L.dense(backgrounds) if backgrounds is not None else None
         # on the CPU, runs of whole tiles on several threads (cpu_threads.py); else one launch
@@ -101,6 +101,7 @@ class _Blend(torch.autograd.Function):
         ctx.n_gauss, ctx.cshape = N, colors.shape
         ctx.tiles, ctx.geom, ctx.settings, ctx.det = tiles, (width, height, tile_size, tw, th), settings, deterministic
         ctx.parts, ctx.tg = parts, tg  # (a backward runs on its forward's stream)
+        ctx.rows = rows  # (zeroed gradient rows made with the outputs, for the first backward; else None)
         return out, out_alpha
 
     @staticmethod
@@ -143,8 +144,14 @@ class _Blend(torch.autograd.Function):
         # their own after the geometry's, in the same buffer: a contiguous gradient autograd keeps as
         # it is, where a column block of the packed rows is copied for the colours' .grad
         split = ctx.through_ids and geometry and not det and len(parts) == 1 and C * N > 0
-        # (CUDA: one memset on the stream; the default backward's rows as [C, N, W] from the start)
-        packed = L.zeros((C * N * W,) if split else (C, N, W) if not det and C * N else (rows, W), dt, tg)
+        # the rows made with the forward's outputs and zeroed by the binning's key writes (a first
+        # backward's, of the default kind), else cleared here (CUDA: one memset on the stream); the
+        # default backward's rows as [C, N, W] from the start
+        made, ctx.rows = ctx.rows, None
+        if made is not None and not det and C * N and made.numel() == C * N * W:
+            packed = made if split else made.view(C, N, W)
+        else:
+            packed = L.zeros((C * N * W,) if split else (C, N, W) if not det and C * N else (rows, W), dt, tg)
         # the default backward's other threads: their own rows, added to the first thread's below
         extra = torch.zeros(len(parts) - 1, rows, W, dtype=dt, device=dev) if len(parts) > 1 and not det else None
         kern = blend_backward.reduced_backward_kernel(s, D, det, per_warp, L.fast_math(st, s), not geometry,
@@ -191,17 +198,29 @@ class _Blend(torch.autograd.Function):
         return v_m2d, v_conics, v_colors, v_opac, v_bg, None, None, None, None, None, None, None, None, None
 
 
-def blend_outputs(C: int, height: int, width: int, D: int, dtype, device, gather: bool) -> tuple:
-    """``(image [C,H,W,D], alpha [C,H,W,1], T [C,H,W], last [C,H,W])``: what the blending forward
-    writes (every pixel), made before it runs (also ahead of the binning's read-back, where the host
-    would wait); the final transmittance and last blended Gaussian per pixel only where a backward
-    can follow (``gather``), else None."""
+def blend_outputs(C: int, height: int, width: int, D: int, dtype, device, gather: bool,
+                  grad_rows: int = 0) -> tuple:
+    """``(image [C,H,W,D], alpha [C,H,W,1], T [C,H,W], last [C,H,W], rows)``: what the blending
+    forward writes (every pixel), made before it runs (also ahead of the binning's read-back, where
+    the host would wait); the final transmittance and last blended Gaussian per pixel only where a
+    backward can follow (``gather``), else None. ``rows``: with ``grad_rows > 0`` (and ``gather``), a
+    flat buffer of that many values for the backward's per-Gaussian gradient rows (:func:`gradient_rows_size`),
+    which the caller has zeroed before the backward runs (the binning's key writes do it), else None."""
     out = torch.empty(C, height, width, D, dtype=dtype, device=device)
     alpha = torch.empty(C, height, width, 1, dtype=dtype, device=device)
     if not gather:
-        return out, alpha, None, None
+        return out, alpha, None, None, None
     return (out, alpha, torch.empty(C, height, width, dtype=dtype, device=device),
-            torch.empty(C, height, width, dtype=torch.int32, device=device))
+            torch.empty(C, height, width, dtype=torch.int32, device=device),
+            torch.empty(grad_rows, dtype=dtype, device=device) if grad_rows > 0 else None)
+
+
+def gradient_rows_size(C: int, N: int, D: int, geometry: bool, deterministic: bool) -> int:
+    """How many values the blending backward's gradient rows hold for ``C`` cameras, ``N`` Gaussians
+    and ``D`` channels: ``C * N`` rows of the splat's 6 (where ``geometry``: the means, conics or
+    opacities want a gradient) and the ``D`` colour values; 0 for the deterministic backward, whose
+    rows are per intersection (their number is known only after the binning)."""
+    return 0 if deterministic else C * N * ((6 if geometry else 0) + D)
 
 
 def backward_may_follow(means2d, conics, colors, opacities, backgrounds) -> bool:

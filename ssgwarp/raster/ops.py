@@ -60,7 +60,8 @@ class _Project(torch.autograd.Function):
     """``(means2d, depths, conics, opacities, colors)`` of N Gaussians in C cameras; the results
     without a gradient go to ``extra`` (a dict) instead of through the autograd op (each output
     costs it host time): ``radii [C, N, 2]``, and ``counts [C, N]`` (int32 tiles per Gaussian) and
-    ``splats [C, N, 6]`` (the blending's packed splats) when ``cfg["tile_size"] > 0``, else None.
+    ``splats [C, N, 6]`` (the blending's packed splats) when ``cfg["tile_size"] > 0``, else None;
+    ``tg``, the launch target (:func:`ssgwarp.raster.launch.target`), for the launches that follow.
 
     ``colors [C, N, 3]`` (SH colour, ``+ 0.5`` clamped, 0 where culled) when ``coeffs`` is given,
     else None. ``extra`` may also hold, on the way in,
@@ -114,7 +115,7 @@ class _Project(torch.autograd.Function):
         # (inputs and parameters, outputs; not the checks' nor the tile counts', which the binning has scanned)
         ctx.cfg, ctx.head, ctx.tail, ctx.a_radii, ctx.colour_args = cfg, head, tail, a_radii, colour_args
         ctx.runs, ctx.tg = runs, tg  # (a backward runs on its forward's stream)
-        extra["radii"], extra["counts"], extra["splats"] = radii, counts, splats
+        extra["radii"], extra["counts"], extra["splats"], extra["tg"] = radii, counts, splats, tg
         return means2d, depths, conics, opac, colors
 
     @staticmethod
@@ -299,7 +300,7 @@ _cached_project_cfg = functools.lru_cache(maxsize=256)(_build_project_cfg)
 # ---------------------------------------------------------------------------------------------
 def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, tile_width: int, tile_height: int,
               recheck=None, counts: Tensor | None = None, scan: Tensor | None = None, keep_perm: bool = True,
-              counts_in_scan: bool = False, threads: int | None = None, during_wait=None) -> dict:
+              counts_in_scan: bool = False, threads: int | None = None, during_wait=None, tg=None) -> dict:
     """Tile intersections of projected Gaussians, sorted by (camera, tile, depth).
 
     Returns ``tiles_per_gauss [C,N]`` (int32), ``isect_ids [M]`` (int64 keys), ``flatten_ids [M]``
@@ -318,12 +319,15 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
     sort carries the Gaussian ids themselves (as gsplat's does), so the sorted values are the
     flattened ids. ``threads`` (CPU): ``RasterSettings.cpu_threads`` for the key writes and the
     range offsets (:mod:`.cpu_threads`). ``during_wait``: host work (a callable, no read-back of
-    its own) run while the total is on its way back, where the host would otherwise wait.
+    its own) run while the total is on its way back, where the host would otherwise wait; it may
+    return a contiguous tensor of the means' dtype holding a whole number of values per (camera,
+    Gaussian), which the key-writing kernel then zeroes (a clearing call fewer), or None. ``tg``:
+    the launch target when the caller has it (:func:`ssgwarp.raster.launch.target` of ``means2d``).
     """
     C, N = depths.shape
     s = L.scalar_of(means2d.dtype)
     dev = means2d.device
-    tg = L.target(means2d)
+    tg = tg or L.target(means2d)
     n_ranges = C * tile_width * tile_height
     if n_ranges >= INT32_MAX:
         raise ValueError(f"rasterization: {C} cameras x {tile_width * tile_height} tiles exceed the 2^31 tile "
@@ -342,8 +346,7 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
         torch.cumsum(counts.view(-1), 0, dtype=torch.int64, out=ends)
     pending = L.start_read_int64(ends, CN - 1, tg) if CN else 0
     m2, rd, dp = L.dense(means2d), L.dense(radii), L.dense(depths)
-    if during_wait is not None:
-        during_wait()
+    clear = during_wait() if during_wait is not None else None
     n_isects = L.finish_read_int64(pending, tg) if CN else 0
     if n_isects >= CHECK_FAILED and recheck is not None:
         recheck()
@@ -368,10 +371,16 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
         flatten_ids, _, offsets = ints.split_with_sizes((n_isects, 2 * M - n_isects, n_ranges + 1))
         values, a_gauss, a_flat = None, NULL, NULL
     a_values = L.at(ints.data_ptr(), 2 * M, 4)  # (the sort's values and their scratch: the buffer's head)
+    a_clear = (*NULL, 0)
+    if clear is not None and CN:
+        if clear.dtype != means2d.dtype or not clear.is_contiguous() or clear.numel() % CN:
+            raise ValueError(f"bin_tiles: the buffer to clear must be a contiguous {means2d.dtype} tensor of a whole "
+                             f"number of values per (camera, Gaussian), got {clear.dtype} {tuple(clear.shape)}")
+        a_clear = (*arr(clear), clear.numel() // CN)
     # (on the CPU, runs of Gaussians and of intersections on several threads)
     cpu_threads.launch_runs(binning.write_kernel(s), (), cpu_threads.element_runs(tg, threads, CN),
                  [*arr(m2, 2), *arr(rd, 2), *arr(dp), *arr(ends), *arr(counts), N, tile_size, tile_width, tile_height,
-                  *arr(keys), *a_values, *a_gauss], tg)
+                  *arr(keys), *a_values, *a_gauss, *a_clear], tg)
     if n_isects > 0:
         # the key bits in use: 32 of depth, then as many as the largest range index needs (one radix
         # pass fewer than counting the ranges' number where that is a power of two, e.g. 256 tiles;

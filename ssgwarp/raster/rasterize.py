@@ -189,19 +189,22 @@ def _rasterize_warp(means, quats, scales, opacities, colors, viewmats, Ks, width
         "tile_size": tile_size, "n_cameras": C, "settings": settings, "backend": "warp",
     }
     # the blending's outputs are made while the intersection total is on its way back (host work
-    # that would otherwise wait for the GPU)
+    # that would otherwise wait for the GPU), and where a backward can follow, its gradient rows,
+    # which the binning's key writes zero (the backward then makes and clears none)
     made = []
     D = colors.shape[-1]
     if D <= blend_ops.MAX_CHANNELS:
         def make_outputs():
-            made.append(blend_ops.blend_outputs(C, height, width, D, colors.dtype, colors.device,
-                                                blend_ops.backward_may_follow(means2d, conics, colors, opacs,
-                                                                              backgrounds)))
+            gather = blend_ops.backward_may_follow(means2d, conics, colors, opacs, backgrounds)
+            rows = blend_ops.gradient_rows_size(C, N, D, means2d.requires_grad or conics.requires_grad
+                                                or opacs.requires_grad, deterministic) if gather else 0
+            made.append(blend_ops.blend_outputs(C, height, width, D, colors.dtype, colors.device, gather, rows))
+            return made[0][4]
     else:
         make_outputs = None
     tiles = ops.bin_tiles(means2d, radii, depths, tile_size, tile_width, tile_height, recheck=recheck, counts=counts,
                           scan=scan, keep_perm=deterministic, counts_in_scan=True,
-                          threads=settings.cpu_threads, during_wait=make_outputs)
+                          threads=settings.cpu_threads, during_wait=make_outputs, tg=extra["tg"])
     # gsplat's binning outputs; the backward's internal arrays (offsets, perm, isect_ends) stay in ``tiles``
     meta.update({k: tiles[k] for k in PUBLIC_TILE_KEYS})
     render_colors, render_alphas = blend_ops.blend_warp(means2d, conics, colors, opacs, backgrounds, tiles, width, height,
