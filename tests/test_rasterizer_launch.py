@@ -155,6 +155,19 @@ def test_the_sort_covers_every_key_bit_in_use(device, size):
     assert torch.equal(keys, torch.sort(keys).values)
 
 
+def test_sort_bits_cover_the_ranges_in_even_passes_on_cuda():
+    """The sort covers every bit of the largest range index above the 32 depth bits; on CUDA in an
+    even number of 8-bit passes (never past 64 bits), on the CPU no more than needed."""
+    from ssgwarp.raster.ops import sort_bits
+    for n in (1, 2, 3, 255, 256, 257, 4096, 8160, 65536, 65537, 2 ** 24, 2 ** 31 - 1):
+        need = 32 + max(1, (n - 1).bit_length())
+        cuda = sort_bits(n, cpu=False)
+        assert need <= cuda <= 64 and cuda % 16 == 0 and cuda - need < 16
+        assert sort_bits(n, cpu=True) == need
+    assert sort_bits(256, cpu=False) == 48 and sort_bits(8160, cpu=False) == 48
+    assert sort_bits(2 ** 24 + 1, cpu=False) == 64
+
+
 @CUDA
 def test_cuda_launches_follow_torchs_current_stream():
     """On a side stream the rasterizer's launches (and the sort) run on that stream: the result

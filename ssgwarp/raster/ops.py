@@ -298,6 +298,21 @@ _cached_project_cfg = functools.lru_cache(maxsize=256)(_build_project_cfg)
 # ---------------------------------------------------------------------------------------------
 # tile binning
 # ---------------------------------------------------------------------------------------------
+def sort_bits(n_ranges: int, cpu: bool) -> int:
+    """The key bits the radix sort covers for ``n_ranges`` (camera, tile) ranges: 32 of depth, then as
+    many as the largest range index needs; on CUDA rounded up to an even number of 8-bit passes
+    (CUB's one-sweep sort of 64-bit keys), after which the sorted keys end in their own half of the
+    double buffer: after an odd number Warp's sort copies them back, two copies that cost more host
+    time than the extra pass (at 256 tiles, 6 passes against 5 + 2 copies: the sort's host time 8-10
+    µs shorter inside a call; H100, docs/benchmarks.md). The bits added are zero in every key, so the
+    order is the same."""
+    bits = 32 + max(1, int(n_ranges - 1).bit_length())
+    if cpu:
+        return bits
+    passes = -(-bits // 8)
+    return min(64, 8 * (passes + passes % 2))
+
+
 def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, tile_width: int, tile_height: int,
               recheck=None, counts: Tensor | None = None, scan: Tensor | None = None, keep_perm: bool = True,
               counts_in_scan: bool = False, threads: int | None = None, during_wait=None, tg=None) -> dict:
@@ -382,11 +397,7 @@ def bin_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, ti
                  [*arr(m2, 2), *arr(rd, 2), *arr(dp), *arr(ends), *arr(counts), N, tile_size, tile_width, tile_height,
                   *arr(keys), *a_values, *a_gauss, *a_clear], tg)
     if n_isects > 0:
-        # the key bits in use: 32 of depth, then as many as the largest range index needs (one radix
-        # pass fewer than counting the ranges' number where that is a power of two, e.g. 256 tiles;
-        # Warp's sort copies an odd pass count's result back: 5 passes + 2 device copies, 2.4 µs of
-        # GPU time, against 6 passes, measured at 10k on an H100)
-        L.sort_pairs(keys, ints, n_isects, 32 + max(1, int(n_ranges - 1).bit_length()), tg)
+        L.sort_pairs(keys, ints, n_isects, sort_bits(n_ranges, tg.cpu), tg)
         cpu_threads.launch_runs(binning.offsets_kernel, (), cpu_threads.element_runs(tg, threads, n_isects, cpu_threads.MIN_ITEMS_LIGHT),
                      [*arr(keys), *a_values, *a_gauss, n_isects, n_ranges, *arr(offsets), *a_flat], tg)
     else:
