@@ -14,6 +14,7 @@ host time differs and the tail does not, the difference is host work (Python, to
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
 import statistics
 import sys
@@ -55,45 +56,82 @@ def phase_timer(raster, params, vm, K, w: int, h: int, device: torch.device):
     return one
 
 
-def run_case(n: int, w: int, h: int, libs: dict, device: torch.device, rounds: int, calls: int) -> dict:
+def case_scene(n: int, w: int, h: int, device: torch.device):
+    """``(params, viewmats, Ks)`` of a case: the benchmark scene, one camera."""
     params = make_scene(n, device)
     if n < 100:  # (a close camera so that a handful of Gaussians covers the small image)
         params[0][:, 2] -= 4.0
-    vm, K = camera(w, h, device)
-    timers = {name: phase_timer(fn, params, vm, K, w, h, device) for name, fn in libs.items()}
-    for t in timers.values():  # warm-up: kernel builds, allocator pools
-        for _ in range(max(20, calls)):
-            t()
+    return (params, *camera(w, h, device))
+
+
+def interleaved(timers: dict, rounds: int, calls: int, around=None) -> dict:
+    """Per library, the results of ``calls`` calls of its timer in each of ``rounds`` rounds, the order
+    of the libraries alternating, after a warm-up (kernel builds, allocator pools) that is not kept.
+    ``around(name)``: a context manager the library's calls run in (none when not given)."""
+    ctx = around or (lambda name: contextlib.nullcontext())
+    for name, t in timers.items():
+        with ctx(name):
+            for _ in range(max(20, calls)):
+                t()
     samples: dict = {name: [] for name in timers}
     order = list(timers)
     for r in range(rounds):
         for name in (order if r % 2 == 0 else order[::-1]):
-            samples[name] += [timers[name]() for _ in range(calls)]
+            with ctx(name):
+                samples[name] += [timers[name]() for _ in range(calls)]
+    return samples
+
+
+def run_case(n: int, w: int, h: int, libs: dict, device: torch.device, rounds: int, calls: int) -> dict:
+    params, vm, K = case_scene(n, w, h, device)
+    timers = {name: phase_timer(fn, params, vm, K, w, h, device) for name, fn in libs.items()}
+    samples = interleaved(timers, rounds, calls)
     return {name: [statistics.median(s[i] for s in v) * 1e6 for i in range(len(PHASES))]
             for name, v in samples.items()}
 
 
-def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def parse(script: str, doc: str, argv, markdown_help: str):
+    """``(args, device, gsplat or None)`` of the command line both host-time scripts take (cases,
+    rounds, calls, device, --no-gsplat, --markdown; ``doc``: the script's docstring); exits with the
+    reason on a bad one."""
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     ap.add_argument("--cases", nargs="+", choices=list(CASES), default=list(CASES))
     ap.add_argument("--rounds", type=int, default=20, help="interleaved rounds per case")
     ap.add_argument("--calls", type=int, default=25, help="calls per library per round")
     ap.add_argument("--device", default="cuda", choices=["cuda", "cpu"])
     ap.add_argument("--no-gsplat", action="store_true")
-    ap.add_argument("--markdown", type=Path, help="also write the table here")
+    ap.add_argument("--markdown", type=Path, help=markdown_help)
     args = ap.parse_args(argv)
     if args.rounds < 1 or args.calls < 1:
-        raise SystemExit("host_phases.py: --rounds and --calls must be at least 1")
+        raise SystemExit(f"{script}: --rounds and --calls must be at least 1")
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
-        raise SystemExit("host_phases.py: no CUDA device here (use --device cpu to time the CPU path)")
-    libs = {"ssgwarp": ssgwarp.rasterization}
+        raise SystemExit(f"{script}: no CUDA device here (use --device cpu to time the CPU path)")
     gsplat = None if device.type == "cpu" else optional_gsplat(args.no_gsplat)
+    return args, device, gsplat
+
+
+def heading(device: torch.device, args) -> str:
+    return (f"{datetime.date.today()}; {torch.cuda.get_device_name() if device.type == 'cuda' else 'CPU'}; "
+            f"torch {torch.__version__}; medians of {args.rounds * args.calls} calls per library")
+
+
+def emit(text: str, markdown: Path | None) -> None:
+    """Print ``text`` and, where asked, write it to ``markdown`` (atomically)."""
+    print(text)
+    if markdown is not None:
+        tmp = markdown.with_name(markdown.name + ".tmp")
+        tmp.write_text(text + "\n")
+        tmp.replace(markdown)
+
+
+def main(argv=None) -> None:
+    args, device, gsplat = parse("host_phases.py", __doc__, argv, "also write the table here")
+    libs = {"ssgwarp": ssgwarp.rasterization}
     if gsplat is not None:
         libs["gsplat"] = gsplat.rasterization
-    lines = [f"{datetime.date.today()}; {torch.cuda.get_device_name() if device.type == 'cuda' else 'CPU'}; "
-             f"torch {torch.__version__}; medians of {args.rounds * args.calls} calls per library, µs",
-             "", "| case | library | " + " | ".join(PHASES) + " |", "|---|---|" + "---|" * len(PHASES)]
+    lines = [heading(device, args) + ", µs", "", "| case | library | " + " | ".join(PHASES) + " |",
+             "|---|---|" + "---|" * len(PHASES)]
     for case in args.cases:
         n, w, h = CASES[case]
         res = run_case(n, w, h, libs, device, args.rounds, args.calls)
@@ -102,12 +140,7 @@ def main(argv=None) -> None:
         if "gsplat" in res:
             ratio = [a / b for a, b in zip(res["ssgwarp"], res["gsplat"])]
             lines.append(f"| {n:,} at {w}x{h} | ssgwarp / gsplat | " + " | ".join(f"{r:.2f}" for r in ratio) + " |")
-    text = "\n".join(lines)
-    print(text)
-    if args.markdown is not None:
-        tmp = args.markdown.with_name(args.markdown.name + ".tmp")
-        tmp.write_text(text + "\n")
-        tmp.replace(args.markdown)
+    emit("\n".join(lines), args.markdown)
 
 
 if __name__ == "__main__":

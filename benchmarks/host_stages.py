@@ -14,9 +14,7 @@ over interleaved rounds. The wrappers add well under a microsecond per stage to 
 """
 from __future__ import annotations
 
-import argparse
 import collections
-import datetime
 import statistics
 import sys
 import time
@@ -25,8 +23,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-from host_phases import CASES  # noqa: E402
-from raster import camera, make_scene, optional_gsplat  # noqa: E402
+from host_phases import CASES, case_scene, emit, heading, interleaved, parse, phase_timer  # noqa: E402
 
 import ssgwarp  # noqa: E402
 from ssgwarp.raster import blend_ops, ops, rasterize  # noqa: E402
@@ -108,26 +105,14 @@ def gsplat_stages(gsplat):
 
 
 def stage_timer(raster, params, vm, K, w: int, h: int, device: torch.device):
-    """One forward+backward of ``raster``: a dict of seconds per label of :data:`ROWS`."""
-    leaves = [p.clone().requires_grad_(True) for p in params]
-    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    """One forward+backward of ``raster`` (:func:`host_phases.phase_timer`): a dict of seconds per label
+    of :data:`ROWS`."""
+    phases = phase_timer(raster, params, vm, K, w, h, device)
 
     def one():
-        for p in leaves:
-            p.grad = None
-        sync()
         SPENT.clear()
-        t0 = now()
-        img, alpha, _ = raster(*leaves, vm, K, w, h, packed=False, tile_size=16)
-        t1 = now()
-        loss = img.sum() + alpha.sum()
-        t2 = now()
-        loss.backward()
-        t3 = now()
-        sync()
-        t4 = now()
-        d = dict(SPENT)
-        d.update({"forward": t1 - t0, "loss": t2 - t1, "backward": t3 - t2, "tail": t4 - t3, "total": t4 - t0})
+        d = dict(zip(("forward", "loss", "backward", "tail", "total"), phases()))
+        d.update(SPENT)
         d["forward rest"] = d["forward"] - sum(d.get(k, 0.0) for k in FORWARD_PARTS)
         d["backward rest"] = d["backward"] - sum(d.get(k, 0.0) for k in BACKWARD_PARTS)
         return d
@@ -135,18 +120,9 @@ def stage_timer(raster, params, vm, K, w: int, h: int, device: torch.device):
 
 
 def run_case(n: int, w: int, h: int, libs: dict, device: torch.device, rounds: int, calls: int) -> dict:
-    params = make_scene(n, device)
-    if n < 100:  # (a close camera so that a handful of Gaussians covers the small image)
-        params[0][:, 2] -= 4.0
-    vm, K = camera(w, h, device)
+    params, vm, K = case_scene(n, w, h, device)
     timers = {name: stage_timer(fn, params, vm, K, w, h, device) for name, (fn, _) in libs.items()}
-    samples: dict = {name: [] for name in timers}
-    for r in range(-1, rounds):  # (round -1: warm-up, not kept)
-        for name in (list(timers) if r % 2 == 0 else list(timers)[::-1]):
-            with Wrapped(libs[name][1]):
-                got = [timers[name]() for _ in range(max(calls, 20) if r < 0 else calls)]
-            if r >= 0:
-                samples[name] += got
+    samples = interleaved(timers, rounds, calls, around=lambda name: Wrapped(libs[name][1]))
     return {name: {k: statistics.median(d.get(k, 0.0) for d in v) * 1e6 for k in {k for d in v for k in d}}
             for name, v in samples.items()}
 
@@ -167,34 +143,15 @@ def table(n, w, h, res: dict) -> list:
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--cases", nargs="+", choices=list(CASES), default=list(CASES))
-    ap.add_argument("--rounds", type=int, default=20, help="interleaved rounds per case")
-    ap.add_argument("--calls", type=int, default=25, help="calls per library per round")
-    ap.add_argument("--device", default="cuda", choices=["cuda", "cpu"])
-    ap.add_argument("--no-gsplat", action="store_true")
-    ap.add_argument("--markdown", type=Path, help="also write the tables here")
-    args = ap.parse_args(argv)
-    if args.rounds < 1 or args.calls < 1:
-        raise SystemExit("host_stages.py: --rounds and --calls must be at least 1")
-    device = torch.device(args.device)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise SystemExit("host_stages.py: no CUDA device here (use --device cpu to time the CPU path)")
+    args, device, gsplat = parse("host_stages.py", __doc__, argv, "also write the tables here")
     libs = {"ssgwarp": (ssgwarp.rasterization, ssgwarp_stages())}
-    gsplat = None if device.type == "cpu" else optional_gsplat(args.no_gsplat)
     if gsplat is not None:
         libs["gsplat"] = (gsplat.rasterization, gsplat_stages(gsplat))
-    lines = [f"{datetime.date.today()}; {torch.cuda.get_device_name() if device.type == 'cuda' else 'CPU'}; "
-             f"torch {torch.__version__}; medians of {args.rounds * args.calls} calls per library"]
+    lines = [heading(device, args)]
     for case in args.cases:
         n, w, h = CASES[case]
         lines += table(n, w, h, run_case(n, w, h, libs, device, args.rounds, args.calls))
-    text = "\n".join(lines)
-    print(text)
-    if args.markdown is not None:
-        tmp = args.markdown.with_name(args.markdown.name + ".tmp")
-        tmp.write_text(text + "\n")
-        tmp.replace(args.markdown)
+    emit("\n".join(lines), args.markdown)
 
 
 if __name__ == "__main__":
