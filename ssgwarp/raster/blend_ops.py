@@ -148,7 +148,7 @@ class _Blend(torch.autograd.Function):
         # backward's, of the default kind), else cleared here (CUDA: one memset on the stream); the
         # default backward's rows as [C, N, W] from the start
         made, ctx.rows = ctx.rows, None
-        if made is not None and not det and C * N and made.numel() == C * N * W:
+        if made is not None and C * N and made.numel() == gradient_rows_size(C, N, D, geometry, det):
             packed = made if split else made.view(C, N, W)
         else:
             packed = L.zeros((C * N * W,) if split else (C, N, W) if not det and C * N else (rows, W), dt, tg)
