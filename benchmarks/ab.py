@@ -1,7 +1,7 @@
 """Before / after of the rasterizer in one process: this checkout's ``ssgwarp`` against another tree's,
 imported side by side as ``ssgwarp_base``, timed in interleaved rounds.
 
-Timings of host-bound calls swing by up to 30 % between processes and machines (docs/benchmarks.md), so
+Timings of host-bound calls swing by up to 30 % between processes and machines (docs/notes/benchmarks-history.md), so
 a change worth 5-15 % is measured here: both versions in the same process, on the same GPU, in turns
 (each round times one version then the other, the order alternating), and the medians compared.
 

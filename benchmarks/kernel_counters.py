@@ -2,7 +2,7 @@
 
 Kernel time alone says which kernel is slow; the counters say why: how many warp instructions it
 executes, how busy the issue slots are (compute-bound near 80-90 %), its registers and achieved
-occupancy. That is how the blending loops' per-Gaussian overhead was found (docs/benchmarks.md,
+occupancy. That is how the blending loops' per-Gaussian overhead was found (docs/notes/benchmarks-history.md,
 "Blending loops without per-Gaussian overhead": 1.06 G instructions against gsplat's 0.83 G at 1M
 Gaussians, issue-bound both).
 

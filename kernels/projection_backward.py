@@ -8,7 +8,7 @@ the forward's to the bit, and nothing else: no input checks, tile counts or cull
 Gaussian the forward culled has zero radii and gets no gradient). Warp's generated adjoint of
 the forward kernel computes the same derivatives (the tests hold this kernel to it) but replays
 the whole forward first and keeps every intermediate: 0.215 against 0.088 ms at 1M Gaussians
-on an H100 (gsplat's hand-written one: 0.143; docs/benchmarks.md).
+on an H100 (gsplat's hand-written one: 0.143; docs/notes/benchmarks-history.md).
 
 The 2D covariance's entries ``c00, c10, c01, c11`` (``c = J Sc J^T``) are blurred into ``a =
 c00 + eps2d``, ``cc = c11 + eps2d``, ``det = a cc - c10 c01``, ``conic = (cc, -c10, a) / det``;

@@ -208,7 +208,7 @@ def colour_backward_kernel(scalar, degree: int):
     fixed order and stored once (``v_coeffs[0, n]``; Warp's generated adjoint needs a per-camera
     copy, zero-filled, and a sum after it: 0.38 against 1.06 ms for 300,000 Gaussians in 4 cameras
     on an H100; with one camera the adjoint is the faster, 0.21 against 0.22 ms at 200,000,
-    docs/benchmarks.md). Also ``v_means [C, N]`` (added to: the projection's backward adds its
+    docs/notes/benchmarks-history.md). Also ``v_means [C, N]`` (added to: the projection's backward adds its
     own terms to the same slots) and ``v_campos [C, N]`` (stored). The gradient passes the clamp
     where the colour before it is ``>= 0`` (as the forward's ``where`` passes it) and is 0 for
     culled Gaussians; absent outputs come as null arrays. ``first``: as in :func:`colour_kernel`.

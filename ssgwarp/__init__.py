@@ -11,7 +11,7 @@ import sys as _sys
 
 # torch's OpenMP workers busy-wait after every parallel region by default and so take the cores the
 # CPU blending's threads need (ssgwarp/raster/cpu_threads.py; measured: half the CPU time of a small
-# render's step, docs/benchmarks.md). Wait passively instead, unless the user chose a policy. Read once,
+# render's step, docs/notes/benchmarks-history.md). Wait passively instead, unless the user chose a policy. Read once,
 # when torch loads: no effect where torch was imported before ssgwarp.
 if "torch" not in _sys.modules:
     _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")

@@ -39,7 +39,7 @@ from . import launch as L
 
 # pixel-intersection pairs (tile intersections x pixels of a tile) each thread needs: with less, one
 # more thread costs more than it saves (2-core machine, idle, forward+backward: 2 threads 1.4x slower
-# at 13,000 pairs, 1.1x faster at 35,000; docs/benchmarks.md "Blending on several CPU cores")
+# at 13,000 pairs, 1.1x faster at 35,000; docs/notes/benchmarks-history.md "Blending on several CPU cores")
 MIN_WORK = 15_000
 # elements each thread of a per-element kernel needs: a launch on another thread costs ~30-60 us on
 # the 2-core machine; a projected Gaussian ~80 ns, a Gaussian's key writes ~10-20 ns (lego_200, 2026-11-23)

@@ -11,7 +11,7 @@ CUDA launcher on torch's current stream. Array arguments are the 12 fields of a 
 descriptor built straight from a tensor's pointer, shape and strides (:func:`arr`, spliced into
 the argument list), with no ``wp.array`` in between. Measured per launch of a 33-parameter
 kernel: 8 µs on the CPU and 18 µs on CUDA, against 49 and 93 µs through ``wp.launch``
-(docs/benchmarks.md).
+(docs/notes/benchmarks-history.md).
 
 Where Warp's internals differ from what this expects (another Warp version), every launch
 falls back to ``wp.launch``; ``FAST`` says which path is in use.

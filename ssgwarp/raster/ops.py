@@ -304,7 +304,7 @@ def sort_bits(n_ranges: int, cpu: bool) -> int:
     (CUB's one-sweep sort of 64-bit keys), after which the sorted keys end in their own half of the
     double buffer: after an odd number Warp's sort copies them back, two copies that cost more host
     time than the extra pass (at 256 tiles, 6 passes against 5 + 2 copies: the sort's host time 8-10
-    µs shorter inside a call; H100, docs/benchmarks.md). The bits added are zero in every key, so the
+    µs shorter inside a call; H100, docs/notes/benchmarks-history.md). The bits added are zero in every key, so the
     order is the same."""
     bits = 32 + max(1, int(n_ranges - 1).bit_length())
     if cpu:
