@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import logging
 import re
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -194,6 +195,125 @@ def _resolve(p: Optional[str], *bases: Path) -> Optional[Path]:
     return q.resolve() if q.is_dir() else None
 
 
+# ----------------------------------------------------------------------------- the sources
+@dataclass
+class _Source:
+    """What a layout's files say: the scene, the record, the candidate frames, the capture and the
+    tool's defaults."""
+
+    scene: GaussianScene
+    info: dict
+    candidates: list = field(default_factory=lambda: [("the capture's own frame", Similarity())])
+    cameras: Optional[Cameras] = None         # the source's own cameras (graphdeco cameras.json)
+    data_dir: Optional[Path] = None
+    split: int = 8
+    background: tuple = (1.0, 1.0, 1.0)
+    images: str = "images"
+    width: Optional[int] = None
+
+
+def _graphdeco(source: Path, data_dir: Optional[Path], iteration, images, width) -> _Source:
+    if not source.is_dir():
+        raise InputError(f"{source}: a graphdeco output is a folder (with point_cloud/iteration_N)")
+    g = graphdeco_folder(source, iteration)
+    src = _Source(read_ply(g.ply), dict(file=str(g.ply), iteration=g.iteration, cfg_args=g.cfg or None),
+                  split=8 if g.cfg.get("eval") else 0, images=g.cfg.get("images") or "images",
+                  background=(1.0, 1.0, 1.0) if g.cfg.get("white_background") else (0.0, 0.0, 0.0))
+    if g.cameras is not None:
+        src.cameras = graphdeco_cameras(g.cameras, str(source / "cameras.json"))
+    if data_dir is None:
+        data_dir = _resolve(g.cfg.get("source_path"), source, source.parent)
+        if data_dir is None and g.cfg.get("source_path"):
+            log.warning("the capture %s that cfg_args names is not here: importing cameras.json's cameras "
+                        "without images (no PSNR; pass --data to measure it)", g.cfg.get("source_path"))
+    src.data_dir = data_dir
+    if width is None and data_dir is not None:
+        src.width = _graphdeco_width(g.cfg.get("resolution"), _image_width(data_dir / (images or src.images)))
+    return src
+
+
+def _gsplat(source: Path, data_dir: Optional[Path], iteration) -> _Source:
+    cfg = _cfg_yml(source if source.is_dir() else source.parent.parent)
+    if source.is_dir():
+        ckpts = gsplat_checkpoints(source)
+        plys = {int(m.group(1)): p for p in (source / "ply").glob("point_cloud_*.ply")
+                if (m := re.fullmatch(r"point_cloud_(\d+)\.ply", p.name))}
+        pool = ckpts or plys
+        if not pool:
+            raise InputError(f"{source}: no ckpts/ckpt_*.pt nor ply/point_cloud_*.ply")
+        step = max(pool) if iteration is None else iteration
+        if step not in pool:
+            raise InputError(f"{source}: no step {step} (it holds {', '.join(map(str, sorted(pool)))})")
+        file = pool[step]
+    else:
+        file, step = source, None
+    if file.suffix == ".pt":
+        scene, step2 = read_gsplat_checkpoint(file)
+        step = step if step is not None else step2
+    else:
+        scene = read_ply(file)
+    factor = int(cfg.get("data_factor", 1) or 1)
+    if data_dir is None and cfg.get("data_dir"):
+        data_dir = _resolve(str(cfg["data_dir"]), source if source.is_dir() else source.parent)
+    if data_dir is None:
+        raise InputError(f"{source}: a gsplat result does not hold its capture: pass --data with the COLMAP "
+                         f"folder it was trained on")
+    return _Source(scene, dict(file=str(file), step=step), data_dir=data_dir, split=int(cfg.get("test_every", 8)),
+                   images=f"images_{factor}" if factor > 1 else "images")
+
+
+def _nerfstudio(source: Path, data_dir: Optional[Path], dp: Optional[Path]) -> _Source:
+    if source.suffix.lower() != ".ply":
+        raise InputError(f"{source}: expected the PLY of `ns-export gaussian-splat`")
+    dp = dp or source.parent / "dataparser_transforms.json"
+    if not dp.is_file():
+        raise InputError(f"{dp}: not found (pass --dataparser-transforms with the training run's "
+                         f"dataparser_transforms.json, e.g. outputs/NAME/splatfacto/DATE/)")
+    if data_dir is None:
+        raise InputError(f"{source}: pass --data with the nerfstudio dataset folder (its transforms.json)")
+    tj = data_dir / "transforms.json"
+    if not tj.is_file():
+        raise InputError(f"{data_dir}: no transforms.json (a nerfstudio dataset, as ns-process-data writes)")
+    meta = read_json(tj)
+    sim = nerfstudio_to_capture(dp, meta if isinstance(meta, dict) else {},
+                                colmap_in_dataset=(data_dir / "colmap" / "sparse" / "0").is_dir())
+    return _Source(read_ply(source), dict(file=str(source), dataparser_transforms=str(dp)),
+                   [("nerfstudio's dataparser frame", sim)], data_dir=data_dir)
+
+
+def _frames_of(src: _Source, tool: str, capture: SceneData) -> list:
+    """The candidate frames given the loaded capture: graphdeco's cameras.json aligned to it; gsplat's
+    normalised world of a COLMAP capture (first for gsplat, after the capture's own for a bare PLY)."""
+    cands = list(src.candidates)
+    if src.cameras is not None:
+        pairs = match_names(src.cameras.names, capture.names)
+        if len(pairs) >= 3:
+            a = src.cameras.centers.double().numpy()[[i for i, _ in pairs]]
+            b = capture.cameras.centers.double().numpy()[[j for _, j in pairs]]
+            fit = umeyama(a, b)
+            if not np.allclose(fit.matrix, np.eye(4), atol=1e-5 * max(1.0, float(np.abs(b).max()))):
+                cands.append(("aligned by cameras.json's camera centres", fit))
+    if tool in ("gsplat", "ply") and capture.format == "colmap":
+        model = read_model(find_model(capture.data_dir))
+        if model.points is not None and len(model.points) >= 3:
+            ims = sorted(model.images.values(), key=lambda im: im.name)
+            c2w = np.linalg.inv(np.stack([im.viewmat for im in ims]))
+            norm = [(lab, s.inverse()) for lab, s in gsplat_normalization(c2w, model.points.xyz)]
+            cands = norm + cands if tool == "gsplat" else cands + norm
+    return cands
+
+
+def _cameras_only(cams: Cameras, split: int, bg) -> SceneData:
+    n = len(cams)
+    test = [i for i in range(n) if split and i % split == 0]
+    train = [i for i in range(n) if i not in set(test)]
+    if not train:
+        train, test = list(range(n)), []
+    return SceneData(cameras=cams, images=torch.zeros(n, cams.height, cams.width, 3), names=list(cams.names),
+                     train_ids=train, test_ids=test, background=bg, data_dir=None, format="graphdeco-cameras",
+                     options=dict(split_every=split, background=list(bg)))
+
+
 # ----------------------------------------------------------------------------- the stage
 def import_splats(source: str | Path, out: str | Path, *, data: Optional[str | Path] = None, tool: Optional[str] = None,
                   iteration: Optional[int] = None, images: Optional[str] = None, width: Optional[int] = None,
@@ -218,124 +338,35 @@ def import_splats(source: str | Path, out: str | Path, *, data: Optional[str | P
     if not source.exists():
         raise InputError(f"{source}: not found")
     data_dir = Path(data).expanduser() if data else None
-    info: dict = {"tool": tool, "source": str(source.resolve())}
-    candidates: list[tuple[str, Similarity]] = [("the capture's own frame", Similarity())]
-    src_cams: Optional[Cameras] = None
-    default_split, default_bg, default_images = 8, (1.0, 1.0, 1.0), "images"
-
     if tool == "graphdeco":
-        if not source.is_dir():
-            raise InputError(f"{source}: a graphdeco output is a folder (with point_cloud/iteration_N)")
-        g = graphdeco_folder(source, iteration)
-        scene = read_ply(g.ply)
-        info.update(file=str(g.ply), iteration=g.iteration, cfg_args=g.cfg or None)
-        if g.cameras is not None:
-            src_cams = graphdeco_cameras(g.cameras, str(source / "cameras.json"))
-        default_split = 8 if g.cfg.get("eval") else 0
-        default_bg = (1.0, 1.0, 1.0) if g.cfg.get("white_background") else (0.0, 0.0, 0.0)
-        default_images = g.cfg.get("images") or "images"
-        if data_dir is None:
-            data_dir = _resolve(g.cfg.get("source_path"), source, source.parent)
-            if data_dir is None and g.cfg.get("source_path"):
-                log.warning("the capture %s that cfg_args names is not here: importing cameras.json's cameras "
-                            "without images (no PSNR; pass --data to measure it)", g.cfg.get("source_path"))
-        if width is None and data_dir is not None:
-            width = _graphdeco_width(g.cfg.get("resolution"), _image_width(data_dir / (images or default_images)))
+        src = _graphdeco(source, data_dir, iteration, images, width)
     elif tool == "gsplat":
-        cfg = _cfg_yml(source if source.is_dir() else source.parent.parent)
-        if source.is_dir():
-            ckpts = gsplat_checkpoints(source)
-            plys = {int(m.group(1)): p for p in (source / "ply").glob("point_cloud_*.ply")
-                    if (m := re.fullmatch(r"point_cloud_(\d+)\.ply", p.name))}
-            pool = ckpts or plys
-            if not pool:
-                raise InputError(f"{source}: no ckpts/ckpt_*.pt nor ply/point_cloud_*.ply")
-            step = max(pool) if iteration is None else iteration
-            if step not in pool:
-                raise InputError(f"{source}: no step {step} (it holds {', '.join(map(str, sorted(pool)))})")
-            file = pool[step]
-        else:
-            file, step = source, None
-        if file.suffix == ".pt":
-            scene, step2 = read_gsplat_checkpoint(file)
-            step = step if step is not None else step2
-        else:
-            scene = read_ply(file)
-        info.update(file=str(file), step=step)
-        default_split = int(cfg.get("test_every", 8))
-        factor = int(cfg.get("data_factor", 1) or 1)
-        default_images = f"images_{factor}" if factor > 1 else "images"
-        if data_dir is None and cfg.get("data_dir"):
-            data_dir = _resolve(str(cfg["data_dir"]), source if source.is_dir() else source.parent)
-        if data_dir is None:
-            raise InputError(f"{source}: a gsplat result does not hold its capture: pass --data with the COLMAP "
-                             f"folder it was trained on")
+        src = _gsplat(source, data_dir, iteration)
     elif tool == "nerfstudio":
-        if source.suffix.lower() != ".ply":
-            raise InputError(f"{source}: expected the PLY of `ns-export gaussian-splat`")
-        dp = dp or source.parent / "dataparser_transforms.json"
-        if not dp.is_file():
-            raise InputError(f"{dp}: not found (pass --dataparser-transforms with the training run's "
-                             f"dataparser_transforms.json, e.g. outputs/NAME/splatfacto/DATE/)")
-        if data_dir is None:
-            raise InputError(f"{source}: pass --data with the nerfstudio dataset folder (its transforms.json)")
-        tj = data_dir / "transforms.json"
-        if not tj.is_file():
-            raise InputError(f"{data_dir}: no transforms.json (a nerfstudio dataset, as ns-process-data writes)")
-        scene = read_ply(source)
-        meta = read_json(tj)
-        sim = nerfstudio_to_capture(dp, meta if isinstance(meta, dict) else {},
-                                    colmap_in_dataset=(data_dir / "colmap" / "sparse" / "0").is_dir())
-        candidates = [("nerfstudio's dataparser frame", sim)]
-        info.update(file=str(source), dataparser_transforms=str(dp))
+        src = _nerfstudio(source, data_dir, dp)
     else:
-        if data is None:
+        if data_dir is None:
             raise InputError(f"{source}: a PLY alone has no cameras: pass --data with the capture it was trained on")
-        scene = read_ply(source)
-        info.update(file=str(source))
-
-    split = default_split if split_every is None else split_every
-    bg = default_bg if background is None else tuple(float(v) for v in background)
-    capture = None
-    if data_dir is not None:
-        capture = load_dataset(data_dir, images=images or default_images, split_every=split, width=width,
-                               background=bg, num_random_points=1000)
-        if src_cams is not None:       # graphdeco: its cameras may be in another frame than this capture's
-            pairs = match_names(src_cams.names, capture.names)
-            if len(pairs) >= 3:
-                a = src_cams.centers.double().numpy()[[i for i, _ in pairs]]
-                b = capture.cameras.centers.double().numpy()[[j for _, j in pairs]]
-                fit = umeyama(a, b)
-                if not np.allclose(fit.matrix, np.eye(4), atol=1e-5 * max(1.0, float(np.abs(b).max()))):
-                    candidates.append(("aligned by cameras.json's camera centres", fit))
-        if tool in ("gsplat", "ply") and capture.format == "colmap":
-            model = read_model(find_model(data_dir))
-            if model.points is not None and len(model.points) >= 3:
-                ims = sorted(model.images.values(), key=lambda im: im.name)
-                c2w = np.linalg.inv(np.stack([im.viewmat for im in ims]))
-                norm = [(lab, s.inverse()) for lab, s in gsplat_normalization(c2w, model.points.xyz)]
-                candidates = norm + candidates if tool == "gsplat" else candidates + norm
+        src = _Source(read_ply(source), dict(file=str(source)), data_dir=data_dir)
+    info = {"tool": tool, "source": str(source.resolve()), **src.info}
+    split = src.split if split_every is None else split_every
+    bg = src.background if background is None else tuple(float(v) for v in background)
+    capture, candidates = None, src.candidates
+    if src.data_dir is not None:
+        capture = load_dataset(src.data_dir, images=images or src.images, split_every=split,
+                               width=width if width is not None else src.width, background=bg, num_random_points=1000)
+        candidates = _frames_of(src, tool, capture)
         cams = capture.cameras
-    elif src_cams is not None:
-        cams = src_cams
+    elif src.cameras is not None:
+        cams = src.cameras
     else:
         raise InputError(f"{source}: no capture found and no cameras.json: pass --data with the capture")
 
-    frame, sim, scene, tried = _choose_frame(scene, candidates, capture, cams, bg, device, source)
+    frame, sim, scene, tried = _choose_frame(src.scene, candidates, capture, cams, bg, device, source)
     info.update(frame=frame, transform=sim.record(), candidates=tried)
-
-    # the run's records
-    if capture is None:
-        n = len(cams)
-        test = [i for i in range(n) if split and i % split == 0]
-        train = [i for i in range(n) if i not in set(test)]
-        if not train:
-            train, test = list(range(n)), []
-        capture = SceneData(cameras=cams, images=torch.zeros(n, cams.height, cams.width, 3), names=list(cams.names),
-                            train_ids=train, test_ids=test, background=bg,
-                            data_dir=None, format="graphdeco-cameras",
-                            options=dict(split_every=split, background=list(bg)))
-    metrics = _evaluate(scene, capture, bg, device, progress, has_images=data_dir is not None)
+    has_images = capture is not None
+    capture = capture if capture is not None else _cameras_only(cams, split, bg)
+    metrics = _evaluate(scene, capture, bg, device, progress, has_images=has_images)
     metrics["imported"] = info
     claimed.clear()
     out.mkdir(parents=True, exist_ok=True)
