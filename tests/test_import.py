@@ -277,13 +277,15 @@ def test_nerfstudio_export_with_dataparser_transforms(world, tmp_path, applied):
     if applied:        # ns-process-data's applied_transform: the transforms.json frame is A(original)
         meta = json.loads((cap / "transforms.json").read_text())
         meta["applied_transform"] = [[0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0]]
+        meta["applied_scale"] = 2.0        # (nerfstudio folds it into the saved scale, not into the poses)
         (cap / "transforms.json").write_text(json.dumps(meta))
         A = Similarity.from_matrix(meta["applied_transform"])
     T, scale = Similarity(1.0, _rotation(4), np.array([0.1, -0.4, 0.3])), 0.42
-    dp = Similarity(scale) @ T @ A.inverse()                 # transforms.json frame -> splatfacto's
+    dp = Similarity(scale) @ T          # transforms.json frame -> splatfacto's (auto-orient and scale of the poses)
     out = tmp_path / "outputs" / "splatfacto" / "2024"
     out.mkdir(parents=True)
-    (out / "dataparser_transforms.json").write_text(json.dumps({"transform": T.matrix[:3].tolist(), "scale": scale}))
+    saved = {"transform": (T @ A).matrix[:3].tolist(), "scale": scale * (2.0 if applied else 1.0)}
+    (out / "dataparser_transforms.json").write_text(json.dumps(saved, indent=4))
     ply = tmp_path / "exports" / "splat.ply"
     _inria_ply(ply, transform_scene(world["scene"], dp))
     m = import_splats(ply, tmp_path / "run", data=cap, dataparser_transforms=out / "dataparser_transforms.json",

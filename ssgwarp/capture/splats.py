@@ -395,8 +395,14 @@ def nerfstudio_to_capture(dataparser_transforms: str | Path, transforms_json: Op
         raise InputError(f"{path}: expected 'transform' (3x4) and 'scale' ({e})") from None
     if not s > 0:
         raise InputError(f"{path}: scale {s} must be positive")
+    meta = transforms_json or {}
+    try:   # (nerfstudio multiplies the saved scale by an applied_scale after scaling the poses)
+        s /= float(meta.get("applied_scale", 1.0))
+    except (TypeError, ValueError, ZeroDivisionError):
+        raise InputError(f"transforms.json: applied_scale {meta.get('applied_scale')!r} is not a positive number") \
+            from None
     to_dp = Similarity(s) @ T                          # original -> splatfacto
-    applied = (transforms_json or {}).get("applied_transform")
+    applied = meta.get("applied_transform")
     if applied is None and colmap_in_dataset:
         applied = [[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0]]
     A = Similarity() if applied is None else Similarity.from_matrix(np.asarray(applied, np.float64))
