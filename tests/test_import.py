@@ -180,6 +180,29 @@ def test_gsplat_normalization_frames(world):
     assert 0.2 < np.median(np.linalg.norm(centres - centres.mean(0), axis=1)) < 5.0
 
 
+# gsplat's own examples/datasets normalize.py (similarity_from_cameras, align_principal_axes, the up-side flip)
+# on the colmap_cup capture, computed with gsplat's code: the 3x4 of its Parser.transform
+GSPLAT_CUP_TRANSFORM = [[-0.209281085006, 0.070726499876, 0.078485432773, 0.278196181161],
+                        [-0.035840754733, -0.211356455707, 0.094892899706, 0.276727871555],
+                        [0.099386323217, 0.072711651952, 0.199489718811, -0.961754656069]]
+
+
+def test_gsplat_normalization_matches_gsplats_parser_on_a_real_capture(shared_data):
+    from ssgwarp.capture.colmap import read_model
+    model = read_model(shared_data / "colmap_cup" / "sparse" / "0")
+    ims = sorted(model.images.values(), key=lambda im: im.name)
+    c2w = np.linalg.inv(np.stack([im.viewmat for im in ims]))
+    first = gsplat_normalization(c2w, model.points.xyz)[0][1]
+    assert np.allclose(first.matrix[:3], GSPLAT_CUP_TRANSFORM, atol=1e-9)
+
+
+def test_graphdeco_resolution_rule():
+    from ssgwarp.reconstruction.importer import _graphdeco_width
+    assert _graphdeco_width(-1, 1000) is None and _graphdeco_width(-1, 3200) == 1600      # > 1.6K: to 1600 wide
+    assert _graphdeco_width(4, 1001) == 250 and _graphdeco_width(2, 800) == 400
+    assert _graphdeco_width(640, 3200) == 640 and _graphdeco_width(None, 500) is None
+
+
 def test_cfg_args_parse():
     cfg = parse_cfg_args("Namespace(eval=True, images='images_4', resolution=2, source_path='/d/x', "
                          "white_background=False, sh_degree=3)")
@@ -216,6 +239,9 @@ def test_graphdeco_without_its_capture_keeps_the_cameras(world, tmp_path, caplog
     _assert_renders(tmp_path / "run", world, "black")
     data = json.loads((tmp_path / "run" / "data.json").read_text())
     assert data["data_dir"] is None and data["split"]["test"] == []
+    assert main(["render", str(tmp_path / "run"), "--out", str(tmp_path / "renders"), "--no-progress",
+                 "--device", "cpu"]) == 0
+    assert len(list((tmp_path / "renders").glob("*.png"))) == VIEWS
 
 
 def test_graphdeco_cameras_in_another_frame_are_aligned(world, tmp_path):
