@@ -324,6 +324,20 @@ def test_nerfstudio_export_with_dataparser_transforms(world, tmp_path, applied):
     _assert_renders(tmp_path / "run2", world)
 
 
+def test_nerfstudio_export_of_a_colmap_dataset(world, tmp_path):
+    """nerfstudio's colmap dataparser: its saved transform takes COLMAP's frame to splatfacto's."""
+    cap = _colmap_capture(tmp_path / "cap", world)
+    A = Similarity.from_matrix([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, -1.0, 0.0, 0.0]])
+    T, scale = Similarity(1.0, _rotation(8), np.array([0.2, 0.1, -0.3])), 0.3
+    (tmp_path / "dataparser_transforms.json").write_text(json.dumps({"transform": (T @ A).matrix[:3].tolist(),
+                                                                     "scale": scale}))
+    ply = tmp_path / "splat.ply"
+    _inria_ply(ply, transform_scene(world["scene"], Similarity(scale) @ T @ A))
+    m = import_splats(ply, tmp_path / "run", data=cap, device="cpu", progress=False)
+    assert m["imported"]["frame"] == "nerfstudio's dataparser frame (COLMAP data)"
+    _assert_renders(tmp_path / "run", world)
+
+
 def test_bare_ply_aligned_and_mismatched(world, tmp_path, capsys):
     cap = tmp_path / "cap"
     P.write_transforms_dataset(cap, world["white"], world["cams"])

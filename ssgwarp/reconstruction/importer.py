@@ -10,8 +10,8 @@
   STEP or ``--iteration``; else ``ply/point_cloud_STEP.ply``) or one such file, with ``--data`` the
   COLMAP capture it was trained on (or ``data_dir`` of the folder's ``cfg.yml``);
 * ``nerfstudio``: the PLY of ``ns-export gaussian-splat`` with ``--data`` the dataset folder
-  (``transforms.json``) and the run's ``dataparser_transforms.json`` (``--dataparser-transforms``,
-  or found beside the PLY);
+  (``transforms.json``, or the COLMAP folder of nerfstudio's colmap dataparser) and the run's
+  ``dataparser_transforms.json`` (``--dataparser-transforms``, or found beside the PLY);
 * ``ply``: any INRIA-layout PLY with ``--data`` any capture ssgwarp loads (COLMAP, LLFF, transforms).
 
 The splats are moved into the capture's frame (:mod:`ssgwarp.capture.splats`): each layout gives
@@ -272,13 +272,19 @@ def _nerfstudio(source: Path, data_dir: Optional[Path], dp: Optional[Path]) -> _
     if data_dir is None:
         raise InputError(f"{source}: pass --data with the nerfstudio dataset folder (its transforms.json)")
     tj = data_dir / "transforms.json"
-    if not tj.is_file():
-        raise InputError(f"{data_dir}: no transforms.json (a nerfstudio dataset, as ns-process-data writes)")
-    meta = read_json(tj)
-    sim = nerfstudio_to_capture(dp, meta if isinstance(meta, dict) else {},
-                                colmap_in_dataset=(data_dir / "colmap" / "sparse" / "0").is_dir())
-    return _Source(read_ply(source), dict(file=str(source), dataparser_transforms=str(dp)),
-                   [("nerfstudio's dataparser frame", sim)], data_dir=data_dir)
+    if tj.is_file():          # nerfstudio-data: the transforms.json frame (applied_transform of the original)
+        meta = read_json(tj)
+        meta = meta if isinstance(meta, dict) else {}
+        sim = nerfstudio_to_capture(dp, meta, colmap_in_dataset=(data_dir / "colmap" / "sparse" / "0").is_dir())
+        plain = nerfstudio_to_capture(dp, {k: v for k, v in meta.items() if k != "applied_transform"})
+        cands = [("nerfstudio's dataparser frame", sim)]
+        if not np.allclose(plain.matrix, sim.matrix):   # (older exports: no applied_transform taken into account)
+            cands.append(("nerfstudio's dataparser frame without applied_transform", plain))
+    elif find_model(data_dir) is not None:   # the colmap dataparser: its saved transform starts from COLMAP's frame
+        cands = [("nerfstudio's dataparser frame (COLMAP data)", nerfstudio_to_capture(dp))]
+    else:
+        raise InputError(f"{data_dir}: no transforms.json nor COLMAP model (the dataset splatfacto was trained on)")
+    return _Source(read_ply(source), dict(file=str(source), dataparser_transforms=str(dp)), cands, data_dir=data_dir)
 
 
 def _frames_of(src: _Source, tool: str, capture: SceneData) -> list:
