@@ -142,12 +142,15 @@ def _choose_frame(scene: GaussianScene, candidates: list[tuple[str, Similarity]]
     ok = best["coverage"] >= MIN_COVERAGE and (flat is None or best["probe_psnr"] >= flat + MIN_GAIN_DB)
     if not ok:
         where = data.data_dir if data is not None else "the cameras"
-        detail = (f"{best['coverage']:.0%} of the splats project inside any image"
-                  + ("" if flat is None else f", renders {best['probe_psnr']:.1f} dB against the images where their "
-                                             f"flat mean colour gives {flat:.1f} dB"))
-        raise InputError(f"{source}: the splats do not match the frame of {where} ({detail}; tried: "
-                         f"{', '.join(s['frame'] for s in scored)}); pass the capture they were trained on "
-                         f"(--data) and the tool's own files (--tool, --dataparser-transforms)")
+        why = []
+        if best["coverage"] < MIN_COVERAGE:
+            why.append(f"only {best['coverage']:.0%} of the splats fall inside any image")
+        if flat is not None and best["probe_psnr"] < flat + MIN_GAIN_DB:
+            why.append(f"its renders reach {best['probe_psnr']:.1f} dB against the images, where their flat mean "
+                       f"colour gives {flat:.1f} dB")
+        raise InputError(f"{source}: the splats do not match the frame of {where} (best frame tried, "
+                         f"{best['frame']}: {'; '.join(why)}; tried {len(scored)} frame(s)); pass the capture they "
+                         f"were trained on (--data) and the tool's own files (--tool, --dataparser-transforms)")
     for r in record:
         r["flat_psnr"] = None if flat is None else round(flat, 3)
     return best["frame"], best["sim"], best["moved"], record
