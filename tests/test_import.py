@@ -244,6 +244,19 @@ def test_graphdeco_without_its_capture_keeps_the_cameras(world, tmp_path, caplog
     assert len(list((tmp_path / "renders").glob("*.png"))) == VIEWS
 
 
+def test_graphdeco_cameras_of_several_sizes(world, tmp_path):
+    src = tmp_path / "out"
+    _graphdeco_output(src, world["scene"], world["cams"], "/nowhere")
+    cams = json.loads((src / "cameras.json").read_text())
+    cams[1]["width"] = 2 * W
+    (src / "cameras.json").write_text(json.dumps(cams))
+    with pytest.raises(InputError, match="several sizes"):
+        import_splats(src, tmp_path / "run", device="cpu", progress=False)
+    cap = _colmap_capture(tmp_path / "cap", world, background="black")
+    import_splats(src, tmp_path / "run", data=cap, device="cpu", progress=False)
+    _assert_renders(tmp_path / "run", world, "black")
+
+
 def test_graphdeco_cameras_in_another_frame_are_aligned(world, tmp_path):
     """cameras.json from a capture in another frame than --data's: aligned by the camera centres."""
     cap = _colmap_capture(tmp_path / "cap", world, background="black")
@@ -361,6 +374,9 @@ def test_bare_ply_aligned_and_mismatched(world, tmp_path, capsys):
     assert "--data" in capsys.readouterr().err
     assert main(["import", str(ply), "--data", str(cap), "--out", str(tmp_path / "run"), *FAST]) == 2
     assert "--force" in capsys.readouterr().err
+    (tmp_path / "run" / "scene.ply").write_bytes(b"stale")
+    assert main(["import", str(ply), "--data", str(cap), "--out", str(tmp_path / "run"), "--force", *FAST]) == 0
+    _assert_renders(tmp_path / "run", world)
     assert main(["import", str(tmp_path / "nope.ply"), "--data", str(cap), "--out", str(tmp_path / "r4"), *FAST]) == 2
 
 

@@ -38,6 +38,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 import torch
+from tqdm.auto import tqdm
 
 from ..capture.colmap import find_model, read_model
 from ..capture.datasets import SceneData, data_json, load_dataset
@@ -120,14 +121,16 @@ def _flat_psnr(images: torch.Tensor) -> float:
 
 
 def _choose_frame(scene: GaussianScene, candidates: list[tuple[str, Similarity]], data: Optional[SceneData],
-                  cams: Cameras, background, device, source: Path) -> tuple[str, Similarity, GaussianScene, list]:
+                  cams: Cameras, background, device, source: Path,
+                  progress: bool = False) -> tuple[str, Similarity, GaussianScene, list]:
     """The candidate frame whose renders best match the images (see the module docs)."""
     probe = []
     if data is not None:
         tr = data.train_ids or list(range(len(data)))
         probe = [tr[i] for i in np.unique(np.linspace(0, len(tr) - 1, min(len(tr), PROBE_VIEWS)).round().astype(int))]
     scored = []
-    for label, sim in candidates:
+    for label, sim in tqdm(candidates, desc="trying frames", unit="frame", disable=not progress or len(candidates) < 2,
+                           leave=False):
         moved = transform_scene(scene, sim)
         cov = _coverage(moved, cams)
         psnr = None
@@ -222,14 +225,19 @@ def _graphdeco(source: Path, data_dir: Optional[Path], iteration, images, width)
     src = _Source(read_ply(g.ply), dict(file=str(g.ply), iteration=g.iteration, cfg_args=g.cfg or None),
                   split=8 if g.cfg.get("eval") else 0, images=g.cfg.get("images") or "images",
                   background=(1.0, 1.0, 1.0) if g.cfg.get("white_background") else (0.0, 0.0, 0.0))
-    if g.cameras is not None:
-        src.cameras = graphdeco_cameras(g.cameras, str(source / "cameras.json"))
     if data_dir is None:
         data_dir = _resolve(g.cfg.get("source_path"), source, source.parent)
         if data_dir is None and g.cfg.get("source_path"):
             log.warning("the capture %s that cfg_args names is not here: importing cameras.json's cameras "
                         "without images (no PSNR; pass --data to measure it)", g.cfg.get("source_path"))
     src.data_dir = data_dir
+    if g.cameras is not None:
+        try:
+            src.cameras = graphdeco_cameras(g.cameras, str(source / "cameras.json"))
+        except InputError as e:
+            if data_dir is None:      # the run's only cameras
+                raise
+            log.warning("%s; the capture's cameras are used as they are", e)
     if width is None and data_dir is not None:
         src.width = _graphdeco_width(g.cfg.get("resolution"), _image_width(data_dir / (images or src.images)))
     return src
@@ -371,7 +379,7 @@ def import_splats(source: str | Path, out: str | Path, *, data: Optional[str | P
     else:
         raise InputError(f"{source}: no capture found and no cameras.json: pass --data with the capture")
 
-    frame, sim, scene, tried = _choose_frame(src.scene, candidates, capture, cams, bg, device, source)
+    frame, sim, scene, tried = _choose_frame(src.scene, candidates, capture, cams, bg, device, source, progress)
     info.update(frame=frame, transform=sim.record(), candidates=tried)
     has_images = capture is not None
     capture = capture if capture is not None else _cameras_only(cams, split, bg)
