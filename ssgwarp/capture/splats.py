@@ -45,7 +45,7 @@ from ..raster.sh import sh_basis
 
 __all__ = ["Similarity", "transform_scene", "sh_rotation", "rotate_sh", "umeyama", "gsplat_normalization",
            "read_gsplat_checkpoint", "gsplat_checkpoints", "graphdeco_folder", "graphdeco_cameras",
-           "parse_cfg_args", "nerfstudio_to_capture", "GraphdecoOutput"]
+           "parse_cfg_args", "nerfstudio_to_capture", "GraphdecoOutput", "match_names"]
 
 
 # ----------------------------------------------------------------------------- similarity transforms
@@ -65,12 +65,13 @@ class Similarity:
         if abs(np.linalg.det(R) - 1.0) > 1e-4 or np.abs(R @ R.T - np.eye(3)).max() > 1e-4:
             raise InputError("similarity transform: the rotation part is not a proper rotation (a mirror or "
                              "a shear cannot be applied to Gaussians' SH and rotations)")
-        object.__setattr__(self, "R", R)
+        U, _, Vt = np.linalg.svd(R)       # the nearest exact rotation (files store float32 matrices)
+        object.__setattr__(self, "R", U @ Vt)
         object.__setattr__(self, "t", t)
 
     @classmethod
     def from_matrix(cls, m) -> "Similarity":
-        """From a 3x4 / 4x4 matrix ``[s R | t]`` (the scale is the rows' common norm)."""
+        """From a 3x4 / 4x4 matrix ``[s R | t]`` (``s``: the cube root of its 3x3 part's determinant)."""
         m = np.asarray(m, dtype=np.float64)
         if m.shape not in ((3, 4), (4, 4)):
             raise InputError(f"similarity transform: expected a 3x4 or 4x4 matrix, got shape {m.shape}")
@@ -139,9 +140,9 @@ def sh_rotation(R, degree: int) -> list[torch.Tensor]:
     """Per band ``l = 1..degree`` the ``[2l+1, 2l+1]`` float64 matrix ``B_l`` with ``Y_l(d) . (B_l c) =
     Y_l(R^T d) . c`` for every direction ``d``: the coefficients ``B_l c`` give, along ``R d``, the
     colour ``c`` gave along ``d`` (the basis of :func:`ssgwarp.raster.sh.sh_basis`)."""
-    Rt = torch.as_tensor(np.asarray(R, dtype=np.float64))
+    Rm = torch.as_tensor(np.asarray(R, dtype=np.float64))
     d = _directions()
-    Y, Yr = sh_basis(degree, d), sh_basis(degree, d @ Rt)   # (d @ R == (R^T d) per row)
+    Y, Yr = sh_basis(degree, d), sh_basis(degree, d @ Rm)   # (row d @ R is (R^T d) as a row)
     out = []
     for l in range(1, degree + 1):
         sl = slice(l * l, (l + 1) * (l + 1))
@@ -409,10 +410,6 @@ def nerfstudio_to_capture(dataparser_transforms: str | Path, transforms_json: Op
     return A @ to_dp.inverse()                          # splatfacto -> original -> transforms.json
 
 
-def camera_centres(cams: Cameras) -> np.ndarray:
-    return cams.centers.double().cpu().numpy()
-
-
 def match_names(a: Sequence[str], b: Sequence[str]) -> list[tuple[int, int]]:
     """Index pairs of names equal up to folder and extension."""
     key = lambda n: Path(str(n)).stem  # noqa: E731
@@ -420,19 +417,3 @@ def match_names(a: Sequence[str], b: Sequence[str]) -> list[tuple[int, int]]:
     for j, n in enumerate(b):
         idx.setdefault(key(n), j)
     return [(i, idx[key(n)]) for i, n in enumerate(a) if key(n) in idx]
-
-
-def frame_rotation(cams: Cameras) -> np.ndarray:
-    """``[C, 3, 3]`` camera-to-world rotations."""
-    return cams.camtoworlds.double().cpu().numpy()[:, :3, :3]
-
-
-def check_rotation_agrees(sim: Similarity, src: Cameras, dst: Cameras, pairs) -> float:
-    """Largest angle (degrees) between ``sim``-moved ``src`` camera orientations and ``dst``'s."""
-    Rs, Rd = frame_rotation(src), frame_rotation(dst)
-    worst = 0.0
-    for i, j in pairs:
-        M = Rd[j].T @ sim.R @ Rs[i]
-        worst = max(worst, math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(M) - 1) / 2)))))
-    return worst
-

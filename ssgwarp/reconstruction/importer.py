@@ -138,10 +138,11 @@ def _choose_frame(scene: GaussianScene, candidates: list[tuple[str, Similarity]]
             v = render_views(moved.to(device), cams[probe], background, depth=False)
             psnr = float(np.mean(reconstruction_quality(v.rgb.cpu(), data.images[probe].cpu())["psnr"]))
         scored.append({"frame": label, "coverage": round(cov, 4), "probe_psnr": None if psnr is None else round(psnr, 3),
-                       "moved": moved, "sim": sim})
+                       "sim": sim})
+        del moved
     best = max(scored, key=lambda s: (s["probe_psnr"] if s["probe_psnr"] is not None else 0.0, s["coverage"]))
     flat = _flat_psnr(data.images[probe].cpu()) if probe else None
-    record = [{k: v for k, v in s.items() if k not in ("moved", "sim")} for s in scored]
+    record = [{k: v for k, v in s.items() if k != "sim"} for s in scored]
     ok = best["coverage"] >= MIN_COVERAGE and (flat is None or best["probe_psnr"] >= flat + MIN_GAIN_DB)
     if not ok:
         where = data.data_dir if data is not None else "the cameras"
@@ -156,7 +157,7 @@ def _choose_frame(scene: GaussianScene, candidates: list[tuple[str, Similarity]]
                          f"were trained on (--data) and the tool's own files (--tool, --dataparser-transforms)")
     for r in record:
         r["flat_psnr"] = None if flat is None else round(flat, 3)
-    return best["frame"], best["sim"], best["moved"], record
+    return best["frame"], best["sim"], transform_scene(scene, best["sim"]), record
 
 
 # ----------------------------------------------------------------------------- the capture
