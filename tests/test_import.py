@@ -199,6 +199,7 @@ def test_gsplat_normalization_matches_gsplats_parser_on_a_real_capture(shared_da
 def test_graphdeco_resolution_rule():
     from ssgwarp.reconstruction.importer import _graphdeco_width
     assert _graphdeco_width(-1, 1000) is None and _graphdeco_width(-1, 3200) == 1600      # > 1.6K: to 1600 wide
+    assert _graphdeco_width(-1, 1601) == 1599          # (graphdeco truncates 1601 / (1601 / 1600) = 1599.99...)
     assert _graphdeco_width(4, 1001) == 250 and _graphdeco_width(2, 800) == 400
     assert _graphdeco_width(640, 3200) == 640 and _graphdeco_width(None, 500) is None
 

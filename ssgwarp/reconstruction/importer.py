@@ -185,8 +185,8 @@ def _graphdeco_width(resolution, width0: Optional[int]) -> Optional[int]:
     r = -1 if resolution is None else resolution
     if r in (1, 2, 4, 8):
         return int(round(width0 / r))
-    if r == -1:
-        return 1600 if width0 > 1600 else None
+    if r == -1:     # (as graphdeco computes it: through the downscale factor, truncated)
+        return int(width0 / (width0 / 1600)) if width0 > 1600 else None
     return int(width0 / (width0 / float(r)))
 
 
