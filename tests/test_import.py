@@ -391,5 +391,5 @@ def test_imported_run_works_with_group_and_render(world, tmp_path, capsys):
     assert main(["render", str(run), "--out", str(tmp_path / "renders"), "--no-progress",
                  "--device", "cpu"]) == 0
     assert len(list((tmp_path / "renders").glob("*.png"))) == VIEWS
-    assert main(["group", str(run), "--masks", "none", "--iters", "2", *FAST]) == 0
+    assert main(["group", str(run), "--masks", "none", "--iters", "2", "--groups", "2", *FAST]) == 0
     assert (run / "groups").is_dir() and read_ply(run / "scene.ply").identities is not None
