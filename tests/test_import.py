@@ -8,7 +8,6 @@ does (within 1e-4), and a PLY in another frame than the capture's must be refuse
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import numpy as np
