@@ -27,6 +27,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
              "ssgwarp demo --out ssgwarp-demo"),
     "reconstruct": ("ssgwarp.reconstruction.reconstruct", "3DGS reconstruction of a capture (COLMAP, LLFF, transforms.json)",
                     "ssgwarp reconstruct data/fern --images images_8 --out runs/fern --iters 7000"),
+    "import": ("ssgwarp.reconstruction.importer", "splats trained by graphdeco 3DGS, gsplat, nerfstudio or any 3DGS PLY as a run",
+               "ssgwarp import output/garden --out runs/garden"),
     "masks": ("ssgwarp.grouping.segment", "instance masks of every training view (Segment Anything), associated across views",
               "ssgwarp masks runs/fern [--sam PATH]"),
     "group": ("ssgwarp.grouping.stage", "Gaussian Grouping: identity encodings and groups (from masks or mask-free)",
