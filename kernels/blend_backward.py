@@ -180,8 +180,7 @@ def reduced_backward_kernel(scalar, channels: int, to_slots: bool = False, per_w
     ABS = bool(absgrad) and not colour_only
     SPLIT = bool(split_colours) and not colour_only and not to_slots and not ABS
     vecD = channel_vector(scalar, channels)
-    # the packed rows: the colours alone, the geometry alone (colours in rows of their own), or
-    # both (then, with absgrad, the two absolute values after them)
+    # the packed rows: the colours alone, the geometry alone, or both (with absgrad: then |xy|)
     vecG = channel_vector(scalar, channels if colour_only else 6 if SPLIT else channels + (8 if ABS else 6))
     layer_grad = layer_colour_grad_func(scalar, channels) if colour_only else layer_grad_func(scalar, channels, ABS)
     splat_alpha, _ = pixel_funcs(scalar)
