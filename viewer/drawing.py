@@ -127,9 +127,11 @@ class Drawing:
                         shadow=True)
         if self.legend and self.color == "group" and self.groups is not None:
             rows = self.legend_entries()
-            pl.add_legend(labels=[list(r) for r in rows], bcolor=(0.12, 0.12, 0.14), border=False,
-                          size=(0.18, min(0.9, 0.035 * len(rows) + 0.02)), loc="upper right", face="rectangle",
-                          name="legend")
+            size = (0.18, min(0.9, (0.035 if len(rows) <= 8 else 0.027) * len(rows) + 0.02))
+            legend = pl.add_legend(labels=[list(r) for r in rows], bcolor=(0.12, 0.12, 0.14), border=False,
+                                   size=size, loc="upper right", face="rectangle", name="legend")
+            # in the upper right corner (pyvista 0.49 places a legend taller than wide further left)
+            legend.SetPosition(1.0 - size[0] - 0.02, 1.0 - size[1] - 0.05)
         elif getattr(pl, "legend", None) is not None:
             pl.remove_legend(render=False)
 
@@ -150,12 +152,13 @@ class Drawing:
             pl.camera.position = tuple(self.center + direction * self.extent)
             pl.camera.up = tuple(up)
         else:
-            pl.view_isometric()
+            pl.view_isometric(render=False)
+            pl.camera_set = True  # (else the first render frames every actor's bounds again)
         # frame the cloud's robust box (percentiles), not every actor's bounds: far floaters and the
         # camera frustums would leave the cloud small in the middle
         lo, hi = self.frame_box
         pl.renderer.ComputeAspect()  # (the viewport may have changed: the splat panel beside it)
-        pl.reset_camera(bounds=(lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]))
+        pl.reset_camera(render=False, bounds=(lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]))
         pl.camera.zoom(FRAME_ZOOM)
         pl.reset_camera_clipping_range()
 
