@@ -93,3 +93,10 @@ def test_render_of_a_stylized_run_whose_source_moved_is_one_clear_error(tmp_path
     assert not (tmp_path / "o").exists()
     with pytest.raises(InputError, match="run folder not found"):
         Run.open(tmp_path / "nothing")
+
+
+def test_a_command_that_needs_a_reconstruction_names_a_stylized_runs_source(tmp_path):
+    rec, sty = stylized_run(tmp_path, grouped=False)
+    with pytest.raises(InputError, match=f"a stylize output, not a reconstruction run; .* source reconstruction {rec}"):
+        Run.reconstruction(sty)
+    assert Run.reconstruction(rec).kind == "reconstruction"

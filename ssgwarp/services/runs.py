@@ -99,6 +99,10 @@ class Run:
             raise InputError(f"{run}: run folder not found (run `ssgwarp reconstruct` first)")
         for f in ("scene.ply", "cameras.json", "data.json"):
             if not (run / f).is_file():
+                if f == "cameras.json" and "source_scene" in _read_dict(run / "metrics.json"):
+                    src = cls.open(run).source_dir
+                    raise InputError(f"{run}: a stylize output, not a reconstruction run; this command takes its "
+                                     f"source reconstruction {src}")
                 raise InputError(f"{run}: not a reconstruction run (no {f}); run `ssgwarp reconstruct` first")
         r = cls.open(run)
         if not isinstance(r.data, dict) or "split" not in r.data:
