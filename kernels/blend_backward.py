@@ -36,6 +36,9 @@ deterministic option on both devices. Its variants:
   (``splats[k]``, ``colors[k]``); ``True``: ``splats`` and ``colors`` are the projection's
   per-(camera, Gaussian) arrays, read through the sorted ids as the forward's
   :func:`.blend_forward.batched_forward_kernel` reads them (``color_shift`` as there).
+* ``absgrad=True`` (with the geometry, not with ``split_colours``): each row ends in two more
+  values, the sum over pixels of ``|d loss / d xy|`` per pixel (gsplat's ``means2d.absgrad``),
+  summed and added like the others: ``[xy(2), conic(3), opacity(1), colour(D), |xy|(2)]``.
 * ``split_colours=True`` (with the geometry, not with ``to_slots``): the colours' gradients go to rows
   of their own, ``v_colours [C*N, D]``, and ``v_packed`` holds ``[xy(2), conic(3), opacity(1)]``: the
   colours' gradient is then a contiguous tensor autograd keeps as it is (no copy); two atomic adds
@@ -52,7 +55,7 @@ from .types import channel_vector, element_at, splat_at, types_for
 
 
 @functools.lru_cache(maxsize=None)
-def layer_grad_func(scalar, channels: int):
+def layer_grad_func(scalar, channels: int, absgrad: bool = False):
     """``layer_grad(...)``: one layer of the reverse traversal of one pixel, without branches.
 
     Takes the gating's result for this pixel (``used``: whether the forward pass blended the
@@ -61,11 +64,13 @@ def layer_grad_func(scalar, channels: int):
     transmittance behind it, ``S``: colour accumulated behind it). Returns ``(T, S', grad)`` with ``grad`` packed as
     ``[xy(2), conic(3), opacity(1), colour(D)]`` (zero where not used). Branch-free, so a
     block's pixels run it in lockstep with no merging of per-pixel results afterwards.
+    ``absgrad``: two more values, ``|xy|`` of this pixel's own gradient (summed over the pixels
+    they give gsplat's ``means2d.absgrad``), packed as ``[..., colour(D), |xy|(2)]``.
     """
     t = types_for(scalar)
     splat = t.splat
     vecD = channel_vector(scalar, channels)
-    vecG = channel_vector(scalar, channels + 6)
+    vecG = channel_vector(scalar, channels + (8 if absgrad else 6))
 
     @wp.func
     def layer_grad(sp: splat, c: vecD, used: bool, alpha: scalar, g: scalar, dx: scalar, dy: scalar,
@@ -88,6 +93,9 @@ def layer_grad_func(scalar, channels: int):
         grad[5] = v_op
         for d in range(wp.static(channels)):
             grad[6 + d] = v_col[d] * w
+        if wp.static(absgrad):
+            grad[6 + channels] = wp.abs(grad[0])
+            grad[7 + channels] = wp.abs(grad[1])
         return T, S + c * w, grad
 
     return layer_grad
@@ -160,7 +168,7 @@ def gather_kernel(scalar, width: int):
 @functools.lru_cache(maxsize=None)
 def reduced_backward_kernel(scalar, channels: int, to_slots: bool = False, per_warp: bool = False,
                             fast_math: bool = False, colour_only: bool = False, through_ids: bool = False,
-                            split_colours: bool = False):
+                            split_colours: bool = False, absgrad: bool = False):
     """Backward by blocks of pixels of one tile (the variants: the module's docstring): the block walks
     the tile's Gaussians in lockstep (from the largest last index of its pixels), sums the pixels'
     gradients for each Gaussian and adds the sum with one atomic per Gaussian. Gradients land packed
@@ -169,11 +177,12 @@ def reduced_backward_kernel(scalar, channels: int, to_slots: bool = False, per_w
     (on CPU the block width is 1: the per-pixel walk); ``first``: as in :mod:`.blend_forward`."""
     splat = types_for(scalar).splat
     IDS = bool(through_ids)
-    SPLIT = bool(split_colours) and not colour_only and not to_slots
+    ABS = bool(absgrad) and not colour_only
+    SPLIT = bool(split_colours) and not colour_only and not to_slots and not ABS
     vecD = channel_vector(scalar, channels)
-    # the packed rows: the colours alone, the geometry alone (colours in rows of their own), or both
-    vecG = channel_vector(scalar, channels if colour_only else 6 if SPLIT else channels + 6)
-    layer_grad = (layer_colour_grad_func if colour_only else layer_grad_func)(scalar, channels)
+    # the packed rows: the colours alone, the geometry alone, or both (with absgrad: then |xy|)
+    vecG = channel_vector(scalar, channels if colour_only else 6 if SPLIT else channels + (8 if ABS else 6))
+    layer_grad = layer_colour_grad_func(scalar, channels) if colour_only else layer_grad_func(scalar, channels, ABS)
     splat_alpha, _ = pixel_funcs(scalar)
     colour_at = element_at(vecD)
     # CUDA float32: at most 256 threads per block (true of every launch in ops.py) and registers

@@ -261,6 +261,8 @@ def test_camera_frustums_appear_with_key_views_highlighted(scene):
         assert plain.n_lines == 3 * geometry.SEGMENTS_PER_FRUSTUM
         assert key.n_lines == geometry.SEGMENTS_PER_FRUSTUM
         assert v.selected == 1                          # the first key view starts selected
+        # the start view frames the cloud; these cameras stand 2-3x its size away: step back to see them
+        v.plotter.camera.zoom(0.4)
         img = v.screenshot()
         from ssgwarp.viewer.app import CAMERA_COLOR, KEYVIEW_COLOR, SELECTED_COLOR
         assert colour_pixels(img, CAMERA_COLOR) > 10
@@ -367,3 +369,108 @@ def test_bad_ply_gives_a_clear_error(tmp_path, capsys):
     trunc.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 100\nproperty float x\nend_header\n\0\0")
     assert main(["view", str(trunc)]) == 2
     assert "trunc.ply" in capsys.readouterr().err
+
+
+def _stylized_run(tmp_path, sc):
+    """A reconstruction of ``sc`` (cameras, a classifier of its K identity channels onto 2 groups) and a
+    stylized run of it as ``ssgwarp stylize`` writes one: scene.ply, metrics.json naming its
+    source_scene, keyviews/keyviews.json. Neither holds the other's files."""
+    ply = pytest.importorskip("ssgwarp.capture.ply")
+    from ssgwarp.core.fileio import write_json
+
+    rec, sty = tmp_path / "rec", tmp_path / "sty"
+    ply.write_ply(rec / "scene.ply", sc)
+    cams = make_cameras()
+    near = torch.tensor([[0.0, -2.2, 0.8], [2.2, 0.0, 0.8], [0.0, 2.2, 0.8], [-2.2, 0.0, 0.8]])
+    # (nearer than make_cameras': inside the start view, which frames the cloud)
+    Cameras(look_at(near, torch.zeros(4, 3)).float(), cams.Ks, cams.width, cams.height, cams.names).save(
+        rec / "cameras.json")
+    lin = torch.nn.Linear(K, 2)
+    with torch.no_grad():  # groups 0 and 1 -> group 0, group 2 -> group 1
+        lin.weight.copy_(torch.tensor([[1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]]))
+        lin.bias.zero_()
+    (rec / "groups").mkdir()
+    torch.save({"format": 1, "dim": K, "num_groups": 2,
+                "state_dict": {k: v.detach() for k, v in lin.state_dict().items()}}, rec / "groups" / "classifier.pt")
+    ply.write_ply(sty / "scene.ply", sc)
+    write_json(sty / "metrics.json", {"source_scene": str(rec), "style": "style.png", "mode": "ist"})
+    (sty / "keyviews").mkdir()
+    write_json(sty / "keyviews" / "keyviews.json", {"ids": [1, 3], "names": ["cam_b", "cam_d"]})
+    return rec, sty
+
+
+def test_a_stylized_run_shows_its_sources_groups_and_cameras_and_its_key_views(tmp_path):
+    from ssgwarp.viewer.data import load_cameras, run_folders
+
+    sc, labels = make_scene(identities=True)
+    rec, sty = _stylized_run(tmp_path, sc)
+    found = run_folders(sty)
+    assert (found.cameras, found.groups, found.keyviews) == (rec, rec, sty / "keyviews")
+    info = resolve_groups(sc, scene_dir=found.groups)
+    # the source's classifier (2 groups), not the argmax of the K identity channels
+    assert info.source == "grouping classifier" and info.num_groups == 2
+    assert np.array_equal(info.labels, (labels == 2).astype(np.int64))
+    cams = load_cameras(None, found.cameras)
+    assert cams.names == make_cameras().names
+    assert resolve_keyviews([str(found.keyviews)], cams) == [1, 3]
+    # a folder that is no run: what lies in it
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    make_cameras().save(plain / "cameras.json")
+    f = run_folders(plain)
+    assert (f.cameras, f.groups, f.keyviews) == (plain, None, None)
+    assert run_folders(None).cameras is None
+
+
+@needs_gl
+def test_view_of_a_stylized_run_draws_its_key_views_and_groups(tmp_path, capsys):
+    from ssgwarp.cli import main
+    from ssgwarp.core.fileio import read_image
+    from ssgwarp.viewer.app import KEYVIEW_COLOR
+
+    sc, labels = make_scene(identities=True)
+    _, sty = _stylized_run(tmp_path, sc)
+    out = tmp_path / "view.png"
+    rc = main(["view", str(sty), "--window-size", "320", "240", "--screenshot", str(out)])
+    captured = capsys.readouterr()
+    assert rc == 0, captured.err
+    assert "ignoring" not in captured.err
+    img = (read_image(out, 3) * 255 + 0.5).astype(np.uint8)
+    assert colour_pixels(img, KEYVIEW_COLOR, tol=6) > 10       # the key views' frustums, without --cameras
+    pal = palette(2)
+    assert colour_pixels(img, pal[0], tol=6) > 50 and colour_pixels(img, pal[1], tol=6) > 10
+    v = viewer.build_viewer(sc, scene_dir=sty, off_screen=True, window_size=SIZE)
+    try:
+        assert v.groups.num_groups == 2 and v.cameras is not None and len(v.cameras) == 4
+        assert "2 groups (grouping classifier)" in v.status_text()
+    finally:
+        v.close()
+
+
+@needs_gl
+def test_far_floaters_do_not_shrink_the_start_view(scene):
+    """The start view frames the cloud's robust box: a few Gaussians 50 units away leave the cloud
+    (nearly) as large on screen as without them, with or without cameras (floaters: under 2%)."""
+    sc, labels = scene
+    g = torch.Generator().manual_seed(1)
+    far = GaussianScene(torch.randn(2, 3, generator=g) * 5 + torch.tensor([50.0, 40.0, 30.0]),
+                        sc.log_scales[:2], sc.quats[:2], sc.logit_opacities[:2], sc.sh_dc[:2], None, None, 0)
+    with_floaters = GaussianScene(torch.cat([sc.means, far.means]), torch.cat([sc.log_scales, far.log_scales]),
+                                  torch.cat([sc.quats, far.quats]),
+                                  torch.cat([sc.logit_opacities, far.logit_opacities]),
+                                  torch.cat([sc.sh_dc, far.sh_dc]), None, None, 0)
+    bg = np.array([0.08, 0.08, 0.10])
+
+    def cloud_box(s, cameras):
+        """Width and height in pixels of what the three blobs cover on screen (the floaters' discs and
+        the frustum lines, grey, are not counted: the blobs are coloured)."""
+        img = viewer.screenshot(s, cameras=cameras, window_size=SIZE, hud=False, legend=False).astype(int)
+        lit = np.abs(img[..., :3] - (bg * 255 + 0.5).astype(int)).max(-1) > 20
+        lit &= np.abs(img[..., 2] - img[..., 0]) > 8                    # bluish-grey blobs, not grey lines
+        ys, xs = np.nonzero(lit)
+        return xs.max() - xs.min() + 1, ys.max() - ys.min() + 1
+
+    for cams in (None, make_cameras()):
+        (w0, h0), (w1, h1) = cloud_box(sc, cams), cloud_box(with_floaters, cams)
+        assert max(w0 / SIZE[0], h0 / SIZE[1]) > 0.4               # the cloud spans much of the view
+        assert w1 > 0.8 * w0 and h1 > 0.8 * h0

@@ -39,13 +39,14 @@ from ssgwarp.raster.scene import GaussianScene
 
 from . import geometry
 from .data import (GroupInfo, as_numpy, camera_index, finite_mask, load_cameras, load_scene, resolve_groups,
-                   resolve_keyviews, resolve_ply)
+                   resolve_keyviews, resolve_ply, run_folders)
 from .drawing import CAMERA_COLOR, KEYVIEW_COLOR, SELECTED_COLOR, Drawing  # noqa: F401  (re-exported)
 from .headless import has_display, prepare_offscreen
 
 COLOR_MODES = ("rgb", "group", "opacity")
 MAX_LEGEND_ROWS = 24
 RADIUS_CAP = 0.02  # discs are at most this fraction of the cloud's (1st-99th percentile) diagonal
+FRAME_PERCENT = 2.0  # the start view frames the cloud's 2nd-98th percentile box (floaters may fall outside)
 
 HELP = ("keys:  c colouring   g glyphs/discs   n/N next/previous camera   k next key view\n"
         "       l look through camera   i render splat image   h help   right click: pick a Gaussian")
@@ -133,6 +134,9 @@ class Viewer(Drawing):
         self.labels = groups.labels[self.index] if groups is not None else None
         lo, hi = (np.percentile(self.xyz, [1, 99], axis=0) if len(self.xyz) else (np.zeros(3), np.ones(3)))
         self.extent = float(np.linalg.norm(hi - lo)) or 1.0
+        # the box the start view frames: the 2nd-98th percentiles (far floaters left out)
+        self.frame_box = (np.percentile(self.xyz, [FRAME_PERCENT, 100 - FRAME_PERCENT], axis=0)
+                          if len(self.xyz) else (np.zeros(3), np.ones(3)))
         self.center = np.median(self.xyz, axis=0) if len(self.xyz) else np.zeros(3)
         self.radii = geometry.point_radii(self.scales, self.sigma, cap=RADIUS_CAP * self.extent)
         rng = np.random.default_rng(seed + 1)
@@ -385,16 +389,17 @@ def build_viewer(scene: GaussianScene, *, labels=None, scene_dir: str | Path | N
                  device: torch.device | str = "cpu", **kwargs) -> Viewer:
     """A :class:`Viewer` of ``scene``.
 
-    ``labels`` (``[N]`` ints or a ``.npy`` path) override the groups found in
-    ``scene_dir`` (its ``groups/classifier.pt``) or the identity channels.
-    ``cameras`` is a :class:`Cameras` or a ``cameras.json`` path (default:
-    ``scene_dir/cameras.json`` when present); ``keyviews`` are camera indices,
+    ``labels`` (``[N]`` ints or a ``.npy`` path) override the groups found for
+    ``scene_dir`` (its ``groups/classifier.pt``, a stylized run's source's) or the identity channels.
+    ``cameras`` is a :class:`Cameras` or a ``cameras.json`` path (default: the run's
+    cameras, :func:`ssgwarp.viewer.data.run_folders`); ``keyviews`` are camera indices,
     names, or key-view JSON files/directories. Other keyword arguments go to
     :class:`Viewer`.
     """
-    groups = resolve_groups(scene, labels=labels, scene_dir=scene_dir, device=device)
+    found = run_folders(scene_dir)
+    groups = resolve_groups(scene, labels=labels, scene_dir=found.groups, device=device)
     if not isinstance(cameras, Cameras):
-        cameras = load_cameras(cameras, scene_dir)
+        cameras = load_cameras(cameras, found.cameras)
     keys = resolve_keyviews(keyviews, cameras)
     return Viewer(scene, groups=groups, cameras=cameras, keyviews=keys, device=device, **kwargs)
 
@@ -435,6 +440,8 @@ def screenshot(scene: GaussianScene, path: str | Path | None = None, *, render_v
         if render_view is not None:
             v.select_camera(render_view)
             v.show_splat()
+            if view is None:
+                v._set_start_view()
         return v.screenshot(path)
     finally:
         v.close()
@@ -443,19 +450,20 @@ def screenshot(scene: GaussianScene, path: str | Path | None = None, *, render_v
 # -- CLI ---------------------------------------------------------------------------
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", type=Path,
-                   help="a Gaussian-splat PLY (INRIA 3DGS layout) or a run directory with scene.ply")
+                   help="a Gaussian-splat PLY (INRIA 3DGS layout) or a run directory with scene.ply: a "
+                        "reconstruction or a stylize output (its source's cameras and groups, its key views)")
     p.add_argument("--color", "--colour", dest="color", choices=COLOR_MODES, default=None,
                    help="colouring: SH-DC colour, group label or opacity (default: group when the scene has "
                         "groups, else rgb)")
     p.add_argument("--cameras", type=Path, default=None,
-                   help="cameras.json to draw as frustums (default: SCENE_DIR/cameras.json when present)")
+                   help="cameras.json to draw as frustums (default: the run's, a stylized run's source's)")
     p.add_argument("--keyviews", nargs="+", default=None, metavar="VIEW",
                    help="key views to highlight: camera indices or names, or key-view JSON files/directories "
-                        "(default: SCENE_DIR/keyviews when present)")
+                        "(default: the run's keyviews/ when present, e.g. a stylize output's)")
     p.add_argument("--labels", type=Path, default=None,
                    help="per-Gaussian group ids (.npy, one int per Gaussian) instead of the grouping classifier")
     p.add_argument("--scene-dir", type=Path, default=None,
-                   help="run directory holding cameras.json and groups/ (default: the PLY's folder)")
+                   help="run directory whose cameras, groups/ and keyviews/ to use (default: the PLY's folder)")
     p.add_argument("--max-points", type=int, default=300_000,
                    help="point budget: above it a random subsample is drawn, and the viewer says so")
     p.add_argument("--glyphs", action="store_true", help="start with oriented ellipsoids instead of discs")
@@ -485,10 +493,11 @@ def run(args: argparse.Namespace) -> int:
     if args.screenshot is not None and args.screenshot.suffix.lower() not in (".png", ".jpg", ".jpeg", ".exr"):
         raise InputError(f"--screenshot {args.screenshot}: use a .png, .jpg or .exr file name")
     scene = load_scene(ply)
+    found = run_folders(scene_dir)  # (a stylized run: its source's cameras and groups, its own key views)
     keyviews = args.keyviews
-    if keyviews is None and (Path(scene_dir) / "keyviews").is_dir():
-        keyviews = [str(Path(scene_dir) / "keyviews")]
-    cameras = load_cameras(args.cameras, scene_dir)
+    if keyviews is None and found.keyviews is not None:
+        keyviews = [str(found.keyviews)]
+    cameras = load_cameras(args.cameras, found.cameras)
     try:
         keys = resolve_keyviews(keyviews or [], cameras)
     except InputError as e:
@@ -496,7 +505,7 @@ def run(args: argparse.Namespace) -> int:
             raise
         print(f"ssgwarp view: ignoring {keyviews[0]} ({e})", file=sys.stderr)
         keys = []
-    groups = resolve_groups(scene, labels=args.labels, scene_dir=scene_dir, device=args.device)
+    groups = resolve_groups(scene, labels=args.labels, scene_dir=found.groups, device=args.device)
     color = args.color or ("group" if groups is not None else "rgb")
     viewer = Viewer(scene, groups=groups, cameras=cameras, keyviews=keys, color=color, max_points=args.max_points,
                     glyphs=args.glyphs, max_glyphs=args.max_glyphs, sigma=args.sigma,
@@ -511,6 +520,8 @@ def run(args: argparse.Namespace) -> int:
         if args.render_view is not None:
             viewer.select_camera(args.render_view)
             viewer.show_splat()
+            if args.view is None:  # the cloud's part of the window is narrower now: frame it again
+                viewer._set_start_view()
         if args.screenshot is not None:
             viewer.screenshot(args.screenshot)
             print(f"wrote {args.screenshot}")

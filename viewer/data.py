@@ -19,6 +19,7 @@ from ssgwarp.core.fileio import read_json
 from ssgwarp.grouping.model import gaussian_groups, load_groups
 from ssgwarp.capture.ply import read_ply
 from ssgwarp.raster.scene import GaussianScene
+from ssgwarp.services.runs import Run
 
 
 @dataclass
@@ -143,6 +144,34 @@ def resolve_groups(scene: GaussianScene, *, labels=None, scene_dir: str | Path |
     prob = torch.softmax(ident.float(), dim=1).max(dim=1).values.numpy()
     return GroupInfo(lab, int(ident.shape[1]) if num_groups is None else num_groups,
                      "argmax of identity channels (no groups/classifier.pt found)", prob)
+
+
+@dataclass
+class RunFolders:
+    """Where the viewer finds a run's cameras, groups and key views: the folders holding
+    ``cameras.json``, ``groups/classifier.pt`` and ``keyviews/`` (each None when absent)."""
+
+    cameras: Optional[Path] = None
+    groups: Optional[Path] = None
+    keyviews: Optional[Path] = None
+
+
+def run_folders(scene_dir: str | Path | None) -> RunFolders:
+    """The folders of :class:`RunFolders` for ``scene_dir``: a run folder read by
+    :class:`ssgwarp.services.runs.Run` (a stylized run: its source reconstruction's cameras and
+    groups, its own key views); a folder that is no run (a bare PLY's): what lies in it."""
+    if scene_dir is None:
+        return RunFolders()
+    d = Path(scene_dir)
+    try:
+        run = Run.open(d)
+    except InputError:
+        return RunFolders(d if (d / "cameras.json").is_file() else None,
+                          d if (d / "groups" / "classifier.pt").is_file() else None,
+                          d / "keyviews" if (d / "keyviews").is_dir() else None)
+    groups = run.groups_dir
+    return RunFolders(run.camera_dir, None if groups is None else groups.parent,
+                      run.keyviews_dir or (d / "keyviews" if (d / "keyviews").is_dir() else None))
 
 
 def load_cameras(path: str | Path | None, scene_dir: str | Path | None) -> Optional[Cameras]:

@@ -5,6 +5,8 @@ splat-image panel. A mixin of :class:`ssgwarp.viewer.app.Viewer`, which holds th
 the state changes and the command stay in :mod:`ssgwarp.viewer.app`."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from . import geometry
@@ -13,11 +15,17 @@ from .data import as_numpy
 CAMERA_COLOR = (0.70, 0.70, 0.70)
 KEYVIEW_COLOR = (1.00, 0.55, 0.00)
 SELECTED_COLOR = (0.20, 0.60, 1.00)
+FRAME_ZOOM = 0.85  # a margin around the robust box (discs and the cloud's edges reach beyond it)
 
 # Fragment code for vtkPointGaussianMapper: flat, opaque discs of radius = the point's scale value.
 _DISC_SHADER = ("//VTK::Color::Impl\n"
                 "float dist2 = dot(offsetVCVSOutput.xy, offsetVCVSOutput.xy);\n"
                 "if (dist2 > 1.0) { discard; }\n")
+
+
+def label_name(name: str) -> str:
+    """A camera's label in the view: its image name without folders and extension."""
+    return Path(name).stem or name
 
 
 class Drawing:
@@ -90,10 +98,15 @@ class Drawing:
             pl.add_mesh(pv.PolyData(pts, lines=lines), name=name, color=color, line_width=width,
                         lighting=False, pickable=False, reset_camera=False)
         if key and self.hud:
-            cen = as_numpy(cams.centers)[sorted(key)]
-            pl.add_point_labels(cen, [cams.names[i] for i in sorted(key)], name="keyview_names", font_size=11,
-                                text_color=KEYVIEW_COLOR, shape=None, show_points=False, always_visible=True,
-                                pickable=False, reset_camera=False)
+            # at the centre of each frustum's far face (nearer the cloud than the apex, so in the
+            # start view, which frames the cloud, more often than the camera centre)
+            c2w = as_numpy(cams.camtoworlds)[sorted(key)]
+            cen = c2w[:, :3, 3] + c2w[:, :3, 2] * self.frustum_size
+            # short names (the file stem) on a dark box: readable over frustum lines and the cloud
+            pl.add_point_labels(cen, [label_name(cams.names[i]) for i in sorted(key)], name="keyview_names",
+                                font_size=14, text_color=KEYVIEW_COLOR, shape="rounded_rect",
+                                shape_color=(0.06, 0.06, 0.08), shape_opacity=0.8, margin=2, show_points=False,
+                                always_visible=True, pickable=False, reset_camera=False)
         self._draw_selected()
 
     def _draw_selected(self) -> None:
@@ -110,12 +123,15 @@ class Drawing:
     def _draw_overlays(self) -> None:
         pl = self.plotter
         if self.hud:
-            pl.add_text(self.status_text(), position="upper_left", font_size=9, color="white", name="status")
+            pl.add_text(self.status_text(), position="upper_left", font_size=9, color="white", name="status",
+                        shadow=True)
         if self.legend and self.color == "group" and self.groups is not None:
             rows = self.legend_entries()
-            pl.add_legend(labels=[list(r) for r in rows], bcolor=(0.12, 0.12, 0.14), border=False,
-                          size=(0.18, min(0.9, 0.035 * len(rows) + 0.02)), loc="upper right", face="rectangle",
-                          name="legend")
+            size = (0.18, min(0.9, (0.035 if len(rows) <= 8 else 0.027) * len(rows) + 0.02))
+            legend = pl.add_legend(labels=[list(r) for r in rows], bcolor=(0.12, 0.12, 0.14), border=False,
+                                   size=size, loc="upper right", face="rectangle", name="legend")
+            # in the upper right corner (pyvista 0.49 places a legend taller than wide further left)
+            legend.SetPosition(1.0 - size[0] - 0.02, 1.0 - size[1] - 0.05)
         elif getattr(pl, "legend", None) is not None:
             pl.remove_legend(render=False)
 
@@ -135,10 +151,16 @@ class Drawing:
             pl.camera.focal_point = tuple(self.center)
             pl.camera.position = tuple(self.center + direction * self.extent)
             pl.camera.up = tuple(up)
-            pl.reset_camera()
         else:
-            pl.view_isometric()
-            pl.reset_camera()
+            pl.view_isometric(render=False)
+            pl.camera_set = True  # (else the first render frames every actor's bounds again)
+        # frame the cloud's robust box (percentiles), not every actor's bounds: far floaters and the
+        # camera frustums would leave the cloud small in the middle
+        lo, hi = self.frame_box
+        pl.renderer.ComputeAspect()  # (the viewport may have changed: the splat panel beside it)
+        pl.reset_camera(render=False, bounds=(lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]))
+        pl.camera.zoom(FRAME_ZOOM)
+        pl.reset_camera_clipping_range()
 
     def _show_panel(self, img: np.ndarray, title: str) -> None:
         from vtkmodules.vtkRenderingCore import vtkImageActor, vtkRenderer, vtkTextActor

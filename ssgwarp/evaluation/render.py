@@ -1,5 +1,7 @@
-"""Render a run: ``ssgwarp render SCENE_DIR --out DIR [--path N] [--split train|test|all]``.
+"""Render a run: ``ssgwarp render RUN_DIR --out DIR [--path N] [--split train|test|all]``.
 
+``RUN_DIR`` is a reconstruction or a stylize output (:class:`~ssgwarp.services.runs.Run`; a
+stylized run renders along its source reconstruction's cameras, on its recorded background).
 Renders the run's scene along its own cameras (one PNG per camera, named after
 the image) or along a smooth camera path through them (``frame_0000.png`` ...,
 plus ``path_cameras.json``). :func:`smooth_path` is the path other stages reuse.
@@ -148,7 +150,9 @@ render_cameras = render_to_files
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("scene_dir", type=Path, help="a reconstruction run (scene.ply, cameras.json, data.json)")
+    parser.add_argument("scene_dir", type=Path,
+                        help="a run folder: a reconstruction (scene.ply, cameras.json, data.json) or a stylize "
+                             "output (its source reconstruction's cameras and split)")
     parser.add_argument("--out", type=Path, required=True, help="folder for the PNGs")
     parser.add_argument("--path", type=int, nargs="?", const=120, default=None, metavar="N",
                         help="render N frames (default 120) along a smooth path through the cameras")
@@ -161,7 +165,8 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    scene, data = Run.reconstruction(args.scene_dir).load(args.device, load_images=False)
+    run_ = Run.open(args.scene_dir)
+    scene, data = run_.load(args.device, load_images=False)
     ids = data.split(args.split)
     if not ids:
         raise InputError(f"{args.scene_dir}: the run has no {args.split} cameras")
@@ -172,6 +177,7 @@ def run(args) -> int:
     if args.path is not None:
         cams = smooth_path(cams, args.path, closed=not args.open)
         cams.to("cpu").save(args.out / "path_cameras.json")
-    paths = render_to_files(scene, cams, args.out, background=data.background, progress=not args.quiet)
+    # (a stylized run: on its recorded, recoloured background)
+    paths = render_to_files(scene, cams, args.out, background=run_.background(data.background), progress=not args.quiet)
     print(f"{args.out}: {len(paths)} images")
     return 0

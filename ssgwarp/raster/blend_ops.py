@@ -52,7 +52,7 @@ def pack_splats(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tens
 class _Blend(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, colors, opacities, backgrounds, tiles, width, height, tile_size, settings,
-                deterministic, packed, gather, outputs):
+                deterministic, packed, gather, outputs, absgrad=None):
         C, N = means2d.shape[:2]
         D = colors.shape[-1]
         dt, dev = colors.dtype, colors.device
@@ -102,6 +102,7 @@ class _Blend(torch.autograd.Function):
         ctx.tiles, ctx.geom, ctx.settings, ctx.det = tiles, (width, height, tile_size, tw, th), settings, deterministic
         ctx.parts, ctx.tg = parts, tg  # (a backward runs on its forward's stream)
         ctx.rows = rows  # (zeroed gradient rows made with the outputs, for the first backward; else None)
+        ctx.absgrad = absgrad  # (None, or what receives the absolute gradients [C, N, 2] of the means)
         return out, out_alpha
 
     @staticmethod
@@ -134,8 +135,10 @@ class _Blend(torch.autograd.Function):
         # trained): the colour gradients alone, the same values, without the geometry terms
         need = ctx.needs_input_grad
         geometry = need[0] or need[1] or need[3]
+        # absgrad: two more values per row after the colours, the sums of |per-pixel gradient| of the means
+        absgrad = ctx.absgrad is not None and need[0]
         lead = 6 if geometry else 0
-        W = lead + D
+        W = lead + D + (2 if absgrad else 0)
         rows = max(M if det else C * N, 1)
         parts = ctx.parts
         if not det and len(parts) > 1:  # (each thread adds into its own rows: within a memory cap)
@@ -143,19 +146,19 @@ class _Blend(torch.autograd.Function):
         # with few intersections (the forward read through the ids) the colours' gradients get rows of
         # their own after the geometry's, in the same buffer: a contiguous gradient autograd keeps as
         # it is, where a column block of the packed rows is copied for the colours' .grad
-        split = ctx.through_ids and geometry and not det and len(parts) == 1 and C * N > 0
+        split = ctx.through_ids and geometry and not det and len(parts) == 1 and C * N > 0 and not absgrad
         # the rows made with the forward's outputs and zeroed by the binning's key writes (a first
         # backward's, of the default kind), else cleared here (CUDA: one memset on the stream); the
         # default backward's rows as [C, N, W] from the start
         made, ctx.rows = ctx.rows, None
-        if made is not None and C * N and made.numel() == gradient_rows_size(C, N, D, geometry, det):
+        if made is not None and C * N and made.numel() == gradient_rows_size(C, N, D, geometry, det) and not absgrad:
             packed = made if split else made.view(C, N, W)
         else:
             packed = L.zeros((C * N * W,) if split else (C, N, W) if not det and C * N else (rows, W), dt, tg)
         # the default backward's other threads: their own rows, added to the first thread's below
         extra = torch.zeros(len(parts) - 1, rows, W, dtype=dt, device=dev) if len(parts) > 1 and not det else None
         kern = blend_backward.reduced_backward_kernel(s, D, det, per_warp, L.fast_math(st, s), not geometry,
-                                                      ctx.through_ids, split)
+                                                      ctx.through_ids, split, absgrad)
         head = [*arr(splats, 6), *arr(cols, D), *ctx.args, *a_gc, *a_ga, *(arr(tiles["perm"]) if det else NULL)]
         tp = tile_size * tile_size
         if split:
@@ -185,6 +188,10 @@ class _Blend(torch.autograd.Function):
             v_m2d, v_conics, v_opac = geom.view(C, N, 6).split_with_sizes((2, 3, 1), -1)
             v_opac = v_opac.squeeze(-1)
             v_colors = v_colors.view(N, D) if shared and C == 1 else v_colors.view(C, N, D)
+        elif absgrad:
+            v_m2d, v_conics, v_opac, v_colors, v_abs = _rows(packed, C, N, W).split_with_sizes((2, 3, 1, D, 2), -1)
+            v_opac = v_opac.squeeze(-1)
+            ctx.absgrad(v_abs.contiguous())
         elif geometry:
             v_m2d, v_conics, v_opac, v_colors = _rows(packed, C, N, W).split_with_sizes((2, 3, 1, D), -1)
             v_opac = v_opac.squeeze(-1)
@@ -195,7 +202,7 @@ class _Blend(torch.autograd.Function):
         v_bg = None
         if bg is not None and need[4]:  # (a constant background, as training passes: no gradient to form)
             v_bg = (g_colors * out_T[..., None]).sum(dim=(1, 2)) if g_colors is not None else torch.zeros_like(bg)
-        return v_m2d, v_conics, v_colors, v_opac, v_bg, None, None, None, None, None, None, None, None, None
+        return v_m2d, v_conics, v_colors, v_opac, v_bg, None, None, None, None, None, None, None, None, None, None
 
 
 def blend_outputs(C: int, height: int, width: int, D: int, dtype, device, gather: bool,
@@ -285,16 +292,19 @@ def backward_blocks(tile_size: int, deterministic: bool, cpu: bool) -> tuple[boo
 
 
 def blend_warp(means2d, conics, colors, opacities, backgrounds, tiles, width, height, tile_size, settings,
-               deterministic=False, packed=None, outputs=None):
+               deterministic=False, packed=None, outputs=None, absgrad=None):
     """Front-to-back blending in Warp: ``colors [C,N,D]`` (or ``[N,D]``, the same for every
     camera) → ``(image [C,H,W,D], alpha [C,H,W,1])``. ``packed``: the projection's packed splats
     (the same values as means2d, conics and opacities; read instead of them). ``outputs``: what
-    :func:`blend_outputs` made for this call (``D <= MAX_CHANNELS``), else made here."""
+    :func:`blend_outputs` made for this call (``D <= MAX_CHANNELS``), else made here. ``absgrad``:
+    None, or a function the backward calls with ``[C, N, 2]``: per Gaussian and camera the sum over
+    pixels of the absolute per-pixel gradient of its 2D mean (gsplat's ``absgrad``; with more than
+    ``MAX_CHANNELS`` channels, once per block of channels)."""
     D = colors.shape[-1]
     if D > MAX_CHANNELS:
         chunks = [blend_warp(means2d, conics, colors[..., i:i + MAX_CHANNELS], opacities,
                              None if backgrounds is None else backgrounds[..., i:i + MAX_CHANNELS],
-                             tiles, width, height, tile_size, settings, deterministic, packed)
+                             tiles, width, height, tile_size, settings, deterministic, packed, None, absgrad)
                   for i in range(0, D, MAX_CHANNELS)]
         return torch.cat([c[0] for c in chunks], dim=-1), chunks[0][1]
     # whether a backward can follow (the forward keeps what it reads)
@@ -303,4 +313,4 @@ def blend_warp(means2d, conics, colors, opacities, backgrounds, tiles, width, he
         raise ValueError("blend_warp: outputs made for another case (blend_outputs(..., gather) must say whether a "
                          "backward can follow, as backward_may_follow does)")
     return apply(_Blend, means2d, conics, colors, opacities, backgrounds, tiles, width, height, tile_size,
-                 settings, deterministic, packed, gather, outputs, needs_grad=gather)
+                 settings, deterministic, packed, gather, outputs, absgrad, needs_grad=gather)

@@ -12,6 +12,7 @@ rule shared by both in ``kernels/pixel.py``.
 """
 from __future__ import annotations
 
+import warnings
 from functools import partial
 from typing import Optional
 
@@ -22,10 +23,18 @@ from .settings import (  # noqa: F401 (re-exported: their historical home)
     DEFAULT_TILE_SIZE, N_FLAGS, RENDER_MODES, T_MIN_FLOOR, RasterSettings, check_shapes, raise_for_flags,
     resolve_arguments)
 
-try:  # the Warp path; without warp-lang only backend="torch" is available
+try:  # the Warp path; without warp-lang (or ssgwarp.kernels) only backend="torch" is available
     from . import blend_ops, ops, sh_ops
-except ImportError:  # pragma: no cover - warp-lang missing
+    KERNELS_ERROR: Optional[str] = None
+except ImportError as _e:  # pragma: no cover - warp-lang or ssgwarp.kernels missing
     blend_ops = ops = sh_ops = None
+    KERNELS_ERROR = f"{type(_e).__name__}: {_e}"
+
+# backend="auto" without the kernels: above this many (camera, Gaussian, pixel) triples the dense
+# torch reference it would fall back to (O(N x pixels) time, memory in chunks) is refused with an
+# error instead of a warning (a 256x256 image of 60k Gaussians is 2^32)
+AUTO_FALLBACK_MAX = 1 << 30
+_warned_fallback = False
 
 Tensor = torch.Tensor
 # the binning outputs that ``meta`` carries (gsplat's names)
@@ -76,7 +85,7 @@ def rasterization(
     radius_clip: float = 0.0,
     eps2d: float = 0.3,
     sh_degree: Optional[int] = None,
-    packed: bool = True,
+    packed: Optional[bool] = None,
     tile_size: Optional[int] = None,
     backgrounds: Optional[Tensor] = None,
     render_mode: str = "RGB",
@@ -85,6 +94,7 @@ def rasterization(
     rasterize_mode: str = "classic",
     channel_chunk: int = 32,
     *,
+    camera_model: str = "pinhole",
     settings: Optional[RasterSettings] = None,
     deterministic: bool = False,
     validate: bool = True,
@@ -98,16 +108,32 @@ def rasterization(
         ``height``, ``near_plane``, ``far_plane``, ``radius_clip``, ``eps2d``, ``backgrounds [C,D]``,
         ``render_mode`` (RGB, D, ED, RGB+D, RGB+ED), ``rasterize_mode`` (classic, antialiased),
         ``tile_size`` (default: per device, :data:`DEFAULT_TILE_SIZE`: gsplat's 16 on CUDA, 8 on the
-        CPU, where shorter per-tile lists are about 1.8x faster; docs/tradeoffs.md). ``packed``,
-        ``sparse_grad`` and ``channel_chunk`` are accepted for compatibility; the layout is always the
-        non-packed one ([C, N] per-camera arrays).
+        CPU, where shorter per-tile lists are about 1.8x faster; docs/tradeoffs.md).
+        ``packed``: ``True`` returns gsplat's packed meta (below); ``None`` (the default) or
+        ``False`` the ``[C, N]`` layout. Unlike gsplat, whose default is ``packed=True``, the
+        default is the ``[C, N]`` layout (the images are the same either way; the packed meta costs
+        one device synchronisation and a few gathers). The blending itself always runs on the
+        ``[C, N]`` arrays (no memory saving from ``packed``).
+        ``absgrad``: after a backward, ``meta["means2d"].absgrad`` (the shape of
+        ``meta["means2d"]``) holds per Gaussian and camera the sum over pixels of the absolute
+        value of each pixel's gradient of the 2D mean (AbsGS; ``.grad`` is the sum of the signed
+        ones, so ``absgrad >= |grad|`` entrywise, equal where every pixel pulls the same way).
+        Further backward passes through the same call add to it, as to ``.grad``; with more than
+        64 channels it is summed per block of 64. Off (the default): no extra work.
+        ``camera_model`` (keyword): ``"pinhole"`` only; gsplat's ``"ortho"``, ``"fisheye"`` and
+        ``"ftheta"`` raise a ValueError saying what to do instead. ``sparse_grad`` and
+        ``channel_chunk`` are accepted for compatibility and have no effect (gradients are dense;
+        the blending takes up to 64 channels per pass).
     Extra (keyword only):
         settings: :class:`RasterSettings` speed/accuracy knobs (default: gsplat's rules).
         deterministic: bit-identical gradients from run to run on CUDA (slower backward; needs
             ``tile_size <= 16``).
         validate: check inputs for NaN/Inf, bad shapes, devices, dtypes, quaternions, scales,
             opacities (one cheap pass); ``False`` skips it.
-        backend: ``"warp"`` (kernels), ``"torch"`` (dense reference) or ``"auto"`` (warp).
+        backend: ``"warp"`` (kernels), ``"torch"`` (dense reference) or ``"auto"``: the kernels;
+            where ``ssgwarp.kernels`` (or warp-lang) cannot be imported, the torch reference with a
+            RuntimeWarning (once per process) for calls up to :data:`AUTO_FALLBACK_MAX` (camera,
+            Gaussian, pixel) triples, and an ImportError naming the cause above it.
 
     Returns:
         ``render_colors [C,H,W,D']``, ``render_alphas [C,H,W,1]``, ``meta`` with ``radii [C,N,2]``,
@@ -116,20 +142,46 @@ def rasterization(
         ``conics [C,N,3]``, ``opacities [C,N]``, ``tiles_per_gauss``, ``isect_ids``,
         ``flatten_ids``, ``isect_offsets [C,th,tw]``, ``tile_width``, ``tile_height``,
         ``width``, ``height``, ``tile_size``, ``n_cameras``, ``settings``.
+        With ``packed=True`` (gsplat's packed layout): ``camera_ids [nnz]``, ``gaussian_ids [nnz]``
+        (int64: the (camera, Gaussian) pairs with both radii > 0, camera-major, by Gaussian index),
+        ``radii [nnz,2]``, ``means2d [nnz,2]`` (its ``.grad`` and ``.absgrad`` per pair),
+        ``depths [nnz]``, ``conics [nnz,3]``, ``opacities [nnz]``, ``tiles_per_gauss [nnz]`` and
+        ``flatten_ids`` indexing the ``nnz`` rows; ``isect_ids`` and ``isect_offsets`` as unpacked.
+        Not gsplat's: no batch dimensions (no ``batch_ids``), ``sparse_grad`` has no effect.
     """
-    settings, tile_size = resolve_arguments(means, settings, tile_size, absgrad)
+    settings, tile_size = resolve_arguments(means, settings, tile_size, camera_model)
     width, height = int(width), int(height)
     if backend == "auto":
-        backend = "warp" if ops is not None else "torch"
+        backend = "warp" if ops is not None else _fallback(viewmats.shape[0] * means.shape[0] * width * height)
     if backend not in ("warp", "torch"):
         raise ValueError(f"rasterization: backend must be 'warp', 'torch' or 'auto', got {backend!r}")
     if backend == "warp":
         return _rasterize_warp(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane,
                                far_plane, radius_clip, eps2d, sh_degree, tile_size, backgrounds, render_mode,
-                               rasterize_mode, settings, deterministic, validate)
+                               rasterize_mode, settings, deterministic, validate, packed is True, absgrad)
     return reference.render_reference(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane, far_plane, radius_clip,
-        eps2d, sh_degree, tile_size, backgrounds, render_mode, rasterize_mode, settings, validate)
+        eps2d, sh_degree, tile_size, backgrounds, render_mode, rasterize_mode, settings, validate, packed is True,
+        absgrad)
+
+
+def _fallback(triples: int) -> str:
+    """``backend="auto"`` without the kernels: ``"torch"`` with a RuntimeWarning (once per process),
+    or an ImportError naming the cause where the call has more than :data:`AUTO_FALLBACK_MAX`
+    (camera, Gaussian, pixel) triples."""
+    global _warned_fallback
+    why = f"ssgwarp.kernels cannot be imported ({KERNELS_ERROR})"
+    if triples > AUTO_FALLBACK_MAX:
+        raise ImportError(f"rasterization: {why}; backend='auto' would fall back to the dense torch reference, "
+                          f"{triples:,} (camera, Gaussian, pixel) pairs for this call: fix the install "
+                          f"(pip install -e . installs warp-lang and ssgwarp.kernels), or pass backend='torch' "
+                          f"to accept the slow path")
+    if not _warned_fallback:
+        _warned_fallback = True
+        warnings.warn(f"rasterization: {why}; backend='auto' renders with the dense torch reference "
+                      f"(O(N x pixels) time; calls above {AUTO_FALLBACK_MAX:,} pairs are refused). Fix the install "
+                      f"or pass backend='torch' to silence this", RuntimeWarning, stacklevel=3)
+    return "torch"
 
 
 def _recheck(inputs) -> None:
@@ -140,9 +192,10 @@ def _recheck(inputs) -> None:
 
 def _rasterize_warp(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane, far_plane,
                     radius_clip, eps2d, sh_degree, tile_size, backgrounds, render_mode, rasterize_mode, settings,
-                    deterministic, validate):
+                    deterministic, validate, packed_meta=False, absgrad=False):
     """The Warp path: value checks, projection (+ tile counts, + SH colours), binning with the one
-    read-back, blending (:mod:`ssgwarp.raster.ops`)."""
+    read-back, blending (:mod:`ssgwarp.raster.ops`); ``packed_meta``: gsplat's packed meta
+    (:func:`ssgwarp.raster.reference.pack_visible`), ``absgrad``: ``meta["means2d"].absgrad``."""
     if ops is None:
         raise ImportError("rasterization: backend='warp' needs warp-lang (pip install warp-lang), "
                           "or use backend='torch'")
@@ -207,7 +260,18 @@ def _rasterize_warp(means, quats, scales, opacities, colors, viewmats, Ks, width
                           threads=settings.cpu_threads, during_wait=make_outputs, tg=extra["tg"])
     # gsplat's binning outputs; the backward's internal arrays (offsets, perm, isect_ends) stay in ``tiles``
     meta.update({k: tiles[k] for k in PUBLIC_TILE_KEYS})
+    sink = None
+    if packed_meta:  # (gsplat's packed layout: the blending reads the means back from the packed ones)
+        pmeta, means2d, visible = reference.pack_visible(radii, means2d, depths, conics, opacs)
+        meta.update(pmeta)
+        meta["tiles_per_gauss"], meta["flatten_ids"] = reference.pack_tiles(tiles["tiles_per_gauss"],
+                                                                            tiles["flatten_ids"], visible)
+        if absgrad:
+            cid, gid = pmeta["camera_ids"], pmeta["gaussian_ids"]
+            sink = lambda v: reference.add_absgrad(pmeta["means2d"], v[cid, gid])  # noqa: E731
+    elif absgrad:
+        sink = partial(reference.add_absgrad, means2d)
     render_colors, render_alphas = blend_ops.blend_warp(means2d, conics, colors, opacs, backgrounds, tiles, width, height,
                                                         tile_size, settings, deterministic=deterministic, packed=packed,
-                                                        outputs=made[0] if made else None)
+                                                        outputs=made[0] if made else None, absgrad=sink)
     return reference.expected_depth(render_colors, render_alphas, render_mode), render_alphas, meta

@@ -140,17 +140,22 @@ def tile_boxes(means2d: Tensor, radii: Tensor, tile_size: int, tile_width: int, 
 def blend_reference(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, radii: Tensor,
                     depths: Tensor, width: int, height: int, tile_size: int = 16,
                     backgrounds: Optional[Tensor] = None, settings: RasterSettings = RasterSettings(),
-                    max_chunk: int = 1 << 22):
-    """Dense front-to-back blending: ``colors [C,N,D]`` → ``(image [C,H,W,D], alpha [C,H,W,1])``."""
+                    max_chunk: int = 1 << 22, absgrad=None):
+    """Dense front-to-back blending: ``colors [C,N,D]`` → ``(image [C,H,W,D], alpha [C,H,W,1])``.
+    ``absgrad``: None, or a function that the backward calls with ``(camera, gaussian ids [n],
+    values [n, 2])``: the sums over pixels of the absolute per-pixel gradients of those Gaussians'
+    2D means (each pixel's own copy of the means is differentiated, so autograd's sum over pixels
+    is taken apart)."""
     C, N, D = colors.shape
     dev, dt = colors.device, colors.dtype
     tw, th = math.ceil(width / tile_size), math.ceil(height / tile_size)
     boxes = tile_boxes(means2d.detach(), radii, tile_size, tw, th)
-    out_img, out_alpha = [], []
+    out_img, out_alpha, kept = [], [], {}
     for ci in range(C):
         order = torch.sort(depths[ci].detach(), stable=True).indices
         m2, cn, col, op, bx = means2d[ci][order], conics[ci][order], colors[ci][order], opacities[ci][order], boxes[ci][order]
         keep = (bx[:, 2] > bx[:, 0]) & (bx[:, 3] > bx[:, 1])
+        kept[ci] = order[keep]
         m2, cn, col, op, bx = m2[keep], cn[keep], col[keep], op[keep], bx[keep]
         n = m2.shape[0]
         rows_per_chunk = max(1, min(height, max_chunk // max(1, n * width)))
@@ -163,8 +168,13 @@ def blend_reference(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: 
             txp, typ = px // tile_size, py // tile_size
             inside = ((txp[:, None] >= bx[None, :, 0]) & (txp[:, None] < bx[None, :, 2])
                       & (typ[:, None] >= bx[None, :, 1]) & (typ[:, None] < bx[None, :, 3]))  # [P,n]
-            dx = m2[None, :, 0] - (px.to(dt)[:, None] + 0.5)
-            dy = m2[None, :, 1] - (py.to(dt)[:, None] + 0.5)
+            mp = m2[None]
+            if absgrad is not None and m2.requires_grad and torch.is_grad_enabled():
+                mp = m2[None].expand(px.shape[0], -1, -1)            # [P,n,2]: one copy per pixel
+                ids = kept[ci]
+                mp.register_hook(lambda g, ci=ci, ids=ids: absgrad(ci, ids, g.abs().sum(0)))
+            dx = mp[..., 0] - (px.to(dt)[:, None] + 0.5)
+            dy = mp[..., 1] - (py.to(dt)[:, None] + 0.5)
             sigma = 0.5 * (cn[None, :, 0] * dx * dx + cn[None, :, 2] * dy * dy) + cn[None, :, 1] * dx * dy
             alpha = torch.clamp_max(op[None, :] * torch.exp(-sigma), settings.alpha_max)
             use = inside & (sigma >= 0) & (alpha >= settings.alpha_min)
@@ -185,6 +195,39 @@ def blend_reference(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: 
         out_img.append(torch.cat(img_rows, 0))
         out_alpha.append(torch.cat(alpha_rows, 0))
     return torch.stack(out_img), torch.stack(out_alpha)
+
+
+def add_absgrad(target: Tensor, values: Tensor) -> None:
+    """Add ``values`` to ``target.absgrad`` (set by the first backward; later ones add to it, as
+    ``.grad`` sums over backward passes)."""
+    prev = getattr(target, "absgrad", None)
+    target.absgrad = values if prev is None else prev + values
+
+
+def pack_visible(radii: Tensor, means2d: Tensor, depths: Tensor, conics: Tensor, opacities: Tensor):
+    """gsplat's packed layout of the projection's ``[C, N, ...]`` outputs: ``(meta, means2d_dense,
+    visible)``. ``meta``: ``camera_ids``, ``gaussian_ids`` (int64 ``[nnz]``, the (camera, Gaussian)
+    pairs with both radii > 0, camera-major and by Gaussian index, gsplat's order), ``radii [nnz, 2]``,
+    ``means2d [nnz, 2]``, ``depths [nnz]``, ``conics [nnz, 3]``, ``opacities [nnz]`` (differentiable
+    gathers of the dense ones). ``means2d_dense``: ``[C, N, 2]`` made back from the packed means2d,
+    the same values as ``means2d`` where visible (0 elsewhere, never read), for the blending to
+    read, so that the packed ``means2d`` lies on the loss's path and its ``.grad`` (and
+    ``absgrad``) are the blending's, as in gsplat. ``visible``: ``[C, N]`` bool."""
+    visible = (radii > 0).all(dim=-1)
+    cid, gid = visible.nonzero(as_tuple=True)
+    m2 = means2d[cid, gid]
+    dense = means2d.new_zeros(means2d.shape).index_put((cid, gid), m2)
+    meta = {"camera_ids": cid, "gaussian_ids": gid, "radii": radii[cid, gid], "means2d": m2,
+            "depths": depths[cid, gid], "conics": conics[cid, gid], "opacities": opacities[cid, gid]}
+    return meta, dense, visible
+
+
+def pack_tiles(tiles_per_gauss: Tensor, flatten_ids: Tensor, visible: Tensor) -> tuple[Tensor, Tensor]:
+    """The binning's ``tiles_per_gauss [C, N]`` and ``flatten_ids [M]`` (indices into ``C * N``) in
+    the packed layout: ``[nnz]`` and indices into the ``nnz`` packed rows (int32, as gsplat's)."""
+    flat = visible.reshape(-1)
+    pos = flat.to(torch.int32).cumsum(0, dtype=torch.int32) - 1
+    return tiles_per_gauss.reshape(-1)[flat], pos[flatten_ids.long()]
 
 
 def check_values_reference(means, quats, scales, opacities, colors, viewmats, Ks, backgrounds=None) -> list:
@@ -227,10 +270,11 @@ def expected_depth(render_colors, render_alphas, render_mode):
 
 def render_reference(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane, far_plane,
                      radius_clip, eps2d, sh_degree, tile_size, backgrounds, render_mode, rasterize_mode, settings,
-                     validate):
+                     validate, packed=False, absgrad=False):
     """:func:`ssgwarp.rasterization` with ``backend="torch"``, its arguments resolved (``settings``
     for the dtype, ``tile_size`` an int): the checks in torch, projection, SH colours and blending
-    by this module. No Warp kernel runs."""
+    by this module. No Warp kernel runs. ``packed``: meta in gsplat's packed layout
+    (:func:`pack_visible`); ``absgrad``: ``meta["means2d"].absgrad`` after a backward."""
     if validate:
         check_shapes(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds,
                      render_mode, rasterize_mode, tile_size, near_plane)
@@ -257,18 +301,35 @@ def render_reference(means, quats, scales, opacities, colors, viewmats, Ks, widt
         "tile_width": tile_width, "tile_height": tile_height, "width": width, "height": height,
         "tile_size": tile_size, "n_cameras": C, "settings": settings, "backend": "torch",
     }
+    sink = None
+    if packed:
+        pmeta, means2d, visible = pack_visible(radii, means2d, depths, conics, opacs)
+        meta.update(pmeta)
+        cid, gid = pmeta["camera_ids"], pmeta["gaussian_ids"]
+        if absgrad:
+            sink = lambda v: add_absgrad(pmeta["means2d"], v[cid, gid])  # noqa: E731
+    elif absgrad:
+        sink = lambda v: add_absgrad(meta["means2d"], v)  # noqa: E731
+    to_dense = None
+    if sink is not None:
+        def to_dense(ci, ids, vals):
+            dense = torch.zeros(C, means2d.shape[1], 2, dtype=vals.dtype, device=vals.device)
+            dense[ci].index_add_(0, ids, vals)
+            sink(dense)
     render_colors, render_alphas = blend_reference(
-        means2d, conics, colors, opacs, radii, depths, width, height, tile_size, backgrounds, settings)
+        means2d, conics, colors, opacs, radii, depths, width, height, tile_size, backgrounds, settings,
+        absgrad=to_dense)
     return expected_depth(render_colors, render_alphas, render_mode), render_alphas, meta
 
 
 def rasterization_reference(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane=0.01,
-                            far_plane=1e10, radius_clip=0.0, eps2d=0.3, sh_degree=None, packed=True, tile_size=None,
+                            far_plane=1e10, radius_clip=0.0, eps2d=0.3, sh_degree=None, packed=None, tile_size=None,
                             backgrounds=None, render_mode="RGB", sparse_grad=False, absgrad=False,
                             rasterize_mode="classic", channel_chunk=32, *, settings=None, deterministic=False,
-                            validate=True):
-    """:func:`ssgwarp.rasterization` computed by this module (the same as ``backend="torch"``)."""
-    settings, tile_size = resolve_arguments(means, settings, tile_size, absgrad)
+                            validate=True, camera_model="pinhole"):
+    """:func:`ssgwarp.rasterization` computed by this module (the same as ``backend="torch"``;
+    ``packed=None``/``False``: the ``[C, N]`` layout, ``True``: gsplat's packed one)."""
+    settings, tile_size = resolve_arguments(means, settings, tile_size, camera_model)
     return render_reference(means, quats, scales, opacities, colors, viewmats, Ks, int(width), int(height),
                             near_plane, far_plane, radius_clip, eps2d, sh_degree, tile_size, backgrounds,
-                            render_mode, rasterize_mode, settings, validate)
+                            render_mode, rasterize_mode, settings, validate, packed is True, absgrad)

@@ -110,13 +110,35 @@ DEFAULT_TILE_SIZE = {"cuda": 16, "cpu": 8}
 T_MIN_FLOOR = {torch.float32: 1e-20, torch.float64: 1e-200}
 
 
-def resolve_arguments(means, settings, tile_size, absgrad) -> tuple:
+# gsplat's camera models that ssgwarp does not render, and what to do instead
+UNSUPPORTED_CAMERA_MODELS = {
+    "ortho": "orthographic projection is not implemented; use a pinhole camera with a long focal length "
+             "placed far away",
+    "fisheye": "undistort the images to pinhole first (e.g. colmap image_undistorter; ssgwarp's capture "
+               "readers undistort OPENCV_FISHEYE captures on loading, docs/data.md)",
+    "ftheta": "undistort the images to pinhole first (e.g. colmap image_undistorter)",
+}
+
+
+def check_camera_model(camera_model) -> None:
+    """``"pinhole"`` passes; gsplat's other models (ortho, fisheye, ftheta) and anything else raise
+    one ValueError each, saying what to do instead."""
+    if camera_model == "pinhole":
+        return
+    if camera_model in UNSUPPORTED_CAMERA_MODELS:
+        raise ValueError(f"rasterization: camera_model={camera_model!r} is not supported (pinhole only): "
+                         f"{UNSUPPORTED_CAMERA_MODELS[camera_model]}")
+    raise ValueError(f"rasterization: camera_model must be 'pinhole' (gsplat's 'ortho', 'fisheye' and 'ftheta' "
+                     f"are not supported), got {camera_model!r}")
+
+
+def resolve_arguments(means, settings, tile_size, camera_model="pinhole") -> tuple:
     """``(settings, tile_size)`` of a rasterizer call: the settings (default: gsplat's rules) for
     the dtype of ``means`` (:meth:`RasterSettings.for_dtype`), the tile size (default: per device,
-    :data:`DEFAULT_TILE_SIZE`) as an int; ``absgrad=True`` is refused."""
+    :data:`DEFAULT_TILE_SIZE`) as an int; a camera model other than pinhole is refused
+    (:func:`check_camera_model`)."""
+    check_camera_model(camera_model)
     settings = (settings or _DEFAULT_SETTINGS).for_dtype(means.dtype)
-    if absgrad:
-        raise ValueError("rasterization: absgrad=True is not supported (use means2d.grad)")
     if tile_size is None:
         tile_size = DEFAULT_TILE_SIZE.get(means.device.type, 16)
     return settings, int(tile_size)

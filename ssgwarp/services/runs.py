@@ -3,7 +3,8 @@
 * :class:`Run` -- a run folder read once: its kind (a ``reconstruction``: ``scene.ply``,
   ``cameras.json``, ``data.json``; or a ``stylized`` run: ``scene.ply`` + ``metrics.json`` naming
   its ``source_scene``), the cameras and their train / test split (by image name in
-  ``data.json``), the records (``data.json``, ``metrics.json``), and :meth:`Run.load` -- the scene
+  ``data.json``), the records (``data.json``, ``metrics.json``), the groups and key views the run
+  has (a stylized run: its source's groups), and :meth:`Run.load` -- the scene
   and the capture (:class:`~ssgwarp.capture.datasets.SceneData`, images reloaded from the capture by
   :func:`ssgwarp.capture.datasets.load_run`, the one reader of ``data.json``, as ``data_json`` its writer);
 * :func:`claim` -- one policy for ``--force`` / ``--resume`` on a stage's outputs: an output
@@ -98,6 +99,10 @@ class Run:
             raise InputError(f"{run}: run folder not found (run `ssgwarp reconstruct` first)")
         for f in ("scene.ply", "cameras.json", "data.json"):
             if not (run / f).is_file():
+                if f == "cameras.json" and "source_scene" in _read_dict(run / "metrics.json"):
+                    src = cls.open(run).source_dir
+                    raise InputError(f"{run}: a stylize output, not a reconstruction run; this command takes its "
+                                     f"source reconstruction {src}")
                 raise InputError(f"{run}: not a reconstruction run (no {f}); run `ssgwarp reconstruct` first")
         r = cls.open(run)
         if not isinstance(r.data, dict) or "split" not in r.data:
@@ -143,6 +148,23 @@ class Run:
             test = set(self.test_ids)
             train = [i for i in range(len(self.cameras)) if i not in test] or list(range(len(self.cameras)))
         return train
+
+    @property
+    def groups_dir(self) -> Optional[Path]:
+        """The ``groups/`` folder (``classifier.pt``, ``groups.json``) whose groups the run's Gaussians
+        have: its own, else a stylized run's source's (Stage 2 keeps the source's Gaussians and their
+        identity encodings); None when neither was grouped."""
+        for d in (self.path, self.source_dir):
+            if d is not None and (d / "groups" / "classifier.pt").is_file():
+                return d / "groups"
+        return None
+
+    @property
+    def keyviews_dir(self) -> Optional[Path]:
+        """A stylized run's ``keyviews/`` folder (``keyviews.json`` naming the key views among
+        :attr:`cameras`), else None."""
+        d = self.path / "keyviews"
+        return d if (d / "keyviews.json").is_file() else None
 
     @property
     def data_dir(self) -> Optional[Path]:

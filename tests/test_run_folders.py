@@ -1,0 +1,102 @@
+"""Every kind of run folder where a command takes one: a stylized run (``ssgwarp stylize``'s output)
+resolves its source reconstruction's cameras, split and groups through :class:`ssgwarp.services.runs.Run`,
+and ``render`` renders it along those cameras on its own recorded background."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from ssgwarp.cli import main
+from ssgwarp.core.fileio import read_image, write_json
+from ssgwarp.capture.ply import write_ply
+from ssgwarp.errors import InputError
+from ssgwarp.services.runs import Run
+
+from test_services import _recon_run, _scene
+
+STYLED_BG = [0.1, 0.6, 0.2]
+
+
+def write_classifier(run_dir, dim: int, groups: int) -> None:
+    """A group classifier ``groups/classifier.pt`` of ``dim`` identity channels onto ``groups`` groups."""
+    lin = torch.nn.Linear(dim, groups)
+    (run_dir / "groups").mkdir()
+    torch.save({"format": 1, "dim": dim, "num_groups": groups,
+                "state_dict": {k: v.detach() for k, v in lin.state_dict().items()}}, run_dir / "groups" / "classifier.pt")
+
+
+def stylized_run(tmp_path, *, grouped: bool = True, keyviews: bool = True):
+    """A reconstruction (3 cameras, v1 held out; grouped: 8 identity channels, 3 groups) and a stylized run
+    of it as ``ssgwarp stylize`` writes one (scene.ply, metrics.json naming source_scene, keyviews/)."""
+    rec = _recon_run(tmp_path / "rec")
+    if grouped:
+        write_ply(rec / "scene.ply", _scene(ids=8))
+        write_classifier(rec, 8, 3)
+    sty = tmp_path / "sty"
+    sty.mkdir()
+    styled = _scene(seed=4, ids=8 if grouped else 0)
+    write_ply(sty / "scene.ply", styled)
+    write_json(sty / "metrics.json", {"source_scene": str(rec.resolve()), "style": "style.png", "mode": "ist",
+                                      "background": STYLED_BG})
+    if keyviews:
+        (sty / "keyviews").mkdir()
+        write_json(sty / "keyviews" / "keyviews.json", {"ids": [0, 2], "names": ["v0.png", "v2.png"]})
+    return rec, sty
+
+
+def test_a_stylized_run_finds_its_sources_groups_and_its_own_key_views(tmp_path):
+    rec, sty = stylized_run(tmp_path)
+    s = Run.open(sty)
+    assert s.kind == "stylized" and s.camera_dir == rec.resolve()
+    assert s.groups_dir == rec.resolve() / "groups" and s.keyviews_dir == sty / "keyviews"
+    r = Run.open(rec)
+    assert r.groups_dir == rec / "groups" and r.keyviews_dir is None
+    # a stylized run grouped itself: its own groups win
+    write_classifier(sty, 8, 2)
+    assert Run.open(sty).groups_dir == sty / "groups"
+
+
+def test_runs_never_grouped_have_no_groups(tmp_path):
+    rec, sty = stylized_run(tmp_path, grouped=False, keyviews=False)
+    assert Run.open(rec).groups_dir is None and Run.open(sty).groups_dir is None
+    assert Run.open(sty).keyviews_dir is None
+    (sty / "keyviews").mkdir()                   # a folder without keyviews.json is not a key-view record
+    assert Run.open(sty).keyviews_dir is None
+
+
+def test_render_takes_a_stylized_run_along_its_sources_cameras(tmp_path, capsys):
+    rec, sty = stylized_run(tmp_path, grouped=False)
+    out = tmp_path / "frames"
+    assert main(["render", str(sty), "--out", str(out), "--path", "4", "--quiet"]) == 0, capsys.readouterr().err
+    frames = sorted(out.glob("frame_*.png"))
+    assert len(frames) == 4 and (out / "path_cameras.json").is_file()
+    img = read_image(frames[0], 3)
+    assert img.shape == (16, 20, 3)
+    # the stylized run's recorded background where nothing is drawn (corners of the frame)
+    assert np.allclose(img[0, 0], STYLED_BG, atol=0.02)
+    out2 = tmp_path / "test_views"
+    assert main(["render", str(sty), "--out", str(out2), "--split", "test", "--quiet"]) == 0
+    assert [p.name for p in out2.glob("*.png")] == ["v1.png"]
+    # the stylized scene, not its source's: the renders differ
+    out3 = tmp_path / "source_views"
+    assert main(["render", str(rec), "--out", str(out3), "--split", "test", "--quiet"]) == 0
+    assert not np.allclose(read_image(out3 / "v1.png", 3), read_image(out2 / "v1.png", 3), atol=0.05)
+
+
+def test_render_of_a_stylized_run_whose_source_moved_is_one_clear_error(tmp_path, capsys):
+    rec, sty = stylized_run(tmp_path, grouped=False)
+    rec.rename(tmp_path / "moved")
+    assert main(["render", str(sty), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "source_scene" in err and "cameras.json" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o").exists()
+    with pytest.raises(InputError, match="run folder not found"):
+        Run.open(tmp_path / "nothing")
+
+
+def test_a_command_that_needs_a_reconstruction_names_a_stylized_runs_source(tmp_path):
+    rec, sty = stylized_run(tmp_path, grouped=False)
+    with pytest.raises(InputError, match=f"a stylize output, not a reconstruction run; .* source reconstruction {rec}"):
+        Run.reconstruction(sty)
+    assert Run.reconstruction(rec).kind == "reconstruction"
