@@ -484,9 +484,11 @@ def format_summary(s: dict) -> str:
 # How far a fresh run may be from the numbers docs/make_figures.py wrote into the README and docs/demo.md (the
 # reconstruction's last bits depend on the machine's thread count; tests/test_demo.py holds a run to them).
 CLAIM_TOLERANCE = {"purity": 0.02, "distance": 0.05}
-_CLAIM_RE = (r"K = (?P<groups>\d+) groups, (?P<separated>\d+) of (?P<objects>\d+) objects in a group of their own, "
-             r"purity (?P<purity>[\d.]+) against the true objects; weight-free style distance colour "
-             r"(?P<color0>[\d.]+) -> (?P<color1>[\d.]+), texture (?P<texture0>[\d.]+) -> (?P<texture1>[\d.]+)")
+_NUM = r"(\d+(?:\.\d+)?)"
+_CLAIM_RE = (rf"K = (?P<groups>\d+) groups, (?P<separated>\d+) of (?P<objects>\d+) objects in a group of their own, "
+             rf"purity (?P<purity>{_NUM[1:-1]}) against the true objects; weight-free style distance colour "
+             rf"(?P<color0>{_NUM[1:-1]}) -> (?P<color1>{_NUM[1:-1]}), texture (?P<texture0>{_NUM[1:-1]}) -> "
+             rf"(?P<texture1>{_NUM[1:-1]})")
 
 
 def claims(summary: dict) -> dict:
