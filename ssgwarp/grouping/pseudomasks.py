@@ -7,8 +7,10 @@ Gaussian through its blending weights (:func:`lift_colours`), not the
 Gaussian's own colour: a reconstruction's colours are noisy where Gaussians
 overlap and compensate for each other, the images are not. The number of
 groups K is chosen per scene by the largest
-(log-)eigengap of the graph Laplacian over K = 2..cap, and groups too small to
-matter are merged into their nearest neighbour. The hard per-Gaussian labels
+(log-)eigengap of the graph Laplacian over K = 2..cap (a graph in pieces: each
+connected component is a group, further splits by the eigengap of the pooled
+component spectra), and groups too small to matter are merged into their
+nearest neighbour. The hard per-Gaussian labels
 are then rendered into every training view through the rasterizer (one
 channel per label, argmax), so every view is labelled from the same 3D
 partition and the masks agree across views by construction. Pixels the scene
@@ -22,6 +24,7 @@ Public API:
     significant_gaussians(scene, cameras)         -> [N] bool (opaque enough and seen)
     kmeans(x, k, generator=...)                   -> (centroids, labels, inertia)
     affinity_graph(x), spectral_embedding(w, n)   -> the graph and its Laplacian spectrum
+    connected_components(w)                       -> [m] component of each node of the graph
     cluster_gaussians(scene, cameras, images=)    -> ClusterResult (labels per Gaussian, K, criterion)
     render_label_masks(scene, cameras, labels, k) -> [C, H, W] long masks (IGNORE = -1)
     pseudo_masks(scene, cameras, images=...)      -> (masks, ClusterResult)
@@ -447,10 +450,11 @@ def cluster_gaussians(scene: GaussianScene, cameras: Optional[Cameras] = None, *
        (:func:`gaussian_features`, :func:`affinity_graph`); with ``images`` (``[C, H, W, 3]``
        of ``cameras``) and ``config.colour == "images"`` the colour feature is the images'
        colour lifted onto the Gaussians (:func:`lift_colours`).
-    2. K: given (``num_groups``), or the largest eigengap
-       ``lambda_{K+1} - lambda_K`` of the normalised graph Laplacian over
-       ``K = config.min_groups..config.max_groups``.
-    3. k-means on the row-normalised first K eigenvectors labels the sample;
+    2. K: given (``num_groups``), or the largest log-eigengap of the normalised graph
+       Laplacian over ``K = config.min_groups..config.max_groups``; a graph in pieces: each
+       connected component is a group and further splits are chosen by the eigengap of the
+       components' pooled spectra (:func:`_spectral_labels`).
+    3. k-means on the row-normalised first K eigenvectors (of each component) labels the sample;
        every Gaussian takes the majority label of its ``config.vote_k`` nearest
        sampled Gaussians in feature space.
     4. Unless K was given, clusters holding less than ``config.min_fraction`` of
