@@ -212,6 +212,23 @@ def test_claims_round_trip_and_tolerance():
         parse_claims("K = 5 groups")
 
 
+def test_make_figures_rewrites_only_the_marked_spans(tmp_path):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("make_figures", ROOT / "docs" / "make_figures.py")
+    mf = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mf)
+    text = "a <!-- figures:demo -->old\nnumbers<!-- /figures --> b <!-- figures:demo-table -->t<!-- /figures --> c"
+    assert mf.span(text, "demo", "new", tmp_path) == ("a <!-- figures:demo -->new<!-- /figures --> b "
+                                                      "<!-- figures:demo-table -->t<!-- /figures --> c")
+    with pytest.raises(SystemExit, match="no <!-- figures:demo --> ... <!-- /figures --> span"):
+        mf.span("no markers", "demo", "new", tmp_path / "README.md")
+    # the files it writes have their markers (it checks them before running the demo)
+    for f in mf.CLAIM_FILES:
+        mf.span(f.read_text(), "demo", "", f)
+    mf.span(mf.TABLE_FILE.read_text(), "demo-table", "", mf.TABLE_FILE)
+
+
 @pytest.mark.slow  # the demo fixture runs the default demo once per session
 def test_the_demo_makes_no_download_attempt(demo):
     out, code, stdout, stderr, attempts = demo
