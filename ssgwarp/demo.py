@@ -52,6 +52,7 @@ OUTPUTS = ("demo.json", "data", "style.png", "scene", "stylized", "evaluation.md
            "summary.json")
 STAGES = ("data", "reconstruct", "group", "stylize", "evaluate", "sheet")
 FORMAT = "ssgwarp-demo/1"
+OFFLINE_REASON = "ssgwarp demo downloads nothing"
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -156,7 +157,6 @@ def _fmt(x, spec: str = ".4g", none: str = "n/a") -> str:
 
 
 # ----------------------------------------------------------------------------- the demo
-@W.offline("ssgwarp demo downloads nothing")
 class _Demo:
     """One demo run's context: the folder, the size, the stage record and how to speak."""
 
@@ -394,12 +394,14 @@ def run_demo(out: str | Path = "ssgwarp-demo", size="default", *, device=None, s
     out.mkdir(parents=True, exist_ok=True)
     d = _Demo(out, name, sz, _resolve_device(device), seed, progress, say, record)
     write_json(out / "demo.json", record)
-    gt, cams, images, objects = _stage_data(d)
-    rec = _stage_reconstruct(d)
-    grp = _stage_group(d, cams, objects, len(gt.names), resume)
-    sty = _stage_stylize(d, resume)
-    evs = _stage_evaluate(d)
-    sheet = _stage_sheet(d, cams, images, rec, grp, sty)
+    # every weight lookup of every stage offline: what is on this machine is used, nothing is fetched
+    with W.offline(OFFLINE_REASON):
+        gt, cams, images, objects = _stage_data(d)
+        rec = _stage_reconstruct(d)
+        grp = _stage_group(d, cams, objects, len(gt.names), resume)
+        sty = _stage_stylize(d, resume)
+        evs = _stage_evaluate(d)
+        sheet = _stage_sheet(d, cams, images, rec, grp, sty)
     summary = _summary(d, gt, rec, grp, sty, evs, sheet, time.perf_counter() - t_all)
     write_json(out / "summary.json", summary)
     return summary
@@ -478,6 +480,57 @@ def format_summary(s: dict) -> str:
     return "\n".join(lines)
 
 
+# ----------------------------------------------------------------------------- the README's claims
+# How far a fresh run may be from the numbers docs/make_figures.py wrote into the README and docs/demo.md (the
+# reconstruction's last bits depend on the machine's thread count; tests/test_demo.py holds a run to them).
+CLAIM_TOLERANCE = {"purity": 0.02, "distance": 0.05}
+_NUM = r"(\d+(?:\.\d+)?)"
+_CLAIM_RE = (rf"K = (?P<groups>\d+) groups, (?P<separated>\d+) of (?P<objects>\d+) objects in a group of their own, "
+             rf"purity (?P<purity>{_NUM[1:-1]}) against the true objects; weight-free style distance colour "
+             rf"(?P<color0>{_NUM[1:-1]}) -> (?P<color1>{_NUM[1:-1]}), texture (?P<texture0>{_NUM[1:-1]}) -> "
+             rf"(?P<texture1>{_NUM[1:-1]})")
+
+
+def claims(summary: dict) -> dict:
+    """The demo numbers the README states, from a summary: groups, objects separated, purity, style distances."""
+    b, a = summary.get("style_distance_original") or {}, summary.get("style_distance") or {}
+    return {"groups": int(summary["groups"]), "separated": int(summary["objects_separated"]),
+            "objects": len(summary["objects"]), "purity": float(summary["group_purity"]),
+            "color0": b.get("color"), "color1": a.get("color"), "texture0": b.get("texture"),
+            "texture1": a.get("texture")}
+
+
+def claims_text(summary: dict) -> str:
+    """The sentence docs/make_figures.py writes between the ``<!-- figures:demo -->`` markers."""
+    c = claims(summary)
+    return (f"K = {c['groups']} groups, {c['separated']} of {c['objects']} objects in a group of their own, purity "
+            f"{c['purity']:.2f} against the true objects; weight-free style distance colour {c['color0']:.1f} -> "
+            f"{c['color1']:.1f}, texture {c['texture0']:.2f} -> {c['texture1']:.2f}")
+
+
+def parse_claims(text: str) -> dict:
+    """The numbers of a :func:`claims_text` sentence inside ``text`` (ValueError when there is none)."""
+    import re
+
+    m = re.search(_CLAIM_RE, " ".join(text.split()))
+    if m is None:
+        raise ValueError("no demo claims sentence found")
+    return {k: (int(v) if k in ("groups", "separated", "objects") else float(v)) for k, v in m.groupdict().items()}
+
+
+def claims_hold(stated: dict, measured: dict) -> list[str]:
+    """What of ``measured`` (:func:`claims`) differs from ``stated`` (:func:`parse_claims`) beyond
+    :data:`CLAIM_TOLERANCE`: one line per difference, empty when the claims hold."""
+    bad = [f"{k}: stated {stated[k]}, measured {measured[k]}" for k in ("groups", "separated", "objects")
+           if stated[k] != measured[k]]
+    if abs(stated["purity"] - measured["purity"]) > CLAIM_TOLERANCE["purity"]:
+        bad.append(f"purity: stated {stated['purity']}, measured {measured['purity']:.3f}")
+    for k in ("color0", "color1", "texture0", "texture1"):
+        if measured[k] is None or abs(measured[k] - stated[k]) > CLAIM_TOLERANCE["distance"] * abs(stated[k]):
+            bad.append(f"style distance {k}: stated {stated[k]}, measured {measured[k]}")
+    return bad
+
+
 # ----------------------------------------------------------------------------- CLI
 def add_arguments(parser) -> None:
     parser.add_argument("--out", type=Path, default=Path("ssgwarp-demo"), help="output folder (default ssgwarp-demo)")
@@ -497,4 +550,4 @@ def run(args) -> int:
     return 0
 
 
-__all__ = ["run_demo", "format_summary", "group_agreement", "add_arguments", "run", "OUTPUTS", "STAGES"]
+__all__ = ["run_demo", "format_summary", "group_agreement", "claims", "claims_text", "parse_claims", "claims_hold", "add_arguments", "run", "OUTPUTS", "STAGES"]

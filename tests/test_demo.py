@@ -1,9 +1,11 @@
-"""`ssgwarp demo` at its reduced size, and the procedural scene it is built on.
+"""`ssgwarp demo`, and the procedural scene it is built on.
 
-The demo runs once (module fixture, through the CLI, ~15 s on one core); the tests read what it
-wrote: the NeRF capture reads back with the cameras it was rendered from (OpenGL axes), every stage
-wrote the run contract, the summary's numbers are what the stages measured, an existing demo is
-never overwritten without --force, and a demo interrupted by Ctrl-C resumes to the same scene.
+The default demo (what the README shows) runs once per session through the CLI (~60-90 s on 2 idle
+cores), with every download function replaced by one that records the attempt; the tests read what it
+wrote and printed: its printed numbers are the README's (docs/make_figures.py wrote them), it made no
+download attempt, the NeRF capture reads back with the cameras it was rendered from (OpenGL axes), every
+stage wrote the run contract, the summary's numbers are what the stages measured, an existing demo is
+never overwritten without --force. A `small` demo interrupted by Ctrl-C resumes to the same scene.
 """
 from __future__ import annotations
 
@@ -43,20 +45,28 @@ def _digest(folder: Path) -> dict[str, str]:
             for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def demo(tmp_path_factory):
-    """One small demo run through the CLI: (out folder, exit code, stdout, stderr)."""
+    """The default demo run once through the CLI, as the README says: (out folder, exit code, stdout, stderr,
+    download attempts). Every function that could download is replaced by one that records the call."""
+    from ssgwarp.services import weights as W
+
     out = tmp_path_factory.mktemp("demo") / "demo"
+    attempts: list = []
     with pytest.MonkeyPatch.context() as mp:
         _no_weights(mp)
-        code, stdout, stderr = _main(["demo", "--out", out, "--size", "small", "--quiet", "--device", "cpu"])
-    return out, code, stdout, stderr
+        for name in ("fetch", "_hf_download", "_url_download", "_hub_files", "_url_size"):
+            if hasattr(W, name):
+                mp.setattr(W, name, lambda *a, _n=name, **k: attempts.append((_n, a)) or (_ for _ in ()).throw(
+                    RuntimeError(f"the demo tried to download ({_n})")))
+        code, stdout, stderr = _main(["demo", "--out", out, "--quiet", "--device", "cpu"])
+    return out, code, stdout, stderr, attempts
 
 
 # ----------------------------------------------------------------------------- the demo
-@pytest.mark.slow  # the demo fixture runs the whole pipeline once (~30 s on 2 cores)
+@pytest.mark.slow  # the demo fixture runs the default demo once per session (~60-90 s on 2 idle cores)
 def test_demo_runs_every_stage_and_prints_a_summary(demo):
-    out, code, stdout, stderr = demo
+    out, code, stdout, stderr, _ = demo
     assert code == 0, stderr
     summary = json.loads((out / "summary.json").read_text())
     record = json.loads((out / "demo.json").read_text())
@@ -71,12 +81,10 @@ def test_demo_runs_every_stage_and_prints_a_summary(demo):
     # which Stage 2 path ran: weight-free here (no VGG16, no Stage 1), said in the output and the summary
     assert "Stage 2 path: weight-free (no Stage 1, random features random-multiscale" in stdout
     assert summary["weight_free"] is True and summary["style_loss"] == "sw" and summary["color_transfer"] == "both"
-    # ... and it moves the scene toward the style by the weight-free distances (measured 2026-11-23 on
-    # this small 48x36 demo with the weight-free defaults: colour x0.91, texture x0.92 — x0.91 / x0.90 with
-    # the single-band texture rule before; asserted with about half those margins. The default-size demo
-    # and fern over 25 styles: docs/stylize.md)
+    # ... and it moves the scene toward the style by the weight-free distances (measured 2026-11-28 on the
+    # default demo: colour x0.66, texture x0.70; asserted with margin; the README states the numbers)
     for k in ("color", "texture"):
-        assert 0 < summary["style_distance"][k] < 0.96 * summary["style_distance_original"][k], (k, summary)
+        assert 0 < summary["style_distance"][k] < 0.85 * summary["style_distance_original"][k], (k, summary)
     last = stdout.strip().splitlines()[-1]
     assert last == f"contact sheet: {summary['contact_sheet']}"
     sheet = Path(summary["contact_sheet"])
@@ -90,33 +98,32 @@ def test_demo_runs_every_stage_and_prints_a_summary(demo):
     sty = json.loads((out / "stylized" / "metrics.json").read_text())
     groups = json.loads((out / "scene" / "groups" / "groups.json").read_text())
     assert summary["gaussians"] == rec["num_gaussians"] and summary["psnr"] == rec["psnr"]
-    assert summary["psnr"] > 15.0                     # measured 18.8 dB (2026-11-23, 2 CPU cores)
+    assert summary["psnr"] > 30.0                     # measured 33.6 dB (2026-11-28, 2 CPU cores)
     assert summary["groups"] == groups["num_groups"] >= 2
     # no Segment Anything weights here: the groups are mask-free clusters, and the summary says so
     assert summary["group_kind"] == groups["kind"] == "mask-free clusters"
-    # measured (2026-11-23): 3 groups, 2 of the 5 objects separated, purity 0.82, cross-view agreement 0.977
-    assert 1 <= summary["objects_separated"] <= 5
-    assert summary["cross_view_agreement"] > 0.9
+    # the five objects, each in a group of its own (issue 38: the neighbour graph in two pieces gave K = 2)
+    assert summary["groups"] == 5 and summary["objects_separated"] == 5 and summary["group_purity"] >= 0.95
+    assert summary["cross_view_agreement"] > 0.95
     assert summary["gram_style_loss"] == sty["gram_style_loss"] and math.isfinite(summary["content_loss"])
-    assert 0.7 < summary["group_purity"] <= 1.0
     c = summary["consistency_rmse"]
     assert c["stylized"]["short"] == sty["evaluation"]["consistency"]["reprojection"]["short"]["rmse"]
-    # measured RMSE: reconstruction 0.056 (short) / 0.072 (long), stylized 0.061 / 0.076: a consistent scene,
-    # and stylization costs little consistency
+    # measured RMSE (2026-11-28): reconstruction 0.018 (short) / 0.054 (long), stylized 0.023 / 0.069: a
+    # consistent scene, and stylization costs little consistency
     assert all(0.0 < c[r]["short"] < 0.1 and 0.0 < c[r]["long"] < 0.12 for r in c)
     assert all(c["stylized"][k] < c["reconstruction"][k] + 0.02 for k in ("short", "long"))
     assert set(summary["seconds"]) == {"data", "reconstruct", "group", "stylize", "evaluate", "sheet"}
     assert (out / "evaluation.md").read_text().startswith("Evaluation")
 
 
-@pytest.mark.slow  # the demo fixture runs the whole pipeline once (~30 s on 2 cores)
+@pytest.mark.slow  # the demo fixture runs the default demo once per session
 def test_demo_outputs_follow_the_run_contract(demo):
     from ssgwarp.capture.datasets import load_dataset, load_run
     from ssgwarp.grouping.stage import load_groups
     from ssgwarp.capture.ply import read_ply
 
     out = demo[0]
-    size = P.SIZES["small"]
+    size = P.SIZES["default"]
     data = load_dataset(out / "data")
     assert len(data) == size.views and (data.width, data.height) == (size.width, size.height)
     scene, run = load_run(out / "scene", "cpu")
@@ -133,17 +140,125 @@ def test_demo_outputs_follow_the_run_contract(demo):
     assert np.allclose(style, P.style_image(192, 192, seed=0), atol=1 / 255)
 
 
-@pytest.mark.slow  # the demo fixture runs the whole pipeline once (~30 s on 2 cores)
+@pytest.mark.slow  # the demo fixture runs the default demo once per session
 def test_existing_demo_is_not_overwritten_without_force(demo, tmp_path):
     out = demo[0]
     before = _digest(out)
-    code, stdout, stderr = _main(["demo", "--out", out, "--size", "small", "--quiet", "--device", "cpu"])
+    code, stdout, stderr = _main(["demo", "--out", out, "--quiet", "--device", "cpu"])
     assert code == 2 and "already holds a demo run" in stderr and "--force" in stderr
     assert len(stderr.strip().splitlines()) == 1 and "Traceback" not in stderr
     assert _digest(out) == before
     # --resume with other options is refused too, before anything is written
-    code, _, stderr = _main(["demo", "--out", out, "--size", "default", "--resume", "--quiet", "--device", "cpu"])
+    code, _, stderr = _main(["demo", "--out", out, "--size", "small", "--resume", "--quiet", "--device", "cpu"])
     assert code == 2 and "other options" in stderr and _digest(out) == before
+
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _printed_claims(stdout: str) -> dict:
+    """The README's numbers as the demo printed them (its summary lines, not summary.json)."""
+    import re
+
+    from ssgwarp.demo import _NUM as num
+
+    g = re.search(rf"K=(\d+) \S.*purity vs true objects {num}, (\d+)/(\d+) objects separated", stdout)
+    d = re.search(rf"style distance colour {num} -> {num}, texture {num} -> {num};", stdout)
+    assert g and d, stdout
+    return {"groups": int(g[1]), "purity": float(g[2]), "separated": int(g[3]), "objects": int(g[4]),
+            "color0": float(d[1]), "color1": float(d[2]), "texture0": float(d[3]), "texture1": float(d[4])}
+
+
+def _stated(path: Path) -> dict:
+    """The numbers docs/make_figures.py wrote between the figures markers of ``path``."""
+    from ssgwarp.demo import parse_claims
+
+    text = path.read_text()
+    start = text.index("<!-- figures:demo -->")
+    return parse_claims(text[start:text.index("<!-- /figures -->", start)])
+
+
+@pytest.mark.slow  # the demo fixture runs the default demo once per session
+def test_the_demo_prints_what_the_readme_states(demo):
+    """The README's and docs/demo.md's demo numbers (groups, objects separated, purity, style distances) are
+    what a fresh default demo prints, within ssgwarp.demo.CLAIM_TOLERANCE (`python docs/make_figures.py`
+    rewrites them from a run)."""
+    from ssgwarp.demo import claims_hold
+
+    out, code, stdout, stderr, _ = demo
+    assert code == 0, stderr
+    printed = _printed_claims(stdout)
+    readme = _stated(ROOT / "README.md")
+    assert _stated(ROOT / "docs" / "demo.md") == readme
+    assert claims_hold(readme, printed) == [], (readme, printed)
+    assert printed["groups"] == 5 and printed["separated"] == 5 and printed["purity"] >= 0.95
+
+
+def test_claims_round_trip_and_tolerance():
+    from ssgwarp.demo import claims, claims_hold, claims_text, parse_claims
+
+    s = {"groups": 5, "objects_separated": 5, "objects": ["a"] * 5, "group_purity": 0.9931,
+         "style_distance_original": {"color": 19.46, "texture": 3.071},
+         "style_distance": {"color": 12.94, "texture": 2.152}}
+    text = claims_text(s)
+    got = parse_claims("before " + text.replace(" ", "\n", 3) + ". After.")
+    assert got == {"groups": 5, "separated": 5, "objects": 5, "purity": 0.99, "color0": 19.5, "color1": 12.9,
+                   "texture0": 3.07, "texture1": 2.15}
+    assert claims_hold(got, claims(s)) == []
+    moved = dict(s, style_distance={"color": 14.0, "texture": 2.152}, groups=2, group_purity=0.74)
+    bad = claims_hold(got, claims(moved))
+    assert [b.split(":")[0] for b in bad] == ["groups", "purity", "style distance color1"]
+    with pytest.raises(ValueError):
+        parse_claims("K = 5 groups")
+
+
+def test_make_figures_rewrites_only_the_marked_spans(tmp_path):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("make_figures", ROOT / "docs" / "make_figures.py")
+    mf = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mf)
+    text = "a <!-- figures:demo -->old\nnumbers<!-- /figures --> b <!-- figures:demo-table -->t<!-- /figures --> c"
+    assert mf.span(text, "demo", "new", tmp_path) == ("a <!-- figures:demo -->new<!-- /figures --> b "
+                                                      "<!-- figures:demo-table -->t<!-- /figures --> c")
+    with pytest.raises(SystemExit, match="no <!-- figures:demo --> ... <!-- /figures --> span"):
+        mf.span("no markers", "demo", "new", tmp_path / "README.md")
+    # the files it writes have their markers (it checks them before running the demo)
+    for f in mf.CLAIM_FILES:
+        mf.span(f.read_text(), "demo", "", f)
+    mf.span(mf.TABLE_FILE.read_text(), "demo-table", "", mf.TABLE_FILE)
+
+
+@pytest.mark.slow  # the demo fixture runs the default demo once per session
+def test_the_demo_makes_no_download_attempt(demo):
+    out, code, stdout, stderr, attempts = demo
+    assert code == 0, stderr
+    assert attempts == [] and "downloading" not in stderr
+
+
+def test_every_demo_stage_runs_with_downloads_off(tmp_path, monkeypatch):
+    """Downloads are off from the first stage on (not only while the demo's context is made), and on again
+    after the demo."""
+    import ssgwarp.demo as D
+    from ssgwarp.services import weights as W
+
+    for v in ("SSGWARP_OFFLINE", "HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE"):
+        monkeypatch.delenv(v, raising=False)
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def first_stage(d):
+        seen["reason"] = W.offline_reason()
+        raise Stop
+
+    monkeypatch.setattr(D, "_stage_data", first_stage)
+    before = W.offline_reason()
+    with pytest.raises(Stop):
+        D.run_demo(tmp_path / "d", "small", device="cpu", progress=False)
+    assert seen["reason"] == D.OFFLINE_REASON
+    assert W.offline_reason() == before
 
 
 def test_force_removes_only_what_the_demo_writes(tmp_path):
@@ -166,9 +281,12 @@ def test_force_removes_only_what_the_demo_writes(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
 
 
-@pytest.mark.slow  # runs the demo again, interrupted and resumed (~20 s)
-def test_ctrl_c_in_a_demo_stage_resumes_to_the_uninterrupted_result(demo, tmp_path, monkeypatch, fail_on_call):
-    """Ctrl-C during Stage 2: exit 130, finished stages kept; --resume gives the same stylized scene."""
+@pytest.mark.slow  # runs the small demo, interrupted and resumed, and its Stage 2 once more (~40 s)
+def test_ctrl_c_in_a_demo_stage_resumes_to_the_uninterrupted_result(tmp_path, monkeypatch, fail_on_call):
+    """Ctrl-C during Stage 2: exit 130, finished stages kept; --resume gives the same stylized scene as an
+    uninterrupted Stage 2 on the same reconstruction (a copy of the run with the stylize stage undone)."""
+    import shutil
+
     import ssgwarp.stylization.stage2 as st   # where optimise calls it
     from ssgwarp.capture.ply import read_ply
 
@@ -183,9 +301,15 @@ def test_ctrl_c_in_a_demo_stage_resumes_to_the_uninterrupted_result(demo, tmp_pa
     assert torch.load(out / "stylized" / "stage2.ckpt", weights_only=False)["step"] == 6
     assert not (out / "summary.json").exists() and not (out / "stylized" / "scene.ply").exists()
     monkeypatch.setattr(st, "backward_views", orig)
+    # the reference: the same run, its interrupted Stage 2 removed, run uninterrupted
+    ref = tmp_path / "ref"
+    shutil.copytree(out, ref)
+    shutil.rmtree(ref / "stylized")
     code, stdout, stderr = _main(argv + ["--resume"])
     assert code == 0, stderr
-    a, b = read_ply(demo[0] / "stylized" / "scene.ply"), read_ply(out / "stylized" / "scene.ply")
+    code, _, stderr = _main(["demo", "--out", ref, "--size", "small", "--quiet", "--device", "cpu", "--resume"])
+    assert code == 0, stderr
+    a, b = read_ply(ref / "stylized" / "scene.ply"), read_ply(out / "stylized" / "scene.ply")
     for k, v in a.tensors().items():
         assert torch.equal(v, b.tensors()[k]), k
 

@@ -462,3 +462,98 @@ def test_mask_free_on_real_capture(shared_data):
     print(f"fern (1000 points, 48x36): K={res.num_groups}, criterion {res.criterion['values']}, "
           f"reprojection agreement {agree['mean']:.4f} over {agree['pixels']} pixels")
     assert agree["pixels"] > 1000 and agree["mean"] > 0.85
+
+
+# -- K when the neighbour graph falls apart (issue 38) ----------------------------------------------
+
+def _feature_blobs(centres, n: int = 60, std: float = 0.2, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return torch.cat([torch.tensor(c, dtype=torch.float64) + torch.randn(n, 2, generator=g, dtype=torch.float64) * std
+                      for c in centres])
+
+
+def _labels_of(xs, *, num_groups=None, cap=8, config=None, seed=0):
+    from ssgwarp.grouping.pseudomasks import ClusterConfig, _spectral_labels, affinity_graph
+
+    config = config or ClusterConfig()
+    w = affinity_graph(xs, config.graph_k, config.sigma_rank)
+    crit: dict = {}
+    k, lab = _spectral_labels(xs, w, num_groups, cap, config, torch.Generator().manual_seed(seed), crit)
+    return k, lab, crit, w
+
+
+def _purity(lab: torch.Tensor, truth: torch.Tensor) -> float:
+    k = int(max(lab.max(), truth.max())) + 1
+    table = torch.zeros(k, k, dtype=torch.long).index_put_((lab, truth), torch.ones_like(lab), accumulate=True)
+    return float(table.max(dim=1).values.sum()) / lab.numel()
+
+
+def test_connected_components_of_a_graph():
+    from ssgwarp.grouping.pseudomasks import connected_components
+
+    w = torch.zeros(7, 7, dtype=torch.float64)
+    for a, b in [(0, 3), (3, 5), (1, 2), (4, 6), (6, 4)]:
+        w[a, b] = 0.5                                   # one-sided edges count as edges
+    assert connected_components(w).tolist() == [0, 1, 1, 0, 2, 0, 2]
+    assert connected_components(torch.zeros(3, 3)).tolist() == [0, 1, 2]
+    assert connected_components(torch.ones(4, 4)).tolist() == [0, 0, 0, 0]
+
+
+def test_a_graph_in_pieces_still_finds_the_clusters_inside_them():
+    """The demo's failure (issue 38), in feature space: four touching clusters and one far away. The kNN graph
+    has two components, so the Laplacian has two exact zeros and the log-eigengap after them is decided by its
+    floor alone: the old rule took K = 2. Components first, then the pooled eigengap, finds all five."""
+    from ssgwarp.grouping.pseudomasks import ClusterConfig, _best, _log_gaps, connected_components, spectral_embedding
+
+    xs = _feature_blobs([(0, 0), (1, 0), (0, 1), (1, 1), (6, 6)])
+    truth = torch.arange(5).repeat_interleave(60)
+    cfg = ClusterConfig(graph_k=10)
+    k, lab, crit, w = _labels_of(xs, config=cfg)
+    assert sorted(torch.bincount(connected_components(w)).tolist()) == [60, 240]
+    evals = spectral_embedding(w, 9)[0]
+    assert float(evals[1]) < 1e-9 and _best(_log_gaps(evals, 2, 8, ClusterConfig().gap_floor), 1) == 2  # the old rule
+    assert k == 5 and crit["components"] == [240, 60] and crit["measure"].startswith("eigengap")
+    assert max(crit["values"], key=crit["values"].get) == 5 and crit["fragments"] == 0
+    assert _purity(lab, truth) >= 0.95 and len(set(lab[truth == 4].tolist())) == 1
+    # deterministic: the same labels again
+    assert torch.equal(lab, _labels_of(xs, config=cfg)[1])
+
+
+def test_components_as_groups_caps_and_given_k():
+    xs = _feature_blobs([(0, 0), (5, 0), (0, 5), (5, 5), (10, 10)], std=0.1)
+    truth = torch.arange(5).repeat_interleave(60)
+    k, lab, crit, _ = _labels_of(xs)
+    # five compact, separate blobs: the components are the groups (no split of a blob)
+    assert k == 5 and crit["components"] == [60] * 5 and _purity(lab, truth) == 1.0
+    assert crit["values"][5] == max(crit["values"].values())
+    # a given K above the components splits the components that own the smallest eigenvalues; below, the
+    # components are kept (the caller merges them down to K by their centroids)
+    k7, lab7, _, _ = _labels_of(xs, num_groups=7)
+    assert k7 == 7 and len(lab7.unique()) == 7
+    k3, lab3, _, _ = _labels_of(xs, num_groups=3)
+    assert k3 == 5 and torch.equal(lab3, lab)
+
+
+def test_cluster_gaussians_merges_components_down_to_the_cap_and_votes_fragments_in():
+    from ssgwarp.grouping.pseudomasks import ClusterConfig, cluster_gaussians
+
+    # five separate blobs of Gaussians far apart, no cameras: more components than a cap of 3
+    xyz = _feature_blobs([(0, 0), (3, 0), (0, 3), (3, 3), (6, 6)], n=40, std=0.05).float()
+    xyz = torch.cat([xyz, torch.zeros(len(xyz), 1)], 1)
+    n = len(xyz)
+    quats = torch.zeros(n, 4)
+    quats[:, 0] = 1
+    scene = GaussianScene(xyz, torch.full((n, 3), math.log(0.05)), quats, torch.full((n,), 3.0),
+                          rgb_to_sh_dc(torch.full((n, 3), 0.5)))
+    res = cluster_gaussians(scene, config=ClusterConfig(max_groups=3, weights=(1.0, 1.0, 0.1)), seed=0)
+    assert res.num_groups == 3 and res.criterion["components"] == [40] * 5 and len(res.criterion["merged"]) == 2
+    free = cluster_gaussians(scene, config=ClusterConfig(weights=(1.0, 1.0, 0.1)), seed=0)
+    assert free.num_groups == 5 and not free.criterion["merged"]
+    truth = torch.arange(5).repeat_interleave(40)
+    assert _purity(free.labels, truth) == 1.0
+    # a piece too small to be a group (under min_fraction of the sample) is not one: it joins a group
+    cfg = ClusterConfig(weights=(1.0, 1.0, 0.1), graph_k=5, sigma_rank=3, min_fraction=0.1)
+    res = cluster_gaussians(scene.subset(torch.arange(n - 32)), config=cfg, seed=0)     # the last blob: 8 left
+    assert res.criterion["fragments"] == 8 and any(m.get("fragment") for m in res.criterion["merged"])
+    frag = res.labels[n - 40:n - 32]
+    assert bool(torch.isin(frag, res.labels[:n - 40]).all())          # in groups of the other blobs' Gaussians

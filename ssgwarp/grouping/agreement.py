@@ -107,7 +107,7 @@ def plot_training(path: Path, criterion: Optional[dict], history: list[dict], ti
         ax2.plot(ks, vals, "o-")
         ax2.axvline(criterion.get("chosen_k", ks[0]), color="gray", ls="--", label=f"chosen K={criterion.get('chosen_k')}")
         ax2.set_xlabel("K")
-        ax2.set_ylabel("log-eigengap")
+        ax2.set_ylabel(criterion.get("measure", "log-eigengap"))
         ax2.set_title(f"K criterion (final K={criterion.get('final_k')})")
         ax2.legend()
     fig.suptitle(title)

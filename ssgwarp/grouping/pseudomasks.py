@@ -7,8 +7,10 @@ Gaussian through its blending weights (:func:`lift_colours`), not the
 Gaussian's own colour: a reconstruction's colours are noisy where Gaussians
 overlap and compensate for each other, the images are not. The number of
 groups K is chosen per scene by the largest
-(log-)eigengap of the graph Laplacian over K = 2..cap, and groups too small to
-matter are merged into their nearest neighbour. The hard per-Gaussian labels
+(log-)eigengap of the graph Laplacian over K = 2..cap (a graph in pieces: each
+connected component is a group, further splits by the eigengap of the pooled
+component spectra), and groups too small to matter are merged into their
+nearest neighbour. The hard per-Gaussian labels
 are then rendered into every training view through the rasterizer (one
 channel per label, argmax), so every view is labelled from the same 3D
 partition and the masks agree across views by construction. Pixels the scene
@@ -22,6 +24,7 @@ Public API:
     significant_gaussians(scene, cameras)         -> [N] bool (opaque enough and seen)
     kmeans(x, k, generator=...)                   -> (centroids, labels, inertia)
     affinity_graph(x), spectral_embedding(w, n)   -> the graph and its Laplacian spectrum
+    connected_components(w)                       -> [m] component of each node of the graph
     cluster_gaussians(scene, cameras, images=)    -> ClusterResult (labels per Gaussian, K, criterion)
     render_label_masks(scene, cameras, labels, k) -> [C, H, W] long masks (IGNORE = -1)
     pseudo_masks(scene, cameras, images=...)      -> (masks, ClusterResult)
@@ -324,6 +327,119 @@ def spectral_embedding(w: Tensor, n: int) -> tuple[Tensor, Tensor]:
     return evals, evecs[:, :n]
 
 
+def connected_components(w: Tensor) -> Tensor:
+    """``[m]`` long: the connected component of each node of the graph ``w [m, m]`` (an edge where
+    ``w > 0``), numbered in the order of their smallest node index (deterministic)."""
+    m = w.shape[0]
+    adj = (w > 0) | (w.T > 0)
+    lab = torch.arange(m, device=w.device)
+    big = torch.full_like(lab, m)
+    while True:
+        # each node takes its neighbours' smallest label, then labels jump to their label's label
+        nxt = torch.minimum(lab, torch.where(adj, lab[None, :], big[None, :]).min(dim=1).values)
+        while True:
+            jumped = nxt[nxt]
+            if torch.equal(jumped, nxt):
+                break
+            nxt = jumped
+        if torch.equal(nxt, lab):
+            break
+        lab = nxt
+    return torch.unique(lab, sorted=True, return_inverse=True)[1]
+
+
+def _log_gaps(evals: Tensor, lo: int, cap: int, gap_floor: float) -> dict[int, float]:
+    """``{K: log((lambda_{K+1} + eps) / (lambda_K + eps))}`` for K = lo..cap (1-based eigenvalues ascending;
+    eps = ``gap_floor`` times the (cap+1)-th eigenvalue)."""
+    top = evals[: cap + 1].clamp_min(0.0)
+    eps = max(float(top[-1]) * gap_floor, 1e-12)
+    return {kk: float(torch.log((top[kk] + eps) / (top[kk - 1] + eps)))
+            for kk in range(max(1, lo), cap + 1) if kk < top.numel()}
+
+
+def _best(gaps: dict[int, float], default: int) -> int:
+    """The K of the largest gap; ties (and all-zero gaps) go to the smaller K."""
+    return max(gaps, key=lambda kk: (gaps[kk], -kk)) if gaps else default
+
+
+def _row_kmeans(vecs: Tensor, k: int, config: "ClusterConfig", gen: torch.Generator) -> Tensor:
+    """k-means labels of the row-normalised spectral embedding ``vecs [n, >= k]`` (0 for k == 1)."""
+    if k <= 1:
+        return torch.zeros(vecs.shape[0], dtype=torch.long, device=vecs.device)
+    emb = vecs[:, :k]
+    emb = emb / emb.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    return kmeans(emb, k, generator=gen, iters=config.kmeans_iters, restarts=config.restarts)[1]
+
+
+def _spectral_labels(xs: Tensor, w: Tensor, num_groups: Optional[int], cap: int, config: "ClusterConfig",
+                     gen: torch.Generator, criterion: dict) -> tuple[int, Tensor]:
+    """K and the labels ``[m]`` of the sampled Gaussians ``xs [m, D]`` from their graph ``w`` (records into
+    ``criterion``).
+
+    A connected graph: K by the largest log-eigengap over ``config.min_groups..cap``, k-means on the first K
+    eigenvectors. A graph in several pieces (its Laplacian has one exact zero eigenvalue per piece, and the
+    log-gap after an exact zero is decided by the floor alone): pieces too small to be a group (under
+    ``config.min_fraction`` of the sample) take their label from the rest by a vote in feature space; each
+    remaining component is a group, and K = components + j further splits, j by the largest (absolute)
+    eigengap of the components' pooled spectra, the zeros included (``j = 0``: the components are the
+    groups). Each split goes to the component that owns the eigenvalue, which is clustered on its own.
+    """
+    m = w.shape[0]
+    comp = connected_components(w)
+    sizes = torch.bincount(comp)
+    small = sizes < max(2.0, config.min_fraction * m)
+    if bool(small.all()):
+        small = sizes < int(sizes.max())                  # nothing large: keep the largest piece(s)
+    parts = [int(c) for c in torch.argsort(-sizes, stable=True) if not bool(small[c])]
+    criterion["components"] = [int(sizes[c]) for c in parts]
+    main = ~small[comp]
+    frag = torch.nonzero(~main).flatten()
+    criterion["fragments"] = int(frag.numel())
+    if len(parts) == 1 and frag.numel() == 0:
+        # connected: the log-eigengap over K = min_groups..cap
+        evals, evecs = spectral_embedding(w, min(m, cap + 1))
+        gaps = _log_gaps(evals, config.min_groups, cap, config.gap_floor)
+        criterion.update(measure="log-eigengap", eigenvalues=[float(v) for v in evals[: cap + 1].clamp_min(0.0)],
+                         values=gaps)
+        k = int(num_groups) if num_groups is not None else _best(gaps, 1)
+        vecs = evecs if k <= evecs.shape[1] else spectral_embedding(w, k)[1]
+        return k, _row_kmeans(vecs, k, config, gen)
+    nodes = [torch.nonzero(comp == c).flatten() for c in parts]
+    spectra = [spectral_embedding(w[idx][:, idx], idx.numel()) for idx in nodes]
+    c = len(parts)
+    if c == 1:
+        # one component after the fragments: the connected rule on it
+        evals, evecs = spectra[0]
+        capc = max(1, min(cap, nodes[0].numel() - 1))
+        gaps = _log_gaps(evals, config.min_groups, capc, config.gap_floor)
+        criterion.update(measure="log-eigengap", eigenvalues=[float(v) for v in evals[: capc + 1].clamp_min(0.0)],
+                         values=gaps)
+        k = int(num_groups) if num_groups is not None else _best(gaps, 1)
+        per = [min(k, nodes[0].numel())]
+    else:
+        # the pooled spectrum without each component's own zero, ascending (ties by component)
+        pooled = sorted((max(float(v), 0.0), i) for i, (ev, _) in enumerate(spectra) for v in ev[1: cap + 1])
+        zeros_then = [0.0] + [v for v, _ in pooled]
+        gaps = {c + j: zeros_then[j + 1] - zeros_then[j] for j in range(0, cap - c + 1) if j + 1 < len(zeros_then)}
+        criterion.update(measure="eigengap (components pooled)",
+                         eigenvalues=([0.0] * c + [v for v, _ in pooled])[: max(cap, c) + 1], values=gaps)
+        k = int(num_groups) if num_groups is not None else _best(gaps, c)
+        # k < c (a given K, or more components than the cap): one group per component, merged later
+        per = [1] * c
+        for _, i in pooled[: max(0, k - c)]:
+            per[i] += 1
+    lab_s = torch.full((m,), -1, dtype=torch.long, device=w.device)
+    base = 0
+    for idx, (_, vecs), ki in zip(nodes, spectra, per):
+        lab_s[idx] = base + _row_kmeans(vecs, ki, config, gen)
+        base += ki
+    if frag.numel():
+        ref = torch.nonzero(main).flatten()
+        lab_s[frag] = _knn_vote(xs[frag], xs[ref], lab_s[ref], base, config.vote_k)
+        criterion["fragments_merged"] = [{"share": float(frag.numel()) / m, "fragment": True}]
+    return base, lab_s
+
+
 def cluster_gaussians(scene: GaussianScene, cameras: Optional[Cameras] = None, *,
                       num_groups: Optional[int] = None, config: ClusterConfig = ClusterConfig(),
                       seed: int = 0, images: Optional[Tensor] = None, progress: bool = False) -> ClusterResult:
@@ -334,10 +450,11 @@ def cluster_gaussians(scene: GaussianScene, cameras: Optional[Cameras] = None, *
        (:func:`gaussian_features`, :func:`affinity_graph`); with ``images`` (``[C, H, W, 3]``
        of ``cameras``) and ``config.colour == "images"`` the colour feature is the images'
        colour lifted onto the Gaussians (:func:`lift_colours`).
-    2. K: given (``num_groups``), or the largest eigengap
-       ``lambda_{K+1} - lambda_K`` of the normalised graph Laplacian over
-       ``K = config.min_groups..config.max_groups``.
-    3. k-means on the row-normalised first K eigenvectors labels the sample;
+    2. K: given (``num_groups``), or the largest log-eigengap of the normalised graph
+       Laplacian over ``K = config.min_groups..config.max_groups``; a graph in pieces: each
+       connected component is a group and further splits are chosen by the eigengap of the
+       components' pooled spectra (:func:`_spectral_labels`).
+    3. k-means on the row-normalised first K eigenvectors (of each component) labels the sample;
        every Gaussian takes the majority label of its ``config.vote_k`` nearest
        sampled Gaussians in feature space.
     4. Unless K was given, clusters holding less than ``config.min_fraction`` of
@@ -375,43 +492,26 @@ def cluster_gaussians(scene: GaussianScene, cameras: Optional[Cameras] = None, *
     if m < 3:
         # too few Gaussians for a graph: one group each (or one group)
         k = int(num_groups) if num_groups is not None else 1
-        emb = None
+        lab_s = torch.zeros(m, dtype=torch.long, device=xs.device) if k == 1 else torch.arange(m, device=xs.device) % k
     else:
         w = affinity_graph(xs, config.graph_k, config.sigma_rank)
-        evals, evecs = spectral_embedding(w, min(m, cap + 1))
-        top = evals[: cap + 1].clamp_min(0.0)
-        # log-gap: eigenvalues far below the (cap+1)-th one count as zero
-        eps = max(float(top[-1]) * config.gap_floor, 1e-12)
-        gaps = {kk: float(torch.log((top[kk] + eps) / (top[kk - 1] + eps)))
-                for kk in range(max(1, config.min_groups), cap + 1) if kk < top.numel()}
-        criterion["eigenvalues"] = [float(v) for v in top]
-        criterion["values"] = gaps
-        if num_groups is not None:
-            k = int(num_groups)
-        else:
-            k = max(gaps, key=lambda kk: (gaps[kk], -kk)) if gaps else 1
-        emb = evecs[:, :k] if k <= evecs.shape[1] else spectral_embedding(w, k)[1]
-        emb = emb / emb.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        k, lab_s = _spectral_labels(xs, w, num_groups, cap, config, gen, criterion)
     criterion["chosen_k"] = int(k)
     criterion["given"] = num_groups is not None
-    if k == 1:
-        lab_s = torch.zeros(m, dtype=torch.long, device=xs.device)
-    elif emb is None:
-        lab_s = torch.arange(m, device=xs.device) % k
-    else:
-        _, lab_s, _ = kmeans(emb, k, generator=gen, iters=config.kmeans_iters, restarts=config.restarts)
     # every Gaussian takes the majority label of its nearest sampled Gaussians in feature space
     labels = _knn_vote(feats, xs, lab_s, k, config.vote_k)
     # centroids of the clusters in feature space (for merging)
     cent = torch.zeros(k, feats.shape[1], dtype=feats.dtype, device=feats.device).index_add_(0, lab_s, xs)
     cent = cent / torch.bincount(lab_s, minlength=k).clamp_min(1)[:, None].to(cent.dtype)
-    merged = []
-    if num_groups is None:
+    merged = list(criterion.pop("fragments_merged", []))
+    # at most this many groups: the cap, or the K given (components of the graph can outnumber either)
+    limit = int(num_groups) if num_groups is not None else max(1, int(config.max_groups))
+    if num_groups is None or cent.shape[0] > limit:
         while cent.shape[0] > 1:
             counts = torch.bincount(labels[sig_idx], minlength=cent.shape[0]).double()
-            share = counts / counts.sum()
+            share = counts / counts.sum().clamp_min(1)
             small = int(torch.argmin(share))
-            if float(share[small]) >= config.min_fraction:
+            if cent.shape[0] <= limit and (num_groups is not None or float(share[small]) >= config.min_fraction):
                 break
             d = torch.cdist(cent[small:small + 1], cent)[0]
             d[small] = float("inf")
