@@ -79,13 +79,16 @@ def check_views(scene, exported, run: Run, views: int, device="cpu") -> list[flo
     """PSNR (dB) of renders of ``exported`` against ``scene`` on ``views`` of the run's cameras
     (held-out ones first, evenly spaced), over the run's background."""
     cams = run.cameras
-    pool = run.test_ids or list(range(len(cams)))
-    if views <= 0 or not pool:
-        return []
-    idx = [pool[round(i * (len(pool) - 1) / max(1, views - 1))] for i in range(min(views, len(pool)))]
+
+    def spaced(ids: list[int], k: int) -> list[int]:
+        k = min(k, len(ids))
+        return [ids[round(i * (len(ids) - 1) / max(1, k - 1))] for i in range(k)]
+
+    idx = spaced(run.test_ids, views)
+    idx += spaced([i for i in run.train_ids if i not in idx], views - len(idx))
     bg = run.background(run.data.get("background") or (1.0, 1.0, 1.0))
     out = []
-    for i in dict.fromkeys(idx):
+    for i in idx:
         cam = cams[[i]].to(device)
         a = render_views(scene.to(device), cam, bg, depth=False).rgb
         b = render_views(exported.to(device), cam, bg, depth=False).rgb
@@ -139,8 +142,10 @@ def run(args) -> int:
                views=args.check_views, device=args.device)
     ratio = r["source_bytes"] / max(1, r["bytes"])
     print(f"{r['path']}: {r['format']}, {r['gaussians']} Gaussians, SH degree {r['sh_degree']}, "
-          f"{r['bytes'] / 1e6:.2f} MB ({ratio:.1f}x smaller than scene.ply's {r['source_bytes'] / 1e6:.2f} MB)")
+          f"{r['bytes'] / 1e6:.2f} MB ({ratio:.1f}x smaller than the source's {r['source_bytes'] / 1e6:.2f} MB)")
     if r["psnr"]:
-        print(f"round trip: PSNR {min(r['psnr']):.2f} dB (worst of {len(r['psnr'])} views; renders of the file "
-              f"read back against the scene's at SH degree {r['sh_degree']})")
+        worst = min(r["psnr"])
+        said = "identical renders" if worst >= 100 else f"PSNR {worst:.2f} dB"
+        print(f"round trip: {said} (worst of {len(r['psnr'])} view(s); the file read back against the scene, "
+              f"both at SH degree {r['sh_degree']})")
     return 0
