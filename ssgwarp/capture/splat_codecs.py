@@ -95,6 +95,14 @@ def arrays_scene(means, log_scales, quats, opacity, sh_dc, sh_rest=None) -> Gaus
                          t(sh_rest) if k else None, None, degree)
 
 
+def write_atomic(path: str | Path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` through a temporary file (an interrupted write leaves nothing)."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+    return path
+
+
 def morton_order(points: np.ndarray) -> np.ndarray:
     """Indices sorting ``points [N, 3]`` along a Z-order curve (10 bits an axis over their bounding box)."""
     lo, hi = points.min(axis=0), points.max(axis=0)
@@ -193,11 +201,7 @@ def compressed_ply_bytes(scene: GaussianScene) -> bytes:
 
 def write_compressed_ply(path: str | Path, scene: GaussianScene) -> Path:
     """Write ``scene`` as a PlayCanvas compressed PLY, atomically."""
-    path = Path(path)
-    data = compressed_ply_bytes(scene)
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
-    return path
+    return write_atomic(path, compressed_ply_bytes(scene))
 
 
 def _ply_elements(path: Path) -> dict:
@@ -285,7 +289,7 @@ def splat_bytes(scene: GaussianScene) -> bytes:
     order = np.argsort(-(np.exp(a["log_scales"].astype(np.float64).sum(axis=1)) * alpha), kind="stable")
     rec = np.zeros(len(scene), SPLAT_DTYPE)
     rec["position"] = a["means"][order]
-    rec["scale"] = np.exp(a["log_scales"][order].astype(np.float64))
+    rec["scale"] = np.exp(np.maximum(a["log_scales"][order].astype(np.float64), -80.0))   # > 0 in float32
     rec["rgba"][:, :3] = to_u8((a["sh_dc"][order].astype(np.float64) * SH_C0 + 0.5) * 255.0)
     rec["rgba"][:, 3] = to_u8(alpha[order] * 255.0)
     rec["rot"] = np.clip(np.floor(a["quats"][order] * 128.0 + 128.5), 0, 255).astype(np.uint8)
@@ -294,11 +298,7 @@ def splat_bytes(scene: GaussianScene) -> bytes:
 
 def write_splat(path: str | Path, scene: GaussianScene) -> Path:
     """Write ``scene`` as an antimatter15 ``.splat`` file, atomically."""
-    path = Path(path)
-    data = splat_bytes(scene)
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
-    return path
+    return write_atomic(path, splat_bytes(scene))
 
 
 def read_splat(path: str | Path) -> GaussianScene:

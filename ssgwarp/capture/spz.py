@@ -37,10 +37,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.fileio import atomic_path
 from ..errors import InputError
 from ..raster.scene import GaussianScene
-from .splat_codecs import OTHER_COMPONENTS, arrays_scene, logit, scene_arrays, sigmoid, to_u8
+from .splat_codecs import OTHER_COMPONENTS, arrays_scene, logit, scene_arrays, sigmoid, to_u8, write_atomic
 
 MAGIC = 0x5053474E
 HEADER = struct.Struct("<IIIBBBB")
@@ -134,11 +133,8 @@ def encode_spz(scene: GaussianScene, *, version: int = 3, antialiased: bool = Fa
 
 def write_spz(path: str | Path, scene: GaussianScene, *, version: int = 3, antialiased: bool = False) -> Path:
     """Write ``scene`` (RDF, as our PLY) to ``path`` as SPZ (gzip, RUB), atomically."""
-    path = Path(path)
-    data = gzip.compress(encode_spz(scene, version=version, antialiased=antialiased), compresslevel=6, mtime=0)
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
-    return path
+    return write_atomic(path, gzip.compress(encode_spz(scene, version=version, antialiased=antialiased),
+                                            compresslevel=6, mtime=0))
 
 
 # ----------------------------------------------------------------------------- reading

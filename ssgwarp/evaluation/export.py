@@ -87,11 +87,11 @@ def check_views(scene, exported, run: Run, views: int, device="cpu") -> list[flo
     idx = spaced(run.test_ids, views)
     idx += spaced([i for i in run.train_ids if i not in idx], views - len(idx))
     bg = run.background(run.data.get("background") or (1.0, 1.0, 1.0))
-    out = []
+    scene, exported, out = scene.to(device), exported.to(device), []
     for i in idx:
         cam = cams[[i]].to(device)
-        a = render_views(scene.to(device), cam, bg, depth=False).rgb
-        b = render_views(exported.to(device), cam, bg, depth=False).rgb
+        a = render_views(scene, cam, bg, depth=False).rgb
+        b = render_views(exported, cam, bg, depth=False).rgb
         out.append(float(psnr(b, a)))
     return out
 
