@@ -284,8 +284,12 @@ def test_errors(tmp_path, capsys):
     (tmp_path / "o.spz").write_bytes(b"keep")
     fails(["export", run, "--out", tmp_path / "o.spz"], "already holds", "--force")
     assert (tmp_path / "o.spz").read_bytes() == b"keep"
+    fails(["export", run, "--out", tmp_path / "o2.spz", "--check-views", "-1"], "--check-views")
     assert main(["export", str(run), "--out", str(tmp_path / "o.spz"), "--force", "--check-views", "0"]) == 0
     assert detect_format(tmp_path / "o.spz") == "spz"
+    # a file in any format converts to another (SPZ -> .splat here)
+    assert main(["export", str(tmp_path / "o.spz"), "--out", str(tmp_path / "o.splat"), "--sh-degree", "0"]) == 0
+    assert len(read_splat(tmp_path / "o.splat")) == len(read_spz(tmp_path / "o.spz"))
     assert format_for_path("a.compressed.ply") == "compressed-ply" and format_for_path("a.PLY") == "ply"
 
 

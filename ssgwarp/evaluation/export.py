@@ -19,7 +19,6 @@ from typing import Optional
 
 import torch
 
-from ..capture.ply import read_ply
 from ..capture.splat_formats import FORMATS, check_format, format_for_path, read_scene, write_scene
 from ..errors import InputError
 from ..raster.rendering import render_views
@@ -98,7 +97,7 @@ def check_views(scene, exported, run: Run, views: int, device="cpu") -> list[flo
 
 def export(run_dir: str | Path, out: str | Path, fmt: Optional[str] = None, *, sh_degree: Optional[int] = None,
            force: bool = False, views: int = 2, device="cpu") -> dict:
-    """Export ``run_dir``'s scene (or a scene .ply file) to ``out``; returns what was written and measured:
+    """Export ``run_dir``'s scene (or a scene file in any of the formats) to ``out``; returns what was written and measured:
     ``format``, ``path``, ``bytes``, ``source_bytes``, ``gaussians``, ``sh_degree``, ``psnr`` (per view)."""
     src, run = _source(Path(run_dir))
     out = Path(out).expanduser()
@@ -107,7 +106,9 @@ def export(run_dir: str | Path, out: str | Path, fmt: Optional[str] = None, *, s
     if out.resolve() == src.resolve():
         raise InputError(f"--out {out}: is the scene being exported; choose another file")
     fmt = _choose_format(fmt, out)
-    scene = read_ply(src)
+    if views < 0:
+        raise InputError(f"--check-views {views}: must be >= 0")
+    scene = read_scene(src)
     degree = _degree(scene, fmt, sh_degree)
     scene = scene.with_sh_degree(degree).replace(identities=None)
     claim(out.parent, [out.name], force=force, what="a file", resumable=False)
@@ -123,7 +124,8 @@ def export(run_dir: str | Path, out: str | Path, fmt: Optional[str] = None, *, s
 
 def add_arguments(parser) -> None:
     parser.add_argument("run_dir", type=Path,
-                        help="a run folder holding scene.ply (reconstruct or stylize output), or a scene .ply file")
+                        help="a run folder holding scene.ply (reconstruct or stylize output), or a scene file "
+                             "in any of the formats (PLY, compressed PLY, SPZ, .splat: a conversion)")
     parser.add_argument("--out", type=Path, required=True,
                         help="the file to write (.ply, .compressed.ply, .spz or .splat)")
     parser.add_argument("--format", default=None, metavar="FORMAT",
