@@ -20,14 +20,14 @@ from typing import Optional
 import torch
 
 from ..capture.splat_formats import FORMATS, check_format, format_for_path, read_scene, write_scene
-from ..errors import InputError
+from ..errors import InputError, SsgwarpError
 from ..raster.rendering import render_views
 from ..services.losses import psnr
 from ..services.runs import Run, claim
 
 
 def _source(run_dir: Path) -> tuple[Path, Optional[Run]]:
-    """The scene file to export and the run it belongs to (None for a bare PLY or a run whose
+    """The scene file to export and the run it belongs to (None for a bare file or a run whose
     cameras cannot be read: no render check then)."""
     run_dir = Path(run_dir).expanduser()
     if run_dir.is_file():
@@ -36,7 +36,7 @@ def _source(run_dir: Path) -> tuple[Path, Optional[Run]]:
         raise InputError(f"{run_dir}: run folder not found")
     if not (run_dir / "scene.ply").is_file():
         raise InputError(f"{run_dir}: no scene.ply (expected a `ssgwarp reconstruct` or `ssgwarp stylize` "
-                         f"output, or give a scene .ply file)")
+                         f"output, or give a scene file)")
     try:
         return run_dir / "scene.ply", Run.open(run_dir)
     except InputError:
@@ -97,8 +97,9 @@ def check_views(scene, exported, run: Run, views: int, device="cpu") -> list[flo
 
 def export(run_dir: str | Path, out: str | Path, fmt: Optional[str] = None, *, sh_degree: Optional[int] = None,
            force: bool = False, views: int = 2, device="cpu") -> dict:
-    """Export ``run_dir``'s scene (or a scene file in any of the formats) to ``out``; returns what was written and measured:
-    ``format``, ``path``, ``bytes``, ``source_bytes``, ``gaussians``, ``sh_degree``, ``psnr`` (per view)."""
+    """Export ``run_dir``'s scene (or a scene file in any of the formats) to ``out``; returns what was
+    written and measured: ``format``, ``path``, ``bytes``, ``source_bytes``, ``gaussians``, ``sh_degree``,
+    ``psnr`` (one per checked view)."""
     src, run = _source(Path(run_dir))
     out = Path(out).expanduser()
     if out.is_dir():
@@ -108,14 +109,14 @@ def export(run_dir: str | Path, out: str | Path, fmt: Optional[str] = None, *, s
     fmt = _choose_format(fmt, out)
     if views < 0:
         raise InputError(f"--check-views {views}: must be >= 0")
+    claim(out.parent, [out.name], force=force, what="a file", resumable=False)
     scene = read_scene(src)
     degree = _degree(scene, fmt, sh_degree)
     scene = scene.with_sh_degree(degree).replace(identities=None)
-    claim(out.parent, [out.name], force=force, what="a file", resumable=False)
     write_scene(out, scene, fmt)
     back = read_scene(out, fmt)
     if len(back) != len(scene) or back.sh_degree != degree:
-        raise InputError(f"{out}: read back {len(back)} Gaussians at SH degree {back.sh_degree}, "
+        raise SsgwarpError(f"{out}: read back {len(back)} Gaussians at SH degree {back.sh_degree}, "
                          f"wrote {len(scene)} at {degree}")
     return {"format": fmt, "path": str(out), "bytes": out.stat().st_size, "source_bytes": src.stat().st_size,
             "gaussians": len(scene), "sh_degree": degree,
