@@ -146,6 +146,22 @@ def test_spz_header_layout_and_rub_axes(tmp_path):
     assert abs(float((back.quats[0] * torch.tensor([c, 0, sn, 0])).sum())) > 1 - 1e-5
 
 
+def test_spz_sh_bits():
+    """SH rounded to the given significant bits (buckets of 2^(8 - bits) around 128); more bits, closer."""
+    s = _scene(2, density=0.3)
+    n, k = len(s), 8
+    errs = []
+    for bits in ((5, 4), (6, 5), (8, 8)):
+        raw = encode_spz(s, sh_bits=bits)
+        sh = np.frombuffer(raw, np.uint8, n * k * 3, len(raw) - n * k * 3).reshape(n, k, 3).astype(int)
+        assert (sh[:, :3] % (1 << (8 - bits[0])) == 0).all() and (sh[:, 3:] % (1 << (8 - bits[1])) == 0).all()
+        back = np.asarray(sh, np.float64) / 128 - 1
+        true = s.sh_rest.double().numpy() * sh_flip_signs(k=k)[None, :, None]
+        errs.append(np.abs(back - true).max())
+        assert errs[-1] <= 2.0 ** -bits[1] + 1 / 256 + 1e-9   # half a bucket, plus the rounding to 1/128
+    assert errs[0] > errs[1] > errs[2]
+
+
 def test_sh_flip_signs_follow_the_basis():
     """Coefficients times :func:`sh_flip_signs` seen along y- and z-flipped directions give the colours
     the originals give along the directions themselves."""
@@ -285,6 +301,8 @@ def test_errors(tmp_path, capsys):
     fails(["export", run, "--out", tmp_path / "o.spz"], "already holds", "--force")
     assert (tmp_path / "o.spz").read_bytes() == b"keep"
     fails(["export", run, "--out", tmp_path / "o2.spz", "--check-views", "-1"], "--check-views")
+    fails(["export", run, "--out", tmp_path / "o2.spz", "--spz-sh-bits", "9,1"], "--spz-sh-bits 9,1", "1..8")
+    fails(["export", run, "--out", tmp_path / "o2.splat", "--spz-sh-bits", "8,8"], "option of the spz format")
     assert main(["export", str(run), "--out", str(tmp_path / "o.spz"), "--force", "--check-views", "0"]) == 0
     assert detect_format(tmp_path / "o.spz") == "spz"
     # a file in any format converts to another (SPZ -> .splat here)

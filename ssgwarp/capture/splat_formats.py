@@ -46,11 +46,16 @@ def format_for_path(path: str | Path) -> Optional[str]:
     return None
 
 
-def write_scene(path: str | Path, scene: GaussianScene, fmt: str) -> Path:
+def write_scene(path: str | Path, scene: GaussianScene, fmt: str, *, spz_sh_bits=None) -> Path:
     """Write ``scene`` to ``path`` as ``fmt``; a ``ply`` keeps the scene as it is (identities
-    included), the other formats hold what they can (``splat``: SH degree 0)."""
-    writer = {"ply": write_ply, "compressed-ply": write_compressed_ply, "spz": write_spz,
-              "splat": write_splat}[check_format(fmt)]
+    included), the other formats hold what they can (``splat``: SH degree 0). ``spz_sh_bits``:
+    (band 1, higher bands) significant bits of SPZ's SH (default :data:`ssgwarp.capture.spz.SH_BITS`)."""
+    fmt = check_format(fmt)
+    if fmt == "spz":
+        return write_spz(path, scene) if spz_sh_bits is None else write_spz(path, scene, sh_bits=tuple(spz_sh_bits))
+    if spz_sh_bits is not None:
+        raise InputError(f"SH bits are an option of the spz format, not of {fmt}")
+    writer = {"ply": write_ply, "compressed-ply": write_compressed_ply, "splat": write_splat}[fmt]
     return writer(path, scene)
 
 

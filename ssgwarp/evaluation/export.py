@@ -96,7 +96,7 @@ def check_views(scene, exported, run: Run, views: int, device="cpu") -> list[flo
 
 
 def export(run_dir: str | Path, out: str | Path, fmt: Optional[str] = None, *, sh_degree: Optional[int] = None,
-           force: bool = False, views: int = 2, device="cpu") -> dict:
+           force: bool = False, views: int = 2, device="cpu", spz_sh_bits=None) -> dict:
     """Export ``run_dir``'s scene (or a scene file in any of the formats) to ``out``; returns what was
     written and measured: ``format``, ``path``, ``bytes``, ``source_bytes``, ``gaussians``, ``sh_degree``,
     ``psnr`` (one per checked view)."""
@@ -109,11 +109,13 @@ def export(run_dir: str | Path, out: str | Path, fmt: Optional[str] = None, *, s
     fmt = _choose_format(fmt, out)
     if views < 0:
         raise InputError(f"--check-views {views}: must be >= 0")
+    if spz_sh_bits is not None and fmt != "spz":
+        raise InputError(f"--spz-sh-bits: an option of the spz format, not of {fmt}")
     claim(out.parent, [out.name], force=force, what="a file", resumable=False)
     scene = read_scene(src)
     degree = _degree(scene, fmt, sh_degree)
     scene = scene.with_sh_degree(degree).replace(identities=None)
-    write_scene(out, scene, fmt)
+    write_scene(out, scene, fmt, spz_sh_bits=spz_sh_bits)
     back = read_scene(out, fmt)
     if len(back) != len(scene) or back.sh_degree != degree:
         raise SsgwarpError(f"{out}: read back {len(back)} Gaussians at SH degree {back.sh_degree}, "
@@ -137,12 +139,27 @@ def add_arguments(parser) -> None:
     parser.add_argument("--check-views", type=int, default=2, metavar="N",
                         help="render N of the run's cameras from the scene and from the file read back and report "
                              "the PSNR (default 2; 0: no check)")
+    parser.add_argument("--spz-sh-bits", default=None, metavar="B1,BR",
+                        help="spz: significant bits of the SH coefficients of band 1 and of the higher bands, "
+                             "1..8 each (default 6,5; the SPZ reference writer's 5,4 makes smaller files, 8,8 the "
+                             "most faithful; readers need not know)")
     parser.add_argument("--force", action="store_true", help="overwrite an existing --out file")
+
+
+def _bits(text: str) -> tuple[int, int]:
+    try:
+        b = tuple(int(v) for v in text.split(","))
+    except ValueError:
+        b = ()
+    if len(b) != 2 or not all(1 <= v <= 8 for v in b):
+        raise InputError(f"--spz-sh-bits {text}: expected two numbers 1..8, e.g. 6,5")
+    return b
 
 
 def run(args) -> int:
     r = export(args.run_dir, args.out, args.format, sh_degree=args.sh_degree, force=args.force,
-               views=args.check_views, device=args.device)
+               views=args.check_views, device=args.device,
+               spz_sh_bits=None if args.spz_sh_bits is None else _bits(args.spz_sh_bits))
     ratio = r["source_bytes"] / max(1, r["bytes"])
     print(f"{r['path']}: {r['format']}, {r['gaussians']} Gaussians, SH degree {r['sh_degree']}, "
           f"{r['bytes'] / 1e6:.2f} MB ({ratio:.1f}x smaller than the source's {r['source_bytes'] / 1e6:.2f} MB)")
