@@ -188,6 +188,19 @@ def test_spz_version_2_and_large_scenes(tmp_path):
     torch.testing.assert_close(read_scene(write_spz(tmp_path / "big.spz", big)).means, big.means, atol=0.5, rtol=1e-4)
 
 
+def test_spz_degree_4_keeps_three_bands(tmp_path):
+    s = _scene(3, density=0.3)
+    n = len(s)
+    raw = encode_spz(s)
+    sh3 = np.frombuffer(raw, np.uint8, n * 45, len(raw) - n * 45).reshape(n, 45)
+    sh4 = np.concatenate([sh3, np.full((n, 27), 200, np.uint8)], 1)   # band 4: 8 more coefficients
+    raw4 = raw[:12] + bytes([4]) + raw[13:len(raw) - n * 45] + sh4.tobytes()
+    (tmp_path / "d4.spz").write_bytes(gzip.compress(raw4))
+    back, ref = read_spz(tmp_path / "d4.spz"), read_spz(write_spz(tmp_path / "d3.spz", s))
+    assert back.sh_degree == 3
+    torch.testing.assert_close(back.sh_rest, ref.sh_rest)
+
+
 # ----------------------------------------------------------------------------- .splat
 def test_splat_record_layout(tmp_path):
     s = _tiny([[1, 2, 3], [4, 5, 6]], log_scales=[[-2, -2, -2], [0, 0, 0]], opacity=[0.0, 0.0],
