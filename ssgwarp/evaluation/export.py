@@ -161,11 +161,15 @@ def run(args) -> int:
                views=args.check_views, device=args.device,
                spz_sh_bits=None if args.spz_sh_bits is None else _bits(args.spz_sh_bits))
     ratio = r["source_bytes"] / max(1, r["bytes"])
+    size = f"{ratio:.1f}x smaller than" if ratio >= 1 else f"{1 / ratio:.1f}x the size of"
     print(f"{r['path']}: {r['format']}, {r['gaussians']} Gaussians, SH degree {r['sh_degree']}, "
-          f"{r['bytes'] / 1e6:.2f} MB ({ratio:.1f}x smaller than the source's {r['source_bytes'] / 1e6:.2f} MB)")
+          f"{r['bytes'] / 1e6:.2f} MB ({size} the source's {r['source_bytes'] / 1e6:.2f} MB)")
     if r["psnr"]:
         worst = min(r["psnr"])
         said = "identical renders" if worst >= 100 else f"PSNR {worst:.2f} dB"
         print(f"round trip: {said} (worst of {len(r['psnr'])} view(s); the file read back against the scene, "
               f"both at SH degree {r['sh_degree']})")
+    elif args.check_views:
+        print("round trip: not rendered (no run cameras to render from: a bare scene file, or a run whose "
+              "cameras.json cannot be read)")
     return 0
