@@ -109,6 +109,28 @@ def test_compressed_ply_bit_packing():
     assert v[0, 3] >> 8 == 0 and v[1, 3] >> 8 == 0xFFFFFF              # colours at the chunk's colour range
 
 
+def test_compressed_ply_without_chunk_colours(tmp_path):
+    """SuperSplat's older files: 12-field chunks, colours as plain 8-bit values in [0, 1]."""
+    from plyfile import PlyData, PlyElement
+
+    from ssgwarp.capture.splat_codecs import CHUNK_FIELDS
+
+    chunk = np.zeros(1, [(f, "<f4") for f in CHUNK_FIELDS[:12]])
+    for f, v in zip(CHUNK_FIELDS[:12], [0, 0, 0, 1, 1, 1, -4, -4, -4, -2, -2, -2]):
+        chunk[f] = v
+    vert = np.zeros(2, [(f, "<u4") for f in ("packed_position", "packed_rotation", "packed_scale", "packed_color")])
+    vert["packed_position"] = [0, 0xFFFFFFFF]
+    vert["packed_rotation"] = (512 << 20) | (512 << 10) | 512
+    vert["packed_color"] = [(255 << 24) | (0 << 16) | (51 << 8) | 255, (128 << 24) | (128 << 16) | (128 << 8) | 0]
+    PlyData([PlyElement.describe(chunk, "chunk"), PlyElement.describe(vert, "vertex")]).write(str(tmp_path / "o.ply"))
+    assert detect_format(tmp_path / "o.ply") == "compressed-ply"
+    s = read_scene(tmp_path / "o.ply")
+    np.testing.assert_allclose(s.means.numpy(), [[0, 0, 0], [1, 1, 1]], atol=1e-6)
+    np.testing.assert_allclose(s.base_colors.numpy(), [[1, 0, 0.2], [128 / 255] * 3], atol=1e-6)
+    np.testing.assert_allclose(s.log_scales.numpy(), [[-4] * 3, [-4] * 3], atol=1e-6)
+    assert s.opacities[0] > 0.999 and s.opacities[1] < 1e-5
+
+
 def test_rotation_packings_round_trip():
     q = torch.nn.functional.normalize(torch.randn(500, 4, generator=torch.Generator().manual_seed(0)), dim=1)
     q = q.double().numpy()
