@@ -43,6 +43,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
              "ssgwarp view runs/fern/scene.ply --color group --screenshot shot.png"),
     "render": ("ssgwarp.evaluation.render", "render a scene along its cameras or a smooth path",
                "ssgwarp render runs/fern --out runs/fern/renders [--path]"),
+    "export": ("ssgwarp.evaluation.export", "write a run's scene as PLY, compressed PLY, SPZ or .splat for other viewers",
+               "ssgwarp export runs/fern --format spz --out fern.spz [--sh-degree 1]"),
     "weights": ("ssgwarp.services.weights", "pretrained models: where each is found (or missing), size, licence; "
                 "--download fetches them into the Hugging Face / torch hub caches",
                 "ssgwarp weights --download stage1 vgg16"),
