@@ -392,3 +392,12 @@ def test_imported_run_works_with_group_and_render(world, tmp_path, capsys):
     assert len(list((tmp_path / "renders").glob("*.png"))) == VIEWS
     assert main(["group", str(run), "--masks", "none", "--iters", "2", "--groups", "2", *FAST]) == 0
     assert (run / "groups").is_dir() and read_ply(run / "scene.ply").identities is not None
+    # the rest of the pipeline takes the imported run as it takes a reconstruction
+    style = tmp_path / "style.png"
+    write_image(style, torch.rand(24, 24, 3, generator=torch.Generator().manual_seed(0)))
+    styled = tmp_path / "styled"
+    assert main(["stylize", str(run), "--style", str(style), "--out", str(styled), "--iters", "3",
+                 "--keyviews", "2", "--max-side", "32", "--path-frames", "2", "--offline", "--device", "cpu"]) == 0
+    assert read_ply(styled / "scene.ply").means.shape == read_ply(run / "scene.ply").means.shape
+    assert main(["evaluate", str(styled), "--offline", "--device", "cpu"]) == 0
+    assert "evaluation" in json.loads((styled / "metrics.json").read_text())
