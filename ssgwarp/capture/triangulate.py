@@ -22,6 +22,8 @@ frames of :class:`~ssgwarp.capture.datasets.SceneData`.
 
 Public API:
     triangulate(cameras, images, ...) -> Triangulation(xyz [P, 3], rgb [P, 3], stats)
+    select_pairs(cameras, neighbours, depth_range) -> the view pairs matched
+    scene_depth_range(cameras) -> (near, far) guessed from the camera layout
 """
 from __future__ import annotations
 
@@ -40,6 +42,8 @@ from ..errors import InputError
 from .formats import focus_point, resize_images
 
 log = logging.getLogger("ssgwarp.capture.triangulate")
+
+MIN_SIZE = 48  # smaller images have no features
 
 
 @dataclass
@@ -94,15 +98,21 @@ def _overlap(cameras: Cameras, depths: torch.Tensor, grid: int = 8) -> torch.Ten
     return torch.minimum(ov, ov.T)
 
 
+def scene_depth_range(cameras: Cameras) -> tuple[float, float]:
+    """A guess of the depths the cameras see, from their layout alone: 0.2x to 5x the larger of the median
+    distance to the point the cameras look at and the spread of the camera centres."""
+    c = cameras.centers.double().cpu()
+    r = float((c - focus_point(cameras)).norm(dim=1).median())
+    spread = float((c - c.mean(0)).norm(dim=1).max())
+    r = max(r, spread, 1e-6)
+    return 0.2 * r, 5.0 * r
+
+
 def _pair_depths(cameras: Cameras, depth_range: Optional[tuple[float, float]]) -> torch.Tensor:
     if depth_range is not None and depth_range[0] and depth_range[1] and 0 < depth_range[0] < depth_range[1]:
         lo, hi = float(depth_range[0]), float(depth_range[1])
     else:
-        c = cameras.centers.double().cpu()
-        r = float((c - focus_point(cameras)).norm(dim=1).median())
-        spread = float((c - c.mean(0)).norm(dim=1).max())
-        r = max(r, spread, 1e-6)
-        lo, hi = 0.2 * r, 5.0 * r
+        lo, hi = scene_depth_range(cameras)
     return torch.exp(torch.linspace(math.log(lo), math.log(hi), 6, dtype=torch.float64))
 
 
@@ -126,7 +136,10 @@ def _sift(max_features: int):
 
 
 def _features(sift, gray: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Keypoints ``[N, 2]`` (pixel coordinates, pixel centres at +0.5) and descriptors ``[N, 128]`` of ``[H, W]``."""
+    """Keypoints ``[N, 2]`` (pixel coordinates, pixel centres at +0.5) and descriptors ``[N, 128]`` of ``[H, W]``
+    (none in images under ``MIN_SIZE`` pixels: the scale pyramid needs room)."""
+    if min(gray.shape) < MIN_SIZE:
+        return torch.zeros(0, 2, dtype=torch.float64), torch.zeros(0, 128)
     with torch.no_grad():
         lafs, resp, desc = sift(gray[None, None])
     kp = lafs[0, :, :, 2].double() + 0.5
