@@ -236,8 +236,9 @@ def _gauss_newton(P: torch.Tensor, X: torch.Tensor, uv: torch.Tensor, mask: torc
         J = J * m[..., None]
         JtJ = torch.einsum("tlai,tlaj->tij", J, J) + 1e-9 * torch.eye(3, dtype=X.dtype)
         Jtr = torch.einsum("tlai,tla->ti", J, r)
-        step = torch.linalg.solve(JtJ, Jtr[..., None])[..., 0]
-        X = X - torch.where(torch.isfinite(step), step, torch.zeros_like(step))
+        step, info = torch.linalg.solve_ex(JtJ, Jtr[..., None])
+        step = step[..., 0]
+        X = X - torch.where(torch.isfinite(step) & (info == 0)[:, None], step, torch.zeros_like(step))
     return X
 
 
