@@ -293,3 +293,19 @@ def test_cli_init_option(capture, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "unknown initial points 'nonsense'" in err[0]
     assert not (tmp_path / "run").exists()
+
+
+def test_reconstruct_records_the_initial_points(capture, tmp_path):
+    from plyfile import PlyData, PlyElement
+
+    from ssgwarp.cli import main
+
+    base = ["--iters", "2", "--sh-degree", "0", "--no-progress", "--device", "cpu", "--checkpoint-every", "100"]
+    pts = np.zeros(300, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
+    pts["z"] = np.linspace(0.0, 1.0, 300)
+    PlyData([PlyElement.describe(pts, "vertex")]).write(str(tmp_path / "p.ply"))
+    assert main(["reconstruct", str(capture), "--out", str(tmp_path / "ply"), "--init", str(tmp_path / "p.ply")]
+                + base) == 0
+    meta = json.loads((tmp_path / "ply" / "data.json").read_text())
+    assert meta["points_source"] == "ply" and meta["points_count"] == 300 and meta["points_reprojection_error_px"] is None
+    assert meta["load_options"]["init"] == str(tmp_path / "p.ply")
