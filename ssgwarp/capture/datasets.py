@@ -29,7 +29,7 @@ Layouts, checked in this order:
 
 Initial points (``init``): ``"auto"`` (the default) takes the capture's own point cloud (COLMAP
 ``points3D``) and, for a capture without one, triangulates points from its images and known poses
-(:mod:`ssgwarp.capture.triangulate`; when fewer than ``MIN_TRIANGULATED`` points survive it says so in one
+(:mod:`ssgwarp.capture.triangulate`, from the training views only; when fewer than ``MIN_TRIANGULATED`` points survive it says so in one
 line and falls back to random points). ``"triangulate"`` triangulates even when the capture has points,
 ``"random"`` starts from random points (in the views' frusta, or for ``transforms*.json`` in a cube around
 the point the cameras look at), ``"capture"`` takes the capture's points or else random ones without
@@ -230,8 +230,10 @@ def check_init(init) -> "str | Path":
     return p
 
 
-def _initial_points(d: dict, init, fmt: str, num_random_points: int, seed: int, progress: bool) -> None:
-    """Set ``d``'s ``points``, ``points_source`` and ``points_stats`` as ``init`` says (module docstring)."""
+def _initial_points(d: dict, init, fmt: str, num_random_points: int, seed: int, progress: bool,
+                    train: list[int]) -> None:
+    """Set ``d``'s ``points``, ``points_source`` and ``points_stats`` as ``init`` says (module docstring);
+    points are triangulated from the ``train`` views only (the held-out views stay unseen)."""
     own = d.get("points_source", "none")
     d["points_stats"] = {}
     if isinstance(init, Path):
@@ -243,7 +245,8 @@ def _initial_points(d: dict, init, fmt: str, num_random_points: int, seed: int, 
     cams, imgs = d["cameras"], d["images"]
     if init in ("auto", "triangulate"):
         known = None if fmt == "transforms" or d.get("near") is None else (d["near"], d["far"])
-        tri = triangulate(cams, imgs, names=d["names"], progress=progress, depth_range=known)
+        tri = triangulate(cams[train], imgs[train], names=[d["names"][i] for i in train], progress=progress,
+                          depth_range=known)
         if len(tri) >= MIN_TRIANGULATED:
             d["points"], d["points_source"], d["points_stats"] = (tri.xyz, tri.rgb), "triangulated", tri.stats
             if known is None:
@@ -300,9 +303,9 @@ def load_dataset(path: str | Path, images: str = "images", split_every: int = 8,
     init = check_init(init)
     d = LOADERS[fmt](root, images=images, max_images=max_images, width=width, background=bg,
                       num_random_points=int(num_random_points), seed=seed)
-    _initial_points(d, init, fmt, int(num_random_points), seed, progress)
     test_mask = d.pop("test_mask", None)
     train, test = _split(len(d["names"]), split_every, test_mask)
+    _initial_points(d, init, fmt, int(num_random_points), seed, progress, train)
     options = dict(images=images, split_every=split_every, background=list(bg), max_images=max_images,
                    width=width, num_random_points=int(num_random_points), seed=seed, format=fmt, init=str(init))
     data = SceneData(train_ids=train, test_ids=test, background=bg, data_dir=root.resolve(), format=fmt,
