@@ -255,6 +255,87 @@ def _sample(images: torch.Tensor, cam: torch.Tensor, uv: torch.Tensor) -> torch.
     return (c00 * (1 - fx) + c01 * fx) * (1 - fy) + (c10 * (1 - fx) + c11 * fx) * fy
 
 
+def _match_views(imgs, Ks, R, tvec, pairs, max_features: int, ratio: float, max_epipolar_px: float, bar):
+    """Features of every view and the matches of ``pairs`` that pass the epipolar test: ``(keypoints per view,
+    edges [E, 2] between global keypoint ids (views' keypoints numbered one after the other), match count)``."""
+    gray = (imgs * torch.tensor([0.299, 0.587, 0.114])).sum(-1)
+    kps, descs = [], []
+    sift = _sift(max_features)
+    for i in range(len(imgs)):
+        kp, d = _features(sift, gray[i])
+        kps.append(kp)
+        descs.append(d)
+        bar.update(1)
+    offsets = np.concatenate([[0], np.cumsum([len(k) for k in kps])])
+    bar.set_description("triangulating: matching")
+    edges, n_matches = [], 0
+    for i, j in pairs:
+        m = _match(descs[i], descs[j], ratio)
+        if len(m):
+            err = _epipolar_error(Ks[i], Ks[j], R[i], tvec[i], R[j], tvec[j], kps[i][m[:, 0]], kps[j][m[:, 1]])
+            m = m[err <= max_epipolar_px]
+        n_matches += len(m)
+        if len(m):
+            edges.append(np.stack([m[:, 0].numpy() + offsets[i], m[:, 1].numpy() + offsets[j]], 1))
+        bar.update(1)
+    return kps, (np.concatenate(edges) if edges else np.zeros((0, 2), np.int64)), n_matches
+
+
+def _gather_tracks(kps: list, edges: np.ndarray, C: int):
+    """Tracks from the matches, padded: ``(view [T, L], pixel [T, L, 2], mask [T, L])``, or None when there are none.
+    Tracks longer than ``2 C`` are chains of wrong matches and left out."""
+    offsets = np.concatenate([[0], np.cumsum([len(k) for k in kps])])
+    n_nodes = int(offsets[-1])
+    lab = _tracks(edges, n_nodes)
+    used = np.zeros(n_nodes, bool)
+    used[edges.reshape(-1)] = True
+    nodes = np.nonzero(used)[0]
+    if len(nodes) == 0:
+        return None
+    roots = lab[nodes]
+    order = np.lexsort((nodes, roots))
+    nodes, roots = nodes[order], roots[order]
+    _, start, counts = np.unique(roots, return_index=True, return_counts=True)
+    keep = (counts >= 2) & (counts <= 2 * C)
+    start, counts = start[keep], counts[keep]
+    if len(start) == 0:
+        return None
+    L = int(counts.max())
+    pos = start[:, None] + np.arange(L)[None]
+    valid = np.arange(L)[None] < counts[:, None]
+    node = nodes[np.where(valid, pos, start[:, None])]
+    cam = torch.from_numpy(np.searchsorted(offsets, node, side="right") - 1)
+    uv = torch.cat(kps)[torch.from_numpy(node)]
+    return cam, uv, torch.from_numpy(valid)
+
+
+def _solve_tracks(P, Pn, Kinv, cam, uv, mask, max_reproj_px: float, refine_iters: int):
+    """Triangulate the tracks: linear, dropping each track's worst observation while it is more than
+    ``max_reproj_px`` off (one observation per view: the others of a view go first), then Gauss-Newton.
+    Returns ``(X [T, 3], valid [T], mask [T, L] of the observations used)``."""
+    L = mask.shape[1]
+    xn = (Kinv[cam] @ torch.cat([uv, torch.ones_like(uv[..., :1])], -1)[..., None])[..., :2, 0]
+    Pt, Pnt = P[cam], Pn[cam]
+    X, ok = _dlt(Pnt, xn, mask)
+    earlier = (torch.arange(L)[None, :] < torch.arange(L)[:, None])[None]
+    for _ in range(min(L, 6)):
+        err, z = _reproject(Pt, X, uv)
+        err = torch.where(mask & (z > 0), err, torch.full_like(err, float("inf")))
+        same = (cam[:, :, None] == cam[:, None, :]) & mask[:, :, None] & mask[:, None, :]
+        better = same & ((err[:, None, :] < err[:, :, None]) | ((err[:, None, :] == err[:, :, None]) & earlier))
+        dup = better.any(2)
+        err_m = torch.where(mask, err, torch.full_like(err, -1.0))
+        err_m = torch.where(dup & mask, torch.full_like(err, float("inf")), err_m)
+        worst_e, worst = err_m.max(1)
+        drop = (worst_e > max_reproj_px) & (mask.sum(1) > 2)
+        if not bool(drop.any()):
+            break
+        mask = mask.clone()
+        mask[torch.nonzero(drop)[:, 0], worst[drop]] = False
+        X, ok = _dlt(Pnt, xn, mask)
+    return _gauss_newton(Pt, X, uv, mask, refine_iters), ok, mask
+
+
 def triangulate(cameras: Cameras, images: torch.Tensor, *, names: Optional[Sequence[str]] = None,
                 progress: bool = True, max_features: int = 4000, max_size: int = 1024, neighbours: int = 8,
                 ratio: float = 0.8, max_epipolar_px: float = 2.0, max_reproj_px: float = 2.0,
@@ -310,86 +391,19 @@ def triangulate(cameras: Cameras, images: torch.Tensor, *, names: Optional[Seque
     if pairs is None:
         pairs = select_pairs(cams, neighbours, depth_range)
     pairs = sorted({(min(int(i), int(j)), max(int(i), int(j))) for i, j in pairs if int(i) != int(j)})
-    gray = (imgs * torch.tensor([0.299, 0.587, 0.114])).sum(-1)
     bar = tqdm(total=C + len(pairs), desc="triangulating: features", unit="step", leave=False,
                disable=not progress)
-    kps, descs = [], []
-    sift = _sift(max_features)
-    for i in range(C):
-        kp, d = _features(sift, gray[i])
-        kps.append(kp)
-        descs.append(d)
-        bar.update(1)
-    offsets = np.concatenate([[0], np.cumsum([len(k) for k in kps])])
-    bar.set_description("triangulating: matching")
-    edges = []
-    n_matches = 0
-    for i, j in pairs:
-        m = _match(descs[i], descs[j], ratio)
-        if len(m):
-            err = _epipolar_error(Ks[i], Ks[j], R[i], tvec[i], R[j], tvec[j], kps[i][m[:, 0]], kps[j][m[:, 1]])
-            m = m[err <= max_epipolar_px]
-        n_matches += len(m)
-        if len(m):
-            edges.append(np.stack([m[:, 0].numpy() + offsets[i], m[:, 1].numpy() + offsets[j]], 1))
-        bar.update(1)
+    kps, edges, n_matches = _match_views(imgs, Ks, R, tvec, pairs, max_features, ratio, max_epipolar_px, bar)
     bar.close()
     stats.update(pairs=len(pairs), matches=int(n_matches), features=float(np.mean([len(k) for k in kps])))
-    edges = np.concatenate(edges) if edges else np.zeros((0, 2), np.int64)
-    n_nodes = int(offsets[-1])
-    lab = _tracks(edges, n_nodes)
-    used = np.zeros(n_nodes, bool)
-    used[edges.reshape(-1)] = True
-    nodes = np.nonzero(used)[0]
-    if len(nodes) == 0:
+    tracks = _gather_tracks(kps, edges, C)
+    stats["tracks"] = 0 if tracks is None else int(tracks[0].shape[0])
+    if tracks is None:
         stats["seconds"] = time.perf_counter() - t0
         return Triangulation(torch.zeros(0, 3), torch.zeros(0, 3), stats)
-    roots = lab[nodes]
-    order = np.lexsort((nodes, roots))
-    nodes, roots = nodes[order], roots[order]
-    uniq, start, counts = np.unique(roots, return_index=True, return_counts=True)
-    keep = (counts >= 2) & (counts <= 2 * C)   # longer tracks are chains of wrong matches
-    stats["tracks"] = int(keep.sum())
-    start, counts = start[keep], counts[keep]
-    T, L = len(start), int(counts.max()) if len(counts) else 0
-    if T == 0:
-        stats["seconds"] = time.perf_counter() - t0
-        return Triangulation(torch.zeros(0, 3), torch.zeros(0, 3), stats)
-    pos = start[:, None] + np.arange(L)[None]
-    valid = np.arange(L)[None] < counts[:, None]
-    node = nodes[np.where(valid, pos, start[:, None])]
-    cam_np = np.searchsorted(offsets, node, side="right") - 1
-    all_kp = torch.cat(kps)
-    cam = torch.from_numpy(cam_np)
-    uv = all_kp[torch.from_numpy(node)]                       # [T, L, 2]
-    mask = torch.from_numpy(valid)
-    Kinv = torch.linalg.inv(Ks)
-    xn = (Kinv[cam] @ torch.cat([uv, torch.ones_like(uv[..., :1])], -1)[..., None])[..., :2, 0]
-    Pt, Pnt = P[cam], Pn[cam]
-
-    # linear triangulation, dropping each track's worst observation while it is off
-    X, ok = _dlt(Pnt, xn, mask)
-    for _ in range(min(L, 6)):
-        err, z = _reproject(Pt, X, uv)
-        err = torch.where(mask & (z > 0), err, torch.full_like(err, float("inf")))
-        # one observation per view: the others of the same view go first
-        same = (cam[:, :, None] == cam[:, None, :]) & mask[:, :, None] & mask[:, None, :]
-        better = same & ((err[:, None, :] < err[:, :, None]) |
-                         ((err[:, None, :] == err[:, :, None]) &
-                          (torch.arange(L)[None, :] < torch.arange(L)[:, None])[None]))
-        dup = better.any(2)
-        err_m = torch.where(mask, err, torch.full_like(err, -1.0))
-        err_m = torch.where(dup & mask, torch.full_like(err, float("inf")), err_m)
-        worst_e, worst = err_m.max(1)
-        drop = (worst_e > max_reproj_px) & (mask.sum(1) > 2)
-        if not bool(drop.any()):
-            break
-        mask = mask.clone()
-        mask[torch.nonzero(drop)[:, 0], worst[drop]] = False
-        X, ok = _dlt(Pnt, xn, mask)
-    X = _gauss_newton(Pt, X, uv, mask, refine_iters)
-
-    err, z = _reproject(Pt, X, uv)
+    cam, uv, mask = tracks
+    X, ok, mask = _solve_tracks(P, Pn, torch.linalg.inv(Ks), cam, uv, mask, max_reproj_px, refine_iters)
+    err, z = _reproject(P[cam], X, uv)
     obs = mask & (err <= max_reproj_px)
     n_obs = obs.sum(1)
     in_front = ~(mask & (z <= 0)).any(1)
