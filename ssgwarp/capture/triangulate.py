@@ -281,32 +281,37 @@ def _match_views(imgs, Ks, R, tvec, pairs, max_features: int, ratio: float, max_
     return kps, (np.concatenate(edges) if edges else np.zeros((0, 2), np.int64)), n_matches
 
 
-def _gather_tracks(kps: list, edges: np.ndarray, C: int):
-    """Tracks from the matches, padded: ``(view [T, L], pixel [T, L, 2], mask [T, L])``, or None when there are none.
-    Tracks longer than ``2 C`` are chains of wrong matches and left out."""
+def _track_chunks(kps: list, edges: np.ndarray, C: int, budget: int = 2_000_000):
+    """Tracks from the matches (tracks longer than ``2 C`` are chains of wrong matches and left out), sorted by
+    length, in chunks padded to their longest track with at most ``budget`` observation pairs each:
+    yields ``(view [T, L], pixel [T, L, 2], mask [T, L])``."""
     offsets = np.concatenate([[0], np.cumsum([len(k) for k in kps])])
     n_nodes = int(offsets[-1])
     lab = _tracks(edges, n_nodes)
     used = np.zeros(n_nodes, bool)
     used[edges.reshape(-1)] = True
     nodes = np.nonzero(used)[0]
-    if len(nodes) == 0:
-        return None
     roots = lab[nodes]
     order = np.lexsort((nodes, roots))
     nodes, roots = nodes[order], roots[order]
     _, start, counts = np.unique(roots, return_index=True, return_counts=True)
     keep = (counts >= 2) & (counts <= 2 * C)
     start, counts = start[keep], counts[keep]
-    if len(start) == 0:
-        return None
-    L = int(counts.max())
-    pos = start[:, None] + np.arange(L)[None]
-    valid = np.arange(L)[None] < counts[:, None]
-    node = nodes[np.where(valid, pos, start[:, None])]
-    cam = torch.from_numpy(np.searchsorted(offsets, node, side="right") - 1)
-    uv = torch.cat(kps)[torch.from_numpy(node)]
-    return cam, uv, torch.from_numpy(valid)
+    by_len = np.argsort(counts, kind="stable")
+    start, counts = start[by_len], counts[by_len]
+    all_kp = torch.cat(kps) if kps else torch.zeros(0, 2, dtype=torch.float64)
+    i = 0
+    while i < len(start):
+        j = i + 1
+        while j < len(start) and (j + 1 - i) * int(counts[j]) ** 2 <= budget:
+            j += 1
+        L = int(counts[j - 1])
+        pos = start[i:j, None] + np.arange(L)[None]
+        valid = np.arange(L)[None] < counts[i:j, None]
+        node = nodes[np.where(valid, pos, start[i:j, None])]
+        cam = torch.from_numpy(np.searchsorted(offsets, node, side="right") - 1)
+        yield cam, all_kp[torch.from_numpy(node)], torch.from_numpy(valid)
+        i = j
 
 
 def _solve_tracks(P, Pn, Kinv, cam, uv, mask, max_reproj_px: float, refine_iters: int):
@@ -334,6 +339,30 @@ def _solve_tracks(P, Pn, Kinv, cam, uv, mask, max_reproj_px: float, refine_iters
         mask[torch.nonzero(drop)[:, 0], worst[drop]] = False
         X, ok = _dlt(Pnt, xn, mask)
     return _gauss_newton(Pt, X, uv, mask, refine_iters), ok, mask
+
+
+def _keep_points(P, centres, imgs, cam, uv, mask, X, ok, max_reproj_px: float, min_angle_deg: float):
+    """The filters and colours of solved tracks: ``(X [K, 3], rgb [K, 3], mean reprojection error [K],
+    observations [K], the views of the kept observations [M])`` of the points seen by at least two views, in front
+    of every view that sees them, within ``max_reproj_px`` in each, at a triangulation angle of ``min_angle_deg``."""
+    err, z = _reproject(P[cam], X, uv)
+    obs = mask & (err <= max_reproj_px)
+    in_front = ~(mask & (z <= 0)).any(1)
+    # triangulation angle: the largest angle between two rays of the point
+    rays = torch.nn.functional.normalize(X[:, None, :] - centres[cam], dim=-1)
+    cos = rays @ rays.transpose(1, 2)
+    pair_ok = obs[:, :, None] & obs[:, None, :]
+    min_cos = torch.where(pair_ok, cos, torch.ones_like(cos)).flatten(1).min(1).values
+    good = (ok & torch.isfinite(X).all(1) & (obs.sum(1) >= 2) & in_front
+            & (min_cos <= math.cos(math.radians(min_angle_deg))))
+    X, obs, err, cam, uv = X[good], obs[good], err[good], cam[good], uv[good]
+    flat = obs.reshape(-1)
+    cols = _sample(imgs, cam.reshape(-1)[flat], uv.reshape(-1, 2)[flat])
+    owner = torch.arange(len(X))[:, None].expand_as(obs).reshape(-1)[flat]
+    n = obs.sum(1)
+    rgb = torch.zeros(len(X), 3).index_add_(0, owner, cols) / n[:, None].clamp_min(1).float()
+    per_point = torch.where(obs, err, torch.zeros_like(err)).sum(1) / n.clamp_min(1)
+    return X, rgb, per_point, n, cam[obs]
 
 
 def triangulate(cameras: Cameras, images: torch.Tensor, *, names: Optional[Sequence[str]] = None,
@@ -396,41 +425,22 @@ def triangulate(cameras: Cameras, images: torch.Tensor, *, names: Optional[Seque
     kps, edges, n_matches = _match_views(imgs, Ks, R, tvec, pairs, max_features, ratio, max_epipolar_px, bar)
     bar.close()
     stats.update(pairs=len(pairs), matches=int(n_matches), features=float(np.mean([len(k) for k in kps])))
-    tracks = _gather_tracks(kps, edges, C)
-    stats["tracks"] = 0 if tracks is None else int(tracks[0].shape[0])
-    if tracks is None:
-        stats["seconds"] = time.perf_counter() - t0
-        return Triangulation(torch.zeros(0, 3), torch.zeros(0, 3), stats)
-    cam, uv, mask = tracks
-    X, ok, mask = _solve_tracks(P, Pn, torch.linalg.inv(Ks), cam, uv, mask, max_reproj_px, refine_iters)
-    err, z = _reproject(P[cam], X, uv)
-    obs = mask & (err <= max_reproj_px)
-    n_obs = obs.sum(1)
-    in_front = ~(mask & (z <= 0)).any(1)
-    # triangulation angle: the largest angle between two rays of the point
     centres = torch.linalg.inv(vm)[:, :3, 3]
-    rays = torch.nn.functional.normalize(X[:, None, :] - centres[cam], dim=-1)
-    cos = rays @ rays.transpose(1, 2)
-    pair_ok = obs[:, :, None] & obs[:, None, :]
-    min_cos = torch.where(pair_ok, cos, torch.ones_like(cos)).flatten(1).min(1).values
-    angle_ok = min_cos <= math.cos(math.radians(min_angle_deg))
-    good = ok & torch.isfinite(X).all(1) & (n_obs >= 2) & in_front & angle_ok
-    X, obs, err_g = X[good], obs[good], err[good]
-    cam_g, uv_g = cam[good], uv[good]
-    # colours: mean over the kept observations
+    Kinv = torch.linalg.inv(Ks)
+    parts = []
+    for cam, uv, mask in _track_chunks(kps, edges, C):
+        stats["tracks"] += int(cam.shape[0])
+        X, ok, mask = _solve_tracks(P, Pn, Kinv, cam, uv, mask, max_reproj_px, refine_iters)
+        parts.append(_keep_points(P, centres, imgs, cam, uv, mask, X, ok, max_reproj_px, min_angle_deg))
+    X = torch.cat([p[0] for p in parts]) if parts else torch.zeros(0, 3, dtype=torch.float64)
+    rgb = torch.cat([p[1] for p in parts]) if parts else torch.zeros(0, 3)
     if len(X):
-        flat = obs.reshape(-1)
-        cols = _sample(imgs, cam_g.reshape(-1)[flat], uv_g.reshape(-1, 2)[flat])
-        owner = torch.arange(len(X))[:, None].expand_as(obs).reshape(-1)[flat]
-        rgb = torch.zeros(len(X), 3).index_add_(0, owner, cols) / obs.sum(1, keepdim=True).float()
-        per_point = torch.where(obs, err_g, torch.zeros_like(err_g)).sum(1) / obs.sum(1)
-        med = float(per_point.median()) / s
-        per_view = torch.bincount(cam_g[obs], minlength=C)
-        stats.update(count=int(len(X)), median_reprojection_error_px=med,
-                     mean_track_length=float(obs.sum(1).double().mean()),
+        per_point = torch.cat([p[2] for p in parts])
+        n_obs = torch.cat([p[3] for p in parts])
+        per_view = sum(torch.bincount(p[4], minlength=C) for p in parts)
+        stats.update(count=int(len(X)), median_reprojection_error_px=float(per_point.median()) / s,
+                     mean_track_length=float(n_obs.double().mean()),
                      observations_per_view={names[i]: int(per_view[i]) for i in range(C)})
-    else:
-        rgb = torch.zeros(0, 3)
     stats["seconds"] = time.perf_counter() - t0
     log.info("triangulated %d points from %d views (%d pairs, %d matches, %d tracks; median reprojection "
              "error %s px) in %.1f s", stats["count"], C, stats["pairs"], stats["matches"], stats["tracks"],
