@@ -102,7 +102,7 @@ def _llff_scene(root: Path, n=6, w=40, h=30, full=(400, 300), focal=350.0, point
 def test_llff_capture(tmp_path):
     views = _llff_scene(tmp_path)
     assert detect_format(tmp_path) == "llff"
-    d = load_dataset(tmp_path, images="images_10", num_random_points=500)
+    d = load_dataset(tmp_path, images="images_10", num_random_points=500, init="random")
     assert d.format == "llff" and len(d) == 6 and (d.width, d.height) == (40, 30)
     for j in range(6):
         assert np.allclose(d.cameras.viewmats[j].double().numpy(), views[j], atol=1e-5)
@@ -120,7 +120,7 @@ def test_llff_capture(tmp_path):
               & (uv[..., 1] >= 0) & (uv[..., 1] <= 30))
     assert bool(inside.any(dim=0).all())
     # seeded: the same points every time
-    assert torch.equal(load_dataset(tmp_path, images="images_10", num_random_points=500).points[0], xyz)
+    assert torch.equal(load_dataset(tmp_path, images="images_10", num_random_points=500, init="random").points[0], xyz)
 
 
 def test_llff_errors(tmp_path):
@@ -164,7 +164,7 @@ def _transforms_scene(root: Path, n=4, w=12, h=8, rgba=True, name="transforms.js
 def test_transforms_capture_and_rgba_compositing(tmp_path):
     colors = _transforms_scene(tmp_path)
     assert detect_format(tmp_path) == "transforms"
-    d = load_dataset(tmp_path, background=(0.0, 1.0, 0.0), num_random_points=100)
+    d = load_dataset(tmp_path, background=(0.0, 1.0, 0.0), num_random_points=100, init="random")
     assert d.names == [f"train/r_{i}.png" for i in range(4)]
     assert torch.allclose(d.cameras.Ks[0], torch.tensor([[10.0, 0, 6.0], [0, 10.0, 4.0], [0, 0, 1]]), atol=1e-5)
     # OpenGL c2w -> OpenCV w2c: every camera sees the origin straight ahead at depth ~4.12
@@ -261,7 +261,7 @@ def test_colmap_cup_points_match_image_colours():
 
 @needs("lego_200")
 def test_lego_transforms():
-    d = load_dataset(DATA / "lego_200", num_random_points=1000, max_images=25)
+    d = load_dataset(DATA / "lego_200", num_random_points=1000, max_images=25, init="capture")
     assert d.format == "transforms" and len(d) == 25 and (d.width, d.height) == (200, 200)
     assert abs(float(d.cameras.Ks[0, 0, 0]) - 100.0 / np.tan(0.5 * 0.6911112070083618)) < 1e-3
     # cameras on a sphere of radius ~4 looking at the origin

@@ -354,8 +354,8 @@ def _llff_capture(root: Path, model, p, full=(320, 240), focal=240.0, levels=(2,
 def test_llff_distorted_sparse_camera_at_every_level(tmp_path, model):
     p = LENSES[model]
     _llff_capture(tmp_path, model, p)
-    d2 = load_dataset(tmp_path, images="images_2", num_random_points=50)
-    d4 = load_dataset(tmp_path, images="images_4", num_random_points=50)
+    d2 = load_dataset(tmp_path, images="images_2", num_random_points=50, init="random")
+    d4 = load_dataset(tmp_path, images="images_4", num_random_points=50, init="random")
     for d, s in ((d2, 2), (d4, 4)):
         assert d.undistortion["cameras"][0]["model"] == model and d.undistortion["source_size"] == [320 // s, 240 // s]
         K_src = np.array([[240.0 / s, 0, 160 / s], [0, 240.0 / s, 120 / s], [0, 0, 1]])

@@ -27,6 +27,16 @@ Layouts, checked in this order:
   holds a single distorted camera with the poses' focal, its distortion is
   removed too.
 
+Initial points (``init``): ``"auto"`` (the default) takes the capture's own point cloud (COLMAP
+``points3D``) and, for a capture without one, triangulates points from its images and known poses
+(:mod:`ssgwarp.capture.triangulate`, from the training views only; when fewer than ``MIN_TRIANGULATED`` points survive it says so in one
+line and falls back to random points). ``"triangulate"`` triangulates even when the capture has points,
+``"random"`` starts from random points (in the views' frusta, or for ``transforms*.json`` in a cube around
+the point the cameras look at), ``"capture"`` takes the capture's points or else random ones without
+triangulating (quick loads), and a path to a ``.ply`` file loads those points
+(:func:`ssgwarp.capture.ply.read_points`). ``SceneData.points_source`` says which it was
+(``colmap``, ``triangulated``, ``random``, ``ply``) and ``points_stats`` holds the triangulation's record.
+
 Distorted images become pinhole images in which every pixel has a source
 (:func:`ssgwarp.capture.lens.plan_undistortion`: the largest crop of the undistorted
 frame, focal lengths kept, one size for all cameras), at the image folder's own
@@ -42,15 +52,18 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Optional, Sequence
 
+import numpy as np
 import torch
 
 from ..core.cameras import Cameras
 from .formats import (  # noqa: F401 (re-exported: part of this module's API)
     IMAGE_EXTS, LOADERS, focus_point, missing_images_error, random_points_in_frusta, resize_images)
+from .formats import _depth_range
+from .triangulate import scene_depth_range, triangulate
 from .colmap import find_model
 from ..errors import InputError
 from ..core.fileio import read_json
-from .ply import read_ply
+from .ply import read_ply, read_points
 
 log = logging.getLogger("ssgwarp.capture.datasets")
 
@@ -66,7 +79,9 @@ class SceneData:
         names: image names (file names relative to the image folder), one per camera.
         train_ids, test_ids: indices into the cameras.
         points: ``(xyz [P, 3], rgb [P, 3] in [0, 1])`` initial points, or None.
-        points_source: "colmap", "random" or "none".
+        points_source: "colmap", "triangulated", "random", "ply" or "none".
+        points_stats: how the points were made: for triangulated points the
+            :class:`~ssgwarp.capture.triangulate.Triangulation` stats (count, median reprojection error...).
         near, far: depth range of the scene seen from the cameras (scene units), or None.
         background: RGB the images were composited on (and that renders should use).
         data_dir, image_dir: where the capture and its images live.
@@ -83,6 +98,7 @@ class SceneData:
     test_ids: list[int]
     points: Optional[tuple[torch.Tensor, torch.Tensor]] = None
     points_source: str = "none"
+    points_stats: dict = field(default_factory=dict)
     near: Optional[float] = None
     far: Optional[float] = None
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
@@ -197,10 +213,64 @@ def _split(n: int, split_every: int, test_mask: Optional[Sequence[bool]] = None)
 
 
 
+INIT_MODES = ("auto", "triangulate", "random", "capture")
+MIN_TRIANGULATED = 100  # fewer triangulated points than this: random points instead
+
+
+def check_init(init) -> "str | Path":
+    """``init`` of :func:`load_dataset` checked: one of :data:`INIT_MODES` or the Path of a .ply file."""
+    if not isinstance(init, Path) and str(init) in INIT_MODES:
+        return str(init)
+    p = _as_path(init)
+    if p.suffix.lower() != ".ply":
+        raise InputError(f"unknown initial points '{init}': use {', '.join(INIT_MODES)} or the path of a .ply "
+                         f"point cloud")
+    if not p.is_file():
+        raise InputError(f"{p}: PLY file of initial points not found")
+    return p
+
+
+def _initial_points(d: dict, init, fmt: str, num_random_points: int, seed: int, progress: bool,
+                    train: list[int]) -> None:
+    """Set ``d``'s ``points``, ``points_source`` and ``points_stats`` as ``init`` says (module docstring);
+    points are triangulated from the ``train`` views only (the held-out views stay unseen)."""
+    own = d.get("points_source", "none")
+    d["points_stats"] = {}
+    if isinstance(init, Path):
+        d["points"], d["points_source"] = read_points(init), "ply"
+        d["points_stats"] = {"file": str(init.resolve()), "count": len(d["points"][0])}
+        return
+    if init == "capture" or (init == "auto" and own == "colmap"):
+        return
+    cams, imgs = d["cameras"], d["images"]
+    if init in ("auto", "triangulate"):
+        known = None if fmt == "transforms" or d.get("near") is None else (d["near"], d["far"])
+        tri = triangulate(cams[train], imgs[train], names=[d["names"][i] for i in train], progress=progress,
+                          depth_range=known)
+        if len(tri) >= MIN_TRIANGULATED:
+            d["points"], d["points_source"], d["points_stats"] = (tri.xyz, tri.rgb), "triangulated", tri.stats
+            if known is None:
+                d["near"], d["far"] = _depth_range(tri.xyz.double().numpy(), cams.viewmats.double().numpy())
+            return
+        why = (f"triangulation kept {len(tri)} points (fewer than {MIN_TRIANGULATED}; {tri.stats['matches']} "
+               f"matches in {tri.stats['pairs']} view pairs)")
+        log.warning("%s: starting from %d random points instead (--init PATH.ply gives points, --init random "
+                    "skips triangulating)", why, num_random_points)
+        d["points_stats"] = {"fallback": why, "triangulation": tri.stats}
+    if own != "random":
+        near, far = d.get("near"), d.get("far")
+        if near is None or far is None:
+            near, far = scene_depth_range(cams)
+        n = len(cams)
+        d["points"] = random_points_in_frusta(cams, imgs, np.full(n, near), np.full(n, far), num_random_points, seed)
+    d["points_source"] = "random"
+
+
 def load_dataset(path: str | Path, images: str = "images", split_every: int = 8,
                  background: Sequence[float] = (1.0, 1.0, 1.0), max_images: Optional[int] = None,
                  device=None, *, width: Optional[int] = None, num_random_points: int = 100_000,
-                 seed: int = 0, format: Optional[str] = None) -> SceneData:
+                 seed: int = 0, format: Optional[str] = None, init: "str | Path" = "auto",
+                 progress: bool = True) -> SceneData:
     """Load a capture (layout auto-detected, see the module docstring).
 
     Args:
@@ -217,6 +287,9 @@ def load_dataset(path: str | Path, images: str = "images", split_every: int = 8,
         num_random_points: initial points when the capture has no point cloud.
         seed: seed of those random points.
         format: force ``"colmap"``, ``"llff"`` or ``"transforms"`` instead of detecting.
+        init: initial points: ``"auto"``, ``"triangulate"``, ``"random"``, ``"capture"`` or a ``.ply`` path
+            (module docstring).
+        progress: progress bars (triangulation).
     """
     root = _as_path(path)
     fmt = format or detect_format(root)
@@ -227,12 +300,14 @@ def load_dataset(path: str | Path, images: str = "images", split_every: int = 8,
     bg = tuple(float(v) for v in background)
     if len(bg) != 3:
         raise InputError(f"background must be 3 numbers (RGB), got {background!r}")
+    init = check_init(init)
     d = LOADERS[fmt](root, images=images, max_images=max_images, width=width, background=bg,
                       num_random_points=int(num_random_points), seed=seed)
     test_mask = d.pop("test_mask", None)
     train, test = _split(len(d["names"]), split_every, test_mask)
+    _initial_points(d, init, fmt, int(num_random_points), seed, progress, train)
     options = dict(images=images, split_every=split_every, background=list(bg), max_images=max_images,
-                   width=width, num_random_points=int(num_random_points), seed=seed, format=fmt)
+                   width=width, num_random_points=int(num_random_points), seed=seed, format=fmt, init=str(init))
     data = SceneData(train_ids=train, test_ids=test, background=bg, data_dir=root.resolve(), format=fmt,
                      options=options, **d)
     log.info("loaded %s capture %s: %d images %dx%d (%d train, %d test), %s points", fmt, root, len(data),
@@ -257,6 +332,9 @@ def data_json(data: SceneData, **extra) -> dict:
         "near": data.near,
         "far": data.far,
         "points_source": data.points_source,
+        "points_count": None if data.points is None else int(len(data.points[0])),
+        "points_reprojection_error_px": data.points_stats.get("median_reprojection_error_px"),
+        "points_stats": data.points_stats,
         "load_options": data.options,
         **extra,
     }
@@ -302,9 +380,10 @@ def load_run(scene_dir: str | Path, device=None, *, data_dir: Optional[str | Pat
         opts = dict(meta.get("load_options", {}))
         opts.pop("split_every", None)
         opts["width"] = cams.width
-        data = load_dataset(data_root, **{k: opts[k] for k in ("images", "background", "width", "max_images",
-                                                                 "num_random_points", "seed", "format")
-                                         if k in opts})
+        # the capture's own points at most: a run's initial points are not made again
+        data = load_dataset(data_root, init="capture", **{k: opts[k] for k in ("images", "background", "width",
+                                                                               "max_images", "num_random_points",
+                                                                               "seed", "format") if k in opts})
         pos = {n: i for i, n in enumerate(data.names)}
         missing = [n for n in cams.names if n not in pos]
         if missing:
@@ -318,6 +397,8 @@ def load_run(scene_dir: str | Path, device=None, *, data_dir: Optional[str | Pat
                              f"made from other data or by an ssgwarp that did not crop undistorted images; run "
                              f"`ssgwarp reconstruct` again")
         points, undistortion = data.points, data.undistortion
+        if data.points_source != meta.get("points_source"):
+            points = None  # triangulated or given points are not remade
     out = SceneData(cameras=cams, images=images, names=list(cams.names), train_ids=train, test_ids=test,
                     points=points, points_source=meta.get("points_source", "none"), near=meta.get("near"),
                     far=meta.get("far"), background=bg, data_dir=data_root, image_dir=meta.get("images"),

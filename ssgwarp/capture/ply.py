@@ -11,6 +11,9 @@ One ``vertex`` element, float32 properties, in this order::
   wxyz quaternion, ``nx ny nz`` are zeros (kept for viewers that expect them).
 * ``obj_dc_*`` are Gaussian Grouping identity encodings (absent before grouping).
 
+:func:`read_points` reads any point cloud PLY (``x y z`` with ``red green blue`` or ``f_dc_*``) as
+initial points (``ssgwarp reconstruct --init PATH.ply``).
+
 Float32 scenes round-trip bit-exactly. Reading rejects, with an InputError naming the
 file: unreadable/truncated files, a missing ``vertex`` element, missing or unexpected
 fields, f_rest counts that match no SH degree, and NaN/inf values.
@@ -25,7 +28,7 @@ import torch
 
 from ..errors import InputError
 from ..core.fileio import atomic_path
-from ..raster.scene import GaussianScene
+from ..raster.scene import SH_C0, GaussianScene
 
 _BASE = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
 _TAIL = ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
@@ -77,25 +80,59 @@ def write_ply(path: str | Path, scene: GaussianScene) -> Path:
     return path
 
 
-def read_ply(path: str | Path, device=None) -> GaussianScene:
-    """Read a Gaussian scene written by :func:`write_ply` (or any INRIA-layout 3DGS PLY)."""
+def _read_vertices(path: Path, what: str) -> np.ndarray:
+    """The ``vertex`` element of the PLY file ``path`` (structured array; InputError naming the file)."""
     from plyfile import PlyData
 
-    path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: PLY file not found")
     try:
         with open(path, "rb") as fh:
             ply = PlyData.read(fh)
         if "vertex" not in ply:
-            raise InputError(f"{path}: not a Gaussian PLY (no 'vertex' element)")
+            raise InputError(f"{path}: not a {what} PLY (no 'vertex' element)")
         data = ply["vertex"].data
     except InputError:
         raise
     except Exception as e:  # plyfile raises a zoo of types on bad input (PlyParseError, ValueError, EOFError...)
         msg = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise InputError(f"{path}: corrupt or truncated PLY ({msg})") from None
+    return data
 
+
+def read_points(path: str | Path) -> tuple[torch.Tensor, torch.Tensor]:
+    """A point cloud PLY as ``(xyz [P, 3], rgb [P, 3] in [0, 1])`` float32, for initial points.
+
+    Positions from ``x y z``; colours from ``red green blue`` (8/16-bit integers or floats in [0, 1]),
+    else from a 3DGS scene's ``f_dc_0..2`` (degree-0 colour), else mid grey.
+    """
+    path = Path(path).expanduser()
+    data = _read_vertices(path, "point cloud")
+    names = list(data.dtype.names or ())
+    missing = [c for c in "xyz" if c not in names]
+    if missing or len(data) == 0:
+        raise InputError(f"{path}: " + (f"no {'/'.join(missing)} vertex properties" if missing else "no points")
+                         + " (expected a point cloud with x y z [red green blue])")
+    xyz = np.stack([np.asarray(data[c], np.float64) for c in "xyz"], 1)
+    if all(c in names for c in ("red", "green", "blue")):
+        rgb = np.stack([np.asarray(data[c], np.float64) for c in ("red", "green", "blue")], 1)
+        kind = data.dtype["red"]
+        if kind.kind in "ui":
+            rgb = rgb / float(np.iinfo(kind).max)
+    elif all(f"f_dc_{i}" in names for i in range(3)):
+        rgb = np.stack([np.asarray(data[f"f_dc_{i}"], np.float64) for i in range(3)], 1) * SH_C0 + 0.5
+    else:
+        rgb = np.full_like(xyz, 0.5)
+    bad = ~np.isfinite(xyz).all(1) | ~np.isfinite(rgb).all(1)
+    if bad.any():
+        raise InputError(f"{path}: {int(bad.sum())} point(s) have NaN/inf positions or colours")
+    return torch.from_numpy(xyz).float(), torch.from_numpy(np.clip(rgb, 0.0, 1.0)).float()
+
+
+def read_ply(path: str | Path, device=None) -> GaussianScene:
+    """Read a Gaussian scene written by :func:`write_ply` (or any INRIA-layout 3DGS PLY)."""
+    path = Path(path)
+    data = _read_vertices(path, "Gaussian")
     names = list(data.dtype.names or ())
     if not names or len(data) == 0:
         raise InputError(f"{path}: PLY has no Gaussians")

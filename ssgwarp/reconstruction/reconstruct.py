@@ -35,7 +35,7 @@ from typing import Callable, Optional, Sequence
 import torch
 
 from ..services import distributed
-from ..capture.datasets import data_json, load_dataset
+from ..capture.datasets import check_init, data_json, load_dataset
 from ..services.distributed import SINGLE
 from ..errors import InputError, SsgwarpError, WeightsNotFound
 from ..core.fileio import write_json
@@ -73,7 +73,7 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
                 checkpoint_every: int = 500, num_random_points: int = 100_000,
                 rasterize: Optional[Callable] = None, raster_kwargs: Optional[dict] = None,
                 progress: bool = True, data=None, strategy="default", batch_size: Optional[int] = None,
-                group=None) -> dict:
+                group=None, init="auto") -> dict:
     """Reconstruct the capture in ``data_dir`` into the run folder ``out`` (what the CLI runs).
 
     Writes ``out/scene.ply``, ``cameras.json``, ``data.json``, ``metrics.json`` (and keeps
@@ -82,7 +82,9 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
     ``data`` may be a preloaded :class:`~ssgwarp.capture.datasets.SceneData` of ``data_dir``.
     ``batch_size``: views per step over all processes (default: one per process; on
     ``resume``, the checkpoint's). ``group``: the :class:`ssgwarp.services.distributed.Group` of a
-    data-parallel run (default: alone); only its main process writes files and evaluates.
+    data-parallel run (default: alone); only its main process writes files and evaluates. ``init``: the
+    initial points (:func:`~ssgwarp.capture.datasets.load_dataset`'s: ``auto``, ``triangulate``, ``random`` or a
+    ``.ply`` path).
     Returns the metrics dict (on the other processes: ``{}``).
     """
     group = group if group is not None else SINGLE
@@ -94,7 +96,8 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
     if data is None:
         kw = {} if background is None else {"background": background}
         data = load_dataset(data_dir, images=images, split_every=split_every, max_images=max_images, width=width,
-                            num_random_points=num_random_points, seed=seed, **kw)
+                            num_random_points=num_random_points, seed=seed, init=init,
+                            progress=progress and group.is_main, **kw)
     state = read_checkpoint(ckpt) if resume and ckpt.is_file() else None
     if state is not None and batch_size is None:
         batch_size = int(state.get("batch_size", 1))
@@ -206,7 +209,12 @@ def add_arguments(parser) -> None:
     parser.add_argument("--background", type=_background, default=None,
                         help="white, black or R,G,B: what RGBA images are composited on (default white)")
     parser.add_argument("--random-points", type=int, default=100_000,
-                        help="initial points when the capture has no point cloud (default 100000)")
+                        help="number of random initial points (--init random, or when triangulation fails; "
+                             "default 100000)")
+    parser.add_argument("--init", default="auto", metavar="auto|triangulate|random|PATH.ply",
+                        help="initial points: auto (default: the capture's COLMAP points, else points "
+                             "triangulated from the images and their poses), triangulate (even when the capture "
+                             "has points), random, or a .ply point cloud")
     parser.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints (default 500)")
     parser.add_argument("--batch-size", type=int, default=None,
                         help="training views per step, over all processes (default: one per process; on "
@@ -224,6 +232,7 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     if args.batch_size is not None and args.batch_size < 1:
         raise InputError(f"--batch-size must be >= 1, got {args.batch_size}")
+    init = check_init(args.init)
     group, device = distributed.from_env(args.device)  # under torchrun: join the others
     logging.basicConfig(level=logging.INFO if group.is_main else logging.WARNING, format="ssgwarp: %(message)s")
     try:
@@ -233,7 +242,7 @@ def run(args) -> int:
                         background=args.background, checkpoint_every=args.checkpoint_every,
                         num_random_points=args.random_points, progress=not args.quiet,
                         strategy=args.strategy, batch_size=args.batch_size,
-                        recipe=Recipe(batch_scaling=args.batch_scaling), group=group)
+                        recipe=Recipe(batch_scaling=args.batch_scaling), group=group, init=init)
     finally:
         distributed.shutdown(group)
     if not group.is_main:
