@@ -203,14 +203,14 @@ def _stage_reconstruct(d: _Demo) -> dict:
                                f"SH degree 0 (the colours do not depend on the view), device {d.device}")
     if d.todo("reconstruct"):
         t0 = time.perf_counter()
-        data = load_dataset(d.data_dir, num_random_points=sz.init_points, seed=d.seed)
+        data = load_dataset(d.data_dir, num_random_points=sz.init_points, seed=d.seed, init="random")
         it = sz.reconstruct_iters
         every = max(10, it // 15)
         recipe = Recipe(refine_start=every, refine_every=every, refine_stop=int(it * 0.6), reset_every=0)
         resume_rec = (d.scene_dir / "checkpoint.pt").is_file()
         m = reconstruct(d.data_dir, d.scene_dir, iters=it, sh_degree=0, max_gaussians=sz.max_gaussians,
                         device=d.device, seed=d.seed, recipe=recipe, checkpoint_every=max(50, it // 5),
-                        progress=d.progress, data=data, resume=resume_rec, force=not resume_rec)
+                        progress=d.progress, data=data, resume=resume_rec, force=not resume_rec, init="random")
         d.done("reconstruct", seconds=time.perf_counter() - t0, gaussians=m["num_gaussians"], psnr=m["psnr"],
                ssim=m["ssim"], iters=m["iters"], test_views=m["test_views"])
     rec = d.stages["reconstruct"]
