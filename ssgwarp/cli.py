@@ -157,7 +157,8 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
             return 0
         seed_everything(args.seed)
         args.device = resolve_device(args.device)
-        with weights.offline("--offline") if args.offline else contextlib.nullcontext():
+        weights._SAID.clear()                  # each command reports a missing model once
+        with weights.offline("--offline") if args.offline else contextlib.nullcontext(), weights.verbose(debug):
             return int(module.run(args) or 0)
     except SsgwarpError as e:
         if debug:

@@ -114,7 +114,8 @@ def test_evaluate_cli_writes_metrics_pairs_and_table(runs, tmp_path, capsys):
     for k in ("color", "texture"):
         assert es["style_content"][f"style_distance_{k}"] > 0 and es["style_content"][f"style_distance_{k}_original"] > 0
     assert "gram_style_loss" not in er.get("style_content", {})       # no style image for the reconstruction
-    assert "no local weights for lpips" in er["skipped"]["lpips"]
+    assert "no local lpips weights" in er["skipped"]["lpips"] and "ssgwarp weights --download lpips" in \
+        er["skipped"]["lpips"]
     assert "raft" in er["skipped"]["flow warp"]
     # inspection images: a strip and a mask per saved pair
     strips = sorted(p.name for p in (recon / "evaluation" / "pairs").glob("*.png"))

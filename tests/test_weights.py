@@ -54,6 +54,13 @@ class FakeHub:
         monkeypatch.setattr(huggingface_hub.HfApi, "model_info", self.model_info)
         monkeypatch.setattr(torch.hub, "download_url_to_file", self.download_url_to_file)
         monkeypatch.setattr(W, "_url_size", lambda url: 1234)
+        self.probes = []           # the network probe: answered here, never by the network
+        monkeypatch.setattr(W, "_connect", self.connect)
+
+    def connect(self, host, port, timeout):
+        self.probes.append(host)
+        if isinstance(self.fail, OSError) and "probe" in str(self.fail):
+            raise self.fail
 
     LISTINGS = {"h94/IP-Adapter": {"models/ip-adapter_sd15.safetensors": 44_642_768,
                                    "models/ip-adapter_sd15.bin": 44_700_000},
@@ -153,9 +160,16 @@ def test_offline_missing_model_is_one_line_naming_the_fetch_command(tmp_path, mo
     with pytest.raises(WeightsNotFound) as e:
         W.require("sd15")
     text = str(e.value)
+    # short: what is missing, why, what fetching costs and the command that fetches it
     assert "\n" not in text and "ssgwarp weights --download sd15" in text and "SSGWARP_OFFLINE=1" in text
+    assert "~4.27 GB" in text and len(text) < 200 and "--sd15" not in text
+    with W.verbose():                 # --debug: the long form, every way to provide them
+        with pytest.raises(WeightsNotFound) as e:
+            W.require("sd15")
+    text = str(e.value)
     for alt in ("--sd15", "SSGWARP_SD15", "$SSGWARP_WEIGHTS/stable-diffusion-v1-5", "model_index.json"):
         assert alt in text, alt
+    assert "\n" not in text and not W._VERBOSE
     monkeypatch.delenv("SSGWARP_OFFLINE")
     with pytest.raises(WeightsNotFound, match="HF_HUB_OFFLINE=1"):
         W.require("raft")
@@ -239,6 +253,7 @@ def test_interrupted_or_wrong_download_leaves_nothing_behind(tmp_path, monkeypat
 
     use(monkeypatch, tmp_path, online=True)
     monkeypatch.setattr(W, "_url_size", lambda url: None)
+    monkeypatch.setattr(W, "_connect", lambda host, port, timeout: None)     # the probe: reachable
     payload = b"0123456789" * 5000
 
     class Stream(io.BytesIO):

@@ -19,16 +19,18 @@ Each model (``SPECS``) is looked for, in order, at:
    how large (the hub's metadata, or the spec's approximate size) and under
    which licence — unless downloads are off: ``--offline``, ``SSGWARP_OFFLINE=1``,
    ``HF_HUB_OFFLINE=1`` or ``TRANSFORMERS_OFFLINE=1``, or an earlier download in
-   this process found no network (tried once, with short timeouts:
-   ``SSGWARP_DOWNLOAD_TIMEOUT`` seconds, default 10).
+   this process found no network (one probe per process, :func:`probe`, with short timeouts:
+   ``SSGWARP_DOWNLOAD_TIMEOUT`` seconds, default 10; its answer is kept).
 
 Both libraries write a download under a temporary name in the destination folder
 and move it in place when complete, so an interrupted or failed download leaves
 nothing half-written.
 
 :func:`find` never downloads (None when absent); :func:`require` may download and
-raises :class:`~ssgwarp.errors.WeightsNotFound` with a one-line message naming
-``ssgwarp weights --download NAME`` and the explicit-path alternatives;
+raises :class:`~ssgwarp.errors.WeightsNotFound` with a short one-line message (what is
+missing, its size, ``ssgwarp weights --download NAME``; the long form with every
+explicit-path alternative under ``--debug`` (:func:`verbose`) and in ``ssgwarp weights``);
+:func:`notice` prints such a line once per model and command where a stage runs without them;
 :func:`load_error` turns a truncated or corrupt file into a one-line error
 naming the file and how to fetch it again. ``ssgwarp weights`` prints the table
 (:func:`table`) and ``ssgwarp weights --download [NAMES]`` fetches (:func:`fetch`).
@@ -50,7 +52,8 @@ from .weight_specs import (  # noqa: F401 (re-exported: part of this module's AP
     GROUPS, SPECS, WeightSpec, _git_blob_sha1, _sha256, _spec)
 
 __all__ = ["WeightSpec", "SPECS", "GROUPS", "DownloadFailed", "find", "locate", "require", "obtain", "fetch",
-           "message", "load_error", "offline_reason", "offline", "hub_cache", "torch_checkpoints",
+           "message", "notice", "load_error", "offline_reason", "offline", "verbose", "probe", "hub_cache",
+           "torch_checkpoints",
            "status", "table", "verify", "add_arguments", "run"]
 
 
@@ -61,6 +64,9 @@ class DownloadFailed(WeightsNotFound):
 _TRUE = ("1", "true", "yes", "on")
 _OFFLINE_FLAG: Optional[str] = None          # set by --offline (offline())
 _NETWORK_DOWN: Optional[str] = None          # reason, once a download found no network in this process
+_NETWORK_OK: Optional[bool] = None           # True once the probe reached the network (kept for the process)
+_VERBOSE: bool = False                       # --debug: messages in their long form
+_SAID: set = set()                           # models whose absence this command has reported (notice())
 
 
 # -- where the ecosystem keeps its files -----------------------------------------------------------
@@ -192,6 +198,18 @@ def offline(reason: str = "--offline") -> Iterator[None]:
         _OFFLINE_FLAG = old
 
 
+@contextlib.contextmanager
+def verbose(on: bool = True) -> Iterator[None]:
+    """Messages about missing weights in their long form inside the block (``--debug``)."""
+    global _VERBOSE
+    old = _VERBOSE
+    _VERBOSE = bool(on) or old
+    try:
+        yield
+    finally:
+        _VERBOSE = old
+
+
 def offline_reason() -> Optional[str]:
     """Why downloads are off now (``--offline``, ``HF_HUB_OFFLINE=1``, ...), or None when they are allowed."""
     if _OFFLINE_FLAG:
@@ -200,7 +218,36 @@ def offline_reason() -> Optional[str]:
         if os.environ.get(var, "").strip().lower() in _TRUE:
             return f"{var}={os.environ[var]}"
     if _NETWORK_DOWN:
-        return f"no network ({_NETWORK_DOWN})"
+        return f"no network ({_NETWORK_DOWN})" if _VERBOSE else "no network"
+    return None
+
+
+def _connect(host: str, port: int, timeout: float) -> None:
+    """Open and close one TCP connection (the network probe; tests replace it)."""
+    socket.create_connection((host, port), timeout=timeout).close()
+
+
+def probe(url: str) -> Optional[str]:
+    """Whether the network is reachable: None when it is, else why not.
+
+    One TCP connection to ``url``'s host, with the download timeout, the first time
+    a download is wanted in this process; the answer is kept, so a process without
+    network waits on it once, and later models are reported missing at once.
+    """
+    global _NETWORK_DOWN, _NETWORK_OK
+    if _NETWORK_DOWN:
+        return offline_reason()
+    if _NETWORK_OK:
+        return None
+    from urllib.parse import urlparse
+
+    host = urlparse(url if "://" in url else "https://" + url).hostname or url
+    try:
+        _connect(host, 443, _timeout())
+    except OSError as e:
+        _NETWORK_DOWN = f"{host} unreachable: {' '.join(str(e).split())[:200] or type(e).__name__}"
+        return offline_reason()
+    _NETWORK_OK = True
     return None
 
 
@@ -232,20 +279,39 @@ def _alternatives(spec: WeightSpec) -> str:
             f"expected: {spec.expected} (from '{spec.source}')")
 
 
-def message(key: str, explicit: Optional[str | os.PathLike] = None, reason: Optional[str] = None) -> str:
-    """One line: weights ``key`` are missing, why none was downloaded, and every way to provide them."""
+def message(key: str, explicit: Optional[str | os.PathLike] = None, reason: Optional[str] = None,
+            long: Optional[bool] = None) -> str:
+    """One line: weights ``key`` are missing, why none was downloaded, how to fetch them.
+
+    Short by default (what, its download size, ``ssgwarp weights --download KEY``);
+    ``long`` (default: under ``--debug``, :func:`verbose`) adds every other way to provide them.
+    """
     spec = _spec(key)
+    long = _VERBOSE if long is None else long
     if explicit:
         return (f"{explicit} does not exist; no local weights for {key} ({spec.title}): expected {spec.expected}; "
                 f"fix the path, or drop it to use {spec.env} / $SSGWARP_WEIGHTS / the cache "
                 f"(`ssgwarp weights --download {key}` fetches '{spec.source}')")
     why = f" ({reason})" if reason else ""
+    if not long:
+        cost = f"~{_human(spec.size)}, " if spec.size else ""
+        how = (f"`ssgwarp weights --download {key}` fetches it" if spec.repo or spec.url
+               else f"set {spec.env}")
+        return f"no local {key} weights{why}: {how} ({cost}`ssgwarp weights` shows where they are looked for)"
     if spec.repo or spec.url:
         fetch_ = (f"run `ssgwarp weights --download {key}` on a machine with network (fetches '{spec.source}', "
                   f"~{_human(spec.size)}, into {_where_to(spec)}), or ")
     else:
         fetch_ = ""
     return f"no local weights for {key} ({spec.title}){why}: {fetch_}{_alternatives(spec)}"
+
+
+def notice(key: str, text: str, instead: str = "") -> None:
+    """Print ``ssgwarp: TEXT; INSTEAD`` on stderr, once per model ``key`` and command (later calls are silent)."""
+    if key in _SAID:
+        return
+    _SAID.add(key)
+    print(f"ssgwarp: {text}{'; ' + instead if instead else ''}", file=sys.stderr, flush=True)
 
 
 def load_error(key: str, path: str | os.PathLike, err: BaseException, what: Optional[str] = None) -> InputError:
@@ -361,6 +427,10 @@ def fetch(key: str, *, force: bool = False, progress: bool = True, say=None) -> 
         raise DownloadFailed(message(key, reason=f"downloads are off: {off}"))
     if spec.repo and _hf() is None:
         raise DownloadFailed(message(key, reason="huggingface_hub is not installed: pip install 'ssgwarp[diffusion]'"))
+    src = f"huggingface.co/{spec.repo}" if spec.repo else spec.url
+    down = probe(src)
+    if down:
+        raise DownloadFailed(message(key, reason=f"downloads are off: {down}"))
     listing = None
     try:
         if spec.repo:
@@ -371,7 +441,6 @@ def fetch(key: str, *, force: bool = False, progress: bool = True, say=None) -> 
         known = "" if size else "~"
     except Exception:     # metadata unreachable: say the spec's size; the download itself decides
         size, known = spec.size, "~"
-    src = f"huggingface.co/{spec.repo}" if spec.repo else spec.url
     say(f"ssgwarp: downloading {key} ({spec.title}) from {src}: {known}{_human(size or spec.size)} "
         f"into {_where_to(spec)}; licence {spec.licence}")
     try:
@@ -385,6 +454,8 @@ def fetch(key: str, *, force: bool = False, progress: bool = True, say=None) -> 
         detail = " ".join(str(e).split())[:300] or type(e).__name__
         if _network_error(e):
             _NETWORK_DOWN = f"downloading {key} failed: {detail}"
+            if not _VERBOSE:
+                detail = " ".join(detail.split()[:12]) + (" ..." if len(detail.split()) > 12 else "")
         if "hash" in detail.lower():
             detail += " — the download was discarded, nothing was written"
         raise DownloadFailed(message(key, reason=f"download failed: {detail}")) from None
@@ -422,17 +493,15 @@ def obtain(key: str, explicit: Optional[str | os.PathLike] = None, config: Optio
            *, instead: str = "", download: Optional[bool] = None) -> Optional[Path]:
     """:func:`require`, or None where a stage can run without the weights.
 
-    Silent when they are simply absent and downloads are off; one line on stderr
-    (``instead`` says what runs in their place) when a download was tried and failed.
+    A missing model is reported in one short line on stderr, once per model and
+    command (:func:`notice`; ``instead`` says what runs in their place).
     """
     try:
         return require(key, explicit, config, download=download)
-    except DownloadFailed as e:
-        print(f"ssgwarp: {e}{'; ' + instead if instead else ''}", file=sys.stderr, flush=True)
-        return None
-    except WeightsNotFound:
-        if explicit:
+    except WeightsNotFound as e:
+        if explicit and not isinstance(e, DownloadFailed):
             raise
+        notice(key, str(e), instead)
         return None
 
 
@@ -562,6 +631,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
+    with verbose():            # this command is where the long forms belong
+        return _run(args)
+
+
+def _run(args) -> int:
     cfg = getattr(args, "weights", None)
     cfg = cfg if isinstance(cfg, Mapping) else None
     if args.download is not None:

@@ -176,8 +176,11 @@ def _open(scene_dir: Path, style_path: Path, out: Path, stage2: Stage2Config, st
     from ..services.features import load_extractor
     from ..core.fileio import read_image, write_json
 
+    from ..services.runs import claim
+
     style_np = read_image(style_path, 3)                       # InputError when missing / corrupt
     scene, data = load_run(scene_dir, device, load_images=False)
+    claim(out, OUTPUTS, force=force, resume=resume, what="a stylize output")   # a taken OUT refuses before any download
     extractor = load_extractor(opts.vgg16, device, opts.layers, kind=opts.extractor, seed=stage2.seed,
                                config=opts.weights, fallback="random-edges")
     stage2 = resolve_for(stage2, extractor)      # the options left to the extractor, made concrete
@@ -219,6 +222,28 @@ def _missing_models(stage1) -> list[str]:
     return out
 
 
+def _stage1_skipped(names: list[str]) -> str:
+    """The one line saying that Stage 1 is skipped: which models are missing and what fetching them costs."""
+    from ..services import weights as W
+
+    if not names:
+        return "Stage 1 skipped: its models are incomplete (`ssgwarp weights` shows what is missing)"
+    size = sum(W.SPECS[k].size for k in names)
+    return (f"Stage 1 skipped: no local {', '.join(names)} (~{size / 1e9:.1f} GB; `ssgwarp weights --download "
+            f"stage1` fetches them, `ssgwarp weights` shows where they are looked for)")
+
+
+def groups_unused(num_groups: Optional[int], mode: str) -> Optional[str]:
+    """The line saying that the scene's groups went unused because Stage 1 did not run (None when they are used
+    or there are none): IST then matches the style image globally, as the groups only split the stylized key
+    views."""
+    if not num_groups or mode == "global":
+        return None
+    return (f"the scene's {num_groups} groups are not used: without Stage 1's stylized key views Stage 2 matches "
+            f"the style image globally (groups select which key-view region styles which object; Stage 1 "
+            f"weights, `ssgwarp weights --download stage1`, make them count)")
+
+
 def _keyviews(r: _Run):
     """Select, render and save the key views (or load them on ``--resume``); ``(keyviews, stylized or None)``."""
     from . import keyviews as K
@@ -255,9 +280,7 @@ def _keyviews_and_stage1(r: _Run):
     # check the weights before anything imports diffusers (seconds of import for nothing)
     missing = [] if r.stage1_models is not None else missing_weights(stage1)
     if missing:
-        names = ", ".join(_missing_models(stage1)) or "its models"
-        r.say(f"Stage 1 skipped: no local {names}. `ssgwarp weights` shows where they are looked for; "
-              f"`ssgwarp weights --download stage1` fetches them")
+        r.say(_stage1_skipped(_missing_models(stage1)))
     else:
         r.say(f"Stage 1: diffusion on {len(kv)} key views (CVSA {'on' if stage1.cvsa else 'off'})")
         stylized = stylize_keyviews(kv, r.style_np, stage1, r.device, models=r.stage1_models)
@@ -331,7 +354,8 @@ def _stage2_loss(r: _Run, t: _Targets, kv, content_ref: torch.Tensor):
     matching = "global against the style image"
     if stage2.mode != "global":
         matching += f" (Stage 1 did not run: requested mode '{stage2.mode}' fell back)"
-        r.say("Stage 1 did not run: Stage 2 matches against the style image globally")
+        r.say(groups_unused(r.num_groups, stage2.mode) or
+              "Stage 1 did not run: Stage 2 matches against the style image globally")
     return ViewLoss(r.extractor, targets, stage2, originals=content_ref), None, None, matching
 
 
@@ -392,22 +416,20 @@ def _renders(r: _Run, styled: GaussianScene) -> torch.Tensor:
 
 
 def _scores(r: _Run, styled: GaussianScene, renders: torch.Tensor, originals: torch.Tensor) -> dict:
-    """Gram style and content losses and style distances, before and after (the training views)."""
-    from ..evaluation.metrics import StyleDistance, style_content_losses
+    """Gram style and content losses and style distances, before and after, on the training views
+    (:func:`ssgwarp.evaluation.metrics.style_scores`: ``ssgwarp evaluate --views train`` gives the same numbers)."""
+    from ..evaluation.metrics import style_scores
 
-    t0, style = time.perf_counter(), r.style
+    t0 = time.perf_counter()
     with torch.no_grad():
-        after = style_content_losses(r.extractor, renders.float(), style.float(), originals.float())
-        before = style_content_losses(r.extractor, originals.float(), style.float())
-        dist = StyleDistance(style.float())          # on the scene's pixels (alpha >= 0.5), not the background
         alphas = render_alphas(r.scene, r.train_cams)
         alphas_after = render_alphas(styled, r.train_cams) if r.stage2.free_opacity else alphas
-        dist_after, dist_before = dist.mean(renders.float(), alphas_after), dist.mean(originals.float(), alphas)
+        sc = style_scores(r.extractor, renders, r.style, originals, alphas=alphas_after, original_alphas=alphas)
     r.times["metrics"] = time.perf_counter() - t0
-    return {"gram_style_loss": float(after["style"].mean()),
-            "gram_style_loss_original": float(before["style"].mean()),
-            "style_distance": dist_after, "style_distance_original": dist_before,
-            "content_loss": float(after["content"].mean())}
+    dist = lambda suffix: {k: sc.get(f"style_distance_{k}{suffix}") for k in ("color", "texture")}  # noqa: E731
+    return {"gram_style_loss": sc["gram_style_loss"], "gram_style_loss_original": sc["gram_style_loss_original"],
+            "style_distance": dist(""), "style_distance_original": dist("_original"),
+            "content_loss": sc["content_loss"]}
 
 
 def _metrics(r: _Run, s2: dict, renders: torch.Tensor, kv, stage1_info: dict, t_start: float) -> dict:
@@ -429,7 +451,9 @@ def _metrics(r: _Run, s2: dict, renders: torch.Tensor, kv, stage1_info: dict, t_
         "style_loss": style_loss_kind(stage2, r.extractor), "tv_weight": tv_weight_for(stage2, r.extractor),
         "gram_style_loss": scores["gram_style_loss"], "gram_style_loss_original": scores["gram_style_loss_original"],
         "style_distance": scores["style_distance"], "style_distance_original": scores["style_distance_original"],
-        "metric_views": f"the {len(train_ids)} training views (ssgwarp evaluate scores novel path views)",
+        "metric_views": f"the {len(train_ids)} training views at {r.cams.width}x{r.cams.height} "
+                        f"(`ssgwarp evaluate --views train` scores the same; its default is novel path views)",
+        "groups_used": bool(r.num_groups) and "per group" in s2["matching"],
         "content_loss": scores["content_loss"], "color_transfer": s2["transfer"], "final_losses": s2["result"].last,
         "keyviews": None if kv is None else {"ids": list(kv.ids), "names": list(kv.cameras.names),
                                               "size": list(kv.size)},
@@ -451,7 +475,8 @@ def _metrics(r: _Run, s2: dict, renders: torch.Tensor, kv, stage1_info: dict, t_
 def _summary(metrics: dict, out: Path) -> str:
     d0, d1 = metrics["style_distance_original"], metrics["style_distance"]
     g = lambda x: "n/a" if x is None else f"{x:.3g}"  # noqa: E731
-    return (f"done in {metrics['seconds']['total']:.1f}s: style distance colour {g(d0['color'])} -> "
+    return (f"done in {metrics['seconds']['total']:.1f}s; on the {metrics['views']} training views "
+            f"({metrics['extractor']}): style distance colour {g(d0['color'])} -> "
             f"{g(d1['color'])}, texture {g(d0['texture'])} -> {g(d1['texture'])}; Gram style loss "
             f"{metrics['gram_style_loss_original']:.4g} -> {metrics['gram_style_loss']:.4g}, content "
             f"{metrics['content_loss']:.4g}; contact sheet {out / 'contact_sheet.png'}")
