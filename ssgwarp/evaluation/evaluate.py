@@ -488,7 +488,7 @@ def run(args: argparse.Namespace) -> int:
     with atomic_path(path) as tmp:
         tmp.write_text(table)
     print()
-    print(table)
+    print(comparison_table(results, notes=False))      # (what was skipped: said above, and in the file)
     print(f"table written to {path}")
     return 0
 
