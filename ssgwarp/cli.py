@@ -33,7 +33,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
               "ssgwarp group runs/fern [--masks runs/fern/object_mask] [--groups 8]"),
     "keyviews": ("ssgwarp.stylization.keyviews", "choose key views and render their RGB, depth and group maps",
                  "ssgwarp keyviews runs/fern --keyviews 4 --out runs/fern/keyviews"),
-    "stylize": ("ssgwarp.stylization.stylize", "key views, Stage 1 (diffusion + CVSA) and Stage 2 (instance-level style transfer)",
+    "stylize": ("ssgwarp.stylization.stylize_cli", "key views, Stage 1 (diffusion + CVSA) and Stage 2 (instance-level style transfer)",
                 "ssgwarp stylize runs/fern --style style.jpg --out runs/fern-styled"),
     "evaluate": ("ssgwarp.evaluation.evaluate", "consistency and style/content metrics of one or more runs",
                  "ssgwarp evaluate runs/fern-styled runs/fern-global"),
@@ -41,7 +41,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
              "ssgwarp view runs/fern/scene.ply --color group --screenshot shot.png"),
     "render": ("ssgwarp.evaluation.render", "render a scene along its cameras or a smooth path",
                "ssgwarp render runs/fern --out runs/fern/renders [--path]"),
-    "weights": ("ssgwarp.services.weights", "pretrained models: where each is found (or missing), size, licence; "
+    "weights": ("ssgwarp.services.weights_command", "pretrained models: where each is found (or missing), size, licence; "
                 "--download fetches them into the Hugging Face / torch hub caches",
                 "ssgwarp weights --download stage1 vgg16"),
 }

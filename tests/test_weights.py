@@ -312,7 +312,8 @@ def test_corrupt_or_truncated_files_are_clear_errors(caches, tmp_path, monkeypat
     text = str(e.value)
     assert "\n" not in text and "cannot load the SD1.5 UNet" in text and "/unet" in text
     assert "ssgwarp weights --download sd15 --force" in text
-    ok, note = W.verify("sd15", W.find("sd15"))
+    from ssgwarp.services.weights_command import verify
+    ok, note = verify("sd15", W.find("sd15"))
     assert ok is False and "unet/diffusion_pytorch_model.safetensors" in note
 
 
