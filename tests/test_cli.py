@@ -298,7 +298,8 @@ def test_bad_weights(world, tmp_path, capsys, row):
         elif row == "stylize --vgg16 corrupt":
             fails(capsys, base + ["--vgg16", _corrupt_weights(tmp_path)], "cannot load VGG16")
         elif row == "stylize --extractor vgg16":
-            fails(capsys, base + ["--extractor", "vgg16"], "no local weights for vgg16")
+            fails(capsys, base + ["--extractor", "vgg16"], "no local vgg16 weights",
+                  "ssgwarp weights --download vgg16")
         else:
             fails(capsys, base + ["--sd15", missing], "sd15")
     assert digest(run) == before
