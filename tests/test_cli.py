@@ -563,8 +563,8 @@ def test_no_warp_cuda_driver_warning_on_a_cpu_command(world, tmp_path):
 
 
 # ----------------------------------------------------------------------------- --quick, CPU expectations
-@pytest.mark.parametrize("command, positional", [("reconstruct", ["data"]), ("group", ["run"]),
-                                                 ("stylize", ["run", "--style", "s.png"])])
+@pytest.mark.parametrize("command, positional", [("reconstruct", ["data", "--out", "o"]), ("group", ["run"]),
+                                                 ("stylize", ["run", "--style", "s.png", "--out", "o"])])
 def test_quick_presets_are_cpu_sized_and_explicit_options_win(command, positional, capsys):
     import importlib
 
@@ -578,7 +578,7 @@ def test_quick_presets_are_cpu_sized_and_explicit_options_win(command, positiona
     module = importlib.import_module(COMMANDS[command][0])
     _, subs = build_parser()
     module.add_arguments(subs[command])
-    parse = lambda *a: subs[command].parse_args([*positional, "--out", "o", *a])  # noqa: E731
+    parse = lambda *a: subs[command].parse_args([*positional, *a])  # noqa: E731
     plain, quick = parse(), parse("--quick")
     for dest, value in module.QUICK.items():
         assert getattr(quick, dest) == value and getattr(plain, dest) != value, dest

@@ -306,7 +306,8 @@ def add_arguments(parser) -> None:
 
 # the CPU-sized preset (`--quick`) and what it cost, measured (README, docs)
 QUICK = {"iters": 300}
-QUICK_MEASURED = "fern images_8 reconstructed with reconstruct --quick: ? min on 2 CPU cores"
+QUICK_MEASURED = ("fern reconstructed with reconstruct --quick (42,688 Gaussians, 17 views 252x188): 6 min on 2 CPU "
+                  "cores shared with other work (1.7 min of CPU time), 2026-11-28")
 
 
 def run(args) -> int:
