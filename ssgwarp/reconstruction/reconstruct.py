@@ -227,7 +227,8 @@ def add_arguments(parser) -> None:
 
 # the CPU-sized preset (`--quick`) and what it cost, measured (README, docs)
 QUICK = {"iters": 1500, "width": 252, "max_gaussians": 60_000}
-QUICK_MEASURED = "fern images_8 (17 training views 504x378): ? min on 2 CPU cores"
+QUICK_MEASURED = ("fern images_8 (17 training views, resized to 252x188): 20 min on 2 CPU cores shared with other "
+                  "work (6.5 min of CPU time), held-out PSNR 27.1 dB, 2026-11-28")
 
 
 def run(args) -> int:
