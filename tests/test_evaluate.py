@@ -288,3 +288,21 @@ def test_evaluate_refuses_to_overwrite_an_evaluation_without_force(runs, tmp_pat
     assert main(["evaluate", str(sty), "--max-pairs", "1", "--path-frames", "3", "--device", "cpu",
                  "--table", str(table), "--force"]) == 0
     assert table.read_text().startswith("Evaluation (")
+
+
+def test_style_scores_score_the_renders_as_shown():
+    """A colour transfer can push renders above 1: the numbers are those of the clamped images (as saved and as
+    evaluate renders them), so stylize's unclamped renders and evaluate's clamped ones give the same numbers."""
+    from ssgwarp.evaluation.metrics import style_scores
+    from ssgwarp.services.features import RandomMultiScale
+
+    g = torch.Generator().manual_seed(0)
+    ext = RandomMultiScale(seed=0).freeze()
+    images, originals = torch.rand(2, 24, 32, 3, generator=g) * 1.8, torch.rand(2, 24, 32, 3, generator=g)
+    style, alphas = torch.rand(20, 20, 3, generator=g), torch.ones(2, 24, 32)
+    a = style_scores(ext, images, style, originals, alphas=alphas)
+    b = style_scores(ext, images.clamp(0, 1), style, originals, alphas=alphas)
+    assert a == b and set(a) == {"gram_style_loss", "gram_style_loss_original", "content_loss",
+                                 "style_distance_color", "style_distance_texture",
+                                 "style_distance_color_original", "style_distance_texture_original"}
+    assert style_scores(None, images, None) == {} and "content_loss" not in style_scores(ext, images, style)

@@ -389,15 +389,16 @@ def style_scores(extractor, images: Tensor, style: Optional[Tensor], originals: 
 
     ``images [V, H, W, 3]`` (stylized renders), ``style [Hs, Ws, 3]`` or None, ``originals`` the
     unstylized renders from the same cameras or None, ``alphas`` / ``original_alphas [V, H, W]``
-    their render alphas (the style distances compare the scene's pixels, alpha >= 0.5). ``extractor``
+    their render alphas (the style distances compare the scene's pixels, alpha >= 0.5); the images are
+    clamped to [0, 1] first, as they are shown and saved (a colour transfer may overshoot). ``extractor``
     None: no Gram / content numbers. Returns the means over the views of ``gram_style_loss``
     (Gram matrices normalised by ``h*w``, :func:`gram_style_loss`), ``content_loss`` (absolute
     feature MSE, :func:`content_loss`), ``style_distance_color`` / ``style_distance_texture``
     (:class:`StyleDistance`) and, with ``originals``, the same of the originals (``..._original``).
     """
     out: dict[str, float] = {}
-    images = images.float()
-    originals = None if originals is None else originals.float().to(images.device)
+    images = images.float().clamp(0, 1)              # as the renders are shown and saved
+    originals = None if originals is None else originals.float().clamp(0, 1).to(images.device)
     style = None if style is None else style.float().to(images.device)
     if extractor is not None and (style is not None or originals is not None):
         after = style_content_losses(extractor, images, style, originals)
