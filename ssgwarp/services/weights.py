@@ -32,8 +32,8 @@ missing, its size, ``ssgwarp weights --download NAME``; the long form with every
 explicit-path alternative under ``--debug`` (:func:`verbose`) and in ``ssgwarp weights``);
 :func:`notice` prints such a line once per model and command where a stage runs without them;
 :func:`load_error` turns a truncated or corrupt file into a one-line error
-naming the file and how to fetch it again. ``ssgwarp weights`` prints the table
-(:func:`ssgwarp.services.weights_command.table`) and ``ssgwarp weights --download [NAMES]`` fetches (:func:`fetch`): the command lives in
+naming the file and how to fetch it again. ``ssgwarp weights`` prints the table and
+``ssgwarp weights --download [NAMES]`` fetches (:func:`fetch`): that command and its table live in
 :mod:`ssgwarp.services.weights_command`.
 """
 from __future__ import annotations

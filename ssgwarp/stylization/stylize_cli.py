@@ -12,7 +12,8 @@ import torch
 from ..services.features import EXTRACTOR_KINDS
 from .stage2 import (BACKGROUNDS, BLEND_WEIGHT_EDGES, COLOR_DETAIL, COLOR_GAIN_EDGES, COLOR_GAIN_OTHER,
                      COLOR_TRANSFER, MODES, SH_REST, STYLE_LOSSES, TV_WEIGHT_FREE, TV_WEIGHT_VGG, Stage2Config)
-from .stylize import StylizeOptions, _say, stylize_run
+from . import stylize as _stylize      # (stylize_run looked up at call time: tests replace it)
+from .stylize import StylizeOptions, _say
 
 __all__ = ["add_arguments", "run", "QUICK", "cpu_hint"]
 
@@ -131,7 +132,7 @@ def run(args) -> int:
     if hint:
         _say(hint, True)
     try:
-        stylize_run(args.scene_dir, args.style, args.out, stage2=s2, stage1=s1, opts=opts, device=device,
+        _stylize.stylize_run(args.scene_dir, args.style, args.out, stage2=s2, stage1=s1, opts=opts, device=device,
                     resume=args.resume, force=args.force, progress=not args.quiet, group=group)
     finally:
         distributed.shutdown(group)
