@@ -162,7 +162,8 @@ def test_offline_missing_model_is_one_line_naming_the_fetch_command(tmp_path, mo
     text = str(e.value)
     # short: what is missing, why, what fetching costs and the command that fetches it
     assert "\n" not in text and "ssgwarp weights --download sd15" in text and "SSGWARP_OFFLINE=1" in text
-    assert "~4.27 GB" in text and len(text) < 200 and "--sd15" not in text
+    assert "~4.27 GB" in text and len(text) < 250 and "--sd15 PATH or set SSGWARP_SD15" in text
+    assert "model_index.json" not in text and "$SSGWARP_WEIGHTS" not in text
     with W.verbose():                 # --debug: the long form, every way to provide them
         with pytest.raises(WeightsNotFound) as e:
             W.require("sd15")

@@ -293,10 +293,11 @@ def message(key: str, explicit: Optional[str | os.PathLike] = None, reason: Opti
                 f"(`ssgwarp weights --download {key}` fetches '{spec.source}')")
     why = f" ({reason})" if reason else ""
     if not long:
-        cost = f"~{_human(spec.size)}, " if spec.size else ""
-        how = (f"`ssgwarp weights --download {key}` fetches it" if spec.repo or spec.url
-               else f"set {spec.env}")
-        return f"no local {key} weights{why}: {how} ({cost}`ssgwarp weights` shows where they are looked for)"
+        cost = f" (~{_human(spec.size)})" if spec.size else ""
+        flag = spec.flags.split(" (")[0].split(",")[0]
+        path = f"pass {flag} PATH or set {spec.env}" if flag else f"set {spec.env}"
+        how = f"`ssgwarp weights --download {key}` fetches it{cost}, or {path}" if spec.repo or spec.url else path
+        return f"no local {key} weights{why}: {how}"
     if spec.repo or spec.url:
         fetch_ = (f"run `ssgwarp weights --download {key}` on a machine with network (fetches '{spec.source}', "
                   f"~{_human(spec.size)}, into {_where_to(spec)}), or ")
