@@ -35,7 +35,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
               "ssgwarp group runs/fern [--masks runs/fern/object_mask] [--groups 8]"),
     "keyviews": ("ssgwarp.stylization.keyviews", "choose key views and render their RGB, depth and group maps",
                  "ssgwarp keyviews runs/fern --keyviews 4 --out runs/fern/keyviews"),
-    "stylize": ("ssgwarp.stylization.stylize", "key views, Stage 1 (diffusion + CVSA) and Stage 2 (instance-level style transfer)",
+    "stylize": ("ssgwarp.stylization.stylize_cli", "key views, Stage 1 (diffusion + CVSA) and Stage 2 (instance-level style transfer)",
                 "ssgwarp stylize runs/fern --style style.jpg --out runs/fern-styled"),
     "evaluate": ("ssgwarp.evaluation.evaluate", "consistency and style/content metrics of one or more runs",
                  "ssgwarp evaluate runs/fern-styled runs/fern-global"),
@@ -45,7 +45,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
                "ssgwarp render runs/fern --out runs/fern/renders [--path]"),
     "export": ("ssgwarp.evaluation.export", "write a run's scene as PLY, compressed PLY, SPZ or .splat for other viewers",
                "ssgwarp export runs/fern --format spz --out fern.spz [--sh-degree 1]"),
-    "weights": ("ssgwarp.services.weights", "pretrained models: where each is found (or missing), size, licence; "
+    "weights": ("ssgwarp.services.weights_command", "pretrained models: where each is found (or missing), size, licence; "
                 "--download fetches them into the Hugging Face / torch hub caches",
                 "ssgwarp weights --download stage1 vgg16"),
 }
@@ -161,7 +161,8 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
             return 0
         seed_everything(args.seed)
         args.device = resolve_device(args.device)
-        with weights.offline("--offline") if args.offline else contextlib.nullcontext():
+        weights._SAID.clear()                  # each command reports a missing model once
+        with weights.offline("--offline") if args.offline else contextlib.nullcontext(), weights.verbose(debug):
             return int(module.run(args) or 0)
     except SsgwarpError as e:
         if debug:

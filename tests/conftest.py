@@ -125,6 +125,8 @@ def _no_weights_no_network(monkeypatch, _empty_caches):
 
     monkeypatch.setattr(weights, "_NETWORK_DOWN", None)    # per-process download state starts afresh
     monkeypatch.setattr(weights, "_OFFLINE_FLAG", None)
+    monkeypatch.setattr(weights, "_NETWORK_OK", None)       # the network probe's kept answer
+    monkeypatch.setattr(weights, "_SAID", set())            # missing models reported once per command
     for var in WEIGHT_ENV:
         monkeypatch.delenv(var, raising=False)
     monkeypatch.setenv("HF_HOME", str(_empty_caches / "huggingface"))

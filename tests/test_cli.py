@@ -298,7 +298,8 @@ def test_bad_weights(world, tmp_path, capsys, row):
         elif row == "stylize --vgg16 corrupt":
             fails(capsys, base + ["--vgg16", _corrupt_weights(tmp_path)], "cannot load VGG16")
         elif row == "stylize --extractor vgg16":
-            fails(capsys, base + ["--extractor", "vgg16"], "no local weights for vgg16")
+            fails(capsys, base + ["--extractor", "vgg16"], "no local vgg16 weights",
+                  "ssgwarp weights --download vgg16")
         else:
             fails(capsys, base + ["--sd15", missing], "sd15")
     assert digest(run) == before
@@ -434,6 +435,7 @@ def test_ctrl_c_in_stylize_then_resume_matches_an_uninterrupted_run(world, tmp_p
     "reconstruct", "group", "stylize",
     pytest.param("render"),
     pytest.param("keyviews"),
+    pytest.param("evaluate"),
 ])
 def test_outputs_are_never_overwritten_without_force(world, tmp_path, capsys, command):
     run = copy(world.grouped, tmp_path / "run")
@@ -445,8 +447,9 @@ def test_outputs_are_never_overwritten_without_force(world, tmp_path, capsys, co
                     "--max-side", "32"],
         "render": ["render", run, "--out", out, "--no-progress"],
         "keyviews": ["keyviews", run, "--out", out, "--max-side", "32"],
+        "evaluate": ["evaluate", run, "--max-pairs", "1", "--path-frames", "3", "--save-pairs", "1"],
     }[command]
-    if command in ("stylize", "render", "keyviews"):
+    if command in ("stylize", "render", "keyviews", "evaluate"):
         capsys.readouterr()
         assert main([str(a) for a in argv + FAST]) == 0          # the first run writes OUT
     before_run, before_out = digest(run), (digest(out) if out.exists() else None)
@@ -519,3 +522,74 @@ def test_common_flags(world, tmp_path, capsys):
     assert main(["render", str(tmp_path / "nowhere"), "--out", str(out), "--debug", "--device", "cpu"]) == 2
     err = capsys.readouterr().err
     assert "Traceback" in err and err.strip().splitlines()[-1].startswith("ssgwarp: error:")
+
+
+def test_view_screenshot_is_not_overwritten_without_force(world, tmp_path, capsys):
+    shot = tmp_path / "shot.png"
+    shot.write_bytes(b"an earlier screenshot")
+    fails(capsys, ["view", world.run / "scene.ply", "--screenshot", shot, "--device", "cpu"], str(shot), "--force")
+    assert shot.read_bytes() == b"an earlier screenshot"
+
+
+# ----------------------------------------------------------------------------- other libraries' stderr
+def test_libpng_lines_are_folded_into_our_one_line_error(world, tmp_path, capfd):
+    """A truncated PNG: libpng prints on the process's stderr (descriptor 2, under OpenImageIO); its words go into
+    our one error line instead, and nothing else is left on stderr."""
+    cap = copy(world.cap, tmp_path / "cap")
+    img = cap / "images" / "r_002.png"
+    img.write_bytes(img.read_bytes()[:len(img.read_bytes()) // 2])
+    capfd.readouterr()
+    assert main(["reconstruct", str(cap), "--out", str(tmp_path / "run"), "--iters", "3", "--quiet", *FAST]) == 2
+    err = [s.strip() for s in re.split(r"[\r\n]", capfd.readouterr().err) if s.strip()]
+    assert not any(s.startswith("libpng") for s in err), err
+    assert err[-1].startswith("ssgwarp: error: ") and "r_002.png" in err[-1] and "libpng error" in err[-1]
+
+
+def test_no_warp_cuda_driver_warning_on_a_cpu_command(world, tmp_path):
+    """Warp's native library prints "Could not find or load the NVIDIA CUDA driver" when it initialises on a
+    machine without one; a CPU command initialises Warp (rendering) and its stderr holds no such line."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import sys; from ssgwarp.cli import main; rc = main(sys.argv[1:]); "
+            "from ssgwarp.raster import launch; print('warp initialised:', launch._INIT); sys.exit(rc)")
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), "OMP_NUM_THREADS": "1"}
+    p = subprocess.run([sys.executable, "-c", code, "render", str(world.run), "--out", str(tmp_path / "r"),
+                        "--quiet", "--device", "cpu"], capture_output=True, text=True, env=env, timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert "warp initialised: True" in p.stdout
+    assert "CUDA driver" not in p.stderr and "Warp CUDA warning" not in p.stderr, p.stderr[-2000:]
+
+
+# ----------------------------------------------------------------------------- --quick, CPU expectations
+@pytest.mark.parametrize("command, positional", [("reconstruct", ["data", "--out", "o"]), ("group", ["run"]),
+                                                 ("stylize", ["run", "--style", "s.png", "--out", "o"])])
+def test_quick_presets_are_cpu_sized_and_explicit_options_win(command, positional, capsys):
+    import importlib
+
+    from ssgwarp.cli import build_parser
+
+    with pytest.raises(SystemExit):
+        main([command, "--help"])
+    help_ = " ".join(capsys.readouterr().out.split())
+    assert "--quick CPU-sized preset:" in help_ and "min on 2 CPU cores" in help_ and "? min" not in help_
+    assert "quick run" not in help_
+    module = importlib.import_module(COMMANDS[command][0])
+    _, subs = build_parser()
+    module.add_arguments(subs[command])
+    parse = lambda *a: subs[command].parse_args([*positional, *a])  # noqa: E731
+    plain, quick = parse(), parse("--quick")
+    for dest, value in module.QUICK.items():
+        assert getattr(quick, dest) == value and getattr(plain, dest) != value, dest
+    assert parse("--iters", "77", "--quick").iters == 77 and parse("--quick", "--iters", "77").iters == 77
+
+
+def test_stylize_on_cpu_prints_one_hint_with_the_quick_preset(world, tmp_path, capsys):
+    argv = ["stylize", str(world.grouped), "--style", str(world.style), "--iters", "2", "--path-frames", "0",
+            "--max-side", "32", "--device", "cpu"]
+    assert main([*argv, "--out", str(tmp_path / "a")]) == 0
+    hints = [ln for ln in capsys.readouterr().out.splitlines() if "--quick (" in ln]
+    assert len(hints) == 1 and "on a CPU" in hints[0] and "--iters 150" in hints[0] and "min" in hints[0]
+    assert main([*argv, "--out", str(tmp_path / "b"), "--quick", "--iters", "2"]) == 0
+    assert "--quick (" not in capsys.readouterr().out

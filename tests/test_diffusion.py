@@ -180,6 +180,13 @@ def test_missing_weights_message(tmp_path, capsys, monkeypatch):
     assert stylize_keyviews(kv, torch.rand(8, 8, 3, generator=torch.Generator().manual_seed(0)), cfg, "cpu") is None
     err = capsys.readouterr().err
     assert "Stage 1 skipped" in err and "Stage 2 will match against the style image globally" in err
+    for key in ("sd15", "controlnet_depth", "ip_adapter", "image_encoder"):   # short: each model and its fetch
+        assert f"ssgwarp weights --download {key}" in err, key
+    from ssgwarp.services import weights as W
+
+    with W.verbose():           # --debug: the long form, where each is looked for
+        stylize_keyviews(kv, torch.rand(8, 8, 3, generator=torch.Generator().manual_seed(0)), cfg, "cpu")
+    err = capsys.readouterr().err
     for text in ("stable-diffusion-v1-5/stable-diffusion-v1-5", "lllyasviel/control_v11f1p_sd15_depth",
                  "h94/IP-Adapter", "ip-adapter_sd15.safetensors", "SSGWARP_SD15", "model_index.json"):
         assert text in err, text

@@ -114,7 +114,8 @@ def test_evaluate_cli_writes_metrics_pairs_and_table(runs, tmp_path, capsys):
     for k in ("color", "texture"):
         assert es["style_content"][f"style_distance_{k}"] > 0 and es["style_content"][f"style_distance_{k}_original"] > 0
     assert "gram_style_loss" not in er.get("style_content", {})       # no style image for the reconstruction
-    assert "no local weights for lpips" in er["skipped"]["lpips"]
+    assert "no local lpips weights" in er["skipped"]["lpips"] and "ssgwarp weights --download lpips" in \
+        er["skipped"]["lpips"]
     assert "raft" in er["skipped"]["flow warp"]
     # inspection images: a strip and a mask per saved pair
     strips = sorted(p.name for p in (recon / "evaluation" / "pairs").glob("*.png"))
@@ -199,3 +200,109 @@ def test_evaluate_bad_inputs_are_one_line_errors(runs, tmp_path, capsys):
     assert main(["evaluate", str(sty), "--device", "cpu"]) == 2
     assert "source_scene" in capsys.readouterr().err
     assert "evaluation" not in json.loads((recon / "metrics.json").read_text())   # nothing written on errors
+
+
+# ----------------------------------------------------------------------------- one definition per metric
+def test_evaluate_reproduces_the_numbers_stylize_reports(tmp_path, capsys):
+    """`stylize` reports style / content numbers on its training views with its own extractor (here the weight-free
+    random-edges one, not evaluate's default); `evaluate --views train` on its output computes them with the same
+    function (metrics.style_scores) on the same views and the run's extractor: the same numbers. Both say which
+    views. Without Stage 1 weights the scene's groups go unused, and stylize says so in one line."""
+    from test_stylize import _write_run
+
+    from ssgwarp.cli import main
+
+    run, style = _write_run(tmp_path)
+    out = tmp_path / "styled"
+    assert main(["stylize", str(run), "--style", str(style), "--out", str(out), "--iters", "3", "--keyviews", "2",
+                 "--max-side", "48", "--path-frames", "0", "--device", "cpu"]) == 0
+    said = capsys.readouterr().out
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["extractor"].endswith(",edges") and m["groups"] == 3 and m["groups_used"] is False
+    unused = [ln for ln in said.splitlines() if "groups are not used" in ln]
+    assert len(unused) == 1 and "3 groups" in unused[0] and "ssgwarp weights --download stage1" in unused[0]
+    assert f"on the {m['views']} training views ({m['extractor']})" in said
+    assert main(["evaluate", str(out), "--views", "train", "--max-pairs", "1", "--device", "cpu"]) == 0
+    printed = capsys.readouterr().out
+    sc = json.loads((out / "metrics.json").read_text())["evaluation"]["style_content"]
+    assert sc["extractor"] == m["extractor"] and sc["views"] == f"{m['views']} training views"
+    assert f"on {m['views']} training views, {m['extractor']}: Gram style loss" in printed
+    pairs = [("gram_style_loss", m["gram_style_loss"]), ("gram_style_loss_original", m["gram_style_loss_original"]),
+             ("content_loss", m["content_loss"])]
+    pairs += [(f"style_distance_{k}{s}", m["style_distance" + s][k]) for k in ("color", "texture")
+              for s in ("", "_original")]
+    for key, want in pairs:
+        assert sc[key] == pytest.approx(want, rel=1e-4, abs=1e-7), key
+    # the default (novel path views) differs, and says so beside the numbers
+    assert main(["evaluate", str(out), "--max-pairs", "1", "--path-frames", "4", "--device", "cpu", "--force"]) == 0
+    sc2 = json.loads((out / "metrics.json").read_text())["evaluation"]["style_content"]
+    assert sc2["views"].startswith("4 novel views") and sc2["gram_style_loss"] != pytest.approx(sc["gram_style_loss"])
+
+
+def test_style_scores_extractor_names_round_trip():
+    from ssgwarp.errors import InputError, WeightsNotFound
+    from ssgwarp.evaluation.metrics import extractor_from_name
+    from ssgwarp.services.features import RandomMultiScale
+
+    for kw in ({}, {"seed": 3, "channels": 64, "stride": 4}, {"edges": True, "scales": (2, 4, 8)}):
+        ext = RandomMultiScale(**kw)
+        again = extractor_from_name(ext.name)
+        x = torch.rand(1, 3, 16, 16)
+        assert again.name == ext.name and all(torch.equal(a, b) for a, b in zip(again(x), ext(x)))
+    for bad in ("random-multiscale:seed0,zz", "resnet:1", "random-multiscale:seedx"):
+        with pytest.raises(InputError):
+            extractor_from_name(bad)
+    with pytest.raises(WeightsNotFound):
+        extractor_from_name("vgg16:relu3_1")
+
+
+# ----------------------------------------------------------------------------- --force
+def test_evaluate_refuses_to_overwrite_an_evaluation_without_force(runs, tmp_path, capsys):
+    from ssgwarp.cli import main
+
+    recon, sty, _ = runs
+    args = ["evaluate", str(recon), "--max-pairs", "1", "--path-frames", "3", "--device", "cpu", "--save-pairs", "0"]
+    assert main(args) == 0
+    first = json.loads((recon / "metrics.json").read_text())["evaluation"]
+    capsys.readouterr()
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "already holds an evaluation" in err[0] and "--force" in err[0]
+    assert json.loads((recon / "metrics.json").read_text())["evaluation"] == first     # untouched
+    # an evaluation/ folder alone (metrics.json without the entry) counts too
+    m = json.loads((recon / "metrics.json").read_text())
+    del m["evaluation"]
+    (recon / "metrics.json").write_text(json.dumps(m))
+    assert main(args) == 2 and "already holds an evaluation (evaluation)" in capsys.readouterr().err
+    (recon / "evaluation" / "stale.png").write_bytes(b"x")
+    assert main(args + ["--force"]) == 0
+    assert not (recon / "evaluation" / "stale.png").exists()      # --force replaces the earlier evaluation
+    assert "evaluation" in json.loads((recon / "metrics.json").read_text())
+    # an existing --table file outside the runs is refused too, and replaced with --force
+    table = tmp_path / "table.md"
+    table.write_text("mine")
+    assert main(["evaluate", str(sty), "--max-pairs", "1", "--path-frames", "3", "--device", "cpu",
+                 "--table", str(table)]) == 2
+    assert "--table" in capsys.readouterr().err and table.read_text() == "mine"
+    assert "evaluation" not in json.loads((sty / "metrics.json").read_text())
+    assert main(["evaluate", str(sty), "--max-pairs", "1", "--path-frames", "3", "--device", "cpu",
+                 "--table", str(table), "--force"]) == 0
+    assert table.read_text().startswith("Evaluation (")
+
+
+def test_style_scores_score_the_renders_as_shown():
+    """A colour transfer can push renders above 1: the numbers are those of the clamped images (as saved and as
+    evaluate renders them), so stylize's unclamped renders and evaluate's clamped ones give the same numbers."""
+    from ssgwarp.evaluation.metrics import style_scores
+    from ssgwarp.services.features import RandomMultiScale
+
+    g = torch.Generator().manual_seed(0)
+    ext = RandomMultiScale(seed=0).freeze()
+    images, originals = torch.rand(2, 24, 32, 3, generator=g) * 1.8, torch.rand(2, 24, 32, 3, generator=g)
+    style, alphas = torch.rand(20, 20, 3, generator=g), torch.ones(2, 24, 32)
+    a = style_scores(ext, images, style, originals, alphas=alphas)
+    b = style_scores(ext, images.clamp(0, 1), style, originals, alphas=alphas)
+    assert a == b and set(a) == {"gram_style_loss", "gram_style_loss_original", "content_loss",
+                                 "style_distance_color", "style_distance_texture",
+                                 "style_distance_color_original", "style_distance_texture_original"}
+    assert style_scores(None, images, None) == {} and "content_loss" not in style_scores(ext, images, style)

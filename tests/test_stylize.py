@@ -592,8 +592,10 @@ def test_tv_default_resolves_by_extractor_and_smooths_the_weight_free_renders():
     assert st.tv_weight_for(st.Stage2Config(), ext) == st.TV_WEIGHT_FREE == 0.5
     assert st.tv_weight_for(st.Stage2Config(), _Vgg()) == st.TV_WEIGHT_VGG == 0.02
     assert st.tv_weight_for(st.Stage2Config(tv_weight=0.0), ext) == 0.0
+    from ssgwarp.stylization.stylize_cli import add_arguments
+
     parser = argparse.ArgumentParser()
-    st.add_arguments(parser)
+    add_arguments(parser)
     args = parser.parse_args(["scene", "--style", "s.png", "--out", "o"])
     assert args.tv_weight is None and args.blend_weight is None and args.color_max_gain is None
     assert args.color_detail == "auto"

@@ -54,6 +54,13 @@ class FakeHub:
         monkeypatch.setattr(huggingface_hub.HfApi, "model_info", self.model_info)
         monkeypatch.setattr(torch.hub, "download_url_to_file", self.download_url_to_file)
         monkeypatch.setattr(W, "_url_size", lambda url: 1234)
+        self.probes = []           # the network probe: answered here, never by the network
+        monkeypatch.setattr(W, "_connect", self.connect)
+
+    def connect(self, host, port, timeout):
+        self.probes.append(host)
+        if isinstance(self.fail, OSError) and "probe" in str(self.fail):
+            raise self.fail
 
     LISTINGS = {"h94/IP-Adapter": {"models/ip-adapter_sd15.safetensors": 44_642_768,
                                    "models/ip-adapter_sd15.bin": 44_700_000},
@@ -153,9 +160,17 @@ def test_offline_missing_model_is_one_line_naming_the_fetch_command(tmp_path, mo
     with pytest.raises(WeightsNotFound) as e:
         W.require("sd15")
     text = str(e.value)
+    # short: what is missing, why, what fetching costs and the command that fetches it
     assert "\n" not in text and "ssgwarp weights --download sd15" in text and "SSGWARP_OFFLINE=1" in text
+    assert "~4.27 GB" in text and len(text) < 250 and "--sd15 PATH or set SSGWARP_SD15" in text
+    assert "model_index.json" not in text and "$SSGWARP_WEIGHTS" not in text
+    with W.verbose():                 # --debug: the long form, every way to provide them
+        with pytest.raises(WeightsNotFound) as e:
+            W.require("sd15")
+    text = str(e.value)
     for alt in ("--sd15", "SSGWARP_SD15", "$SSGWARP_WEIGHTS/stable-diffusion-v1-5", "model_index.json"):
         assert alt in text, alt
+    assert "\n" not in text and not W._VERBOSE
     monkeypatch.delenv("SSGWARP_OFFLINE")
     with pytest.raises(WeightsNotFound, match="HF_HUB_OFFLINE=1"):
         W.require("raft")
@@ -239,6 +254,7 @@ def test_interrupted_or_wrong_download_leaves_nothing_behind(tmp_path, monkeypat
 
     use(monkeypatch, tmp_path, online=True)
     monkeypatch.setattr(W, "_url_size", lambda url: None)
+    monkeypatch.setattr(W, "_connect", lambda host, port, timeout: None)     # the probe: reachable
     payload = b"0123456789" * 5000
 
     class Stream(io.BytesIO):
@@ -297,7 +313,8 @@ def test_corrupt_or_truncated_files_are_clear_errors(caches, tmp_path, monkeypat
     text = str(e.value)
     assert "\n" not in text and "cannot load the SD1.5 UNet" in text and "/unet" in text
     assert "ssgwarp weights --download sd15 --force" in text
-    ok, note = W.verify("sd15", W.find("sd15"))
+    from ssgwarp.services.weights_command import verify
+    ok, note = verify("sd15", W.find("sd15"))
     assert ok is False and "unet/diffusion_pytorch_model.safetensors" in note
 
 
@@ -358,3 +375,74 @@ def test_stylize_runs_stage1_and_stage2_from_the_caches_alone(caches, tmp_path, 
     assert m["stage1"]["ran"] is True and m["stage1"]["steps"] == 2
     assert m["extractor"] == "vgg16:conv3" and m["matching"].startswith("per group")
     assert (out / "keyviews" / "keyviews.json").is_file() and (out / "scene.ply").is_file()
+
+
+# ----------------------------------------------------------------------------- one probe, one line per model
+def test_no_network_is_probed_once_and_each_missing_model_said_once(tmp_path, monkeypatch, capsys):
+    """Downloads allowed but no network: the first model wanted probes it (one connection attempt), every later one
+    is reported missing at once; no download is attempted; a stage running without a model says so in one short
+    line (its size and the command that fetches it), once per model however often it is asked for."""
+    from ssgwarp.services.features import load_extractor
+    from ssgwarp.stylization.diffusion import Stage1Config, missing_weights
+
+    hub = FakeHub(monkeypatch, tmp_path, fail=OSError("probe: [Errno -3] Temporary failure in name resolution"))
+    use(monkeypatch, tmp_path, online=True)
+    load_extractor()
+    load_extractor()
+    for key in ("raft", "lpips", "sd15"):
+        with pytest.raises(WeightsNotFound, match=f"no local {key} weights \\(downloads are off: no network\\)"):
+            W.require(key)
+    assert len(missing_weights(Stage1Config())) == 4
+    assert hub.probes == ["download.pytorch.org"] and hub.calls == []       # one probe, no download attempt
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no local vgg16 weights (downloads are off: no network)" in err[0]
+    assert "`ssgwarp weights --download vgg16`" in err[0] and "~553 MB" in err[0] and len(err[0]) < 300
+    assert "weight-free random multi-scale extractor" in err[0]
+    with W.verbose():               # --debug: why (the probe's answer) and every way to provide it
+        with pytest.raises(WeightsNotFound) as e:
+            W.require("raft")
+    assert "download.pytorch.org unreachable" in str(e.value) and "SSGWARP_RAFT" in str(e.value)
+    assert hub.probes == ["download.pytorch.org"]
+
+
+def test_reachable_network_is_probed_once_for_all_downloads(tmp_path, monkeypatch, capsys):
+    hub = FakeHub(monkeypatch, tmp_path)
+    use(monkeypatch, tmp_path, online=True)
+    W.require("raft")
+    W.require("ip_adapter")
+    assert hub.probes == ["download.pytorch.org"] and len(hub.calls) == 3   # raft; ip_adapter: metadata + files
+
+
+def test_evaluate_offline_says_each_missing_model_once(tmp_path, capsys):
+    """`ssgwarp evaluate --offline` without weights: VGG16 (features, LPIPS trunk), RAFT and the LPIPS heads are
+    each named once, in a short line; --debug gives the long form."""
+    from test_stylize import _write_run
+
+    run, _ = _write_run(tmp_path)
+    args = ["evaluate", str(run), "--max-pairs", "1", "--path-frames", "3", "--device", "cpu", "--offline"]
+    assert main(args) == 0
+    cap = capsys.readouterr()
+    text = cap.out + cap.err
+    for key in ("vgg16", "raft", "lpips"):
+        assert text.count(f"ssgwarp weights --download {key}`") == 1, key
+    lines = [ln for ln in text.splitlines() if "ssgwarp weights --download" in ln]
+    assert len(lines) == 3 and all(len(ln) < 300 and "(downloads are off: --offline)" in ln for ln in lines)
+    assert main(args + ["--force", "--warp", "flow", "--debug"]) == 2
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith("ssgwarp: error: ") and "SSGWARP_RAFT" in last and "raft_large" in last
+
+
+def test_stylize_checks_its_output_folder_before_fetching_anything(tmp_path, monkeypatch, capsys):
+    """A taken --out is refused before any weights are fetched (the network is not even probed)."""
+    from test_stylize import _write_run
+
+    hub = FakeHub(monkeypatch, tmp_path)
+    use(monkeypatch, tmp_path / "empty", online=True)
+    run, style = _write_run(tmp_path)
+    out = tmp_path / "styled"
+    out.mkdir()
+    (out / "metrics.json").write_text("{}")
+    assert main(["stylize", str(run), "--style", str(style), "--out", str(out), "--device", "cpu"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "already holds a stylize output" in err[0] and "--force" in err[0]
+    assert hub.calls == [] and hub.probes == []

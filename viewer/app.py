@@ -481,6 +481,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-legend", action="store_true", help="no group legend")
     p.add_argument("--screenshot", type=Path, default=None, metavar="PNG",
                    help="render off-screen to this PNG and exit (works with no display, see docs/viewer.md)")
+    p.add_argument("--force", action="store_true", help="overwrite an existing --screenshot file")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -492,6 +493,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--render-width must be positive, got {args.render_width}")
     if args.screenshot is not None and args.screenshot.suffix.lower() not in (".png", ".jpg", ".jpeg", ".exr"):
         raise InputError(f"--screenshot {args.screenshot}: use a .png, .jpg or .exr file name")
+    if args.screenshot is not None and args.screenshot.exists() and not getattr(args, "force", False):
+        raise InputError(f"--screenshot {args.screenshot}: exists; pass --force to overwrite it")
     scene = load_scene(ply)
     found = run_folders(scene_dir)  # (a stylized run: its source's cameras and groups, its own key views)
     keyviews = args.keyviews

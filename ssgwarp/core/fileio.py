@@ -101,16 +101,21 @@ def read_image(path: str | os.PathLike, channels: int | None = None) -> np.ndarr
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: image not found")
-    inp = oiio.ImageInput.open(str(path))
+    from .native_stderr import captured, summary
+
+    with captured() as said:        # libpng & co. print on stderr: their words go into our one line
+        inp = oiio.ImageInput.open(str(path))
+        if inp is not None:
+            try:
+                spec = inp.spec()
+                data = inp.read_image(0, 0, 0, spec.nchannels, "float")
+            finally:
+                inp.close()
     if inp is None:
-        raise InputError(f"{path}: cannot read image ({oiio.geterror()})")
-    try:
-        spec = inp.spec()
-        data = inp.read_image(0, 0, 0, spec.nchannels, "float")
-    finally:
-        inp.close()
+        raise InputError(f"{path}: cannot read image ({oiio.geterror() or summary(said)})")
     if data is None or not isinstance(data, np.ndarray):
-        raise InputError(f"{path}: cannot decode image (truncated or corrupt?)")
+        detail = summary(said) or oiio.geterror()
+        raise InputError(f"{path}: cannot decode image ({detail + '; ' if detail else ''}truncated or corrupt?)")
     img = np.asarray(data, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
     if channels is not None:
         if img.shape[2] == 1 and channels >= 3:

@@ -34,11 +34,11 @@ from tqdm.auto import tqdm
 from . import metrics as M
 from ..core.cameras import Cameras
 from ..capture.datasets import resize_images
-from ..errors import InputError, WeightsNotFound
+from ..errors import InputError, SsgwarpError, WeightsNotFound
 from .table import PAIR_KINDS, comparison_table, default_table_path
 from ..services.features import load_extractor
 from ..core.fileio import atomic_path, read_image, read_json, write_image, write_json
-from .metrics import StyleDistance, reconstruction_quality, style_content_losses
+from .metrics import extractor_from_name, reconstruction_quality, style_scores
 from .render import smooth_path
 from ..raster.rendering import render_views
 from ..services.runs import Run
@@ -295,13 +295,15 @@ def evaluate_run(run_dir: str | Path, opts: EvalOptions, device: torch.device | 
     if info.kind == "stylized" and (extractor is not None or style is not None):
         originals, _, orig_alpha = render_views(src_scene, cams, bg, desc=f"source {info.path.name}")
     if extractor is not None:
+        extractor, note = _run_extractor(info, extractor, device, opts)
         sc["extractor"] = getattr(extractor, "name", type(extractor).__name__)
-        sc.update(_style_content(extractor, rgb, style, originals))
-    if style is not None:
-        dist = StyleDistance(style)       # on the scene's pixels (alpha >= 0.5): the background is not the scene
-        sc.update({f"style_distance_{k}": v for k, v in dist.mean(rgb, alpha).items()})
-        if originals is not None:   # the unstylized source from the same cameras: before / after in one run
-            sc.update({f"style_distance_{k}_original": v for k, v in dist.mean(originals, orig_alpha).items()})
+        if note:
+            sc["extractor_note"] = note
+    if extractor is not None or style is not None:
+        # the one definition stylize reports too (on its training views: --views train reproduces them)
+        numbers = style_scores(extractor, rgb, style, originals, alphas=alpha, original_alphas=orig_alpha)
+        if numbers:
+            sc.update(numbers, views=scored)
     if sc:
         result["style_content"] = sc
 
@@ -341,17 +343,21 @@ def evaluate_run(run_dir: str | Path, opts: EvalOptions, device: torch.device | 
     return _clean(result)
 
 
-def _style_content(extractor, rgb: torch.Tensor, style: Optional[torch.Tensor],
-                   originals: Optional[torch.Tensor]) -> dict:
-    if style is None and originals is None:
-        return {}
-    vals = style_content_losses(extractor, rgb, style, originals)
-    out = {}
-    if "style" in vals:
-        out["gram_style_loss"] = float(vals["style"].mean())
-    if "content" in vals:
-        out["content_loss"] = float(vals["content"].mean())
-    return out
+def _run_extractor(info: Run, extractor, device, opts: EvalOptions) -> tuple[Any, Optional[str]]:
+    """The extractor a stylize run recorded (its numbers are then reproducible), else ``extractor``;
+    with a note when they differ."""
+    recorded = info.recorded.get("extractor") if info.kind == "stylized" else None
+    have = getattr(extractor, "name", None)
+    if not recorded or recorded == have:
+        return extractor, None
+    try:
+        return extractor_from_name(recorded, device, vgg_weights=opts.vgg, config=opts.weights_config), None
+    except (InputError, WeightsNotFound) as e:
+        return extractor, f"stylize used {recorded} ({_one_line(e)[:120]}); Gram / content numbers differ from its"
+
+
+def _one_line(e: BaseException) -> str:
+    return " ".join(str(e).split())
 
 
 def _clean(obj: Any) -> Any:
@@ -403,6 +409,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--raft", type=Path, default=None, help="torchvision raft_large state dict")
     p.add_argument("--layers", default=None, help="VGG16 feature layers, comma separated (default conv3)")
     p.add_argument("--data-dir", type=Path, default=None, help="where a reconstruction's capture is now")
+    p.add_argument("--force", action="store_true",
+                   help="replace an earlier evaluation of these runs (RUN/evaluation/, the 'evaluation' entry of "
+                        "RUN/metrics.json) and an existing --table file")
     p.add_argument("--table", type=Path, default=None,
                    help="markdown table path (default: RUN/evaluation/table.md for one run, "
                         "else evaluation.md in the runs' common folder)")
@@ -432,11 +441,11 @@ def load_models(opts: EvalOptions, device) -> tuple[Any, Any, Any, dict]:
     """
 
     skipped: dict[str, str] = {}
-    extractor = load_extractor(opts.vgg, device, layers=opts.layers, config=opts.weights_config)
     raft = None
-    if opts.warp in ("flow", "both"):
-        raft = M.load_raft(opts.raft, device, opts.weights_config)       # required: raises WeightsNotFound
-    elif opts.warp == "auto":
+    if opts.warp in ("flow", "both"):     # required: raises WeightsNotFound, before any other model is reported
+        raft = M.load_raft(opts.raft, device, opts.weights_config)
+    extractor = load_extractor(opts.vgg, device, layers=opts.layers, config=opts.weights_config)
+    if opts.warp == "auto":
         try:
             raft = M.load_raft(opts.raft, device, opts.weights_config)
         except WeightsNotFound as e:
@@ -457,25 +466,62 @@ def run(args: argparse.Namespace) -> int:
     opts = options_from_args(args)
     runs = [Path(r) for r in args.runs]
     infos = [inspect_run(r) for r in runs]          # fail fast on a bad folder, before any rendering
+    path = args.table or default_table_path(runs)
+    force = bool(getattr(args, "force", False))
+    claims = [claim_evaluation(info, force) for info in infos]     # before any weights are fetched
+    if path.exists() and not force and not any(_inside(path, info.path / "evaluation") for info in infos):
+        raise SsgwarpError(f"--table {path}: exists; pass --force to overwrite it")
     device = args.device
     extractor, raft, lpips, skipped = load_models(opts, device)
     for k, v in skipped.items():
         print(f"ssgwarp evaluate: {k} skipped: {v}")
     results = []
-    for info in infos:
+    for info, c in zip(infos, claims):
+        c.clear()
         res = evaluate_run(info.path, opts, device, extractor=extractor, raft=raft, lpips=lpips, skipped=skipped)
         results.append(res)
         print(f"{info.path}: metrics written to {info.path / 'metrics.json'} (inspection images in "
               f"{info.path / 'evaluation'})")
+        if "views" in res.get("style_content", {}):
+            print(f"  {style_line(res['style_content'])}")
     table = comparison_table(results)
-    path = args.table or default_table_path(runs)
     with atomic_path(path) as tmp:
         tmp.write_text(table)
     print()
-    print(table)
+    print(comparison_table(results, notes=False))      # (what was skipped: said above, and in the file)
     print(f"table written to {path}")
     return 0
 
 
+def claim_evaluation(info: Run, force: bool):
+    """Refuse a run evaluated before (``RUN/evaluation/`` or the ``evaluation`` entry of ``RUN/metrics.json``)
+    unless ``force``: the overwrite policy of every stage (:func:`ssgwarp.services.runs.claim`)."""
+    from ..services.runs import claim
+
+    if not force and isinstance(info.recorded, dict) and "evaluation" in info.recorded:
+        raise SsgwarpError(f"{info.path} already holds an evaluation (the 'evaluation' entry of metrics.json); "
+                           f"pass --force to overwrite it")
+    return claim(info.path, ["evaluation"], force=force, what="an evaluation", resumable=False)
+
+
+def _inside(p: Path, folder: Path) -> bool:
+    try:
+        p.resolve().relative_to(folder.resolve())
+        return True
+    except ValueError:
+        return False
+
+
+def style_line(sc: dict) -> str:
+    """The style / content numbers of one run as one line, with the views and extractor they were computed on."""
+    g = lambda k: f"{sc[k]:.4g}" if sc.get(k) is not None else "n/a"  # noqa: E731
+    parts = [f"Gram style loss {g('gram_style_loss')}" if "gram_style_loss" in sc else "",
+             f"content {g('content_loss')}" if "content_loss" in sc else "",
+             f"style distance colour {g('style_distance_color')}, texture {g('style_distance_texture')}"
+             if "style_distance_color" in sc else ""]
+    ext = f", {sc['extractor']}" if sc.get("extractor") else ""
+    return f"on {sc.get('views', 'the scored views')}{ext}: " + "; ".join(p for p in parts if p)
+
+
 __all__ = ["EvalOptions", "RunInfo", "inspect_run", "render_views", "consistency", "evaluate_run", "scored_cameras",
-           "comparison_table", "load_models", "add_arguments", "run"]
+           "comparison_table", "load_models", "claim_evaluation", "style_line", "add_arguments", "run"]

@@ -26,7 +26,10 @@ geometry (:func:`pixel_centers`, :func:`unproject`, :func:`project`) in :mod:`ss
 Quality: Gram-matrix style loss against the style image and feature content
 loss against the unstylized renders (:func:`style_content_losses`) with any
 :mod:`ssgwarp.services.features` extractor; PSNR / SSIM for reconstructions
-(:func:`reconstruction_quality`).
+(:func:`reconstruction_quality`). :func:`style_scores` is the one definition of the
+style / content numbers that ``ssgwarp stylize`` and ``ssgwarp evaluate`` report
+(the same views and extractor give the same numbers; :func:`extractor_from_name`
+rebuilds the extractor a run recorded).
 
 Images are channels-last ``[H, W, C]`` float in [0, 1]; pixel centres are at
 integer + 0.5 (the rasterizer's convention); cameras are world-to-camera
@@ -61,7 +64,7 @@ __all__ = [
     "gram_style_loss", "content_loss", "style_content_losses", "fit_style", "reconstruction_quality",
     "projections", "wasserstein_1d_sorted", "sorted_projections", "sliced_wasserstein", "filter_responses",
     "texture_levels",
-    "StyleDistance", "style_distances",
+    "StyleDistance", "style_distances", "style_scores", "extractor_from_name",
 ]
 
 
@@ -377,3 +380,74 @@ def reconstruction_quality(renders: Tensor, targets: Tensor) -> dict[str, list[f
         ss.append(float(ssim(r, t)))
     return {"psnr": ps, "ssim": ss}
 
+
+
+@torch.no_grad()
+def style_scores(extractor, images: Tensor, style: Optional[Tensor], originals: Optional[Tensor] = None, *,
+                 alphas: Optional[Tensor] = None, original_alphas: Optional[Tensor] = None) -> dict[str, float]:
+    """The style / content numbers of rendered views: the one definition ``stylize`` and ``evaluate`` share.
+
+    ``images [V, H, W, 3]`` (stylized renders), ``style [Hs, Ws, 3]`` or None, ``originals`` the
+    unstylized renders from the same cameras or None, ``alphas`` / ``original_alphas [V, H, W]``
+    their render alphas (the style distances compare the scene's pixels, alpha >= 0.5); the images are
+    clamped to [0, 1] first, as they are shown and saved (a colour transfer may overshoot). ``extractor``
+    None: no Gram / content numbers. Returns the means over the views of ``gram_style_loss``
+    (Gram matrices normalised by ``h*w``, :func:`gram_style_loss`), ``content_loss`` (absolute
+    feature MSE, :func:`content_loss`), ``style_distance_color`` / ``style_distance_texture``
+    (:class:`StyleDistance`) and, with ``originals``, the same of the originals (``..._original``).
+    """
+    out: dict[str, float] = {}
+    images = images.float().clamp(0, 1)              # as the renders are shown and saved
+    originals = None if originals is None else originals.float().clamp(0, 1).to(images.device)
+    style = None if style is None else style.float().to(images.device)
+    if extractor is not None and (style is not None or originals is not None):
+        after = style_content_losses(extractor, images, style, originals)
+        if "style" in after:
+            out["gram_style_loss"] = float(after["style"].mean())
+        if "content" in after:
+            out["content_loss"] = float(after["content"].mean())
+        if style is not None and originals is not None:
+            out["gram_style_loss_original"] = float(style_content_losses(extractor, originals, style)["style"].mean())
+    if style is not None:
+        dist = StyleDistance(style)
+        out.update({f"style_distance_{k}": v for k, v in dist.mean(images, alphas).items()})
+        if originals is not None:
+            out.update({f"style_distance_{k}_original": v
+                        for k, v in dist.mean(originals, original_alphas if original_alphas is not None
+                                              else alphas).items()})
+    return out
+
+
+def extractor_from_name(name: str, device="cpu", *, vgg_weights=None, config=None):
+    """The feature extractor whose :attr:`~ssgwarp.services.features.FeatureExtractor.name` is ``name``
+    (what a run recorded: ``random-multiscale:seed0,c128s2,edges``, ``vgg16:relu3_1+relu3_2``, ...).
+
+    Raises :class:`~ssgwarp.errors.InputError` for a name it does not know, and
+    :class:`~ssgwarp.errors.WeightsNotFound` for VGG16 without weights.
+    """
+    import re
+
+    from ..services.features import RandomMultiScale, load_extractor
+
+    kind, _, spec = str(name).partition(":")
+    if kind == "vgg16":
+        layers = [x for x in spec.split("+") if x] or None
+        return load_extractor(vgg_weights, device, layers, kind="vgg16", config=config)
+    if kind == "random-multiscale":
+        kw: dict = {"channels": 64, "stride": 4}
+        for part in spec.split(","):
+            if m := re.fullmatch(r"seed(-?\d+)", part):
+                kw["seed"] = int(m.group(1))
+            elif m := re.fullmatch(r"c(\d+)s(\d+)(?:p([\d-]+))?", part):
+                kw["channels"], kw["stride"] = int(m.group(1)), int(m.group(2))
+                if m.group(3):
+                    kw["scales"] = tuple(int(x) for x in m.group(3).split("-"))
+            elif part == "edges":
+                kw["edges"] = True
+            else:
+                raise InputError(f"feature extractor '{name}': unknown part '{part}'")
+        ext = RandomMultiScale(**kw)
+        if ext.name != name:
+            raise InputError(f"feature extractor '{name}': rebuilt as '{ext.name}'")
+        return ext.freeze().to(device)
+    raise InputError(f"feature extractor '{name}': not one ssgwarp makes (vgg16:..., random-multiscale:...)")

@@ -24,8 +24,9 @@ def _run_labels(results: Sequence[dict]) -> list[str]:
     return labels
 
 
-def comparison_table(results: Sequence[dict]) -> str:
-    """One markdown table, one column per run, one row per metric (lower is better unless marked ↑)."""
+def comparison_table(results: Sequence[dict], notes: bool = True) -> str:
+    """One markdown table, one column per run, one row per metric (lower is better unless marked ↑);
+    ``notes``: with the list of what was skipped and why (the console has said it already)."""
     labels = _run_labels(results)
     rows: list[tuple[str, list[str]]] = []
 
@@ -71,18 +72,18 @@ def comparison_table(results: Sequence[dict]) -> str:
     head = "| metric | " + " | ".join(labels) + " |"
     sep = "|---|" + "---|" * len(labels)
     body = ["| " + name + " | " + " | ".join(vals) + " |" for name, vals in rows]
-    notes = []
+    notes_ = []
     which: dict[tuple[str, str], list[str]] = {}
-    for label, r in zip(labels, results):
+    for label, r in zip(labels, results if notes else ()):
         for k, v in (r.get("skipped") or {}).items():
             which.setdefault((k, v), []).append(label)
     for (k, v), who in which.items():
         scope = "" if len(who) == len(results) else f" ({', '.join(who)})"
-        notes.append(f"- {k} skipped{scope}: {v}")
+        notes_.append(f"- {k} skipped{scope}: {v}")
     date = results[0].get("date", "") if results else ""
     dev = results[0].get("device", "") if results else ""
     title = f"Evaluation ({date}, {dev}). Lower is better except ↑. RMSE on [0,1] colours over co-visible pixels."
-    return "\n".join([title, "", head, sep, *body, *([""] + notes if notes else [])]) + "\n"
+    return "\n".join([title, "", head, sep, *body, *([""] + notes_ if notes_ else [])]) + "\n"
 
 
 def default_table_path(runs: Sequence[Path]) -> Path:

@@ -43,7 +43,11 @@ def init() -> None:
     if not _INIT:
         # keep Warp's per-module "load ... (compiled)" lines off the terminal; warnings still show
         wp.config.log_level = max(int(wp.config.log_level), int(wp.LOG_WARNING))
-        wp.init()
+        from ..core.native_stderr import captured, replay
+
+        with captured() as said:  # its native "could not load the NVIDIA CUDA driver" on CPU machines: dropped
+            wp.init()
+        replay(said, drop=[r"Could not find or load the NVIDIA CUDA driver"])
         _INIT = True
 
 

@@ -19,23 +19,25 @@ Each model (``SPECS``) is looked for, in order, at:
    how large (the hub's metadata, or the spec's approximate size) and under
    which licence — unless downloads are off: ``--offline``, ``SSGWARP_OFFLINE=1``,
    ``HF_HUB_OFFLINE=1`` or ``TRANSFORMERS_OFFLINE=1``, or an earlier download in
-   this process found no network (tried once, with short timeouts:
-   ``SSGWARP_DOWNLOAD_TIMEOUT`` seconds, default 10).
+   this process found no network (one probe per process, :func:`probe`, with short timeouts:
+   ``SSGWARP_DOWNLOAD_TIMEOUT`` seconds, default 10; its answer is kept).
 
 Both libraries write a download under a temporary name in the destination folder
 and move it in place when complete, so an interrupted or failed download leaves
 nothing half-written.
 
 :func:`find` never downloads (None when absent); :func:`require` may download and
-raises :class:`~ssgwarp.errors.WeightsNotFound` with a one-line message naming
-``ssgwarp weights --download NAME`` and the explicit-path alternatives;
+raises :class:`~ssgwarp.errors.WeightsNotFound` with a short one-line message (what is
+missing, its size, ``ssgwarp weights --download NAME``; the long form with every
+explicit-path alternative under ``--debug`` (:func:`verbose`) and in ``ssgwarp weights``);
+:func:`notice` prints such a line once per model and command where a stage runs without them;
 :func:`load_error` turns a truncated or corrupt file into a one-line error
-naming the file and how to fetch it again. ``ssgwarp weights`` prints the table
-(:func:`table`) and ``ssgwarp weights --download [NAMES]`` fetches (:func:`fetch`).
+naming the file and how to fetch it again. ``ssgwarp weights`` prints the table and
+``ssgwarp weights --download [NAMES]`` fetches (:func:`fetch`): that command and its table live in
+:mod:`ssgwarp.services.weights_command`.
 """
 from __future__ import annotations
 
-import argparse
 import contextlib
 import fnmatch
 import importlib.util
@@ -43,15 +45,15 @@ import os
 import socket
 import sys
 from pathlib import Path
-from typing import Iterable, Iterator, Mapping, Optional
+from typing import Iterator, Mapping, Optional
 
-from ..errors import InputError, SsgwarpError, WeightsNotFound
+from ..errors import InputError, WeightsNotFound
 from .weight_specs import (  # noqa: F401 (re-exported: part of this module's API)
     GROUPS, SPECS, WeightSpec, _git_blob_sha1, _sha256, _spec)
 
 __all__ = ["WeightSpec", "SPECS", "GROUPS", "DownloadFailed", "find", "locate", "require", "obtain", "fetch",
-           "message", "load_error", "offline_reason", "offline", "hub_cache", "torch_checkpoints",
-           "status", "table", "verify", "add_arguments", "run"]
+           "message", "notice", "load_error", "offline_reason", "offline", "verbose", "probe", "hub_cache",
+           "torch_checkpoints"]
 
 
 class DownloadFailed(WeightsNotFound):
@@ -61,6 +63,9 @@ class DownloadFailed(WeightsNotFound):
 _TRUE = ("1", "true", "yes", "on")
 _OFFLINE_FLAG: Optional[str] = None          # set by --offline (offline())
 _NETWORK_DOWN: Optional[str] = None          # reason, once a download found no network in this process
+_NETWORK_OK: Optional[bool] = None           # True once the probe reached the network (kept for the process)
+_VERBOSE: bool = False                       # --debug: messages in their long form
+_SAID: set = set()                           # models whose absence this command has reported (notice())
 
 
 # -- where the ecosystem keeps its files -----------------------------------------------------------
@@ -192,6 +197,18 @@ def offline(reason: str = "--offline") -> Iterator[None]:
         _OFFLINE_FLAG = old
 
 
+@contextlib.contextmanager
+def verbose(on: bool = True) -> Iterator[None]:
+    """Messages about missing weights in their long form inside the block (``--debug``)."""
+    global _VERBOSE
+    old = _VERBOSE
+    _VERBOSE = bool(on) or old
+    try:
+        yield
+    finally:
+        _VERBOSE = old
+
+
 def offline_reason() -> Optional[str]:
     """Why downloads are off now (``--offline``, ``HF_HUB_OFFLINE=1``, ...), or None when they are allowed."""
     if _OFFLINE_FLAG:
@@ -200,7 +217,36 @@ def offline_reason() -> Optional[str]:
         if os.environ.get(var, "").strip().lower() in _TRUE:
             return f"{var}={os.environ[var]}"
     if _NETWORK_DOWN:
-        return f"no network ({_NETWORK_DOWN})"
+        return f"no network ({_NETWORK_DOWN})" if _VERBOSE else "no network"
+    return None
+
+
+def _connect(host: str, port: int, timeout: float) -> None:
+    """Open and close one TCP connection (the network probe; tests replace it)."""
+    socket.create_connection((host, port), timeout=timeout).close()
+
+
+def probe(url: str) -> Optional[str]:
+    """Whether the network is reachable: None when it is, else why not.
+
+    One TCP connection to ``url``'s host, with the download timeout, the first time
+    a download is wanted in this process; the answer is kept, so a process without
+    network waits on it once, and later models are reported missing at once.
+    """
+    global _NETWORK_DOWN, _NETWORK_OK
+    if _NETWORK_DOWN:
+        return offline_reason()
+    if _NETWORK_OK:
+        return None
+    from urllib.parse import urlparse
+
+    host = urlparse(url if "://" in url else "https://" + url).hostname or url
+    try:
+        _connect(host, 443, _timeout())
+    except OSError as e:
+        _NETWORK_DOWN = f"{host} unreachable: {' '.join(str(e).split())[:200] or type(e).__name__}"
+        return offline_reason()
+    _NETWORK_OK = True
     return None
 
 
@@ -232,20 +278,40 @@ def _alternatives(spec: WeightSpec) -> str:
             f"expected: {spec.expected} (from '{spec.source}')")
 
 
-def message(key: str, explicit: Optional[str | os.PathLike] = None, reason: Optional[str] = None) -> str:
-    """One line: weights ``key`` are missing, why none was downloaded, and every way to provide them."""
+def message(key: str, explicit: Optional[str | os.PathLike] = None, reason: Optional[str] = None,
+            long: Optional[bool] = None) -> str:
+    """One line: weights ``key`` are missing, why none was downloaded, how to fetch them.
+
+    Short by default (what, its download size, ``ssgwarp weights --download KEY``);
+    ``long`` (default: under ``--debug``, :func:`verbose`) adds every other way to provide them.
+    """
     spec = _spec(key)
+    long = _VERBOSE if long is None else long
     if explicit:
         return (f"{explicit} does not exist; no local weights for {key} ({spec.title}): expected {spec.expected}; "
                 f"fix the path, or drop it to use {spec.env} / $SSGWARP_WEIGHTS / the cache "
                 f"(`ssgwarp weights --download {key}` fetches '{spec.source}')")
     why = f" ({reason})" if reason else ""
+    if not long:
+        cost = f" (~{_human(spec.size)})" if spec.size else ""
+        flag = spec.flags.split(" (")[0].split(",")[0]
+        path = f"pass {flag} PATH or set {spec.env}" if flag else f"set {spec.env}"
+        how = f"`ssgwarp weights --download {key}` fetches it{cost}, or {path}" if spec.repo or spec.url else path
+        return f"no local {key} weights{why}: {how}"
     if spec.repo or spec.url:
         fetch_ = (f"run `ssgwarp weights --download {key}` on a machine with network (fetches '{spec.source}', "
                   f"~{_human(spec.size)}, into {_where_to(spec)}), or ")
     else:
         fetch_ = ""
     return f"no local weights for {key} ({spec.title}){why}: {fetch_}{_alternatives(spec)}"
+
+
+def notice(key: str, text: str, instead: str = "") -> None:
+    """Print ``ssgwarp: TEXT; INSTEAD`` on stderr, once per model ``key`` and command (later calls are silent)."""
+    if key in _SAID:
+        return
+    _SAID.add(key)
+    print(f"ssgwarp: {text}{'; ' + instead if instead else ''}", file=sys.stderr, flush=True)
 
 
 def load_error(key: str, path: str | os.PathLike, err: BaseException, what: Optional[str] = None) -> InputError:
@@ -361,6 +427,10 @@ def fetch(key: str, *, force: bool = False, progress: bool = True, say=None) -> 
         raise DownloadFailed(message(key, reason=f"downloads are off: {off}"))
     if spec.repo and _hf() is None:
         raise DownloadFailed(message(key, reason="huggingface_hub is not installed: pip install 'ssgwarp[diffusion]'"))
+    src = f"huggingface.co/{spec.repo}" if spec.repo else spec.url
+    down = probe(src)
+    if down:
+        raise DownloadFailed(message(key, reason=f"downloads are off: {down}"))
     listing = None
     try:
         if spec.repo:
@@ -371,7 +441,6 @@ def fetch(key: str, *, force: bool = False, progress: bool = True, say=None) -> 
         known = "" if size else "~"
     except Exception:     # metadata unreachable: say the spec's size; the download itself decides
         size, known = spec.size, "~"
-    src = f"huggingface.co/{spec.repo}" if spec.repo else spec.url
     say(f"ssgwarp: downloading {key} ({spec.title}) from {src}: {known}{_human(size or spec.size)} "
         f"into {_where_to(spec)}; licence {spec.licence}")
     try:
@@ -385,6 +454,8 @@ def fetch(key: str, *, force: bool = False, progress: bool = True, say=None) -> 
         detail = " ".join(str(e).split())[:300] or type(e).__name__
         if _network_error(e):
             _NETWORK_DOWN = f"downloading {key} failed: {detail}"
+            if not _VERBOSE:
+                detail = " ".join(detail.split()[:12]) + (" ..." if len(detail.split()) > 12 else "")
         if "hash" in detail.lower():
             detail += " — the download was discarded, nothing was written"
         raise DownloadFailed(message(key, reason=f"download failed: {detail}")) from None
@@ -422,167 +493,13 @@ def obtain(key: str, explicit: Optional[str | os.PathLike] = None, config: Optio
            *, instead: str = "", download: Optional[bool] = None) -> Optional[Path]:
     """:func:`require`, or None where a stage can run without the weights.
 
-    Silent when they are simply absent and downloads are off; one line on stderr
-    (``instead`` says what runs in their place) when a download was tried and failed.
+    A missing model is reported in one short line on stderr, once per model and
+    command (:func:`notice`; ``instead`` says what runs in their place).
     """
     try:
         return require(key, explicit, config, download=download)
-    except DownloadFailed as e:
-        print(f"ssgwarp: {e}{'; ' + instead if instead else ''}", file=sys.stderr, flush=True)
-        return None
-    except WeightsNotFound:
-        if explicit:
+    except WeightsNotFound as e:
+        if explicit and not isinstance(e, DownloadFailed):
             raise
+        notice(key, str(e), instead)
         return None
-
-
-# -- the table -----------------------------------------------------------------------------------------
-def _snapshot_of(spec: WeightSpec, path: Path) -> Optional[Path]:
-    """The snapshot folder holding ``path`` when it is ``spec``'s entry in the Hugging Face cache."""
-    if not (spec.repo and _inside(path, hub_cache())):
-        return None
-    inner = spec.filename if not spec.is_dir else spec.subfolder
-    for _ in Path(inner).parts if inner else ():
-        path = path.parent
-    return path
-
-
-def _files_of(spec: WeightSpec, path: Path) -> dict[str, Path]:
-    """``{name: file}`` of the weights at ``path`` (the spec's files in a cache snapshot, else every file)."""
-    snap = _snapshot_of(spec, path)
-    if snap is not None:
-        out = {}
-        for entry in spec.patterns or spec.files:
-            for pat in entry.split("|"):
-                out.update({str(q.relative_to(snap)): q for q in snap.glob(pat) if q.is_file()})
-        return out
-    if path.is_file():
-        return {path.name: path}
-    return {str(q.relative_to(path)): q for q in path.rglob("*") if q.is_file()}
-
-
-def _disk_size(spec: WeightSpec, path: Path) -> int:
-    return sum(os.path.getsize(f) for f in _files_of(spec, path).values())
-
-
-def status(key: str, explicit: Optional[str | os.PathLike] = None,
-           config: Optional[Mapping[str, str]] = None) -> dict:
-    """``{"model", "found", "route", "path", "bytes", "size", "licence", "used_by", "missing"}`` for ``key``."""
-    spec = _spec(key)
-    got = locate(key, explicit, config)
-    row = {"model": key, "found": got is not None, "route": got[1] if got else None,
-           "path": str(got[0]) if got else None, "licence": spec.licence, "used_by": spec.used_by,
-           "missing": [r for r in spec.required if got and not (got[0] / r).exists()]}
-    if got:
-        row["bytes"] = _disk_size(spec, got[0])
-        row["size"] = _human(row["bytes"])
-    else:
-        row["bytes"] = None
-        row["size"] = f"~{_human(spec.size)}"
-    return row
-
-
-def verify(key: str, path: str | os.PathLike) -> tuple[Optional[bool], str]:
-    """Check the files of ``key`` at ``path`` against their published hashes.
-
-    Hugging Face cache files against the blob they link to (SHA-256 for large
-    files, the git object hash for small ones); single files with a published
-    hash (torchvision, LPIPS) against it. ``(True|False|None, note)``; None:
-    nothing to check against (e.g. a folder outside the cache).
-    """
-    spec = _spec(key)
-    path = Path(path)
-    if spec.sha256 and path.is_file():
-        ok = _sha256(path).startswith(spec.sha256)
-        return ok, "SHA-256 matches" if ok else f"SHA-256 differs from the published {spec.sha256[:12]}..."
-    if _snapshot_of(spec, path) is not None:
-        bad, checked = [], 0
-        for name, f in _files_of(spec, path).items():
-            if not f.is_symlink():      # copied instead of linked (no symlinks on this file system)
-                continue
-            blob = Path(os.path.realpath(f))
-            digest = {64: _sha256, 40: _git_blob_sha1}.get(len(blob.name))
-            if digest is None:
-                continue
-            checked += 1
-            if not blob.is_file() or digest(blob) != blob.name:
-                bad.append(name)
-        if bad:
-            return False, f"hash mismatch: {', '.join(bad)}"
-        return (True, f"{checked} files match their hub hashes") if checked else (None, "no hashed files")
-    return None, "no published hash to check against"
-
-
-def table(keys: Optional[Iterable[str]] = None, config: Optional[Mapping[str, str]] = None,
-          check: bool = False) -> str:
-    """The text table of ``ssgwarp weights``: model, where found (or missing), size, licence, used by."""
-    rows = []
-    for key in keys or SPECS:
-        s = status(key, config=config)
-        where = f"{s['route']}: {s['path']}" if s["found"] else f"missing (ssgwarp weights --download {key})"
-        if s["missing"]:
-            where += f" [lacks {', '.join(s['missing'])}]"
-        row = [key, where, s["size"], s["licence"], s["used_by"]]
-        if check:
-            ok, note = verify(key, s["path"]) if s["found"] else (None, "")
-            row.append({True: "ok", False: "BAD", None: "-"}[ok] + (f" ({note})" if ok is False else ""))
-        rows.append(row)
-    head = ["model", "found in", "size", "licence", "used by"] + (["check"] if check else [])
-    widths = [max(len(str(r[i])) for r in rows + [head]) for i in range(len(head))]
-    fmt = "  ".join(f"{{:<{w}}}" for w in widths)
-    lines = [fmt.format(*head).rstrip(), fmt.format(*["-" * w for w in widths])]
-    lines += [fmt.format(*r).rstrip() for r in rows]
-    off = offline_reason()
-    lines.append(f"Hugging Face cache: {hub_cache()}; torch hub checkpoints: {torch_checkpoints()}; "
-                 f"downloads {'off (' + off + ')' if off else 'on first use'}")
-    return "\n".join(lines)
-
-
-def _expand(names: Iterable[str]) -> list[str]:
-    out: list[str] = []
-    for n in names:
-        for k in GROUPS.get(n, (n,)):
-            _spec(k)
-            if k not in out:
-                out.append(k)
-    return out
-
-
-_GROUPS_HELP = ", ".join(g + " = " + " + ".join(v) for g, v in GROUPS.items())
-
-
-# -- `ssgwarp weights` ----------------------------------------------------------------------------------
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--download", nargs="*", metavar="NAME", default=None,
-                   help=f"fetch these models into the Hugging Face / torch hub caches (all when no NAME): "
-                        f"{', '.join(SPECS)}, or a group: {_GROUPS_HELP}")
-    p.add_argument("--force", action="store_true", help="with --download: fetch again even when cached")
-    p.add_argument("--verify", action="store_true",
-                   help="check the found files against their published hashes (reads every file)")
-
-
-def run(args) -> int:
-    cfg = getattr(args, "weights", None)
-    cfg = cfg if isinstance(cfg, Mapping) else None
-    if args.download is not None:
-        keys = _expand(args.download) if args.download else list(SPECS)
-        off = offline_reason()
-        if off:
-            raise SsgwarpError(f"--download: downloads are off ({off}); run it on a machine with network "
-                               f"without --offline / SSGWARP_OFFLINE / HF_HUB_OFFLINE")
-        failed = []
-        for key in keys:
-            if not args.force and locate(key, config=cfg) is not None:
-                print(f"ssgwarp weights: {key} already here ({find(key, config=cfg)})")
-                continue
-            try:
-                fetch(key, force=args.force)
-            except DownloadFailed as e:
-                failed.append(key)
-                print(f"ssgwarp weights: {e}", file=sys.stderr)
-        print(table(config=cfg, check=args.verify))
-        if failed:
-            raise SsgwarpError(f"could not download {', '.join(failed)} (see the messages above)")
-        return 0
-    print(table(config=cfg, check=args.verify))
-    return 0

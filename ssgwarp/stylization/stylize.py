@@ -5,11 +5,11 @@ through ``run.json``): load the run, the style and the feature extractor
 (:func:`_open`); key views and Stage 1 (:func:`_keyviews_and_stage1`, :mod:`ssgwarp.stylization.keyviews`,
 :mod:`ssgwarp.stylization.diffusion`); Stage 2 (:func:`_stage2`, :mod:`ssgwarp.stylization.stage2`); renders along
 the training cameras and a smooth path (:func:`_renders`); metrics, the contact sheet and
-``metrics.json`` (:func:`_metrics`). The Stage 2 names (:class:`Stage2Config`, ...) are re-exported.
+``metrics.json`` (:func:`_metrics`). The Stage 2 names (:class:`Stage2Config`, ...) are re-exported. The
+command line (options, ``--quick``, the CPU hint) is :mod:`ssgwarp.stylization.stylize_cli`.
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import time
@@ -23,7 +23,6 @@ from ..core.cameras import Cameras
 from ..errors import InputError, WeightsNotFound
 from ..core.imaging import contact_sheet, fit_style, plot_losses  # noqa: F401  (contact_sheet re-exported)
 from ..raster.scene import GaussianScene
-from ..services.features import EXTRACTOR_KINDS
 from .stage2 import (  # noqa: F401  (re-exported: the public Stage 2 API lives in ssgwarp.stylization.stage2)
     BACKGROUNDS, BLEND_WEIGHT_EDGES, COLOR_DETAIL, COLOR_GAIN_EDGES, COLOR_GAIN_OTHER, COLOR_TRANSFER, MODES, SH_REST,
     STYLE_LOSSES, TV_WEIGHT_FREE, TV_WEIGHT_VGG, Stage2Config, Stage2Result, ViewLoss, build_targets, deferred_backward,
@@ -176,8 +175,11 @@ def _open(scene_dir: Path, style_path: Path, out: Path, stage2: Stage2Config, st
     from ..services.features import load_extractor
     from ..core.fileio import read_image, write_json
 
+    from ..services.runs import claim
+
     style_np = read_image(style_path, 3)                       # InputError when missing / corrupt
     scene, data = load_run(scene_dir, device, load_images=False)
+    claim(out, OUTPUTS, force=force, resume=resume, what="a stylize output")   # a taken OUT refuses before any download
     extractor = load_extractor(opts.vgg16, device, opts.layers, kind=opts.extractor, seed=stage2.seed,
                                config=opts.weights, fallback="random-edges")
     stage2 = resolve_for(stage2, extractor)      # the options left to the extractor, made concrete
@@ -219,6 +221,28 @@ def _missing_models(stage1) -> list[str]:
     return out
 
 
+def _stage1_skipped(names: list[str]) -> str:
+    """The one line saying that Stage 1 is skipped: which models are missing and what fetching them costs."""
+    from ..services import weights as W
+
+    if not names:
+        return "Stage 1 skipped: its models are incomplete (`ssgwarp weights` shows what is missing)"
+    size = sum(W.SPECS[k].size for k in names)
+    return (f"Stage 1 skipped: no local {', '.join(names)} (~{size / 1e9:.1f} GB; `ssgwarp weights --download "
+            f"stage1` fetches them, `ssgwarp weights` shows where they are looked for)")
+
+
+def groups_unused(num_groups: Optional[int], mode: str) -> Optional[str]:
+    """The line saying that the scene's groups went unused because Stage 1 did not run (None when they are used
+    or there are none): IST then matches the style image globally, as the groups only split the stylized key
+    views."""
+    if not num_groups or mode == "global":
+        return None
+    return (f"the scene's {num_groups} groups are not used: without Stage 1's stylized key views Stage 2 matches "
+            f"the style image globally (groups select which key-view region styles which object; Stage 1 "
+            f"weights, `ssgwarp weights --download stage1`, make them count)")
+
+
 def _keyviews(r: _Run):
     """Select, render and save the key views (or load them on ``--resume``); ``(keyviews, stylized or None)``."""
     from . import keyviews as K
@@ -255,9 +279,7 @@ def _keyviews_and_stage1(r: _Run):
     # check the weights before anything imports diffusers (seconds of import for nothing)
     missing = [] if r.stage1_models is not None else missing_weights(stage1)
     if missing:
-        names = ", ".join(_missing_models(stage1)) or "its models"
-        r.say(f"Stage 1 skipped: no local {names}. `ssgwarp weights` shows where they are looked for; "
-              f"`ssgwarp weights --download stage1` fetches them")
+        r.say(_stage1_skipped(_missing_models(stage1)))
     else:
         r.say(f"Stage 1: diffusion on {len(kv)} key views (CVSA {'on' if stage1.cvsa else 'off'})")
         stylized = stylize_keyviews(kv, r.style_np, stage1, r.device, models=r.stage1_models)
@@ -331,7 +353,8 @@ def _stage2_loss(r: _Run, t: _Targets, kv, content_ref: torch.Tensor):
     matching = "global against the style image"
     if stage2.mode != "global":
         matching += f" (Stage 1 did not run: requested mode '{stage2.mode}' fell back)"
-        r.say("Stage 1 did not run: Stage 2 matches against the style image globally")
+        r.say(groups_unused(r.num_groups, stage2.mode) or
+              "Stage 1 did not run: Stage 2 matches against the style image globally")
     return ViewLoss(r.extractor, targets, stage2, originals=content_ref), None, None, matching
 
 
@@ -392,22 +415,20 @@ def _renders(r: _Run, styled: GaussianScene) -> torch.Tensor:
 
 
 def _scores(r: _Run, styled: GaussianScene, renders: torch.Tensor, originals: torch.Tensor) -> dict:
-    """Gram style and content losses and style distances, before and after (the training views)."""
-    from ..evaluation.metrics import StyleDistance, style_content_losses
+    """Gram style and content losses and style distances, before and after, on the training views
+    (:func:`ssgwarp.evaluation.metrics.style_scores`: ``ssgwarp evaluate --views train`` gives the same numbers)."""
+    from ..evaluation.metrics import style_scores
 
-    t0, style = time.perf_counter(), r.style
+    t0 = time.perf_counter()
     with torch.no_grad():
-        after = style_content_losses(r.extractor, renders.float(), style.float(), originals.float())
-        before = style_content_losses(r.extractor, originals.float(), style.float())
-        dist = StyleDistance(style.float())          # on the scene's pixels (alpha >= 0.5), not the background
         alphas = render_alphas(r.scene, r.train_cams)
         alphas_after = render_alphas(styled, r.train_cams) if r.stage2.free_opacity else alphas
-        dist_after, dist_before = dist.mean(renders.float(), alphas_after), dist.mean(originals.float(), alphas)
+        sc = style_scores(r.extractor, renders, r.style, originals, alphas=alphas_after, original_alphas=alphas)
     r.times["metrics"] = time.perf_counter() - t0
-    return {"gram_style_loss": float(after["style"].mean()),
-            "gram_style_loss_original": float(before["style"].mean()),
-            "style_distance": dist_after, "style_distance_original": dist_before,
-            "content_loss": float(after["content"].mean())}
+    dist = lambda suffix: {k: sc.get(f"style_distance_{k}{suffix}") for k in ("color", "texture")}  # noqa: E731
+    return {"gram_style_loss": sc["gram_style_loss"], "gram_style_loss_original": sc["gram_style_loss_original"],
+            "style_distance": dist(""), "style_distance_original": dist("_original"),
+            "content_loss": sc["content_loss"]}
 
 
 def _metrics(r: _Run, s2: dict, renders: torch.Tensor, kv, stage1_info: dict, t_start: float) -> dict:
@@ -429,7 +450,9 @@ def _metrics(r: _Run, s2: dict, renders: torch.Tensor, kv, stage1_info: dict, t_
         "style_loss": style_loss_kind(stage2, r.extractor), "tv_weight": tv_weight_for(stage2, r.extractor),
         "gram_style_loss": scores["gram_style_loss"], "gram_style_loss_original": scores["gram_style_loss_original"],
         "style_distance": scores["style_distance"], "style_distance_original": scores["style_distance_original"],
-        "metric_views": f"the {len(train_ids)} training views (ssgwarp evaluate scores novel path views)",
+        "metric_views": f"the {len(train_ids)} training views at {r.cams.width}x{r.cams.height} "
+                        f"(`ssgwarp evaluate --views train` scores the same; its default is novel path views)",
+        "groups_used": bool(r.num_groups) and "per group" in s2["matching"],
         "content_loss": scores["content_loss"], "color_transfer": s2["transfer"], "final_losses": s2["result"].last,
         "keyviews": None if kv is None else {"ids": list(kv.ids), "names": list(kv.cameras.names),
                                               "size": list(kv.size)},
@@ -451,7 +474,8 @@ def _metrics(r: _Run, s2: dict, renders: torch.Tensor, kv, stage1_info: dict, t_
 def _summary(metrics: dict, out: Path) -> str:
     d0, d1 = metrics["style_distance_original"], metrics["style_distance"]
     g = lambda x: "n/a" if x is None else f"{x:.3g}"  # noqa: E731
-    return (f"done in {metrics['seconds']['total']:.1f}s: style distance colour {g(d0['color'])} -> "
+    return (f"done in {metrics['seconds']['total']:.1f}s; on the {metrics['views']} training views "
+            f"({metrics['extractor']}): style distance colour {g(d0['color'])} -> "
             f"{g(d1['color'])}, texture {g(d0['texture'])} -> {g(d1['texture'])}; Gram style loss "
             f"{metrics['gram_style_loss_original']:.4g} -> {metrics['gram_style_loss']:.4g}, content "
             f"{metrics['content_loss']:.4g}; contact sheet {out / 'contact_sheet.png'}")
@@ -497,104 +521,3 @@ def stylize_run(scene_dir: str | Path, style_path: str | Path, out: str | Path, 
     metrics = _metrics(r, s2, renders, kv, stage1_info, t_start)
     r.say(_summary(metrics, r.out))
     return metrics
-
-
-# ----------------------------------------------------------------------------- CLI
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scene_dir", type=Path, help="a reconstruction run (scene.ply, cameras.json, data.json; "
-                                                "groups/ when grouped)")
-    p.add_argument("--style", type=Path, required=True, help="style image (PNG/JPG)")
-    p.add_argument("--quiet", action="store_true", help="no progress bars or stage messages")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--mode", default="ist", choices=MODES,
-                   help="ist: per-group matching to the stylized key views (default); finetune: fit the "
-                        "stylized key views directly; global: ARF-style matching to the style image")
-    p.add_argument("--resume", action="store_true", help="continue an interrupted run in --out")
-    p.add_argument("--force", action="store_true", help="overwrite an existing output in --out")
-    g = p.add_argument_group("key views")
-    g.add_argument("--keyviews", type=int, default=4, metavar="K", help="number of key views (default 4)")
-    g.add_argument("--ids", default=None, help="comma-separated camera indices of the key views (default: chosen)")
-    g.add_argument("--max-side", type=int, default=512, help="key-view (diffusion) longer side (default 512)")
-    from .diffusion import add_stage1_arguments
-    add_stage1_arguments(p)
-    d = Stage2Config()
-    g = p.add_argument_group("Stage 2 (instance-level style transfer)")
-    g.add_argument("--iters", type=int, default=d.iters, help=f"optimisation steps (default {d.iters})")
-    g.add_argument("--lr", type=float, default=d.lr, help=f"learning rate of the SH DC colour (default {d.lr})")
-    g.add_argument("--style-weight", type=float, default=d.style_weight, help="NNFM style loss weight")
-    g.add_argument("--content-weight", type=float, default=d.content_weight,
-                   help=f"content loss weight (relative feature MSE; default {d.content_weight})")
-    g.add_argument("--tv-weight", type=float, default=d.tv_weight,
-                   help=f"total variation weight (default: {TV_WEIGHT_FREE} with the weight-free random features, "
-                        f"{TV_WEIGHT_VGG} with VGG16)")
-    g.add_argument("--blend-weight", type=float, default=d.blend_weight, help="weight of the blend spread (colours "
-                   f"mixed on one ray kept alike; default {BLEND_WEIGHT_EDGES} with the edge features, else 0)")
-    g.add_argument("--style-loss", default=d.style_loss, choices=STYLE_LOSSES,
-                   help="nnfm: nearest-neighbour feature matching (the paper's); sw: sliced Wasserstein "
-                        "between feature distributions; auto (default): NNFM on VGG16 features, SW on the "
-                        "weight-free random features")
-    g.add_argument("--sw-projections", type=int, default=d.sw_projections,
-                   help=f"random directions per step of the sw loss (default {d.sw_projections})")
-    g.add_argument("--color-transfer", default=d.color_transfer, choices=COLOR_TRANSFER,
-                   help="ARF's view-consistent colour transfer (colour mean and covariance matched to the "
-                        "stylized key views, per group, or to the style image) before the optimisation, "
-                        f"after it, both or off (default {d.color_transfer})")
-    g.add_argument("--color-max-gain", type=float, default=d.color_max_gain, help="largest stretch of colour "
-                   f"differences by the colour map (default {COLOR_GAIN_EDGES} on edge features, else {COLOR_GAIN_OTHER})")
-    g.add_argument("--color-detail", default=d.color_detail, choices=COLOR_DETAIL, help="keep: the colour map does not "
-                   "flatten texture below the style's; off: plain map; auto (default): keep on edge features, else off")
-    g.add_argument("--sh-rest", default=d.sh_rest, choices=SH_REST,
-                   help=f"higher SH bands (view-dependent colour): keep, zero at the start, or optimise "
-                        f"(default {d.sh_rest})")
-    g.add_argument("--sh-bands", action="store_true", help="same as --sh-rest optimise")
-    g.add_argument("--background", default=d.background, choices=BACKGROUNDS, help="the stylized scene's background: "
-                   "transfer (default: the capture's, colour-transferred like the scene) or keep (the capture's)")
-    g.add_argument("--free-opacity", action="store_true", help="also optimise opacities")
-    g.add_argument("--label-mode", default=d.label_mode, choices=("majority", "nearest"),
-                   help="group maps to feature resolution (default majority)")
-    g.add_argument("--feature-scale", type=float, default=d.feature_scale,
-                   help="resize images by this factor before the feature extractor (default 1)")
-    g.add_argument("--direct", action="store_true", help="direct back-propagation instead of deferred")
-    g.add_argument("--chunk", type=int, default=d.chunk, help="similarity entries per nearest-neighbour block")
-    g.add_argument("--nn-precision", default=d.nn_precision, choices=("auto", "fp32", "bf16", "fp16"),
-                   help="nearest-neighbour search precision (auto: bf16 on CUDA, fp32 on CPU)")
-    g.add_argument("--checkpoint-every", type=int, default=d.checkpoint_every, help="steps between checkpoints")
-    g.add_argument("--batch-size", type=int, default=None,
-                   help="training views per Stage 2 step over all processes, their mean loss (default: one per "
-                        "process; on --resume the checkpoint's); under torchrun each process renders its share")
-    g.add_argument("--batch-scaling", choices=("sqrt", "linear", "none"), default=d.batch_scaling,
-                   help="Adam for batches: learning rates x sqrt(B) (default) or x B with betas ** B, or none")
-    g.add_argument("--extractor", default="auto", choices=EXTRACTOR_KINDS, help="features: auto = VGG16 when "
-                   "weights are found, else random-edges (weight-free, zero-mean random filters); random: the "
-                   "earlier weight-free default (docs/stylize.md)")
-    g.add_argument("--vgg16", default=None, help="torchvision VGG16 state dict (or SSGWARP_VGG16)")
-    g.add_argument("--layers", default=None, help="VGG16 layers, comma separated (default conv3 = relu3_1..3)")
-    g = p.add_argument_group("outputs")
-    g.add_argument("--path-frames", type=int, default=60, help="frames along a smooth camera path (0: none)")
-    g.add_argument("--sheet-views", type=int, default=3, help="views in the contact sheet")
-
-
-def run(args) -> int:
-    from .diffusion import config_from_args
-    from .keyviews import parse_ids
-
-    weights = getattr(args, "weights", None)
-    weights = weights if isinstance(weights, dict) else None
-    over = {"sh_rest": "optimise" if args.sh_bands else args.sh_rest, "deferred": not args.direct}
-    s2 = Stage2Config(**{f.name: over[f.name] if f.name in over else getattr(args, f.name)
-                         for f in dataclasses.fields(Stage2Config)})    # the flags carry the fields' names
-    opts = StylizeOptions(keyviews=args.keyviews, ids=parse_ids(args.ids), max_side=args.max_side,
-                          extractor=args.extractor, vgg16=args.vgg16,
-                          layers=[s.strip() for s in args.layers.split(",")] if args.layers else None,
-                          path_frames=args.path_frames, sheet_views=args.sheet_views, weights=weights)
-    s1 = config_from_args(args) if args.mode != "global" else None
-    from ..services import distributed
-
-    group, device = distributed.from_env(args.device)   # under torchrun: join the others
-    try:
-        stylize_run(args.scene_dir, args.style, args.out, stage2=s2, stage1=s1, opts=opts, device=device,
-                    resume=args.resume, force=args.force, progress=not args.quiet, group=group)
-    finally:
-        distributed.shutdown(group)
-    return 0
-

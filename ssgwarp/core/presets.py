@@ -1,0 +1,40 @@
+"""``--quick``: a command's CPU-sized preset of option values, as one flag.
+
+:func:`add_quick` adds ``--quick`` to a command's parser; it sets each option of the
+preset that the command line (or ``--config``) left at its default, so an option given
+explicitly, before or after ``--quick``, wins.
+"""
+from __future__ import annotations
+
+import argparse
+from typing import Any, Mapping
+
+
+class _Quick(argparse.Action):
+    def __init__(self, option_strings, dest, preset: Mapping[str, Any], defaults: Mapping[str, Any], **kw):
+        super().__init__(option_strings, dest, nargs=0, default=False, **kw)
+        self.preset, self.defaults = dict(preset), dict(defaults)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        for dest, value in self.preset.items():
+            if getattr(namespace, dest, None) == self.defaults[dest]:
+                setattr(namespace, dest, value)
+        setattr(namespace, self.dest, True)
+
+
+def add_quick(parser: argparse.ArgumentParser, preset: Mapping[str, Any], measured: str) -> None:
+    """Add ``--quick``: the ``preset`` option values (by dest) unless given explicitly; ``measured`` says what
+    the preset costs (shown in ``--help``). Call after the preset's options are added."""
+    flags = {a.dest: a.option_strings[0] for a in parser._actions if a.option_strings}
+    unknown = [d for d in preset if d not in flags]
+    if unknown:
+        raise ValueError(f"--quick preset names unknown options: {unknown}")
+    text = ", ".join(f"{flags[d]} {v}" for d, v in preset.items())
+    parser.add_argument("--quick", action=_Quick, preset=preset,
+                        defaults={d: parser.get_default(d) for d in preset},
+                        help=f"CPU-sized preset: {text} (options given explicitly win); {measured}")
+
+
+def quick_text(preset: Mapping[str, Any]) -> str:
+    """The preset as it reads on a command line (``--iters 150 --path-frames 20``)."""
+    return " ".join(f"--{d.replace('_', '-')} {v}" for d, v in preset.items())

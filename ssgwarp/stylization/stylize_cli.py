@@ -1,0 +1,140 @@
+"""The ``ssgwarp stylize`` command line: its options, the CPU-sized ``--quick`` preset, the CPU hint and
+:func:`run`, which calls :func:`ssgwarp.stylization.stylize.stylize_run`."""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+from typing import Optional
+
+import torch
+
+from ..services.features import EXTRACTOR_KINDS
+from .stage2 import (BACKGROUNDS, BLEND_WEIGHT_EDGES, COLOR_DETAIL, COLOR_GAIN_EDGES, COLOR_GAIN_OTHER,
+                     COLOR_TRANSFER, MODES, SH_REST, STYLE_LOSSES, TV_WEIGHT_FREE, TV_WEIGHT_VGG, Stage2Config)
+from . import stylize as _stylize      # (stylize_run looked up at call time: tests replace it)
+from .stylize import StylizeOptions, _say
+
+__all__ = ["add_arguments", "run", "QUICK", "cpu_hint"]
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scene_dir", type=Path, help="a reconstruction run (scene.ply, cameras.json, data.json; "
+                                                "groups/ when grouped)")
+    p.add_argument("--style", type=Path, required=True, help="style image (PNG/JPG)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars or stage messages")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--mode", default="ist", choices=MODES,
+                   help="ist: per-group matching to the stylized key views (default); finetune: fit the "
+                        "stylized key views directly; global: ARF-style matching to the style image")
+    p.add_argument("--resume", action="store_true", help="continue an interrupted run in --out")
+    p.add_argument("--force", action="store_true", help="overwrite an existing output in --out")
+    g = p.add_argument_group("key views")
+    g.add_argument("--keyviews", type=int, default=4, metavar="K", help="number of key views (default 4)")
+    g.add_argument("--ids", default=None, help="comma-separated camera indices of the key views (default: chosen)")
+    g.add_argument("--max-side", type=int, default=512, help="key-view (diffusion) longer side (default 512)")
+    from .diffusion import add_stage1_arguments
+    add_stage1_arguments(p)
+    d = Stage2Config()
+    g = p.add_argument_group("Stage 2 (instance-level style transfer)")
+    g.add_argument("--iters", type=int, default=d.iters, help=f"optimisation steps (default {d.iters})")
+    g.add_argument("--lr", type=float, default=d.lr, help=f"learning rate of the SH DC colour (default {d.lr})")
+    g.add_argument("--style-weight", type=float, default=d.style_weight, help="NNFM style loss weight")
+    g.add_argument("--content-weight", type=float, default=d.content_weight,
+                   help=f"content loss weight (relative feature MSE; default {d.content_weight})")
+    g.add_argument("--tv-weight", type=float, default=d.tv_weight,
+                   help=f"total variation weight (default: {TV_WEIGHT_FREE} with the weight-free random features, "
+                        f"{TV_WEIGHT_VGG} with VGG16)")
+    g.add_argument("--blend-weight", type=float, default=d.blend_weight, help="weight of the blend spread (colours "
+                   f"mixed on one ray kept alike; default {BLEND_WEIGHT_EDGES} with the edge features, else 0)")
+    g.add_argument("--style-loss", default=d.style_loss, choices=STYLE_LOSSES,
+                   help="nnfm: nearest-neighbour feature matching (the paper's); sw: sliced Wasserstein "
+                        "between feature distributions; auto (default): NNFM on VGG16 features, SW on the "
+                        "weight-free random features")
+    g.add_argument("--sw-projections", type=int, default=d.sw_projections,
+                   help=f"random directions per step of the sw loss (default {d.sw_projections})")
+    g.add_argument("--color-transfer", default=d.color_transfer, choices=COLOR_TRANSFER,
+                   help="ARF's view-consistent colour transfer (colour mean and covariance matched to the "
+                        "stylized key views, per group, or to the style image) before the optimisation, "
+                        f"after it, both or off (default {d.color_transfer})")
+    g.add_argument("--color-max-gain", type=float, default=d.color_max_gain, help="largest stretch of colour "
+                   f"differences by the colour map (default {COLOR_GAIN_EDGES} on edge features, else {COLOR_GAIN_OTHER})")
+    g.add_argument("--color-detail", default=d.color_detail, choices=COLOR_DETAIL, help="keep: the colour map does not "
+                   "flatten texture below the style's; off: plain map; auto (default): keep on edge features, else off")
+    g.add_argument("--sh-rest", default=d.sh_rest, choices=SH_REST,
+                   help=f"higher SH bands (view-dependent colour): keep, zero at the start, or optimise "
+                        f"(default {d.sh_rest})")
+    g.add_argument("--sh-bands", action="store_true", help="same as --sh-rest optimise")
+    g.add_argument("--background", default=d.background, choices=BACKGROUNDS, help="the stylized scene's background: "
+                   "transfer (default: the capture's, colour-transferred like the scene) or keep (the capture's)")
+    g.add_argument("--free-opacity", action="store_true", help="also optimise opacities")
+    g.add_argument("--label-mode", default=d.label_mode, choices=("majority", "nearest"),
+                   help="group maps to feature resolution (default majority)")
+    g.add_argument("--feature-scale", type=float, default=d.feature_scale,
+                   help="resize images by this factor before the feature extractor (default 1)")
+    g.add_argument("--direct", action="store_true", help="direct back-propagation instead of deferred")
+    g.add_argument("--chunk", type=int, default=d.chunk, help="similarity entries per nearest-neighbour block")
+    g.add_argument("--nn-precision", default=d.nn_precision, choices=("auto", "fp32", "bf16", "fp16"),
+                   help="nearest-neighbour search precision (auto: bf16 on CUDA, fp32 on CPU)")
+    g.add_argument("--checkpoint-every", type=int, default=d.checkpoint_every, help="steps between checkpoints")
+    g.add_argument("--batch-size", type=int, default=None,
+                   help="training views per Stage 2 step over all processes, their mean loss (default: one per "
+                        "process; on --resume the checkpoint's); under torchrun each process renders its share")
+    g.add_argument("--batch-scaling", choices=("sqrt", "linear", "none"), default=d.batch_scaling,
+                   help="Adam for batches: learning rates x sqrt(B) (default) or x B with betas ** B, or none")
+    g.add_argument("--extractor", default="auto", choices=EXTRACTOR_KINDS, help="features: auto = VGG16 when "
+                   "weights are found, else random-edges (weight-free, zero-mean random filters); random: the "
+                   "earlier weight-free default (docs/stylize.md)")
+    g.add_argument("--vgg16", default=None, help="torchvision VGG16 state dict (or SSGWARP_VGG16)")
+    g.add_argument("--layers", default=None, help="VGG16 layers, comma separated (default conv3 = relu3_1..3)")
+    g = p.add_argument_group("outputs")
+    g.add_argument("--path-frames", type=int, default=60, help="frames along a smooth camera path (0: none)")
+    g.add_argument("--sheet-views", type=int, default=3, help="views in the contact sheet")
+    from ..core.presets import add_quick
+    add_quick(p, QUICK, QUICK_MEASURED)
+
+
+# the CPU-sized preset (`--quick`) and what it and the defaults cost on a CPU, measured (README, docs)
+QUICK = {"iters": 150, "path_frames": 20}
+QUICK_MEASURED = ("fern from reconstruct --quick (252x188), without Stage 1 weights: 9 min on 2 CPU cores shared "
+                  "with other work (2.8 min of CPU time), 2026-11-28")
+CPU_DEFAULT_MEASURED = "2.6 s per step, so about 26 min for 600 steps"
+
+
+def cpu_hint(args) -> Optional[str]:
+    """The one line ``stylize`` prints on a CPU: what its settings cost there and the --quick preset."""
+    if getattr(args, "quick", False) or getattr(args, "quiet", False) or torch.device(args.device).type != "cpu":
+        return None
+    from ..core.presets import quick_text
+
+    return (f"on a CPU Stage 2's {args.iters} steps take a while (fern at 252x188 on 2 cores: "
+            f"{CPU_DEFAULT_MEASURED}); --quick ({quick_text(QUICK)}) took 9 min there in all")
+
+
+def run(args) -> int:
+    from .diffusion import config_from_args
+    from .keyviews import parse_ids
+
+    weights = getattr(args, "weights", None)
+    weights = weights if isinstance(weights, dict) else None
+    over = {"sh_rest": "optimise" if args.sh_bands else args.sh_rest, "deferred": not args.direct}
+    s2 = Stage2Config(**{f.name: over[f.name] if f.name in over else getattr(args, f.name)
+                         for f in dataclasses.fields(Stage2Config)})    # the flags carry the fields' names
+    opts = StylizeOptions(keyviews=args.keyviews, ids=parse_ids(args.ids), max_side=args.max_side,
+                          extractor=args.extractor, vgg16=args.vgg16,
+                          layers=[s.strip() for s in args.layers.split(",")] if args.layers else None,
+                          path_frames=args.path_frames, sheet_views=args.sheet_views, weights=weights)
+    s1 = config_from_args(args) if args.mode != "global" else None
+    from ..services import distributed
+
+    group, device = distributed.from_env(args.device)   # under torchrun: join the others
+    hint = cpu_hint(args) if group.is_main else None
+    if hint:
+        _say(hint, True)
+    try:
+        _stylize.stylize_run(args.scene_dir, args.style, args.out, stage2=s2, stage1=s1, opts=opts, device=device,
+                    resume=args.resume, force=args.force, progress=not args.quiet, group=group)
+    finally:
+        distributed.shutdown(group)
+    return 0
+
