@@ -285,9 +285,12 @@ def test_export_command_reports_psnr(tmp_path, capsys):
 
 # ----------------------------------------------------------------------------- gsply reads our files
 @pytest.mark.slow   # gsply compiles its compressed-PLY reader with numba on first use (about 5-8 s, then cached)
-def test_gsply_reads_our_files(tmp_path):
+def test_gsply_reads_our_files(tmp_path, request):
     """gsply (an independent implementation) decodes our compressed PLY and SPZ to what our readers do."""
     gsply = pytest.importorskip("gsply")
+    # numba's threading layer (gsply's readers) changes torch's intra-op thread count: give it back after
+    threads = torch.get_num_threads()
+    request.addfinalizer(lambda: torch.set_num_threads(threads))
     s = _scene(1, density=0.5)
     n = len(s)
     ours = read_compressed_ply(write_scene(tmp_path / "s.compressed.ply", s, "compressed-ply"))

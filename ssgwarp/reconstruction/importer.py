@@ -372,7 +372,8 @@ def import_splats(source: str | Path, out: str | Path, *, data: Optional[str | P
     capture, candidates = None, src.candidates
     if src.data_dir is not None:
         capture = load_dataset(src.data_dir, images=images or src.images, split_every=split,
-                               width=width if width is not None else src.width, background=bg, num_random_points=1000)
+                               width=width if width is not None else src.width, background=bg, num_random_points=1000,
+                               init="capture", progress=False)
         candidates = _frames_of(src, tool, capture)
         cams = capture.cameras
     elif src.cameras is not None:
