@@ -275,6 +275,8 @@ class Trainer:
         if self.strategy.uses_means2d_grad and means2d.requires_grad:
             means2d.retain_grad()
         img = out[..., :3]
+        if self.data.masks is not None:  # masked pixels take the target's value: no error, no gradient
+            img = _masked(img, gt, self.data.masks[views])
         loss = photometric(img, gt, r.lambda_dssim, r.dssim_scale)  # (the mean over the views)
         reg = self.strategy.regularizer(self.gaussians)
         if reg is not None:
@@ -545,7 +547,14 @@ class Trainer:
         for i in ids:
             pred = self.render([i])
             gt = self.data.images[i][None]
-            row = {"name": self.data.names[i], "psnr": float(psnr(pred, gt)), "ssim": float(ssim(pred, gt))}
+            if self.data.masks is None:
+                p = float(psnr(pred, gt))
+            else:  # the pixels of the scene only: PSNR of their mean error, SSIM / LPIPS with the rest equal
+                m = self.data.masks[i][None]
+                pred = _masked(pred, gt, m)
+                mse = float(((pred - gt) ** 2).sum()) / max(1.0, 3.0 * float(m.sum()))
+                p = -10.0 * math.log10(max(mse, 1e-20))
+            row = {"name": self.data.names[i], "psnr": p, "ssim": float(ssim(pred, gt))}
             if lpips is not None:
                 row["lpips"] = float(lpips(pred.permute(0, 3, 1, 2), gt.permute(0, 3, 1, 2)).mean())
             per.append(row)
@@ -554,6 +563,12 @@ class Trainer:
             vals = [r[k] for r in per if k in r]
             out[k] = float(np.mean(vals)) if vals else None
         return out
+
+
+def _masked(img: torch.Tensor, gt: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
+    """``img`` where ``masks [B, H, W]`` is 1, ``gt`` where it is 0 (masked pixels out of losses and metrics)."""
+    m = masks[..., None].to(img.dtype)
+    return img * m + gt * (1.0 - m)
 
 
 def read_checkpoint(path: str | Path) -> dict:
