@@ -29,6 +29,7 @@ from ..services.losses import photometric, psnr, ssim
 from .recipe import Recipe, batch_factors
 from ..raster.rendering import render
 from ..raster.scene import GaussianScene
+from .backdrop import backdrop_count, backdrop_points, plan_backdrop
 from .strategy import GaussianParams, make_strategy
 
 log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
@@ -75,6 +76,9 @@ class Trainer:
             and the default schedule counts images (:meth:`Recipe.resolved`).
         group: a :class:`ssgwarp.services.distributed.Group` when several processes train together (each
             renders its share of every batch); default: alone.
+        backdrop: ``"auto"`` (default), ``"on"`` or ``"off"``: add far points along the training rays and a far
+            shell to the initial points when the capture needs them (:mod:`ssgwarp.reconstruction.backdrop`;
+            :attr:`backdrop` records the decision). Not used when ``scene`` is given.
         device, seed, progress: as usual.
     """
 
@@ -83,7 +87,7 @@ class Trainer:
                  identity_dim: Optional[int] = None, checkpoint_path: Optional[str | Path] = None,
                  checkpoint_every: int = 500, rasterize: Optional[Callable] = None,
                  raster_kwargs: Optional[dict] = None, device=None, seed: int = 0, progress: bool = True,
-                 strategy="default", batch_size: Optional[int] = None, group=None):
+                 strategy="default", batch_size: Optional[int] = None, group=None, backdrop: str = "auto"):
         if iters < 1:
             raise InputError(f"iters must be >= 1, got {iters}")
         if not 0 <= sh_degree <= 3:
@@ -109,7 +113,8 @@ class Trainer:
         random_init = None
         if scene is None and getattr(data, "points_source", "") == "random" and data.points is not None:
             random_init = self._initial_count(len(data.points[0]), recipe)
-        self.recipe = recipe.resolved(self.iters, self.sh_degree, self.strategy, random_init, self.batch_size)
+        self.recipe = recipe.resolved(self.iters, self.sh_degree, self.strategy, random_init, self.batch_size,
+                                      views=len(data.train_ids))
         self.lr_factor, self.beta_power = batch_factors(self.batch_size, self.recipe.batch_scaling)
         self.hooks = list(hooks)
         self.checkpoint_path = Path(checkpoint_path) if checkpoint_path is not None else None
@@ -131,6 +136,8 @@ class Trainer:
         self._loss_host = None
         self.check_every = check_every() if self.group.active else 0
         self.history: list[dict] = []
+        self.backdrop_mode = backdrop
+        self.backdrop = None   # the BackdropPlan of the initial scene (None: a scene was given)
 
         self.view_gen = torch.Generator().manual_seed(self.seed)
         self._queue: list[int] = []
@@ -152,8 +159,7 @@ class Trainer:
             log.warning("hooks given but the scene has no identity encodings (pass identity_dim): "
                         "their losses are not used")
         self._build_optimizer(scene)
-        self.strategy.setup(self.gaussians, recipe=self.recipe, extent=self.extent,
-                            max_gaussians=self.max_gaussians, seed=self.seed)
+        self._setup_strategy()
         self._hook_takes_scene = [_takes_scene(h) for h in self.hooks]
 
     # -- state --------------------------------------------------------------------------------
@@ -169,10 +175,23 @@ class Trainer:
             xyz, rgb = xyz[idx], rgb[idx]
         if len(xyz) == 0:
             raise InputError("the capture has an empty point cloud")
+        self.backdrop = plan_backdrop(self.data, xyz, self.backdrop_mode)
+        if self.backdrop.use:
+            bx, bc = backdrop_points(self.data, xyz, backdrop_count(len(xyz)), self.backdrop, self.seed)
+            xyz, rgb = torch.cat([xyz, bx]), torch.cat([rgb, bc])
+            log.info("backdrop: %d far points (%s; layout %s), far radius %.3g", self.backdrop.points,
+                     self.backdrop.why, self.backdrop.layout, self.backdrop.far_radius)
         xyz = xyz.to(self.device)
         scale = knn_mean_distance(xyz, k=3).clamp_min(1e-7) * self.recipe.init_scale
         return GaussianScene.from_points(xyz, rgb.to(self.device), sh_degree=0,
                                          opacity=self.recipe.init_opacity, scale=scale)
+
+    def _setup_strategy(self) -> None:
+        self.strategy.setup(self.gaussians, recipe=self.recipe, extent=self.extent,
+                            max_gaussians=self.max_gaussians, seed=self.seed)
+        b = self.backdrop
+        if b is not None and b.use and b.scene_radius:  # sizes beyond the initial points measured by distance
+            self.strategy.far_field(torch.tensor(b.center, dtype=torch.float32, device=self.device), b.scene_radius)
 
     def _initial_count(self, n: int, recipe: Recipe) -> int:
         """How many of ``n`` capture points start the scene (``init_max_points``; the budget of a budgeted strategy)."""
@@ -275,8 +294,8 @@ class Trainer:
         if self.strategy.uses_means2d_grad and means2d.requires_grad:
             means2d.retain_grad()
         img = out[..., :3]
-        if self.data.masks is not None:  # masked pixels take the target's value: no error, no gradient
-            img = _masked(img, gt, self.data.masks[views])
+        if self.data.masks is not None:  # masked pixels are zero in both: no error, no gradient, no SSIM content
+            img, gt = _masked(img, gt, self.data.masks[views])
         loss = photometric(img, gt, r.lambda_dssim, r.dssim_scale)  # (the mean over the views)
         reg = self.strategy.regularizer(self.gaussians)
         if reg is not None:
@@ -489,8 +508,7 @@ class Trainer:
         scene = GaussianScene(**{k: v for k, v in st["params"].items()}, sh_degree=self.sh_degree)
         self._build_optimizer(scene.to(self.device))
         self.opt.load_state_dict(st["optimizer"])  # (new group dicts: GaussianParams looks them up by name)
-        self.strategy.setup(self.gaussians, recipe=self.recipe, extent=self.extent,
-                            max_gaussians=self.max_gaussians, seed=self.seed)
+        self._setup_strategy()
         # statistics this run keeps (a checkpoint may hold more, e.g. screen radii of a run that pruned by them)
         stats = {k: v.to(self.device) for k, v in st["stats"].items() if k in self.gaussians.stats}
         if set(stats) != set(self.gaussians.stats):
@@ -549,9 +567,9 @@ class Trainer:
             gt = self.data.images[i][None]
             if self.data.masks is None:
                 p = float(psnr(pred, gt))
-            else:  # the pixels of the scene only: PSNR of their mean error, SSIM / LPIPS with the rest equal
+            else:  # the pixels of the scene only: PSNR of their mean error, SSIM / LPIPS with the rest zero in both
                 m = self.data.masks[i][None]
-                pred = _masked(pred, gt, m)
+                pred, gt = _masked(pred, gt, m)
                 mse = float(((pred - gt) ** 2).sum()) / max(1.0, 3.0 * float(m.sum()))
                 p = -10.0 * math.log10(max(mse, 1e-20))
             row = {"name": self.data.names[i], "psnr": p, "ssim": float(ssim(pred, gt))}
@@ -565,10 +583,11 @@ class Trainer:
         return out
 
 
-def _masked(img: torch.Tensor, gt: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
-    """``img`` where ``masks [B, H, W]`` is 1, ``gt`` where it is 0 (masked pixels out of losses and metrics)."""
+def _masked(img: torch.Tensor, gt: torch.Tensor, masks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``img`` and ``gt`` with the pixels where ``masks [B, H, W]`` is 0 set to 0 in both: what the images
+    show there changes no loss, gradient or metric."""
     m = masks[..., None].to(img.dtype)
-    return img * m + gt * (1.0 - m)
+    return img * m, gt * m
 
 
 def read_checkpoint(path: str | Path) -> dict:
