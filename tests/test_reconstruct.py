@@ -240,7 +240,10 @@ def test_cli_reconstruct_writes_the_run_contract_and_refuses_to_overwrite(tmp_pa
     m = json.loads((out / "metrics.json").read_text())
     assert m["test_views"] == 2 and m["psnr"] > 0 and 0 < m["ssim"] <= 1 and m["iters"] == 6
     assert m["lpips"] is None and "skipped" in m["lpips_note"]
-    assert m["num_gaussians"] == 60 and m["sh_degree"] == 0 and m["train_seconds"] >= 0
+    # 60 points cover few image cells: a backdrop is added (recorded in metrics.json and data.json)
+    assert m["backdrop"]["used"] and m["backdrop"]["mode"] == "auto" and m["backdrop"]["points"] > 0
+    assert json.loads((out / "data.json").read_text())["backdrop"] == m["backdrop"]
+    assert m["num_gaussians"] == 60 + m["backdrop"]["points"] and m["sh_degree"] == 0 and m["train_seconds"] >= 0
     meta = json.loads((out / "data.json").read_text())
     assert meta["split"] == {"train": ["1.png", "2.png", "4.png", "5.png"], "test": ["0.png", "3.png"]}
     assert meta["data_dir"] == str(data_dir.resolve()) and meta["format"] == "colmap"
@@ -315,7 +318,7 @@ def test_cli_mcmc_strategy_stays_within_its_budget(tmp_path, monkeypatch, capsys
     data_dir, out = tmp_path / "cap", tmp_path / "run"
     _write_tiny_colmap(data_dir)
     args = ["reconstruct", str(data_dir), "--out", str(out), "--iters", "250", "--sh-degree", "0", "--no-progress",
-            "--device", "cpu", "--strategy", "mcmc", "--max-gaussians", "70"]
+            "--backdrop", "off", "--device", "cpu", "--strategy", "mcmc", "--max-gaussians", "70"]
     assert cli.main(args) == 0
     m = json.loads((out / "metrics.json").read_text())
     # 60 COLMAP points, refinements at steps 100 and 200 (the scaled schedule): +3, +4 (ceil 5%)
@@ -464,3 +467,15 @@ def test_inside_out_capture_fails_from_the_cube_and_reconstructs_with_the_backdr
     assert not out["off"][1].use and out["auto"][1].use and out["auto"][1].layout == "inside-out"
     assert out["off"][0] < 10.0, out
     assert out["auto"][0] > out["off"][0] + 6.0, out
+
+
+def test_a_backdrop_fits_in_the_budget_of_a_budgeted_strategy():
+    """mcmc: initial points + backdrop within --max-gaussians (the backdrop takes at most a third)."""
+    from dataclasses import replace
+
+    g = torch.Generator().manual_seed(0)
+    xyz = torch.randn(300, 3, generator=g) * 0.2
+    data = replace(_toy_data(), points=(xyz, torch.rand(300, 3, generator=g)), points_source="colmap")
+    t = Trainer(data, iters=10, sh_degree=0, progress=False, device="cpu", strategy="mcmc", max_gaussians=240,
+                backdrop="on")
+    assert t.backdrop.use and 0 < t.backdrop.points <= 80 and t.num_gaussians == 240 - 80 + t.backdrop.points

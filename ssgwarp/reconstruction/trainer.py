@@ -177,7 +177,13 @@ class Trainer:
             raise InputError("the capture has an empty point cloud")
         self.backdrop = plan_backdrop(self.data, xyz, self.backdrop_mode)
         if self.backdrop.use:
-            bx, bc = backdrop_points(self.data, xyz, backdrop_count(len(xyz)), self.backdrop, self.seed)
+            n_far = backdrop_count(len(xyz))
+            if self.strategy.budgeted and len(xyz) + n_far > self.max_gaussians:  # a third of the budget at most
+                n_far = min(n_far, self.max_gaussians // 3)
+                keep = torch.randperm(len(xyz), generator=torch.Generator().manual_seed(self.seed + 4))
+                keep = keep[:self.max_gaussians - n_far].sort().values
+                xyz, rgb = xyz[keep], rgb[keep]
+            bx, bc = backdrop_points(self.data, xyz, n_far, self.backdrop, self.seed)
             xyz, rgb = torch.cat([xyz, bx]), torch.cat([rgb, bc])
             log.info("backdrop: %d far points (%s; layout %s), far radius %.3g", self.backdrop.points,
                      self.backdrop.why, self.backdrop.layout, self.backdrop.far_radius)
