@@ -35,30 +35,31 @@ SHARED = {"livingroom": ("livingroom_360", "images"), "fern4": ("llff_fern", "im
           "fern8": ("llff_fern", "images_8"), "cup": ("colmap_cup", "images")}
 
 
-def inside_out_capture(folder: Path, width: int, views: int = 40) -> tuple[Path, torch.Tensor]:
+def inside_out_capture(folder: Path, width: int, views: int = 40, device="cpu") -> tuple[Path, torch.Tensor]:
     """The procedural inside-out capture at ``width`` (4:3), written once; returns its folder and the true
     surface points (Gaussian centres) with their colours."""
-    from ssgwarp.procedural import build_inside_out, render_views, rig_cameras, write_transforms_dataset
+    from ssgwarp.procedural import ProceduralScene, build_inside_out, render_views, rig_cameras, write_transforms_dataset
 
     gt = build_inside_out(1.0)
+    gt = ProceduralScene(gt.scene.to(device), gt.object_ids.to(device), gt.names)
     out = folder / f"insideout_{width}"
     if not (out / "transforms.json").is_file():
-        cams = rig_cameras(views, width, width * 3 // 4, turns=2.0)
+        cams = rig_cameras(views, width, width * 3 // 4)
         images, _ = render_views(gt, cams, background=(1.0, 1.0, 1.0))
         write_transforms_dataset(out, images, cams)
     return out, gt
 
 
-def load(scene: str, width, work: Path, points: int):
+def load(scene: str, width, work: Path, points: int, device="cpu"):
     if scene in SHARED:
         name, images = SHARED[scene]
         return load_dataset(DATA / name, images=images, width=width, num_random_points=points)
     if scene.startswith("insideout"):
-        folder, gt = inside_out_capture(work, width or 128)
+        folder, gt = inside_out_capture(work, width or 128, device=device)
         data = load_dataset(folder, num_random_points=points)
         if scene == "insideout-true":
             from ssgwarp.raster.scene import sh_dc_to_rgb
-            data = replace(data, points=(gt.scene.means.clone(), sh_dc_to_rgb(gt.scene.sh_dc).clamp(0, 1)),
+            data = replace(data, points=(gt.scene.means.cpu().clone(), sh_dc_to_rgb(gt.scene.sh_dc.cpu()).clamp(0, 1)),
                            points_source="true")
         return data
     return load_dataset(scene, width=width, num_random_points=points)
@@ -79,7 +80,7 @@ def main(argv=None) -> int:
         parts = spec.split(":")
         scene, mode, iters = parts[0], parts[1], int(parts[2])
         width = int(parts[3]) if len(parts) > 3 else None
-        data = load(scene, width, args.work, args.random_points)
+        data = load(scene, width, args.work, args.random_points, args.device)
         t0 = time.time()
         tr = Trainer(data, iters=iters, device=args.device, backdrop=mode, progress=False)
         tr.train()

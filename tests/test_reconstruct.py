@@ -454,7 +454,7 @@ def test_inside_out_capture_fails_from_the_cube_and_reconstructs_with_the_backdr
     from ssgwarp.procedural import build_inside_out, render_views, rig_cameras, write_transforms_dataset
 
     gt = build_inside_out(0.25)
-    cams = rig_cameras(16, 48, 36, turns=2.0)
+    cams = rig_cameras(16, 48, 36)
     images, _ = render_views(gt, cams)
     write_transforms_dataset(tmp_path, images, cams)
     data = load_dataset(tmp_path, num_random_points=1000)

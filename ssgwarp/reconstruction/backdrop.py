@@ -20,12 +20,13 @@ random cube of a transforms.json capture without points and its images are not a
 ground (less than 30% background-colour pixels), or when the coverage is below :data:`MIN_COVERAGE`. A
 forward-facing capture or an object capture whose points fill the images keeps its points alone.
 
-With a backdrop the densification rules measure sizes against the distance from the cameras beyond the
-initial points' radius (:class:`ssgwarp.reconstruction.strategy.DefaultStrategy`: ``scene_radius``), so a
+With a backdrop (and for any inside-out capture) the densification rules measure sizes against the
+distance from the cameras beyond the initial points' radius (:class:`ssgwarp.reconstruction.strategy.DefaultStrategy`: ``scene_radius``), so a
 distant Gaussian as wide as a few pixels is neither split as "large" nor pruned as too big for the scene.
 """
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field
 from typing import Optional
@@ -34,6 +35,8 @@ import torch
 
 from ..capture.datasets import focus_point, random_points_in_frusta
 from ..errors import InputError
+
+log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
 
 MODES = ("auto", "on", "off")
 MIN_COVERAGE = 0.9       # median fraction of image cells the initial points must hit to go without a backdrop
@@ -144,6 +147,29 @@ def plan_backdrop(data, xyz: Optional[torch.Tensor], mode: str = "auto") -> Back
     return BackdropPlan(layout, cov, False, f"the initial points cover {cov:.0%} of the image cells", mode)
 
 
+def with_backdrop(data, xyz: torch.Tensor, rgb: torch.Tensor, mode: str = "auto", budget: Optional[int] = None,
+                  seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, BackdropPlan]:
+    """The initial points ``(xyz, rgb)`` of ``data`` with a backdrop appended when :func:`plan_backdrop` says so,
+    and the plan. ``budget``: the most points in all (a budgeted strategy's): the backdrop takes at most a third
+    and the initial points are subsampled (seeded) to leave it room. An inside-out capture without a backdrop
+    still gets its far field (``plan.scene_radius``)."""
+    plan = plan_backdrop(data, xyz, mode)
+    if plan.use:
+        n_far = backdrop_count(len(xyz))
+        if budget is not None and len(xyz) + n_far > budget:
+            n_far = min(n_far, budget // 3)
+            keep = torch.randperm(len(xyz), generator=torch.Generator().manual_seed(seed + 4))
+            keep = keep[:budget - n_far].sort().values
+            xyz, rgb = xyz[keep], rgb[keep]
+        bx, bc = backdrop_points(data, xyz, n_far, plan, seed)
+        xyz, rgb = torch.cat([xyz, bx.to(xyz)]), torch.cat([rgb, bc.to(rgb)])
+        log.info("backdrop: %d far points (%s; layout %s), far radius %.3g", plan.points, plan.why, plan.layout,
+                 plan.far_radius)
+    elif plan.layout == "inside-out":  # no backdrop, but what the views show is far all the same
+        far_field_radius(data, xyz, plan)
+    return xyz, rgb, plan
+
+
 def backdrop_count(n_initial: int) -> int:
     """How many backdrop points a cloud of ``n_initial`` points gets: half as many, 2,000 to 100,000."""
     return int(min(100_000, max(2_000, n_initial // 2)))
@@ -157,12 +183,7 @@ def backdrop_points(data, xyz: torch.Tensor, n: int, plan: BackdropPlan, seed: i
     ids = list(data.train_ids)
     cams = data.cameras[ids].to("cpu")
     images = data.images[ids].cpu()
-    centers = cams.centers.double()
-    center = centers.mean(0)
-    cam_radius = float((centers - center).norm(dim=1).max()) if len(ids) > 1 else 0.0
-    d = (xyz.double().cpu() - center).norm(dim=1)
-    scene_radius = float(torch.quantile(d[:100_000], 0.99)) if len(d) else cam_radius
-    median = float(d.median()) if len(d) else cam_radius
+    center, cam_radius, median = far_field_radius(data, xyz, plan)
     far = FAR_FACTOR * max(cam_radius, median, 1e-6)
     # per view: rays from the median depth of the points it sees (or the cameras' radius) to the far radius
     near = torch.empty(len(ids), dtype=torch.float64)
@@ -177,8 +198,22 @@ def backdrop_points(data, xyz: torch.Tensor, n: int, plan: BackdropPlan, seed: i
                                      seed + 11)
     sx, sc = _shell(cams, images, center, far, n - n_rays)
     plan.points = len(rx) + len(sx)
-    plan.far_radius, plan.scene_radius, plan.center = far, max(scene_radius, cam_radius), center.tolist()
+    plan.far_radius = far
     return torch.cat([rx, sx]).float(), torch.cat([rc, sc]).float()
+
+
+def far_field_radius(data, xyz: torch.Tensor, plan: BackdropPlan) -> tuple[torch.Tensor, float, float]:
+    """Set ``plan.center`` (the training cameras' centroid) and ``plan.scene_radius`` (the 99th percentile of
+    the points' distance from it, at least the cameras' radius): beyond it the densification rules measure
+    sizes against the distance. Returns ``(center [3] float64, cameras' radius, median point distance)``."""
+    centers = data.cameras.centers[list(data.train_ids)].double().cpu()
+    center = centers.mean(0)
+    cam_radius = float((centers - center).norm(dim=1).max()) if len(centers) > 1 else 0.0
+    d = (xyz.double().cpu() - center).norm(dim=1)
+    scene_radius = float(torch.quantile(d[:100_000], 0.99)) if len(d) else cam_radius
+    median = float(d.median()) if len(d) else cam_radius
+    plan.center, plan.scene_radius = center.tolist(), max(scene_radius, cam_radius)
+    return center, cam_radius, median
 
 
 def _shell(cams, images: torch.Tensor, center: torch.Tensor, radius: float, n: int

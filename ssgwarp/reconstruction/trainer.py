@@ -29,13 +29,12 @@ from ..services.losses import photometric, psnr, ssim
 from .recipe import Recipe, batch_factors
 from ..raster.rendering import render
 from ..raster.scene import GaussianScene
-from .backdrop import backdrop_count, backdrop_points, plan_backdrop
+from .backdrop import with_backdrop
 from .strategy import GaussianParams, make_strategy
 
 log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
 
 CHECKPOINT_FORMAT = "ssgwarp-reconstruct-checkpoint/1"
-
 
 
 def _takes_scene(hook) -> bool:
@@ -76,9 +75,8 @@ class Trainer:
             and the default schedule counts images (:meth:`Recipe.resolved`).
         group: a :class:`ssgwarp.services.distributed.Group` when several processes train together (each
             renders its share of every batch); default: alone.
-        backdrop: ``"auto"`` (default), ``"on"`` or ``"off"``: add far points along the training rays and a far
-            shell to the initial points when the capture needs them (:mod:`ssgwarp.reconstruction.backdrop`;
-            :attr:`backdrop` records the decision). Not used when ``scene`` is given.
+        backdrop: ``"auto"`` / ``"on"`` / ``"off"``: far points for the initial scene (:mod:`.backdrop`;
+            :attr:`backdrop`: the decision, None when ``scene`` is given).
         device, seed, progress: as usual.
     """
 
@@ -136,8 +134,7 @@ class Trainer:
         self._loss_host = None
         self.check_every = check_every() if self.group.active else 0
         self.history: list[dict] = []
-        self.backdrop_mode = backdrop
-        self.backdrop = None   # the BackdropPlan of the initial scene (None: a scene was given)
+        self.backdrop_mode, self.backdrop = backdrop, None
 
         self.view_gen = torch.Generator().manual_seed(self.seed)
         self._queue: list[int] = []
@@ -175,29 +172,18 @@ class Trainer:
             xyz, rgb = xyz[idx], rgb[idx]
         if len(xyz) == 0:
             raise InputError("the capture has an empty point cloud")
-        self.backdrop = plan_backdrop(self.data, xyz, self.backdrop_mode)
-        if self.backdrop.use:
-            n_far = backdrop_count(len(xyz))
-            if self.strategy.budgeted and len(xyz) + n_far > self.max_gaussians:  # a third of the budget at most
-                n_far = min(n_far, self.max_gaussians // 3)
-                keep = torch.randperm(len(xyz), generator=torch.Generator().manual_seed(self.seed + 4))
-                keep = keep[:self.max_gaussians - n_far].sort().values
-                xyz, rgb = xyz[keep], rgb[keep]
-            bx, bc = backdrop_points(self.data, xyz, n_far, self.backdrop, self.seed)
-            xyz, rgb = torch.cat([xyz, bx]), torch.cat([rgb, bc])
-            log.info("backdrop: %d far points (%s; layout %s), far radius %.3g", self.backdrop.points,
-                     self.backdrop.why, self.backdrop.layout, self.backdrop.far_radius)
+        budget = self.max_gaussians if self.strategy.budgeted else None
+        xyz, rgb, self.backdrop = with_backdrop(self.data, xyz, rgb, self.backdrop_mode, budget, self.seed)
         xyz = xyz.to(self.device)
         scale = knn_mean_distance(xyz, k=3).clamp_min(1e-7) * self.recipe.init_scale
         return GaussianScene.from_points(xyz, rgb.to(self.device), sh_degree=0,
                                          opacity=self.recipe.init_opacity, scale=scale)
 
     def _setup_strategy(self) -> None:
-        self.strategy.setup(self.gaussians, recipe=self.recipe, extent=self.extent,
-                            max_gaussians=self.max_gaussians, seed=self.seed)
-        b = self.backdrop
-        if b is not None and b.use and b.scene_radius:  # sizes beyond the initial points measured by distance
-            self.strategy.far_field(torch.tensor(b.center, dtype=torch.float32, device=self.device), b.scene_radius)
+        self.strategy.setup(self.gaussians, recipe=self.recipe, extent=self.extent, max_gaussians=self.max_gaussians,
+                            seed=self.seed)
+        if self.backdrop is not None and self.backdrop.scene_radius:  # sizes beyond it measured by distance
+            self.strategy.far_field(torch.tensor(self.backdrop.center, device=self.device), self.backdrop.scene_radius)
 
     def _initial_count(self, n: int, recipe: Recipe) -> int:
         """How many of ``n`` capture points start the scene (``init_max_points``; the budget of a budgeted strategy)."""
@@ -571,13 +557,11 @@ class Trainer:
         for i in ids:
             pred = self.render([i])
             gt = self.data.images[i][None]
-            if self.data.masks is None:
-                p = float(psnr(pred, gt))
-            else:  # the pixels of the scene only: PSNR of their mean error, SSIM / LPIPS with the rest zero in both
-                m = self.data.masks[i][None]
-                pred, gt = _masked(pred, gt, m)
-                mse = float(((pred - gt) ** 2).sum()) / max(1.0, 3.0 * float(m.sum()))
-                p = -10.0 * math.log10(max(mse, 1e-20))
+            p = float(psnr(pred, gt))
+            if self.data.masks is not None:  # the scene's pixels: PSNR of their mean error, the rest 0 in both
+                pred, gt = _masked(pred, gt, self.data.masks[i][None])
+                p = -10.0 * math.log10(max(float(((pred - gt) ** 2).sum()) / max(1.0, 3.0 * float(
+                    self.data.masks[i].sum())), 1e-20))
             row = {"name": self.data.names[i], "psnr": p, "ssim": float(ssim(pred, gt))}
             if lpips is not None:
                 row["lpips"] = float(lpips(pred.permute(0, 3, 1, 2), gt.permute(0, 3, 1, 2)).mean())
@@ -590,10 +574,8 @@ class Trainer:
 
 
 def _masked(img: torch.Tensor, gt: torch.Tensor, masks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``img`` and ``gt`` with the pixels where ``masks [B, H, W]`` is 0 set to 0 in both: what the images
-    show there changes no loss, gradient or metric."""
-    m = masks[..., None].to(img.dtype)
-    return img * m, gt * m
+    """``img``, ``gt`` with the pixels where ``masks [B, H, W]`` is 0 set to 0 in both (out of losses, metrics)."""
+    return img * masks[..., None].to(img.dtype), gt * masks[..., None].to(gt.dtype)
 
 
 def read_checkpoint(path: str | Path) -> dict:
