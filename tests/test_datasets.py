@@ -424,8 +424,10 @@ def test_transforms_lens_variants_and_errors():
     assert _transforms_lens({"camera_model": "PINHOLE"}, "w").is_pinhole
     with pytest.raises(InputError, match=r"^w: distortion coefficients are not numbers$"):
         _transforms_lens({"k2": "big"}, "w")
+    assert _transforms_lens({"k1": 0.1, "camera_model": "SIMPLE_RADIAL"}, "w") == Lens("OPENCV", (0.1, 0, 0, 0))
+    assert _transforms_lens({"k1": 0.1, "k2": 0.2, "camera_model": "RADIAL"}, "w") == Lens("OPENCV", (0.1, 0.2, 0, 0))
     with pytest.raises(InputError, match=r"^w: camera_model fisheye is not supported \(supported: OPENCV, "
-                                         r"OPENCV_FISHEYE, PINHOLE, SIMPLE_PINHOLE\)"):
+                                         r"OPENCV_FISHEYE, PINHOLE, SIMPLE_PINHOLE, SIMPLE_RADIAL, RADIAL\)"):
         _transforms_lens({"camera_model": "fisheye"}, "w")
     with pytest.raises(InputError, match=r"w: a fisheye camera .* not p1 p2 \(got p1=0 p2=0.5\)"):
         _transforms_lens({"is_fisheye": True, "p2": 0.5}, "w")
