@@ -77,7 +77,8 @@ def _resume_kwargs(fern, tmp_path, name, strategy="default"):
     rec = Recipe(init_max_points=120, refine_start=8, refine_every=8, reset_every=20, sh_interval=10,
                  prune_screen=0.5)
     return dict(iters=30, sh_degree=1, max_gaussians=400, recipe=rec, progress=False, device="cpu", seed=3,
-                identity_dim=4, checkpoint_path=tmp_path / name, checkpoint_every=100, strategy=strategy)
+                identity_dim=4, checkpoint_path=tmp_path / name, checkpoint_every=100, strategy=strategy,
+                backdrop="off")  # (the densification of a known cloud of 120 points)
 
 
 @needs_fern
@@ -479,3 +480,21 @@ def test_a_backdrop_fits_in_the_budget_of_a_budgeted_strategy():
     t = Trainer(data, iters=10, sh_degree=0, progress=False, device="cpu", strategy="mcmc", max_gaussians=240,
                 backdrop="on")
     assert t.backdrop.use and 0 < t.backdrop.points <= 80 and t.num_gaussians == 240 - 80 + t.backdrop.points
+
+
+def test_a_resumed_run_keeps_its_backdrop_and_far_field(tmp_path):
+    from dataclasses import replace
+
+    g = torch.Generator().manual_seed(0)
+    xyz = torch.randn(300, 3, generator=g) * 0.2
+    data = replace(_toy_data(), points=(xyz, torch.rand(300, 3, generator=g)), points_source="colmap")
+    kw = dict(iters=10, sh_degree=0, progress=False, device="cpu", backdrop="on", checkpoint_path=tmp_path / "c.pt")
+    a = Trainer(data, **kw)
+    a.train(until=4)
+    a.save_checkpoint()
+    b = Trainer(data, **kw)
+    b.load_checkpoint()
+    assert a.backdrop.use and a.backdrop.record() == b.backdrop.record()
+    assert b.strategy.scene_radius == a.strategy.scene_radius > 0
+    assert torch.equal(b.strategy.center, a.strategy.center)
+    assert torch.equal(b.scene.means, a.scene.means)
