@@ -32,6 +32,14 @@ Public API:
     write_transforms_dataset(folder, images, cameras, ...) -> Path of transforms.json
     style_image(width, height, seed)            -> [H, W, 3] float32 numpy
     smooth_views(K, H, W, seed)                 -> smooth synthetic key views (rgb [K,H,W,3], depth [K,H,W])
+    build_inside_out(density, seed)             -> ProceduralScene of an unbounded outdoor scene (below)
+    rig_cameras(n, width, height, ...)          -> Cameras of an outward-looking rig (inside-out capture)
+
+The inside-out scene (:func:`build_inside_out`, ids: 0 ground, 1 backdrop, 2 sky) is what a hand-held walk
+on a rooftop sees: a textured ground disc of radius 6 around the rig, a ring of "buildings" (a cylinder
+of radius 8 and height 3.5 with facades and windows) and a sky dome of radius 40 (a gradient with clouds).
+:func:`rig_cameras` looks outward from a small circle at its centre, so nothing the views show lies near
+the point their optical axes meet (behind them): the capture that defeats a bounded random initialisation.
 """
 from __future__ import annotations
 
@@ -322,7 +330,8 @@ def style_image(width: int = 192, height: int = 192, seed: int = 0) -> np.ndarra
 
 
 __all__ = ["SIZES", "DemoSize", "OBJECT_NAMES", "BACKGROUND", "ProceduralScene", "build_scene", "ring_cameras",
-           "render_views", "write_transforms_dataset", "style_image"]
+           "render_views", "write_transforms_dataset", "style_image", "INSIDE_OUT_NAMES", "build_inside_out",
+           "rig_cameras"]
 
 
 def smooth_views(K: int, H: int, W: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -335,3 +344,97 @@ def smooth_views(K: int, H: int, W: int, seed: int = 0) -> tuple[torch.Tensor, t
     rgb = 0.5 + 0.4 * torch.sin(3 * xx[None, ..., None] + 2 * yy[None, ..., None] + ph[:, None, None, :])
     depth = 1.0 + xx[None] + 0.5 * yy[None] * torch.arange(1, K + 1).view(K, 1, 1)
     return rgb.float(), depth.float()
+
+
+# ----------------------------------------------------------------------------- inside-out scene
+INSIDE_OUT_NAMES = ("ground", "backdrop", "sky")
+
+
+def _ring_normals_up(n: int) -> np.ndarray:
+    return np.tile([0.0, 0.0, 1.0], (n, 1))
+
+
+def build_inside_out(density: float = 1.0, seed: int = 0) -> ProceduralScene:
+    """The inside-out ground truth (see the module docstring); about 24,000 Gaussians at ``density`` 1."""
+    if not density > 0:
+        raise InputError(f"procedural scene: density must be > 0, got {density}")
+    rng = np.random.default_rng(seed)
+    d = math.sqrt(density)
+    parts = []   # (xyz, normals, rgb, spacing, thickness, id)
+
+    # ground: disc of radius 6.2, 1 m tiles in two tones with a darker grout
+    step = 0.15 / d
+    g = np.arange(-6.2, 6.2 + 1e-9, step)
+    X, Y = (a.ravel() for a in np.meshgrid(g, g, indexing="ij"))
+    keep = X ** 2 + Y ** 2 <= 6.2 ** 2
+    X, Y = X[keep], Y[keep]
+    tile = ((np.floor(X) + np.floor(Y)) % 2).astype(bool)
+    rgb = np.where(tile[:, None], [0.62, 0.58, 0.52], [0.42, 0.40, 0.38])
+    grout = (np.abs(X - np.round(X)) < 0.06) | (np.abs(Y - np.round(Y)) < 0.06)
+    rgb[grout] = [0.25, 0.24, 0.23]
+    parts.append((np.stack([X, Y, np.zeros_like(X)], 1), _ring_normals_up(len(X)), rgb, step, 0.01, 0))
+
+    # backdrop: facades on a cylinder of radius 8 (normals inward), one colour per 20-degree block, windows
+    r, top = 8.0, 3.5
+    da = (0.12 / d) / r
+    a = np.arange(0.0, 2 * math.pi, da)
+    z = np.arange(0.06, top, 0.12 / d)
+    A, Z = (t.ravel() for t in np.meshgrid(a, z, indexing="ij"))
+    palette = np.array([[0.80, 0.42, 0.30], [0.85, 0.80, 0.65], [0.45, 0.55, 0.70], [0.70, 0.70, 0.72],
+                        [0.55, 0.35, 0.30], [0.90, 0.70, 0.40]])
+    block = np.floor(A / math.radians(20.0)).astype(int)
+    rgb = palette[rng.permutation(len(palette))[block % len(palette)]].astype(np.float64)
+    u = (A * r) % 1.0
+    v = Z % 0.9
+    window = (u > 0.3) & (u < 0.7) & (v > 0.3) & (v < 0.7)
+    rgb[window] = [0.12, 0.16, 0.22]
+    rgb *= (1.0 + rng.normal(0, 0.03, (len(A), 1)))
+    xyz = np.stack([r * np.cos(A), r * np.sin(A), Z], 1)
+    nrm = -np.stack([np.cos(A), np.sin(A), np.zeros_like(A)], 1)
+    parts.append((xyz, nrm, rgb, 0.12 / d, 0.02, 1))
+
+    # sky: a dome of radius 40 (elevation -5..90 degrees), horizon haze to zenith blue, with clouds
+    R = 40.0
+    n = max(500, int(7000 * density))
+    i = np.arange(n) + 0.5
+    zz = np.sin(math.radians(-5.0)) + (1 - np.sin(math.radians(-5.0))) * i / n   # uniform in z: uniform area
+    ph = math.pi * (1 + 5 ** 0.5) * i
+    rho = np.sqrt(1 - zz ** 2)
+    dirs = np.stack([rho * np.cos(ph), rho * np.sin(ph), zz], 1)
+    t = np.clip(zz, 0.0, 1.0)[:, None] ** 0.6
+    rgb = (1 - t) * np.array([0.85, 0.90, 0.95]) + t * np.array([0.30, 0.50, 0.85])
+    cloud = (np.sin(3.0 * ph * 0.013 + 2 * zz) * np.cos(7.0 * zz + np.cos(ph * 0.007)) > 0.55) & (zz > 0.1)
+    rgb[cloud] = [0.97, 0.97, 0.98]
+    spacing = R * math.sqrt(2 * math.pi * (1 - math.sin(math.radians(-5.0))) / n)
+    parts.append((R * dirs, -dirs, rgb, spacing, spacing * 0.2, 2))
+
+    means, quats, scales, rgbs, ids = [], [], [], [], []
+    for xyz, nrm, col, sp, thick, oid in parts:
+        m = len(xyz)
+        means.append(xyz)
+        quats.append(_frame(nrm))
+        scales.append(np.tile([sp * 0.75, sp * 0.75, thick], (m, 1)))
+        rgbs.append(np.clip(col, 0.0, 1.0))
+        ids.append(np.full(m, oid))
+    cat = lambda x: torch.from_numpy(np.concatenate(x)).float()  # noqa: E731
+    rgb = cat(rgbs)
+    scene = GaussianScene(cat(means), torch.log(cat(scales)), cat(quats), torch.full((len(rgb),), 4.0),
+                          rgb_to_sh_dc(rgb))
+    return ProceduralScene(scene, torch.from_numpy(np.concatenate(ids)).long(), INSIDE_OUT_NAMES)
+
+
+def rig_cameras(n: int, width: int, height: int, *, radius: float = 0.3, eye_height: float = 1.5,
+                pitch_deg: float = 5.0, fov_x_deg: float = 70.0, turns: float = 1.0,
+                names: Optional[Sequence[str]] = None) -> Cameras:
+    """``n`` cameras on a circle of ``radius`` at ``eye_height``, each looking outward (away from the circle's
+    centre) and ``pitch_deg`` up, their headings spread over ``turns`` full turns (OpenCV axes)."""
+    if n < 1 or width < 1 or height < 1:
+        raise InputError(f"rig_cameras: need n >= 1 and a positive size, got n={n}, {width}x{height}")
+    a = torch.arange(n, dtype=torch.float64) / n * 2 * math.pi * turns
+    eyes = torch.stack([radius * torch.cos(a), radius * torch.sin(a), torch.full_like(a, eye_height)], 1)
+    p = math.radians(pitch_deg)
+    look = torch.stack([math.cos(p) * torch.cos(a), math.cos(p) * torch.sin(a), torch.full_like(a, math.sin(p))], 1)
+    vm = look_at(eyes, eyes + look, up=(0.0, 0.0, 1.0))
+    f = 0.5 * width / math.tan(math.radians(fov_x_deg) / 2)
+    K = intrinsics(f, f, width / 2.0, height / 2.0, n)
+    return Cameras(vm.float(), K, width, height, list(names) if names else [f"o_{i:03d}" for i in range(n)])

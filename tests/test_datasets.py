@@ -424,8 +424,10 @@ def test_transforms_lens_variants_and_errors():
     assert _transforms_lens({"camera_model": "PINHOLE"}, "w").is_pinhole
     with pytest.raises(InputError, match=r"^w: distortion coefficients are not numbers$"):
         _transforms_lens({"k2": "big"}, "w")
+    assert _transforms_lens({"k1": 0.1, "camera_model": "SIMPLE_RADIAL"}, "w") == Lens("OPENCV", (0.1, 0, 0, 0))
+    assert _transforms_lens({"k1": 0.1, "k2": 0.2, "camera_model": "RADIAL"}, "w") == Lens("OPENCV", (0.1, 0.2, 0, 0))
     with pytest.raises(InputError, match=r"^w: camera_model fisheye is not supported \(supported: OPENCV, "
-                                         r"OPENCV_FISHEYE, PINHOLE, SIMPLE_PINHOLE\)"):
+                                         r"OPENCV_FISHEYE, PINHOLE, SIMPLE_PINHOLE, SIMPLE_RADIAL, RADIAL\)"):
         _transforms_lens({"camera_model": "fisheye"}, "w")
     with pytest.raises(InputError, match=r"w: a fisheye camera .* not p1 p2 \(got p1=0 p2=0.5\)"):
         _transforms_lens({"is_fisheye": True, "p2": 0.5}, "w")
@@ -466,3 +468,134 @@ def test_loader_option_errors(tmp_path):
     (tmp_path / "file").write_text("x")
     with pytest.raises(InputError, match="not a folder"):
         load_dataset(tmp_path / "file")
+
+
+# ----------------------------------------------------------------------------- nerfstudio (ns-process-data)
+def _nerfstudio_from_colmap(root: Path, cams, images, pts, camera_model="OPENCV", masks=False):
+    """The nerfstudio layout ns-process-data makes of the COLMAP capture in ``root``: OpenGL c2w with the world's
+    y and z swapped and z negated (``applied_transform``), intrinsics per frame, points in ``sparse_pc.ply`` in the
+    frames' world. Returns the applied transform (4x4)."""
+    from plyfile import PlyData, PlyElement
+
+    A = np.eye(4)
+    A[:3] = np.eye(4)[:3][[0, 2, 1]]
+    A[2] *= -1
+    cam = cams[1]
+    frames = []
+    for im in sorted(images.values(), key=lambda im: im.name):  # (ns-process-data sorts by name too)
+        V = np.eye(4)
+        from ssgwarp.capture.colmap import qvec_to_rotmat
+        V[:3, :3], V[:3, 3] = qvec_to_rotmat(im.qvec), im.tvec
+        c2w = np.linalg.inv(V)
+        c2w[0:3, 1:3] *= -1
+        c2w = c2w[[0, 2, 1, 3]]
+        c2w[2] *= -1
+        fr = {"file_path": f"images/{Path(im.name).stem}.png", "transform_matrix": c2w.tolist(),
+              "fl_x": float(cam.params[0]), "fl_y": float(cam.params[1]), "cx": float(cam.params[2]),
+              "cy": float(cam.params[3]), "w": cam.width, "h": cam.height}
+        if masks:
+            fr["mask_path"] = f"masks/{Path(im.name).stem}.png"
+        frames.append(fr)
+    xyz = pts.xyz @ A[:3, :3].T + A[:3, 3]
+    v = np.array([tuple(p) + tuple(c) for p, c in zip(xyz, pts.rgb)],
+                 dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    PlyData([PlyElement.describe(v, "vertex")], text=True).write(str(root / "sparse_pc.ply"))
+    meta = {"camera_model": camera_model, "frames": frames, "applied_transform": A[:3].tolist(),
+            "ply_file_path": "sparse_pc.ply"}
+    (root / "transforms.json").write_text(json.dumps(meta))
+    return A
+
+
+def test_nerfstudio_layout_loads_to_the_colmap_capture_it_came_from(tmp_path):
+    """ns-process-data's transforms.json (per-frame intrinsics, applied_transform, sparse_pc.ply) gives the COLMAP
+    capture's cameras and points, in the frames' world (the COLMAP world through applied_transform)."""
+    cams, images, views, pts = _colmap_scene(tmp_path)
+    ref = load_dataset(tmp_path, format="colmap", split_every=0)
+    A = _nerfstudio_from_colmap(tmp_path, cams, images, pts)
+    import shutil
+    shutil.rmtree(tmp_path / "sparse")
+    d = load_dataset(tmp_path, split_every=0)
+    assert d.format == "transforms" and d.points_source == "ply" and d.applied_transform == A[:3].tolist()
+    assert [Path(n).stem for n in d.names] == [Path(n).stem for n in ref.names]
+    assert torch.allclose(d.cameras.Ks, ref.cameras.Ks, atol=1e-5)
+    # the same cameras: world-to-camera of the frames' world = the COLMAP one after undoing applied_transform
+    want = ref.cameras.viewmats.double() @ torch.from_numpy(np.linalg.inv(A))
+    assert torch.allclose(d.cameras.viewmats.double(), want, atol=1e-5)
+    assert torch.allclose(d.images, ref.images)
+    # the same points, seen at the same pixels
+    xyz = ref.points[0].double() @ torch.from_numpy(A[:3, :3]).T + torch.from_numpy(A[:3, 3])
+    assert torch.allclose(d.points[0].double(), xyz, atol=1e-5)
+    assert torch.allclose(d.points[1], ref.points[1], atol=1e-6)
+    pc = torch.cat([d.points[0].double(), torch.ones(len(xyz), 1, dtype=torch.float64)], 1)
+    pr = torch.cat([ref.points[0].double(), torch.ones(len(xyz), 1, dtype=torch.float64)], 1)
+    assert torch.allclose(pc @ d.cameras.viewmats[0].double().T, pr @ ref.cameras.viewmats[0].double().T, atol=1e-5)
+    from ssgwarp.capture.datasets import data_json
+    assert data_json(d)["applied_transform"] == A[:3].tolist() and data_json(d)["points_source"] == "ply"
+
+
+def test_nerfstudio_per_frame_intrinsics_and_distortion_override_the_top_level(tmp_path):
+    cams, images, views, pts = _colmap_scene(tmp_path)
+    _nerfstudio_from_colmap(tmp_path, cams, images, pts, camera_model="SIMPLE_RADIAL")
+    meta = json.loads((tmp_path / "transforms.json").read_text())
+    meta.update({"fl_x": 999.0, "fl_y": 999.0, "cx": 1.0, "cy": 1.0, "w": 64, "h": 48, "k1": 0.3})
+    meta["frames"][0]["k1"] = 0.0      # frame 0 is a pinhole, the others take the top level's k1
+    meta["frames"][1]["fl_x"] = 70.0   # frame 1 has its own focal
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    import shutil
+    shutil.rmtree(tmp_path / "sparse")
+    d = load_dataset(tmp_path, split_every=0)
+    lenses = {c["lens"]["model"] if c.get("lens") else None for c in d.undistortion["cameras"]}
+    assert "OPENCV" in str(d.undistortion) and len(d.undistortion["cameras"]) >= 2, lenses
+    # after the crop every camera keeps its focal (x 32/64 for the 32x24 images): 60 -> 30, frame 1's 70 -> 35
+    assert abs(float(d.cameras.Ks[0, 0, 0]) - 30.0) < 1e-4 and abs(float(d.cameras.Ks[1, 0, 0]) - 35.0) < 1e-4
+    assert abs(float(d.cameras.Ks[2, 1, 1]) - 31.0) < 1e-4
+
+
+@pytest.mark.parametrize("model, msg", [
+    ("EQUIRECTANGULAR", r"camera_model EQUIRECTANGULAR \(a panorama\) is not supported: .* perspective views first$"),
+    ("FISHEYE624", r"camera_model FISHEYE624 is not supported \(supported: OPENCV, OPENCV_FISHEYE, PINHOLE, "
+                   r"SIMPLE_PINHOLE, SIMPLE_RADIAL, RADIAL\); convert the capture to pinhole images first$")])
+def test_nerfstudio_unsupported_camera_models_are_one_line_errors(tmp_path, model, msg):
+    cams, images, views, pts = _colmap_scene(tmp_path)
+    _nerfstudio_from_colmap(tmp_path, cams, images, pts, camera_model=model)
+    with pytest.raises(InputError, match=msg) as e:
+        load_dataset(tmp_path, format="transforms")
+    assert "\n" not in str(e.value)
+
+
+def test_nerfstudio_bad_ply_applied_transform_and_partial_masks(tmp_path):
+    cams, images, views, pts = _colmap_scene(tmp_path)
+    _nerfstudio_from_colmap(tmp_path, cams, images, pts)
+    meta = json.loads((tmp_path / "transforms.json").read_text())
+    (tmp_path / "transforms.json").write_text(json.dumps({**meta, "ply_file_path": "nope.ply"}))
+    with pytest.raises(InputError, match=r"nope.ply: PLY file not found$"):
+        load_dataset(tmp_path, format="transforms")
+    (tmp_path / "bad.ply").write_text("not a ply")
+    (tmp_path / "transforms.json").write_text(json.dumps({**meta, "ply_file_path": "bad.ply"}))
+    with pytest.raises(InputError, match=r"bad.ply: corrupt or truncated PLY"):
+        load_dataset(tmp_path, format="transforms")
+    (tmp_path / "transforms.json").write_text(json.dumps({**meta, "applied_transform": [[1, 0], [0, 1]]}))
+    with pytest.raises(InputError, match=r"applied_transform must be a 3x4 matrix of numbers$"):
+        load_dataset(tmp_path, format="transforms")
+    meta["frames"][0]["mask_path"] = "masks/x.png"
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(InputError, match=r"mask_path is given for 1 of 9 frames; give it for every frame or none$"):
+        load_dataset(tmp_path, format="transforms")
+
+
+def test_nerfstudio_masks_are_loaded_undistorted_and_resized_with_their_images(tmp_path):
+    cams, images, views, pts = _colmap_scene(tmp_path)
+    _nerfstudio_from_colmap(tmp_path, cams, images, pts, masks=True)
+    for im in images.values():  # the right half of every image is masked out
+        m = np.ones((24, 32, 1), np.float32)
+        m[:, 16:] = 0.0
+        write_image(tmp_path / "masks" / f"{Path(im.name).stem}.png", m)
+    d = load_dataset(tmp_path, format="transforms", width=16)
+    assert d.masks.shape == (9, 12, 16) and d.images.shape == (9, 12, 16, 3)
+    assert bool((d.masks[:, :, :8] == 1).all()) and bool((d.masks[:, :, 8:] == 0).all())
+    assert d.to("cpu").masks is not None
+    from ssgwarp.capture.datasets import data_json
+    assert data_json(d)["masks"] is True
+    write_image(tmp_path / "masks" / f"{Path(images[1].name).stem}.png", np.ones((5, 5, 1), np.float32))
+    with pytest.raises(InputError, match=r"mask size 5x5 differs from its image's \(32x24\)$"):
+        load_dataset(tmp_path, format="transforms")

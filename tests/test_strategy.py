@@ -11,7 +11,7 @@ import torch
 from ssgwarp.core.cameras import Cameras, intrinsics, look_at
 from ssgwarp.reconstruction.reconstruct import Recipe
 from ssgwarp.raster.scene import GaussianScene
-from ssgwarp.reconstruction.strategy import (REFERENCE_ITERS, DefaultStrategy, GaussianParams, MCMCStrategy, Schedule,
+from ssgwarp.reconstruction.strategy import (REFERENCE_ITERS, REFINE_EPOCHS, DefaultStrategy, GaussianParams, MCMCStrategy, Schedule,
                               accumulate_grad2d, make_strategy, relocation, scaled_schedule)
 from ssgwarp.errors import InputError
 
@@ -367,3 +367,51 @@ def test_schedule_scales_with_the_run_length():
         Recipe(refine_every=0).resolved(100, 3)
     with pytest.raises(InputError, match="unknown strategy 'nope'"):
         make_strategy("nope")
+
+
+def test_sparse_captures_stop_densifying_after_200_passes_over_their_views():
+    """Densification ends once every training view was seen REFINE_EPOCHS (200) times, when that comes first:
+    fern's 17 views at 30k steps refine until 3,400 (not 15,000); 88 views keep the scaled 15,000; a given
+    refine_stop is kept; batches count images."""
+    assert REFINE_EPOCHS == 200
+    assert Recipe().resolved(30000, 3, views=17).refine_stop == 3400
+    assert Recipe().resolved(30000, 3, views=88).refine_stop == 15000
+    assert Recipe().resolved(7000, 3, views=17).refine_stop == 3400        # (3,500 scaled)
+    assert Recipe().resolved(30000, 3).refine_stop == 15000                 # views unknown: the scaled schedule
+    assert Recipe(refine_stop=9000).resolved(30000, 3, views=17).refine_stop == 9000
+    assert Recipe().resolved(30000, 3, "mcmc", views=17).refine_stop == 3400
+    assert Recipe().resolved(15000, 3, views=17, batch_size=2).refine_stop == 1700   # 3,400 images in steps of 2
+    tiny = Recipe().resolved(30000, 3, views=1)            # never before one refinement
+    assert tiny.refine_stop == tiny.refine_start + tiny.refine_every + 1
+
+
+def test_far_field_measures_sizes_against_the_distance_beyond_the_scene_radius():
+    """With a far field (a backdrop) a Gaussian beyond the scene radius is measured against extent x distance /
+    scene radius: a far one 0.5 wide at distance 20 (scene radius 2, extent 1: reference 10) is small enough to be
+    cloned and is not pruned as too large; without the far field it is split and pruned."""
+    n = 4
+    means = torch.tensor([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [20.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    sc = _scene(n).replace(means=means, logit_opacities=torch.zeros(n), log_scales=torch.full((n, 3), math.log(0.005)))
+    ls = sc.log_scales.clone()
+    ls[2] = math.log(0.05)     # far: 0.05 <= 0.01 x 10 (clone), > 0.01 x extent (split without the far field)
+    ls[3, 0] = math.log(0.5)   # near and too large anywhere: 0.5 > 0.1 x extent
+    sc = sc.replace(log_scales=ls)
+    for far in (True, False):
+        g, s = _setup("default", sc, iters=REFERENCE_ITERS, extent=1.0)
+        if far:
+            s.far_field(torch.zeros(3), 2.0)
+            assert torch.allclose(s.size_reference(g.params["means"].data), torch.tensor([1.0, 1.0, 10.0, 1.0]), atol=0.01)
+        else:
+            assert s.size_reference(g.params["means"].data) == 1.0
+        g.stats["grad2d"][2] = 1.0   # only the far one is densified (before the first reset: no size pruning)
+        g.stats["count"][:] = 1.0
+        info = s.refine(g, step=2000)
+        assert (info["clone"], info["split"]) == ((1, 0) if far else (0, 1)), far
+    # world-size pruning: 0.9 wide at distance 20 passes with the far field (0.1 x 10 = 1), not without
+    ls2 = sc.log_scales.clone()
+    ls2[2] = math.log(0.9)
+    for far, pruned in ((True, 1), (False, 2)):
+        g, s = _setup("default", sc.replace(log_scales=ls2), iters=REFERENCE_ITERS, extent=1.0)
+        if far:
+            s.far_field(torch.zeros(3), 2.0)
+        assert s.refine(g, step=3100)["prune"] == pruned

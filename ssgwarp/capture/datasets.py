@@ -79,7 +79,8 @@ class SceneData:
         names: image names (file names relative to the image folder), one per camera.
         train_ids, test_ids: indices into the cameras.
         points: ``(xyz [P, 3], rgb [P, 3] in [0, 1])`` initial points, or None.
-        points_source: "colmap", "triangulated", "random", "ply" or "none".
+        points_source: "colmap", "triangulated", "random", "ply" (``--init PATH.ply`` or a transforms.json's
+            ``ply_file_path``) or "none".
         points_stats: how the points were made: for triangulated points the
             :class:`~ssgwarp.capture.triangulate.Triangulation` stats (count, median reprojection error...).
         near, far: depth range of the scene seen from the cameras (scene units), or None.
@@ -89,6 +90,9 @@ class SceneData:
         undistortion: what lens undistortion did (:meth:`ssgwarp.capture.lens.Undistortion.record`: per camera
             its lens, crop box and intrinsics before/after), or None when the capture has no distortion.
         options: the :func:`load_dataset` options that reproduce this data (for ``data.json``).
+        masks: ``[C, H, W]`` float32, 1 where a pixel belongs to the scene, 0 where it is left out of losses and
+            metrics (nerfstudio ``mask_path``), or None (every pixel counts).
+        applied_transform: nerfstudio's 3x4 map from the original COLMAP world to the cameras' world, or None.
     """
 
     cameras: Cameras
@@ -107,6 +111,8 @@ class SceneData:
     format: str = ""
     undistortion: Optional[dict] = None
     options: dict = field(default_factory=dict)
+    masks: Optional[torch.Tensor] = None
+    applied_transform: Optional[list] = None
 
     def __post_init__(self) -> None:
         c = len(self.cameras)
@@ -115,6 +121,8 @@ class SceneData:
                              f"{self.cameras.width}x{self.cameras.height}")
         if len(self.names) != c:
             raise InputError(f"SceneData: {len(self.names)} names for {c} cameras")
+        if self.masks is not None and tuple(self.masks.shape) != tuple(self.images.shape[:3]):
+            raise InputError(f"SceneData: masks {tuple(self.masks.shape)} do not match images {tuple(self.images.shape)}")
 
     def __len__(self) -> int:
         return len(self.cameras)
@@ -168,7 +176,8 @@ class SceneData:
 
     def to(self, device) -> "SceneData":
         pts = None if self.points is None else (self.points[0].to(device), self.points[1].to(device))
-        return replace(self, cameras=self.cameras.to(device), images=self.images.to(device), points=pts)
+        masks = None if self.masks is None else self.masks.to(device)
+        return replace(self, cameras=self.cameras.to(device), images=self.images.to(device), points=pts, masks=masks)
 
     def background_tensor(self, channels: int = 3) -> torch.Tensor:
         """``[channels]`` background (RGB then zeros for extra channels) on the data's device."""
@@ -240,7 +249,7 @@ def _initial_points(d: dict, init, fmt: str, num_random_points: int, seed: int, 
         d["points"], d["points_source"] = read_points(init), "ply"
         d["points_stats"] = {"file": str(init.resolve()), "count": len(d["points"][0])}
         return
-    if init == "capture" or (init == "auto" and own == "colmap"):
+    if init == "capture" or (init == "auto" and own in ("colmap", "ply")):  # the capture's own points
         return
     cams, imgs = d["cameras"], d["images"]
     if init in ("auto", "triangulate"):
@@ -335,6 +344,8 @@ def data_json(data: SceneData, **extra) -> dict:
         "points_count": None if data.points is None else int(len(data.points[0])),
         "points_reprojection_error_px": data.points_stats.get("median_reprojection_error_px"),
         "points_stats": data.points_stats,
+        "masks": data.masks is not None,
+        "applied_transform": data.applied_transform,
         "load_options": data.options,
         **extra,
     }
@@ -369,7 +380,7 @@ def load_run(scene_dir: str | Path, device=None, *, data_dir: Optional[str | Pat
     test = [index[n] for n in split.get("test", [])]
     bg = tuple(float(v) for v in meta.get("background", (1.0, 1.0, 1.0)))
     src = data_dir or meta.get("data_dir")
-    points = None
+    points = masks = None
     images = torch.zeros(len(cams), cams.height, cams.width, 3)
     data_root = _as_path(src) if src else None
     undistortion = meta.get("undistortion")
@@ -399,10 +410,12 @@ def load_run(scene_dir: str | Path, device=None, *, data_dir: Optional[str | Pat
         points, undistortion = data.points, data.undistortion
         if data.points_source != meta.get("points_source"):
             points = None  # triangulated or given points are not remade
+        masks = None if data.masks is None else data.masks[sel]
     out = SceneData(cameras=cams, images=images, names=list(cams.names), train_ids=train, test_ids=test,
                     points=points, points_source=meta.get("points_source", "none"), near=meta.get("near"),
                     far=meta.get("far"), background=bg, data_dir=data_root, image_dir=meta.get("images"),
-                    format=meta.get("format", ""), undistortion=undistortion, options=meta.get("load_options", {}))
+                    format=meta.get("format", ""), undistortion=undistortion, options=meta.get("load_options", {}),
+                    masks=masks, applied_transform=meta.get("applied_transform"))
     if device is not None:
         scene, out = scene.to(device), out.to(device)
     return scene, out

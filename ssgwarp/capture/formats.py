@@ -19,6 +19,7 @@ from .colmap import _pick, find_model, read_cameras, read_model, read_points3d
 from ..errors import InputError
 from ..core.fileio import read_image, read_json
 from .lens import Lens, plan_undistortion
+from .ply import read_points
 
 log = logging.getLogger("ssgwarp.capture.datasets")
 
@@ -69,13 +70,15 @@ def _evenly(n: int, k: Optional[int]) -> list[int]:
 
 
 def _load_images(paths: Sequence[Path], background, width: Optional[int],
-                 intrinsics: Callable) -> tuple[torch.Tensor, torch.Tensor, Optional[dict]]:
+                 intrinsics: Callable, mask_paths: Optional[Sequence[Path]] = None
+                 ) -> tuple[torch.Tensor, torch.Tensor, Optional[dict]]:
     """Read, composite RGBA, remove lens distortion and resize, one image at a time.
 
     ``intrinsics(w0, h0)`` gives, for files of ``w0`` x ``h0`` pixels, ``(Ks [C, 3, 3] float64,
     lenses [C] (:class:`~ssgwarp.capture.lens.Lens` or None), labels [C] (each image's camera, for errors))``.
     Distorted images become the pinhole crop of :func:`ssgwarp.capture.lens.plan_undistortion` (at the files'
-    resolution, before any resize). Returns ``(images [C, H, W, 3], Ks [C, 3, 3] float64 of those
+    resolution, before any resize). ``mask_paths``: one mask image per image (its first channel, > 0: keep),
+    undistorted and resized with it as a 4th channel of the returned images. Returns ``(images [C, H, W, 3], Ks [C, 3, 3] float64 of those
     images, the undistortion record or None)``.
     """
 
@@ -96,6 +99,12 @@ def _load_images(paths: Sequence[Path], background, width: Optional[int],
             a = np.clip(img[..., 3:4], 0.0, 1.0)
             img = img[..., :3] + (1.0 - a) * bg
         img = np.clip(img[..., :3], 0.0, 1.0)
+        if mask_paths is not None:
+            m = read_image(mask_paths[i])
+            if m.shape[:2] != img.shape[:2]:
+                raise InputError(f"{mask_paths[i]}: mask size {m.shape[1]}x{m.shape[0]} differs from its image's "
+                                 f"({img.shape[1]}x{img.shape[0]})")
+            img = np.concatenate([img, (m[..., :1] > 0).astype(np.float32)], axis=2)
         if size0 is None:
             size0 = img.shape[:2]
             h0, w0 = size0
@@ -322,13 +331,18 @@ def _intrinsics_from(meta: dict, w: int, h: int, where: str) -> tuple[float, flo
     return fx, fy, cx, cy
 
 
-_TRANSFORMS_MODELS = ("OPENCV", "OPENCV_FISHEYE", "PINHOLE", "SIMPLE_PINHOLE")
+_TRANSFORMS_MODELS = ("OPENCV", "OPENCV_FISHEYE", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")
+# nerfstudio's models that are not a pinhole with a radial-tangential or fisheye lens
+_PANORAMIC_MODELS = ("EQUIRECTANGULAR", "OMNIDIRECTIONALSTEREO_L", "OMNIDIRECTIONALSTEREO_R", "VR180_L", "VR180_R")
 
 
 def _transforms_lens(meta: dict, where: str):
     """The lens of a transforms.json camera: ``k1 k2 k3 p1 p2`` (OpenCV, k3 the r^6 term), or with
     instant-ngp's ``is_fisheye`` / nerfstudio's ``camera_model: OPENCV_FISHEYE`` the fisheye ``k1..k4``."""
     model = str(meta.get("camera_model", "")).upper()
+    if model in _PANORAMIC_MODELS:
+        raise InputError(f"{where}: camera_model {meta['camera_model']} (a panorama) is not supported: ssgwarp "
+                         f"trains on perspective images; cut the panoramas into perspective views first")
     if model and model not in _TRANSFORMS_MODELS:
         raise InputError(f"{where}: camera_model {meta['camera_model']} is not supported (supported: "
                          f"{', '.join(_TRANSFORMS_MODELS)}); convert the capture to pinhole images first")
@@ -350,6 +364,20 @@ def _transforms_lens(meta: dict, where: str):
     if k3:
         return Lens("FULL_OPENCV", (k1, k2, p1, p2, k3, 0.0, 0.0, 0.0))
     return Lens("OPENCV", (k1, k2, p1, p2))
+
+
+def _applied_transform(meta: dict, where: str) -> Optional[list]:
+    """nerfstudio's ``applied_transform`` (3x4 or 4x4, the map from the original COLMAP world to the frames' world),
+    checked, as a 3x4 list; None when absent."""
+    if "applied_transform" not in meta:
+        return None
+    try:
+        m = np.asarray(meta["applied_transform"], dtype=np.float64)
+    except (TypeError, ValueError):
+        m = np.zeros(0)
+    if m.shape not in ((3, 4), (4, 4)) or not np.isfinite(m).all():
+        raise InputError(f"{where}: applied_transform must be a 3x4 matrix of numbers")
+    return m[:3, :4].tolist()
 
 
 def _load_transforms(root: Path, images: str, max_images, width, background, num_random_points, seed, **_):
@@ -391,6 +419,19 @@ def _load_transforms(root: Path, images: str, max_images, width, background, num
         c2w.append(m[:3, :4])
     if missing:
         raise missing_images_error(missing, root, ", ".join(sorted({m[0].name for m in metas})))
+    # nerfstudio masks (``mask_path`` per frame: 0 = not part of the scene): all frames or none
+    with_mask = ["mask_path" in fr for fr in frames]
+    mask_paths = None
+    if any(with_mask):
+        if not all(with_mask):
+            raise InputError(f"{metas[0][0]}: mask_path is given for {sum(with_mask)} of {len(frames)} frames; "
+                             f"give it for every frame or none")
+        mask_paths, missing = [], []
+        for fr in frames:
+            q = _resolve_image(root, str(fr["mask_path"]))
+            (missing.append(str(fr["mask_path"])) if q is None else mask_paths.append(q))
+        if missing:
+            raise missing_images_error(missing, root, f"{metas[0][0].name} (mask_path)")
     cams_meta = []
     for fr, (jpath, meta), p in zip(frames, metas, paths):
         merged = {**meta, **{k: v for k, v in fr.items() if k not in ("file_path", "transform_matrix")}}
@@ -406,7 +447,10 @@ def _load_transforms(root: Path, images: str, max_images, width, background, num
             Ks.append([[fx * sx, 0.0, cx * sx], [0.0, fy * sy, cy * sy], [0.0, 0.0, 1.0]])
         return np.array(Ks), [c[2] for c in cams_meta], [c[1] for c in cams_meta]
 
-    imgs, Ks, undist = _load_images(paths, background, width, intrinsics)
+    imgs, Ks, undist = _load_images(paths, background, width, intrinsics, mask_paths)
+    masks = None
+    if mask_paths is not None:  # (the masks travel as a 4th channel through undistortion and resizing)
+        imgs, masks = imgs[..., :3].contiguous(), (imgs[..., 3] >= 0.5).float()
     c2w = np.stack(c2w)
     c2w4 = np.tile(np.eye(4), (len(c2w), 1, 1))
     c2w4[:, :3, :4] = c2w
@@ -414,6 +458,17 @@ def _load_transforms(root: Path, images: str, max_images, width, background, num
     viewmats = _viewmats_from_c2w(c2w4[:, :3, :4])
     names = [str(p.relative_to(root)) for p in paths]
     cams = Cameras(viewmats.float(), Ks.float(), imgs.shape[2], imgs.shape[1], names)
+    top = metas[0][1]
+    applied = _applied_transform(top, str(metas[0][0]))
+    test_mask = is_test if any(is_test) else None
+    extra = dict(test_mask=test_mask, masks=masks, applied_transform=applied)
+    if top.get("ply_file_path"):
+        # nerfstudio's sparse_pc.ply: ns-process-data writes COLMAP's points with applied_transform already
+        # applied, i.e. in the frames' world (the one transform_matrix is in): used as they are
+        xyz, rgb = read_points(root / str(top["ply_file_path"]))
+        near, far = _depth_range(xyz.double().numpy(), viewmats.numpy())
+        return dict(cameras=cams, images=imgs, names=names, points=(xyz, rgb), points_source="ply", near=near, far=far,
+                    image_dir=str(Path(names[0]).parent), undistortion=undist, **extra)
     # no point cloud: random points in a cube around the point the cameras look at
     centre = focus_point(cams)
     radius = float((cams.centers.double().cpu() - centre).norm(dim=1).mean())
@@ -422,9 +477,8 @@ def _load_transforms(root: Path, images: str, max_images, width, background, num
     xyz = centre.float() + (torch.rand(num_random_points, 3, generator=g) * 2 - 1) * half
     rgb = torch.rand(num_random_points, 3, generator=g)
     near, far = max(radius - half * 3 ** 0.5, 1e-3 * radius), radius + half * 3 ** 0.5
-    test_mask = is_test if any(is_test) else None
     return dict(cameras=cams, images=imgs, names=names, points=(xyz, rgb), points_source="random", near=near,
-                far=far, image_dir=str(Path(names[0]).parent), undistortion=undist, test_mask=test_mask)
+                far=far, image_dir=str(Path(names[0]).parent), undistortion=undist, **extra)
 
 
 LOADERS = {"colmap": _load_colmap, "llff": _load_llff, "transforms": _load_transforms}

@@ -8,7 +8,7 @@ from dataclasses import dataclass, replace
 from typing import Optional
 
 from ..errors import InputError
-from .strategy import make_strategy
+from .strategy import REFINE_EPOCHS, make_strategy
 
 BATCH_SCALINGS = ("sqrt", "linear", "none")
 _STEP_FIELDS = ("sh_interval", "refine_start", "refine_stop", "refine_every", "reset_every")
@@ -79,14 +79,19 @@ class Recipe:
                                        # "linear" (x B), both with betas ** B; "none": B=1's lrs and betas
 
     def resolved(self, iters: int, sh_degree: int, strategy="default", random_init: Optional[int] = None,
-                 batch_size: int = 1) -> "Recipe":
+                 batch_size: int = 1, views: Optional[int] = None) -> "Recipe":
         """The recipe with every None field set for a run of ``iters`` steps of ``batch_size`` views
         with ``strategy`` (``random_init``: the number of initial points when they are random, not
         a point cloud).
 
         Defaults are set for the run's number of images (``iters * batch_size``) and then counted
         in steps (divided by ``batch_size``): a batch run refines, resets opacities and raises the
-        SH degree after the same number of images as a one-view run. Values given are steps."""
+        SH degree after the same number of images as a one-view run. Values given are steps.
+
+        ``views``: the number of training views. Densification stops, by default, once every view was seen
+        :data:`~ssgwarp.reconstruction.strategy.REFINE_EPOCHS` times (when that comes before the scaled
+        ``refine_stop``): a sparse capture trained long would otherwise keep densifying on the same few images
+        (fern's 17 views at 30,000 steps: 880 passes each, 762k Gaussians)."""
         if self.batch_scaling not in BATCH_SCALINGS:
             raise InputError(f"Recipe.batch_scaling {self.batch_scaling!r}: choose one of {', '.join(BATCH_SCALINGS)}")
         b = max(1, int(batch_size))
@@ -97,6 +102,10 @@ class Recipe:
             fill["sh_interval"] = max(1, min(1000, images // (2 * max(1, sh_degree))))
         fill.update({k: v for k, v in make_strategy(strategy).defaults(images, random_init).items()
                      if getattr(r, k) is None})
+        if views and fill.get("refine_stop") and fill["refine_stop"] > REFINE_EPOCHS * int(views):
+            start = fill.get("refine_start", r.refine_start) or 0
+            every = fill.get("refine_every", r.refine_every) or 1
+            fill["refine_stop"] = max(REFINE_EPOCHS * int(views), start + every + 1)
         for k in _STEP_FIELDS:  # images -> steps
             if fill.get(k):
                 fill[k] = max(1, round(fill[k] / b))

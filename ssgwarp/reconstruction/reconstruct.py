@@ -73,7 +73,7 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
                 checkpoint_every: int = 500, num_random_points: int = 100_000,
                 rasterize: Optional[Callable] = None, raster_kwargs: Optional[dict] = None,
                 progress: bool = True, data=None, strategy="default", batch_size: Optional[int] = None,
-                group=None, init="auto") -> dict:
+                group=None, init="auto", backdrop: str = "auto") -> dict:
     """Reconstruct the capture in ``data_dir`` into the run folder ``out`` (what the CLI runs).
 
     Writes ``out/scene.ply``, ``cameras.json``, ``data.json``, ``metrics.json`` (and keeps
@@ -85,6 +85,9 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
     data-parallel run (default: alone); only its main process writes files and evaluates. ``init``: the
     initial points (:func:`~ssgwarp.capture.datasets.load_dataset`'s: ``auto``, ``triangulate``, ``random`` or a
     ``.ply`` path).
+    ``backdrop``: ``"auto"`` / ``"on"`` / ``"off"``, far points and a far shell for what lies beyond the
+    initial points (:mod:`ssgwarp.reconstruction.backdrop`); the decision goes to ``metrics.json`` and
+    ``data.json`` (``backdrop``).
     Returns the metrics dict (on the other processes: ``{}``).
     """
     group = group if group is not None else SINGLE
@@ -106,7 +109,7 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
                       hooks=hooks, identity_dim=identity_dim, checkpoint_path=ckpt,
                       checkpoint_every=checkpoint_every, rasterize=rasterize, raster_kwargs=raster_kwargs,
                       device=device, seed=seed, progress=progress, strategy=strategy, batch_size=batch_size,
-                      group=group)
+                      group=group, backdrop=backdrop)
     if state is not None:
         trainer.load_checkpoint(ckpt, state=state)
         del state
@@ -157,6 +160,7 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
     metrics["densification"] = {"strategy": trainer.strategy.name, "max_gaussians": trainer.max_gaussians,
                                 "refine_start": r.refine_start, "refine_stop": r.refine_stop,
                                 "refine_every": r.refine_every, "reset_every": r.reset_every}
+    metrics["backdrop"] = None if trainer.backdrop is None else trainer.backdrop.record()
     if ev["views"] == 0:
         metrics["note"] = "no held-out views (split_every=0 or a single image): PSNR/SSIM not measured"
     if lpips_note:
@@ -168,7 +172,7 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
 
     write_ply(out / "scene.ply", scene)
     data.cameras.to("cpu").save(out / "cameras.json")
-    write_json(out / "data.json", data_json(data, seed=seed))
+    write_json(out / "data.json", data_json(data, seed=seed, backdrop=metrics["backdrop"]))
     write_json(out / "metrics.json", metrics)
     log.info("wrote %s: %d Gaussians, held-out PSNR %s", out, len(scene),
              "n/a" if metrics["psnr"] is None else f"{metrics['psnr']:.2f} dB")
@@ -217,6 +221,10 @@ def add_arguments(parser) -> None:
                         help="initial points: auto (default: the capture's COLMAP points, else points "
                              "triangulated from the images and their poses), triangulate (even when the capture "
                              "has points), random, or a .ply point cloud")
+    parser.add_argument("--backdrop", choices=("auto", "on", "off"), default="auto",
+                        help="far points along the training rays and a far shell (sky) added to the initial "
+                             "points: auto (default: when the cameras look outward or the points leave image "
+                             "regions uncovered; docs/reconstruction.md), on or off")
     parser.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints (default 500)")
     parser.add_argument("--batch-size", type=int, default=None,
                         help="training views per step, over all processes (default: one per process; on "
@@ -251,7 +259,7 @@ def run(args) -> int:
                         seed=args.seed, split_every=args.split_every, width=args.width, max_images=args.max_images,
                         background=args.background, checkpoint_every=args.checkpoint_every,
                         num_random_points=args.random_points, progress=not args.quiet,
-                        strategy=args.strategy, batch_size=args.batch_size,
+                        strategy=args.strategy, batch_size=args.batch_size, backdrop=args.backdrop,
                         recipe=Recipe(batch_scaling=args.batch_scaling), group=group, init=init)
     finally:
         distributed.shutdown(group)

@@ -29,12 +29,12 @@ from ..services.losses import photometric, psnr, ssim
 from .recipe import Recipe, batch_factors
 from ..raster.rendering import render
 from ..raster.scene import GaussianScene
+from .backdrop import with_backdrop
 from .strategy import GaussianParams, make_strategy
 
 log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
 
 CHECKPOINT_FORMAT = "ssgwarp-reconstruct-checkpoint/1"
-
 
 
 def _takes_scene(hook) -> bool:
@@ -75,6 +75,8 @@ class Trainer:
             and the default schedule counts images (:meth:`Recipe.resolved`).
         group: a :class:`ssgwarp.services.distributed.Group` when several processes train together (each
             renders its share of every batch); default: alone.
+        backdrop: ``"auto"`` / ``"on"`` / ``"off"``: far points for the initial scene (:mod:`.backdrop`;
+            :attr:`backdrop`: the decision, None when ``scene`` is given).
         device, seed, progress: as usual.
     """
 
@@ -83,7 +85,7 @@ class Trainer:
                  identity_dim: Optional[int] = None, checkpoint_path: Optional[str | Path] = None,
                  checkpoint_every: int = 500, rasterize: Optional[Callable] = None,
                  raster_kwargs: Optional[dict] = None, device=None, seed: int = 0, progress: bool = True,
-                 strategy="default", batch_size: Optional[int] = None, group=None):
+                 strategy="default", batch_size: Optional[int] = None, group=None, backdrop: str = "auto"):
         if iters < 1:
             raise InputError(f"iters must be >= 1, got {iters}")
         if not 0 <= sh_degree <= 3:
@@ -109,7 +111,8 @@ class Trainer:
         random_init = None
         if scene is None and getattr(data, "points_source", "") == "random" and data.points is not None:
             random_init = self._initial_count(len(data.points[0]), recipe)
-        self.recipe = recipe.resolved(self.iters, self.sh_degree, self.strategy, random_init, self.batch_size)
+        self.recipe = recipe.resolved(self.iters, self.sh_degree, self.strategy, random_init, self.batch_size,
+                                      views=len(data.train_ids))
         self.lr_factor, self.beta_power = batch_factors(self.batch_size, self.recipe.batch_scaling)
         self.hooks = list(hooks)
         self.checkpoint_path = Path(checkpoint_path) if checkpoint_path is not None else None
@@ -131,6 +134,7 @@ class Trainer:
         self._loss_host = None
         self.check_every = check_every() if self.group.active else 0
         self.history: list[dict] = []
+        self.backdrop_mode, self.backdrop = backdrop, None
 
         self.view_gen = torch.Generator().manual_seed(self.seed)
         self._queue: list[int] = []
@@ -152,8 +156,7 @@ class Trainer:
             log.warning("hooks given but the scene has no identity encodings (pass identity_dim): "
                         "their losses are not used")
         self._build_optimizer(scene)
-        self.strategy.setup(self.gaussians, recipe=self.recipe, extent=self.extent,
-                            max_gaussians=self.max_gaussians, seed=self.seed)
+        self._setup_strategy()
         self._hook_takes_scene = [_takes_scene(h) for h in self.hooks]
 
     # -- state --------------------------------------------------------------------------------
@@ -169,10 +172,18 @@ class Trainer:
             xyz, rgb = xyz[idx], rgb[idx]
         if len(xyz) == 0:
             raise InputError("the capture has an empty point cloud")
+        budget = self.max_gaussians if self.strategy.budgeted else None
+        xyz, rgb, self.backdrop = with_backdrop(self.data, xyz, rgb, self.backdrop_mode, budget, self.seed)
         xyz = xyz.to(self.device)
         scale = knn_mean_distance(xyz, k=3).clamp_min(1e-7) * self.recipe.init_scale
         return GaussianScene.from_points(xyz, rgb.to(self.device), sh_degree=0,
                                          opacity=self.recipe.init_opacity, scale=scale)
+
+    def _setup_strategy(self) -> None:
+        self.strategy.setup(self.gaussians, recipe=self.recipe, extent=self.extent, max_gaussians=self.max_gaussians,
+                            seed=self.seed)
+        if self.backdrop is not None and self.backdrop.scene_radius:  # sizes beyond it measured by distance
+            self.strategy.far_field(torch.tensor(self.backdrop.center, device=self.device), self.backdrop.scene_radius)
 
     def _initial_count(self, n: int, recipe: Recipe) -> int:
         """How many of ``n`` capture points start the scene (``init_max_points``; the budget of a budgeted strategy)."""
@@ -275,6 +286,8 @@ class Trainer:
         if self.strategy.uses_means2d_grad and means2d.requires_grad:
             means2d.retain_grad()
         img = out[..., :3]
+        if self.data.masks is not None:  # masked pixels are zero in both: no error, no gradient, no SSIM content
+            img, gt = _masked(img, gt, self.data.masks[views])
         loss = photometric(img, gt, r.lambda_dssim, r.dssim_scale)  # (the mean over the views)
         reg = self.strategy.regularizer(self.gaussians)
         if reg is not None:
@@ -487,8 +500,7 @@ class Trainer:
         scene = GaussianScene(**{k: v for k, v in st["params"].items()}, sh_degree=self.sh_degree)
         self._build_optimizer(scene.to(self.device))
         self.opt.load_state_dict(st["optimizer"])  # (new group dicts: GaussianParams looks them up by name)
-        self.strategy.setup(self.gaussians, recipe=self.recipe, extent=self.extent,
-                            max_gaussians=self.max_gaussians, seed=self.seed)
+        self._setup_strategy()
         # statistics this run keeps (a checkpoint may hold more, e.g. screen radii of a run that pruned by them)
         stats = {k: v.to(self.device) for k, v in st["stats"].items() if k in self.gaussians.stats}
         if set(stats) != set(self.gaussians.stats):
@@ -545,7 +557,12 @@ class Trainer:
         for i in ids:
             pred = self.render([i])
             gt = self.data.images[i][None]
-            row = {"name": self.data.names[i], "psnr": float(psnr(pred, gt)), "ssim": float(ssim(pred, gt))}
+            p = float(psnr(pred, gt))
+            if self.data.masks is not None:  # the scene's pixels: PSNR of their mean error, the rest 0 in both
+                pred, gt = _masked(pred, gt, self.data.masks[i][None])
+                p = -10.0 * math.log10(max(float(((pred - gt) ** 2).sum()) / max(1.0, 3.0 * float(
+                    self.data.masks[i].sum())), 1e-20))
+            row = {"name": self.data.names[i], "psnr": p, "ssim": float(ssim(pred, gt))}
             if lpips is not None:
                 row["lpips"] = float(lpips(pred.permute(0, 3, 1, 2), gt.permute(0, 3, 1, 2)).mean())
             per.append(row)
@@ -554,6 +571,11 @@ class Trainer:
             vals = [r[k] for r in per if k in r]
             out[k] = float(np.mean(vals)) if vals else None
         return out
+
+
+def _masked(img: torch.Tensor, gt: torch.Tensor, masks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``img``, ``gt`` with the pixels where ``masks [B, H, W]`` is 0 set to 0 in both (out of losses, metrics)."""
+    return img * masks[..., None].to(img.dtype), gt * masks[..., None].to(gt.dtype)
 
 
 def read_checkpoint(path: str | Path) -> dict:
