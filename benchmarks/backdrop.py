@@ -1,15 +1,21 @@
 """Backdrops (far points and a far shell, ssgwarp.reconstruction.backdrop) and the sparse-capture schedule,
 measured: held-out PSNR, Gaussians and time of `reconstruct` runs, one row per run.
 
-Each ``--runs`` entry is ``SCENE:BACKDROP:ITERS[:WIDTH]``: SCENE ``livingroom`` (../shared/data/livingroom_360),
-``fern4`` / ``fern8`` (LLFF fern images_4 / images_8), ``cup`` (colmap_cup), ``insideout`` (the procedural
+Each ``--runs`` entry is ``SCENE:BACKDROP:ITERS[:WIDTH[:INIT]]``: SCENE ``livingroom`` (../shared/data/livingroom_360),
+``fern4`` / ``fern8`` (LLFF fern images_4 / images_8), ``cup`` (colmap_cup), ``lego`` (lego_200, white
+background), ``insideout`` (the procedural
 inside-out scene, written once per width into ``--work``) or ``insideout-true`` (the same capture, initial
 points = the true surface: the ground truth's Gaussian centres), or a capture folder; BACKDROP ``auto`` / ``on`` /
-``off``. Rows go to stdout (markdown) and ``--out`` (JSON lines).
+``off``; WIDTH ``-`` or left out: the capture's own; INIT the initial points (``load_dataset``'s ``init``:
+``auto`` (default: the capture's points, else triangulated), ``triangulate`` (even where the capture has
+COLMAP points), ``random``, ``capture`` (the capture's points, else random: as before triangulation)).
+Rows go to stdout (markdown) and ``--out`` (JSON lines).
 
     python benchmarks/backdrop.py --runs insideout:off:600:64 insideout:auto:600:64 --device cpu
     python benchmarks/backdrop.py --runs livingroom:auto:7000 livingroom:off:7000 insideout:auto:7000:256 \
         insideout-true:off:7000:256 insideout:off:7000:256 --out runs/backdrop.jsonl
+    python benchmarks/backdrop.py --runs fern8:auto:7000:-:capture fern8:auto:7000:-:triangulate \
+        fern8:auto:7000:-:random cup:auto:7000:-:capture cup:auto:7000:-:triangulate   # initial points compared
 """
 from __future__ import annotations
 
@@ -26,13 +32,13 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from shared_data import data_root  # noqa: E402
 
 from ssgwarp.capture.datasets import load_dataset  # noqa: E402
 from ssgwarp.reconstruction.trainer import Trainer  # noqa: E402
 
-DATA = ROOT.parent / "shared" / "data"
 SHARED = {"livingroom": ("livingroom_360", "images"), "fern4": ("llff_fern", "images_4"),
-          "fern8": ("llff_fern", "images_8"), "cup": ("colmap_cup", "images")}
+          "fern8": ("llff_fern", "images_8"), "cup": ("colmap_cup", "images"), "lego": ("lego_200", "images")}
 
 
 def inside_out_capture(folder: Path, width: int, views: int = 40, device="cpu") -> tuple[Path, torch.Tensor]:
@@ -50,19 +56,21 @@ def inside_out_capture(folder: Path, width: int, views: int = 40, device="cpu") 
     return out, gt
 
 
-def load(scene: str, width, work: Path, points: int, device="cpu"):
+def load(scene: str, width, work: Path, points: int, device="cpu", init="auto"):
     if scene in SHARED:
         name, images = SHARED[scene]
-        return load_dataset(DATA / name, images=images, width=width, num_random_points=points)
+        bg = {"background": (1.0, 1.0, 1.0)} if scene == "lego" else {}
+        return load_dataset(data_root() / name, images=images, width=width, num_random_points=points, init=init,
+                            progress=False, **bg)
     if scene.startswith("insideout"):
         folder, gt = inside_out_capture(work, width or 128, device=device)
-        data = load_dataset(folder, num_random_points=points)
+        data = load_dataset(folder, num_random_points=points, init=init, progress=False)
         if scene == "insideout-true":
             from ssgwarp.raster.scene import sh_dc_to_rgb
             data = replace(data, points=(gt.scene.means.cpu().clone(), sh_dc_to_rgb(gt.scene.sh_dc.cpu()).clamp(0, 1)),
                            points_source="true")
         return data
-    return load_dataset(scene, width=width, num_random_points=points)
+    return load_dataset(scene, width=width, num_random_points=points, init=init, progress=False)
 
 
 def main(argv=None) -> int:
@@ -74,25 +82,31 @@ def main(argv=None) -> int:
     ap.add_argument("--random-points", type=int, default=100_000, help="random initial points (default 100000)")
     args = ap.parse_args(argv)
     machine = torch.cuda.get_device_name(0) if args.device.startswith("cuda") else platform.processor() or "cpu"
-    print("| capture | init | backdrop | steps | PSNR | Gaussians | time (s) | machine |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| capture | initial points | backdrop | steps | PSNR | Gaussians | load (s) | train (s) | machine |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for spec in args.runs:
         parts = spec.split(":")
         scene, mode, iters = parts[0], parts[1], int(parts[2])
-        width = int(parts[3]) if len(parts) > 3 else None
-        data = load(scene, width, args.work, args.random_points, args.device)
+        width = int(parts[3]) if len(parts) > 3 and parts[3] not in ("", "-") else None
+        init = parts[4] if len(parts) > 4 else "auto"
         t0 = time.time()
+        data = load(scene, width, args.work, args.random_points, args.device, init)
+        load_seconds = time.time() - t0
         tr = Trainer(data, iters=iters, device=args.device, backdrop=mode, progress=False)
         tr.train()
         ev = tr.evaluate()
-        row = {"capture": scene, "width": data.width, "init": data.points_source, "backdrop": mode,
+        row = {"capture": scene, "width": data.width, "init": init, "points": data.points_source,
+               "points_count": None if data.points is None else len(data.points[0]),
+               "points_reprojection_error_px": data.points_stats.get("median_reprojection_error_px"),
+               "load_seconds": round(load_seconds, 1), "backdrop": mode,
                "backdrop_plan": None if tr.backdrop is None else tr.backdrop.record(), "steps": iters,
                "psnr": ev["psnr"], "ssim": ev["ssim"], "gaussians": tr.num_gaussians,
                "train_seconds": round(tr.elapsed, 1), "wall_seconds": round(time.time() - t0, 1),
                "refine_stop": tr.recipe.refine_stop, "machine": machine, "date": time.strftime("%Y-%m-%d")}
         used = "yes" if row["backdrop_plan"] and row["backdrop_plan"]["used"] else "no"
-        print(f"| {scene} {data.width}px | {data.points_source} | {mode} ({used}) | {iters} | {ev['psnr']:.2f} | "
-              f"{tr.num_gaussians} | {tr.elapsed:.0f} | {machine} |", flush=True)
+        print(f"| {scene} {data.width}px | {row['points_count']} {data.points_source} ({init}) | {mode} ({used}) | "
+              f"{iters} | {ev['psnr']:.2f} | {tr.num_gaussians} | {load_seconds:.0f} | {tr.elapsed:.0f} | {machine} |",
+              flush=True)
         if args.out:
             args.out.parent.mkdir(parents=True, exist_ok=True)
             with open(args.out, "a") as f:
