@@ -498,3 +498,13 @@ def test_a_resumed_run_keeps_its_backdrop_and_far_field(tmp_path):
     assert b.strategy.scene_radius == a.strategy.scene_radius > 0
     assert torch.equal(b.strategy.center, a.strategy.center)
     assert torch.equal(b.scene.means, a.scene.means)
+
+
+def test_backdrop_count_covers_the_images_when_the_points_are_few():
+    """A sparse cloud (a few hundred triangulated points) still gets a backdrop able to cover the training
+    images (one point per 32 pixels), and a dense one half its count; always 2,000 to 100,000."""
+    from ssgwarp.reconstruction.backdrop import backdrop_count
+
+    assert backdrop_count(235, pixels=35 * 256 * 192) == 35 * 256 * 192 // 32
+    assert backdrop_count(60_000, pixels=1000) == 30_000
+    assert backdrop_count(10, pixels=100) == 2_000 and backdrop_count(10**7, pixels=10**9) == 100_000

@@ -155,7 +155,7 @@ def with_backdrop(data, xyz: torch.Tensor, rgb: torch.Tensor, mode: str = "auto"
     still gets its far field (``plan.scene_radius``)."""
     plan = plan_backdrop(data, xyz, mode)
     if plan.use:
-        n_far = backdrop_count(len(xyz))
+        n_far = backdrop_count(len(xyz), pixels=len(data.train_ids) * data.height * data.width)
         if budget is not None and len(xyz) + n_far > budget:
             n_far = min(n_far, budget // 3)
             keep = torch.randperm(len(xyz), generator=torch.Generator().manual_seed(seed + 4))
@@ -170,9 +170,11 @@ def with_backdrop(data, xyz: torch.Tensor, rgb: torch.Tensor, mode: str = "auto"
     return xyz, rgb, plan
 
 
-def backdrop_count(n_initial: int) -> int:
-    """How many backdrop points a cloud of ``n_initial`` points gets: half as many, 2,000 to 100,000."""
-    return int(min(100_000, max(2_000, n_initial // 2)))
+def backdrop_count(n_initial: int, pixels: int = 0) -> int:
+    """How many backdrop points a cloud of ``n_initial`` points gets: half as many, but at least one per 32
+    training pixels (a sparse triangulated cloud of a few hundred points still gets a backdrop that can cover
+    the images), 2,000 to 100,000."""
+    return int(min(100_000, max(2_000, n_initial // 2, pixels // 32)))
 
 
 @torch.no_grad()
