@@ -405,6 +405,13 @@ def test_backdrop_decision_from_the_camera_layout_and_the_points_coverage():
     # the random cube of a transforms capture without points, on textured images: a backdrop whatever it covers
     cube = replace(base, points_source="random", format="transforms")
     assert plan_backdrop(cube, wide).use and not plan_backdrop(replace(cube, images=plain), wide).use
+    # triangulated points of a forward-facing capture get one however much they cover; of an orbit, not
+    fwd = _toy_data()
+    fwd_wide = torch.randn(30000, 3, generator=g) * 4.0 + torch.tensor([0.0, 0.0, 6.0])
+    tri = replace(fwd, points_source="triangulated")
+    assert image_coverage(fwd.cameras, fwd_wide, fwd.train_ids) == 1.0
+    assert plan_backdrop(tri, fwd_wide).use and not plan_backdrop(replace(fwd, points_source="colmap"), fwd_wide).use
+    assert not plan_backdrop(replace(base, points_source="triangulated"), wide).use
     # inside-out rigs always get one
     out = replace(base, cameras=rig)
     p = plan_backdrop(out, wide)
