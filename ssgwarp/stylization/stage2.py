@@ -117,6 +117,12 @@ class Stage2Config:
             renders become view-independent, lower consistency error at equal style distances,
             docs/stylize.md), ``keep`` them as reconstructed, or ``optimise`` them too.
         free_opacity: also optimise opacities (geometry otherwise frozen).
+        densify: before the optimisation, split Gaussians whose pixels the style loss pulls towards different
+            colours (:mod:`ssgwarp.stylization.densify`), at most ``densify x N`` new ones (0: off), scored on
+            ``densify_views`` evenly spaced training views.
+        hold_empty: weight of the empty-region term: pixels the unstylized scene leaves (nearly) empty keep
+            their original render, ``mean((1 - alpha0) (I - I0)^2) / mean(1 - alpha0)``, so low-opacity Gaussians
+            over the background do not turn into coloured floaters (0: off).
         background: the stylized scene's background colour: ``transfer`` (default) maps the capture's
             background by the same colour transfer as the scene (:func:`ssgwarp.services.color.transfer_background`;
             the optimisation renders over it and the run records it, ``metrics.json`` ``background``), so that
@@ -149,6 +155,9 @@ class Stage2Config:
     color_detail: str = "auto"
     sh_rest: str = "zero"
     free_opacity: bool = False
+    densify: float = 0.0
+    densify_views: int = 8
+    hold_empty: float = 0.0
     background: str = "transfer"
     label_mode: str = "majority"
     feature_scale: float = 1.0
@@ -165,12 +174,14 @@ class Stage2Config:
             raise InputError(f"--mode {self.mode}: use one of {', '.join(MODES)}")
         if self.iters < 0:
             raise InputError(f"--iters {self.iters}: must be >= 0")
-        for k in ("lr", "style_weight", "content_weight", "tv_weight", "blend_weight"):
+        for k in ("lr", "style_weight", "content_weight", "tv_weight", "blend_weight", "densify", "hold_empty"):
             v = getattr(self, k)
             if v is None and k in ("tv_weight", "blend_weight"):
                 continue
             if not math.isfinite(v) or v < 0:
                 raise InputError(f"--{k.replace('_', '-')} {v}: must be a finite number >= 0")
+        if self.densify_views < 1:
+            raise InputError(f"--densify-views {self.densify_views}: must be >= 1")
         if not 0 < self.feature_scale <= 4:
             raise InputError(f"--feature-scale {self.feature_scale}: must be in (0, 4]")
         if self.style_loss not in STYLE_LOSSES:
@@ -330,14 +341,18 @@ class ViewLoss:
         cfg: weights and knobs.
         view_labels: ``[C, H, W]`` group maps of the training views (None: global).
         originals: ``[C, H, W, 3]`` renders of the unstylized scene (content target).
+        alphas: ``[C, H, W]`` their accumulated opacity (the empty-region term, ``cfg.hold_empty``).
     """
 
     def __init__(self, extractor, targets: MatchTargets, cfg: Stage2Config,
-                 view_labels: Optional[torch.Tensor] = None, originals: Optional[torch.Tensor] = None) -> None:
+                 view_labels: Optional[torch.Tensor] = None, originals: Optional[torch.Tensor] = None,
+                 alphas: Optional[torch.Tensor] = None) -> None:
         cfg = resolve_for(cfg, extractor)
         self.extractor, self.targets, self.cfg = extractor, targets, cfg
         self.tv_weight = tv_weight_for(cfg, extractor)
-        self.view_labels, self.originals = view_labels, originals
+        self.view_labels, self.originals, self.alphas = view_labels, originals, alphas
+        if cfg.hold_empty > 0 and (originals is None or alphas is None):
+            raise InputError("Stage 2 loss: hold_empty needs the original renders and their alphas")
         self._labels: dict[int, torch.Tensor] = {}
         self.last: dict[str, float] = {}
 
@@ -366,6 +381,12 @@ class ViewLoss:
             content = content_loss([feats[None]], [f0[None]], relative=True)[0]
             total = total + cfg.content_weight * content
             parts["content"] = float(content.detach())
+        if cfg.hold_empty > 0:
+            empty = 1 - self.alphas[view].to(image).clamp(0, 1)
+            hold = (empty[..., None] * (image - self.originals[view].to(image)) ** 2).mean() / \
+                empty.mean().clamp_min(0.01)
+            total = total + cfg.hold_empty * hold
+            parts["empty"] = float(hold.detach())
         if self.tv_weight > 0:
             tv = tv_loss(image)
             total = total + self.tv_weight * tv

@@ -54,7 +54,8 @@ class StylizeOptions:
 
 
 OUTPUTS = ("run.json", "keyviews", "stage2.ckpt", "scene.ply", "renders", "contact_sheet.png", "loss.png",
-           "metrics.json")
+           "metrics.json", "path.gif", "densify.pt")
+PATH_FPS = 15   # frames per second of ``path.gif``
 
 
 def _say(msg: str, progress: bool) -> None:
@@ -283,10 +284,29 @@ class _Targets:
     key_cams: Optional[Cameras] = None
     key_labels: Optional[torch.Tensor] = None
     assign: Optional[torch.Tensor] = None
+    regions: Optional[dict] = None               # without Stage 1, grouped, ist: the style image's regions
+    view_labels: Optional[torch.Tensor] = None   # the training views' group maps (when regions are used)
 
 
-def _targets(r: _Run, kv, stylized) -> _Targets:
+def _style_regions(r: _Run, t: _Targets, originals: torch.Tensor) -> None:
+    """Without Stage 1 (``ist`` on a grouped scene): the style image's regions and each group's region
+    (:mod:`ssgwarp.stylization.regions`), so that Stage 2 still matches per group."""
+    from ..grouping.stage import gaussian_groups
+    from .regions import style_regions
+
+    t.view_labels = _group_maps(r.scene, r.train_cams, r.classifier, r.progress)
+    alphas = render_alphas(r.scene, r.train_cams)
+    t.regions = style_regions(r.style_at_views[0].float(), originals.float(), t.view_labels, int(r.num_groups),
+                              alphas=alphas, seed=r.stage2.seed)
+    t.key_labels = t.regions["labels"][None].to(r.device)
+    t.assign = gaussian_groups(r.scene, r.classifier)[0]
+
+
+def _targets(r: _Run, kv, stylized, originals: Optional[torch.Tensor] = None) -> _Targets:
     t = _Targets(stylized is not None and r.stage2.mode in ("ist", "finetune"))
+    if not t.use_keys and r.stage2.mode == "ist" and r.classifier is not None and (r.num_groups or 0) > 1 \
+            and originals is not None:
+        _style_regions(r, t, originals)
     if t.use_keys:
         from .keyviews import from_diffusion
 
@@ -307,6 +327,10 @@ def _color_transfer(r: _Run, t: _Targets, sc: GaussianScene, when: str, against:
     if t.use_keys:
         out, info = transfer_colors(sc, t.key_cams, t.key_images, labels=t.key_labels, target_labels=t.key_labels,
                                     assign=t.assign, num_groups=r.num_groups, **kw)
+    elif t.regions is not None:
+        out, info = transfer_colors(sc, r.train_cams, r.style_at_views, labels=t.view_labels,
+                                    target_labels=t.key_labels, assign=t.assign, num_groups=r.num_groups,
+                                    target_groups=t.regions["region"].tolist(), **kw)
     else:
         out, info = transfer_colors(sc, r.train_cams, r.style_at_views, **kw)
     if r.stage2.background == "transfer":
@@ -315,9 +339,10 @@ def _color_transfer(r: _Run, t: _Targets, sc: GaussianScene, when: str, against:
     return out, info
 
 
-def _stage2_loss(r: _Run, t: _Targets, kv, content_ref: torch.Tensor):
+def _stage2_loss(r: _Run, t: _Targets, kv, content_ref: torch.Tensor, alphas: torch.Tensor):
     """``(ViewLoss or None, finetune images, finetune cameras, the matching's description)``."""
     stage2 = r.stage2
+    ref = {"originals": content_ref, "alphas": alphas}
     if t.use_keys and stage2.mode == "finetune":
         return None, t.key_images, t.key_cams, "none (fine-tuned on the stylized key views)"
     if t.use_keys:
@@ -325,14 +350,23 @@ def _stage2_loss(r: _Run, t: _Targets, kv, content_ref: torch.Tensor):
         targets = build_targets(r.extractor, t.key_images, t.key_labels, stage2)
         matching = (f"per group ({r.num_groups} groups) against {len(kv)} stylized key views"
                     if r.classifier is not None else f"global against {len(kv)} stylized key views (no groups)")
-        return ViewLoss(r.extractor, targets, stage2, view_labels=view_labels, originals=content_ref), \
+        return ViewLoss(r.extractor, targets, stage2, view_labels=view_labels, **ref), \
+            None, None, matching
+    if t.regions is not None:
+        targets = build_targets(r.extractor, r.style_at_views, t.key_labels, stage2).for_regions(t.regions["region"])
+        used = len(set(t.regions["region"].tolist()))
+        matching = (f"per group ({r.num_groups} groups) against {t.regions['regions']} regions of the style image "
+                    f"({used} used; Stage 1 did not run)")
+        r.say(f"Stage 1 did not run: Stage 2 matches each of the {r.num_groups} groups against its own region "
+              f"of the style image")
+        return ViewLoss(r.extractor, targets, stage2, view_labels=t.view_labels, **ref), \
             None, None, matching
     targets = build_targets(r.extractor, r.style_at_views, None, stage2)
     matching = "global against the style image"
     if stage2.mode != "global":
         matching += f" (Stage 1 did not run: requested mode '{stage2.mode}' fell back)"
         r.say("Stage 1 did not run: Stage 2 matches against the style image globally")
-    return ViewLoss(r.extractor, targets, stage2, originals=content_ref), None, None, matching
+    return ViewLoss(r.extractor, targets, stage2, **ref), None, None, matching
 
 
 def _stage2(r: _Run, kv, stylized) -> dict:
@@ -341,14 +375,19 @@ def _stage2(r: _Run, kv, stylized) -> dict:
 
     stage2, t0 = r.stage2, time.perf_counter()
     originals = render_batched(r.scene, r.train_cams, r.bg, desc="original renders" if r.progress else None)
-    t = _targets(r, kv, stylized)
+    t = _targets(r, kv, stylized, originals)
     transfer: dict = {"setting": stage2.color_transfer,
-                      "against": "the stylized key views" if t.use_keys else "the style image"}
+                      "against": "the stylized key views" if t.use_keys else
+                      "the style image's regions" if t.regions is not None else "the style image"}
     work, r.bg_styled = r.scene, r.bg
     if stage2.color_transfer in ("pre", "both"):
         work, transfer["pre"] = _color_transfer(r, t, r.scene, "pre", transfer["against"])
     content_ref = originals if work is r.scene else render_batched(work, r.train_cams, r.bg_styled)
-    loss, ft_images, ft_cams, matching = _stage2_loss(r, t, kv, content_ref)
+    alphas = render_alphas(r.scene, r.train_cams)
+    loss, ft_images, ft_cams, matching = _stage2_loss(r, t, kv, content_ref, alphas)
+    densified = None
+    if stage2.densify > 0 and loss is not None:
+        work, densified = _densify(r, t, work, loss)
     run_cfg = stage2
     if stage2.mode == "finetune" and ft_images is None:   # no stylized key views to fit: global fallback
         run_cfg = dataclasses.replace(stage2, mode="global")
@@ -366,7 +405,39 @@ def _stage2(r: _Run, kv, stylized) -> dict:
     write_ply(r.out / "scene.ply", styled)
     r.mark("stage2", seconds=r.times["stage2"], iters=stage2.iters)
     plot_losses(r.out / "loss.png", res.history, f"Stage 2 ({stage2.mode}, {r.extractor.name})")
-    return {"scene": styled, "result": res, "originals": originals, "matching": matching, "transfer": transfer}
+    return {"scene": styled, "result": res, "originals": originals, "matching": matching, "transfer": transfer,
+            "densify": densified}
+
+
+def _densify(r: _Run, t: _Targets, work: GaussianScene, loss) -> tuple[GaussianScene, dict]:
+    """Split Gaussians where the style loss wants detail (:mod:`ssgwarp.stylization.densify`); on ``--resume``
+    the splits recorded in ``OUT/densify.pt`` are replayed (the exact Gaussians the checkpoint holds)."""
+    from ..core.fileio import atomic_path
+    from .densify import densify_for_style, replay
+    from .spread import render_with_spread
+
+    path, stage2 = r.out / "densify.pt", r.stage2
+    if r.resume and path.is_file():
+        record = torch.load(path, map_location="cpu", weights_only=False)
+        work, parent = replay(work, record["indices"])
+    else:
+        draw = render_with_spread if loss.cfg.blend_weight > 0 else render_rgb
+
+        def image_grad(scene: GaussianScene, view: int) -> torch.Tensor:
+            with torch.no_grad():
+                image = draw(scene, r.train_cams[[view]], r.bg_styled)[0]
+            image = image.detach().requires_grad_(True)
+            return torch.autograd.grad(loss(image, view, 0), image)[0]
+
+        work, parent, record = densify_for_style(
+            work, r.train_cams, image_grad, lambda sc, cam: render_rgb(sc, cam, r.bg_styled), stage2.densify,
+            views=stage2.densify_views, progress=lambda m: r.say(m))
+        if r.group.is_main:
+            with atomic_path(path) as tmp:
+                torch.save(record, tmp)
+    if t.assign is not None:
+        t.assign = t.assign[parent.to(t.assign.device)]
+    return work, {k: v for k, v in record.items() if k != "indices"}
 
 
 def _renders(r: _Run, styled: GaussianScene) -> torch.Tensor:
@@ -383,12 +454,31 @@ def _renders(r: _Run, styled: GaussianScene) -> torch.Tensor:
         from ..evaluation.render import smooth_path
 
         path = smooth_path(train_cams, r.opts.path_frames).to(r.device)
+        frames = []
         for s in tqdm(range(len(path)), desc="path renders", disable=not r.progress, leave=False):
             with torch.no_grad():
-                frame = render_rgb(styled, path[[s]], r.bg_styled)[0]
-            write_image(r.out / "renders" / "path" / f"frame_{s:04d}.png", frame.clamp(0, 1))
+                frame = render_rgb(styled, path[[s]], r.bg_styled)[0].clamp(0, 1)
+            write_image(r.out / "renders" / "path" / f"frame_{s:04d}.png", frame)
+            frames.append((frame.float().cpu().numpy() * 255 + 0.5).astype("uint8"))
+        write_path_video(r.out / "path.gif", frames)
     r.times["renders"] = time.perf_counter() - t0
     return renders
+
+
+def write_path_video(path: Path, frames: list, fps: int = PATH_FPS) -> Path:
+    """An animated GIF (looping, ``fps`` frames per second) of ``frames`` (``[H, W, 3]`` uint8 arrays), written
+    atomically with Pillow (matplotlib's own dependency: no video codec needed). Returns ``path``."""
+    from PIL import Image
+
+    from ..core.fileio import atomic_path
+
+    if not frames:
+        raise InputError("path video: no frames")
+    images = [Image.fromarray(f).convert("P", palette=Image.Palette.ADAPTIVE, colors=255) for f in frames]
+    with atomic_path(path) as tmp:
+        images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=round(1000 / fps),
+                       loop=0, disposal=1)
+    return path
 
 
 def _scores(r: _Run, styled: GaussianScene, renders: torch.Tensor, originals: torch.Tensor) -> dict:
@@ -401,7 +491,8 @@ def _scores(r: _Run, styled: GaussianScene, renders: torch.Tensor, originals: to
         before = style_content_losses(r.extractor, originals.float(), style.float())
         dist = StyleDistance(style.float())          # on the scene's pixels (alpha >= 0.5), not the background
         alphas = render_alphas(r.scene, r.train_cams)
-        alphas_after = render_alphas(styled, r.train_cams) if r.stage2.free_opacity else alphas
+        changed = r.stage2.free_opacity or len(styled) != len(r.scene)    # opacities freed or Gaussians split
+        alphas_after = render_alphas(styled, r.train_cams) if changed else alphas
         dist_after, dist_before = dist.mean(renders.float(), alphas_after), dist.mean(originals.float(), alphas)
     r.times["metrics"] = time.perf_counter() - t0
     return {"gram_style_loss": float(after["style"].mean()),
@@ -434,13 +525,14 @@ def _metrics(r: _Run, s2: dict, renders: torch.Tensor, kv, stage1_info: dict, t_
         "keyviews": None if kv is None else {"ids": list(kv.ids), "names": list(kv.cameras.names),
                                               "size": list(kv.size)},
         "background": [float(v) for v in r.bg_styled],
-        "groups": r.num_groups, "gaussians": len(styled), "views": len(train_ids),
+        "groups": r.num_groups, "gaussians": len(styled), "densify": s2.get("densify"), "views": len(train_ids),
         "resolution": [r.cams.width, r.cams.height], "optimised": trainable_names(stage2, r.scene),
         "config": asdict(stage2),
         **batch_record(s2["result"]),
         "seconds": r.times,
         "device": str(device) if device.type != "cuda" else f"cuda ({torch.cuda.get_device_name(device)})",
         "outputs": {"scene": "scene.ply", "renders": "renders/train", "path": "renders/path",
+                    **({"path_video": "path.gif"} if r.opts.path_frames > 0 else {}),
                     "contact_sheet": "contact_sheet.png", "loss_plot": "loss.png", "keyviews": "keyviews"},
     }
     write_json(r.out / "metrics.json", metrics)
@@ -550,6 +642,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--background", default=d.background, choices=BACKGROUNDS, help="the stylized scene's background: "
                    "transfer (default: the capture's, colour-transferred like the scene) or keep (the capture's)")
     g.add_argument("--free-opacity", action="store_true", help="also optimise opacities")
+    g.add_argument("--densify", type=float, default=d.densify, metavar="F",
+                   help="split Gaussians where the style loss wants finer detail, at most F x their number new "
+                        f"ones (0: off; default {d.densify})")
+    g.add_argument("--densify-views", type=int, default=d.densify_views,
+                   help=f"training views that score the split (default {d.densify_views})")
+    g.add_argument("--hold-empty", type=float, default=d.hold_empty, metavar="W",
+                   help="weight of the term keeping (nearly) empty pixels as the unstylized scene renders them: "
+                        f"no floaters over the background (0: off; default {d.hold_empty})")
     g.add_argument("--label-mode", default=d.label_mode, choices=("majority", "nearest"),
                    help="group maps to feature resolution (default majority)")
     g.add_argument("--feature-scale", type=float, default=d.feature_scale,
