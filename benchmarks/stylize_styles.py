@@ -80,7 +80,7 @@ def stage2_config(args, **over):
 
     kw = {}
     for k in ("iters", "lr", "content_weight", "tv_weight", "blend_weight", "color_transfer", "color_max_gain",
-              "color_detail", "sh_rest", "background"):
+              "color_detail", "sh_rest", "background", "mode", "densify", "densify_views", "hold_empty"):
         v = getattr(args, k)
         if v is not None:
             kw[k] = v
@@ -256,6 +256,12 @@ def main() -> int:
     g.add_argument("--color-detail", default=None, choices=("keep", "off"))
     g.add_argument("--sh-rest", default=None)
     g.add_argument("--background", default=None, choices=("transfer", "keep"))
+    g.add_argument("--mode", default=None, choices=("ist", "global"),
+                   help="ist (the CLI default: per group against the style image's regions on a grouped scene) "
+                        "or global (one match against the whole style image, the behaviour before issue 39)")
+    g.add_argument("--densify", type=float, default=None, help="split budget (fraction of the Gaussians; 0: off)")
+    g.add_argument("--densify-views", type=int, default=None)
+    g.add_argument("--hold-empty", type=float, default=None, help="weight of the empty-region term (0: off)")
     args = p.parse_args()
 
     from ssgwarp.cli import resolve_device

@@ -326,16 +326,18 @@ def test_cli_stylize_end_to_end_without_stage1_weights(tmp_path, monkeypatch, ca
     assert "sd15" in line and "image_encoder" in line and "ssgwarp weights --download stage1" in line
     assert len(line) < 250 and len(m["stage1"]["reason"]) > len(line)
     assert json.loads((out / "run.json").read_text())["stages"]["stage1"]["reason"] == m["stage1"]["reason"]
-    assert m["matching"].startswith("global against the style image")
+    # without Stage 1 the groups still matter: each matches its own region of the style image (issue 39)
+    assert m["matching"].startswith("per group (3 groups) against") and "regions of the style image" in m["matching"]
     assert m["extractor"] == "random-multiscale:seed0,c128s2p2-4-8,edges" and m["groups"] == 3 and m["style_loss"] == "sw"
     assert m["gram_style_loss"] > 0 and m["content_loss"] > 0
     for k in ("color", "texture"):
         assert m["style_distance"][k] > 0 and m["style_distance_original"][k] > 0
     ct = m["color_transfer"]
-    assert ct["setting"] == "both" and ct["against"] == "the style image"
-    assert ct["pre"]["per_group"] is False and ct["post"]["per_group"] is False
+    assert ct["setting"] == "both" and ct["against"] == "the style image's regions"
+    assert ct["pre"]["per_group"] is True and ct["post"]["per_group"] is True
     assert set(m["seconds"]) >= {"keyviews", "stage1", "stage2", "renders", "total"}
-    for f in ("scene.ply", "contact_sheet.png", "loss.png", "keyviews/keyviews.json", "renders/train/img00.png"):
+    for f in ("scene.ply", "contact_sheet.png", "loss.png", "keyviews/keyviews.json", "renders/train/img00.png",
+              "path.gif"):
         assert (out / f).is_file(), f
     src, styled = read_ply(run / "scene.ply"), read_ply(out / "scene.ply")
     assert torch.equal(src.means, styled.means) and torch.equal(src.identities, styled.identities)
@@ -348,6 +350,18 @@ def test_cli_stylize_end_to_end_without_stage1_weights(tmp_path, monkeypatch, ca
     assert main(["stylize", *argv, "--force", "--mode", "global", "--color-transfer", "off", "--style-loss", "nnfm"]) == 0
     m2 = json.loads((out / "metrics.json").read_text())
     assert m2["mode"] == "global" and m2["style_loss"] == "nnfm" and set(m2["color_transfer"]) == {"setting", "against"}
+    assert m2["matching"].startswith("global against the style image")     # --mode global: today's behaviour
+    # densify: more Gaussians; a resumed run replays the same splits and continues from the checkpoint
+    dense = [*argv, "--force", "--densify", "0.5", "--hold-empty", "1"]
+    assert main(["stylize", *dense]) == 0
+    m3 = json.loads((out / "metrics.json").read_text())
+    d = m3["densify"]
+    assert d["gaussians_after"] == m3["gaussians"] > d["gaussians_before"] == len(src.means)
+    assert m3["final_losses"]["empty"] >= 0
+    once = read_ply(out / "scene.ply")
+    assert main(["stylize", *dense[:-5], "--resume", "--densify", "0.5", "--hold-empty", "1", "--iters", "8"]) == 0
+    again = read_ply(out / "scene.ply")
+    assert torch.equal(again.means, once.means) and json.loads((out / "metrics.json").read_text())["gaussians"] == len(once.means)
     # bad input: a missing style image is a one-line error
     assert main(["stylize", str(run), "--style", str(tmp_path / "nope.png"), "--out", str(tmp_path / "o2")]) == 2
 
