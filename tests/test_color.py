@@ -395,3 +395,29 @@ def test_transfer_colors_measures_texture_on_the_view_sample(monkeypatch):
     assert info["detail"]["reference"] == pytest.approx(color.texture_bands(*color.surface_renders(half, sample)),
                                                         abs=1e-4)
     assert info["detail"]["scene"] != pytest.approx(color.texture_bands(*color.surface_renders(scene, cams)), abs=1e-4)
+
+
+def test_transfer_colors_target_groups_give_each_group_the_region_assigned_to_it():
+    """target_groups (the style image's regions assigned to the groups, issue 39): group g takes the
+    statistics of the target pixels labelled target_groups[g]; without it, of those labelled g."""
+    from test_stylize import object_labels, ring, two_objects
+
+    from ssgwarp.stylization import stylize as st
+
+    scene, obj = two_objects(n=60, dtype=torch.float64)
+    cams = ring(n=2, dtype=torch.float64)
+    labels = object_labels(scene, obj, cams)
+    target = torch.zeros(1, 20, 20, 3, dtype=torch.float64)
+    tlab = torch.zeros(1, 20, 20, dtype=torch.long)
+    target[0, :, :10] = torch.tensor([0.85, 0.15, 0.1], dtype=torch.float64)    # region 0: red
+    target[0, :, 10:] = torch.tensor([0.1, 0.2, 0.85], dtype=torch.float64)     # region 1: blue
+    tlab[0, :, 10:] = 1
+    kw = dict(labels=labels, target_labels=tlab, assign=obj, num_groups=2, max_gain=4.0)
+    swapped, info = st.transfer_colors(scene, cams, target, target_groups=[1, 0], **kw)
+    straight, _ = st.transfer_colors(scene, cams, target, **kw)
+    shared, _ = st.transfer_colors(scene, cams, target, target_groups=[1, 1], **kw)
+    blue = lambda sc, k: float(sc.base_colors[obj == k].mean(0)[2] - sc.base_colors[obj == k].mean(0)[0])  # noqa: E731
+    assert info["how"] == ["group", "group"]
+    assert blue(swapped, 0) > 0.5 and blue(swapped, 1) < -0.5           # object 0 -> region 1 (blue), 1 -> red
+    assert blue(straight, 0) < -0.5 and blue(straight, 1) > 0.5
+    assert blue(shared, 0) > 0.5 and blue(shared, 1) > 0.5               # one region may serve several groups
