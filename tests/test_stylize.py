@@ -694,7 +694,7 @@ def test_colour_transfer_matches_the_style_as_the_loss_and_the_distance_see_it(t
     (:func:`fit_style`, as the style loss and the style distance take it), not of the full-size file:
     a style of 1-pixel black and white lines, which at the views' size is a mid grey, must not get the
     scene stretched to black and white (docs/stylize.md: the demo's line-art styles)."""
-    import ssgwarp.stylization.stylize as stylize_mod
+    import ssgwarp.stylization.targets as stylize_mod     # (where stylize's colour transfer is called)
     from ssgwarp.core.fileio import write_image
     from ssgwarp.core.imaging import fit_style
 

@@ -27,18 +27,15 @@ features ``phi`` = the extractor's layers concatenated at the coarsest resolutio
   collapses a view onto the style's dominant mode: docs/stylize.md);
 - content: ``mean((phi(I) - phi(I0))^2) / mean(phi(I0)^2)`` (relative, so the
   weight means the same for every extractor);
-- TV: mean squared difference of neighbouring pixels; ``tv_weight=None`` (default) resolves by the
-  extractor, like ``style_loss="auto"`` (:func:`tv_weight_for`): 0.5 on the weight-free random features
-  (measured on 25 styles, fern and the demo scene: docs/stylize.md), 0.02 on VGG16 (unchanged).
+- TV: mean squared difference of neighbouring pixels; ``tv_weight=None`` (default): by the extractor
+  (:func:`tv_weight_for`: 0.5 weight-free, measured in docs/stylize.md; 0.02 on VGG16).
 - blend spread (``blend_weight``; default by the extractor, :func:`resolve_for` in
   :mod:`ssgwarp.stylization.feature_defaults`: 0.65 on the weight-free edge features, else 0): the weighted
   variance of the colours each pixel mixes (:mod:`ssgwarp.stylization.spread`; the view is then rendered
-  with those channels too).
+  with those channels too); empty-region term (``hold_empty``, :func:`ssgwarp.stylization.spread.empty_loss`).
 
-Only colour is optimised (``sh_dc``); the higher SH bands are zeroed first by
-default (``sh_rest="zero"``: view-independent stylized colour, measured in
-docs/stylize.md; ``"keep"`` keeps them, ``"optimise"`` optimises them too;
-``free_opacity`` adds the opacities);
+Only colour is optimised (``sh_dc``); the higher SH bands are zeroed first by default (``sh_rest="zero"``:
+view-independent stylized colour, docs/stylize.md; ``"keep"``, ``"optimise"``; ``free_opacity`` adds opacities);
 every other tensor of the scene is passed through untouched (the same tensor
 objects, bit-identical).
 
@@ -70,7 +67,7 @@ from .feature_defaults import (  # noqa: F401  (re-exported: Stage 2's options l
 from ..services.color import describe_transfer, transfer_background, transfer_colors  # noqa: F401  (re-exported)
 from ..services.loop import Diverged, Loop
 from .batches import batch_size_for, batch_views, view_order  # noqa: F401  (view_order re-exported)
-from .spread import SPREAD_CHANNELS, blend_spread, render_with_spread
+from .spread import SPREAD_CHANNELS, blend_spread, empty_loss, render_with_spread
 from .matching import DEFAULT_CHUNK, MatchTargets, SlicedTargets, downsample_labels
 from ..evaluation.metrics import content_loss
 from ..reconstruction.recipe import batch_factors
@@ -117,12 +114,9 @@ class Stage2Config:
             renders become view-independent, lower consistency error at equal style distances,
             docs/stylize.md), ``keep`` them as reconstructed, or ``optimise`` them too.
         free_opacity: also optimise opacities (geometry otherwise frozen).
-        densify: before the optimisation, split Gaussians whose pixels the style loss pulls towards different
-            colours (:mod:`ssgwarp.stylization.densify`), at most ``densify x N`` new ones (0: off), scored on
-            ``densify_views`` evenly spaced training views.
-        hold_empty: weight of the empty-region term: pixels the unstylized scene leaves (nearly) empty keep
-            their original render, ``mean((1 - alpha0) (I - I0)^2) / mean(1 - alpha0)``, so low-opacity Gaussians
-            over the background do not turn into coloured floaters (0: off).
+        densify, densify_views: split Gaussians where the style loss wants detail, at most ``densify x N`` new
+            ones scored on ``densify_views`` views (0: off; run by ``stylize``, :mod:`ssgwarp.stylization.densify`).
+        hold_empty: weight of the term keeping pixels the unstylized scene leaves empty as they were (no floaters).
         background: the stylized scene's background colour: ``transfer`` (default) maps the capture's
             background by the same colour transfer as the scene (:func:`ssgwarp.services.color.transfer_background`;
             the optimisation renders over it and the run records it, ``metrics.json`` ``background``), so that
@@ -382,11 +376,8 @@ class ViewLoss:
             total = total + cfg.content_weight * content
             parts["content"] = float(content.detach())
         if cfg.hold_empty > 0:
-            empty = 1 - self.alphas[view].to(image).clamp(0, 1)
-            hold = (empty[..., None] * (image - self.originals[view].to(image)) ** 2).mean() / \
-                empty.mean().clamp_min(0.01)
-            total = total + cfg.hold_empty * hold
-            parts["empty"] = float(hold.detach())
+            hold = empty_loss(image, self.originals[view], self.alphas[view])
+            total, parts["empty"] = total + cfg.hold_empty * hold, float(hold.detach())
         if self.tv_weight > 0:
             tv = tv_loss(image)
             total = total + self.tv_weight * tv

@@ -24,6 +24,7 @@ from ..errors import InputError, WeightsNotFound
 from ..core.imaging import contact_sheet, fit_style, plot_losses  # noqa: F401  (contact_sheet re-exported)
 from ..raster.scene import GaussianScene
 from ..services.features import EXTRACTOR_KINDS
+from .targets import Targets, color_transfer, densify_run, group_maps, targets_for
 from .stage2 import (  # noqa: F401  (re-exported: the public Stage 2 API lives in ssgwarp.stylization.stage2)
     BACKGROUNDS, BLEND_WEIGHT_EDGES, COLOR_DETAIL, COLOR_GAIN_EDGES, COLOR_GAIN_OTHER, COLOR_TRANSFER, MODES, SH_REST,
     STYLE_LOSSES, TV_WEIGHT_FREE, TV_WEIGHT_VGG, Stage2Config, Stage2Result, ViewLoss, build_targets, deferred_backward,
@@ -99,16 +100,6 @@ def _prepare_out(out: Path, scene_dir: Path, signature: dict, resume: bool, forc
         claimed.clear()
         out.mkdir(parents=True, exist_ok=True)
     return state
-
-
-def _group_maps(scene: GaussianScene, cams: Cameras, classifier, progress: bool) -> torch.Tensor:
-    from ..grouping.stage import render_group_maps
-
-    labels = []
-    for c in range(len(cams)):  # one view at a time: the probabilities are dropped right away
-        lab, _ = render_group_maps(scene, cams[c], classifier)
-        labels.append(lab)
-    return torch.cat(labels)
 
 
 def _check_explicit_stage1_paths(stage1) -> None:
@@ -275,78 +266,14 @@ def _keyviews_and_stage1(r: _Run):
     return kv, stylized, info
 
 
-@dataclass
-class _Targets:
-    """What Stage 2 matches: the stylized key views (with their cameras and group maps) or the style image."""
-
-    use_keys: bool
-    key_images: Optional[torch.Tensor] = None
-    key_cams: Optional[Cameras] = None
-    key_labels: Optional[torch.Tensor] = None
-    assign: Optional[torch.Tensor] = None
-    regions: Optional[dict] = None               # without Stage 1, grouped, ist: the style image's regions
-    view_labels: Optional[torch.Tensor] = None   # the training views' group maps (when regions are used)
-
-
-def _style_regions(r: _Run, t: _Targets, originals: torch.Tensor) -> None:
-    """Without Stage 1 (``ist`` on a grouped scene): the style image's regions and each group's region
-    (:mod:`ssgwarp.stylization.regions`), so that Stage 2 still matches per group."""
-    from ..grouping.stage import gaussian_groups
-    from .regions import style_regions
-
-    t.view_labels = _group_maps(r.scene, r.train_cams, r.classifier, r.progress)
-    alphas = render_alphas(r.scene, r.train_cams)
-    t.regions = style_regions(r.style_at_views[0].float(), originals.float(), t.view_labels, int(r.num_groups),
-                              alphas=alphas, seed=r.stage2.seed)
-    t.key_labels = t.regions["labels"][None].to(r.device)
-    t.assign = gaussian_groups(r.scene, r.classifier)[0]
-
-
-def _targets(r: _Run, kv, stylized, originals: Optional[torch.Tensor] = None) -> _Targets:
-    t = _Targets(stylized is not None and r.stage2.mode in ("ist", "finetune"))
-    if not t.use_keys and r.stage2.mode == "ist" and r.classifier is not None and (r.num_groups or 0) > 1 \
-            and originals is not None:
-        _style_regions(r, t, originals)
-    if t.use_keys:
-        from .keyviews import from_diffusion
-
-        t.key_images = from_diffusion(stylized.to(r.device).float(), r.cams.width, r.cams.height).to(r.scene.dtype)
-        t.key_cams = r.cams[list(kv.ids)]
-        if r.classifier is not None:
-            from ..grouping.stage import gaussian_groups
-
-            t.key_labels = _group_maps(r.scene, t.key_cams, r.classifier, r.progress)
-            t.assign = gaussian_groups(r.scene, r.classifier)[0]
-    return t
-
-
-def _color_transfer(r: _Run, t: _Targets, sc: GaussianScene, when: str, against: str) -> tuple[GaussianScene, dict]:
-    """ARF's colour transfer against the stylized key views (per group when grouped) or the style image;
-    with ``--background transfer`` the stylized scene's background ``r.bg_styled`` goes through its global map."""
-    kw = {"max_gain": r.stage2.color_max_gain, "keep_detail": r.stage2.color_detail == "keep", "capture": r.scene}
-    if t.use_keys:
-        out, info = transfer_colors(sc, t.key_cams, t.key_images, labels=t.key_labels, target_labels=t.key_labels,
-                                    assign=t.assign, num_groups=r.num_groups, **kw)
-    elif t.regions is not None:
-        out, info = transfer_colors(sc, r.train_cams, r.style_at_views, labels=t.view_labels,
-                                    target_labels=t.key_labels, assign=t.assign, num_groups=r.num_groups,
-                                    target_groups=t.regions["region"].tolist(), **kw)
-    else:
-        out, info = transfer_colors(sc, r.train_cams, r.style_at_views, **kw)
-    if r.stage2.background == "transfer":
-        r.bg_styled = r.bg.new_tensor(transfer_background(r.bg_styled.tolist(), info))
-    r.say(f"colour transfer ({when}): " + describe_transfer(info, against))
-    return out, info
-
-
-def _stage2_loss(r: _Run, t: _Targets, kv, content_ref: torch.Tensor, alphas: torch.Tensor):
+def _stage2_loss(r: _Run, t: Targets, kv, content_ref: torch.Tensor, alphas: torch.Tensor):
     """``(ViewLoss or None, finetune images, finetune cameras, the matching's description)``."""
     stage2 = r.stage2
     ref = {"originals": content_ref, "alphas": alphas}
     if t.use_keys and stage2.mode == "finetune":
         return None, t.key_images, t.key_cams, "none (fine-tuned on the stylized key views)"
     if t.use_keys:
-        view_labels = None if r.classifier is None else _group_maps(r.scene, r.train_cams, r.classifier, r.progress)
+        view_labels = None if r.classifier is None else group_maps(r.scene, r.train_cams, r.classifier, r.progress)
         targets = build_targets(r.extractor, t.key_images, t.key_labels, stage2)
         matching = (f"per group ({r.num_groups} groups) against {len(kv)} stylized key views"
                     if r.classifier is not None else f"global against {len(kv)} stylized key views (no groups)")
@@ -375,19 +302,19 @@ def _stage2(r: _Run, kv, stylized) -> dict:
 
     stage2, t0 = r.stage2, time.perf_counter()
     originals = render_batched(r.scene, r.train_cams, r.bg, desc="original renders" if r.progress else None)
-    t = _targets(r, kv, stylized, originals)
+    t = targets_for(r, kv, stylized, originals)
     transfer: dict = {"setting": stage2.color_transfer,
                       "against": "the stylized key views" if t.use_keys else
                       "the style image's regions" if t.regions is not None else "the style image"}
     work, r.bg_styled = r.scene, r.bg
     if stage2.color_transfer in ("pre", "both"):
-        work, transfer["pre"] = _color_transfer(r, t, r.scene, "pre", transfer["against"])
+        work, transfer["pre"] = color_transfer(r, t, r.scene, "pre", transfer["against"])
     content_ref = originals if work is r.scene else render_batched(work, r.train_cams, r.bg_styled)
     alphas = render_alphas(r.scene, r.train_cams)
     loss, ft_images, ft_cams, matching = _stage2_loss(r, t, kv, content_ref, alphas)
     densified = None
     if stage2.densify > 0 and loss is not None:
-        work, densified = _densify(r, t, work, loss)
+        work, densified = densify_run(r, t, work, loss)
     run_cfg = stage2
     if stage2.mode == "finetune" and ft_images is None:   # no stylized key views to fit: global fallback
         run_cfg = dataclasses.replace(stage2, mode="global")
@@ -399,7 +326,7 @@ def _stage2(r: _Run, kv, stylized) -> dict:
         return {}
     styled = res.scene
     if stage2.color_transfer in ("post", "both"):
-        styled, transfer["post"] = _color_transfer(r, t, styled, "post", transfer["against"])
+        styled, transfer["post"] = color_transfer(r, t, styled, "post", transfer["against"])
     r.times["stage2"] = time.perf_counter() - t0
     r.times["stage2_optimisation"] = res.seconds
     write_ply(r.out / "scene.ply", styled)
@@ -407,37 +334,6 @@ def _stage2(r: _Run, kv, stylized) -> dict:
     plot_losses(r.out / "loss.png", res.history, f"Stage 2 ({stage2.mode}, {r.extractor.name})")
     return {"scene": styled, "result": res, "originals": originals, "matching": matching, "transfer": transfer,
             "densify": densified}
-
-
-def _densify(r: _Run, t: _Targets, work: GaussianScene, loss) -> tuple[GaussianScene, dict]:
-    """Split Gaussians where the style loss wants detail (:mod:`ssgwarp.stylization.densify`); on ``--resume``
-    the splits recorded in ``OUT/densify.pt`` are replayed (the exact Gaussians the checkpoint holds)."""
-    from ..core.fileio import atomic_path
-    from .densify import densify_for_style, replay
-    from .spread import render_with_spread
-
-    path, stage2 = r.out / "densify.pt", r.stage2
-    if r.resume and path.is_file():
-        record = torch.load(path, map_location="cpu", weights_only=False)
-        work, parent = replay(work, record["indices"])
-    else:
-        draw = render_with_spread if loss.cfg.blend_weight > 0 else render_rgb
-
-        def image_grad(scene: GaussianScene, view: int) -> torch.Tensor:
-            with torch.no_grad():
-                image = draw(scene, r.train_cams[[view]], r.bg_styled)[0]
-            image = image.detach().requires_grad_(True)
-            return torch.autograd.grad(loss(image, view, 0), image)[0]
-
-        work, parent, record = densify_for_style(
-            work, r.train_cams, image_grad, lambda sc, cam: render_rgb(sc, cam, r.bg_styled), stage2.densify,
-            views=stage2.densify_views, progress=lambda m: r.say(m))
-        if r.group.is_main:
-            with atomic_path(path) as tmp:
-                torch.save(record, tmp)
-    if t.assign is not None:
-        t.assign = t.assign[parent.to(t.assign.device)]
-    return work, {k: v for k, v in record.items() if k != "indices"}
 
 
 def _renders(r: _Run, styled: GaussianScene) -> torch.Tensor:
