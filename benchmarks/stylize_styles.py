@@ -244,6 +244,8 @@ def main() -> int:
     p.add_argument("--ablation-rows", default=None,
                    help="ablation row labels to run, separated by ; (default: all rows of ABLATIONS)")
     p.add_argument("--report", action="store_true", help="print the table of finished styles only")
+    p.add_argument("--tag", default="", help="results in OUT/<scene>_<tag> (one folder per configuration; the "
+                   "scene is built once in OUT and shared)")
     p.add_argument("--quiet", action="store_true")
     g = p.add_argument_group("Stage 2 (default: the CLI defaults)")
     g.add_argument("--iters", type=int, default=None)
@@ -278,7 +280,7 @@ def main() -> int:
     if not styles:
         raise SystemExit(f"no style images in {args.styles}")
     name = args.scene if args.scene in ("fern", "demo") else Path(args.scene).name
-    out = args.out / name
+    out = args.out / (f"{name}_{args.tag}" if args.tag else name)
     out.mkdir(parents=True, exist_ok=True)
     run = prepare_scene(args.scene, args.out, device, args.fern_iters, progress, args.demo_size, args.fern)
     eval_opts = EvalOptions(path_frames=args.path_frames, max_pairs=16, save_pairs=0)
