@@ -103,11 +103,11 @@ def densify_run(r, t: Targets, work: GaussianScene, loss) -> tuple[GaussianScene
     from .densify import densify_for_style, replay
     from .spread import render_with_spread
 
-    path, stage2 = r.out / "densify.pt", r.stage2
-    if r.resume and path.is_file():
+    path, stage2, group = r.out / "densify.pt", r.stage2, r.group
+    record, parent = None, None
+    if group.is_main and r.resume and path.is_file():
         record = torch.load(path, map_location="cpu", weights_only=False)
-        work, parent = replay(work, record["indices"])
-    else:
+    elif group.is_main:
         draw = render_with_spread if loss.cfg.blend_weight > 0 else render_rgb
 
         def image_grad(scene: GaussianScene, view: int) -> torch.Tensor:
@@ -119,9 +119,11 @@ def densify_run(r, t: Targets, work: GaussianScene, loss) -> tuple[GaussianScene
         work, parent, record = densify_for_style(
             work, r.train_cams, image_grad, lambda sc, cam: render_rgb(sc, cam, r.bg_styled), stage2.densify,
             views=stage2.densify_views, progress=lambda m: r.say(m))
-        if r.group.is_main:
-            with atomic_path(path) as tmp:
-                torch.save(record, tmp)
+        with atomic_path(path) as tmp:
+            torch.save(record, tmp)
+    record = group.broadcast(record)       # under torchrun every process takes the main one's splits
+    if parent is None:
+        work, parent = replay(work, record["indices"])
     if t.assign is not None:
         t.assign = t.assign[parent.to(t.assign.device)]
     return work, {k: v for k, v in record.items() if k != "indices"}
