@@ -495,8 +495,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bars or stage messages")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--mode", default="ist", choices=MODES,
-                   help="ist: per-group matching to the stylized key views (default); finetune: fit the "
-                        "stylized key views directly; global: ARF-style matching to the style image")
+                   help="ist: per-group matching to the stylized key views (default; without Stage 1, each "
+                        "group to its own region of the style image); finetune: fit the stylized key views "
+                        "directly; global: ARF-style matching to the whole style image")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run in --out")
     p.add_argument("--force", action="store_true", help="overwrite an existing output in --out")
     g = p.add_argument_group("key views")
