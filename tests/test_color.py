@@ -421,3 +421,17 @@ def test_transfer_colors_target_groups_give_each_group_the_region_assigned_to_it
     assert blue(swapped, 0) > 0.5 and blue(swapped, 1) < -0.5           # object 0 -> region 1 (blue), 1 -> red
     assert blue(straight, 0) < -0.5 and blue(straight, 1) > 0.5
     assert blue(shared, 0) > 0.5 and blue(shared, 1) > 0.5               # one region may serve several groups
+
+
+def test_region_target_keeps_half_the_styles_spread_around_the_regions_mean():
+    """A group that takes a flat region of the style keeps its shading: the region's mean, half the
+    whole style's covariance (a flat region alone would map every Gaussian of the group onto one colour)."""
+    from ssgwarp.services.color import region_target
+
+    whole = ColorStats().add(_cloud(500, [0.5, 0.4, 0.3], [[0.1, 0, 0], [0.02, 0.08, 0], [0, 0.01, 0.05]], 3))
+    flat = ColorStats().add(torch.tensor([[0.2, 0.6, 0.9]], dtype=torch.float64).expand(50, 3))
+    t = region_target(flat, whole)
+    torch.testing.assert_close(t.mean, flat.mean)
+    torch.testing.assert_close(t.cov, 0.5 * whole.cov)
+    assert t.n == flat.n
+    torch.testing.assert_close(region_target(flat, whole, spread=0.0).cov, flat.cov, atol=1e-12, rtol=0)
