@@ -80,7 +80,7 @@ def stage2_config(args, **over):
 
     kw = {}
     for k in ("iters", "lr", "content_weight", "tv_weight", "blend_weight", "color_transfer", "color_max_gain",
-              "color_detail", "sh_rest", "background"):
+              "color_detail", "sh_rest", "background", "mode", "densify", "densify_views", "hold_empty"):
         v = getattr(args, k)
         if v is not None:
             kw[k] = v
@@ -244,6 +244,8 @@ def main() -> int:
     p.add_argument("--ablation-rows", default=None,
                    help="ablation row labels to run, separated by ; (default: all rows of ABLATIONS)")
     p.add_argument("--report", action="store_true", help="print the table of finished styles only")
+    p.add_argument("--tag", default="", help="results in OUT/<scene>_<tag> (one folder per configuration; the "
+                   "scene is built once in OUT and shared)")
     p.add_argument("--quiet", action="store_true")
     g = p.add_argument_group("Stage 2 (default: the CLI defaults)")
     g.add_argument("--iters", type=int, default=None)
@@ -256,6 +258,12 @@ def main() -> int:
     g.add_argument("--color-detail", default=None, choices=("keep", "off"))
     g.add_argument("--sh-rest", default=None)
     g.add_argument("--background", default=None, choices=("transfer", "keep"))
+    g.add_argument("--mode", default=None, choices=("ist", "global"),
+                   help="ist (the CLI default: per group against the style image's regions on a grouped scene) "
+                        "or global (one match against the whole style image, the behaviour before issue 39)")
+    g.add_argument("--densify", type=float, default=None, help="split budget (fraction of the Gaussians; 0: off)")
+    g.add_argument("--densify-views", type=int, default=None)
+    g.add_argument("--hold-empty", type=float, default=None, help="weight of the empty-region term (0: off)")
     args = p.parse_args()
 
     from ssgwarp.cli import resolve_device
@@ -272,7 +280,7 @@ def main() -> int:
     if not styles:
         raise SystemExit(f"no style images in {args.styles}")
     name = args.scene if args.scene in ("fern", "demo") else Path(args.scene).name
-    out = args.out / name
+    out = args.out / (f"{name}_{args.tag}" if args.tag else name)
     out.mkdir(parents=True, exist_ok=True)
     run = prepare_scene(args.scene, args.out, device, args.fern_iters, progress, args.demo_size, args.fern)
     eval_opts = EvalOptions(path_frames=args.path_frames, max_pairs=16, save_pairs=0)

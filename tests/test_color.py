@@ -395,3 +395,43 @@ def test_transfer_colors_measures_texture_on_the_view_sample(monkeypatch):
     assert info["detail"]["reference"] == pytest.approx(color.texture_bands(*color.surface_renders(half, sample)),
                                                         abs=1e-4)
     assert info["detail"]["scene"] != pytest.approx(color.texture_bands(*color.surface_renders(scene, cams)), abs=1e-4)
+
+
+def test_transfer_colors_target_groups_give_each_group_the_region_assigned_to_it():
+    """target_groups (the style image's regions assigned to the groups, issue 39): group g takes the
+    statistics of the target pixels labelled target_groups[g]; without it, of those labelled g."""
+    from test_stylize import object_labels, ring, two_objects
+
+    from ssgwarp.stylization import stylize as st
+
+    scene, obj = two_objects(n=60, dtype=torch.float64)
+    cams = ring(n=2, dtype=torch.float64)
+    labels = object_labels(scene, obj, cams)
+    target = torch.zeros(1, 20, 20, 3, dtype=torch.float64)
+    tlab = torch.zeros(1, 20, 20, dtype=torch.long)
+    target[0, :, :10] = torch.tensor([0.85, 0.15, 0.1], dtype=torch.float64)    # region 0: red
+    target[0, :, 10:] = torch.tensor([0.1, 0.2, 0.85], dtype=torch.float64)     # region 1: blue
+    tlab[0, :, 10:] = 1
+    kw = dict(labels=labels, target_labels=tlab, assign=obj, num_groups=2, max_gain=4.0)
+    swapped, info = st.transfer_colors(scene, cams, target, target_groups=[1, 0], **kw)
+    straight, _ = st.transfer_colors(scene, cams, target, **kw)
+    shared, _ = st.transfer_colors(scene, cams, target, target_groups=[1, 1], **kw)
+    blue = lambda sc, k: float(sc.base_colors[obj == k].mean(0)[2] - sc.base_colors[obj == k].mean(0)[0])  # noqa: E731
+    assert info["how"] == ["group", "group"]
+    assert blue(swapped, 0) > 0.5 and blue(swapped, 1) < -0.5           # object 0 -> region 1 (blue), 1 -> red
+    assert blue(straight, 0) < -0.5 and blue(straight, 1) > 0.5
+    assert blue(shared, 0) > 0.5 and blue(shared, 1) > 0.5               # one region may serve several groups
+
+
+def test_region_target_keeps_half_the_styles_spread_around_the_regions_mean():
+    """A group that takes a flat region of the style keeps its shading: the region's mean, half the
+    whole style's covariance (a flat region alone would map every Gaussian of the group onto one colour)."""
+    from ssgwarp.services.color import region_target
+
+    whole = ColorStats().add(_cloud(500, [0.5, 0.4, 0.3], [[0.1, 0, 0], [0.02, 0.08, 0], [0, 0.01, 0.05]], 3))
+    flat = ColorStats().add(torch.tensor([[0.2, 0.6, 0.9]], dtype=torch.float64).expand(50, 3))
+    t = region_target(flat, whole)
+    torch.testing.assert_close(t.mean, flat.mean)
+    torch.testing.assert_close(t.cov, 0.5 * whole.cov)
+    assert t.n == flat.n
+    torch.testing.assert_close(region_target(flat, whole, spread=0.0).cov, flat.cov, atol=1e-12, rtol=0)

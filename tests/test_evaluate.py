@@ -207,7 +207,8 @@ def test_evaluate_reproduces_the_numbers_stylize_reports(tmp_path, capsys):
     """`stylize` reports style / content numbers on its training views with its own extractor (here the weight-free
     random-edges one, not evaluate's default); `evaluate --views train` on its output computes them with the same
     function (metrics.style_scores) on the same views and the run's extractor: the same numbers. Both say which
-    views. Without Stage 1 weights the scene's groups go unused, and stylize says so in one line."""
+    views. Without Stage 1 weights the groups take regions of the style image (stylize says so); where they go
+    unused (finetune without Stage 1) stylize says that in one line."""
     from test_stylize import _write_run
 
     from ssgwarp.cli import main
@@ -218,10 +219,16 @@ def test_evaluate_reproduces_the_numbers_stylize_reports(tmp_path, capsys):
                  "--max-side", "48", "--path-frames", "0", "--device", "cpu"]) == 0
     said = capsys.readouterr().out
     m = json.loads((out / "metrics.json").read_text())
-    assert m["extractor"].endswith(",edges") and m["groups"] == 3 and m["groups_used"] is False
-    unused = [ln for ln in said.splitlines() if "groups are not used" in ln]
-    assert len(unused) == 1 and "3 groups" in unused[0] and "ssgwarp weights --download stage1" in unused[0]
+    # without Stage 1 each group is matched against its own region of the style image (the groups are used)
+    assert m["extractor"].endswith(",edges") and m["groups"] == 3 and m["groups_used"] is True
+    assert "each of the 3 groups against its own region" in said and "groups are not used" not in said
     assert f"on the {m['views']} training views ({m['extractor']})" in said
+    assert main(["stylize", str(run), "--style", str(style), "--out", str(tmp_path / "ft"), "--iters", "2",
+                 "--keyviews", "2", "--max-side", "48", "--path-frames", "0", "--mode", "finetune",
+                 "--device", "cpu"]) == 0
+    unused = [ln for ln in capsys.readouterr().out.splitlines() if "groups are not used" in ln]
+    assert len(unused) == 1 and "3 groups" in unused[0] and "ssgwarp weights --download stage1" in unused[0]
+    assert json.loads((tmp_path / "ft" / "metrics.json").read_text())["groups_used"] is False
     assert main(["evaluate", str(out), "--views", "train", "--max-pairs", "1", "--device", "cpu"]) == 0
     printed = capsys.readouterr().out
     sc = json.loads((out / "metrics.json").read_text())["evaluation"]["style_content"]

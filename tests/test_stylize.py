@@ -326,16 +326,18 @@ def test_cli_stylize_end_to_end_without_stage1_weights(tmp_path, monkeypatch, ca
     assert "sd15" in line and "image_encoder" in line and "ssgwarp weights --download stage1" in line
     assert len(line) < 250 and len(m["stage1"]["reason"]) > len(line)
     assert json.loads((out / "run.json").read_text())["stages"]["stage1"]["reason"] == m["stage1"]["reason"]
-    assert m["matching"].startswith("global against the style image")
+    # without Stage 1 the groups still matter: each matches its own region of the style image (issue 39)
+    assert m["matching"].startswith("per group (3 groups) against") and "regions of the style image" in m["matching"]
     assert m["extractor"] == "random-multiscale:seed0,c128s2p2-4-8,edges" and m["groups"] == 3 and m["style_loss"] == "sw"
     assert m["gram_style_loss"] > 0 and m["content_loss"] > 0
     for k in ("color", "texture"):
         assert m["style_distance"][k] > 0 and m["style_distance_original"][k] > 0
     ct = m["color_transfer"]
-    assert ct["setting"] == "both" and ct["against"] == "the style image"
-    assert ct["pre"]["per_group"] is False and ct["post"]["per_group"] is False
+    assert ct["setting"] == "both" and ct["against"] == "the style image's regions"
+    assert ct["pre"]["per_group"] is True and ct["post"]["per_group"] is True
     assert set(m["seconds"]) >= {"keyviews", "stage1", "stage2", "renders", "total"}
-    for f in ("scene.ply", "contact_sheet.png", "loss.png", "keyviews/keyviews.json", "renders/train/img00.png"):
+    for f in ("scene.ply", "contact_sheet.png", "loss.png", "keyviews/keyviews.json", "renders/train/img00.png",
+              "path.gif"):
         assert (out / f).is_file(), f
     src, styled = read_ply(run / "scene.ply"), read_ply(out / "scene.ply")
     assert torch.equal(src.means, styled.means) and torch.equal(src.identities, styled.identities)
@@ -348,6 +350,18 @@ def test_cli_stylize_end_to_end_without_stage1_weights(tmp_path, monkeypatch, ca
     assert main(["stylize", *argv, "--force", "--mode", "global", "--color-transfer", "off", "--style-loss", "nnfm"]) == 0
     m2 = json.loads((out / "metrics.json").read_text())
     assert m2["mode"] == "global" and m2["style_loss"] == "nnfm" and set(m2["color_transfer"]) == {"setting", "against"}
+    assert m2["matching"].startswith("global against the style image")     # --mode global: today's behaviour
+    # densify: more Gaussians; a resumed run replays the same splits and continues from the checkpoint
+    dense = [*argv, "--force", "--densify", "0.5", "--hold-empty", "1"]
+    assert main(["stylize", *dense]) == 0
+    m3 = json.loads((out / "metrics.json").read_text())
+    d = m3["densify"]
+    assert d["gaussians_after"] == m3["gaussians"] > d["gaussians_before"] == len(src.means)
+    assert m3["final_losses"]["empty"] >= 0
+    once = read_ply(out / "scene.ply")
+    assert main(["stylize", *dense[:-5], "--resume", "--densify", "0.5", "--hold-empty", "1", "--iters", "8"]) == 0
+    again = read_ply(out / "scene.ply")
+    assert torch.equal(again.means, once.means) and json.loads((out / "metrics.json").read_text())["gaussians"] == len(once.means)
     # bad input: a missing style image is a one-line error
     assert main(["stylize", str(run), "--style", str(tmp_path / "nope.png"), "--out", str(tmp_path / "o2")]) == 2
 
@@ -682,7 +696,7 @@ def test_colour_transfer_matches_the_style_as_the_loss_and_the_distance_see_it(t
     (:func:`fit_style`, as the style loss and the style distance take it), not of the full-size file:
     a style of 1-pixel black and white lines, which at the views' size is a mid grey, must not get the
     scene stretched to black and white (docs/stylize.md: the demo's line-art styles)."""
-    import ssgwarp.stylization.stylize as stylize_mod
+    import ssgwarp.stylization.targets as stylize_mod     # (where stylize's colour transfer is called)
     from ssgwarp.core.fileio import write_image
     from ssgwarp.core.imaging import fit_style
 
@@ -704,3 +718,199 @@ def test_colour_transfer_matches_the_style_as_the_loss_and_the_distance_see_it(t
         assert target.shape == want.shape and min(target.shape[1:3]) == min(cams.height, cams.width)
         torch.testing.assert_close(target.float(), want, atol=2e-3, rtol=0)   # (8-bit file)
         assert float(target.var()) < 0.02                         # grey at that size, not 0.25
+
+
+# ----------------------------------------------------------------------------- issue 39: style, not only colour
+def test_random_strokes_features_see_far_and_ignore_flat_colour():
+    """random-strokes: seeded (same filters for a seed), one output per branch and dilation, unit mean square
+    per layer on noise; the deepest layer of the coarsest branch responds to a change ~40 px away (the
+    shallow branches cannot), and a flat colour gives the same response everywhere in the first layer."""
+    from ssgwarp.services.features import RandomStrokes, load_extractor, stack_features
+
+    a, b = RandomStrokes(seed=3).freeze(), RandomStrokes(seed=3).freeze()
+    assert a.name == "random-strokes:seed3,c48s2p2-4d1-2-4-8" and len(a.strides) == 8
+    x = torch.rand(1, 3, 96, 128, generator=torch.Generator().manual_seed(0))
+    fa = a(x)
+    assert len(fa) == 8 and all(f.shape == (1, 48, 48, 64) for f in fa)
+    assert all(torch.equal(u, v) for u, v in zip(fa, b(x)))
+    assert not torch.equal(stack_features(fa), stack_features(RandomStrokes(seed=4).freeze()(x)))
+    # receptive field: change a 4x4 patch at the left edge; look at the feature 40 px to its right
+    y = x.clone()
+    y[..., 46:50, 0:4] = 1 - y[..., 46:50, 0:4]
+    fy = a(y)
+    far = lambda f, g: float((f[0, :, 24, 22] - g[0, :, 24, 22]).abs().max())   # noqa: E731  (44 px right)
+    assert far(fa[7], fy[7]) > 1e-3                        # 1/4 branch, dilation 8: sees it
+    assert far(fa[0], fy[0]) == 0.0                        # 1/2 branch, first layer (6 px): does not
+    shallow = RandomMultiScale(seed=3, edges=True, scales=(2, 4, 8)).freeze()
+    assert all(far(f, g) == 0.0 for f, g in list(zip(shallow(x), shallow(y)))[:2])   # 1/2, 1/4 branches: blind
+    # the first layer's filters are zero-mean: a flat image gives one value per channel (before pooling)
+    flat = a._raw(torch.full((1, 3, 32, 32), 0.3))[0][0]
+    assert float((flat - flat.mean(dim=(2, 3), keepdim=True)).abs().max()) < 1e-5
+    assert load_extractor(kind="random-strokes").name == a.name.replace("seed3", "seed0")
+    with pytest.raises(InputError):
+        RandomStrokes(dilations=(0,))
+
+
+def test_split_gaussians_keeps_each_gaussians_moments_and_the_render():
+    from ssgwarp.core.geometry import quat_to_rotmat
+    from ssgwarp.stylization.densify import replay, split_gaussians
+
+    scene, _ = two_objects(n=30, dtype=torch.float64)
+    g = torch.Generator().manual_seed(1)
+    scene = scene.replace(log_scales=scene.log_scales + torch.rand(len(scene), 3, generator=g, dtype=torch.float64),
+                          quats=torch.randn(len(scene), 4, generator=g, dtype=torch.float64))
+    idx = torch.tensor([3, 7, 40])
+    out, parent = split_gaussians(scene, idx)
+    assert len(out) == len(scene) + 3 and parent.tolist()[-6:] == [3, 3, 7, 7, 40, 40]
+    keep = parent[:-6]
+    assert torch.equal(out.means[:-6], scene.means[keep]) and torch.equal(out.sh_dc[-6:], scene.sh_dc[parent[-6:]])
+
+    def cov(sc, i):
+        R = quat_to_rotmat(sc.quats[i:i + 1])[0]
+        return R @ torch.diag(sc.log_scales[i].exp() ** 2) @ R.T
+
+    for k, p in enumerate(idx.tolist()):
+        c1, c2 = len(out) - 6 + 2 * k, len(out) - 5 + 2 * k
+        mean = (out.means[c1] + out.means[c2]) / 2
+        d = out.means[c1] - mean
+        mix = (cov(out, c1) + cov(out, c2)) / 2 + torch.outer(d, d)       # covariance of the equal mixture
+        torch.testing.assert_close(mean, scene.means[p])
+        torch.testing.assert_close(mix, cov(scene, p))
+        a, a2 = torch.sigmoid(scene.logit_opacities[p]), torch.sigmoid(out.logit_opacities[c1])
+        torch.testing.assert_close(1 - (1 - a2) ** 2, a)                   # two overlapping children block as one
+    cams = ring(n=3, dtype=torch.float64)
+    every, _ = split_gaussians(scene, torch.arange(len(scene)))
+    before, after = st.render_rgb(scene, cams), st.render_rgb(every, cams)
+    assert float((before - after).abs().mean()) < 0.1 * float(before.abs().mean())
+    again, p2 = replay(scene, [idx])
+    assert torch.equal(again.means, out.means) and torch.equal(p2, parent)
+    with pytest.raises(InputError):
+        split_gaussians(scene, torch.tensor([len(scene)]))
+
+
+def _one_big_gaussian():
+    q = torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
+    return GaussianScene(torch.zeros(1, 3, dtype=torch.float64), torch.full((1, 3), -0.7, dtype=torch.float64), q,
+                         torch.tensor([3.0], dtype=torch.float64), torch.zeros(1, 3, dtype=torch.float64))
+
+
+def test_detail_demand_is_the_spread_of_the_pixels_wishes():
+    """D = sum w |g|^2 - |sum w g|^2 / sum w: zero when every pixel wants the same change, positive when the
+    left and right halves of a splat want opposite ones; densify splits only where D > 0, within the budget."""
+    from ssgwarp.stylization.densify import densify_for_style, detail_demand
+
+    scene = _one_big_gaussian()
+    cams = ring(n=1, dtype=torch.float64)
+    render = lambda sc, cam: st.render_rgb(sc, cam)       # noqa: E731
+    H, W = cams.height, cams.width
+    same = lambda sc, v: torch.ones(H, W, 3, dtype=torch.float64)       # noqa: E731
+    halves = torch.ones(H, W, 3, dtype=torch.float64)
+    halves[:, : W // 2] = -1
+    opposite = lambda sc, v: halves                                       # noqa: E731
+    d_same = detail_demand(scene, cams, [0], same, render)
+    d_opp = detail_demand(scene, cams, [0], opposite, render)
+    assert float(d_same[0]) < 1e-9 * float(d_opp[0]) + 1e-12 and float(d_opp[0]) > 0
+    out, parent, rec = densify_for_style(scene, cams, opposite, render, budget=1.0, views=1, rounds=1)
+    assert len(out) == 2 and parent.tolist() == [0, 0] and rec["split"] == [1]
+    kept, _, rec0 = densify_for_style(scene, cams, same, render, budget=1.0, views=1, rounds=1)
+    assert len(kept) == 1 and rec0["split"] == []                      # no demand: nothing split
+    big, _ = two_objects(n=20, dtype=torch.float64)
+    rnd = lambda sc, v: torch.randn(H, W, 3, generator=torch.Generator().manual_seed(v), dtype=torch.float64)  # noqa: E731
+    out, _, rec = densify_for_style(big, ring(n=3, dtype=torch.float64), rnd, render, budget=0.25, views=2)
+    assert len(out) - len(big) <= 10 and rec["gaussians_after"] == len(out) and rec["views"] == 2
+    with pytest.raises(InputError):
+        densify_for_style(big, cams, rnd, render, budget=-1)
+
+
+def test_style_regions_segment_the_style_and_assign_groups_by_their_statistics():
+    """A style image of a dark textured left half and a bright flat right half gives those two regions; a
+    dark group takes the dark region and a bright one the bright region (OT on standardized statistics)."""
+    from ssgwarp.stylization.regions import assign_groups, kmeans, segment_style, sinkhorn, style_regions
+
+    g = torch.Generator().manual_seed(0)
+    style = torch.empty(40, 60, 3)
+    style[:, :30] = 0.15 + 0.1 * torch.rand(40, 30, 3, generator=g)
+    style[:, 30:] = torch.tensor([0.9, 0.85, 0.6])
+    lab = segment_style(style, 2)
+    assert lab.shape == (40, 60) and set(lab.unique().tolist()) == {0, 1}
+    left, right = lab[:, 2:27], lab[:, 33:58]
+    assert left.unique().numel() == 1 and right.unique().numel() == 1 and int(left[0, 0]) != int(right[0, 0])
+    # the scene: two objects rendered dark (group 0) and bright (group 1)
+    renders = torch.empty(1, 20, 20, 3)
+    renders[0, :, :10] = 0.8
+    renders[0, :, 10:] = 0.2
+    vl = torch.zeros(1, 20, 20, dtype=torch.long)
+    vl[0, :, 10:] = 0   # dark half is group 0
+    vl[0, :, :10] = 1   # bright half is group 1
+    res = style_regions(style, renders, vl, 2, regions=2)
+    dark_region = int(lab[0, 0])
+    assert res["region"].tolist() == [dark_region, 1 - dark_region]
+    # Sinkhorn: the plan's marginals are the weights
+    a, b = torch.tensor([0.3, 0.7], dtype=torch.float64), torch.tensor([0.5, 0.25, 0.25], dtype=torch.float64)
+    plan = sinkhorn(torch.rand(2, 3, generator=g, dtype=torch.float64), a, b)
+    torch.testing.assert_close(plan.sum(1), a, atol=1e-6, rtol=0)
+    torch.testing.assert_close(plan.sum(0), b, atol=1e-6, rtol=0)
+    # a group without pixels gets the largest region; k-means is deterministic for a seed
+    region = assign_groups(torch.rand(3, 3, dtype=torch.float64), torch.tensor([0.5, 0.5, 0.0], dtype=torch.float64),
+                           torch.rand(2, 3, dtype=torch.float64), torch.tensor([0.2, 0.8], dtype=torch.float64))
+    assert int(region[2]) == 1
+    pts = torch.rand(200, 2, generator=g)
+    assert torch.equal(kmeans(pts, 3, seed=5)[0], kmeans(pts, 3, seed=5)[0])
+    with pytest.raises(InputError):
+        segment_style(style, 0)
+
+
+def test_sliced_targets_for_regions_match_each_group_against_its_region():
+    from ssgwarp.stylization.matching import SlicedTargets
+
+    g = torch.Generator().manual_seed(0)
+    feats = torch.randn(1, 4, 6, 8, generator=g)
+    regions = torch.zeros(1, 6, 8, dtype=torch.long)
+    regions[..., 4:] = 1
+    t = SlicedTargets(feats, regions, projections=8).for_regions(torch.tensor([1, 1, 0]))
+    assert torch.equal(t.key_index(0), t.key_index(1)) and len(t.key_index(2)) == 24
+    assert set(t.key_index(0).tolist()) == {r * 8 + c for r in range(6) for c in range(4, 8)}
+    # the loss of a view of group 2 made of region 0's features is ~0, of region 1's is not
+    q0 = feats[0, :, :, :4].clone()
+    lab = torch.full((6, 4), 2)
+    assert float(t.loss(q0, lab)) < 1e-6 and float(t.loss(feats[0, :, :, 4:], lab)) > 1e-3
+    with pytest.raises(InputError):
+        SlicedTargets(feats, None).for_regions([0])
+
+
+def test_hold_empty_keeps_the_background_pixels_and_needs_alphas():
+    scene, obj = two_objects(n=40)
+    cams = ring(n=2)
+    originals = st.render_rgb(scene, cams)
+    alphas = st.render_alphas(scene, cams)
+    ext = RandomMultiScale(seed=0, channels=8).freeze()
+    targets = st.build_targets(ext, originals[:1], None, st.Stage2Config(style_loss="sw"))
+    cfg = st.Stage2Config(style_loss="sw", hold_empty=1.0, content_weight=0.0, tv_weight=0.0, blend_weight=0.0,
+                          style_weight=0.0)
+    loss = st.ViewLoss(ext, targets, cfg, originals=originals, alphas=alphas)
+    img = originals[0].clone()
+    assert float(loss(img, 0)) == 0.0
+    empty = alphas[0] < 0.05
+    assert bool(empty.any())
+    moved = img.clone()
+    moved[empty] = moved[empty] * 0 + torch.tensor([1.0, 0.0, 1.0])      # colour the empty pixels
+    inside = img.clone()
+    full = alphas[0] > 0.99
+    inside[full] = inside[full] * 0 + torch.tensor([1.0, 0.0, 1.0])      # colour the scene's pixels
+    assert float(loss(moved, 0)) > 100 * float(loss(inside, 0)) and "empty" in loss.last
+    with pytest.raises(InputError):
+        st.ViewLoss(ext, targets, cfg, originals=originals)
+
+
+def test_path_video_is_a_looping_gif_of_every_frame(tmp_path):
+    from PIL import Image
+
+    frames = [(torch.rand(12, 16, 3, generator=torch.Generator().manual_seed(i)).numpy() * 255).astype("uint8")
+              for i in range(5)]
+    path = st.write_path_video(tmp_path / "path.gif", frames, fps=10)
+    with Image.open(path) as im:
+        assert im.format == "GIF" and im.n_frames == 5 and im.size == (16, 12) and im.info["loop"] == 0
+        assert im.info["duration"] == 100
+    with pytest.raises(InputError):
+        st.write_path_video(tmp_path / "none.gif", [])
+    assert not (tmp_path / "none.gif").exists()

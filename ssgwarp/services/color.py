@@ -306,6 +306,23 @@ def pixel_stats(images: Tensor, alphas: Optional[Tensor] = None, labels: Optiona
     return total, groups
 
 
+REGION_SPREAD = 0.5   # share of the whole target's covariance in a region's colour target (region_target)
+
+
+def region_target(region: ColorStats, whole: ColorStats, spread: float = REGION_SPREAD) -> ColorStats:
+    """A group's colour target when it takes one region of the style: the region's mean with the covariance
+    ``(1 - spread) cov(region) + spread cov(whole)``. A region of nearly one colour would otherwise map the
+    group onto that colour and erase its shading (and all Stage 2 did to it: the map after the optimisation
+    would flatten it again); with half the style's spread the object keeps its structure."""
+    out = ColorStats(len(region.s1), region.s1.device)
+    out.n = region.n
+    mu = region.mean
+    cov = (1 - spread) * region.cov + spread * whole.cov.to(mu)
+    out.s1 = mu * region.n
+    out.s2 = (cov + torch.outer(mu, mu)) * region.n
+    return out
+
+
 def fit_group_transforms(source: tuple[ColorStats, dict[int, ColorStats]],
                          target: tuple[ColorStats, dict[int, ColorStats]], num_groups: int,
                          min_pixels: int = 64, **kw) -> tuple[list[ColorTransform], list[str]]:
@@ -330,7 +347,7 @@ def fit_group_transforms(source: tuple[ColorStats, dict[int, ColorStats]],
 
 __all__ = ["rgb_to_lab", "ColorStats", "ColorTransform", "fit_transform", "transform_sh", "pixel_stats",
            "LUMA", "texture_bands", "detail_views", "detail_gain", "surface_renders",
-           "fit_group_transforms", "transfer_colors", "transfer_background", "describe_transfer"]
+           "fit_group_transforms", "region_target", "transfer_colors", "transfer_background", "describe_transfer"]
 
 
 # ----------------------------------------------------------------------------- colour transfer
@@ -351,7 +368,8 @@ def transfer_colors(scene: GaussianScene, cameras: Cameras, target: torch.Tensor
                     labels: Optional[torch.Tensor] = None,
                     target_labels: Optional[torch.Tensor] = None, assign: Optional[torch.Tensor] = None,
                     num_groups: Optional[int] = None, min_pixels: int = 64, max_gain: float = 1.3,
-                    keep_detail: bool = False, capture: Optional[GaussianScene] = None) -> tuple[GaussianScene, dict]:
+                    keep_detail: bool = False, capture: Optional[GaussianScene] = None,
+                    target_groups: Optional[Sequence[int]] = None) -> tuple[GaussianScene, dict]:
     """ARF's colour transfer of ``scene``: its renders from ``cameras`` get the colour mean and
     covariance of ``target [V, H, W, 3]`` (the style image or the stylized key views), by one linear
     map of the SH coefficients (the functions above; view-consistent by construction).
@@ -362,7 +380,10 @@ def transfer_colors(scene: GaussianScene, cameras: Cameras, target: torch.Tensor
     fewer than ``min_pixels`` pixels on either side (absent from the key views) — the global map
     (all rendered pixels -> all target pixels). The source colours are the renders' surface colours
     (rendered without background and divided by alpha, so that the map is exact on them); pixels with
-    alpha < 0.5 (background) are left out. ``keep_detail``: stretch the maps' lightness so that the
+    alpha < 0.5 (background) are left out. ``target_groups [num_groups]``: group ``g`` takes the target
+    pixels labelled ``target_groups[g]`` instead of ``g`` (the style image's regions assigned to the groups,
+    :mod:`ssgwarp.stylization.regions`; several groups may share one; :func:`region_target`). ``keep_detail``: stretch the maps'
+    lightness so that the
     scene's fine texture is not flattened below the style's nor the capture's (:func:`detail_gain`; module
     docs); ``capture``: the unstylized scene whose texture bounds the stretch (default: ``scene`` itself;
     pass it when recolouring an optimised scene); texture is measured on at most :data:`DETAIL_VIEWS`
@@ -376,6 +397,9 @@ def transfer_colors(scene: GaussianScene, cameras: Cameras, target: torch.Tensor
     grouped = labels is not None and target_labels is not None and assign is not None and num_groups
     src = pixel_stats(renders, alphas, labels if grouped else None)
     tgt = pixel_stats(target.to(scene.device), None, target_labels if grouped else None)
+    if grouped and target_groups is not None:
+        tgt = (tgt[0], {g: region_target(tgt[1][int(t)], tgt[0]) for g, t in enumerate(target_groups)
+                        if int(t) in tgt[1]})
     glob = fit_transform(src[0], tgt[0], max_gain=max_gain)
     if grouped:
         transforms, how = fit_group_transforms(src, tgt, int(num_groups), min_pixels, max_gain=max_gain)

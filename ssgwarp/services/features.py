@@ -264,7 +264,83 @@ class RandomMultiScale(FeatureExtractor):
         return out
 
 
-EXTRACTOR_KINDS = ("auto", "vgg16", "random", "random-edges")
+class RandomStrokes(FeatureExtractor):
+    """Seeded random *deep* features whose receptive fields cover brush strokes and patterns (weight-free).
+
+    :class:`RandomMultiScale`'s branches see 5 x 5 pixels of their pyramid level: at 1/8 resolution that is
+    40 px of the image, but blurred, so a stroke's shape (a thin curved line 20-60 px long, a tessera's
+    outline) is not visible to any feature. Here every branch (pyramid level ``s`` in ``scales``, default
+    1/2, 1/4) is a stack of random 3x3 convolutions with growing dilations ``dilations`` (default 1, 2, 4,
+    8) and ReLU, ``channels`` filters each (the first zero-mean per window, as ``random-edges``: flat colour
+    gives no signal), and *every* layer of the stack is returned, pooled to ``1 / stride``: layer ``j``
+    of branch ``s`` sees ``s * (1 + 2 * sum(dilations[:j + 1]))`` pixels (3 ... 31 px at full
+    resolution: 6 ... 62 px at 1/2, 12 ... 124 px at 1/4) at the level's resolution, so fine lines and their
+    arrangement are both seen. Random multi-layer networks keep enough of an image's statistics to
+    synthesize natural textures (Ustyuzhaninov et al., ICLR 2017); matched as distributions (the SW loss).
+
+    Each layer's output is divided by a fixed scale measured once on a seeded noise image at
+    construction, so every layer has unit mean square on natural-image-like input and no depth
+    dominates the concatenated features. Name ``random-strokes:seed<S>,c<C>s<stride>p<scales>d<dilations>``.
+    """
+
+    def __init__(self, seed: int = 0, channels: int = 48, scales: Sequence[int] = (2, 4),
+                 dilations: Sequence[int] = (1, 2, 4, 8), normalize: bool = True, stride: int = 2) -> None:
+        super().__init__()
+        if channels < 2 or stride < 1 or not scales or not dilations or min(dilations) < 1:
+            raise InputError(f"RandomStrokes: channels >= 2, stride >= 1, scales and dilations >= 1 needed "
+                             f"(got {channels}, {stride}, {scales}, {dilations})")
+        self.seed, self.scales, self.out_stride = int(seed), tuple(int(s) for s in scales), int(stride)
+        self.dilations = tuple(int(d) for d in dilations)
+        g = torch.Generator(device="cpu").manual_seed(self.seed)
+        self.branches = nn.ModuleList()
+        for _ in self.scales:
+            layers, cin = nn.ModuleList(), 3
+            for j, d in enumerate(self.dilations):
+                c = nn.Conv2d(cin, channels, 3, dilation=d)
+                with torch.no_grad():
+                    c.weight.copy_(torch.randn(c.weight.shape, generator=g) * (2.0 / c.weight[0].numel()) ** 0.5)
+                    if j == 0:
+                        c.weight.copy_(zero_mean_filters(c.weight))
+                    c.bias.copy_(torch.randn(c.bias.shape, generator=g) * 0.05)
+                layers.append(c)
+                cin = channels
+            self.branches.append(layers)
+        self.normalize = _Normalize() if normalize else None
+        self.register_buffer("gains", torch.ones(len(self.scales), len(self.dilations)))
+        with torch.no_grad():   # unit mean square per layer on seeded 1/f-like noise
+            noise = torch.randn(1, 3, 64, 64, generator=g)
+            noise = sum(F.interpolate(F.avg_pool2d(noise, k), size=(64, 64), mode="bilinear", align_corners=False)
+                        for k in (1, 2, 4, 8, 16)).clamp(-2, 2) * 0.25 + 0.5
+            for b, ms in enumerate(self._raw(noise)):
+                self.gains[b] = torch.stack([m.pow(2).mean().rsqrt() for m in ms])
+        self.name = (f"random-strokes:seed{self.seed},c{channels}s{self.out_stride}p{'-'.join(map(str, self.scales))}"
+                     f"d{'-'.join(map(str, self.dilations))}")
+        self.strides = [self.out_stride] * (len(self.scales) * len(self.dilations))
+
+    def _raw(self, x: torch.Tensor) -> list[list[torch.Tensor]]:
+        if self.normalize is not None:
+            x = self.normalize(x)
+        H, W = x.shape[-2:]
+        out = []
+        for s, layers in zip(self.scales, self.branches):
+            h = F.avg_pool2d(x, s) if s > 1 and min(H, W) >= 2 * s else x
+            per = []
+            for c in layers:   # replicate padding: valid at any size (reflect needs the pad below the size)
+                d = c.dilation[0]
+                h = F.relu(F.conv2d(F.pad(h, (d, d, d, d), mode="replicate"), c.weight, c.bias, dilation=d))
+                per.append(h)
+            out.append(per)
+        return out
+
+    def forward(self, images: torch.Tensor) -> list[torch.Tensor]:
+        x = self._check(images)
+        H, W = x.shape[-2:]
+        size = (max(1, H // self.out_stride), max(1, W // self.out_stride))
+        return [F.adaptive_avg_pool2d(m, size) * self.gains[b, j]
+                for b, ms in enumerate(self._raw(x)) for j, m in enumerate(ms)]
+
+
+EXTRACTOR_KINDS = ("auto", "vgg16", "random", "random-edges", "random-strokes")
 # branches of ``random-edges``: 1/2, 1/4, 1/8 (measured against 1, 1/2, 1/4 with the blend spread, docs/stylize.md:
 # more texture and a lower consistency error on the demo scene, 25 styles)
 EDGE_SCALES = (2, 4, 8)
@@ -291,8 +367,8 @@ def load_extractor(vgg_weights: Optional[str | os.PathLike] = None, device: torc
 
     if kind not in EXTRACTOR_KINDS:
         raise InputError(f"feature extractor kind '{kind}': use {', '.join(EXTRACTOR_KINDS)}")
-    if fallback not in ("random", "random-edges"):
-        raise InputError(f"feature extractor fallback '{fallback}': use random or random-edges")
+    if fallback not in ("random", "random-edges", "random-strokes"):
+        raise InputError(f"feature extractor fallback '{fallback}': use random, random-edges or random-strokes")
     path = None
     if kind == "vgg16":
         path = weights.require("vgg16", vgg_weights, config)
@@ -309,6 +385,8 @@ def load_extractor(vgg_weights: Optional[str | os.PathLike] = None, device: torc
         except Exception as e:  # truncated / corrupt / wrong file
             raise weights.load_error("vgg16", path, e, "VGG16 state dict") from None
         ext.load_torchvision(state)
+    elif kind == "random-strokes" or (kind == "auto" and fallback == "random-strokes"):
+        ext = RandomStrokes(seed=seed, normalize=normalize)
     else:
         edges = kind == "random-edges" or (kind == "auto" and fallback == "random-edges")
         coarse = {"edges": True, "scales": EDGE_SCALES} if edges else {}

@@ -21,7 +21,10 @@ def _is_vgg(extractor) -> bool:
 
 
 def _is_edges(extractor) -> bool:
-    return "edges" in str(getattr(extractor, "name", "")).split(",")
+    """Zero-mean first-layer features: ``random-edges`` and ``random-strokes`` (the same defaults suit both:
+    they see no flat colour, which the colour transfer matches)."""
+    name = str(getattr(extractor, "name", ""))
+    return "edges" in name.split(",") or name.startswith("random-strokes:")
 
 
 def style_loss_kind(cfg, extractor) -> str:

@@ -146,6 +146,17 @@ class _GroupedTargets:
     def num_keys(self) -> int:
         return int(self.keys.shape[0])
 
+    def for_regions(self, region) -> "_GroupedTargets":
+        """These targets with group ``g`` matched against the key positions labelled ``region[g]`` (the
+        key labels being regions of the style image, :mod:`ssgwarp.stylization.regions`; several groups may
+        share a region). A group whose region has no key position falls back to all of them. In place;
+        returns ``self``."""
+        if self.labels is None:
+            raise InputError("for_regions: the targets have no labels (regions) to assign groups to")
+        regions = self.groups
+        self.groups = {g: regions[int(r)] for g, r in enumerate(region) if int(r) in regions}
+        return self
+
     def key_index(self, group: int) -> Optional[torch.Tensor]:
         """Key positions group ``group`` matches against: its own, or None (= all: global fallback)."""
         return self.groups.get(int(group)) if self.labels is not None else None

@@ -13,7 +13,8 @@ is ``alpha`` times the weighted variance of the colours the pixel mixes: 0 when 
 their colour, so the term leaves the texture *between* surfaces free and penalises only texture that
 exists in one view's blend. It is rendered in the same rasterizer pass as the image, as extra
 channels (``c``, ``c^2`` and a constant 1, with no background: :func:`render_with_spread`), and
-:func:`blend_spread` turns those channels into the mean spread over the pixels.
+:func:`blend_spread` turns those channels into the mean spread over the pixels. :func:`empty_loss` is Stage 2's
+other per-pixel term: empty pixels keep the unstylized render (``--hold-empty``).
 """
 from __future__ import annotations
 
@@ -48,3 +49,12 @@ def blend_spread(channels: torch.Tensor, eps: float = 1e-4) -> torch.Tensor:
     spread = c2 - c * c / alpha.clamp_min(eps)
     spread = torch.where(alpha > eps, spread, torch.zeros_like(spread))
     return spread.sum(-1).mean()
+
+
+def empty_loss(image: torch.Tensor, original: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    """Stage 2's empty-region term (``--hold-empty``): ``mean((1 - a) |I - I0|^2) / max(mean(1 - a), 0.01)`` for
+    ``image``/``original [H, W, 3]`` and the original's accumulated opacity ``alpha [H, W]``: the pixels the
+    unstylized scene leaves (nearly) empty keep its render, so low-opacity Gaussians over the background do not
+    become coloured floaters; ~0 on a capture that fills the frame."""
+    empty = 1 - alpha.to(image).clamp(0, 1)
+    return (empty[..., None] * (image - original.to(image)) ** 2).mean() / empty.mean().clamp_min(0.01)

@@ -27,18 +27,15 @@ features ``phi`` = the extractor's layers concatenated at the coarsest resolutio
   collapses a view onto the style's dominant mode: docs/stylize.md);
 - content: ``mean((phi(I) - phi(I0))^2) / mean(phi(I0)^2)`` (relative, so the
   weight means the same for every extractor);
-- TV: mean squared difference of neighbouring pixels; ``tv_weight=None`` (default) resolves by the
-  extractor, like ``style_loss="auto"`` (:func:`tv_weight_for`): 0.5 on the weight-free random features
-  (measured on 25 styles, fern and the demo scene: docs/stylize.md), 0.02 on VGG16 (unchanged).
+- TV: mean squared difference of neighbouring pixels; ``tv_weight=None`` (default): by the extractor
+  (:func:`tv_weight_for`: 0.5 weight-free, measured in docs/stylize.md; 0.02 on VGG16).
 - blend spread (``blend_weight``; default by the extractor, :func:`resolve_for` in
   :mod:`ssgwarp.stylization.feature_defaults`: 0.65 on the weight-free edge features, else 0): the weighted
   variance of the colours each pixel mixes (:mod:`ssgwarp.stylization.spread`; the view is then rendered
-  with those channels too).
+  with those channels too); empty-region term (``hold_empty``, :func:`ssgwarp.stylization.spread.empty_loss`).
 
-Only colour is optimised (``sh_dc``); the higher SH bands are zeroed first by
-default (``sh_rest="zero"``: view-independent stylized colour, measured in
-docs/stylize.md; ``"keep"`` keeps them, ``"optimise"`` optimises them too;
-``free_opacity`` adds the opacities);
+Only colour is optimised (``sh_dc``); the higher SH bands are zeroed first by default (``sh_rest="zero"``:
+view-independent stylized colour, docs/stylize.md; ``"keep"``, ``"optimise"``; ``free_opacity`` adds opacities);
 every other tensor of the scene is passed through untouched (the same tensor
 objects, bit-identical).
 
@@ -70,7 +67,7 @@ from .feature_defaults import (  # noqa: F401  (re-exported: Stage 2's options l
 from ..services.color import describe_transfer, transfer_background, transfer_colors  # noqa: F401  (re-exported)
 from ..services.loop import Diverged, Loop
 from .batches import batch_size_for, batch_views, view_order  # noqa: F401  (view_order re-exported)
-from .spread import SPREAD_CHANNELS, blend_spread, render_with_spread
+from .spread import SPREAD_CHANNELS, blend_spread, empty_loss, render_with_spread
 from .matching import DEFAULT_CHUNK, MatchTargets, SlicedTargets, downsample_labels
 from ..evaluation.metrics import content_loss
 from ..reconstruction.recipe import batch_factors
@@ -117,6 +114,9 @@ class Stage2Config:
             renders become view-independent, lower consistency error at equal style distances,
             docs/stylize.md), ``keep`` them as reconstructed, or ``optimise`` them too.
         free_opacity: also optimise opacities (geometry otherwise frozen).
+        densify, densify_views: split Gaussians where the style loss wants detail, at most ``densify x N`` new
+            ones scored on ``densify_views`` views (0: off; run by ``stylize``, :mod:`ssgwarp.stylization.densify`).
+        hold_empty: weight of the term keeping pixels the unstylized scene leaves empty as they were (no floaters).
         background: the stylized scene's background colour: ``transfer`` (default) maps the capture's
             background by the same colour transfer as the scene (:func:`ssgwarp.services.color.transfer_background`;
             the optimisation renders over it and the run records it, ``metrics.json`` ``background``), so that
@@ -149,6 +149,9 @@ class Stage2Config:
     color_detail: str = "auto"
     sh_rest: str = "zero"
     free_opacity: bool = False
+    densify: float = 0.0
+    densify_views: int = 8
+    hold_empty: float = 0.0
     background: str = "transfer"
     label_mode: str = "majority"
     feature_scale: float = 1.0
@@ -165,12 +168,14 @@ class Stage2Config:
             raise InputError(f"--mode {self.mode}: use one of {', '.join(MODES)}")
         if self.iters < 0:
             raise InputError(f"--iters {self.iters}: must be >= 0")
-        for k in ("lr", "style_weight", "content_weight", "tv_weight", "blend_weight"):
+        for k in ("lr", "style_weight", "content_weight", "tv_weight", "blend_weight", "densify", "hold_empty"):
             v = getattr(self, k)
             if v is None and k in ("tv_weight", "blend_weight"):
                 continue
             if not math.isfinite(v) or v < 0:
                 raise InputError(f"--{k.replace('_', '-')} {v}: must be a finite number >= 0")
+        if self.densify_views < 1:
+            raise InputError(f"--densify-views {self.densify_views}: must be >= 1")
         if not 0 < self.feature_scale <= 4:
             raise InputError(f"--feature-scale {self.feature_scale}: must be in (0, 4]")
         if self.style_loss not in STYLE_LOSSES:
@@ -330,14 +335,18 @@ class ViewLoss:
         cfg: weights and knobs.
         view_labels: ``[C, H, W]`` group maps of the training views (None: global).
         originals: ``[C, H, W, 3]`` renders of the unstylized scene (content target).
+        alphas: ``[C, H, W]`` their accumulated opacity (the empty-region term, ``cfg.hold_empty``).
     """
 
     def __init__(self, extractor, targets: MatchTargets, cfg: Stage2Config,
-                 view_labels: Optional[torch.Tensor] = None, originals: Optional[torch.Tensor] = None) -> None:
+                 view_labels: Optional[torch.Tensor] = None, originals: Optional[torch.Tensor] = None,
+                 alphas: Optional[torch.Tensor] = None) -> None:
         cfg = resolve_for(cfg, extractor)
         self.extractor, self.targets, self.cfg = extractor, targets, cfg
         self.tv_weight = tv_weight_for(cfg, extractor)
-        self.view_labels, self.originals = view_labels, originals
+        self.view_labels, self.originals, self.alphas = view_labels, originals, alphas
+        if cfg.hold_empty > 0 and (originals is None or alphas is None):
+            raise InputError("Stage 2 loss: hold_empty needs the original renders and their alphas")
         self._labels: dict[int, torch.Tensor] = {}
         self.last: dict[str, float] = {}
 
@@ -366,6 +375,9 @@ class ViewLoss:
             content = content_loss([feats[None]], [f0[None]], relative=True)[0]
             total = total + cfg.content_weight * content
             parts["content"] = float(content.detach())
+        if cfg.hold_empty > 0:
+            hold = empty_loss(image, self.originals[view], self.alphas[view])
+            total, parts["empty"] = total + cfg.hold_empty * hold, float(hold.detach())
         if self.tv_weight > 0:
             tv = tv_loss(image)
             total = total + self.tv_weight * tv

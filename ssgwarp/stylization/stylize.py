@@ -23,6 +23,7 @@ from ..core.cameras import Cameras
 from ..errors import InputError, WeightsNotFound
 from ..core.imaging import contact_sheet, fit_style, plot_losses  # noqa: F401  (contact_sheet re-exported)
 from ..raster.scene import GaussianScene
+from .targets import Targets, color_transfer, densify_run, group_maps, targets_for
 from .stage2 import (  # noqa: F401  (re-exported: the public Stage 2 API lives in ssgwarp.stylization.stage2)
     BACKGROUNDS, BLEND_WEIGHT_EDGES, COLOR_DETAIL, COLOR_GAIN_EDGES, COLOR_GAIN_OTHER, COLOR_TRANSFER, MODES, SH_REST,
     STYLE_LOSSES, TV_WEIGHT_FREE, TV_WEIGHT_VGG, Stage2Config, Stage2Result, ViewLoss, build_targets, deferred_backward,
@@ -53,7 +54,8 @@ class StylizeOptions:
 
 
 OUTPUTS = ("run.json", "keyviews", "stage2.ckpt", "scene.ply", "renders", "contact_sheet.png", "loss.png",
-           "metrics.json")
+           "metrics.json", "path.gif", "densify.pt")
+PATH_FPS = 15   # frames per second of ``path.gif``
 
 
 def _say(msg: str, progress: bool) -> None:
@@ -97,16 +99,6 @@ def _prepare_out(out: Path, scene_dir: Path, signature: dict, resume: bool, forc
         claimed.clear()
         out.mkdir(parents=True, exist_ok=True)
     return state
-
-
-def _group_maps(scene: GaussianScene, cams: Cameras, classifier, progress: bool) -> torch.Tensor:
-    from ..grouping.stage import render_group_maps
-
-    labels = []
-    for c in range(len(cams)):  # one view at a time: the probabilities are dropped right away
-        lab, _ = render_group_maps(scene, cams[c], classifier)
-        labels.append(lab)
-    return torch.cat(labels)
 
 
 def _check_explicit_stage1_paths(stage1) -> None:
@@ -296,58 +288,27 @@ def _keyviews_and_stage1(r: _Run):
     return kv, stylized, info
 
 
-@dataclass
-class _Targets:
-    """What Stage 2 matches: the stylized key views (with their cameras and group maps) or the style image."""
-
-    use_keys: bool
-    key_images: Optional[torch.Tensor] = None
-    key_cams: Optional[Cameras] = None
-    key_labels: Optional[torch.Tensor] = None
-    assign: Optional[torch.Tensor] = None
-
-
-def _targets(r: _Run, kv, stylized) -> _Targets:
-    t = _Targets(stylized is not None and r.stage2.mode in ("ist", "finetune"))
-    if t.use_keys:
-        from .keyviews import from_diffusion
-
-        t.key_images = from_diffusion(stylized.to(r.device).float(), r.cams.width, r.cams.height).to(r.scene.dtype)
-        t.key_cams = r.cams[list(kv.ids)]
-        if r.classifier is not None:
-            from ..grouping.stage import gaussian_groups
-
-            t.key_labels = _group_maps(r.scene, t.key_cams, r.classifier, r.progress)
-            t.assign = gaussian_groups(r.scene, r.classifier)[0]
-    return t
-
-
-def _color_transfer(r: _Run, t: _Targets, sc: GaussianScene, when: str, against: str) -> tuple[GaussianScene, dict]:
-    """ARF's colour transfer against the stylized key views (per group when grouped) or the style image;
-    with ``--background transfer`` the stylized scene's background ``r.bg_styled`` goes through its global map."""
-    kw = {"max_gain": r.stage2.color_max_gain, "keep_detail": r.stage2.color_detail == "keep", "capture": r.scene}
-    if t.use_keys:
-        out, info = transfer_colors(sc, t.key_cams, t.key_images, labels=t.key_labels, target_labels=t.key_labels,
-                                    assign=t.assign, num_groups=r.num_groups, **kw)
-    else:
-        out, info = transfer_colors(sc, r.train_cams, r.style_at_views, **kw)
-    if r.stage2.background == "transfer":
-        r.bg_styled = r.bg.new_tensor(transfer_background(r.bg_styled.tolist(), info))
-    r.say(f"colour transfer ({when}): " + describe_transfer(info, against))
-    return out, info
-
-
-def _stage2_loss(r: _Run, t: _Targets, kv, content_ref: torch.Tensor):
+def _stage2_loss(r: _Run, t: Targets, kv, content_ref: torch.Tensor, alphas: torch.Tensor):
     """``(ViewLoss or None, finetune images, finetune cameras, the matching's description)``."""
     stage2 = r.stage2
+    ref = {"originals": content_ref, "alphas": alphas}
     if t.use_keys and stage2.mode == "finetune":
         return None, t.key_images, t.key_cams, "none (fine-tuned on the stylized key views)"
     if t.use_keys:
-        view_labels = None if r.classifier is None else _group_maps(r.scene, r.train_cams, r.classifier, r.progress)
+        view_labels = None if r.classifier is None else group_maps(r.scene, r.train_cams, r.classifier, r.progress)
         targets = build_targets(r.extractor, t.key_images, t.key_labels, stage2)
         matching = (f"per group ({r.num_groups} groups) against {len(kv)} stylized key views"
                     if r.classifier is not None else f"global against {len(kv)} stylized key views (no groups)")
-        return ViewLoss(r.extractor, targets, stage2, view_labels=view_labels, originals=content_ref), \
+        return ViewLoss(r.extractor, targets, stage2, view_labels=view_labels, **ref), \
+            None, None, matching
+    if t.regions is not None:
+        targets = build_targets(r.extractor, r.style_at_views, t.key_labels, stage2).for_regions(t.regions["region"])
+        used = len(set(t.regions["region"].tolist()))
+        matching = (f"per group ({r.num_groups} groups) against {t.regions['regions']} regions of the style image "
+                    f"({used} used; Stage 1 did not run)")
+        r.say(f"Stage 1 did not run: Stage 2 matches each of the {r.num_groups} groups against its own region "
+              f"of the style image")
+        return ViewLoss(r.extractor, targets, stage2, view_labels=t.view_labels, **ref), \
             None, None, matching
     targets = build_targets(r.extractor, r.style_at_views, None, stage2)
     matching = "global against the style image"
@@ -355,7 +316,7 @@ def _stage2_loss(r: _Run, t: _Targets, kv, content_ref: torch.Tensor):
         matching += f" (Stage 1 did not run: requested mode '{stage2.mode}' fell back)"
         r.say(groups_unused(r.num_groups, stage2.mode) or
               "Stage 1 did not run: Stage 2 matches against the style image globally")
-    return ViewLoss(r.extractor, targets, stage2, originals=content_ref), None, None, matching
+    return ViewLoss(r.extractor, targets, stage2, **ref), None, None, matching
 
 
 def _stage2(r: _Run, kv, stylized) -> dict:
@@ -364,14 +325,19 @@ def _stage2(r: _Run, kv, stylized) -> dict:
 
     stage2, t0 = r.stage2, time.perf_counter()
     originals = render_batched(r.scene, r.train_cams, r.bg, desc="original renders" if r.progress else None)
-    t = _targets(r, kv, stylized)
+    t = targets_for(r, kv, stylized, originals)
     transfer: dict = {"setting": stage2.color_transfer,
-                      "against": "the stylized key views" if t.use_keys else "the style image"}
+                      "against": "the stylized key views" if t.use_keys else
+                      "the style image's regions" if t.regions is not None else "the style image"}
     work, r.bg_styled = r.scene, r.bg
     if stage2.color_transfer in ("pre", "both"):
-        work, transfer["pre"] = _color_transfer(r, t, r.scene, "pre", transfer["against"])
+        work, transfer["pre"] = color_transfer(r, t, r.scene, "pre", transfer["against"])
     content_ref = originals if work is r.scene else render_batched(work, r.train_cams, r.bg_styled)
-    loss, ft_images, ft_cams, matching = _stage2_loss(r, t, kv, content_ref)
+    alphas = render_alphas(r.scene, r.train_cams)
+    loss, ft_images, ft_cams, matching = _stage2_loss(r, t, kv, content_ref, alphas)
+    densified = None
+    if stage2.densify > 0 and loss is not None:
+        work, densified = densify_run(r, t, work, loss)
     run_cfg = stage2
     if stage2.mode == "finetune" and ft_images is None:   # no stylized key views to fit: global fallback
         run_cfg = dataclasses.replace(stage2, mode="global")
@@ -383,13 +349,14 @@ def _stage2(r: _Run, kv, stylized) -> dict:
         return {}
     styled = res.scene
     if stage2.color_transfer in ("post", "both"):
-        styled, transfer["post"] = _color_transfer(r, t, styled, "post", transfer["against"])
+        styled, transfer["post"] = color_transfer(r, t, styled, "post", transfer["against"])
     r.times["stage2"] = time.perf_counter() - t0
     r.times["stage2_optimisation"] = res.seconds
     write_ply(r.out / "scene.ply", styled)
     r.mark("stage2", seconds=r.times["stage2"], iters=stage2.iters)
     plot_losses(r.out / "loss.png", res.history, f"Stage 2 ({stage2.mode}, {r.extractor.name})")
-    return {"scene": styled, "result": res, "originals": originals, "matching": matching, "transfer": transfer}
+    return {"scene": styled, "result": res, "originals": originals, "matching": matching, "transfer": transfer,
+            "densify": densified}
 
 
 def _renders(r: _Run, styled: GaussianScene) -> torch.Tensor:
@@ -406,12 +373,31 @@ def _renders(r: _Run, styled: GaussianScene) -> torch.Tensor:
         from ..evaluation.render import smooth_path
 
         path = smooth_path(train_cams, r.opts.path_frames).to(r.device)
+        frames = []
         for s in tqdm(range(len(path)), desc="path renders", disable=not r.progress, leave=False):
             with torch.no_grad():
-                frame = render_rgb(styled, path[[s]], r.bg_styled)[0]
-            write_image(r.out / "renders" / "path" / f"frame_{s:04d}.png", frame.clamp(0, 1))
+                frame = render_rgb(styled, path[[s]], r.bg_styled)[0].clamp(0, 1)
+            write_image(r.out / "renders" / "path" / f"frame_{s:04d}.png", frame)
+            frames.append((frame.float().cpu().numpy() * 255 + 0.5).astype("uint8"))
+        write_path_video(r.out / "path.gif", frames)
     r.times["renders"] = time.perf_counter() - t0
     return renders
+
+
+def write_path_video(path: Path, frames: list, fps: int = PATH_FPS) -> Path:
+    """An animated GIF (looping, ``fps`` frames per second) of ``frames`` (``[H, W, 3]`` uint8 arrays), written
+    atomically with Pillow (matplotlib's own dependency: no video codec needed). Returns ``path``."""
+    from PIL import Image
+
+    from ..core.fileio import atomic_path
+
+    if not frames:
+        raise InputError("path video: no frames")
+    images = [Image.fromarray(f).convert("P", palette=Image.Palette.ADAPTIVE, colors=255) for f in frames]
+    with atomic_path(path) as tmp:
+        images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=round(1000 / fps),
+                       loop=0, disposal=1)
+    return path
 
 
 def _scores(r: _Run, styled: GaussianScene, renders: torch.Tensor, originals: torch.Tensor) -> dict:
@@ -422,7 +408,8 @@ def _scores(r: _Run, styled: GaussianScene, renders: torch.Tensor, originals: to
     t0 = time.perf_counter()
     with torch.no_grad():
         alphas = render_alphas(r.scene, r.train_cams)
-        alphas_after = render_alphas(styled, r.train_cams) if r.stage2.free_opacity else alphas
+        changed = r.stage2.free_opacity or len(styled) != len(r.scene)    # opacities freed or Gaussians split
+        alphas_after = render_alphas(styled, r.train_cams) if changed else alphas
         sc = style_scores(r.extractor, renders, r.style, originals, alphas=alphas_after, original_alphas=alphas)
     r.times["metrics"] = time.perf_counter() - t0
     dist = lambda suffix: {k: sc.get(f"style_distance_{k}{suffix}") for k in ("color", "texture")}  # noqa: E731
@@ -457,13 +444,14 @@ def _metrics(r: _Run, s2: dict, renders: torch.Tensor, kv, stage1_info: dict, t_
         "keyviews": None if kv is None else {"ids": list(kv.ids), "names": list(kv.cameras.names),
                                               "size": list(kv.size)},
         "background": [float(v) for v in r.bg_styled],
-        "groups": r.num_groups, "gaussians": len(styled), "views": len(train_ids),
+        "groups": r.num_groups, "gaussians": len(styled), "densify": s2.get("densify"), "views": len(train_ids),
         "resolution": [r.cams.width, r.cams.height], "optimised": trainable_names(stage2, r.scene),
         "config": asdict(stage2),
         **batch_record(s2["result"]),
         "seconds": r.times,
         "device": str(device) if device.type != "cuda" else f"cuda ({torch.cuda.get_device_name(device)})",
         "outputs": {"scene": "scene.ply", "renders": "renders/train", "path": "renders/path",
+                    **({"path_video": "path.gif"} if r.opts.path_frames > 0 else {}),
                     "contact_sheet": "contact_sheet.png", "loss_plot": "loss.png", "keyviews": "keyviews"},
     }
     write_json(r.out / "metrics.json", metrics)

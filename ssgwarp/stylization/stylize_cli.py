@@ -25,8 +25,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bars or stage messages")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--mode", default="ist", choices=MODES,
-                   help="ist: per-group matching to the stylized key views (default); finetune: fit the "
-                        "stylized key views directly; global: ARF-style matching to the style image")
+                   help="ist: per-group matching to the stylized key views (default; without Stage 1, each "
+                        "group to its own region of the style image); finetune: fit the stylized key views "
+                        "directly; global: ARF-style matching to the whole style image")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run in --out")
     p.add_argument("--force", action="store_true", help="overwrite an existing output in --out")
     g = p.add_argument_group("key views")
@@ -68,6 +69,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--background", default=d.background, choices=BACKGROUNDS, help="the stylized scene's background: "
                    "transfer (default: the capture's, colour-transferred like the scene) or keep (the capture's)")
     g.add_argument("--free-opacity", action="store_true", help="also optimise opacities")
+    g.add_argument("--densify", type=float, default=d.densify, metavar="F",
+                   help="split Gaussians where the style loss wants finer detail, at most F x their number new "
+                        f"ones (0: off; default {d.densify})")
+    g.add_argument("--densify-views", type=int, default=d.densify_views,
+                   help=f"training views that score the split (default {d.densify_views})")
+    g.add_argument("--hold-empty", type=float, default=d.hold_empty, metavar="W",
+                   help="weight of the term keeping (nearly) empty pixels as the unstylized scene renders them: "
+                        f"no floaters over the background (0: off; default {d.hold_empty})")
     g.add_argument("--label-mode", default=d.label_mode, choices=("majority", "nearest"),
                    help="group maps to feature resolution (default majority)")
     g.add_argument("--feature-scale", type=float, default=d.feature_scale,
