@@ -321,7 +321,7 @@ def test_transforms_lens_errors(tmp_path):
     _transforms_capture(tmp_path, meta, n=2)
     raw = json.loads((tmp_path / "transforms.json").read_text())
     (tmp_path / "transforms.json").write_text(json.dumps({**raw, "camera_model": "EQUIRECTANGULAR"}))
-    with pytest.raises(InputError, match="camera_model EQUIRECTANGULAR is not supported"):
+    with pytest.raises(InputError, match=r"camera_model EQUIRECTANGULAR \(a panorama\) is not supported"):
         load_dataset(tmp_path)
     (tmp_path / "transforms.json").write_text(json.dumps({**raw, "k4": 0.01}))
     with pytest.raises(InputError, match="k4=0.01 without is_fisheye"):

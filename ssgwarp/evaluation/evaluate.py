@@ -469,7 +469,8 @@ def run(args: argparse.Namespace) -> int:
     path = args.table or default_table_path(runs)
     force = bool(getattr(args, "force", False))
     claims = [claim_evaluation(info, force) for info in infos]     # before any weights are fetched
-    if path.exists() and not force and not any(_inside(path, info.path / "evaluation") for info in infos):
+    if path.exists() and not force and not any(path.resolve().is_relative_to((info.path / "evaluation").resolve())
+                                                     for info in infos):
         raise SsgwarpError(f"--table {path}: exists; pass --force to overwrite it")
     device = args.device
     extractor, raft, lpips, skipped = load_models(opts, device)
@@ -502,14 +503,6 @@ def claim_evaluation(info: Run, force: bool):
         raise SsgwarpError(f"{info.path} already holds an evaluation (the 'evaluation' entry of metrics.json); "
                            f"pass --force to overwrite it")
     return claim(info.path, ["evaluation"], force=force, what="an evaluation", resumable=False)
-
-
-def _inside(p: Path, folder: Path) -> bool:
-    try:
-        p.resolve().relative_to(folder.resolve())
-        return True
-    except ValueError:
-        return False
 
 
 def style_line(sc: dict) -> str:
