@@ -261,7 +261,8 @@ def _stage_stylize(d: _Demo, resume: bool) -> dict:
     d.header(4, "stylize", "key views -> Stage 1 (diffusion + CVSA) -> Stage 2 (instance-level style transfer)")
     if not stage1_runs:
         d.say(f"      Stage 1 will be skipped: no local weights for {', '.join(missing)} "
-              f"(`ssgwarp weights --download stage1` fetches them); Stage 2 then matches the style image directly")
+              f"(`ssgwarp weights --download stage1` fetches them); Stage 2 then matches each group against its "
+              f"own region of the style image")
     if d.todo("stylize"):
         t0 = time.perf_counter()
         opts = StylizeOptions(keyviews=sz.keyviews, max_side=512 if stage1_runs else sz.max_side,

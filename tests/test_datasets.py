@@ -599,3 +599,18 @@ def test_nerfstudio_masks_are_loaded_undistorted_and_resized_with_their_images(t
     write_image(tmp_path / "masks" / f"{Path(images[1].name).stem}.png", np.ones((5, 5, 1), np.float32))
     with pytest.raises(InputError, match=r"mask size 5x5 differs from its image's \(32x24\)$"):
         load_dataset(tmp_path, format="transforms")
+
+
+def test_no_image_loading_bar_without_progress(tmp_path, capsys):
+    """`load_dataset(progress=False)` (what `reconstruct --quiet` passes) shows no image-loading bar; with
+    progress a capture of 16 or more images shows one."""
+    from ssgwarp.procedural import ring_cameras, write_transforms_dataset
+
+    cams = ring_cameras(16, 12, 9)
+    g = torch.Generator().manual_seed(0)
+    write_transforms_dataset(tmp_path / "cap", torch.rand(16, 9, 12, 3, generator=g), cams)
+    capsys.readouterr()
+    load_dataset(tmp_path / "cap", init="random", num_random_points=10, progress=False)
+    assert "loading images" not in capsys.readouterr().err
+    load_dataset(tmp_path / "cap", init="random", num_random_points=10, progress=True)
+    assert "loading images" in capsys.readouterr().err

@@ -179,7 +179,7 @@ def test_missing_weights_message(tmp_path, capsys, monkeypatch):
     cfg = Stage1Config(progress=False)
     assert stylize_keyviews(kv, torch.rand(8, 8, 3, generator=torch.Generator().manual_seed(0)), cfg, "cpu") is None
     err = capsys.readouterr().err
-    assert "Stage 1 skipped" in err and "Stage 2 will match against the style image globally" in err
+    assert "Stage 1 skipped" in err and "Stage 2 will match against the style image itself" in err
     for key in ("sd15", "controlnet_depth", "ip_adapter", "image_encoder"):   # short: each model and its fetch
         assert f"ssgwarp weights --download {key}" in err, key
     from ssgwarp.services import weights as W

@@ -298,7 +298,7 @@ def load_dataset(path: str | Path, images: str = "images", split_every: int = 8,
         format: force ``"colmap"``, ``"llff"`` or ``"transforms"`` instead of detecting.
         init: initial points: ``"auto"``, ``"triangulate"``, ``"random"``, ``"capture"`` or a ``.ply`` path
             (module docstring).
-        progress: progress bars (triangulation).
+        progress: progress bars (image loading, triangulation).
     """
     root = _as_path(path)
     fmt = format or detect_format(root)
@@ -311,7 +311,7 @@ def load_dataset(path: str | Path, images: str = "images", split_every: int = 8,
         raise InputError(f"background must be 3 numbers (RGB), got {background!r}")
     init = check_init(init)
     d = LOADERS[fmt](root, images=images, max_images=max_images, width=width, background=bg,
-                      num_random_points=int(num_random_points), seed=seed)
+                      num_random_points=int(num_random_points), seed=seed, progress=progress)
     test_mask = d.pop("test_mask", None)
     train, test = _split(len(d["names"]), split_every, test_mask)
     _initial_points(d, init, fmt, int(num_random_points), seed, progress, train)

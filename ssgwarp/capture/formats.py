@@ -70,7 +70,7 @@ def _evenly(n: int, k: Optional[int]) -> list[int]:
 
 
 def _load_images(paths: Sequence[Path], background, width: Optional[int],
-                 intrinsics: Callable, mask_paths: Optional[Sequence[Path]] = None
+                 intrinsics: Callable, mask_paths: Optional[Sequence[Path]] = None, progress: bool = True
                  ) -> tuple[torch.Tensor, torch.Tensor, Optional[dict]]:
     """Read, composite RGBA, remove lens distortion and resize, one image at a time.
 
@@ -89,7 +89,7 @@ def _load_images(paths: Sequence[Path], background, width: Optional[int],
     size0 = plan = Ks = None
     h = w = hu = wu = 0
     bg = np.asarray(background, dtype=np.float32).reshape(1, 1, 3)
-    it = tqdm(paths, desc="loading images", unit="img", leave=False, disable=len(paths) < 16)
+    it = tqdm(paths, desc="loading images", unit="img", leave=False, disable=not progress or len(paths) < 16)
     for i, p in enumerate(it):
         img = read_image(p)
         if img.shape[2] == 1 or img.shape[2] == 2:
@@ -206,7 +206,7 @@ def focus_point(cameras: Cameras) -> torch.Tensor:
 
 
 # ----------------------------------------------------------------------------- formats
-def _load_colmap(root: Path, images: str, max_images, width, background, **_):
+def _load_colmap(root: Path, images: str, max_images, width, background, progress=True, **_):
     model = read_model(find_model(root))
     if not model.images:
         raise InputError(f"{model.path}: the COLMAP model has no registered images")
@@ -231,7 +231,7 @@ def _load_colmap(root: Path, images: str, max_images, width, background, **_):
             Ks.append(K)
         return np.stack(Ks), [c.lens for c in cam_of], [f"{cam_file}: camera {c.id}" for c in cam_of]
 
-    imgs, Ks, undist = _load_images(paths, background, width, intrinsics)
+    imgs, Ks, undist = _load_images(paths, background, width, intrinsics, progress=progress)
     viewmats = np.stack([im.viewmat for im in ims])
     names = [str(p.relative_to(folder)) for p in paths]
     cams = Cameras(torch.from_numpy(viewmats).float(), Ks.float(), imgs.shape[2], imgs.shape[1], names)
@@ -246,7 +246,7 @@ def _load_colmap(root: Path, images: str, max_images, width, background, **_):
                 image_dir=folder.name, undistortion=undist)
 
 
-def _load_llff(root: Path, images: str, max_images, width, background, num_random_points, seed, **_):
+def _load_llff(root: Path, images: str, max_images, width, background, num_random_points, seed, progress=True, **_):
     pb_path = root / "poses_bounds.npy"
     try:
         pb = np.load(pb_path, allow_pickle=False)
@@ -292,7 +292,8 @@ def _load_llff(root: Path, images: str, max_images, width, background, num_rando
         Ks[:, 2, 2] = 1.0
         return Ks, [lens] * len(files), [label] * len(files)
 
-    imgs, Ks, undist = _load_images([folder / f for f in files], background, width, intrinsics)
+    imgs, Ks, undist = _load_images([folder / f for f in files], background, width, intrinsics,
+                                     progress=progress)
     # [down, right, back] -> [right, down, forward]
     c2w = np.concatenate([poses[:, :, 1:2], poses[:, :, 0:1], -poses[:, :, 2:3], poses[:, :, 3:4]], axis=2)
     viewmats = _viewmats_from_c2w(c2w)
@@ -380,7 +381,8 @@ def _applied_transform(meta: dict, where: str) -> Optional[list]:
     return m[:3, :4].tolist()
 
 
-def _load_transforms(root: Path, images: str, max_images, width, background, num_random_points, seed, **_):
+def _load_transforms(root: Path, images: str, max_images, width, background, num_random_points, seed, progress=True,
+                     **_):
     if (root / "transforms.json").is_file():
         sources = [(root / "transforms.json", False)]
     else:
@@ -447,7 +449,7 @@ def _load_transforms(root: Path, images: str, max_images, width, background, num
             Ks.append([[fx * sx, 0.0, cx * sx], [0.0, fy * sy, cy * sy], [0.0, 0.0, 1.0]])
         return np.array(Ks), [c[2] for c in cams_meta], [c[1] for c in cams_meta]
 
-    imgs, Ks, undist = _load_images(paths, background, width, intrinsics, mask_paths)
+    imgs, Ks, undist = _load_images(paths, background, width, intrinsics, mask_paths, progress=progress)
     masks = None
     if mask_paths is not None:  # (the masks travel as a 4th channel through undistortion and resizing)
         imgs, masks = imgs[..., :3].contiguous(), (imgs[..., 3] >= 0.5).float()

@@ -292,7 +292,7 @@ def stylize_keyviews(keyviews, style_image, cfg: Stage1Config, device, models: O
         try:
             models = load_stage1(cfg, device)
         except WeightsNotFound as e:
-            print(f"ssgwarp: Stage 1 skipped: {e}. Stage 2 will match against the style image globally "
+            print(f"ssgwarp: Stage 1 skipped: {e}. Stage 2 will match against the style image itself "
                   "(no stylized key views).", file=sys.stderr)
             return None
     return stylize_views(models, keyviews.rgb, keyviews.depth, style_image, cfg, alpha=keyviews.alpha)
