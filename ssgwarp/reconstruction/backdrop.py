@@ -36,6 +36,7 @@ from typing import Optional
 import torch
 
 from ..capture.datasets import focus_point, random_points_in_frusta
+from ..core.geometry import project
 from ..errors import InputError
 
 log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
@@ -108,12 +109,8 @@ def image_coverage(cameras, xyz: torch.Tensor, ids, grid: int = GRID, max_points
         xyz = xyz[torch.randperm(len(xyz), generator=torch.Generator().manual_seed(0))[:max_points]]
     fr = []
     for j, i in enumerate(ids):
-        V = cameras.viewmats[i].double().cpu()
-        K = cameras.Ks[i].double().cpu()
-        p = xyz @ V[:3, :3].T + V[:3, 3]
-        p = p[p[:, 2] > 1e-9]
-        u = K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2]
-        v = K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]
+        uv, z = project(xyz, cameras.viewmats[i].double().cpu(), cameras.Ks[i].double().cpu())
+        u, v = uv[z > 1e-9].unbind(-1)
         ok = (u >= 0) & (u < cameras.width) & (v >= 0) & (v < cameras.height)
         cu = (u[ok] / cameras.width * grid).long().clamp(0, grid - 1)
         cv = (v[ok] / cameras.height * grid).long().clamp(0, grid - 1)
@@ -238,15 +235,12 @@ def _shell(cams, images: torch.Tensor, center: torch.Tensor, radius: float, n: i
     pts = center + radius * dirs
     best = torch.full((n,), -2.0, dtype=torch.float64)
     rgb = torch.zeros(n, 3)
+    centres = cams.centers.double()
     for j in range(len(cams)):
-        V = cams.viewmats[j].double()
-        K = cams.Ks[j].double()
-        p = pts @ V[:3, :3].T + V[:3, 3]
-        z = p[:, 2].clamp_min(1e-12)
-        u = K[0, 0] * p[:, 0] / z + K[0, 2]
-        v = K[1, 1] * p[:, 1] / z + K[1, 2]
-        cos = p[:, 2] / p.norm(dim=1)
-        ok = (p[:, 2] > 0) & (u >= 0) & (u < cams.width) & (v >= 0) & (v < cams.height) & (cos > best)
+        uv, z = project(pts, cams.viewmats[j].double(), cams.Ks[j].double())
+        u, v = uv.unbind(-1)
+        cos = z / (pts - centres[j]).norm(dim=1)
+        ok = (z > 0) & (u >= 0) & (u < cams.width) & (v >= 0) & (v < cams.height) & (cos > best)
         if bool(ok.any()):
             best[ok] = cos[ok]
             rgb[ok] = images[j, v[ok].long().clamp(max=cams.height - 1), u[ok].long().clamp(max=cams.width - 1)]

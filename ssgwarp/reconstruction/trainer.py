@@ -557,12 +557,10 @@ class Trainer:
         for i in ids:
             pred = self.render([i])
             gt = self.data.images[i][None]
-            p = float(psnr(pred, gt))
-            if self.data.masks is not None:  # the scene's pixels: PSNR of their mean error, the rest 0 in both
-                pred, gt = _masked(pred, gt, self.data.masks[i][None])
-                p = -10.0 * math.log10(max(float(((pred - gt) ** 2).sum()) / max(1.0, 3.0 * float(
-                    self.data.masks[i].sum())), 1e-20))
-            row = {"name": self.data.names[i], "psnr": p, "ssim": float(ssim(pred, gt))}
+            mask = None if self.data.masks is None else self.data.masks[i][None]
+            if mask is not None:  # the scene's pixels: PSNR of their mean error, the rest 0 in both (for SSIM)
+                pred, gt = _masked(pred, gt, mask)
+            row = {"name": self.data.names[i], "psnr": float(psnr(pred, gt, mask)), "ssim": float(ssim(pred, gt))}
             if lpips is not None:
                 row["lpips"] = float(lpips(pred.permute(0, 3, 1, 2), gt.permute(0, 3, 1, 2)).mean())
             per.append(row)

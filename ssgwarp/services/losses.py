@@ -5,6 +5,8 @@ unless said otherwise.
 """
 from __future__ import annotations
 
+from typing import Optional
+
 import torch
 
 
@@ -83,9 +85,14 @@ def photometric(a: torch.Tensor, b: torch.Tensor, lambda_dssim: float = 0.2,
     return (1.0 - lambda_dssim) * l1(a, b) + (lambda_dssim * dssim_scale) * dssim(a, b)
 
 
-def psnr(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """PSNR in dB of images in [0, 1]."""
-    mse = torch.mean((a - b) ** 2)
+def psnr(a: torch.Tensor, b: torch.Tensor, mask: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """PSNR in dB of images ``[..., H, W, C]`` in [0, 1]; with ``mask [..., H, W]`` (1: counts) over the masked
+    pixels only (their mean squared error)."""
+    if mask is None:
+        mse = torch.mean((a - b) ** 2)
+    else:
+        m = mask[..., None].to(a.dtype)
+        mse = ((a - b) ** 2 * m).sum() / (m.sum() * a.shape[-1]).clamp_min(1.0)
     return -10.0 * torch.log10(mse.clamp_min(1e-20))
 
 
