@@ -73,6 +73,20 @@ def load(scene: str, width, work: Path, points: int, device="cpu", init="auto"):
     return load_dataset(scene, width=width, num_random_points=points, init=init, progress=False)
 
 
+def save_renders(path: Path, tr: Trainer, data) -> None:
+    """Ground truth (top row) over render (bottom row) of up to three held-out views, side by side."""
+    from ssgwarp.core.fileio import write_image
+
+    ids = list(data.test_ids)[:3]
+    if not ids:
+        return
+    pred = tr.render(ids).cpu()
+    gt = torch.stack([data.images[i] for i in ids]).cpu()
+    sheet = torch.cat([torch.cat(list(gt), dim=1), torch.cat(list(pred), dim=1)], dim=0)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_image(path, sheet)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", nargs="+", required=True)
@@ -80,6 +94,8 @@ def main(argv=None) -> int:
     ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "ssgwarp_backdrop")
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--random-points", type=int, default=100_000, help="random initial points (default 100000)")
+    ap.add_argument("--renders", type=Path, default=None,
+                    help="write one PNG per run: held-out views (up to 3), ground truth above, render below")
     args = ap.parse_args(argv)
     machine = torch.cuda.get_device_name(0) if args.device.startswith("cuda") else platform.processor() or "cpu"
     print("| capture | initial points | backdrop | steps | PSNR | Gaussians | load (s) | train (s) | machine |")
@@ -107,6 +123,8 @@ def main(argv=None) -> int:
         print(f"| {scene} {data.width}px | {row['points_count']} {data.points_source} ({init}) | {mode} ({used}) | "
               f"{iters} | {ev['psnr']:.2f} | {tr.num_gaussians} | {load_seconds:.0f} | {tr.elapsed:.0f} | {machine} |",
               flush=True)
+        if args.renders:
+            save_renders(args.renders / f"{spec.replace(':', '_')}.png", tr, data)
         if args.out:
             args.out.parent.mkdir(parents=True, exist_ok=True)
             with open(args.out, "a") as f:
