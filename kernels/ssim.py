@@ -7,19 +7,20 @@ images narrower than the window reflect again and again, as numpy's ``pad(mode="
 
 Forward, two passes over the ``N = V H W C`` pixel-channels, each thread one of them:
 
-- :func:`rows_kernel`: the five moments ``x, y, x^2, y^2, x y`` blurred along the rows.
+- :func:`rows_kernel`: the five moments ``x', y', x'^2, y'^2, x' y'`` blurred along the rows, of
+  ``x' = x - SHIFT``, ``y' = y - SHIFT`` (:data:`SHIFT`: why).
 - :func:`cols_kernel`: blurred along the columns, the per-pixel SSIM and its partial derivatives
   (:func:`ssim_funcs`, written once), and the loss: the sum over pixels of
   ``w_l1 |x - y| + w_ssim S`` (weights already divided by ``N``) plus ``w_0`` (added by pixel 0),
   accumulated in float64 (a block sum and one atomic add per block on CUDA, a plain sum per launch
   on the CPU). Where a backward follows, the partials are stored per pixel-channel:
-  ``(dS/dmu_x, dS/ds_xx, dS/ds_xy[, dS/dmu_y])`` (``dS/ds_yy = dS/ds_xx``).
+  ``(dS/dmu'_x, dS/ds'_xx, dS/ds'_xy[, dS/dmu'_y])`` (``dS/ds'_yy = dS/ds'_xx``).
 
 Backward: the loss reaches pixel ``q`` of ``x`` through the blurred moments of every pixel whose
 window covers it, so with ``G^T`` the adjoint of the blur (:func:`cols_adjoint_kernel` along the
 columns, then :func:`rows_adjoint_kernel` along the rows, the latter also finishing)::
 
-    dL/dx(q) = g [ (G^T dS/dmu_x)(q) + 2 x(q) (G^T dS/ds_xx)(q) + y(q) (G^T dS/ds_xy)(q) ]
+    dL/dx(q) = g [ (G^T dS/dmu'_x)(q) + 2 x'(q) (G^T dS/ds'_xx)(q) + y'(q) (G^T dS/ds'_xy)(q) ]
                + g_l1 sign(x(q) - y(q))
 
 (``y``: the same with the roles swapped), ``g`` and ``g_l1`` the loss's weights times the
@@ -41,6 +42,10 @@ from .types import types_for
 C1 = 0.01 ** 2  # SSIM's stabilisers for images in [0, 1] (K1 = 0.01, K2 = 0.03)
 C2 = 0.03 ** 2
 EPS = 1e-12     # added to the denominator (as kornia and ssgwarp.services.losses.ssim_map add it)
+# the moments are those of x - SHIFT and y - SHIFT (variances and covariance do not change): for images
+# in [0, 1] their squares are at most 1/4 instead of 1, so the variances' cancellation (a raw second
+# moment minus a squared mean, exact 0 for a flat region) keeps more of float32's bits
+SHIFT = 0.5
 BLOCK = 256     # CUDA threads per block of the loss kernel (the block sum needs whole blocks)
 
 
@@ -98,33 +103,31 @@ def block_sum_add(v: wp.float64, out: wp.array(dtype=wp.float64)):
 
 @functools.lru_cache(maxsize=None)
 def ssim_funcs(scalar):
-    """``ssim_pixel(m) -> (S, partials)`` for the five blurred moments ``m = (mu_x, mu_y, s_xx,
-    s_yy, s_xy)`` (raw second moments): ``S = (2 mu_x mu_y + C1)(2 cov + C2) / ((mu_x^2 + mu_y^2 +
-    C1)(var_x + var_y + C2) + EPS)`` and ``partials = (dS/dmu_x, dS/ds_xx, dS/ds_xy, dS/dmu_y)``
-    (``dS/ds_yy = dS/ds_xx``). The forward's loss and the backward's gradient both come from it."""
+    """``ssim_pixel(m) -> (S, partials)`` for the five blurred moments ``m`` of ``x - SHIFT`` and
+    ``y - SHIFT`` (first and raw second: ``m = (mu'_x, mu'_y, s'_xx, s'_yy, s'_xy)``): means
+    ``mu = mu' + SHIFT``, variances ``s'_xx - mu'_x^2`` (shift-free), ``S = (2 mu_x mu_y + C1)(2 cov +
+    C2) / ((mu_x^2 + mu_y^2 + C1)(var_x + var_y + C2) + EPS)``, and ``partials = (dS/dmu'_x,
+    dS/ds'_xx, dS/ds'_xy, dS/dmu'_y)`` (``dS/ds'_yy = dS/ds'_xx``). The forward's loss and the
+    backward's gradient both come from it."""
     vec4 = types_for(scalar).vec4
     vec5 = wp.types.vector(5, scalar)
 
     @wp.func
     def ssim_pixel(m: vec5):
-        mu_x = m[0]
-        mu_y = m[1]
-        mu_xy = mu_x * mu_y
-        mu_xx = mu_x * mu_x
-        mu_yy = mu_y * mu_y
+        mu_x = m[0] + scalar(SHIFT)
+        mu_y = m[1] + scalar(SHIFT)
         two = scalar(2.0)
-        a1 = two * mu_xy + scalar(C1)
-        a2 = two * (m[4] - mu_xy) + scalar(C2)
-        b1 = mu_xx + mu_yy + scalar(C1)
-        b2 = (m[2] - mu_xx) + (m[3] - mu_yy) + scalar(C2)
+        a1 = two * mu_x * mu_y + scalar(C1)
+        a2 = two * (m[4] - m[0] * m[1]) + scalar(C2)
+        b1 = mu_x * mu_x + mu_y * mu_y + scalar(C1)
+        b2 = (m[2] - m[0] * m[0]) + (m[3] - m[1] * m[1]) + scalar(C2)
         den = b1 * b2 + scalar(EPS)
         s = a1 * a2 / den
         inv = scalar(1.0) / den
-        # S = a1 a2 / den: through a1, a2 (the means and the covariance) and b1, b2 (den)
-        da = a2 - a1
-        db = s * (b2 - b1)
-        partials = vec4(two * (mu_y * da - mu_x * db) * inv, -(s * b1 * inv), two * a1 * inv,
-                        two * (mu_x * da - mu_y * db) * inv)
+        # S = a1 a2 / den; mu'_x reaches it through mu_x (a1, b1) and through var_x (b2) and cov (a2)
+        sb1 = s * b1
+        partials = vec4(two * (mu_y * a2 - s * mu_x * b2 + m[0] * sb1 - m[1] * a1) * inv, -(sb1 * inv),
+                        two * a1 * inv, two * (mu_x * a2 - s * mu_y * b2 + m[1] * sb1 - m[0] * a1) * inv)
         return s, partials
 
     return ssim_pixel
@@ -155,8 +158,8 @@ def rows_kernel(scalar, radius: int):
         acc = vec5()
         for k in range(wp.static(2 * radius + 1)):
             xx = reflect(x + k - radius, W)
-            p = a[v, y, xx, c]
-            q = b[v, y, xx, c]
+            p = a[v, y, xx, c] - scalar(SHIFT)
+            q = b[v, y, xx, c] - scalar(SHIFT)
             acc = acc + window[k] * vec5(p, q, p * p, q * q, p * q)
         moments[i] = acc
 
@@ -286,8 +289,8 @@ def rows_adjoint_kernel(scalar, radius: int, both: bool):
         C = a.shape[3]
         v, y, x, c = unflatten(i, a.shape[1], W, C)
         T = adjoint_gather(t, window, i - x * C, C, x, W)
-        p = a[v, y, x, c]
-        q = b[v, y, x, c]
+        p = a[v, y, x, c] - scalar(SHIFT)
+        q = b[v, y, x, c] - scalar(SHIFT)
         zero = scalar(0.0)
         sign = wp.where(p > q, scalar(1.0), wp.where(p < q, scalar(-1.0), zero))  # (torch's: 0 at 0)
         go = grad_out[0]
