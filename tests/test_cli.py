@@ -311,7 +311,7 @@ def test_nan_in_reconstruct_is_reported_with_the_step_and_keeps_the_checkpoint(w
                                                                                  monkeypatch, fail_on_call):
     import ssgwarp.services.losses as L
 
-    orig = fail_on_call(L, "l1", 13, "nan")
+    orig = fail_on_call(L, "photometric_warp", 13, "nan")  # (the loss: fused by default)
     out = tmp_path / "run"
     argv = ["reconstruct", world.cap, "--out", out, "--iters", "20", "--sh-degree", "0", "--checkpoint-every", "5",
             "--no-progress", *FAST]
@@ -319,7 +319,7 @@ def test_nan_in_reconstruct_is_reported_with_the_step_and_keeps_the_checkpoint(w
     assert sorted(p.name for p in out.iterdir()) == ["checkpoint.pt"]          # no scene.ply or metrics
     ck = torch.load(out / "checkpoint.pt", weights_only=False)
     assert ck["step"] == 10 and all(bool(torch.isfinite(v).all()) for v in ck["params"].values())
-    monkeypatch.setattr(L, "l1", orig)
+    monkeypatch.setattr(L, "photometric_warp", orig)
     assert main([str(a) for a in argv + ["--resume"]]) == 0                  # continues from step 10
     assert json.loads((out / "metrics.json").read_text())["iters"] == 20
 

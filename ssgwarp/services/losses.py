@@ -9,6 +9,11 @@ from typing import Optional
 
 import torch
 
+try:  # the fused loss's Warp kernels; without warp-lang (or ssgwarp.kernels) the torch reference alone
+    from ..raster.ssim_ops import photometric_warp
+except ImportError:  # pragma: no cover - warp-lang or ssgwarp.kernels missing
+    photometric_warp = None
+
 
 def _nchw(img: torch.Tensor) -> torch.Tensor:
     return img.permute(0, 3, 1, 2) if img.ndim == 4 else img.permute(2, 0, 1)[None]
@@ -18,13 +23,33 @@ SSIM_SIGMA = 1.5  # the Gaussian window's standard deviation (Wang et al. 2004; 
 _WINDOWS: dict = {}  # (size, device, dtype) -> normalised 1-D Gaussian window (constants, made once)
 
 
-def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11) -> torch.Tensor:
+def _fused(fused: Optional[bool], a: torch.Tensor, b: torch.Tensor) -> bool:
+    """Whether the Warp kernels compute a loss: ``fused`` True (an error where they cannot), False
+    (the torch reference), None: where they can (float32/float64 images on the CPU or CUDA)."""
+    if fused is False:
+        return False
+    ok = (photometric_warp is not None and a.dtype in (torch.float32, torch.float64) and a.dtype == b.dtype
+          and a.device.type in ("cpu", "cuda"))
+    if fused and not ok:
+        why = ("warp-lang (or ssgwarp.kernels) is not installed" if photometric_warp is None else
+               f"{a.dtype}/{b.dtype} images on {a.device} (float32 or float64 on the CPU or CUDA)")
+        raise ValueError(f"the fused loss cannot run: {why}; pass fused=False for the torch reference")
+    return ok
+
+
+def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, fused: Optional[bool] = None) -> torch.Tensor:
     """Mean SSIM of two ``[B, H, W, C]`` (or ``[H, W, C]``) images in [0, 1] (Gaussian window 11,
-    sigma 1.5, reflected borders). CUDA images: :func:`ssim_map` (the window made once per device,
-    the five local moments filtered together, no host-device synchronisation); other devices:
-    kornia's ``ssim``, the same map (its fused CPU path)."""
+    sigma 1.5, reflected borders). ``fused`` (default where it can run): the Warp kernels of
+    :func:`photometric`'s fused form, in float64 whatever the images' precision (a metric: float32's
+    rounding of the variances in flat regions moves SSIM by up to ~2e-5), the result in the images'
+    dtype. Else, CUDA images and images narrower than the window's half: :func:`ssim_map` (the
+    window made once per device, the five local moments filtered together, no host-device
+    synchronisation); other devices: kornia's ``ssim``, the same map (its fused CPU path)."""
+    if _fused(fused, a, b):
+        w = gaussian_window(window, a.device, torch.float64)
+        return photometric_warp(a.double(), b.double(), 0.0, 1.0, 0.0, w).to(a.dtype)
     x, y = _nchw(a), _nchw(b)
-    if x.is_cuda:
+    if x.is_cuda or min(x.shape[-2:]) <= window // 2:
         return ssim_map(x, y, window).mean()
     import kornia
 
@@ -57,7 +82,11 @@ def ssim_map(x: torch.Tensor, y: torch.Tensor, window: int = 11, eps: float = 1e
     w = gaussian_window(window, x.device, dt)
     p = window // 2
     stack = torch.cat([x, y, x * x, y * y, x * y], dim=1)
-    stack = torch.nn.functional.pad(stack, (p, p, p, p), mode="reflect")
+    if min(x.shape[-2:]) > p:
+        stack = torch.nn.functional.pad(stack, (p, p, p, p), mode="reflect")
+    else:  # narrower than the padding (torch's reflect pad refuses): reflected again and again, as numpy's
+        rows, cols = _reflected(x.shape[-2], p, x.device), _reflected(x.shape[-1], p, x.device)
+        stack = stack.index_select(2, rows).index_select(3, cols)
     n = 5 * c
     stack = torch.nn.functional.conv2d(stack, w.view(1, 1, 1, window).expand(n, 1, 1, window), groups=n)
     stack = torch.nn.functional.conv2d(stack, w.view(1, 1, window, 1).expand(n, 1, window, 1), groups=n)
@@ -70,19 +99,36 @@ def ssim_map(x: torch.Tensor, y: torch.Tensor, window: int = 11, eps: float = 1e
     return num / (den + eps)
 
 
-def dssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+def _reflected(n: int, p: int, device) -> torch.Tensor:
+    """The indices ``-p .. n - 1 + p`` of a line of ``n`` reflected into it (numpy's ``reflect``:
+    period ``2 (n - 1)``; all 0 for ``n = 1``)."""
+    j = torch.arange(-p, n + p, device=device)
+    if n == 1:
+        return torch.zeros_like(j)
+    r = j.remainder(2 * (n - 1))
+    return torch.where(r < n, r, 2 * (n - 1) - r)
+
+
+def dssim(a: torch.Tensor, b: torch.Tensor, fused: Optional[bool] = None) -> torch.Tensor:
     """The D-SSIM term of the 3DGS loss: ``1 - SSIM`` (0 for equal images, up to 2)."""
-    return 1.0 - ssim(a, b)
+    return 1.0 - ssim(a, b, fused=fused)
 
 
 def photometric(a: torch.Tensor, b: torch.Tensor, lambda_dssim: float = 0.2,
-                dssim_scale: float = 1.0) -> torch.Tensor:
-    """The 3DGS photometric loss ``(1 - lambda) L1 + lambda (1 - SSIM)`` (Kerbl et al. 2023, lambda 0.2).
+                dssim_scale: float = 1.0, fused: Optional[bool] = None) -> torch.Tensor:
+    """The 3DGS photometric loss ``(1 - lambda) L1 + lambda (1 - SSIM)`` (Kerbl et al. 2023, lambda 0.2)
+    of images ``[V, H, W, C]`` (the mean over views) or ``[H, W, C]``.
 
     ``dssim_scale`` multiplies the D-SSIM term: 0.5 reproduces the loss ssgwarp trained with before
-    (``(1 - SSIM) / 2``), for comparisons only.
+    (``(1 - SSIM) / 2``), for comparisons only. ``fused`` (None: wherever it can run, float32/float64
+    images on the CPU or CUDA; True: an error where it cannot; False: the torch reference, the spec):
+    the Warp kernels of ``ssgwarp.raster.ssim_ops``, two launches forward and two backward instead of
+    about 20 torch kernels each way, the same value and gradient to rounding (tests/test_fused_loss.py).
     """
-    return (1.0 - lambda_dssim) * l1(a, b) + (lambda_dssim * dssim_scale) * dssim(a, b)
+    w_l1, w_dssim = 1.0 - lambda_dssim, lambda_dssim * dssim_scale
+    if _fused(fused, a, b):
+        return photometric_warp(a, b, w_l1, -w_dssim, w_dssim, gaussian_window(11, a.device, a.dtype))
+    return w_l1 * l1(a, b) + w_dssim * dssim(a, b, fused=False)
 
 
 def psnr(a: torch.Tensor, b: torch.Tensor, mask: Optional[torch.Tensor] = None) -> torch.Tensor:
