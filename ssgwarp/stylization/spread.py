@@ -58,3 +58,81 @@ def empty_loss(image: torch.Tensor, original: torch.Tensor, alpha: torch.Tensor)
     become coloured floaters; ~0 on a capture that fills the frame."""
     empty = 1 - alpha.to(image).clamp(0, 1)
     return (empty[..., None] * (image - original.to(image)) ** 2).mean() / empty.mean().clamp_min(0.01)
+
+
+class ViewPairs:
+    """Stage 2's view-pair term (``--consistency-weight``): a training view's render against its neighbours'.
+
+    Stage 2 changes colours only, so the geometry of every training view (expected depth, opacity) is fixed:
+    it is rendered once (:meth:`build`). At a step on view ``v`` a neighbour ``u`` (one of the ``neighbours``
+    training cameras nearest to ``v``'s centre, chosen by the step) is rendered with the current colours
+    and without gradient, warped into ``v`` by exact reprojection through the depths
+    (:func:`ssgwarp.evaluation.metrics.reprojection_warp`: the pixels both views see, opaque, not occluded;
+    the warp ``ssgwarp evaluate`` scores consistency with), and
+
+        pair = mean_mask |I_v - warp(I_u)|^2 / mean over the pairs of the unstylized scene's
+
+    pulls ``v``'s pixels towards what ``u`` shows of the same surface. Texture that the geometry carries
+    from view to view costs little; texture painted into one view's blend of Gaussians, at occlusion
+    edges or on fuzzy surfaces, costs in proportion to its contrast. Normalised by the unstylized scene's
+    own error, so the weight means the same on every scene (1: an error twice the scene's adds about as
+    much as ``1`` to the loss).
+    """
+
+    def __init__(self, cameras: Cameras, depths: torch.Tensor, alphas: torch.Tensor, neighbours: list[list[int]],
+                 reference: float, seed: int = 0) -> None:
+        self.cameras, self.depths, self.alphas = cameras, depths, alphas
+        self.neighbours, self.reference, self.seed = neighbours, float(reference), int(seed)
+
+    @staticmethod
+    def nearest(cameras: Cameras, k: int) -> list[list[int]]:
+        """For each camera the ``k`` other cameras whose centres are nearest (fewer when there are fewer)."""
+        c = cameras.centers.double()
+        d = torch.cdist(c, c)
+        d.fill_diagonal_(float("inf"))
+        k = min(int(k), len(cameras) - 1)
+        return [d[i].argsort()[:k].tolist() for i in range(len(cameras))] if k > 0 else [[] for _ in range(len(cameras))]
+
+    @classmethod
+    @torch.no_grad()
+    def build(cls, scene, cameras: Cameras, neighbours: int = 4, background: Optional[torch.Tensor] = None,
+              seed: int = 0) -> "ViewPairs":
+        """Render the depths and opacities of ``cameras`` once; the reference error is ``scene``'s own."""
+        from ..raster.rendering import render_views
+
+        bg = None if background is None else [float(x) for x in background.reshape(-1)[:3]]
+        views = render_views(scene, cameras, bg)
+        pairs = cls(cameras, views.depth, views.alpha, cls.nearest(cameras, neighbours), 1.0, seed)
+        errs = [pairs.error(views.rgb[v], v, views.rgb[u], u) for v in range(len(cameras))
+                for u in pairs.neighbours[v]]
+        errs = [float(e) for e in errs if e is not None]
+        pairs.reference = max(sum(errs) / len(errs), 1e-8) if errs else 1.0
+        return pairs
+
+    def neighbour(self, view: int, step: int) -> Optional[int]:
+        """The neighbour of ``view`` at ``step`` (a pure function of seed, step and view), None if it has none."""
+        near = self.neighbours[view]
+        if not near:
+            return None
+        g = torch.Generator(device="cpu").manual_seed(self.seed * 1_000_003 + int(step) * 7919 + int(view))
+        return near[int(torch.randint(len(near), (1,), generator=g))]
+
+    def error(self, image: torch.Tensor, view: int, other: torch.Tensor, other_view: int) -> Optional[torch.Tensor]:
+        """``mean_mask |image - warp(other)|^2`` (differentiable in ``image [H, W, 3]``; ``other`` is held);
+        None when the two views share no pixel."""
+        from ..evaluation.metrics import View, reprojection_warp
+
+        cam = self.cameras
+        a = View(other.detach()[..., :3], self.depths[other_view], self.alphas[other_view], cam.viewmats[other_view],
+                 cam.Ks[other_view])
+        b = View(image.detach()[..., :3], self.depths[view], self.alphas[view], cam.viewmats[view], cam.Ks[view])
+        res = reprojection_warp(a, b)
+        if not bool(res.mask.any()):
+            return None
+        m = res.mask.to(image.dtype)[..., None]
+        return (m * (image[..., :3] - res.warped.to(image)) ** 2).sum() / (3 * m.sum())
+
+    def loss(self, image: torch.Tensor, view: int, other: torch.Tensor, other_view: int) -> torch.Tensor:
+        """:meth:`error` relative to the unstylized scene's mean pair error (0 when the views share nothing)."""
+        e = self.error(image, view, other, other_view)
+        return image.new_zeros(()) if e is None else e / self.reference

@@ -67,7 +67,7 @@ from .feature_defaults import (  # noqa: F401  (re-exported: Stage 2's options l
 from ..services.color import describe_transfer, transfer_background, transfer_colors  # noqa: F401  (re-exported)
 from ..services.loop import Diverged, Loop
 from .batches import batch_size_for, batch_views, view_order  # noqa: F401  (view_order re-exported)
-from .spread import SPREAD_CHANNELS, blend_spread, empty_loss, render_with_spread
+from .spread import SPREAD_CHANNELS, ViewPairs, blend_spread, empty_loss, render_with_spread
 from .matching import DEFAULT_CHUNK, MatchTargets, SlicedTargets, downsample_labels
 from ..evaluation.metrics import content_loss
 from ..reconstruction.recipe import batch_factors
@@ -117,6 +117,9 @@ class Stage2Config:
         densify, densify_views: split Gaussians where the style loss wants detail, at most ``densify x N`` new
             ones scored on ``densify_views`` views (0: off; run by ``stylize``, :mod:`ssgwarp.stylization.densify`).
         hold_empty: weight of the term keeping pixels the unstylized scene leaves empty as they were (no floaters).
+        consistency_weight, consistency_neighbours: weight of the view-pair term
+            (:class:`ssgwarp.stylization.spread.ViewPairs`: each step's view against one of its
+            ``consistency_neighbours`` nearest training views, reprojected through the fixed depths; 0: off).
         background: the stylized scene's background colour: ``transfer`` (default) maps the capture's
             background by the same colour transfer as the scene (:func:`ssgwarp.services.color.transfer_background`;
             the optimisation renders over it and the run records it, ``metrics.json`` ``background``), so that
@@ -152,6 +155,8 @@ class Stage2Config:
     densify: float = 0.0
     densify_views: int = 8
     hold_empty: float = 0.0
+    consistency_weight: float = 0.0
+    consistency_neighbours: int = 4
     background: str = "transfer"
     label_mode: str = "majority"
     feature_scale: float = 1.0
@@ -168,12 +173,15 @@ class Stage2Config:
             raise InputError(f"--mode {self.mode}: use one of {', '.join(MODES)}")
         if self.iters < 0:
             raise InputError(f"--iters {self.iters}: must be >= 0")
-        for k in ("lr", "style_weight", "content_weight", "tv_weight", "blend_weight", "densify", "hold_empty"):
+        for k in ("lr", "style_weight", "content_weight", "tv_weight", "blend_weight", "densify", "hold_empty",
+                  "consistency_weight"):
             v = getattr(self, k)
             if v is None and k in ("tv_weight", "blend_weight"):
                 continue
             if not math.isfinite(v) or v < 0:
                 raise InputError(f"--{k.replace('_', '-')} {v}: must be a finite number >= 0")
+        if self.consistency_neighbours < 1:
+            raise InputError(f"--consistency-neighbours {self.consistency_neighbours}: must be >= 1")
         if self.densify_views < 1:
             raise InputError(f"--densify-views {self.densify_views}: must be >= 1")
         if not 0 < self.feature_scale <= 4:
@@ -336,17 +344,22 @@ class ViewLoss:
         view_labels: ``[C, H, W]`` group maps of the training views (None: global).
         originals: ``[C, H, W, 3]`` renders of the unstylized scene (content target).
         alphas: ``[C, H, W]`` their accumulated opacity (the empty-region term, ``cfg.hold_empty``).
+        pairs: the view-pair term's geometry (``cfg.consistency_weight``; :meth:`ViewPairs.build`); the
+            neighbour's current render comes from ``neighbour_render(view) -> [H, W, 3]``, which
+            :func:`optimise` sets.
     """
 
     def __init__(self, extractor, targets: MatchTargets, cfg: Stage2Config,
                  view_labels: Optional[torch.Tensor] = None, originals: Optional[torch.Tensor] = None,
-                 alphas: Optional[torch.Tensor] = None) -> None:
+                 alphas: Optional[torch.Tensor] = None, pairs: Optional[ViewPairs] = None) -> None:
         cfg = resolve_for(cfg, extractor)
         self.extractor, self.targets, self.cfg = extractor, targets, cfg
         self.tv_weight = tv_weight_for(cfg, extractor)
         self.view_labels, self.originals, self.alphas = view_labels, originals, alphas
         if cfg.hold_empty > 0 and (originals is None or alphas is None):
             raise InputError("Stage 2 loss: hold_empty needs the original renders and their alphas")
+        self.pairs: Optional[ViewPairs] = pairs
+        self.neighbour_render: Optional[Callable[[int], torch.Tensor]] = None
         self._labels: dict[int, torch.Tensor] = {}
         self.last: dict[str, float] = {}
 
@@ -378,6 +391,14 @@ class ViewLoss:
         if cfg.hold_empty > 0:
             hold = empty_loss(image, self.originals[view], self.alphas[view])
             total, parts["empty"] = total + cfg.hold_empty * hold, float(hold.detach())
+        if cfg.consistency_weight > 0:
+            if self.pairs is None or self.neighbour_render is None:
+                raise InputError("Stage 2 loss: consistency_weight needs the view pairs (ViewPairs.build) and "
+                                 "the neighbours' renders (set by optimise)")
+            other = self.pairs.neighbour(view, step)
+            if other is not None:
+                pair = self.pairs.loss(image, view, self.neighbour_render(other), other)
+                total, parts["pair"] = total + cfg.consistency_weight * pair, float(pair.detach())
         if self.tv_weight > 0:
             tv = tv_loss(image)
             total = total + self.tv_weight * tv
@@ -516,6 +537,12 @@ def optimise(scene: GaussianScene, cameras: Cameras, cfg: Stage2Config, *,
 
     def render(cam: Cameras) -> torch.Tensor:
         return draw(current(), cam, background, **rk)
+
+    if loss is not None and loss.pairs is not None:
+        def neighbour(view: int) -> torch.Tensor:
+            with torch.no_grad():
+                return render_rgb(current(), loss.pairs.cameras[[view]], background, **rk)[0]
+        loss.neighbour_render = neighbour
 
     def save(step: int) -> None:
         if checkpoint is None or not group.is_main:
