@@ -70,19 +70,19 @@ class ViewPairs:
     (:func:`ssgwarp.evaluation.metrics.reprojection_warp`: the pixels both views see, opaque, not occluded;
     the warp ``ssgwarp evaluate`` scores consistency with), and
 
-        pair = mean_mask |I_v - warp(I_u)|^2 / mean over the pairs of the unstylized scene's
+        pair = max(0, mean_mask |I_v - warp(I_u)|^2 / e0(v, u) - budget)
 
-    pulls ``v``'s pixels towards what ``u`` shows of the same surface. Texture that the geometry carries
-    from view to view costs little; texture painted into one view's blend of Gaussians, at occlusion
-    edges or on fuzzy surfaces, costs in proportion to its contrast. Normalised by the unstylized scene's
-    own error, so the weight means the same on every scene (1: an error twice the scene's adds about as
-    much as ``1`` to the loss).
+    with ``e0`` the same error of the scene Stage 2 starts from: the pair's squared error may grow to
+    ``budget`` times the scene's own (``budget`` 2: an RMSE ratio of about 1.4) before the term pulls ``v``'s
+    pixels towards what ``u`` shows of the same surface. Measured (docs/notes/stylize-history.md): it trades
+    texture for consistency at the same rate as the blend spread; the two are alternatives.
     """
 
     def __init__(self, cameras: Cameras, depths: torch.Tensor, alphas: torch.Tensor, neighbours: list[list[int]],
-                 reference: float, seed: int = 0) -> None:
+                 reference: Optional[dict] = None, budget: float = 0.0, seed: int = 0) -> None:
         self.cameras, self.depths, self.alphas = cameras, depths, alphas
-        self.neighbours, self.reference, self.seed = neighbours, float(reference), int(seed)
+        self.neighbours, self.seed, self.budget = neighbours, int(seed), float(budget)
+        self.reference: dict[tuple[int, int], float] = dict(reference or {})
 
     @staticmethod
     def nearest(cameras: Cameras, k: int) -> list[list[int]]:
@@ -96,17 +96,20 @@ class ViewPairs:
     @classmethod
     @torch.no_grad()
     def build(cls, scene, cameras: Cameras, neighbours: int = 4, background: Optional[torch.Tensor] = None,
-              seed: int = 0) -> "ViewPairs":
-        """Render the depths and opacities of ``cameras`` once; the reference error is ``scene``'s own."""
+              budget: float = 0.0, seed: int = 0) -> "ViewPairs":
+        """Render the depths and opacities of ``cameras`` once; each pair's reference error is ``scene``'s own
+        (at least a quarter of the mean over the pairs, so a pair the scene happens to match exactly does not
+        forbid every change)."""
         from ..raster.rendering import render_views
 
         bg = None if background is None else [float(x) for x in background.reshape(-1)[:3]]
         views = render_views(scene, cameras, bg)
-        pairs = cls(cameras, views.depth, views.alpha, cls.nearest(cameras, neighbours), 1.0, seed)
-        errs = [pairs.error(views.rgb[v], v, views.rgb[u], u) for v in range(len(cameras))
-                for u in pairs.neighbours[v]]
-        errs = [float(e) for e in errs if e is not None]
-        pairs.reference = max(sum(errs) / len(errs), 1e-8) if errs else 1.0
+        pairs = cls(cameras, views.depth, views.alpha, cls.nearest(cameras, neighbours), None, budget, seed)
+        errs = {(v, u): pairs.error(views.rgb[v], v, views.rgb[u], u) for v in range(len(cameras))
+                for u in pairs.neighbours[v]}
+        errs = {k: float(e) for k, e in errs.items() if e is not None}
+        floor = max(sum(errs.values()) / len(errs), 1e-12) * 0.25 if errs else 1e-12
+        pairs.reference = {k: max(e, floor) for k, e in errs.items()}
         return pairs
 
     def neighbour(self, view: int, step: int) -> Optional[int]:
@@ -133,6 +136,8 @@ class ViewPairs:
         return (m * (image[..., :3] - res.warped.to(image)) ** 2).sum() / (3 * m.sum())
 
     def loss(self, image: torch.Tensor, view: int, other: torch.Tensor, other_view: int) -> torch.Tensor:
-        """:meth:`error` relative to the unstylized scene's mean pair error (0 when the views share nothing)."""
-        e = self.error(image, view, other, other_view)
-        return image.new_zeros(()) if e is None else e / self.reference
+        """:meth:`error` relative to the starting scene's error of the pair, less ``budget`` (not below 0);
+        0 when the views share nothing."""
+        ref = self.reference.get((view, other_view))
+        e = None if ref is None else self.error(image, view, other, other_view)
+        return image.new_zeros(()) if e is None else torch.relu(e / ref - self.budget)

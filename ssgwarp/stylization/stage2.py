@@ -157,6 +157,7 @@ class Stage2Config:
     hold_empty: float = 0.0
     consistency_weight: float = 0.0
     consistency_neighbours: int = 4
+    consistency_budget: float = 2.0
     background: str = "transfer"
     label_mode: str = "majority"
     feature_scale: float = 1.0
@@ -180,6 +181,8 @@ class Stage2Config:
                 continue
             if not math.isfinite(v) or v < 0:
                 raise InputError(f"--{k.replace('_', '-')} {v}: must be a finite number >= 0")
+        if not (math.isfinite(self.consistency_budget) and self.consistency_budget >= 0):
+            raise InputError(f"--consistency-budget {self.consistency_budget}: must be a finite number >= 0")
         if self.consistency_neighbours < 1:
             raise InputError(f"--consistency-neighbours {self.consistency_neighbours}: must be >= 1")
         if self.densify_views < 1:
