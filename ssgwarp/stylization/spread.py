@@ -14,15 +14,18 @@ their colour, so the term leaves the texture *between* surfaces free and penalis
 exists in one view's blend. It is rendered in the same rasterizer pass as the image, as extra
 channels (``c``, ``c^2`` and a constant 1, with no background: :func:`render_with_spread`), and
 :func:`blend_spread` turns those channels into the mean spread over the pixels. :func:`empty_loss` is Stage 2's
-other per-pixel term: empty pixels keep the unstylized render (``--hold-empty``).
+other per-pixel term: empty pixels keep the unstylized render (``--hold-empty``). :class:`ViewPairs`
+compares a view with its neighbours warped into it (``--consistency-weight``).
 """
 from __future__ import annotations
 
-from typing import Optional
+import math
+from typing import Callable, Optional
 
 import torch
 
 from ..core.cameras import Cameras
+from ..errors import InputError
 from ..raster import rendering
 
 SPREAD_CHANNELS = 10    # composited RGB (3), sum w c (3), sum w c^2 (3), alpha (1)
@@ -60,6 +63,14 @@ def empty_loss(image: torch.Tensor, original: torch.Tensor, alpha: torch.Tensor)
     return (empty[..., None] * (image - original.to(image)) ** 2).mean() / empty.mean().clamp_min(0.01)
 
 
+def check_pair_options(budget: float, neighbours: int) -> None:
+    """The view-pair term's options: a finite budget >= 0, at least one neighbour."""
+    if not (math.isfinite(budget) and budget >= 0):
+        raise InputError(f"--consistency-budget {budget}: must be a finite number >= 0")
+    if neighbours < 1:
+        raise InputError(f"--consistency-neighbours {neighbours}: must be >= 1")
+
+
 class ViewPairs:
     """Stage 2's view-pair term (``--consistency-weight``): a training view's render against its neighbours'.
 
@@ -83,6 +94,7 @@ class ViewPairs:
         self.cameras, self.depths, self.alphas = cameras, depths, alphas
         self.neighbours, self.seed, self.budget = neighbours, int(seed), float(budget)
         self.reference: dict[tuple[int, int], float] = dict(reference or {})
+        self.render: Optional[Callable[[int], torch.Tensor]] = None   # view -> its current render [H, W, 3]
 
     @staticmethod
     def nearest(cameras: Cameras, k: int) -> list[list[int]]:
@@ -134,6 +146,11 @@ class ViewPairs:
             return None
         m = res.mask.to(image.dtype)[..., None]
         return (m * (image[..., :3] - res.warped.to(image)) ** 2).sum() / (3 * m.sum())
+
+    def term(self, image: torch.Tensor, view: int, step: int) -> torch.Tensor:
+        """:meth:`loss` of ``view``'s ``image`` against the neighbour of ``step``, rendered by :attr:`render`."""
+        other = self.neighbour(view, step)
+        return image.new_zeros(()) if other is None else self.loss(image, view, self.render(other), other)
 
     def loss(self, image: torch.Tensor, view: int, other: torch.Tensor, other_view: int) -> torch.Tensor:
         """:meth:`error` relative to the starting scene's error of the pair, less ``budget`` (not below 0);
