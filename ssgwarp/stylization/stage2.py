@@ -34,8 +34,7 @@ features ``phi`` = the extractor's layers concatenated at the coarsest resolutio
   variance of the colours each pixel mixes (:mod:`ssgwarp.stylization.spread`; the view is then rendered
   with those channels too); empty-region term (``hold_empty``, :func:`ssgwarp.stylization.spread.empty_loss`);
   view-pair term (``consistency_weight``, :class:`ssgwarp.stylization.spread.ViewPairs`: the view against a
-  neighbouring training view warped into it through the fixed depths, beyond ``consistency_budget`` x the
-  starting scene's error).
+  neighbouring view warped into it, beyond ``consistency_budget`` x the starting scene's error).
 
 Only colour is optimised (``sh_dc``); the higher SH bands are zeroed first by default (``sh_rest="zero"``:
 view-independent stylized colour, docs/stylize.md; ``"keep"``, ``"optimise"``; ``free_opacity`` adds opacities);
