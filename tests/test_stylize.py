@@ -352,14 +352,16 @@ def test_cli_stylize_end_to_end_without_stage1_weights(tmp_path, monkeypatch, ca
     assert m2["mode"] == "global" and m2["style_loss"] == "nnfm" and set(m2["color_transfer"]) == {"setting", "against"}
     assert m2["matching"].startswith("global against the style image")     # --mode global: today's behaviour
     # densify: more Gaussians; a resumed run replays the same splits and continues from the checkpoint
-    dense = [*argv, "--force", "--densify", "0.5", "--hold-empty", "1"]
-    assert main(["stylize", *dense]) == 0
+    # (with the view-pair term, built on the densified geometry)
+    extra = ["--densify", "0.5", "--hold-empty", "1", "--consistency-weight", "1"]
+    assert main(["stylize", *argv, "--force", *extra]) == 0
     m3 = json.loads((out / "metrics.json").read_text())
     d = m3["densify"]
     assert d["gaussians_after"] == m3["gaussians"] > d["gaussians_before"] == len(src.means)
-    assert m3["final_losses"]["empty"] >= 0
+    assert m3["final_losses"]["empty"] >= 0 and m3["final_losses"]["pair"] >= 0
+    assert m3["config"]["consistency_weight"] == 1.0
     once = read_ply(out / "scene.ply")
-    assert main(["stylize", *dense[:-5], "--resume", "--densify", "0.5", "--hold-empty", "1", "--iters", "8"]) == 0
+    assert main(["stylize", *argv, "--resume", *extra, "--iters", "8"]) == 0
     again = read_ply(out / "scene.ply")
     assert torch.equal(again.means, once.means) and json.loads((out / "metrics.json").read_text())["gaussians"] == len(once.means)
     # bad input: a missing style image is a one-line error

@@ -5,6 +5,7 @@
 * :func:`batch_size_for`: the batch size over all processes (default one per process; it must
   divide between them);
 * :func:`resumed_batch_size`: the batch size of the Stage 2 checkpoint a ``--resume`` continues;
+  :func:`start_state` loads it into the parameters and Adam (every process takes the main one's);
 * :func:`on_main_for_all`: the main process's key views and Stage 1 output, handed to the others
   (Stage 1 runs once; only the main process writes);
 * :func:`batch_record`: ``metrics.json``'s ``world_size``, ``batch_size``, ``images_seen``, ``batch_scaling``.
@@ -51,6 +52,39 @@ def resumed_batch_size(checkpoint: Path, resume: bool) -> Optional[int]:
         return int(torch.load(checkpoint, map_location="cpu", weights_only=False).get("batch_size", 1))
     except Exception:
         return None   # (unreadable: Stage 2 says so when it loads it)
+
+
+def resume_state(checkpoint: Path, device, names: list[str], n: int, mode: str, batch: int) -> dict:
+    """The Stage 2 checkpoint, checked to be of this run (parameters, scene size, mode) and batch size."""
+    state = torch.load(checkpoint, map_location=device, weights_only=False)
+    if state.get("params_names") != names or state.get("n") != n or state.get("mode") != mode:
+        raise InputError(f"{checkpoint}: checkpoint is from a different run (mode, scene or options); "
+                         f"use --force to start over")
+    b = int(state.get("batch_size", 1))
+    if b != batch:
+        raise InputError(f"{checkpoint}: Stage 2 ran with --batch-size {b}, not {batch}; pass --batch-size {b} "
+                         f"to resume it (with any number of processes dividing it) or --force to start over")
+    return state
+
+
+def start_state(params: dict, opt, checkpoint: Optional[Path], scene, mode: str, batch: int,
+                group) -> tuple[int, list, float]:
+    """Load ``checkpoint`` (when there) into the parameters and Adam; with several processes, every one
+    takes the main one's parameters (then they step identically). Returns ``(step, history, seconds)``."""
+    start, history, elapsed = 0, [], 0.0
+    if checkpoint is not None and Path(checkpoint).is_file():
+        state = resume_state(Path(checkpoint), scene.device, list(params), len(scene), mode, batch)
+        with torch.no_grad():
+            for n, p in params.items():
+                p.copy_(state["params"][n])
+        opt.load_state_dict(state["optimizer"])
+        start, history, elapsed = int(state["step"]), list(state["history"]), float(state["seconds"])
+    if group.active:
+        mine = group.broadcast({n: p.detach().cpu() for n, p in params.items()})
+        with torch.no_grad():
+            for n, p in params.items():
+                p.copy_(mine[n])
+    return start, history, elapsed
 
 
 def on_main_for_all(group, fn, device) -> tuple:

@@ -14,15 +14,18 @@ their colour, so the term leaves the texture *between* surfaces free and penalis
 exists in one view's blend. It is rendered in the same rasterizer pass as the image, as extra
 channels (``c``, ``c^2`` and a constant 1, with no background: :func:`render_with_spread`), and
 :func:`blend_spread` turns those channels into the mean spread over the pixels. :func:`empty_loss` is Stage 2's
-other per-pixel term: empty pixels keep the unstylized render (``--hold-empty``).
+other per-pixel term: empty pixels keep the unstylized render (``--hold-empty``). :class:`ViewPairs`
+compares a view with its neighbours warped into it (``--consistency-weight``).
 """
 from __future__ import annotations
 
-from typing import Optional
+import math
+from typing import Callable, Optional
 
 import torch
 
 from ..core.cameras import Cameras
+from ..errors import InputError
 from ..raster import rendering
 
 SPREAD_CHANNELS = 10    # composited RGB (3), sum w c (3), sum w c^2 (3), alpha (1)
@@ -58,3 +61,100 @@ def empty_loss(image: torch.Tensor, original: torch.Tensor, alpha: torch.Tensor)
     become coloured floaters; ~0 on a capture that fills the frame."""
     empty = 1 - alpha.to(image).clamp(0, 1)
     return (empty[..., None] * (image - original.to(image)) ** 2).mean() / empty.mean().clamp_min(0.01)
+
+
+def check_pair_options(budget: float, neighbours: int) -> None:
+    """The view-pair term's options: a finite budget >= 0, at least one neighbour."""
+    if not (math.isfinite(budget) and budget >= 0):
+        raise InputError(f"--consistency-budget {budget}: must be a finite number >= 0")
+    if neighbours < 1:
+        raise InputError(f"--consistency-neighbours {neighbours}: must be >= 1")
+
+
+class ViewPairs:
+    """Stage 2's view-pair term (``--consistency-weight``): a training view's render against its neighbours'.
+
+    Stage 2 changes colours only, so the geometry of every training view (expected depth, opacity) is fixed:
+    it is rendered once (:meth:`build`). At a step on view ``v`` a neighbour ``u`` (one of the ``neighbours``
+    training cameras nearest to ``v``'s centre, chosen by the step) is rendered with the current colours
+    and without gradient, warped into ``v`` by exact reprojection through the depths
+    (:func:`ssgwarp.evaluation.metrics.reprojection_warp`: the pixels both views see, opaque, not occluded;
+    the warp ``ssgwarp evaluate`` scores consistency with), and
+
+        pair = max(0, mean_mask |I_v - warp(I_u)|^2 / e0(v, u) - budget)
+
+    with ``e0`` the same error of the scene Stage 2 starts from: the pair's squared error may grow to
+    ``budget`` times the scene's own (``budget`` 2: an RMSE ratio of about 1.4) before the term pulls ``v``'s
+    pixels towards what ``u`` shows of the same surface. Measured (docs/notes/stylize-history.md): it trades
+    texture for consistency at the same rate as the blend spread; the two are alternatives.
+    """
+
+    def __init__(self, cameras: Cameras, depths: torch.Tensor, alphas: torch.Tensor, neighbours: list[list[int]],
+                 reference: Optional[dict] = None, budget: float = 0.0, seed: int = 0) -> None:
+        self.cameras, self.depths, self.alphas = cameras, depths, alphas
+        self.neighbours, self.seed, self.budget = neighbours, int(seed), float(budget)
+        self.reference: dict[tuple[int, int], float] = dict(reference or {})
+        self.render: Optional[Callable[[int], torch.Tensor]] = None   # view -> its current render [H, W, 3]
+
+    @staticmethod
+    def nearest(cameras: Cameras, k: int) -> list[list[int]]:
+        """For each camera the ``k`` other cameras whose centres are nearest (fewer when there are fewer)."""
+        c = cameras.centers.double()
+        d = torch.cdist(c, c)
+        d.fill_diagonal_(float("inf"))
+        k = min(int(k), len(cameras) - 1)
+        return [d[i].argsort()[:k].tolist() for i in range(len(cameras))] if k > 0 else [[] for _ in range(len(cameras))]
+
+    @classmethod
+    @torch.no_grad()
+    def build(cls, scene, cameras: Cameras, neighbours: int = 4, background: Optional[torch.Tensor] = None,
+              budget: float = 0.0, seed: int = 0) -> "ViewPairs":
+        """Render the depths and opacities of ``cameras`` once; each pair's reference error is ``scene``'s own
+        (at least a quarter of the mean over the pairs, so a pair the scene happens to match exactly does not
+        forbid every change)."""
+        from ..raster.rendering import render_views
+
+        bg = None if background is None else [float(x) for x in background.reshape(-1)[:3]]
+        views = render_views(scene, cameras, bg)
+        pairs = cls(cameras, views.depth, views.alpha, cls.nearest(cameras, neighbours), None, budget, seed)
+        errs = {(v, u): pairs.error(views.rgb[v], v, views.rgb[u], u) for v in range(len(cameras))
+                for u in pairs.neighbours[v]}
+        errs = {k: float(e) for k, e in errs.items() if e is not None}
+        floor = max(sum(errs.values()) / len(errs), 1e-12) * 0.25 if errs else 1e-12
+        pairs.reference = {k: max(e, floor) for k, e in errs.items()}
+        return pairs
+
+    def neighbour(self, view: int, step: int) -> Optional[int]:
+        """The neighbour of ``view`` at ``step`` (a pure function of seed, step and view), None if it has none."""
+        near = self.neighbours[view]
+        if not near:
+            return None
+        g = torch.Generator(device="cpu").manual_seed(self.seed * 1_000_003 + int(step) * 7919 + int(view))
+        return near[int(torch.randint(len(near), (1,), generator=g))]
+
+    def error(self, image: torch.Tensor, view: int, other: torch.Tensor, other_view: int) -> Optional[torch.Tensor]:
+        """``mean_mask |image - warp(other)|^2`` (differentiable in ``image [H, W, 3]``; ``other`` is held);
+        None when the two views share no pixel."""
+        from ..evaluation.metrics import View, reprojection_warp
+
+        cam = self.cameras
+        a = View(other.detach()[..., :3], self.depths[other_view], self.alphas[other_view], cam.viewmats[other_view],
+                 cam.Ks[other_view])
+        b = View(image.detach()[..., :3], self.depths[view], self.alphas[view], cam.viewmats[view], cam.Ks[view])
+        res = reprojection_warp(a, b)
+        if not bool(res.mask.any()):
+            return None
+        m = res.mask.to(image.dtype)[..., None]
+        return (m * (image[..., :3] - res.warped.to(image)) ** 2).sum() / (3 * m.sum())
+
+    def term(self, image: torch.Tensor, view: int, step: int) -> torch.Tensor:
+        """:meth:`loss` of ``view``'s ``image`` against the neighbour of ``step``, rendered by :attr:`render`."""
+        other = self.neighbour(view, step)
+        return image.new_zeros(()) if other is None else self.loss(image, view, self.render(other), other)
+
+    def loss(self, image: torch.Tensor, view: int, other: torch.Tensor, other_view: int) -> torch.Tensor:
+        """:meth:`error` relative to the starting scene's error of the pair, less ``budget`` (not below 0);
+        0 when the views share nothing."""
+        ref = self.reference.get((view, other_view))
+        e = None if ref is None else self.error(image, view, other, other_view)
+        return image.new_zeros(()) if e is None else torch.relu(e / ref - self.budget)

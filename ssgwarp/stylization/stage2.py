@@ -32,7 +32,9 @@ features ``phi`` = the extractor's layers concatenated at the coarsest resolutio
 - blend spread (``blend_weight``; default by the extractor, :func:`resolve_for` in
   :mod:`ssgwarp.stylization.feature_defaults`: 0.65 on the weight-free edge features, else 0): the weighted
   variance of the colours each pixel mixes (:mod:`ssgwarp.stylization.spread`; the view is then rendered
-  with those channels too); empty-region term (``hold_empty``, :func:`ssgwarp.stylization.spread.empty_loss`).
+  with those channels too); empty-region term (``hold_empty``, :func:`ssgwarp.stylization.spread.empty_loss`);
+  view-pair term (``consistency_weight``, :class:`ssgwarp.stylization.spread.ViewPairs`: the view against a
+  neighbouring view warped into it, beyond ``consistency_budget`` x the starting scene's error).
 
 Only colour is optimised (``sh_dc``); the higher SH bands are zeroed first by default (``sh_rest="zero"``:
 view-independent stylized colour, docs/stylize.md; ``"keep"``, ``"optimise"``; ``free_opacity`` adds opacities);
@@ -66,8 +68,8 @@ from .feature_defaults import (  # noqa: F401  (re-exported: Stage 2's options l
     style_loss_kind, tv_weight_for)
 from ..services.color import describe_transfer, transfer_background, transfer_colors  # noqa: F401  (re-exported)
 from ..services.loop import Diverged, Loop
-from .batches import batch_size_for, batch_views, view_order  # noqa: F401  (view_order re-exported)
-from .spread import SPREAD_CHANNELS, blend_spread, empty_loss, render_with_spread
+from .batches import batch_size_for, batch_views, start_state, view_order  # noqa: F401  (view_order re-exported)
+from .spread import SPREAD_CHANNELS, ViewPairs, blend_spread, check_pair_options, empty_loss, render_with_spread
 from .matching import DEFAULT_CHUNK, MatchTargets, SlicedTargets, downsample_labels
 from ..evaluation.metrics import content_loss
 from ..reconstruction.recipe import batch_factors
@@ -117,6 +119,9 @@ class Stage2Config:
         densify, densify_views: split Gaussians where the style loss wants detail, at most ``densify x N`` new
             ones scored on ``densify_views`` views (0: off; run by ``stylize``, :mod:`ssgwarp.stylization.densify`).
         hold_empty: weight of the term keeping pixels the unstylized scene leaves empty as they were (no floaters).
+        consistency_weight, consistency_neighbours: weight of the view-pair term
+            (:class:`ssgwarp.stylization.spread.ViewPairs`: each step's view against one of its
+            ``consistency_neighbours`` nearest training views, reprojected through the fixed depths; 0: off).
         background: the stylized scene's background colour: ``transfer`` (default) maps the capture's
             background by the same colour transfer as the scene (:func:`ssgwarp.services.color.transfer_background`;
             the optimisation renders over it and the run records it, ``metrics.json`` ``background``), so that
@@ -152,6 +157,9 @@ class Stage2Config:
     densify: float = 0.0
     densify_views: int = 8
     hold_empty: float = 0.0
+    consistency_weight: float = 0.0
+    consistency_neighbours: int = 4
+    consistency_budget: float = 2.0
     background: str = "transfer"
     label_mode: str = "majority"
     feature_scale: float = 1.0
@@ -168,12 +176,14 @@ class Stage2Config:
             raise InputError(f"--mode {self.mode}: use one of {', '.join(MODES)}")
         if self.iters < 0:
             raise InputError(f"--iters {self.iters}: must be >= 0")
-        for k in ("lr", "style_weight", "content_weight", "tv_weight", "blend_weight", "densify", "hold_empty"):
+        for k in ("lr", "style_weight", "content_weight", "tv_weight", "blend_weight", "densify", "hold_empty",
+                  "consistency_weight"):
             v = getattr(self, k)
             if v is None and k in ("tv_weight", "blend_weight"):
                 continue
             if not math.isfinite(v) or v < 0:
                 raise InputError(f"--{k.replace('_', '-')} {v}: must be a finite number >= 0")
+        check_pair_options(self.consistency_budget, self.consistency_neighbours)
         if self.densify_views < 1:
             raise InputError(f"--densify-views {self.densify_views}: must be >= 1")
         if not 0 < self.feature_scale <= 4:
@@ -336,17 +346,20 @@ class ViewLoss:
         view_labels: ``[C, H, W]`` group maps of the training views (None: global).
         originals: ``[C, H, W, 3]`` renders of the unstylized scene (content target).
         alphas: ``[C, H, W]`` their accumulated opacity (the empty-region term, ``cfg.hold_empty``).
+        pairs: the view-pair term's geometry (``cfg.consistency_weight``; :meth:`ViewPairs.build`); :func:`optimise`
+            gives it the current renders (``pairs.render``) and refuses ``consistency_weight > 0`` without it.
     """
 
     def __init__(self, extractor, targets: MatchTargets, cfg: Stage2Config,
                  view_labels: Optional[torch.Tensor] = None, originals: Optional[torch.Tensor] = None,
-                 alphas: Optional[torch.Tensor] = None) -> None:
+                 alphas: Optional[torch.Tensor] = None, pairs: Optional[ViewPairs] = None) -> None:
         cfg = resolve_for(cfg, extractor)
         self.extractor, self.targets, self.cfg = extractor, targets, cfg
         self.tv_weight = tv_weight_for(cfg, extractor)
         self.view_labels, self.originals, self.alphas = view_labels, originals, alphas
         if cfg.hold_empty > 0 and (originals is None or alphas is None):
             raise InputError("Stage 2 loss: hold_empty needs the original renders and their alphas")
+        self.pairs: Optional[ViewPairs] = pairs
         self._labels: dict[int, torch.Tensor] = {}
         self.last: dict[str, float] = {}
 
@@ -378,6 +391,9 @@ class ViewLoss:
         if cfg.hold_empty > 0:
             hold = empty_loss(image, self.originals[view], self.alphas[view])
             total, parts["empty"] = total + cfg.hold_empty * hold, float(hold.detach())
+        if cfg.consistency_weight > 0 and self.pairs is not None and self.pairs.render is not None:
+            pair = self.pairs.term(image, view, step)   # (off until optimise renders the neighbours: densify)
+            total, parts["pair"] = total + cfg.consistency_weight * pair, float(pair.detach())
         if self.tv_weight > 0:
             tv = tv_loss(image)
             total = total + self.tv_weight * tv
@@ -427,36 +443,17 @@ class Stage2Result:
     batch: dict = field(default_factory=dict)   # batch_size, world_size, scaling, lr_factor, betas
 
 
-def _resume_state(checkpoint: Path, device, names: list[str], n: int, cfg: Stage2Config, batch: int) -> dict:
-    state = torch.load(checkpoint, map_location=device, weights_only=False)
-    if state.get("params_names") != names or state.get("n") != n or state.get("mode") != cfg.mode:
-        raise InputError(f"{checkpoint}: checkpoint is from a different run (mode, scene or options); "
-                         f"use --force to start over")
-    b = int(state.get("batch_size", 1))
-    if b != batch:
-        raise InputError(f"{checkpoint}: Stage 2 ran with --batch-size {b}, not {batch}; pass --batch-size {b} "
-                         f"to resume it (with any number of processes dividing it) or --force to start over")
-    return state
+def _give_pairs_renders(loss: Optional[ViewLoss], draw: Callable[[Cameras], torch.Tensor]) -> None:
+    """The view-pair term's neighbours rendered by ``draw`` with the current colours, without gradient."""
+    if loss is not None and loss.cfg.consistency_weight > 0 and loss.pairs is None:
+        raise InputError("Stage 2: consistency_weight needs the view pairs (ViewLoss(pairs=ViewPairs.build(...)))")
+    if loss is not None and loss.pairs is not None:
+        pairs = loss.pairs
 
-
-def _start(params: dict, opt, checkpoint: Optional[Path], scene: GaussianScene, cfg: Stage2Config, batch: int,
-           group) -> tuple[int, list, float]:
-    """Load ``checkpoint`` (when there) into the parameters and Adam; with several processes, every one
-    takes the main one's parameters (then they step identically). Returns ``(step, history, seconds)``."""
-    start, history, elapsed = 0, [], 0.0
-    if checkpoint is not None and Path(checkpoint).is_file():
-        state = _resume_state(Path(checkpoint), scene.device, list(params), len(scene), cfg, batch)
-        with torch.no_grad():
-            for n, p in params.items():
-                p.copy_(state["params"][n])
-        opt.load_state_dict(state["optimizer"])
-        start, history, elapsed = int(state["step"]), list(state["history"]), float(state["seconds"])
-    if group.active:
-        mine = group.broadcast({n: p.detach().cpu() for n, p in params.items()})
-        with torch.no_grad():
-            for n, p in params.items():
-                p.copy_(mine[n])
-    return start, history, elapsed
+        def render(view: int) -> torch.Tensor:
+            with torch.no_grad():
+                return draw(pairs.cameras[[view]])[0]
+        pairs.render = render
 
 
 def optimise(scene: GaussianScene, cameras: Cameras, cfg: Stage2Config, *,
@@ -501,7 +498,8 @@ def optimise(scene: GaussianScene, cameras: Cameras, cfg: Stage2Config, *,
     params = {n: getattr(scene, n).detach().clone().requires_grad_(True) for n in names}
     opt = adam([{"params": [p], "lr": _lr(n, cfg) * lr_factor, "name": n} for n, p in params.items()],
                eps=1e-15, betas=betas)
-    start, history, elapsed = _start(params, opt, checkpoint if resume else None, scene, cfg, batch, group)
+    start, history, elapsed = start_state(params, opt, checkpoint if resume else None, scene, cfg.mode, batch,
+                                          group)
     info = {"batch_size": batch, "world_size": group.world_size, "scaling": cfg.batch_scaling,
             "lr_factor": lr_factor, "betas": list(betas)}
 
@@ -516,6 +514,8 @@ def optimise(scene: GaussianScene, cameras: Cameras, cfg: Stage2Config, *,
 
     def render(cam: Cameras) -> torch.Tensor:
         return draw(current(), cam, background, **rk)
+
+    _give_pairs_renders(loss, lambda cams: render_rgb(current(), cams, background, **rk))
 
     def save(step: int) -> None:
         if checkpoint is None or not group.is_main:

@@ -338,6 +338,11 @@ def _stage2(r: _Run, kv, stylized) -> dict:
     densified = None
     if stage2.densify > 0 and loss is not None:
         work, densified = densify_run(r, t, work, loss)
+    if stage2.consistency_weight > 0 and loss is not None:   # the geometry is final: its depths once
+        from .spread import ViewPairs
+
+        loss.pairs = ViewPairs.build(work, r.train_cams, stage2.consistency_neighbours, r.bg_styled,
+                                     stage2.consistency_budget, stage2.seed)
     run_cfg = stage2
     if stage2.mode == "finetune" and ft_images is None:   # no stylized key views to fit: global fallback
         run_cfg = dataclasses.replace(stage2, mode="global")

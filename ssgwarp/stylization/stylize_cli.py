@@ -77,6 +77,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--hold-empty", type=float, default=d.hold_empty, metavar="W",
                    help="weight of the term keeping (nearly) empty pixels as the unstylized scene renders them: "
                         f"no floaters over the background (0: off; default {d.hold_empty})")
+    g.add_argument("--consistency-weight", type=float, default=d.consistency_weight, metavar="W",
+                   help="weight of the view-pair term: each step's view against a nearby training view warped "
+                        f"into it through the depths (0: off; default {d.consistency_weight})")
+    g.add_argument("--consistency-budget", type=float, default=d.consistency_budget, metavar="B",
+                   help="the view-pair term lets a pair's squared error grow to B x the starting scene's "
+                        f"(default {d.consistency_budget}: an RMSE ratio of about 1.4)")
+    g.add_argument("--consistency-neighbours", type=int, default=d.consistency_neighbours, metavar="K",
+                   help=f"nearest training views a view is paired with (default {d.consistency_neighbours})")
     g.add_argument("--label-mode", default=d.label_mode, choices=("majority", "nearest"),
                    help="group maps to feature resolution (default majority)")
     g.add_argument("--feature-scale", type=float, default=d.feature_scale,
