@@ -28,6 +28,7 @@ the command (``reconstruct``: load, claim the run folder, train, evaluate, write
 """
 from __future__ import annotations
 
+import argparse
 import logging
 from pathlib import Path
 from typing import Callable, Optional, Sequence
@@ -207,7 +208,7 @@ def _iters(s: str) -> int | str:
     except ValueError:
         n = 0
     if n < 1:
-        raise InputError(f"--iters {s!r}: expected a number of steps >= 1 or 'auto'")
+        raise argparse.ArgumentTypeError(f"{s!r}: expected a number of steps >= 1 or 'auto'")
     return n
 
 
@@ -217,7 +218,7 @@ def _factor(s: str) -> float:
     except ValueError:
         f = 0.0
     if not f >= 1.0:
-        raise InputError(f"--coarse-to-fine {s!r}: expected a downsampling factor >= 1 (1: off), e.g. 4")
+        raise argparse.ArgumentTypeError(f"{s!r}: expected a downsampling factor >= 1 (1: off), e.g. 4")
     return f
 
 
