@@ -128,7 +128,7 @@ def run_one(spec: str, args, machine: str) -> dict:
             print(f"  {spec} step {tr.step}: training views {trace[-1]['train_psnr']:.2f} dB, held-out "
                   f"{trace[-1]['heldout_psnr']:.2f} dB, {tr.num_gaussians} Gaussians, {tr.elapsed:.0f} s", flush=True)
     ev = tr.evaluate()
-    rec = tr.schedule_record()
+    rec = tr.schedules.record(tr.step)
     row = {"capture": scene, "width": data.width, "height": data.height, "views": len(data.train_ids),
            "iters": iters, "options": fields | {k: v for k, v in other.items() if k != "width"},
            "steps": tr.step, "stopped": rec["stopped"], "psnr": ev["psnr"], "ssim": ev["ssim"],

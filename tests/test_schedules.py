@@ -139,14 +139,14 @@ def _auto_recipe(**kw):
 
 def test_auto_trains_until_the_plateau_and_a_tail_with_the_learning_rate_annealed(toy):
     t = Trainer(toy, iters="auto", sh_degree=1, recipe=_auto_recipe(), progress=False, device="cpu", backdrop="off")
-    assert t.iters == AUTO_MAX_ITERS and t.end == AUTO_MAX_ITERS and t.check_ids == [0, 2, 4, 6]
+    assert t.iters == AUTO_MAX_ITERS and t.schedules.end == AUTO_MAX_ITERS and t.schedules.check_ids == [0, 2, 4, 6]
     lrs = []
     while not t.finished:
         t._set_lrs()
         lrs.append(t.gaussians.groups["means"]["lr"])
         t.train_step()
     # checks at 20, 30, 40 (tol 100 dB: a plateau at the third), then a tail of max(10, 20% of 40) steps
-    rec = t.schedule_record()
+    rec = t.schedules.record(t.step)
     assert t.step == 50 and rec["steps"] == 50 and rec["iters"] == "auto" and "plateau" in rec["stopped"]
     assert [c[0] for c in rec["stop_rule"]["checks"]] == [20, 30, 40] and rec["stop_rule"]["decided_at"] == 40
     assert rec["stop_rule"]["views"] == ["v0", "v2", "v4", "v6"]
@@ -173,10 +173,10 @@ def test_resume_mid_schedule_is_bit_exact(toy, tmp_path, stop_at):
                        progress=False, device="cpu", backdrop="off", checkpoint_path=tmp_path / name,
                        checkpoint_every=1000, seed=2)
     a = trainer("a.pt")
-    assert a.monitor.first == 30                                  # checks start at full resolution
+    assert a.schedules.monitor.first == 30                                  # checks start at full resolution
     sizes = []
     while not a.finished:
-        sizes.append(a.pyramid.level(a.resolution_factor)[0].width)
+        sizes.append(a.schedules.views(a.step)[0].width)
         a.train_step()
     assert sizes[0] == 12 and sizes[29] == 34 and sizes[30] == 48 and a.active_sh_degree == 1
     b = trainer("b.pt")
@@ -185,7 +185,7 @@ def test_resume_mid_schedule_is_bit_exact(toy, tmp_path, stop_at):
     c = trainer("b.pt")
     c.load_checkpoint()
     c.train()
-    assert c.step == a.step == 60 and c.schedule_record() == a.schedule_record()
+    assert c.step == a.step == 60 and c.schedules.record(c.step) == a.schedules.record(a.step)
     for k, v in a.final_scene().tensors().items():
         assert torch.equal(v, c.final_scene().tensors()[k]), k
 

@@ -166,7 +166,7 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = 300
                                 "refine_start": r.refine_start, "refine_stop": r.refine_stop,
                                 "refine_every": r.refine_every, "reset_every": r.reset_every}
     metrics["backdrop"] = None if trainer.backdrop is None else trainer.backdrop.record()
-    metrics["schedule"] = trainer.schedule_record()
+    metrics["schedule"] = trainer.schedules.record(trainer.step)
     if ev["views"] == 0:
         metrics["note"] = "no held-out views (split_every=0 or a single image): PSNR/SSIM not measured"
     if lpips_note:

@@ -15,6 +15,7 @@
 """
 from __future__ import annotations
 
+import logging
 import math
 from typing import Optional, Sequence
 
@@ -22,6 +23,8 @@ import torch
 import torch.nn.functional as F
 
 from ..core.cameras import Cameras
+
+log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
 
 AUTO = "auto"
 AUTO_MAX_ITERS = 30_000   # the planned length (and the longest) of an --iters auto run: the 3DGS default
@@ -83,6 +86,14 @@ class Pyramid:
                 self._level = (self.cameras.rescaled(w, h), downsample(self.images, w, h), masks)
             self.factor = factor
         return self._level
+
+
+def sh_degree_at(step: int, degree: int, recipe) -> int:
+    """The SH degree rendered at ``step``: 0 before ``recipe.sh_start``, then one more every
+    ``recipe.sh_interval`` steps up to ``degree`` (``sh_start == sh_interval``: ``step // sh_interval``)."""
+    if step < recipe.sh_start:
+        return 0
+    return min(degree, 1 + (step - recipe.sh_start) // max(1, recipe.sh_interval))
 
 
 # ----------------------------------------------------------------------------- stopping
@@ -158,3 +169,90 @@ def check_views(train_ids: Sequence[int], n: int) -> list[int]:
     if n >= len(ids):
         return ids
     return [ids[(2 * i + 1) * len(ids) // (2 * n)] for i in range(n)]
+
+
+# ----------------------------------------------------------------------------- a run's schedules
+class Schedules:
+    """The schedules of one run (a resolved :class:`~ssgwarp.reconstruction.recipe.Recipe` on a capture ``data``
+    of ``iters`` steps, ``auto``: the stop rule on): the images of each step, the position learning rate of
+    the tail, the stop rule's checks and the record of it all."""
+
+    def __init__(self, recipe, data, *, iters: int, auto: bool):
+        r = self.recipe = recipe
+        self.iters, self.auto, self.names = int(iters), bool(auto), list(data.names)
+        self.data = data
+        self.pyramid = Pyramid(data.cameras, data.images, data.masks) if r.res_start > 1 else None
+        self.monitor = None
+        self.check_ids: list[int] = []
+        if auto:
+            self.monitor = StopMonitor(first=max(r.refine_stop, r.res_until if self.pyramid else 0),
+                                       every=r.stop_every, patience=r.stop_patience, tol=r.stop_tol,
+                                       tail=r.stop_tail, horizon=self.iters)
+            self.check_ids = check_views(data.train_ids, r.stop_views)
+
+    @property
+    def end(self) -> int:
+        return self.iters if self.monitor is None else self.monitor.end
+
+    def factor(self, step: int) -> float:
+        """The training images' downsampling factor at ``step`` (1: full resolution)."""
+        r = self.recipe
+        return 1.0 if self.pyramid is None else resolution_factor(step, r.res_start, r.res_until)
+
+    def views(self, step: int) -> tuple[Cameras, torch.Tensor, Optional[torch.Tensor]]:
+        """``(cameras, images, masks)`` of the whole capture as trained at ``step``."""
+        if self.pyramid is None:
+            return self.data.cameras, self.data.images, self.data.masks
+        return self.pyramid.level(self.factor(step))
+
+    def batch(self, step: int, views: list[int]) -> tuple[Cameras, torch.Tensor, Optional[torch.Tensor]]:
+        """``(cameras, images [B, h, w, 3], masks [B, h, w] or None)`` of the training ``views`` at ``step``."""
+        cams, images, masks = self.views(step)
+        return cams[views], torch.stack([images[v] for v in views]), None if masks is None else masks[views]
+
+    def means_lr(self, step: int, lr0: float, lr1: float) -> float:
+        """The position learning rate at ``step``: log-linear from ``lr0`` to ``lr1`` over ``iters``, or,
+        after a plateau, from where it was to ``lr1`` over the tail."""
+        def planned(s: int) -> float:
+            t = min(1.0, s / max(1, self.iters))
+            return math.exp(math.log(lr0) * (1 - t) + math.log(lr1) * t)
+        m = self.monitor
+        if m is None or m.decided is None:
+            return planned(step)
+        return tail_lr(step, m.decided, m.stop_at, planned(m.decided), lr1)
+
+    def check(self, step: int, psnr_of, loop=None) -> bool:
+        """A check of the stop rule when one is due at ``step`` (``psnr_of(view ids)``: their mean PSNR);
+        True when it decided the stop (then ``loop``'s progress bar, when given, shows the new end)."""
+        m = self.monitor
+        if m is None or not m.due(step) or not m.add(step, psnr_of(self.check_ids)):
+            return False
+        log.info("training-view PSNR stopped improving at step %d: ending at step %d", m.decided, m.stop_at)
+        if loop is not None and loop.bar is not None:
+            loop.bar.total = m.end
+            loop.bar.refresh()
+        return True
+
+    def state_dict(self) -> Optional[dict]:
+        return None if self.monitor is None else self.monitor.state_dict()
+
+    def load_state_dict(self, st: Optional[dict]) -> None:
+        if self.monitor is not None and st is not None:
+            self.monitor.load_state_dict(st)
+
+    def reason(self, step: int) -> str:
+        if self.monitor is not None:
+            return self.monitor.reason(step)
+        return f"fixed length ({self.iters} steps)" if step >= self.iters else "not finished"
+
+    def record(self, step: int) -> dict:
+        """How long the run trained and why it stopped, and its schedules (``metrics.json``, ``data.json``)."""
+        r = self.recipe
+        out = {"iters": AUTO if self.auto else self.iters, "steps": int(step), "stopped": self.reason(step),
+               "sh_start": r.sh_start, "sh_interval": r.sh_interval,
+               "coarse_to_fine": None if self.pyramid is None else {"start": r.res_start, "until": r.res_until}}
+        if self.monitor is not None:
+            out["stop_rule"] = {"every": self.monitor.every, "patience": r.stop_patience, "tol_db": r.stop_tol,
+                                "views": [self.names[i] for i in self.check_ids], "tail": r.stop_tail,
+                                "decided_at": self.monitor.decided, "checks": self.monitor.history}
+        return out

@@ -24,13 +24,13 @@ from ..errors import InputError
 from ..core.fileio import atomic_path
 from ..core.geometry import knn_mean_distance
 from ..core.optim import adam
-from ..services.loop import Diverged, Loop, diverged_message
+from ..services.loop import Diverged, Loop, diverged_message, read_checkpoint, to_cpu
 from ..services.losses import photometric, psnr, ssim
 from .recipe import Recipe, batch_factors
 from ..raster.rendering import render
 from ..raster.scene import GaussianScene
 from .backdrop import with_backdrop
-from .schedules import AUTO, AUTO_MAX_ITERS, Pyramid, StopMonitor, check_views, resolution_factor, tail_lr
+from .schedules import AUTO, AUTO_MAX_ITERS, Schedules, sh_degree_at
 from .strategy import GaussianParams, make_strategy
 
 log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
@@ -53,9 +53,7 @@ class Trainer:
     Args:
         data: the capture (its ``train_ids`` are trained on, ``test_ids`` evaluated).
         scene: initial scene (default: from ``data.points``).
-        iters: total number of steps, or ``"auto"``: stop when the training views' PSNR stops improving
-            (at most :data:`~ssgwarp.reconstruction.schedules.AUTO_MAX_ITERS`, whose schedule the run follows;
-            :mod:`ssgwarp.reconstruction.schedules`).
+        iters: total number of steps, or ``"auto"`` (:mod:`.schedules`: until the training views' PSNR plateaus).
         sh_degree: final SH degree (0..3).
         max_gaussians: cap on the number of Gaussians (the budget of the mcmc strategy).
         recipe: :class:`Recipe`.
@@ -89,10 +87,8 @@ class Trainer:
                  checkpoint_every: int = 500, rasterize: Optional[Callable] = None,
                  raster_kwargs: Optional[dict] = None, device=None, seed: int = 0, progress: bool = True,
                  strategy="default", batch_size: Optional[int] = None, group=None, backdrop: str = "auto"):
-        self.auto = iters == AUTO
-        if self.auto:
-            iters = AUTO_MAX_ITERS
-        elif not isinstance(iters, (int, np.integer)) or iters < 1:
+        self.auto, iters = iters == AUTO, AUTO_MAX_ITERS if iters == AUTO else iters
+        if not isinstance(iters, (int, np.integer)) or iters < 1:
             raise InputError(f"iters must be >= 1 or {AUTO!r}, got {iters!r}")
         if not 0 <= sh_degree <= 3:
             raise InputError(f"sh_degree must be 0..3, got {sh_degree}")
@@ -120,7 +116,7 @@ class Trainer:
         self.recipe = recipe.resolved(self.iters, self.sh_degree, self.strategy, random_init, self.batch_size,
                                       views=len(data.train_ids))
         self.lr_factor, self.beta_power = batch_factors(self.batch_size, self.recipe.batch_scaling)
-        self._setup_schedules()
+        self.schedules = Schedules(self.recipe, self.data, iters=self.iters, auto=self.auto)
         self.hooks = list(hooks)
         self.checkpoint_path = Path(checkpoint_path) if checkpoint_path is not None else None
         self.checkpoint_every = int(checkpoint_every)
@@ -192,58 +188,10 @@ class Trainer:
         if self.backdrop is not None and self.backdrop.scene_radius:  # sizes beyond it measured by distance
             self.strategy.far_field(torch.tensor(self.backdrop.center, device=self.device), self.backdrop.scene_radius)
 
-    def _setup_schedules(self) -> None:
-        """The coarse-to-fine image levels and the stop rule (:mod:`.schedules`)."""
-        r = self.recipe
-        self.pyramid = Pyramid(self.data.cameras, self.data.images, self.data.masks) if r.res_start > 1 else None
-        self.monitor = None
-        if self.auto:
-            self.monitor = StopMonitor(first=max(r.refine_stop, r.res_until if self.pyramid else 0),
-                                       every=r.stop_every, patience=r.stop_patience, tol=r.stop_tol,
-                                       tail=r.stop_tail, horizon=self.iters)
-            self.check_ids = check_views(self.data.train_ids, r.stop_views)
-
-    @property
-    def end(self) -> int:
-        """The step the run ends at: ``iters``, or where the stop rule ended it (``--iters auto``)."""
-        return self.iters if self.monitor is None else self.monitor.end
-
     @property
     def finished(self) -> bool:
-        return self.step >= self.end
-
-    @property
-    def resolution_factor(self) -> float:
-        """The training images' downsampling factor at this step (coarse-to-fine; 1: full resolution)."""
-        r = self.recipe
-        return 1.0 if self.pyramid is None else resolution_factor(self.step, r.res_start, r.res_until)
-
-    def schedule_record(self) -> dict:
-        """How long the run trained and why it stopped, and its schedules (``metrics.json``, ``data.json``)."""
-        r = self.recipe
-        out = {"iters": AUTO if self.auto else self.iters, "steps": self.step, "stopped": self._stop_reason(),
-               "sh_start": r.sh_start, "sh_interval": r.sh_interval,
-               "coarse_to_fine": None if self.pyramid is None else {"start": r.res_start, "until": r.res_until}}
-        if self.monitor is not None:
-            out["stop_rule"] = {"every": self.monitor.every, "patience": r.stop_patience, "tol_db": r.stop_tol,
-                                "views": [self.data.names[i] for i in self.check_ids], "tail": r.stop_tail,
-                                "decided_at": self.monitor.decided, "checks": self.monitor.history}
-        return out
-
-    def _stop_reason(self) -> str:
-        if self.monitor is not None:
-            return self.monitor.reason(self.step)
-        return f"fixed length ({self.iters} steps)" if self.step >= self.iters else "not finished"
-
-    def _check_stop(self) -> None:
-        """``--iters auto``: the training views' PSNR when a check is due, and the stop it may decide."""
-        m = self.monitor
-        if m is not None and m.due(self.step):
-            if m.add(self.step, self.evaluate(self.check_ids)["psnr"]):
-                log.info("training-view PSNR stopped improving at step %d: ending at step %d", m.decided, m.stop_at)
-            if self._loop is not None and self._loop.bar is not None:
-                self._loop.bar.total = m.end
-                self._loop.bar.refresh()
+        """Whether the run reached its end: ``iters``, or where the stop rule ended it (``--iters auto``)."""
+        return self.step >= self.schedules.end
 
     def _initial_count(self, n: int, recipe: Recipe) -> int:
         """How many of ``n`` capture points start the scene (``init_max_points``; the budget of a budgeted strategy)."""
@@ -295,10 +243,7 @@ class Trainer:
 
     @property
     def active_sh_degree(self) -> int:
-        r = self.recipe
-        if self.step < r.sh_start:
-            return 0
-        return min(self.sh_degree, 1 + (self.step - r.sh_start) // max(1, r.sh_interval))
+        return sh_degree_at(self.step, self.sh_degree, self.recipe)
 
     @property
     def scene(self) -> GaussianScene:
@@ -326,25 +271,15 @@ class Trainer:
 
     def _set_lrs(self) -> None:
         r = self.recipe
-        t = min(1.0, self.step / max(1, self.iters))
         lr0, lr1 = r.lr_means * self.extent, r.lr_means_final * self.extent
-        m = self.monitor
-        if m is not None and m.decided is not None:  # the tail after a plateau: from where it was to the end
-            t0 = m.decided / max(1, self.iters)
-            lr = tail_lr(self.step, m.decided, m.stop_at, math.exp(math.log(lr0) * (1 - t0) + math.log(lr1) * t0), lr1)
-        else:
-            lr = math.exp(math.log(lr0) * (1 - t) + math.log(lr1) * t)
-        self.gaussians.groups["means"]["lr"] = self.lr_factor * lr
+        self.gaussians.groups["means"]["lr"] = self.lr_factor * self.schedules.means_lr(self.step, lr0, lr1)
 
     def train_step(self) -> dict:
         """One optimisation step (``self.step`` counts completed steps)."""
         r = self.recipe
         views = self.group.share(self.next_batch())  # this process's views of the step's batch
         self._set_lrs()
-        cams, images, masks = (self.data.cameras, self.data.images, self.data.masks) if self.pyramid is None else \
-            self.pyramid.level(self.resolution_factor)
-        cam = cams[views]
-        gt = torch.stack([images[v] for v in views])
+        cam, gt, masks = self.schedules.batch(self.step, views)  # (coarse-to-fine: downsampled)
         scene = self.scene
         with_ids = bool(self.hooks) and scene.identities is not None
         ch = 3 + (scene.identities.shape[1] if with_ids else 0)
@@ -358,7 +293,7 @@ class Trainer:
             means2d.retain_grad()
         img = out[..., :3]
         if masks is not None:  # masked pixels are zero in both: no error, no gradient, no SSIM content
-            img, gt = _masked(img, gt, masks[views])
+            img, gt = _masked(img, gt, masks)
         loss = photometric(img, gt, r.lambda_dssim, r.dssim_scale)  # (the mean over the views)
         reg = self.strategy.regularizer(self.gaussians)
         if reg is not None:
@@ -400,7 +335,7 @@ class Trainer:
         info.update(self.strategy.step(self.gaussians, self.step, self.gaussians.groups["means"]["lr"]))
         if self.check_every and self.step % self.check_every == 0:
             self.group.check_identical(self._synced_tensors(), self.step)
-        self._check_stop()
+        self.schedules.check(self.step, lambda ids: self.evaluate(ids)["psnr"], self._loop)
         return info
 
     def _observe(self, meta: dict) -> None:
@@ -480,7 +415,7 @@ class Trainer:
         checkpoints every ``checkpoint_every`` steps, at the end and on Ctrl-C (the step in flight
         finishes first); a NaN loss stops with the last good checkpoint kept."""
         cap = self.iters if until is None else min(int(until), self.iters)
-        until = lambda: min(cap, self.end)  # noqa: E731  (--iters auto: the stop rule may end the run sooner)
+        until = lambda: min(cap, self.schedules.end)  # noqa: E731  (--iters auto: the stop rule may end it sooner)
         save = self.save_checkpoint if self.checkpoint_path is not None else None
         active = self.group.active
         loop = Loop(lambda: self.step, save=save, every=self.checkpoint_every, desc="reconstruct",
@@ -527,14 +462,14 @@ class Trainer:
             "world_size": self.group.world_size,  # (informational: any number of processes resumes it)
             "names": list(self.data.names),
             "params": {k: v.detach().cpu() for k, v in self.params.items()},
-            "optimizer": _to_cpu(self.opt.state_dict()),
+            "optimizer": to_cpu(self.opt.state_dict()),
             "hook_params": [p.detach().cpu() for p in self._hook_params()],
-            "hook_optimizer": _to_cpu(self.hook_opt.state_dict()) if self.hook_opt is not None else None,
+            "hook_optimizer": to_cpu(self.hook_opt.state_dict()) if self.hook_opt is not None else None,
             "stats": {k: v.detach().cpu() for k, v in self.gaussians.stats.items()},
             "queue": list(self._queue),
             "rng": rng,
             "history": self.history[-1000:],
-            "stop_monitor": None if self.monitor is None else self.monitor.state_dict(),
+            "stop_monitor": self.schedules.state_dict(),
         }
 
     def save_checkpoint(self, path: Optional[str | Path] = None) -> Path:
@@ -597,8 +532,7 @@ class Trainer:
         self.view_gen.set_state(rng["view"])
         self.strategy.set_generator_state(rng["split"])
         self.history = list(st.get("history", []))
-        if self.monitor is not None and st.get("stop_monitor") is not None:
-            self.monitor.load_state_dict(st["stop_monitor"])
+        self.schedules.load_state_dict(st.get("stop_monitor"))
         self.last_checkpoint_step = self.step
 
     def load_checkpoint(self, path: Optional[str | Path] = None, state: Optional[dict] = None) -> None:
@@ -650,25 +584,3 @@ class Trainer:
 def _masked(img: torch.Tensor, gt: torch.Tensor, masks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``img``, ``gt`` with the pixels where ``masks [B, H, W]`` is 0 set to 0 in both (out of losses, metrics)."""
     return img * masks[..., None].to(img.dtype), gt * masks[..., None].to(gt.dtype)
-
-
-def read_checkpoint(path: str | Path) -> dict:
-    """The contents of a reconstruction checkpoint (on the CPU), or an :class:`InputError`."""
-    try:
-        st = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:
-        raise InputError(f"{path}: unreadable checkpoint ({str(e).splitlines()[0] if str(e) else type(e).__name__});"
-                         f" use --force to start over") from None
-    if not isinstance(st, dict):
-        raise InputError(f"{path}: not a reconstruction checkpoint")
-    return st
-
-
-def _to_cpu(obj):
-    if torch.is_tensor(obj):
-        return obj.detach().cpu()
-    if isinstance(obj, dict):
-        return {k: _to_cpu(v) for k, v in obj.items()}
-    if isinstance(obj, list):
-        return [_to_cpu(v) for v in obj]
-    return obj

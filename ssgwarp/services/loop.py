@@ -182,3 +182,27 @@ class Loop:
             log.warning("interrupted inside step %d; the last checkpoint (step %s) is kept", self.step_of() + 1,
                         self.saved_step)
 
+
+def read_checkpoint(path, what: str = "a reconstruction checkpoint") -> dict:
+    """The contents of a checkpoint file (on the CPU; ``what`` it should be), or an :class:`InputError`."""
+    from ..errors import InputError
+
+    try:
+        st = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:
+        raise InputError(f"{path}: unreadable checkpoint ({str(e).splitlines()[0] if str(e) else type(e).__name__});"
+                         f" use --force to start over") from None
+    if not isinstance(st, dict):
+        raise InputError(f"{path}: not {what}")
+    return st
+
+
+def to_cpu(obj):
+    """Tensors in nested dicts and lists detached and on the CPU (an optimizer's state for a checkpoint)."""
+    if torch.is_tensor(obj):
+        return obj.detach().cpu()
+    if isinstance(obj, dict):
+        return {k: to_cpu(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [to_cpu(v) for v in obj]
+    return obj
