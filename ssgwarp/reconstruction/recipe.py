@@ -77,6 +77,18 @@ class Recipe:
     # -- batches of views (--batch-size B) --
     batch_scaling: str = "sqrt"        # Adam for B views per step: "sqrt" (learning rates x sqrt(B)),
                                        # "linear" (x B), both with betas ** B; "none": B=1's lrs and betas
+    # -- schedules (ssgwarp.reconstruction.schedules) --
+    sh_start: Optional[int] = None     # step of the first SH degree raise, then one every sh_interval
+                                       # (default: sh_interval)
+    res_start: float = 1.0             # coarse-to-fine: the training images downsampled by this factor at
+                                       # first (1: off; 4: 4, 2.83, 2, 1.41, then full resolution)
+    res_until: Optional[int] = None    # full resolution from this step on (default: refine_stop)
+    stop_every: Optional[int] = None   # --iters auto: steps between checks (default: 500 images)
+    stop_patience: int = 3             # --iters auto: checks without stop_tol dB of improvement that stop
+    stop_tol: float = 0.1              # --iters auto: dB of training-view PSNR
+    stop_views: int = 4                # --iters auto: training views checked (evenly spaced)
+    stop_tail: float = 0.2             # --iters auto: steps trained after the plateau, a fraction of the steps
+                                       # done (the position learning rate decays to its final value over them)
 
     def resolved(self, iters: int, sh_degree: int, strategy="default", random_init: Optional[int] = None,
                  batch_size: int = 1, views: Optional[int] = None) -> "Recipe":
@@ -112,6 +124,10 @@ class Recipe:
         r = replace(r, **fill)
         if r.reset_every is None:
             r = replace(r, reset_every=0)
+        late = {"sh_start": r.sh_interval, "res_until": r.refine_stop, "stop_every": max(1, round(500 / b))}
+        r = replace(r, **{k: v for k, v in late.items() if getattr(r, k) is None})
+        if r.res_start < 1.0 or r.stop_patience < 1 or r.stop_views < 1 or r.stop_tail < 0:
+            raise InputError("Recipe.res_start must be >= 1, stop_patience and stop_views >= 1, stop_tail >= 0")
         for k in ("refine_every", "sh_interval"):
             if getattr(r, k) < 1:
                 raise InputError(f"Recipe.{k} must be >= 1, got {getattr(r, k)}")

@@ -28,6 +28,7 @@ the command (``reconstruct``: load, claim the run folder, train, evaluate, write
 """
 from __future__ import annotations
 
+import argparse
 import logging
 from pathlib import Path
 from typing import Callable, Optional, Sequence
@@ -44,6 +45,7 @@ from ..capture.ply import write_ply
 from .recipe import BATCH_SCALINGS, Recipe, batch_factors
 from ..raster.rendering import render as render_views   # (the old name of the differentiable render)
 from ..services.runs import claim
+from .schedules import AUTO
 from .trainer import CHECKPOINT_FORMAT, Trainer, read_checkpoint
 
 log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
@@ -65,7 +67,7 @@ def _lpips_model(device):
         return None, f"skipped: LPIPS weights could not be loaded ({str(e).splitlines()[0] if str(e) else e})"
 
 
-def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, images: str = "images",
+def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = 30000, images: str = "images",
                 sh_degree: int = 3, max_gaussians: int = 1_000_000, resume: bool = False, force: bool = False,
                 device=None, seed: int = 0, hooks: Sequence = (), identity_dim: Optional[int] = None,
                 split_every: int = 8, width: Optional[int] = None, max_images: Optional[int] = None,
@@ -88,6 +90,9 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
     ``backdrop``: ``"auto"`` / ``"on"`` / ``"off"``, far points and a far shell for what lies beyond the
     initial points (:mod:`ssgwarp.reconstruction.backdrop`); the decision goes to ``metrics.json`` and
     ``data.json`` (``backdrop``).
+    ``iters``: steps, or ``"auto"``: until the training views' PSNR stops improving
+    (:mod:`ssgwarp.reconstruction.schedules`); ``metrics.json`` and ``data.json`` record the steps run and why
+    the run stopped (``schedule``).
     Returns the metrics dict (on the other processes: ``{}``).
     """
     group = group if group is not None else SINGLE
@@ -113,7 +118,7 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
     if state is not None:
         trainer.load_checkpoint(ckpt, state=state)
         del state
-        if trainer.step >= iters:
+        if trainer.finished:
             log.info("the checkpoint is already at step %d: writing outputs only", trainer.step)
     elif resume:
         if claimed.existing:
@@ -161,6 +166,7 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
                                 "refine_start": r.refine_start, "refine_stop": r.refine_stop,
                                 "refine_every": r.refine_every, "reset_every": r.reset_every}
     metrics["backdrop"] = None if trainer.backdrop is None else trainer.backdrop.record()
+    metrics["schedule"] = trainer.schedules.record(trainer.step)
     if ev["views"] == 0:
         metrics["note"] = "no held-out views (split_every=0 or a single image): PSNR/SSIM not measured"
     if lpips_note:
@@ -172,7 +178,8 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
 
     write_ply(out / "scene.ply", scene)
     data.cameras.to("cpu").save(out / "cameras.json")
-    write_json(out / "data.json", data_json(data, seed=seed, backdrop=metrics["backdrop"]))
+    write_json(out / "data.json", data_json(data, seed=seed, backdrop=metrics["backdrop"],
+                                            schedule={k: v for k, v in metrics["schedule"].items() if k != "stop_rule"}))
     write_json(out / "metrics.json", metrics)
     log.info("wrote %s: %d Gaussians, held-out PSNR %s", out, len(scene),
              "n/a" if metrics["psnr"] is None else f"{metrics['psnr']:.2f} dB")
@@ -193,13 +200,40 @@ def _background(s: str) -> tuple[float, float, float]:
     return v  # type: ignore[return-value]
 
 
+def _iters(s: str) -> int | str:
+    if s == AUTO:
+        return AUTO
+    try:
+        n = int(s)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"{s!r}: expected a number of steps >= 1 or 'auto'")
+    return n
+
+
+def _factor(s: str) -> float:
+    try:
+        f = float(s)
+    except ValueError:
+        f = 0.0
+    if not f >= 1.0:
+        raise argparse.ArgumentTypeError(f"{s!r}: expected a downsampling factor >= 1 (1: off), e.g. 4")
+    return f
+
+
 def add_arguments(parser) -> None:
     parser.add_argument("data_dir", type=Path, help="the capture: COLMAP (sparse/0), LLFF (poses_bounds.npy) "
                         "or NeRF/instant-ngp (transforms*.json) folder")
     parser.add_argument("--out", type=Path, required=True, help="run folder to write")
-    parser.add_argument("--iters", type=int, default=30000,
+    parser.add_argument("--iters", type=_iters, default=30000, metavar="N|auto",
                         help="training steps (default 30000, the 3DGS schedule: hours on a CPU; 7000 gives most of "
-                             "the quality, about 30-50 min for fern images_8 on 2 CPU cores; see --quick)")
+                             "the quality, about 30-50 min for fern images_8 on 2 CPU cores; see --quick), or auto: "
+                             "the 30000-step schedule, ended once the PSNR of a few training views stops improving "
+                             "(docs/reconstruction.md)")
+    parser.add_argument("--coarse-to-fine", type=_factor, default=1.0, metavar="F",
+                        help="train on the images downsampled by F at first, raised to full resolution by the end "
+                             "of densification (default 1: off; e.g. 4)")
     parser.add_argument("--images", default="images", help="image sub-folder, e.g. images_4 or images_8 (default images)")
     parser.add_argument("--width", type=int, default=None, help="resize images to this width (default: as loaded)")
     parser.add_argument("--sh-degree", type=int, default=3, help="final SH degree 0..3 (default 3)")
@@ -260,7 +294,8 @@ def run(args) -> int:
                         background=args.background, checkpoint_every=args.checkpoint_every,
                         num_random_points=args.random_points, progress=not args.quiet,
                         strategy=args.strategy, batch_size=args.batch_size, backdrop=args.backdrop,
-                        recipe=Recipe(batch_scaling=args.batch_scaling), group=group, init=init)
+                        recipe=Recipe(batch_scaling=args.batch_scaling, res_start=args.coarse_to_fine),
+                        group=group, init=init)
     finally:
         distributed.shutdown(group)
     if not group.is_main:
@@ -268,5 +303,5 @@ def run(args) -> int:
     ps = "n/a" if m["psnr"] is None else f"{m['psnr']:.2f} dB"
     ss = "n/a" if m["ssim"] is None else f"{m['ssim']:.4f}"
     print(f"{args.out}: {m['num_gaussians']} Gaussians, held-out PSNR {ps}, SSIM {ss}, "
-          f"{m['train_seconds']:.0f} s")
+          f"{m['train_seconds']:.0f} s, {m['iters']} steps")
     return 0

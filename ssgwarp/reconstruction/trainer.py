@@ -24,12 +24,13 @@ from ..errors import InputError
 from ..core.fileio import atomic_path
 from ..core.geometry import knn_mean_distance
 from ..core.optim import adam
-from ..services.loop import Diverged, Loop, diverged_message
+from ..services.loop import Diverged, Loop, diverged_message, read_checkpoint, to_cpu
 from ..services.losses import photometric, psnr, ssim
 from .recipe import Recipe, batch_factors
 from ..raster.rendering import render
 from ..raster.scene import GaussianScene
 from .backdrop import with_backdrop
+from .schedules import AUTO, AUTO_MAX_ITERS, Schedules, sh_degree_at
 from .strategy import GaussianParams, make_strategy
 
 log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
@@ -52,7 +53,7 @@ class Trainer:
     Args:
         data: the capture (its ``train_ids`` are trained on, ``test_ids`` evaluated).
         scene: initial scene (default: from ``data.points``).
-        iters: total number of steps.
+        iters: total number of steps, or ``"auto"`` (:mod:`.schedules`: until the training views' PSNR plateaus).
         sh_degree: final SH degree (0..3).
         max_gaussians: cap on the number of Gaussians (the budget of the mcmc strategy).
         recipe: :class:`Recipe`.
@@ -86,8 +87,9 @@ class Trainer:
                  checkpoint_every: int = 500, rasterize: Optional[Callable] = None,
                  raster_kwargs: Optional[dict] = None, device=None, seed: int = 0, progress: bool = True,
                  strategy="default", batch_size: Optional[int] = None, group=None, backdrop: str = "auto"):
-        if iters < 1:
-            raise InputError(f"iters must be >= 1, got {iters}")
+        self.auto, iters = iters == AUTO, AUTO_MAX_ITERS if iters == AUTO else iters
+        if not isinstance(iters, (int, np.integer)) or iters < 1:
+            raise InputError(f"iters must be >= 1 or {AUTO!r}, got {iters!r}")
         if not 0 <= sh_degree <= 3:
             raise InputError(f"sh_degree must be 0..3, got {sh_degree}")
         if max_gaussians < 1:
@@ -114,6 +116,7 @@ class Trainer:
         self.recipe = recipe.resolved(self.iters, self.sh_degree, self.strategy, random_init, self.batch_size,
                                       views=len(data.train_ids))
         self.lr_factor, self.beta_power = batch_factors(self.batch_size, self.recipe.batch_scaling)
+        self.schedules = Schedules(self.recipe, self.data, iters=self.iters, auto=self.auto)
         self.hooks = list(hooks)
         self.checkpoint_path = Path(checkpoint_path) if checkpoint_path is not None else None
         self.checkpoint_every = int(checkpoint_every)
@@ -185,6 +188,11 @@ class Trainer:
         if self.backdrop is not None and self.backdrop.scene_radius:  # sizes beyond it measured by distance
             self.strategy.far_field(torch.tensor(self.backdrop.center, device=self.device), self.backdrop.scene_radius)
 
+    @property
+    def finished(self) -> bool:
+        """Whether the run reached its end: ``iters``, or where the stop rule ended it (``--iters auto``)."""
+        return self.step >= self.schedules.end
+
     def _initial_count(self, n: int, recipe: Recipe) -> int:
         """How many of ``n`` capture points start the scene (``init_max_points``; the budget of a budgeted strategy)."""
         if recipe.init_max_points is not None:
@@ -235,7 +243,7 @@ class Trainer:
 
     @property
     def active_sh_degree(self) -> int:
-        return min(self.sh_degree, self.step // max(1, self.recipe.sh_interval))
+        return sh_degree_at(self.step, self.sh_degree, self.recipe)
 
     @property
     def scene(self) -> GaussianScene:
@@ -263,17 +271,15 @@ class Trainer:
 
     def _set_lrs(self) -> None:
         r = self.recipe
-        t = min(1.0, self.step / max(1, self.iters))
         lr0, lr1 = r.lr_means * self.extent, r.lr_means_final * self.extent
-        self.gaussians.groups["means"]["lr"] = self.lr_factor * math.exp(math.log(lr0) * (1 - t) + math.log(lr1) * t)
+        self.gaussians.groups["means"]["lr"] = self.lr_factor * self.schedules.means_lr(self.step, lr0, lr1)
 
     def train_step(self) -> dict:
         """One optimisation step (``self.step`` counts completed steps)."""
         r = self.recipe
         views = self.group.share(self.next_batch())  # this process's views of the step's batch
         self._set_lrs()
-        cam = self.data.cameras[views]
-        gt = torch.stack([self.data.images[v] for v in views])
+        cam, gt, masks = self.schedules.batch(self.step, views)  # (coarse-to-fine: downsampled)
         scene = self.scene
         with_ids = bool(self.hooks) and scene.identities is not None
         ch = 3 + (scene.identities.shape[1] if with_ids else 0)
@@ -286,8 +292,8 @@ class Trainer:
         if self.strategy.uses_means2d_grad and means2d.requires_grad:
             means2d.retain_grad()
         img = out[..., :3]
-        if self.data.masks is not None:  # masked pixels are zero in both: no error, no gradient, no SSIM content
-            img, gt = _masked(img, gt, self.data.masks[views])
+        if masks is not None:  # masked pixels are zero in both: no error, no gradient, no SSIM content
+            img, gt = _masked(img, gt, masks)
         loss = photometric(img, gt, r.lambda_dssim, r.dssim_scale)  # (the mean over the views)
         reg = self.strategy.regularizer(self.gaussians)
         if reg is not None:
@@ -329,6 +335,7 @@ class Trainer:
         info.update(self.strategy.step(self.gaussians, self.step, self.gaussians.groups["means"]["lr"]))
         if self.check_every and self.step % self.check_every == 0:
             self.group.check_identical(self._synced_tensors(), self.step)
+        self.schedules.check(self.step, lambda ids: self.evaluate(ids)["psnr"], self._loop)
         return info
 
     def _observe(self, meta: dict) -> None:
@@ -404,14 +411,15 @@ class Trainer:
         raise Diverged(diverged_message(self.step + 1 if step is None else step, where, why))
 
     def train(self, until: Optional[int] = None) -> GaussianScene:
-        """Train up to step ``until`` (default ``iters``) under :mod:`ssgwarp.services.loop`'s policy:
+        """Train up to step ``until`` (default: the end, :attr:`end`) under :mod:`ssgwarp.services.loop`'s policy:
         checkpoints every ``checkpoint_every`` steps, at the end and on Ctrl-C (the step in flight
         finishes first); a NaN loss stops with the last good checkpoint kept."""
-        until = self.iters if until is None else min(int(until), self.iters)
+        cap = self.iters if until is None else min(int(until), self.iters)
+        until = lambda: min(cap, self.schedules.end)  # noqa: E731  (--iters auto: the stop rule may end it sooner)
         save = self.save_checkpoint if self.checkpoint_path is not None else None
         active = self.group.active
         loop = Loop(lambda: self.step, save=save, every=self.checkpoint_every, desc="reconstruct",
-                    progress=self.progress, total=until, sigterm=active, second_raises=not active,
+                    progress=self.progress, total=until(), sigterm=active, second_raises=not active,
                     stop_agreed=(lambda: self._agreed_stop) if active else None,
                     after_stop=self.group.barrier, say=self.group.is_main)   # nobody leaves before the checkpoint is written
         loop.saved_step = self.last_checkpoint_step
@@ -420,7 +428,7 @@ class Trainer:
 
         def on_step(info: dict) -> None:
             self.elapsed = time.time() - t0
-            if self.step % 10 == 0 or self.step == until:
+            if self.step % 10 == 0 or self.step == until():
                 p = -10.0 * math.log10(max(float(info["mse"]), 1e-10))
                 ema[0] = p if ema[0] is None else 0.9 * ema[0] + 0.1 * p
                 loop.bar.set_postfix(loss=f"{float(info['loss']):.4f}", psnr=f"{ema[0]:.2f}",
@@ -454,13 +462,14 @@ class Trainer:
             "world_size": self.group.world_size,  # (informational: any number of processes resumes it)
             "names": list(self.data.names),
             "params": {k: v.detach().cpu() for k, v in self.params.items()},
-            "optimizer": _to_cpu(self.opt.state_dict()),
+            "optimizer": to_cpu(self.opt.state_dict()),
             "hook_params": [p.detach().cpu() for p in self._hook_params()],
-            "hook_optimizer": _to_cpu(self.hook_opt.state_dict()) if self.hook_opt is not None else None,
+            "hook_optimizer": to_cpu(self.hook_opt.state_dict()) if self.hook_opt is not None else None,
             "stats": {k: v.detach().cpu() for k, v in self.gaussians.stats.items()},
             "queue": list(self._queue),
             "rng": rng,
             "history": self.history[-1000:],
+            "stop_monitor": self.schedules.state_dict(),
         }
 
     def save_checkpoint(self, path: Optional[str | Path] = None) -> Path:
@@ -523,6 +532,7 @@ class Trainer:
         self.view_gen.set_state(rng["view"])
         self.strategy.set_generator_state(rng["split"])
         self.history = list(st.get("history", []))
+        self.schedules.load_state_dict(st.get("stop_monitor"))
         self.last_checkpoint_step = self.step
 
     def load_checkpoint(self, path: Optional[str | Path] = None, state: Optional[dict] = None) -> None:
@@ -574,25 +584,3 @@ class Trainer:
 def _masked(img: torch.Tensor, gt: torch.Tensor, masks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``img``, ``gt`` with the pixels where ``masks [B, H, W]`` is 0 set to 0 in both (out of losses, metrics)."""
     return img * masks[..., None].to(img.dtype), gt * masks[..., None].to(gt.dtype)
-
-
-def read_checkpoint(path: str | Path) -> dict:
-    """The contents of a reconstruction checkpoint (on the CPU), or an :class:`InputError`."""
-    try:
-        st = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:
-        raise InputError(f"{path}: unreadable checkpoint ({str(e).splitlines()[0] if str(e) else type(e).__name__});"
-                         f" use --force to start over") from None
-    if not isinstance(st, dict):
-        raise InputError(f"{path}: not a reconstruction checkpoint")
-    return st
-
-
-def _to_cpu(obj):
-    if torch.is_tensor(obj):
-        return obj.detach().cpu()
-    if isinstance(obj, dict):
-        return {k: _to_cpu(v) for k, v in obj.items()}
-    if isinstance(obj, list):
-        return [_to_cpu(v) for v in obj]
-    return obj

@@ -132,22 +132,28 @@ class Loop:
             self.save()
             self.saved_step = self.step_of()
 
-    def run(self, step_fn: Callable[[], Optional[dict]], until: int,
+    def run(self, step_fn: Callable[[], Optional[dict]], until: "int | Callable[[], int]",
             on_step: Optional[Callable[[Optional[dict]], None]] = None) -> None:
-        """Call ``step_fn`` (one step; returns info for ``on_step``) until ``until`` steps are done."""
-        total = until if self.total is None else self.total
+        """Call ``step_fn`` (one step; returns info for ``on_step``) until ``until`` steps are done
+        (``until`` may be a callable, asked after every step: a stage that decides its own end)."""
+        if callable(until):
+            end = until
+        else:
+            def end() -> int:
+                return until
+        total = end() if self.total is None else self.total
         self.bar = tqdm(total=total, initial=self.step_of(), desc=self.desc, unit=self.unit,
                         disable=not self.progress, dynamic_ncols=True)
         clean = False
         try:
             with self.request:
-                while self.step_of() < until:
+                while self.step_of() < end():
                     info = step_fn()
                     self.bar.update(1)
                     if on_step is not None:
                         on_step(info)
                     step = self.step_of()
-                    if self.every > 0 and step % self.every == 0 and step < until:
+                    if self.every > 0 and step % self.every == 0 and step < end():
                         self.checkpoint()
                     stop = self.stop_agreed() if self.stop_agreed is not None else self.request.requested
                     if stop:   # Ctrl-C during this step: it finished cleanly, save it
@@ -176,3 +182,27 @@ class Loop:
             log.warning("interrupted inside step %d; the last checkpoint (step %s) is kept", self.step_of() + 1,
                         self.saved_step)
 
+
+def read_checkpoint(path, what: str = "a reconstruction checkpoint") -> dict:
+    """The contents of a checkpoint file (on the CPU; ``what`` it should be), or an :class:`InputError`."""
+    from ..errors import InputError
+
+    try:
+        st = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:
+        raise InputError(f"{path}: unreadable checkpoint ({str(e).splitlines()[0] if str(e) else type(e).__name__});"
+                         f" use --force to start over") from None
+    if not isinstance(st, dict):
+        raise InputError(f"{path}: not {what}")
+    return st
+
+
+def to_cpu(obj):
+    """Tensors in nested dicts and lists detached and on the CPU (an optimizer's state for a checkpoint)."""
+    if torch.is_tensor(obj):
+        return obj.detach().cpu()
+    if isinstance(obj, dict):
+        return {k: to_cpu(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [to_cpu(v) for v in obj]
+    return obj
