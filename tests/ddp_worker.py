@@ -1,9 +1,11 @@
 """A data-parallel training run for tests/test_distributed.py, launched by ``torchrun``.
 
-``python -m torch.distributed.run --nproc_per_node N tests/ddp_worker.py DATA_DIR OUT.pt [--steps S]``
+``python -m torch.distributed.run --nproc_per_node N tests/ddp_worker.py DATA_DIR OUT.pt [--steps S] [--diverge X.pt]``
 trains the tiny capture in DATA_DIR (see :func:`make_trainer`) with one view per process and
 per step, and the main process saves the final trainer state to OUT.pt. The test trains the
-same capture in one process with the whole batch and compares.
+same capture in one process with the whole batch and compares. With ``--diverge``, the same
+processes then start a second run of two steps in which rank 1 nudges one position: the
+cross-rank check (``SSGWARP_DDP_CHECK=1``) must stop it with an error before X.pt is written.
 """
 from __future__ import annotations
 
@@ -53,17 +55,23 @@ def main() -> int:
     ap.add_argument("data_dir")
     ap.add_argument("out")
     ap.add_argument("--steps", type=int, default=12)
-    ap.add_argument("--perturb", action="store_true", help="rank 1 nudges one position (the check must see it)")
+    ap.add_argument("--diverge", help="then a run of 2 steps where rank 1 nudges one position (the check must "
+                                      "stop it before this file is written)")
     a = ap.parse_args()
     group, _ = distributed.from_env(torch.device("cpu"))
     try:
         t = make_trainer(a.data_dir, batch_size=group.world_size, group=group, steps=a.steps)
-        if a.perturb and group.rank == 1:
-            with torch.no_grad():
-                t.params["means"][0, 0] += 1e-4
         t.train()
         if group.is_main:
             torch.save({"state": t.state_dict(), "calls": t.hooks[0].calls}, a.out)
+        if a.diverge:
+            d = make_trainer(a.data_dir, batch_size=group.world_size, group=group, steps=2)
+            if group.rank == 1:
+                with torch.no_grad():
+                    d.params["means"][0, 0] += 1e-4
+            d.train()
+            if group.is_main:
+                torch.save({"state": d.state_dict()}, a.diverge)
     finally:
         distributed.shutdown(group)
     return 0

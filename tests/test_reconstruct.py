@@ -458,7 +458,7 @@ def test_backdrop_points_lie_beyond_the_initial_points_with_their_pixels_colours
 def test_inside_out_capture_fails_from_the_cube_and_reconstructs_with_the_backdrop(tmp_path):
     """The procedural inside-out capture (a rig looking outward at a ground, a ring of buildings and a sky):
     the random cube around the cameras' focus (behind them) cannot reconstruct it; the default (a backdrop,
-    decided from the layout) does. Seen on CPU, 48x36, 200 steps: cube ~7 dB, backdrop ~17 dB."""
+    decided from the layout) does. Seen on CPU, 48x36: cube 6.6 dB, backdrop 18.1 dB at 100 steps (19.2 at 200)."""
     from ssgwarp.procedural import build_inside_out, render_views, rig_cameras, write_transforms_dataset
 
     gt = build_inside_out(0.25)
@@ -469,7 +469,7 @@ def test_inside_out_capture_fails_from_the_cube_and_reconstructs_with_the_backdr
     assert data.points_source == "random" and len(data.test_ids) == 2
     out = {}
     for mode in ("off", "auto"):
-        t = Trainer(data, iters=200, sh_degree=0, progress=False, device="cpu", backdrop=mode)
+        t = Trainer(data, iters=100, sh_degree=0, progress=False, device="cpu", backdrop=mode)
         t.train()
         out[mode] = (t.evaluate()["psnr"], t.backdrop)
     assert not out["off"][1].use and out["auto"][1].use and out["auto"][1].layout == "inside-out"
