@@ -73,7 +73,7 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
                 checkpoint_every: int = 500, num_random_points: int = 100_000,
                 rasterize: Optional[Callable] = None, raster_kwargs: Optional[dict] = None,
                 progress: bool = True, data=None, strategy="default", batch_size: Optional[int] = None,
-                group=None, init="auto", backdrop: str = "auto") -> dict:
+                group=None, init="auto", backdrop: str = "auto", attach=None) -> dict:
     """Reconstruct the capture in ``data_dir`` into the run folder ``out`` (what the CLI runs).
 
     Writes ``out/scene.ply``, ``cameras.json``, ``data.json``, ``metrics.json`` (and keeps
@@ -88,6 +88,9 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
     ``backdrop``: ``"auto"`` / ``"on"`` / ``"off"``, far points and a far shell for what lies beyond the
     initial points (:mod:`ssgwarp.reconstruction.backdrop`); the decision goes to ``metrics.json`` and
     ``data.json`` (``backdrop``).
+    ``attach``: hooks made during the run (:class:`~ssgwarp.reconstruction.trainer.Trainer`'s ``attach``;
+    ``reconstruct --groups``); its ``finish(out, metrics) -> dict`` runs once the run files are written
+    and what it returns joins ``metrics.json``.
     Returns the metrics dict (on the other processes: ``{}``).
     """
     group = group if group is not None else SINGLE
@@ -109,7 +112,7 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
                       hooks=hooks, identity_dim=identity_dim, checkpoint_path=ckpt,
                       checkpoint_every=checkpoint_every, rasterize=rasterize, raster_kwargs=raster_kwargs,
                       device=device, seed=seed, progress=progress, strategy=strategy, batch_size=batch_size,
-                      group=group, backdrop=backdrop)
+                      group=group, backdrop=backdrop, attach=attach)
     if state is not None:
         trainer.load_checkpoint(ckpt, state=state)
         del state
@@ -173,6 +176,8 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int = 30000, im
     write_ply(out / "scene.ply", scene)
     data.cameras.to("cpu").save(out / "cameras.json")
     write_json(out / "data.json", data_json(data, seed=seed, backdrop=metrics["backdrop"]))
+    if attach is not None:
+        metrics.update(attach.finish(out, metrics) or {})
     write_json(out / "metrics.json", metrics)
     log.info("wrote %s: %d Gaussians, held-out PSNR %s", out, len(scene),
              "n/a" if metrics["psnr"] is None else f"{metrics['psnr']:.2f} dB")
@@ -247,7 +252,8 @@ QUICK_MEASURED = ("fern images_8 (17 training views, resized to 252x188): 20 min
                   "work (6.5 min of CPU time), held-out PSNR 27.1 dB, 2026-11-28")
 
 
-def run(args) -> int:
+def run(args, **extra) -> int:
+    """The command; ``extra`` goes to :func:`reconstruct` (``attach``: ``reconstruct --groups``)."""
     if args.batch_size is not None and args.batch_size < 1:
         raise InputError(f"--batch-size must be >= 1, got {args.batch_size}")
     init = check_init(args.init)
@@ -260,7 +266,7 @@ def run(args) -> int:
                         background=args.background, checkpoint_every=args.checkpoint_every,
                         num_random_points=args.random_points, progress=not args.quiet,
                         strategy=args.strategy, batch_size=args.batch_size, backdrop=args.backdrop,
-                        recipe=Recipe(batch_scaling=args.batch_scaling), group=group, init=init)
+                        recipe=Recipe(batch_scaling=args.batch_scaling), group=group, init=init, **extra)
     finally:
         distributed.shutdown(group)
     if not group.is_main:

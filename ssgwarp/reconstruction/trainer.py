@@ -77,6 +77,13 @@ class Trainer:
             renders its share of every batch); default: alone.
         backdrop: ``"auto"`` / ``"on"`` / ``"off"``: far points for the initial scene (:mod:`.backdrop`;
             :attr:`backdrop`: the decision, None when ``scene`` is given).
+        attach: hooks made during the run, from the scene as it is then (what ``reconstruct --groups``
+            passes: the grouping layer's labels come from the scene being trained). An object with
+            ``prepare(trainer)`` (called here, before anything is written: validate, and set its
+            ``start`` step), ``start``, ``dim`` (the identity length the hooks train), ``__call__(trainer)
+            -> hooks`` (called before step ``start``: the scene gets identity encodings if it has none,
+            learnt at ``identity_lr`` when it has one (else the recipe's), the hooks' parameters an optimiser) and ``state() -> dict`` / ``restore(state) -> hooks`` (what a
+            checkpoint holds of them, and the hooks back from it).
         device, seed, progress: as usual.
     """
 
@@ -85,7 +92,8 @@ class Trainer:
                  identity_dim: Optional[int] = None, checkpoint_path: Optional[str | Path] = None,
                  checkpoint_every: int = 500, rasterize: Optional[Callable] = None,
                  raster_kwargs: Optional[dict] = None, device=None, seed: int = 0, progress: bool = True,
-                 strategy="default", batch_size: Optional[int] = None, group=None, backdrop: str = "auto"):
+                 strategy="default", batch_size: Optional[int] = None, group=None, backdrop: str = "auto",
+                 attach=None):
         if iters < 1:
             raise InputError(f"iters must be >= 1, got {iters}")
         if not 0 <= sh_degree <= 3:
@@ -157,7 +165,9 @@ class Trainer:
                         "their losses are not used")
         self._build_optimizer(scene)
         self._setup_strategy()
-        self._hook_takes_scene = [_takes_scene(h) for h in self.hooks]
+        self.attach, self._attached = attach, False
+        if attach is not None:
+            attach.prepare(self)
 
     # -- state --------------------------------------------------------------------------------
     def _initial_scene(self) -> GaussianScene:
@@ -207,6 +217,9 @@ class Trainer:
         params = {k: torch.nn.Parameter(v.detach().clone().contiguous()) for k, v in scene.tensors().items()}
         groups = [{"params": [p], "lr": self._lr(k), "name": k} for k, p in params.items()]
         self.gaussians = GaussianParams(params, adam(groups, eps=self.recipe.adam_eps, betas=self.betas))
+        self._build_hook_optimizer()
+
+    def _build_hook_optimizer(self) -> None:
         hook_groups = []
         for h in self.hooks:
             hook_groups.extend(h.parameters())
@@ -214,6 +227,22 @@ class Trainer:
         if self.hook_opt is not None and self.lr_factor != 1.0:
             for g in self.hook_opt.param_groups:
                 g["lr"] *= self.lr_factor
+        self._hook_takes_scene = [_takes_scene(h) for h in self.hooks]
+
+    def _attach_now(self, state: Optional[dict] = None) -> None:
+        """Make the ``attach`` hooks (from the current scene, or from a checkpoint's ``state``) and give the
+        scene identity encodings (``attach.dim``, random as ``identity_dim``'s) when it has none."""
+        self.hooks.extend(self.attach(self) if state is None else self.attach.restore(state))
+        self._attached = True
+        if state is None and "identities" not in self.params:
+            g = torch.Generator().manual_seed(self.seed + 2)
+            ids = torch.randn(self.num_gaussians, int(self.attach.dim), generator=g) * self.recipe.identity_init_std
+            p = torch.nn.Parameter(ids.to(self.device, torch.float32))
+            self.params["identities"] = p
+            lr = getattr(self.attach, "identity_lr", None)
+            lr = self._lr("identities") if lr is None else self.lr_factor * float(lr)
+            self.opt.add_param_group({"params": [p], "lr": lr, "name": "identities"})
+        self._build_hook_optimizer()
 
     def _hook_params(self) -> list[torch.Tensor]:
         if self.hook_opt is None:
@@ -270,6 +299,8 @@ class Trainer:
     def train_step(self) -> dict:
         """One optimisation step (``self.step`` counts completed steps)."""
         r = self.recipe
+        if self.attach is not None and not self._attached and self.step >= self.attach.start:
+            self._attach_now()
         views = self.group.share(self.next_batch())  # this process's views of the step's batch
         self._set_lrs()
         cam = self.data.cameras[views]
@@ -461,6 +492,7 @@ class Trainer:
             "queue": list(self._queue),
             "rng": rng,
             "history": self.history[-1000:],
+            "attached": self.attach.state() if self._attached else None,
         }
 
     def save_checkpoint(self, path: Optional[str | Path] = None) -> Path:
@@ -494,8 +526,14 @@ class Trainer:
         if b != self.batch_size:
             raise InputError(f"the checkpoint was trained with --batch-size {b}, not {self.batch_size}; "
                              f"pass --batch-size {b} to resume it (with any number of processes dividing it)")
+        attached = st.get("attached")
+        if attached is not None and self.attach is None:
+            raise InputError("the checkpoint was trained with hooks attached during the run (reconstruct --groups); "
+                             "pass the same options to resume it, or --force to start over")
+        if attached is not None and not self._attached:
+            self._attach_now(attached)   # (the identities come with the checkpoint's parameters)
         saved = set(st["params"])
-        if saved != set(self.params):
+        if saved != set(self.params) | ({"identities"} if attached is not None else set()):
             raise InputError(f"the checkpoint holds {sorted(saved)}, this run {sorted(self.params)}")
         scene = GaussianScene(**{k: v for k, v in st["params"].items()}, sh_degree=self.sh_degree)
         self._build_optimizer(scene.to(self.device))
