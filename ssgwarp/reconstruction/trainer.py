@@ -29,6 +29,7 @@ from ..services.losses import photometric, psnr, ssim
 from .recipe import Recipe, batch_factors
 from ..raster.rendering import render
 from ..raster.scene import GaussianScene
+from .attach import attach_hooks, restore_attached, takes_scene
 from .backdrop import with_backdrop
 from .strategy import GaussianParams, make_strategy
 
@@ -36,15 +37,6 @@ log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
 
 CHECKPOINT_FORMAT = "ssgwarp-reconstruct-checkpoint/1"
 
-
-def _takes_scene(hook) -> bool:
-    """Whether a hook's ``loss`` takes the current scene (a ``scene`` parameter)."""
-    import inspect
-
-    try:
-        return "scene" in inspect.signature(hook.loss).parameters
-    except (TypeError, ValueError):
-        return False
 
 class Trainer:
     """The 3DGS training loop on one :class:`~ssgwarp.capture.datasets.SceneData`.
@@ -77,13 +69,7 @@ class Trainer:
             renders its share of every batch); default: alone.
         backdrop: ``"auto"`` / ``"on"`` / ``"off"``: far points for the initial scene (:mod:`.backdrop`;
             :attr:`backdrop`: the decision, None when ``scene`` is given).
-        attach: hooks made during the run, from the scene as it is then (what ``reconstruct --groups``
-            passes: the grouping layer's labels come from the scene being trained). An object with
-            ``prepare(trainer)`` (called here, before anything is written: validate, and set its
-            ``start`` step), ``start``, ``dim`` (the identity length the hooks train), ``__call__(trainer)
-            -> hooks`` (called before step ``start``: the scene gets identity encodings if it has none,
-            learnt at ``identity_lr`` when it has one (else the recipe's), the hooks' parameters an optimiser) and ``state() -> dict`` / ``restore(state) -> hooks`` (what a
-            checkpoint holds of them, and the hooks back from it).
+        attach: hooks made during the run (``reconstruct --groups``): :mod:`ssgwarp.reconstruction.attach`.
         device, seed, progress: as usual.
     """
 
@@ -220,29 +206,12 @@ class Trainer:
         self._build_hook_optimizer()
 
     def _build_hook_optimizer(self) -> None:
-        hook_groups = []
-        for h in self.hooks:
-            hook_groups.extend(h.parameters())
+        hook_groups = [g for h in self.hooks for g in h.parameters()]
         self.hook_opt = adam(hook_groups, betas=self.betas) if hook_groups else None
         if self.hook_opt is not None and self.lr_factor != 1.0:
             for g in self.hook_opt.param_groups:
                 g["lr"] *= self.lr_factor
-        self._hook_takes_scene = [_takes_scene(h) for h in self.hooks]
-
-    def _attach_now(self, state: Optional[dict] = None) -> None:
-        """Make the ``attach`` hooks (from the current scene, or from a checkpoint's ``state``) and give the
-        scene identity encodings (``attach.dim``, random as ``identity_dim``'s) when it has none."""
-        self.hooks.extend(self.attach(self) if state is None else self.attach.restore(state))
-        self._attached = True
-        if state is None and "identities" not in self.params:
-            g = torch.Generator().manual_seed(self.seed + 2)
-            ids = torch.randn(self.num_gaussians, int(self.attach.dim), generator=g) * self.recipe.identity_init_std
-            p = torch.nn.Parameter(ids.to(self.device, torch.float32))
-            self.params["identities"] = p
-            lr = getattr(self.attach, "identity_lr", None)
-            lr = self._lr("identities") if lr is None else self.lr_factor * float(lr)
-            self.opt.add_param_group({"params": [p], "lr": lr, "name": "identities"})
-        self._build_hook_optimizer()
+        self._hook_takes_scene = [takes_scene(h) for h in self.hooks]
 
     def _hook_params(self) -> list[torch.Tensor]:
         if self.hook_opt is None:
@@ -300,7 +269,7 @@ class Trainer:
         """One optimisation step (``self.step`` counts completed steps)."""
         r = self.recipe
         if self.attach is not None and not self._attached and self.step >= self.attach.start:
-            self._attach_now()
+            attach_hooks(self)
         views = self.group.share(self.next_batch())  # this process's views of the step's batch
         self._set_lrs()
         cam = self.data.cameras[views]
@@ -526,14 +495,8 @@ class Trainer:
         if b != self.batch_size:
             raise InputError(f"the checkpoint was trained with --batch-size {b}, not {self.batch_size}; "
                              f"pass --batch-size {b} to resume it (with any number of processes dividing it)")
-        attached = st.get("attached")
-        if attached is not None and self.attach is None:
-            raise InputError("the checkpoint was trained with hooks attached during the run (reconstruct --groups); "
-                             "pass the same options to resume it, or --force to start over")
-        if attached is not None and not self._attached:
-            self._attach_now(attached)   # (the identities come with the checkpoint's parameters)
         saved = set(st["params"])
-        if saved != set(self.params) | ({"identities"} if attached is not None else set()):
+        if saved != set(self.params) | restore_attached(self, st.get("attached")):
             raise InputError(f"the checkpoint holds {sorted(saved)}, this run {sorted(self.params)}")
         scene = GaussianScene(**{k: v for k, v in st["params"].items()}, sh_degree=self.sh_degree)
         self._build_optimizer(scene.to(self.device))
