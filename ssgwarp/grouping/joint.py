@@ -226,6 +226,9 @@ def reconstruct_with_groups(data_dir, out, *, num_groups: Optional[int] = None, 
 
 
 # ----------------------------------------------------------------------------- CLI
+QUICK, QUICK_MEASURED = rec.QUICK, rec.QUICK_MEASURED   # (the command's --quick preset: reconstruct's)
+
+
 def add_arguments(parser) -> None:
     rec.add_arguments(parser)
     g = parser.add_argument_group("groups in the same training (Gaussian Grouping; docs/grouping.md)")
