@@ -32,8 +32,8 @@ SHEET = ROOT / "docs" / "images" / "demo_contact_sheet.png"
 CLAIM_FILES = (ROOT / "README.md", ROOT / "docs" / "demo.md")
 TABLE_FILE = ROOT / "docs" / "demo.md"
 END = "<!-- /figures -->"
-# the default demo on the idle 2-core CPU development machine: 54-76 s measured 2026-11-23
-IDLE_RANGE = "about 1 minute (54-76 s measured)"
+# the default demo on an idle 2-core CPU machine (the size of 2026-11-28: not measured idle yet)
+IDLE_RANGE = "about 40 s (estimated from its 48 s of CPU time on one thread; not yet measured on an idle machine at this size, 2026-11-28)"
 
 
 def span(text: str, name: str, body: str, where: Path) -> str:

@@ -25,7 +25,8 @@ from .errors import SsgwarpError
 COMMANDS: dict[str, tuple[str, str, str]] = {
     "demo": ("ssgwarp.demo", "run the whole pipeline on an embedded procedural scene",
              "ssgwarp demo --out ssgwarp-demo"),
-    "reconstruct": ("ssgwarp.reconstruction.reconstruct", "3DGS reconstruction of a capture (COLMAP, LLFF, transforms.json)",
+    "reconstruct": ("ssgwarp.grouping.joint", "3DGS reconstruction of a capture (COLMAP, LLFF, transforms.json); "
+                    "--groups also trains Gaussian Grouping in the same loop",
                     "ssgwarp reconstruct data/fern --images images_8 --out runs/fern --iters 7000"),
     "import": ("ssgwarp.reconstruction.importer", "splats trained by graphdeco 3DGS, gsplat, nerfstudio or any 3DGS PLY as a run",
                "ssgwarp import output/garden --out runs/garden"),

@@ -80,15 +80,16 @@ class DemoSize:
     stylize_lr: float
     path_frames: int
     eval_pairs: int
+    group_dim: int = 16       # identity length of the groups trained with the reconstruction
 
 
 SIZES: dict[str, DemoSize] = {
     "small": DemoSize(views=8, width=48, height=36, density=0.5, reconstruct_iters=150, init_points=600,
                       max_gaussians=2500, group_iters=40, keyviews=2, max_side=48, stylize_iters=20,
                       stylize_lr=0.05, path_frames=0, eval_pairs=4),
-    "default": DemoSize(views=24, width=96, height=72, density=1.0, reconstruct_iters=1000, init_points=2000,
-                        max_gaussians=6000, group_iters=150, keyviews=4, max_side=96, stylize_iters=200,
-                        stylize_lr=0.05, path_frames=24, eval_pairs=8),
+    "default": DemoSize(views=24, width=80, height=60, density=1.0, reconstruct_iters=700, init_points=2000,
+                        max_gaussians=5000, group_iters=150, keyviews=4, max_side=80, stylize_iters=60,
+                        stylize_lr=0.05, path_frames=0, eval_pairs=4, group_dim=8),
 }
 
 

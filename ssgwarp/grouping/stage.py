@@ -77,6 +77,7 @@ __all__ = ["GroupConfig", "GroupModel", "GroupingHook", "MaskSet", "RunInfo", "D
            "make_classifier", "init_identities", "render_group_maps", "group_labels", "gaussian_groups",
            "mask_loss", "knn_indices", "regularizer_3d", "find_mask", "load_masks", "read_id_image",
            "train_identities", "neighbour_pairs", "reprojection_agreement", "map_name", "write_group_outputs",
+           "masks_info", "clusters_info", "finish_groups",
            "group_scene", "load_groups", "add_arguments", "run"]
 
 
@@ -197,12 +198,7 @@ def group_scene(scene_dir: str | Path, *, masks: Optional[str | Path] = "auto", 
                         undistortion=None if made is not None else run.data.get("undistortion"))
         k = ms.num_groups
         all_targets = ms.targets
-        info.update({"method": "masks", "mask_dir": str(mask_dir), "mask_ids": ms.ids, "criterion": None,
-                     "kind": KINDS["segmenter" if made and made.get("source", {}).get("kind") == "segmenter"
-                                   else "masks"]})
-        if made is not None:
-            info["masks_record"] = {"source": made.get("source"), "num_instances": made.get("num_instances"),
-                                    "ignore_id": made.get("ignore_id"), "record": str(mask_dir.parent / "masks.json")}
+        info.update(masks_info(mask_dir, ms, made))
     else:
         ccfg = cluster if cluster is not None else ClusterConfig(max_groups=max_groups)
         if cluster is not None and cluster.max_groups != max_groups:
@@ -213,11 +209,7 @@ def group_scene(scene_dir: str | Path, *, masks: Optional[str | Path] = "auto", 
         k = res.num_groups
         all_targets = torch.full((len(cams), cams.height, cams.width), IGNORE, dtype=torch.long)
         all_targets[run.train_ids] = masks_train.cpu()
-        crit = dict(res.criterion)
-        crit["values"] = {int(a): float(b) for a, b in crit.get("values", {}).items()}
-        info.update({"method": "mask-free (spectral clustering of the Gaussians on position, colour, shape; "
-                               "K by log-eigengap)", "kind": KINDS["mask-free"],
-                     "criterion": crit, "cluster_config": asdict(ccfg)})
+        info.update(clusters_info(res, ccfg))
     info["num_groups"] = k
     info["K"] = k
     history: list[dict] = []
@@ -230,23 +222,54 @@ def group_scene(scene_dir: str | Path, *, masks: Optional[str | Path] = "auto", 
         scene, classifier, history = train_identities(
             scene, train_cams, all_targets[run.train_ids], k, config=config, seed=seed, progress=progress,
             checkpoint_path=gdir / "checkpoint.pt", resume=resume)
-    info["history_tail"] = history[-5:]
-    info, labels = write_group_outputs(scene_dir, scene, cams, classifier, info, history=history, progress=progress)
-    # how well the group maps reproduce the masks, and how well they agree across views
-    tr = run.train_ids
-    t = all_targets[tr]
-    valid = t >= 0
-    info["train_mask_accuracy"] = float((labels[tr].cpu()[valid] == t[valid]).double().mean()) if bool(valid.any()) else None
-    if run.test_ids and mask_dir is not None:
-        tt = all_targets[run.test_ids]
-        v = tt >= 0
-        info["test_mask_accuracy"] = float((labels[run.test_ids].cpu()[v] == tt[v]).double().mean()) if bool(v.any()) else None
-    info["reprojection_agreement"] = reprojection_agreement(scene, cams, labels, neighbour_pairs(cams))
+    info = finish_groups(scene_dir, run, scene, classifier, all_targets, info, history=history,
+                         test_masks=mask_dir is not None, progress=progress)
     info["seconds"] = round(time.time() - t0, 2)
     write_json(gdir / "groups.json", info)
     ck = gdir / "checkpoint.pt"
     if ck.is_file():
         ck.unlink()
+    return info
+
+
+def masks_info(mask_dir: Path, ms: MaskSet, made: Optional[dict]) -> dict:
+    """groups.json's record of groups trained on the masks ``ms`` read from ``mask_dir`` (``made``: the
+    folder's ``ssgwarp masks`` record, or None)."""
+    info = {"method": "masks", "mask_dir": str(mask_dir), "mask_ids": ms.ids, "criterion": None,
+            "kind": KINDS["segmenter" if made and made.get("source", {}).get("kind") == "segmenter" else "masks"]}
+    if made is not None:
+        info["masks_record"] = {"source": made.get("source"), "num_instances": made.get("num_instances"),
+                                "ignore_id": made.get("ignore_id"), "record": str(mask_dir.parent / "masks.json")}
+    return info
+
+
+def clusters_info(res, ccfg: ClusterConfig) -> dict:
+    """groups.json's record of mask-free groups (the clustering's :class:`ClusterResult` ``res``)."""
+    crit = dict(res.criterion)
+    crit["values"] = {int(a): float(b) for a, b in crit.get("values", {}).items()}
+    return {"method": "mask-free (spectral clustering of the Gaussians on position, colour, shape; "
+                      "K by log-eigengap)", "kind": KINDS["mask-free"], "criterion": crit,
+            "cluster_config": asdict(ccfg)}
+
+
+def finish_groups(scene_dir: Path, run: RunInfo, scene: GaussianScene, classifier: torch.nn.Linear,
+                  all_targets: Tensor, info: dict, *, history: Sequence[dict] = (), test_masks: bool = False,
+                  progress: bool = True) -> dict:
+    """Write the groups of a trained scene (:func:`write_group_outputs`) and score them: how well the group
+    maps reproduce the training targets ``all_targets [C, H, W]`` (and the held-out ones, ``test_masks``),
+    how well they agree across views. Returns ``info`` completed (the caller writes groups.json)."""
+    cams = run.cameras
+    info["history_tail"] = list(history)[-5:]
+    info, labels = write_group_outputs(scene_dir, scene, cams, classifier, info, history=history, progress=progress)
+    tr = run.train_ids
+    t = all_targets[tr]
+    valid = t >= 0
+    info["train_mask_accuracy"] = float((labels[tr].cpu()[valid] == t[valid]).double().mean()) if bool(valid.any()) else None
+    if run.test_ids and test_masks:
+        tt = all_targets[run.test_ids]
+        v = tt >= 0
+        info["test_mask_accuracy"] = float((labels[run.test_ids].cpu()[v] == tt[v]).double().mean()) if bool(v.any()) else None
+    info["reprojection_agreement"] = reprojection_agreement(scene, cams, labels, neighbour_pairs(cams))
     return info
 
 

@@ -170,6 +170,7 @@ class GroupingHook:
                                           device=device, dtype=dtype)
         self.targets = targets
         self.last: dict = {}
+        self.history: list[dict] = []   # {"step", "ce", "reg"} every 10 steps (the first view of a step)
 
     def parameters(self) -> list[dict]:
         """The classifier's Adam parameter group."""
@@ -192,4 +193,6 @@ class GroupingHook:
                                  samples=cfg.reg_samples, max_points=cfg.reg_max_points)
             loss = loss + cfg.reg_weight * reg
             self.last["reg"] = float(reg.detach())
+        if step % 10 == 0 and (not self.history or self.history[-1]["step"] != step):
+            self.history.append({"step": step, "ce": self.last["ce"], "reg": self.last.get("reg")})
         return loss

@@ -67,79 +67,8 @@ def _lpips_model(device):
         return None, f"skipped: LPIPS weights could not be loaded ({str(e).splitlines()[0] if str(e) else e})"
 
 
-def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = 30000, images: str = "images",
-                sh_degree: int = 3, max_gaussians: int = 1_000_000, resume: bool = False, force: bool = False,
-                device=None, seed: int = 0, hooks: Sequence = (), identity_dim: Optional[int] = None,
-                split_every: int = 8, width: Optional[int] = None, max_images: Optional[int] = None,
-                background: Optional[Sequence[float]] = None, recipe: Optional[Recipe] = None,
-                checkpoint_every: int = 500, num_random_points: int = 100_000,
-                rasterize: Optional[Callable] = None, raster_kwargs: Optional[dict] = None,
-                progress: bool = True, data=None, strategy="default", batch_size: Optional[int] = None,
-                group=None, init="auto", backdrop: str = "auto") -> dict:
-    """Reconstruct the capture in ``data_dir`` into the run folder ``out`` (what the CLI runs).
-
-    Writes ``out/scene.ply``, ``cameras.json``, ``data.json``, ``metrics.json`` (and keeps
-    ``out/checkpoint.pt``). Existing outputs are never overwritten unless ``force``
-    (which starts over) or ``resume`` (which continues from the checkpoint).
-    ``data`` may be a preloaded :class:`~ssgwarp.capture.datasets.SceneData` of ``data_dir``.
-    ``batch_size``: views per step over all processes (default: one per process; on
-    ``resume``, the checkpoint's). ``group``: the :class:`ssgwarp.services.distributed.Group` of a
-    data-parallel run (default: alone); only its main process writes files and evaluates. ``init``: the
-    initial points (:func:`~ssgwarp.capture.datasets.load_dataset`'s: ``auto``, ``triangulate``, ``random`` or a
-    ``.ply`` path).
-    ``backdrop``: ``"auto"`` / ``"on"`` / ``"off"``, far points and a far shell for what lies beyond the
-    initial points (:mod:`ssgwarp.reconstruction.backdrop`); the decision goes to ``metrics.json`` and
-    ``data.json`` (``backdrop``).
-    ``iters``: steps, or ``"auto"``: until the training views' PSNR stops improving
-    (:mod:`ssgwarp.reconstruction.schedules`); ``metrics.json`` and ``data.json`` record the steps run and why
-    the run stopped (``schedule``).
-    Returns the metrics dict (on the other processes: ``{}``).
-    """
-    group = group if group is not None else SINGLE
-    out = Path(out).expanduser()
-    device = torch.device(device) if device is not None else torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    ckpt = out / "checkpoint.pt"
-    claimed = claim(out, OUTPUTS + ("checkpoint.pt",), force=force, resume=resume, what="a reconstruction")
-    # load and validate everything before touching the output folder
-    if data is None:
-        kw = {} if background is None else {"background": background}
-        data = load_dataset(data_dir, images=images, split_every=split_every, max_images=max_images, width=width,
-                            num_random_points=num_random_points, seed=seed, init=init,
-                            progress=progress and group.is_main, **kw)
-    state = read_checkpoint(ckpt) if resume and ckpt.is_file() else None
-    if state is not None and batch_size is None:
-        batch_size = int(state.get("batch_size", 1))
-    group.barrier()  # everyone has looked at OUT before the main process changes it
-    trainer = Trainer(data, iters=iters, sh_degree=sh_degree, max_gaussians=max_gaussians, recipe=recipe,
-                      hooks=hooks, identity_dim=identity_dim, checkpoint_path=ckpt,
-                      checkpoint_every=checkpoint_every, rasterize=rasterize, raster_kwargs=raster_kwargs,
-                      device=device, seed=seed, progress=progress, strategy=strategy, batch_size=batch_size,
-                      group=group, backdrop=backdrop)
-    if state is not None:
-        trainer.load_checkpoint(ckpt, state=state)
-        del state
-        if trainer.finished:
-            log.info("the checkpoint is already at step %d: writing outputs only", trainer.step)
-    elif resume:
-        if claimed.existing:
-            raise SsgwarpError(f"{out}: nothing to resume (no checkpoint.pt); pass --force to start over")
-        log.info("no checkpoint in %s: starting from scratch", out)
-    if group.is_main:
-        claimed.clear()   # (--force: the old run's files)
-    if group.is_main:
-        out.mkdir(parents=True, exist_ok=True)
-    group.barrier()
-
-    if torch.cuda.is_available() and device.type == "cuda":
-        torch.cuda.reset_peak_memory_stats(device)
-    trainer.train()
-    peaks = None
-    if group.active and device.type == "cuda":
-        peaks = [round(v, 1) for v in group.gather(torch.cuda.max_memory_allocated(device) / 2**20)]
-    if not group.is_main:
-        return {}
-    scene = trainer.final_scene()
-
+def _run_metrics(trainer: Trainer, data, scene, device: torch.device, group, seed: int, peaks) -> dict:
+    """``metrics.json`` of a finished run: held-out metrics (evaluated here), counts, schedules, memory."""
     lpips, lpips_note = _lpips_model(device)
     ev = trainer.evaluate(lpips=lpips)
     metrics = {
@@ -175,11 +104,93 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = 300
         metrics["peak_gpu_memory_mb"] = round(torch.cuda.max_memory_allocated(device) / 2**20, 1)
         if peaks is not None:  # every process's peak (they differ by their renders' workspace)
             metrics["peak_gpu_memory_mb_per_rank"] = peaks
+    return metrics
+
+
+def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = 30000, images: str = "images",
+                sh_degree: int = 3, max_gaussians: int = 1_000_000, resume: bool = False, force: bool = False,
+                device=None, seed: int = 0, hooks: Sequence = (), identity_dim: Optional[int] = None,
+                split_every: int = 8, width: Optional[int] = None, max_images: Optional[int] = None,
+                background: Optional[Sequence[float]] = None, recipe: Optional[Recipe] = None,
+                checkpoint_every: int = 500, num_random_points: int = 100_000,
+                rasterize: Optional[Callable] = None, raster_kwargs: Optional[dict] = None,
+                progress: bool = True, data=None, strategy="default", batch_size: Optional[int] = None,
+                group=None, init="auto", backdrop: str = "auto", attach=None) -> dict:
+    """Reconstruct the capture in ``data_dir`` into the run folder ``out`` (what the CLI runs).
+
+    Writes ``out/scene.ply``, ``cameras.json``, ``data.json``, ``metrics.json`` (and keeps
+    ``out/checkpoint.pt``). Existing outputs are never overwritten unless ``force``
+    (which starts over) or ``resume`` (which continues from the checkpoint).
+    ``data`` may be a preloaded :class:`~ssgwarp.capture.datasets.SceneData` of ``data_dir``.
+    ``batch_size``: views per step over all processes (default: one per process; on
+    ``resume``, the checkpoint's). ``group``: the :class:`ssgwarp.services.distributed.Group` of a
+    data-parallel run (default: alone); only its main process writes files and evaluates. ``init``: the
+    initial points (:func:`~ssgwarp.capture.datasets.load_dataset`'s: ``auto``, ``triangulate``, ``random`` or a
+    ``.ply`` path).
+    ``backdrop``: ``"auto"`` / ``"on"`` / ``"off"``, far points and a far shell for what lies beyond the
+    initial points (:mod:`ssgwarp.reconstruction.backdrop`); the decision goes to ``metrics.json`` and
+    ``data.json`` (``backdrop``).
+    ``iters``: steps, or ``"auto"``: until the training views' PSNR stops improving
+    (:mod:`ssgwarp.reconstruction.schedules`); ``metrics.json`` and ``data.json`` record the steps run and why
+    the run stopped (``schedule``).
+    ``attach``: hooks made during the run (:class:`~ssgwarp.reconstruction.trainer.Trainer`'s ``attach``;
+    ``reconstruct --groups``); its ``finish(out, metrics) -> dict`` runs once the run files are written
+    and what it returns joins ``metrics.json``.
+    Returns the metrics dict (on the other processes: ``{}``).
+    """
+    group = group if group is not None else SINGLE
+    out = Path(out).expanduser()
+    device = torch.device(device) if device is not None else torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    ckpt = out / "checkpoint.pt"
+    claimed = claim(out, OUTPUTS + ("checkpoint.pt",), force=force, resume=resume, what="a reconstruction")
+    # load and validate everything before touching the output folder
+    if data is None:
+        kw = {} if background is None else {"background": background}
+        data = load_dataset(data_dir, images=images, split_every=split_every, max_images=max_images, width=width,
+                            num_random_points=num_random_points, seed=seed, init=init,
+                            progress=progress and group.is_main, **kw)
+    state = read_checkpoint(ckpt) if resume and ckpt.is_file() else None
+    if state is not None and batch_size is None:
+        batch_size = int(state.get("batch_size", 1))
+    group.barrier()  # everyone has looked at OUT before the main process changes it
+    trainer = Trainer(data, iters=iters, sh_degree=sh_degree, max_gaussians=max_gaussians, recipe=recipe,
+                      hooks=hooks, identity_dim=identity_dim, checkpoint_path=ckpt,
+                      checkpoint_every=checkpoint_every, rasterize=rasterize, raster_kwargs=raster_kwargs,
+                      device=device, seed=seed, progress=progress, strategy=strategy, batch_size=batch_size,
+                      group=group, backdrop=backdrop, attach=attach)
+    if state is not None:
+        trainer.load_checkpoint(ckpt, state=state)
+        del state
+        if trainer.finished:
+            log.info("the checkpoint is already at step %d: writing outputs only", trainer.step)
+    elif resume:
+        if claimed.existing:
+            raise SsgwarpError(f"{out}: nothing to resume (no checkpoint.pt); pass --force to start over")
+        log.info("no checkpoint in %s: starting from scratch", out)
+    if group.is_main:
+        claimed.clear()   # (--force: the old run's files)
+    if group.is_main:
+        out.mkdir(parents=True, exist_ok=True)
+    group.barrier()
+
+    if torch.cuda.is_available() and device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    trainer.train()
+    peaks = None
+    if group.active and device.type == "cuda":
+        peaks = [round(v, 1) for v in group.gather(torch.cuda.max_memory_allocated(device) / 2**20)]
+    if not group.is_main:
+        return {}
+    scene = trainer.final_scene()
+
+    metrics = _run_metrics(trainer, data, scene, device, group, seed, peaks)
 
     write_ply(out / "scene.ply", scene)
     data.cameras.to("cpu").save(out / "cameras.json")
     write_json(out / "data.json", data_json(data, seed=seed, backdrop=metrics["backdrop"],
                                             schedule={k: v for k, v in metrics["schedule"].items() if k != "stop_rule"}))
+    if attach is not None:
+        metrics.update(attach.finish(out, metrics) or {})
     write_json(out / "metrics.json", metrics)
     log.info("wrote %s: %d Gaussians, held-out PSNR %s", out, len(scene),
              "n/a" if metrics["psnr"] is None else f"{metrics['psnr']:.2f} dB")
@@ -281,7 +292,8 @@ QUICK_MEASURED = ("fern images_8 (17 training views, resized to 252x188): 20 min
                   "work (6.5 min of CPU time), held-out PSNR 27.1 dB, 2026-11-28")
 
 
-def run(args) -> int:
+def run(args, **extra) -> int:
+    """The command; ``extra`` goes to :func:`reconstruct` (``attach``: ``reconstruct --groups``)."""
     if args.batch_size is not None and args.batch_size < 1:
         raise InputError(f"--batch-size must be >= 1, got {args.batch_size}")
     init = check_init(args.init)
@@ -295,7 +307,7 @@ def run(args) -> int:
                         num_random_points=args.random_points, progress=not args.quiet,
                         strategy=args.strategy, batch_size=args.batch_size, backdrop=args.backdrop,
                         recipe=Recipe(batch_scaling=args.batch_scaling, res_start=args.coarse_to_fine),
-                        group=group, init=init)
+                        group=group, init=init, **extra)
     finally:
         distributed.shutdown(group)
     if not group.is_main:

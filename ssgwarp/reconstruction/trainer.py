@@ -29,6 +29,7 @@ from ..services.losses import photometric, psnr, ssim
 from .recipe import Recipe, batch_factors
 from ..raster.rendering import render
 from ..raster.scene import GaussianScene
+from .attach import attach_hooks, restore_attached, takes_scene
 from .backdrop import with_backdrop
 from .schedules import AUTO, AUTO_MAX_ITERS, Schedules, sh_degree_at
 from .strategy import GaussianParams, make_strategy
@@ -37,15 +38,6 @@ log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
 
 CHECKPOINT_FORMAT = "ssgwarp-reconstruct-checkpoint/1"
 
-
-def _takes_scene(hook) -> bool:
-    """Whether a hook's ``loss`` takes the current scene (a ``scene`` parameter)."""
-    import inspect
-
-    try:
-        return "scene" in inspect.signature(hook.loss).parameters
-    except (TypeError, ValueError):
-        return False
 
 class Trainer:
     """The 3DGS training loop on one :class:`~ssgwarp.capture.datasets.SceneData`.
@@ -78,6 +70,7 @@ class Trainer:
             renders its share of every batch); default: alone.
         backdrop: ``"auto"`` / ``"on"`` / ``"off"``: far points for the initial scene (:mod:`.backdrop`;
             :attr:`backdrop`: the decision, None when ``scene`` is given).
+        attach: hooks made during the run (``reconstruct --groups``): :mod:`ssgwarp.reconstruction.attach`.
         device, seed, progress: as usual.
     """
 
@@ -86,7 +79,8 @@ class Trainer:
                  identity_dim: Optional[int] = None, checkpoint_path: Optional[str | Path] = None,
                  checkpoint_every: int = 500, rasterize: Optional[Callable] = None,
                  raster_kwargs: Optional[dict] = None, device=None, seed: int = 0, progress: bool = True,
-                 strategy="default", batch_size: Optional[int] = None, group=None, backdrop: str = "auto"):
+                 strategy="default", batch_size: Optional[int] = None, group=None, backdrop: str = "auto",
+                 attach=None):
         self.auto, iters = iters == AUTO, AUTO_MAX_ITERS if iters == AUTO else iters
         if not isinstance(iters, (int, np.integer)) or iters < 1:
             raise InputError(f"iters must be >= 1 or {AUTO!r}, got {iters!r}")
@@ -160,7 +154,9 @@ class Trainer:
                         "their losses are not used")
         self._build_optimizer(scene)
         self._setup_strategy()
-        self._hook_takes_scene = [_takes_scene(h) for h in self.hooks]
+        self.attach, self._attached = attach, False
+        if attach is not None:
+            attach.prepare(self)
 
     # -- state --------------------------------------------------------------------------------
     def _initial_scene(self) -> GaussianScene:
@@ -215,13 +211,15 @@ class Trainer:
         params = {k: torch.nn.Parameter(v.detach().clone().contiguous()) for k, v in scene.tensors().items()}
         groups = [{"params": [p], "lr": self._lr(k), "name": k} for k, p in params.items()]
         self.gaussians = GaussianParams(params, adam(groups, eps=self.recipe.adam_eps, betas=self.betas))
-        hook_groups = []
-        for h in self.hooks:
-            hook_groups.extend(h.parameters())
+        self._build_hook_optimizer()
+
+    def _build_hook_optimizer(self) -> None:
+        hook_groups = [g for h in self.hooks for g in h.parameters()]
         self.hook_opt = adam(hook_groups, betas=self.betas) if hook_groups else None
         if self.hook_opt is not None and self.lr_factor != 1.0:
             for g in self.hook_opt.param_groups:
                 g["lr"] *= self.lr_factor
+        self._hook_takes_scene = [takes_scene(h) for h in self.hooks]
 
     def _hook_params(self) -> list[torch.Tensor]:
         if self.hook_opt is None:
@@ -277,6 +275,8 @@ class Trainer:
     def train_step(self) -> dict:
         """One optimisation step (``self.step`` counts completed steps)."""
         r = self.recipe
+        if self.attach is not None and not self._attached and self.step >= self.attach.start:
+            attach_hooks(self)
         views = self.group.share(self.next_batch())  # this process's views of the step's batch
         self._set_lrs()
         cam, gt, masks = self.schedules.batch(self.step, views)  # (coarse-to-fine: downsampled)
@@ -470,6 +470,7 @@ class Trainer:
             "rng": rng,
             "history": self.history[-1000:],
             "stop_monitor": self.schedules.state_dict(),
+            "attached": self.attach.state() if self._attached else None,
         }
 
     def save_checkpoint(self, path: Optional[str | Path] = None) -> Path:
@@ -504,7 +505,7 @@ class Trainer:
             raise InputError(f"the checkpoint was trained with --batch-size {b}, not {self.batch_size}; "
                              f"pass --batch-size {b} to resume it (with any number of processes dividing it)")
         saved = set(st["params"])
-        if saved != set(self.params):
+        if saved != set(self.params) | restore_attached(self, st.get("attached")):
             raise InputError(f"the checkpoint holds {sorted(saved)}, this run {sorted(self.params)}")
         scene = GaussianScene(**{k: v for k, v in st["params"].items()}, sh_degree=self.sh_degree)
         self._build_optimizer(scene.to(self.device))

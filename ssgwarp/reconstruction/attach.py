@@ -1,0 +1,60 @@
+"""Hooks attached to a :class:`~ssgwarp.reconstruction.trainer.Trainer` while it runs (``Trainer(attach=obj)``;
+``reconstruct --groups`` passes one: the grouping layer's labels come from the scene being trained).
+
+The protocol of ``obj``:
+
+* ``prepare(trainer)``: called when the trainer is built, before anything is written: validate, set ``start``;
+* ``start``: the step before which ``obj(trainer) -> hooks`` is called (:func:`attach_hooks`); the scene then
+  gets identity encodings of length ``obj.dim`` if it has none (learnt at ``obj.identity_lr`` when it has one,
+  else at the recipe's), and the hooks' parameters an optimiser;
+* ``state() -> dict``: what a checkpoint holds of them; ``restore(state) -> hooks``: the hooks back from it
+  (:func:`restore_attached`; a checkpoint with attached hooks resumes only with an ``attach``);
+* ``finish(out, metrics) -> dict`` (for :func:`ssgwarp.reconstruction.reconstruct.reconstruct`): called once
+  the run files are written; what it returns joins ``metrics.json``.
+"""
+from __future__ import annotations
+
+import inspect
+from typing import Optional
+
+import torch
+
+from ..errors import InputError
+
+
+def takes_scene(hook) -> bool:
+    """Whether a hook's ``loss`` takes the current scene (a ``scene`` parameter)."""
+    try:
+        return "scene" in inspect.signature(hook.loss).parameters
+    except (TypeError, ValueError):
+        return False
+
+
+def attach_hooks(trainer, state: Optional[dict] = None) -> None:
+    """Make ``trainer.attach``'s hooks (from the current scene, or from a checkpoint's ``state``) and give the
+    scene identity encodings (``attach.dim``, random as ``identity_dim``'s) when it has none."""
+    obj = trainer.attach
+    trainer.hooks.extend(obj(trainer) if state is None else obj.restore(state))
+    trainer._attached = True
+    if state is None and "identities" not in trainer.params:
+        g = torch.Generator().manual_seed(trainer.seed + 2)
+        ids = torch.randn(trainer.num_gaussians, int(obj.dim), generator=g) * trainer.recipe.identity_init_std
+        p = torch.nn.Parameter(ids.to(trainer.device, torch.float32))
+        trainer.params["identities"] = p
+        lr = getattr(obj, "identity_lr", None)
+        lr = trainer._lr("identities") if lr is None else trainer.lr_factor * float(lr)
+        trainer.opt.add_param_group({"params": [p], "lr": lr, "name": "identities"})
+    trainer._build_hook_optimizer()
+
+
+def restore_attached(trainer, state: Optional[dict]) -> set:
+    """Give ``trainer`` back the hooks of a checkpoint's ``"attached"`` ``state`` (None: there were none);
+    returns the parameter names they add to the scene's (the identities come with the checkpoint)."""
+    if state is None:
+        return set()
+    if trainer.attach is None:
+        raise InputError("the checkpoint was trained with hooks attached during the run (reconstruct --groups); "
+                         "pass the same options to resume it, or --force to start over")
+    if not trainer._attached:
+        attach_hooks(trainer, state)
+    return {"identities"}
