@@ -139,6 +139,7 @@ class Trainer:
         self.view_gen = torch.Generator().manual_seed(self.seed)
         self._queue: list[int] = []
         self._bg: dict[int, torch.Tensor] = {}
+        self._cams: dict = {}  # view -> its Cameras on the device (one-view batches)
 
         if scene is None:
             scene = self._initial_scene()
@@ -272,8 +273,7 @@ class Trainer:
         r = self.recipe
         views = self.group.share(self.next_batch())  # this process's views of the step's batch
         self._set_lrs()
-        cam = self.data.cameras[views]
-        gt = torch.stack([self.data.images[v] for v in views])
+        cam, gt = self._views(views)
         scene = self.scene
         with_ids = bool(self.hooks) and scene.identities is not None
         ch = 3 + (scene.identities.shape[1] if with_ids else 0)
@@ -285,7 +285,7 @@ class Trainer:
         means2d = meta["means2d"]
         if self.strategy.uses_means2d_grad and means2d.requires_grad:
             means2d.retain_grad()
-        img = out[..., :3]
+        img = out if out.shape[-1] == 3 else out[..., :3]  # (a slice's backward would copy the whole gradient)
         if self.data.masks is not None:  # masked pixels are zero in both: no error, no gradient, no SSIM content
             img, gt = _masked(img, gt, self.data.masks[views])
         loss = photometric(img, gt, r.lambda_dssim, r.dssim_scale)  # (the mean over the views)
@@ -303,6 +303,7 @@ class Trainer:
         self._settle_loss()  # the previous step's flag (long computed: no wait)
         deferred = self._watch_loss(finite_t)
         total.backward()
+        self._zero_unrendered_grads(with_ids)
         if deferred:
             finite = True  # (known on the host next step: see _watch_loss)
         else:
@@ -325,11 +326,33 @@ class Trainer:
             self.hook_opt.step()
             self.hook_opt.zero_grad(set_to_none=True)
         self.step += 1
-        info = {"loss": total.detach(), "mse": ((img.detach().clamp(0, 1) - gt) ** 2).mean()}
+        info = StepInfo(loss=total.detach())
+        info.image_pair = (img.detach(), gt)
         info.update(self.strategy.step(self.gaussians, self.step, self.gaussians.groups["means"]["lr"]))
         if self.check_every and self.step % self.check_every == 0:
             self.group.check_identical(self._synced_tensors(), self.step)
         return info
+
+    def _views(self, views: list[int]) -> tuple:
+        """``(cameras, ground truth [B, H, W, 3])`` of this process's views. One view: its cameras
+        made once (indexing copies the index to the device every time) and its image as a view of
+        the capture's (no copy)."""
+        if len(views) != 1:
+            return self.data.cameras[views], torch.stack([self.data.images[v] for v in views])
+        v = views[0]
+        cam = self._cams.get(v)
+        if cam is None:
+            cam = self._cams[v] = self.data.cameras[v]
+        return cam, self.data.images[v:v + 1]
+
+    def _zero_unrendered_grads(self, with_ids: bool) -> None:
+        """Below the top SH degree the colour renders from the lower bands alone (no copy of all the
+        coefficients), which leaves ``sh_rest`` without a gradient there; it gets a zero one, as
+        when it was rendered (its Adam state and step count then advance as before). The identity
+        channels' path renders the DC term alone and has always left ``sh_rest`` out: unchanged."""
+        p = self.params.get("sh_rest")
+        if p is not None and p.grad is None and not with_ids and self.active_sh_degree == 0:
+            p.grad = torch.zeros_like(p)
 
     def _observe(self, meta: dict) -> None:
         """The strategy's statistics of this step's views, from every process's share."""
@@ -569,6 +592,23 @@ class Trainer:
             vals = [r[k] for r in per if k in r]
             out[k] = float(np.mean(vals)) if vals else None
         return out
+
+
+class StepInfo(dict):
+    """What :meth:`Trainer.train_step` returns: ``loss`` (a device scalar), what the strategy did
+    (``refine``, ``reset``), and ``mse``, the step's mean squared error of the clamped render, made
+    on the device the first time ``info["mse"]`` is read (the progress bar reads it every 10 steps;
+    the others cost no kernels)."""
+
+    image_pair: Optional[tuple] = None
+
+    def __missing__(self, key):
+        if key != "mse" or self.image_pair is None:
+            raise KeyError(key)
+        img, gt = self.image_pair
+        self["mse"] = value = ((img.clamp(0, 1) - gt) ** 2).mean()
+        self.image_pair = None
+        return value
 
 
 def _masked(img: torch.Tensor, gt: torch.Tensor, masks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
