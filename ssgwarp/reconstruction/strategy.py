@@ -38,6 +38,7 @@ The refine schedule scales with the run's length (:func:`scaled_schedule`).
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Callable, Optional
@@ -389,6 +390,10 @@ def accumulate_grad2d(stats: dict[str, torch.Tensor], meta: dict) -> None:
     ``n_cameras``. Pixel gradients are scaled by ``(W/2, H/2)`` (pixels -> NDC) and by the
     number of cameras (the loss is their mean). ``stats["max_radii"]``, when present, keeps
     the largest radius as a fraction of ``max(W, H)``.
+
+    The ``[C, N]`` layout with per-axis int32 radii and statistics of the gradient's dtype (what
+    the Trainer keeps) runs as one Warp kernel (``kernels/stats.py``: one launch, no host
+    synchronisation; the same sums to float rounding); other layouts in torch.
     """
     g = meta["means2d"].grad
     if g is None:
@@ -396,6 +401,8 @@ def accumulate_grad2d(stats: dict[str, torch.Tensor], meta: dict) -> None:
     w, h = float(meta["width"]), float(meta["height"])
     c = int(meta.get("n_cameras", g.shape[0] if g.ndim == 3 else 1))
     radii = meta["radii"]
+    if _accumulate_warp(stats, g, radii, w, h, c):
+        return
     if radii.ndim == g.ndim:  # per-axis radii [..., 2]
         vis, r = (radii > 0).all(dim=-1), radii.max(dim=-1).values
     else:
@@ -415,6 +422,39 @@ def accumulate_grad2d(stats: dict[str, torch.Tensor], meta: dict) -> None:
     stats["count"] += vis.sum(dim=0).to(stats["count"].dtype)
     if "max_radii" in stats:
         stats["max_radii"] = torch.maximum(stats["max_radii"], r.max(dim=0).values.to(stats["max_radii"].dtype))
+
+
+def _accumulate_warp(stats: dict[str, torch.Tensor], g: torch.Tensor, radii: torch.Tensor, w: float, h: float,
+                     c: int) -> bool:
+    """:func:`accumulate_grad2d` of the ``[C, N]`` layout in one Warp kernel; False (nothing done)
+    where it does not apply: another layout, radii that are not per-axis int32, statistics of
+    another dtype or device, no Warp."""
+    names = ("grad2d", "count") + (("max_radii",) if "max_radii" in stats else ())
+    if (g.ndim != 3 or radii.ndim != 3 or radii.dtype != torch.int32 or g.dtype not in (torch.float32, torch.float64)
+            or g.device.type not in ("cpu", "cuda") or radii.device != g.device
+            or any(stats[k].dtype != g.dtype or stats[k].device != g.device or not stats[k].is_contiguous()
+                   for k in names)):
+        return False
+    try:
+        from ..raster import launch as L
+        from ..kernels import stats as kernels
+    except ImportError:  # pragma: no cover - no warp-lang: the torch ops
+        return False
+    C, N = g.shape[0], g.shape[1]
+    if N == 0:
+        return True
+    g, radii = L.dense(g), L.dense(radii)  # (kept alive until the launch is queued)
+    L.launch(kernels.grad2d_kernel(L.scalar_of(g.dtype)), N,
+             [*L.arr(g, 2), *L.arr(radii, 2), C, N, w / 2.0 * c, h / 2.0 * c, _reciprocal(max(w, h), g.dtype),
+              *L.arr(stats["grad2d"]), *L.arr(stats["count"]),
+              *(L.arr(stats["max_radii"]) if "max_radii" in stats else L.NULL)], L.target(g))
+    return True
+
+
+@functools.lru_cache(maxsize=64)
+def _reciprocal(x: float, dtype: torch.dtype) -> float:
+    """``1 / x`` rounded to ``dtype`` (torch's CUDA division by a number multiplies by it)."""
+    return float(torch.tensor(1.0, dtype=dtype) / x)
 
 
 def split_children(params: dict[str, torch.Tensor], sel: torch.Tensor, split_factor: float,

@@ -600,7 +600,7 @@ class StepInfo(dict):
     on the device the first time ``info["mse"]`` is read (the progress bar reads it every 10 steps;
     the others cost no kernels)."""
 
-    image_pair: Optional[tuple] = None
+    image_pair: Optional[tuple] = None  # (render, ground truth) until ``mse`` is made
 
     def __missing__(self, key):
         if key != "mse" or self.image_pair is None:
@@ -609,6 +609,12 @@ class StepInfo(dict):
         self["mse"] = value = ((img.clamp(0, 1) - gt) ** 2).mean()
         self.image_pair = None
         return value
+
+    def __contains__(self, key) -> bool:
+        return super().__contains__(key) or (key == "mse" and self.image_pair is not None)
+
+    def get(self, key, default=None):
+        return self[key] if key in self else default
 
 
 def _masked(img: torch.Tensor, gt: torch.Tensor, masks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
