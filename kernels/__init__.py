@@ -14,6 +14,7 @@
 - :mod:`.fmath`: fused multiply-add, unfused add and reciprocal square root with a
   fixed rounding (so results do not depend on the compiler's contraction choices).
 - :mod:`.validate`: input value checks in one pass.
+- :mod:`.stats`: the densification statistics of a render, accumulated per Gaussian.
 
 Every kernel family is built by a factory for one scalar type (``wp.float32``
 or ``wp.float64``), so the same source serves both precisions. The projection's and

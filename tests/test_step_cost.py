@@ -17,10 +17,11 @@ from ssgwarp.capture.datasets import SceneData
 from ssgwarp.core.cameras import Cameras, intrinsics, look_at
 from ssgwarp.raster.rendering import _coefficients
 from ssgwarp.raster.scene import GaussianScene
-from ssgwarp.reconstruction import strategy as S
+from ssgwarp.reconstruction import statistics as S
 from ssgwarp.reconstruction.recipe import Recipe
 from ssgwarp.reconstruction import trainer as trainer_module
-from ssgwarp.reconstruction.trainer import StepInfo, Trainer
+from ssgwarp.reconstruction.step import StepInfo
+from ssgwarp.reconstruction.trainer import Trainer
 
 
 def _stats_case(C: int, N: int, dtype, seed: int = 0):
@@ -137,7 +138,7 @@ def test_the_mse_is_the_clamped_render_against_its_view():
     info = t.train_step()
     want = ((before - t.data.images[:1]) ** 2).mean()
     assert float(info["mse"]) == pytest.approx(float(want), rel=1e-6)
-    empty = StepInfo(loss=torch.tensor(1.0))
+    empty = StepInfo(torch.tensor(1.0))
     assert "mse" not in empty and empty.get("mse") is None
 
 
@@ -160,3 +161,97 @@ def test_lower_sh_degrees_render_a_view_of_the_dc_term_and_adam_still_steps_ever
     assert not torch.equal(t.params["sh_rest"], rest0)
     for name, p in t.params.items():
         assert int(t.opt.state[p]["step"]) == 3, name
+
+
+# -- the scene's stored parameters activated in the kernels (rasterization_from_parameters) -------
+F64 = torch.float64
+SIZE = 12
+
+
+def _stored(n: int, dtype=F64, seed: int = 0):
+    """A few Gaussians in front of a camera, as a scene stores them: log-scales, logits."""
+    g = torch.Generator().manual_seed(seed)
+    means = torch.rand(n, 3, generator=g, dtype=dtype) * torch.tensor([0.6, 0.6, 1.0], dtype=dtype) \
+        + torch.tensor([-0.3, -0.3, 3.0], dtype=dtype)
+    quats = torch.randn(n, 4, generator=g, dtype=dtype)
+    log_scales = torch.log(torch.rand(n, 3, generator=g, dtype=dtype) * 0.3 + 0.2)
+    logits = torch.randn(n, generator=g, dtype=dtype)
+    colors = torch.rand(n, 3, generator=g, dtype=dtype)
+    sh = torch.randn(n, 4, 3, generator=g, dtype=dtype) * 0.3
+    sh[:, 0] += 1.0  # (colours above the clamp at 0)
+    return means, quats, log_scales, logits, colors, sh
+
+
+def _cams(C: int, dtype=F64):
+    V = look_at(torch.tensor([[0.0, 0.0, -0.2], [0.3, 0.1, -0.3]])[:C], torch.tensor([[0.0, 0.0, 3.5]] * C),
+                up=(0.0, -1.0, 0.0)).to(dtype)
+    return V, intrinsics(9.0, 9.0, SIZE / 2, SIZE / 2, C, dtype=dtype)
+
+
+@pytest.mark.parametrize("hand", [True, False])
+@pytest.mark.parametrize("C,degree,mode", [(1, None, "classic"), (2, 1, "classic"), (1, 1, "antialiased")])
+def test_activations_in_the_kernels_match_torch_activations(C, degree, mode, hand, monkeypatch):
+    """float64: the images and every input's gradient through the kernels' exp / sigmoid equal those
+    through torch's (the hand-written backward and Warp's generated adjoint of the forward alike)."""
+    from ssgwarp import rasterization
+    from ssgwarp.raster import ops
+    from ssgwarp.raster.rasterize import rasterization_from_parameters
+
+    monkeypatch.setattr(ops, "HAND_BACKWARD", hand)
+    means, quats, log_scales, logits, colors, sh = _stored(25)
+    vm, K = _cams(C)
+    col = colors if degree is None else sh
+    w = torch.rand(C, SIZE, SIZE, 3, generator=torch.Generator().manual_seed(3), dtype=F64)
+    kw = dict(sh_degree=degree, rasterize_mode=mode, backgrounds=torch.rand(C, 3, dtype=F64))
+    results = []
+    for fused in (True, False):
+        ins = [t.clone().requires_grad_(True) for t in (means, quats, log_scales, logits, col)]
+        if fused:
+            img, alpha, meta = rasterization_from_parameters(*ins[:4], ins[4], vm, K, SIZE, SIZE, **kw)
+        else:
+            img, alpha, meta = rasterization(ins[0], ins[1], ins[2].exp(), ins[3].sigmoid(), ins[4], vm, K, SIZE, SIZE,
+                                             **kw)
+        ((img * w).sum() + alpha.sum()).backward()
+        results.append((img.detach(), meta["radii"], meta["opacities"].detach(), [t.grad for t in ins]))
+    (img_a, radii_a, op_a, grads_a), (img_b, radii_b, op_b, grads_b) = results
+    assert torch.equal(radii_a, radii_b) and (radii_a > 0).any()
+    torch.testing.assert_close(img_a, img_b, rtol=1e-12, atol=1e-13)
+    torch.testing.assert_close(op_a, op_b, rtol=1e-13, atol=0.0)
+    for name, a, b in zip(["means", "quats", "log_scales", "logits", "colors"], grads_a, grads_b):
+        assert b.abs().max() > 0, name
+        assert ((a - b).abs().max() / b.abs().max()).item() < 1e-11, name
+
+
+def test_activations_in_the_kernels_match_finite_differences():
+    from ssgwarp import RasterSettings
+    from ssgwarp.raster.rasterize import rasterization_from_parameters
+
+    means, quats, log_scales, logits, _, sh = _stored(4, seed=5)
+    vm, K = _cams(1)
+
+    def f(log_scales, logits, sh):
+        img, alpha, _ = rasterization_from_parameters(means, quats, log_scales, logits, sh, vm, K, SIZE, SIZE,
+                                                      sh_degree=1, settings=RasterSettings.exact())
+        return img, alpha
+
+    assert torch.autograd.gradcheck(f, [t.clone().requires_grad_(True) for t in (log_scales, logits, sh)], eps=1e-6,
+                                    atol=1e-6, rtol=1e-4)
+
+
+def test_activations_in_the_kernels_check_what_they_make():
+    """Negative log-scales and any logit are valid; a NaN is reported for the input it is in; with
+    backend="torch" the activations run in torch (the same image)."""
+    from ssgwarp.raster.rasterize import rasterization_from_parameters
+
+    means, quats, log_scales, logits, colors, _ = _stored(6, seed=2)
+    vm, K = _cams(1)
+    assert (log_scales < 0).all() and (logits < 0).any()
+    img, _, _ = rasterization_from_parameters(means, quats, log_scales, logits, colors, vm, K, SIZE, SIZE)
+    ref, _, _ = rasterization_from_parameters(means, quats, log_scales, logits, colors, vm, K, SIZE, SIZE,
+                                              backend="torch")
+    torch.testing.assert_close(img, ref, rtol=1e-9, atol=1e-10)
+    for name, bad in (("scales", log_scales.clone().index_fill_(0, torch.tensor([3]), float("nan"))),
+                      ("opacities", logits.clone().index_fill_(0, torch.tensor([1]), float("nan")))):
+        args = [means, quats, bad, logits] if name == "scales" else [means, quats, log_scales, bad]
+        with pytest.raises(ValueError, match=name):
+            rasterization_from_parameters(*args, colors, vm, K, SIZE, SIZE)

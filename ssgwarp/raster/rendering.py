@@ -22,7 +22,7 @@ import torch
 
 from ..errors import InputError
 from ..core.fileio import write_image
-from .rasterize import rasterization
+from .rasterize import rasterization, rasterization_from_parameters
 from .sh import C0, spherical_harmonics
 
 
@@ -78,20 +78,29 @@ def _coefficients(scene, degree: int) -> torch.Tensor:
 
 
 def render(scene, cameras, *, sh_degree: Optional[int] = None, rgb: bool = True, identities: bool = False,
-           extra: Optional[torch.Tensor] = None, rasterize: Optional[Callable] = None, **kwargs):
+           extra: Optional[torch.Tensor] = None, rasterize: Optional[Callable] = None, from_parameters: bool = False,
+           **kwargs):
     """Render ``scene`` from ``cameras`` in one rasterizer call (differentiable).
 
     Channels as :func:`gaussian_colors`; ``kwargs`` go to the rasterizer (``render_mode``,
-    ``backgrounds``, knobs...). Returns ``(colors [C,H,W,D], alphas [C,H,W,1], meta)``."""
-    rasterize = rasterization if rasterize is None else rasterize
+    ``backgrounds``, knobs...). ``from_parameters`` (ssgwarp's rasterizer, ``rasterize`` None): the
+    scene's log-scales and logit opacities go to the kernels, which activate them
+    (:func:`ssgwarp.raster.rasterize.rasterization_from_parameters`: the training loop's; the same
+    images and gradients to float rounding). Returns ``(colors [C,H,W,D], alphas [C,H,W,1], meta)``."""
     viewmats = cameras.viewmats.to(scene.means)
     Ks = cameras.Ks.to(scene.means)
+    if from_parameters and rasterize is None and hasattr(scene, "log_scales"):
+        rasterize = rasterization_from_parameters
+        scales, opacities = scene.log_scales, scene.logit_opacities
+    else:
+        rasterize = rasterization if rasterize is None else rasterize
+        scales, opacities = scene.scales, scene.opacities
     if rgb and not identities and extra is None:   # SH in the rasterizer (fused kernel, gsplat's convention)
         deg = _degree(scene, sh_degree)
-        return rasterize(scene.means, scene.quats, scene.scales, scene.opacities, _coefficients(scene, deg),
+        return rasterize(scene.means, scene.quats, scales, opacities, _coefficients(scene, deg),
                          viewmats, Ks, cameras.width, cameras.height, sh_degree=deg, **kwargs)
     colors = gaussian_colors(scene, cameras, sh_degree=sh_degree, rgb=rgb, identities=identities, extra=extra)
-    return rasterize(scene.means, scene.quats, scene.scales, scene.opacities, colors, viewmats, Ks,
+    return rasterize(scene.means, scene.quats, scales, opacities, colors, viewmats, Ks,
                      cameras.width, cameras.height, **kwargs)
 
 

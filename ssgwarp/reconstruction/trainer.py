@@ -30,6 +30,7 @@ from .recipe import Recipe, batch_factors
 from ..raster.rendering import render
 from ..raster.scene import GaussianScene
 from .backdrop import with_backdrop
+from .step import StepInfo, ViewCache, zero_unrendered_grads
 from .strategy import GaussianParams, make_strategy
 
 log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
@@ -138,8 +139,7 @@ class Trainer:
 
         self.view_gen = torch.Generator().manual_seed(self.seed)
         self._queue: list[int] = []
-        self._bg: dict[int, torch.Tensor] = {}
-        self._cams: dict = {}  # view -> its Cameras on the device (one-view batches)
+        self._views = ViewCache(self.data)
 
         if scene is None:
             scene = self._initial_scene()
@@ -273,15 +273,12 @@ class Trainer:
         r = self.recipe
         views = self.group.share(self.next_batch())  # this process's views of the step's batch
         self._set_lrs()
-        cam, gt = self._views(views)
         scene = self.scene
         with_ids = bool(self.hooks) and scene.identities is not None
-        ch = 3 + (scene.identities.shape[1] if with_ids else 0)
-        bg = self._bg.get(ch)
-        if bg is None:
-            bg = self._bg[ch] = self.data.background_tensor(ch)[None].expand(len(views), -1).contiguous()
+        # (one view: no copy of its image, its cameras made once)
+        cam, gt, bg = self._views(views, 3 + (scene.identities.shape[1] if with_ids else 0))
         out, alphas, meta = render(scene, cam, sh_degree=self.active_sh_degree, identities=with_ids,
-                                   backgrounds=bg, rasterize=self.rasterize, **self.raster_kwargs)
+                                   backgrounds=bg, rasterize=self.rasterize, from_parameters=True, **self.raster_kwargs)
         means2d = meta["means2d"]
         if self.strategy.uses_means2d_grad and means2d.requires_grad:
             means2d.retain_grad()
@@ -303,7 +300,7 @@ class Trainer:
         self._settle_loss()  # the previous step's flag (long computed: no wait)
         deferred = self._watch_loss(finite_t)
         total.backward()
-        self._zero_unrendered_grads(with_ids)
+        zero_unrendered_grads(self.params, with_ids)
         if deferred:
             finite = True  # (known on the host next step: see _watch_loss)
         else:
@@ -326,33 +323,11 @@ class Trainer:
             self.hook_opt.step()
             self.hook_opt.zero_grad(set_to_none=True)
         self.step += 1
-        info = StepInfo(loss=total.detach())
-        info.image_pair = (img.detach(), gt)
+        info = StepInfo(total.detach(), img.detach(), gt)
         info.update(self.strategy.step(self.gaussians, self.step, self.gaussians.groups["means"]["lr"]))
         if self.check_every and self.step % self.check_every == 0:
             self.group.check_identical(self._synced_tensors(), self.step)
         return info
-
-    def _views(self, views: list[int]) -> tuple:
-        """``(cameras, ground truth [B, H, W, 3])`` of this process's views. One view: its cameras
-        made once (indexing copies the index to the device every time) and its image as a view of
-        the capture's (no copy)."""
-        if len(views) != 1:
-            return self.data.cameras[views], torch.stack([self.data.images[v] for v in views])
-        v = views[0]
-        cam = self._cams.get(v)
-        if cam is None:
-            cam = self._cams[v] = self.data.cameras[v]
-        return cam, self.data.images[v:v + 1]
-
-    def _zero_unrendered_grads(self, with_ids: bool) -> None:
-        """Below the top SH degree the colour renders from the lower bands alone (no copy of all the
-        coefficients), which leaves ``sh_rest`` without a gradient there; it gets a zero one, as
-        when it was rendered (its Adam state and step count then advance as before). The identity
-        channels' path renders the DC term alone and has always left ``sh_rest`` out: unchanged."""
-        p = self.params.get("sh_rest")
-        if p is not None and p.grad is None and not with_ids and self.active_sh_degree == 0:
-            p.grad = torch.zeros_like(p)
 
     def _observe(self, meta: dict) -> None:
         """The strategy's statistics of this step's views, from every process's share."""
@@ -592,29 +567,6 @@ class Trainer:
             vals = [r[k] for r in per if k in r]
             out[k] = float(np.mean(vals)) if vals else None
         return out
-
-
-class StepInfo(dict):
-    """What :meth:`Trainer.train_step` returns: ``loss`` (a device scalar), what the strategy did
-    (``refine``, ``reset``), and ``mse``, the step's mean squared error of the clamped render, made
-    on the device the first time ``info["mse"]`` is read (the progress bar reads it every 10 steps;
-    the others cost no kernels)."""
-
-    image_pair: Optional[tuple] = None  # (render, ground truth) until ``mse`` is made
-
-    def __missing__(self, key):
-        if key != "mse" or self.image_pair is None:
-            raise KeyError(key)
-        img, gt = self.image_pair
-        self["mse"] = value = ((img.clamp(0, 1) - gt) ** 2).mean()
-        self.image_pair = None
-        return value
-
-    def __contains__(self, key) -> bool:
-        return super().__contains__(key) or (key == "mse" and self.image_pair is not None)
-
-    def get(self, key, default=None):
-        return self[key] if key in self else default
 
 
 def _masked(img: torch.Tensor, gt: torch.Tensor, masks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

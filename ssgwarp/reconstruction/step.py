@@ -1,0 +1,69 @@
+"""What a training step of :class:`~ssgwarp.reconstruction.trainer.Trainer` hands around, made at the
+least host cost (issue 40): its views (:class:`ViewCache`), the zero gradient of the SH bands it did not
+render (:func:`zero_unrendered_grads`) and its result (:class:`StepInfo`, whose MSE is made when read).
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+
+
+class ViewCache:
+    """``cache(views, channels) -> (cameras, ground truth [B, H, W, 3], backgrounds [B, channels])`` of
+    a capture's views, the backgrounds made once per shape. A one-view batch (the usual one) gets its
+    cameras made once (indexing copies the index to the device every time) and its image as a view
+    of the capture's (no copy); several views are indexed and stacked."""
+
+    def __init__(self, data):
+        self.data = data
+        self.cameras: dict = {}
+        self.backgrounds: dict = {}
+
+    def __call__(self, views: list[int], channels: int) -> tuple:
+        key = (channels, len(views))
+        bg = self.backgrounds.get(key)
+        if bg is None:
+            bg = self.backgrounds[key] = self.data.background_tensor(channels)[None].expand(len(views), -1).contiguous()
+        if len(views) != 1:
+            return self.data.cameras[views], torch.stack([self.data.images[v] for v in views]), bg
+        v = views[0]
+        cam = self.cameras.get(v)
+        if cam is None:
+            cam = self.cameras[v] = self.data.cameras[v]
+        return cam, self.data.images[v:v + 1], bg
+
+
+def zero_unrendered_grads(params: dict, with_ids: bool) -> None:
+    """At SH degree 0 the colour renders from the DC term alone (no copy of all the coefficients),
+    which leaves ``sh_rest`` without a gradient; it gets a zero one, as when all bands were rendered
+    (its Adam state and step count then advance as before). The identity channels' path renders the
+    DC term alone and has always left ``sh_rest`` out: unchanged (``with_ids``)."""
+    p = params.get("sh_rest")
+    if p is not None and p.grad is None and not with_ids:
+        p.grad = torch.zeros_like(p)
+
+
+class StepInfo(dict):
+    """What :meth:`Trainer.train_step` returns: ``loss`` (a device scalar), what the strategy did
+    (``refine``, ``reset``), and ``mse``, the step's mean squared error of the clamped render, made
+    on the device the first time ``info["mse"]`` is read (the progress bar reads it every 10 steps;
+    the others cost no kernels)."""
+
+    def __init__(self, loss: torch.Tensor, img: Optional[torch.Tensor] = None, gt: Optional[torch.Tensor] = None):
+        super().__init__(loss=loss)
+        self.image_pair = None if img is None else (img, gt)  # (render, ground truth) until ``mse`` is made
+
+    def __missing__(self, key):
+        if key != "mse" or self.image_pair is None:
+            raise KeyError(key)
+        img, gt = self.image_pair
+        self["mse"] = value = ((img.clamp(0, 1) - gt) ** 2).mean()
+        self.image_pair = None
+        return value
+
+    def __contains__(self, key) -> bool:
+        return super().__contains__(key) or (key == "mse" and self.image_pair is not None)
+
+    def get(self, key, default=None):
+        return self[key] if key in self else default
