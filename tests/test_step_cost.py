@@ -20,7 +20,7 @@ from ssgwarp.raster.scene import GaussianScene
 from ssgwarp.reconstruction import statistics as S
 from ssgwarp.reconstruction.recipe import Recipe
 from ssgwarp.reconstruction import trainer as trainer_module
-from ssgwarp.reconstruction.step import StepInfo
+from ssgwarp.reconstruction.step import StepInfo, _fused_groups, adam_step
 from ssgwarp.reconstruction.trainer import Trainer
 
 
@@ -255,3 +255,56 @@ def test_activations_in_the_kernels_check_what_they_make():
         args = [means, quats, bad, logits] if name == "scales" else [means, quats, log_scales, bad]
         with pytest.raises(ValueError, match=name):
             rasterization_from_parameters(*args, colors, vm, K, SIZE, SIZE)
+
+
+# -- Adam without its per-group Python (step.adam_step) ------------------------------------------
+def _adams():
+    g = torch.Generator().manual_seed(4)
+    made = []
+    for _ in range(2):
+        ps = [torch.nn.Parameter(torch.randn(7, k, generator=torch.Generator().manual_seed(k))) for k in (1, 3, 4)]
+        groups = [{"params": [p], "lr": lr, "name": str(i)} for i, (p, lr) in enumerate(zip(ps, (1e-2, 3e-3, 1e-1)))]
+        made.append((ps, torch.optim.Adam(groups, eps=1e-15, betas=(0.9, 0.99), fused=True)))
+    grads = [[torch.randn(7, k, generator=g) for k in (1, 3, 4)] for _ in range(6)]
+    return made, grads
+
+
+def test_adam_step_is_torchs_fused_adam_to_the_bit(monkeypatch):
+    ((ps_a, opt_a), (ps_b, opt_b)), grads = _adams()
+    calls = []
+    monkeypatch.setattr(opt_a, "step", lambda *a, **k: calls.append(1) or torch.optim.Adam.step(opt_a, *a, **k))
+    for i, gs in enumerate(grads):
+        for ps in (ps_a, ps_b):
+            for p, gr in zip(ps, gs):
+                p.grad = None if (i == 2 and p is ps[1]) else gr.clone()  # (a group without a gradient)
+        skip = torch.tensor(1.0 if i == 4 else 0.0)  # (step 5: a NaN loss, the update skipped)
+        opt_a.found_inf = opt_b.found_inf = skip
+        adam_step(opt_a)
+        opt_b.step()
+        opt_b.zero_grad(set_to_none=True)
+        assert all(p.grad is None for p in ps_a)
+    assert calls == [1]  # torch's step made the state, the others ran here
+    for pa, pb in zip(ps_a, ps_b):
+        assert torch.equal(pa, pb)
+        for k in ("exp_avg", "exp_avg_sq", "step"):
+            assert torch.equal(opt_a.state[pa][k], opt_b.state[pb][k]), k
+    assert [float(opt_a.state[p]["step"]) for p in ps_a] == [5.0, 4.0, 5.0]
+
+
+def test_adam_step_leaves_what_it_does_not_mirror_to_torch():
+    ((ps, opt), _), _ = _adams()
+    for p in ps:
+        p.grad = torch.ones_like(p)
+    adam_step(opt)  # (state made)
+    assert _fused_groups(opt) == []  # (no gradients: nothing to step)
+    for p in ps:
+        p.grad = torch.ones_like(p)
+    assert [g[0]["name"] for g in _fused_groups(opt)] == ["0", "1", "2"]
+    handle = opt.register_step_pre_hook(lambda *a: None)
+    assert _fused_groups(opt) is None  # hooks: torch's step runs them
+    handle.remove()
+    opt.param_groups[0]["amsgrad"] = True
+    assert _fused_groups(opt) is None
+    opt.param_groups[0]["amsgrad"] = False
+    unfused = torch.optim.Adam([torch.nn.Parameter(torch.zeros(3))], foreach=False)
+    assert _fused_groups(unfused) is None

@@ -30,7 +30,7 @@ from .recipe import Recipe, batch_factors
 from ..raster.rendering import render
 from ..raster.scene import GaussianScene
 from .backdrop import with_backdrop
-from .step import StepInfo, ViewCache, zero_unrendered_grads
+from .step import StepInfo, ViewCache, adam_step, zero_unrendered_grads
 from .strategy import GaussianParams, make_strategy
 
 log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
@@ -317,11 +317,8 @@ class Trainer:
             self._diverged("the loss is NaN/inf" + ("" if not self.group.active else
                                                     f" on {int(bad)} of {self.group.world_size} processes"))
         self._observe(meta)
-        self.opt.step()
-        self.opt.zero_grad(set_to_none=True)
-        if self.hook_opt is not None:
-            self.hook_opt.step()
-            self.hook_opt.zero_grad(set_to_none=True)
+        for o in self._optimisers():
+            adam_step(o)  # (step, gradients set to None; the fused update without Adam.step's Python)
         self.step += 1
         info = StepInfo(total.detach(), img.detach(), gt)
         info.update(self.strategy.step(self.gaussians, self.step, self.gaussians.groups["means"]["lr"]))
