@@ -151,6 +151,38 @@ def matrix_funcs(scalar, native_rsqrt: bool = False):
     return SimpleNamespace(dot3=dot3, mul33=mul33, mul33_t=mul33_t, quat_to_rotmat=quat_to_rotmat, cov2d=cov2d)
 
 
+@functools.lru_cache(maxsize=None)
+def activation_funcs(scalar, activations: bool):
+    """How the projection's kernels load scales and opacities, three ``wp.func``s: ``load(s, o) -> (scales,
+    opacity)``, and the gradients back through it, ``through_exp(v_scales, scales)`` and
+    ``through_sigmoid(v_opacity, opacity)``. With ``activations`` the stored values are log-scales and
+    logits: ``exp`` of each log-scale and the sigmoid ``1 / (1 + exp(-logit))`` (what ``GaussianScene.scales``
+    and ``.opacities`` compute in torch), their gradients times the scale and times ``(1 - o) o`` (as torch's
+    ``ExpBackward`` and ``SigmoidBackward`` take them); without, the values as they are."""
+    vec3 = types_for(scalar).vec3
+    one = 1.0
+
+    @wp.func
+    def load(s: vec3, o: scalar):
+        if wp.static(activations):
+            return (vec3(wp.exp(s[0]), wp.exp(s[1]), wp.exp(s[2])), scalar(one) / (scalar(one) + wp.exp(-o)))
+        return s, o
+
+    @wp.func
+    def through_exp(g: vec3, s: vec3):
+        if wp.static(activations):
+            return vec3(g[0] * s[0], g[1] * s[1], g[2] * s[2])
+        return g
+
+    @wp.func
+    def through_sigmoid(g: scalar, o: scalar):
+        if wp.static(activations):
+            return g * (scalar(one) - o) * o
+        return g
+
+    return load, through_exp, through_sigmoid
+
+
 # the fields of the projection's parameter block, in order, with their types (``scalar``: the
 # kernel's precision); ``ssgwarp.raster.ops.ProjectionParams`` holds the same names for the host side
 PARAM_FIELDS = (("width", int), ("height", int), ("near_plane", "scalar"), ("far_plane", "scalar"),
@@ -325,12 +357,15 @@ def projection_funcs(scalar, native_rsqrt: bool = False):
 
 
 @functools.lru_cache(maxsize=None)
-def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = False, adjoint: bool = False):
+def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = False, adjoint: bool = False,
+                      activations: bool = False):
     """The projection kernel for one precision, launched over ``(C, N)``. ``covariance``:
     ``"gsplat"`` or ``"factor"`` (see the module docstring); ``fast_math``: approximate division,
     square roots and logarithm (float32 on CUDA, as gsplat compiles its kernels; then the
     quaternion norm uses ``rsqrtf``); ``adjoint``: built with Warp's generated adjoint too (the
-    hand-written backward's yardstick; without it the module compiles in about 30 % less time)."""
+    hand-written backward's yardstick; without it the module compiles in about 30 % less time);
+    ``activations``: ``scales`` holds log-scales and ``opacities`` logits, activated as loaded
+    (:func:`activation_funcs`), before the input checks (which then see what the projection uses)."""
     t = types_for(scalar)
     vec2, vec3, vec4, mat33, mat44, splat = t.vec2, t.vec3, t.vec4, t.mat33, t.mat44, t.splat
     fns = projection_funcs(scalar, fast_math and scalar == wp.float32)
@@ -340,6 +375,7 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
     tile_box = tile_box_func(scalar)
     check_inputs = inputs_check_func(scalar)
     Params = projection_params(scalar)
+    load_activated = activation_funcs(scalar, activations)[0]
 
     @wp.kernel(module="unique", module_options={"fast_math": fast_math, "enable_backward": bool(adjoint)})
     def project(
@@ -376,8 +412,9 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
         sigma_max = params.sigma_max
         V = viewmats[c, n]
         m = means[c, n]
+        sc, op = load_activated(scales[c, n], opacities[c, n])
         if check != 0:  # the input value checks, on the values loaded here
-            if check_inputs(c, n, i, m, quats[c, n], scales[c, n], opacities[c, n], V, Ks[c], colors, color_row,
+            if check_inputs(c, n, i, m, quats[c, n], sc, op, V, Ks[c], colors, color_row,
                             colors_per_camera, backgrounds, background_row):
                 cull(i, means2d, depths, conics, opac_out, radii, counts, ends)
                 if ends.shape[0] > 0:
@@ -389,7 +426,7 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
             cull(i, means2d, depths, conics, opac_out, radii, counts, ends)
             return
         R = camera_rotation(V)
-        M = scaled_rotation(quats[c, n], scales[c, n])
+        M = scaled_rotation(quats[c, n], sc)
         K = Ks[c]
         fx = K[0, 0]
         fy = K[1, 1]
@@ -403,7 +440,6 @@ def projection_kernel(scalar, covariance: str = "gsplat", fast_math: bool = Fals
         if det <= scalar(0.0):
             cull(i, means2d, depths, conics, opac_out, radii, counts, ends)
             return
-        op = opacities[c, n]
         if params.antialiased != 0:
             op = op * wp.sqrt(wp.max(scalar(0.0), det_orig / det))
         if op < alpha_min:

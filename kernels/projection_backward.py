@@ -33,7 +33,7 @@ import functools
 
 import warp as wp
 
-from .projection import covariance_funcs, matrix_funcs, projection_funcs, projection_params
+from .projection import activation_funcs, covariance_funcs, matrix_funcs, projection_funcs, projection_params
 from .types import types_for
 
 
@@ -231,14 +231,16 @@ def zero_slots_func(scalar):
 
 
 @functools.lru_cache(maxsize=None)
-def projection_backward_kernel(scalar, covariance: str = "gsplat", fast_math: bool = False):
+def projection_backward_kernel(scalar, covariance: str = "gsplat", fast_math: bool = False,
+                               activations: bool = False):
     """The projection backward for one precision, launched over ``(C, N)`` (or a run of
     Gaussians, ``first``). Inputs as the forward kernel reads them (2-D ``[camera, Gaussian]``
     arrays), the forward's ``radii`` (flat ``[C * N]``), the outputs' gradients (flat, null
     arrays where none came). Outputs (each a null array when not wanted): the gradients of
     means, quaternions, scales, opacities and view matrices, one ``[camera, Gaussian]`` slot
     each: added to with ``accumulate`` (another kernel wrote there first: the SH colours'
-    backward), else written, zeros for culled Gaussians included (no clearing first)."""
+    backward), else written, zeros for culled Gaussians included (no clearing first).
+    ``activations``: as the forward's (``projection.activation_funcs``)."""
     t = types_for(scalar)
     vec2, vec3, vec4, mat33, mat44 = t.vec2, t.vec3, t.vec4, t.mat33, t.mat44
     native_rsqrt = fast_math and scalar == wp.float32
@@ -251,6 +253,7 @@ def projection_backward_kernel(scalar, covariance: str = "gsplat", fast_math: bo
     point_backward = point_backward_func(scalar, native_rsqrt)
     zero_slots = zero_slots_func(scalar)
     Params = projection_params(scalar)
+    load_activated, through_exp, through_sigmoid = activation_funcs(scalar, activations)
 
     @wp.kernel(module="unique", module_options={"fast_math": fast_math, "enable_backward": False})
     def project_backward(
@@ -306,11 +309,10 @@ def projection_backward_kernel(scalar, covariance: str = "gsplat", fast_math: bo
         h = scalar(params.height)
         J = jacobian(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, p, p[2], scalar(1.0) / p[2])
         q = quats[c, n]
-        s = scales[c, n]
+        s, o = load_activated(scales[c, n], opacities[c, n])
         Rq = quat_to_rotmat(q)
         M = scale_columns(Rq, s)  # (the forward's scaled_rotation(q, s), its rotation kept)
-        v_J, v_R, v_M, v_o = covariance_backward(J, R, M, params.eps2d, params.antialiased, opacities[c, n], g_con,
-                                                 g_op)
+        v_J, v_R, v_M, v_o = covariance_backward(J, R, M, params.eps2d, params.antialiased, o, g_con, g_op)
         v_p = point_backward(p, K, w, h, g_xy, g_z, v_J)
 
         if v_means.shape[0] > 0:
@@ -333,6 +335,7 @@ def projection_backward_kernel(scalar, covariance: str = "gsplat", fast_math: bo
                 v_M[0, 0] * Rq[0, 0] + v_M[1, 0] * Rq[1, 0] + v_M[2, 0] * Rq[2, 0],
                 v_M[0, 1] * Rq[0, 1] + v_M[1, 1] * Rq[1, 1] + v_M[2, 1] * Rq[2, 1],
                 v_M[0, 2] * Rq[0, 2] + v_M[1, 2] * Rq[1, 2] + v_M[2, 2] * Rq[2, 2])
+            gs = through_exp(gs, s)
             if accumulate != 0:
                 gs = v_scales[c, n] + gs
             v_scales[c, n] = gs
@@ -342,7 +345,7 @@ def projection_backward_kernel(scalar, covariance: str = "gsplat", fast_math: bo
                 gq = v_quats[c, n] + gq
             v_quats[c, n] = gq
         if v_opacities.shape[0] > 0:
-            go = v_o
+            go = through_sigmoid(v_o, o)
             if accumulate != 0:
                 go = v_opacities[c, n] + go
             v_opacities[c, n] = go

@@ -90,7 +90,7 @@ class _Project(torch.autograd.Function):
             counts = torch.empty(C, N, dtype=torch.int32, device=dev)
             splats = torch.empty(C, N, 6, dtype=dt, device=dev)
         outs = [means2d, depths, conics, opac, radii]
-        kern = projection.projection_kernel(s, *cfg["variant"])
+        kern = projection.projection_kernel(s, *cfg["variant"], activations=cfg["activations"])
         head = _project_args(ins, C, N) + list(cfg["params"])
         a_radii = arr(radii, 2)
         tail = [*arr(means2d, 2), *arr(depths), *arr(conics, 3), *arr(opac), *a_radii]
@@ -168,15 +168,16 @@ class _Project(torch.autograd.Function):
             outs = [*_grid(v_means, C, N, 3), *_grid(v_quats, C, N, 4), *_grid(v_scales, C, N, 3),
                     *_grid(v_opac, C, N, 1), *_grid(v_view, C, N, 16)]
             if hand:  # kernels/projection_backward.py
-                cpu_threads.launch_runs(projection_backward.projection_backward_kernel(s, *cfg["variant"]), (C,),
-                                        ctx.runs, [*ctx.head, *ctx.a_radii, *(v for g in grads for v in g[0]), *outs,
-                                                   int(not written)], tg)
+                kern = projection_backward.projection_backward_kernel(s, *cfg["variant"], cfg["activations"])
+                cpu_threads.launch_runs(kern, (C,), ctx.runs, [*ctx.head, *ctx.a_radii,
+                                                               *(v for g in grads for v in g[0]), *outs,
+                                                               int(not written)], tg)
             else:  # Warp's generated adjoint of the forward kernel (the hand kernel's yardstick in the tests)
                 adj = [*outs, *NULL, *_ADJ_PARAMS, *_NO_CHECKS, *grads[0][0], *grads[1][0],
                        *grads[2][0], *grads[3][0], *NULL, *NULL, *NULL, *NULL]
                 args = ctx.head + _NO_CHECKS + ctx.tail + [*NULL, *NULL, *NULL]  # (the forward's, checks off)
-                cpu_threads.launch_runs(projection.projection_kernel(s, *cfg["variant"], True), (C,), ctx.runs, args,
-                                        tg, adj)
+                kern = projection.projection_kernel(s, *cfg["variant"], True, cfg["activations"])
+                cpu_threads.launch_runs(kern, (C,), ctx.runs, args, tg, adj)
         if C > 1:
             v_means, v_quats, v_scales, v_opac = (None if v is None else v.sum(0)
                                                   for v in (v_means, v_quats, v_scales, v_opac))
@@ -271,8 +272,9 @@ def project_warp(means, quats, scales, opacities, viewmats, Ks, width, height, *
 
 def _project_cfg(*args) -> dict:
     """What :class:`_Project` needs besides tensors: ``params`` (:class:`ProjectionParams`),
-    ``variant`` (the kernel's build: covariance form, fast maths), ``tile_size`` and
-    ``sh_degree``; arguments as :func:`_build_project_cfg`'s. The same arguments give the same
+    ``variant`` (the kernel's build: covariance form, fast maths), ``tile_size``,
+    ``sh_degree`` and ``activations`` (log-scales and logits in: the kernels apply ``exp`` and the
+    sigmoid, ``kernels/projection.py: activated_func``); arguments as :func:`_build_project_cfg`'s. The same arguments give the same
     dict (cached; read only)."""
     try:
         return _cached_project_cfg(*args)
@@ -281,7 +283,7 @@ def _project_cfg(*args) -> dict:
 
 
 def _build_project_cfg(dtype, width, height, near_plane, far_plane, radius_clip, eps2d, antialiased, settings,
-                       tile_size=0, tile_width=0, tile_height=0, sh_degree=None) -> dict:
+                       tile_size=0, tile_width=0, tile_height=0, sh_degree=None, activations=False) -> dict:
     params = ProjectionParams(
         width=int(width), height=int(height), near_plane=float(near_plane), far_plane=float(far_plane),
         eps2d=float(eps2d), radius_clip=float(radius_clip), alpha_min=float(settings.alpha_min),
@@ -289,7 +291,8 @@ def _build_project_cfg(dtype, width, height, near_plane, far_plane, radius_clip,
         antialiased=int(bool(antialiased)), tile_size=int(tile_size), tile_width=int(tile_width),
         tile_height=int(tile_height))
     return {"params": params, "variant": (settings.covariance, L.fast_math(settings, L.scalar_of(dtype))),
-            "tile_size": int(tile_size), "sh_degree": sh_degree, "cpu_threads": settings.cpu_threads}
+            "tile_size": int(tile_size), "sh_degree": sh_degree, "cpu_threads": settings.cpu_threads,
+            "activations": bool(activations)}
 
 
 _cached_project_cfg = functools.lru_cache(maxsize=256)(_build_project_cfg)

@@ -149,6 +149,35 @@ def rasterization(
         ``flatten_ids`` indexing the ``nnz`` rows; ``isect_ids`` and ``isect_offsets`` as unpacked.
         Not gsplat's: no batch dimensions (no ``batch_ids``), ``sparse_grad`` has no effect.
     """
+    return _rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane, far_plane,
+                          radius_clip, eps2d, sh_degree, packed, tile_size, backgrounds, render_mode, sparse_grad, absgrad,
+                          rasterize_mode, channel_chunk, camera_model=camera_model, settings=settings,
+                          deterministic=deterministic, validate=validate, backend=backend)
+
+
+def rasterization_from_parameters(means: Tensor, quats: Tensor, log_scales: Tensor, logit_opacities: Tensor,
+                                  colors: Tensor, viewmats: Tensor, Ks: Tensor, width: int, height: int, **kwargs):
+    """:func:`rasterization` of ``(means, quats, exp(log_scales), sigmoid(logit_opacities), ...)``: a
+    scene's stored parameters, which the Warp kernels activate as they load them (and whose
+    gradients they carry back through ``exp`` and the sigmoid): four torch ops and their backward
+    nodes fewer per call than activating them first. The same images and gradients to float
+    rounding. Keyword arguments as :func:`rasterization`'s; without the kernels (or with
+    ``backend="torch"``) the activations run in torch and the call goes to :func:`rasterization`.
+    Internal (the training loop's); ``rasterization`` stays gsplat's signature."""
+    if ops is None or kwargs.get("backend", "auto") == "torch":
+        return rasterization(means, quats, torch.exp(log_scales), torch.sigmoid(logit_opacities), colors, viewmats,
+                             Ks, width, height, **kwargs)
+    return _rasterization(means, quats, log_scales, logit_opacities, colors, viewmats, Ks, width, height,
+                          activations=True, **kwargs)
+
+
+def _rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane=0.01,
+                   far_plane=1e10, radius_clip=0.0, eps2d=0.3, sh_degree=None, packed=None, tile_size=None,
+                   backgrounds=None, render_mode="RGB", sparse_grad=False, absgrad=False, rasterize_mode="classic",
+                   channel_chunk=32, *, camera_model="pinhole", settings=None, deterministic=False, validate=True,
+                   backend="auto", activations=False):
+    """:func:`rasterization`'s work; ``activations``: ``scales`` and ``opacities`` are log-scales and
+    logits, activated in the kernels (:func:`rasterization_from_parameters`; the Warp backend only)."""
     settings, tile_size = resolve_arguments(means, settings, tile_size, camera_model)
     width, height = int(width), int(height)
     if backend == "auto":
@@ -158,7 +187,9 @@ def rasterization(
     if backend == "warp":
         return _rasterize_warp(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane,
                                far_plane, radius_clip, eps2d, sh_degree, tile_size, backgrounds, render_mode,
-                               rasterize_mode, settings, deterministic, validate, packed is True, absgrad)
+                               rasterize_mode, settings, deterministic, validate, packed is True, absgrad, activations)
+    if activations:  # (not reached through rasterization_from_parameters)
+        raise ValueError("rasterization: activations in the kernels need backend='warp'")
     return reference.render_reference(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane, far_plane, radius_clip,
         eps2d, sh_degree, tile_size, backgrounds, render_mode, rasterize_mode, settings, validate, packed is True,
@@ -184,18 +215,23 @@ def _fallback(triples: int) -> str:
     return "torch"
 
 
-def _recheck(inputs) -> None:
+def _recheck(inputs, activations: bool = False) -> None:
     """The value checks as a pass of their own (:func:`ssgwarp.raster.ops.check_values`, one
-    synchronisation): raises the first failed check's error, returns when all pass."""
+    synchronisation): raises the first failed check's error, returns when all pass. ``activations``:
+    the scales and opacities are log-scales and logits (checked as the scales and opacities they make)."""
+    if activations:
+        means, quats, scales, opacities, *rest = inputs
+        inputs = (means, quats, torch.exp(scales.detach()), torch.sigmoid(opacities.detach()), *rest)
     raise_for_flags(ops.check_values(*inputs).tolist())
 
 
 def _rasterize_warp(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane, far_plane,
                     radius_clip, eps2d, sh_degree, tile_size, backgrounds, render_mode, rasterize_mode, settings,
-                    deterministic, validate, packed_meta=False, absgrad=False):
+                    deterministic, validate, packed_meta=False, absgrad=False, activations=False):
     """The Warp path: value checks, projection (+ tile counts, + SH colours), binning with the one
     read-back, blending (:mod:`ssgwarp.raster.ops`); ``packed_meta``: gsplat's packed meta
-    (:func:`ssgwarp.raster.reference.pack_visible`), ``absgrad``: ``meta["means2d"].absgrad``."""
+    (:func:`ssgwarp.raster.reference.pack_visible`), ``absgrad``: ``meta["means2d"].absgrad``;
+    ``activations``: log-scales and logits in (:func:`rasterization_from_parameters`)."""
     if ops is None:
         raise ImportError("rasterization: backend='warp' needs warp-lang (pip install warp-lang), "
                           "or use backend='torch'")
@@ -214,13 +250,14 @@ def _rasterize_warp(means, quats, scales, opacities, colors, viewmats, Ks, width
     extra = {"ends": scan}
     recheck = None
     if validate:
-        recheck = partial(_recheck, (means, quats, scales, opacities, colors, viewmats, Ks, backgrounds))
+        recheck = partial(_recheck, (means, quats, scales, opacities, colors, viewmats, Ks, backgrounds), activations)
         if 0 < CN < ops.CHECK_MAX_PAIRS:  # the projection runs the checks on the values it loads
             extra.update(check=True, colors=colors, backgrounds=backgrounds, sh=sh_degree is not None)
         else:  # nothing to project (or more pairs than the mark can count): the checks on their own
             recheck()
     cfg = ops._project_cfg(means.dtype, width, height, near_plane, far_plane, radius_clip, eps2d,
-                           rasterize_mode == "antialiased", settings, tile_size, tile_width, tile_height, sh_degree)
+                           rasterize_mode == "antialiased", settings, tile_size, tile_width, tile_height, sh_degree,
+                           activations)
     coeffs = campos = None
     if sh_degree is not None:
         if viewmats.requires_grad and torch.is_grad_enabled():

@@ -10,7 +10,7 @@
 * :func:`render_to_files` -- :func:`render_views` written as PNGs, one per camera.
 
 The scene is read by attribute (``means``, ``quats``, ``scales``, ``opacities``, ``sh_dc``,
-``sh_coeffs``, ``sh_degree``, ``identities``): this module does not import
+``sh_rest`` (else ``sh_coeffs``), ``sh_degree``, ``identities``): this module does not import
 :mod:`ssgwarp.raster.scene`, whose :meth:`~ssgwarp.raster.scene.GaussianScene.render` calls :func:`render`.
 """
 from __future__ import annotations
@@ -22,7 +22,7 @@ import torch
 
 from ..errors import InputError
 from ..core.fileio import write_image
-from .rasterize import rasterization
+from .rasterize import rasterization, rasterization_from_parameters
 from .sh import C0, spherical_harmonics
 
 
@@ -65,22 +65,42 @@ def gaussian_colors(scene, cameras, *, sh_degree: Optional[int] = None, rgb: boo
     return parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
 
 
+def _coefficients(scene, degree: int) -> torch.Tensor:
+    """``[N, (degree+1)^2, 3]``: the scene's SH coefficients up to ``degree`` (at most the scene's),
+    contiguous: at degree 0 a view of the DC term (no copy; the higher bands then get no gradient),
+    else the DC term and the bands needed, joined (not all of them, then cut and copied again)."""
+    if not hasattr(scene, "sh_rest"):  # (a scene-like object without the two tensors)
+        return scene.sh_coeffs[:, : (degree + 1) ** 2]
+    rest = scene.sh_rest
+    if degree == 0 or rest is None:
+        return scene.sh_dc[:, None, :]
+    return torch.cat([scene.sh_dc[:, None, :], rest[:, : (degree + 1) ** 2 - 1]], dim=1)
+
+
 def render(scene, cameras, *, sh_degree: Optional[int] = None, rgb: bool = True, identities: bool = False,
-           extra: Optional[torch.Tensor] = None, rasterize: Optional[Callable] = None, **kwargs):
+           extra: Optional[torch.Tensor] = None, rasterize: Optional[Callable] = None, from_parameters: bool = False,
+           **kwargs):
     """Render ``scene`` from ``cameras`` in one rasterizer call (differentiable).
 
     Channels as :func:`gaussian_colors`; ``kwargs`` go to the rasterizer (``render_mode``,
-    ``backgrounds``, knobs...). Returns ``(colors [C,H,W,D], alphas [C,H,W,1], meta)``."""
-    rasterize = rasterization if rasterize is None else rasterize
+    ``backgrounds``, knobs...). ``from_parameters`` (ssgwarp's rasterizer, ``rasterize`` None): the
+    scene's log-scales and logit opacities go to the kernels, which activate them
+    (:func:`ssgwarp.raster.rasterize.rasterization_from_parameters`: the training loop's; the same
+    images and gradients to float rounding). Returns ``(colors [C,H,W,D], alphas [C,H,W,1], meta)``."""
     viewmats = cameras.viewmats.to(scene.means)
     Ks = cameras.Ks.to(scene.means)
+    if from_parameters and rasterize is None and hasattr(scene, "log_scales"):
+        rasterize = rasterization_from_parameters
+        scales, opacities = scene.log_scales, scene.logit_opacities
+    else:
+        rasterize = rasterization if rasterize is None else rasterize
+        scales, opacities = scene.scales, scene.opacities
     if rgb and not identities and extra is None:   # SH in the rasterizer (fused kernel, gsplat's convention)
         deg = _degree(scene, sh_degree)
-        return rasterize(scene.means, scene.quats, scene.scales, scene.opacities,
-                         scene.sh_coeffs[:, : (deg + 1) ** 2], viewmats, Ks, cameras.width, cameras.height,
-                         sh_degree=deg, **kwargs)
+        return rasterize(scene.means, scene.quats, scales, opacities, _coefficients(scene, deg),
+                         viewmats, Ks, cameras.width, cameras.height, sh_degree=deg, **kwargs)
     colors = gaussian_colors(scene, cameras, sh_degree=sh_degree, rgb=rgb, identities=identities, extra=extra)
-    return rasterize(scene.means, scene.quats, scene.scales, scene.opacities, colors, viewmats, Ks,
+    return rasterize(scene.means, scene.quats, scales, opacities, colors, viewmats, Ks,
                      cameras.width, cameras.height, **kwargs)
 
 

@@ -46,6 +46,7 @@ import torch
 
 from ..errors import InputError
 from ..core.geometry import quat_to_rotmat
+from .statistics import accumulate_grad2d
 
 # ----------------------------------------------------------------------------- schedule
 REFERENCE_ITERS = 30_000      # the run length the 3DGS / 3DGS-MCMC schedules were set for
@@ -377,44 +378,6 @@ class DefaultStrategy(Strategy):
         cap = math.log(self.recipe.reset_opacity / (1.0 - self.recipe.reset_opacity))
         g.params["logit_opacities"].data.clamp_(max=cap)
         g.zero_moments("logit_opacities")
-
-
-@torch.no_grad()
-def accumulate_grad2d(stats: dict[str, torch.Tensor], meta: dict) -> None:
-    """Add one render's view-space gradient norms (NDC units) and visibility counts to ``stats``.
-
-    ``meta`` is a gsplat-compatible rasterization's: ``means2d`` with its ``.grad``
-    (``[C, N, 2]``, or ``[nnz, 2]`` with ``gaussian_ids`` in packed mode), ``radii``
-    (``[C, N, 2]`` / ``[C, N]`` / ``[nnz, 2]``, > 0 where visible), ``width``, ``height``,
-    ``n_cameras``. Pixel gradients are scaled by ``(W/2, H/2)`` (pixels -> NDC) and by the
-    number of cameras (the loss is their mean). ``stats["max_radii"]``, when present, keeps
-    the largest radius as a fraction of ``max(W, H)``.
-    """
-    g = meta["means2d"].grad
-    if g is None:
-        return
-    w, h = float(meta["width"]), float(meta["height"])
-    c = int(meta.get("n_cameras", g.shape[0] if g.ndim == 3 else 1))
-    radii = meta["radii"]
-    if radii.ndim == g.ndim:  # per-axis radii [..., 2]
-        vis, r = (radii > 0).all(dim=-1), radii.max(dim=-1).values
-    else:
-        vis, r = radii > 0, radii
-    # (the scale goes to the device without a blocking copy, which would synchronise every step)
-    scale = torch.tensor([w / 2.0 * c, h / 2.0 * c], dtype=g.dtype).to(g.device, non_blocking=True)
-    norms = (g * scale).norm(dim=-1) * vis
-    r = (r * vis).to(torch.float32) / max(w, h)
-    ids = meta.get("gaussian_ids")
-    if g.ndim == 2:  # packed: one row per (camera, visible Gaussian), ``gaussian_ids`` says which
-        stats["grad2d"].index_add_(0, ids, norms.to(stats["grad2d"].dtype))
-        stats["count"].index_add_(0, ids, vis.to(stats["count"].dtype))
-        if "max_radii" in stats:
-            stats["max_radii"].scatter_reduce_(0, ids, r.to(stats["max_radii"].dtype), "amax")
-        return
-    stats["grad2d"] += norms.sum(dim=0).to(stats["grad2d"].dtype)
-    stats["count"] += vis.sum(dim=0).to(stats["count"].dtype)
-    if "max_radii" in stats:
-        stats["max_radii"] = torch.maximum(stats["max_radii"], r.max(dim=0).values.to(stats["max_radii"].dtype))
 
 
 def split_children(params: dict[str, torch.Tensor], sel: torch.Tensor, split_factor: float,

@@ -32,6 +32,7 @@ from ..raster.scene import GaussianScene
 from .attach import attach_hooks, restore_attached, takes_scene
 from .backdrop import with_backdrop
 from .schedules import AUTO, AUTO_MAX_ITERS, Schedules, sh_degree_at
+from .step import StepInfo, ViewCache, adam_step, zero_unrendered_grads
 from .strategy import GaussianParams, make_strategy
 
 log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
@@ -135,7 +136,7 @@ class Trainer:
 
         self.view_gen = torch.Generator().manual_seed(self.seed)
         self._queue: list[int] = []
-        self._bg: dict[int, torch.Tensor] = {}
+        self._views = ViewCache(self.data)
 
         if scene is None:
             scene = self._initial_scene()
@@ -279,19 +280,19 @@ class Trainer:
             attach_hooks(self)
         views = self.group.share(self.next_batch())  # this process's views of the step's batch
         self._set_lrs()
-        cam, gt, masks = self.schedules.batch(self.step, views)  # (coarse-to-fine: downsampled)
         scene = self.scene
         with_ids = bool(self.hooks) and scene.identities is not None
-        ch = 3 + (scene.identities.shape[1] if with_ids else 0)
-        bg = self._bg.get(ch)
-        if bg is None:
-            bg = self._bg[ch] = self.data.background_tensor(ch)[None].expand(len(views), -1).contiguous()
+        # (one view: no copy of its image, its cameras made once per resolution level; coarse-to-fine: downsampled)
+        level = self.schedules.views(self.step)
+        cam, gt, bg = self._views(views, 3 + (scene.identities.shape[1] if with_ids else 0), level,
+                                  self.schedules.factor(self.step))
+        masks = None if level[2] is None else level[2][views]
         out, alphas, meta = render(scene, cam, sh_degree=self.active_sh_degree, identities=with_ids,
-                                   backgrounds=bg, rasterize=self.rasterize, **self.raster_kwargs)
+                                   backgrounds=bg, rasterize=self.rasterize, from_parameters=True, **self.raster_kwargs)
         means2d = meta["means2d"]
         if self.strategy.uses_means2d_grad and means2d.requires_grad:
             means2d.retain_grad()
-        img = out[..., :3]
+        img = out if out.shape[-1] == 3 else out[..., :3]  # (a slice's backward would copy the whole gradient)
         if masks is not None:  # masked pixels are zero in both: no error, no gradient, no SSIM content
             img, gt = _masked(img, gt, masks)
         loss = photometric(img, gt, r.lambda_dssim, r.dssim_scale)  # (the mean over the views)
@@ -309,6 +310,7 @@ class Trainer:
         self._settle_loss()  # the previous step's flag (long computed: no wait)
         deferred = self._watch_loss(finite_t)
         total.backward()
+        zero_unrendered_grads(self.params, with_ids)
         if deferred:
             finite = True  # (known on the host next step: see _watch_loss)
         else:
@@ -325,13 +327,10 @@ class Trainer:
             self._diverged("the loss is NaN/inf" + ("" if not self.group.active else
                                                     f" on {int(bad)} of {self.group.world_size} processes"))
         self._observe(meta)
-        self.opt.step()
-        self.opt.zero_grad(set_to_none=True)
-        if self.hook_opt is not None:
-            self.hook_opt.step()
-            self.hook_opt.zero_grad(set_to_none=True)
+        for o in self._optimisers():
+            adam_step(o)  # (step, gradients set to None; the fused update without Adam.step's Python)
         self.step += 1
-        info = {"loss": total.detach(), "mse": ((img.detach().clamp(0, 1) - gt) ** 2).mean()}
+        info = StepInfo(total.detach(), img.detach(), gt)
         info.update(self.strategy.step(self.gaussians, self.step, self.gaussians.groups["means"]["lr"]))
         if self.check_every and self.step % self.check_every == 0:
             self.group.check_identical(self._synced_tensors(), self.step)

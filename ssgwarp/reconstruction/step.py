@@ -1,0 +1,129 @@
+"""What a training step of :class:`~ssgwarp.reconstruction.trainer.Trainer` hands around, made at the
+least host cost (issue 40): its views (:class:`ViewCache`), the zero gradient of the SH bands it did not
+render (:func:`zero_unrendered_grads`) and its result (:class:`StepInfo`, whose MSE is made when read).
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+
+
+class ViewCache:
+    """``cache(views, channels) -> (cameras, ground truth [B, H, W, 3], backgrounds [B, channels])`` of
+    a capture's views, the backgrounds made once per shape. A one-view batch (the usual one) gets its
+    cameras made once (indexing copies the index to the device every time) and its image as a view
+    of the capture's (no copy); several views are indexed and stacked."""
+
+    def __init__(self, data):
+        self.data = data
+        self.cameras: dict = {}
+        self.factor = 1.0
+        self.backgrounds: dict = {}
+
+    def __call__(self, views: list[int], channels: int, level: Optional[tuple] = None, factor: float = 1.0) -> tuple:
+        """``level``: ``(cameras, images, masks)`` to take the views from (default: the capture's), the
+        ``factor`` they are downsampled by (the key of the cameras made once)."""
+        cams, images = (self.data.cameras, self.data.images) if level is None else level[:2]
+        key = (channels, len(views))
+        bg = self.backgrounds.get(key)
+        if bg is None:
+            bg = self.backgrounds[key] = self.data.background_tensor(channels)[None].expand(len(views), -1).contiguous()
+        if len(views) != 1:
+            return cams[views], torch.stack([images[v] for v in views]), bg
+        v = views[0]
+        if factor != self.factor:  # a new resolution level: the cameras of the last one are not used again
+            self.cameras, self.factor = {}, factor
+        cam = self.cameras.get(v)
+        if cam is None:
+            cam = self.cameras[v] = cams[v]
+        return cam, images[v:v + 1], bg
+
+
+def zero_unrendered_grads(params: dict, with_ids: bool) -> None:
+    """At SH degree 0 the colour renders from the DC term alone (no copy of all the coefficients),
+    which leaves ``sh_rest`` without a gradient; it gets a zero one, as when all bands were rendered
+    (its Adam state and step count then advance as before). The identity channels' path renders the
+    DC term alone and has always left ``sh_rest`` out: unchanged (``with_ids``)."""
+    p = params.get("sh_rest")
+    if p is not None and p.grad is None and not with_ids:
+        p.grad = torch.zeros_like(p)
+
+
+class StepInfo(dict):
+    """What :meth:`Trainer.train_step` returns: ``loss`` (a device scalar), what the strategy did
+    (``refine``, ``reset``), and ``mse``, the step's mean squared error of the clamped render, made
+    on the device the first time ``info["mse"]`` is read (the progress bar reads it every 10 steps;
+    the others cost no kernels)."""
+
+    def __init__(self, loss: torch.Tensor, img: Optional[torch.Tensor] = None, gt: Optional[torch.Tensor] = None):
+        super().__init__(loss=loss)
+        self.image_pair = None if img is None else (img, gt)  # (render, ground truth) until ``mse`` is made
+
+    def __missing__(self, key):
+        if key != "mse" or self.image_pair is None:
+            raise KeyError(key)
+        img, gt = self.image_pair
+        self["mse"] = value = ((img.clamp(0, 1) - gt) ** 2).mean()
+        self.image_pair = None
+        return value
+
+    def __contains__(self, key) -> bool:
+        return super().__contains__(key) or (key == "mse" and self.image_pair is not None)
+
+    def get(self, key, default=None):
+        return self[key] if key in self else default
+
+
+def adam_step(opt: torch.optim.Optimizer) -> None:
+    """``opt.step()`` then ``opt.zero_grad(set_to_none=True)``. A fused torch Adam whose parameters all
+    have their state (every step but the first) is stepped here without the per-group Python of
+    ``Adam.step`` (about 1 ms of host time per step for the scene's six groups on the 2-core machine):
+    the same ``torch._fused_adam_`` call per group, with the same arguments, so the same numbers to the
+    bit, and the step counts of all groups advanced (and, with ``found_inf`` set, taken back) in one
+    call each instead of one per group. Anything else (hooks, another Adam variant, a first step)
+    goes through ``opt.step()``. The optimizer and its state are torch's either way (checkpoints,
+    densification's moment surgery)."""
+    groups = _fused_groups(opt)
+    if groups is None:
+        opt.step()
+    elif groups:
+        found_inf = getattr(opt, "found_inf", None)
+        steps = [s for g in groups for s in g[5]]
+        torch._foreach_add_(steps, 1)
+        for group, params, grads, exp_avgs, exp_avg_sqs, group_steps in groups:
+            beta1, beta2 = group["betas"]
+            torch._fused_adam_(params, grads, exp_avgs, exp_avg_sqs, [], group_steps, amsgrad=False,
+                               lr=group["lr"], beta1=beta1, beta2=beta2, weight_decay=group["weight_decay"],
+                               eps=group["eps"], maximize=False, grad_scale=None, found_inf=found_inf)
+        if found_inf is not None:
+            torch._foreach_sub_(steps, [found_inf] * len(steps))
+    for group in opt.param_groups:
+        for p in group["params"]:
+            p.grad = None
+
+
+def _fused_groups(opt) -> Optional[list]:
+    """``[(group, params, grads, exp_avgs, exp_avg_sqs, steps), ...]`` of the groups with gradients, or
+    None where :func:`adam_step` leaves the step to torch."""
+    from torch.optim import optimizer as torch_optimizer
+
+    if (type(opt) is not torch.optim.Adam or getattr(opt, "grad_scale", None) is not None
+            or opt._optimizer_step_pre_hooks or opt._optimizer_step_post_hooks
+            or torch_optimizer._global_optimizer_pre_hooks or torch_optimizer._global_optimizer_post_hooks):
+        return None
+    out = []
+    for group in opt.param_groups:
+        if (not group["fused"] or group["amsgrad"] or group["maximize"] or group["differentiable"]
+                or group["decoupled_weight_decay"] or isinstance(group["lr"], torch.Tensor)
+                or isinstance(group["betas"][0], torch.Tensor)):
+            return None
+        rows = [p for p in group["params"] if p.grad is not None]
+        if not rows:
+            continue
+        states = [opt.state.get(p) for p in rows]
+        if not all(states) or len({(p.device, p.dtype) for p in rows}) > 1:
+            return None
+        out.append((group, rows, [p.grad for p in rows], [s["exp_avg"] for s in states],
+                    [s["exp_avg_sq"] for s in states], [s["step"] for s in states]))
+    return out
