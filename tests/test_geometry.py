@@ -87,6 +87,28 @@ def test_knn_is_exact_in_any_block_size(block):
     assert knn(pts[:0], pts, 4)[0].shape == (0, 4)
 
 
+def test_direct_distances_equal_cdist_and_knn_on_them(monkeypatch):
+    """The distances CUDA uses (coordinate differences formed as one tensor: torch's exact cdist kernel is
+    slow there) equal cdist's exact ones, keep a repeated point at 0 in float32 far from the origin, and
+    give knn the same neighbours (the direct form forced here on the CPU)."""
+    from ssgwarp.core import geometry
+    g = torch.Generator().manual_seed(5)
+    pts = torch.rand(300, 3, generator=g, dtype=torch.float64)
+    ref = torch.cdist(pts[:40], pts, compute_mode="donot_use_mm_for_euclid_dist")
+    torch.testing.assert_close(geometry.pairwise_distances(pts[:40], pts, direct=True), ref, atol=1e-14, rtol=0)
+    far = torch.rand(50, 3, generator=g) + 50.0
+    d = geometry.pairwise_distances(far, torch.cat([far, far + 1e-4]), direct=True)
+    assert torch.equal(torch.diagonal(d[:, :50]), torch.zeros(50))
+    assert bool((torch.diagonal(d[:, 50:]) > 0).all())
+    q = torch.arange(0, 300, 7)
+    want = knn(pts[q], pts, 5, exclude=q, block=64)
+    original = geometry.pairwise_distances
+    monkeypatch.setattr(geometry, "pairwise_distances", lambda a, b: original(a, b, direct=True))
+    got = knn(pts[q], pts, 5, exclude=q, block=64)
+    assert torch.equal(got[1], want[1])
+    torch.testing.assert_close(got[0], want[0], atol=1e-14, rtol=0)
+
+
 def test_knn_in_float32_finds_repeated_points_at_distance_zero():
     """Far from the origin, ``|a|^2 + |b|^2 - 2ab`` loses the small distances in float32 (cdist's default
     for large inputs); knn takes coordinate differences, so a repeated point is found at exactly 0."""

@@ -21,6 +21,7 @@ Tensor = torch.Tensor
 # thread: 13.7 s against 12.4 s for one 4096-row block per query chunk over all points, which grows
 # without bound; 14.5 s with 2^25)
 KNN_BLOCK = 1 << 27
+KNN_BLOCK_CUDA = 1 << 25  # on CUDA (differences of 3-D points: 400 MB at a time)
 # points above which knn_mean_distance (3-D) goes through knn_table's grid instead of knn's blocks
 KNN_TABLE_MIN = 20_000
 
@@ -103,6 +104,16 @@ def project(points: Tensor, viewmat: Tensor, K: Tensor) -> tuple[Tensor, Tensor]
 
 # -- nearest neighbours ---------------------------------------------------------------------------
 
+def pairwise_distances(q: Tensor, p: Tensor, direct: Optional[bool] = None) -> Tensor:
+    """``[M, P]`` Euclidean distances of ``q [M, D]`` to ``p [P, D]`` from the coordinate differences (exact
+    near 0, where the matrix-product form loses the small distances to cancellation). ``direct`` (default:
+    on CUDA) forms the differences as one tensor; otherwise torch's ``cdist`` without the matrix product,
+    whose CUDA kernel is slow (an H200, 2026-11-28: 135 ms for 1,000 x 134k points, against a few ms)."""
+    if direct if direct is not None else q.is_cuda:
+        return (q[:, None, :] - p[None, :, :]).square_().sum(-1).sqrt_()
+    return torch.cdist(q, p, compute_mode="donot_use_mm_for_euclid_dist")
+
+
 def knn(queries: Tensor, points: Tensor, k: int, *, exclude: Optional[Tensor] = None,
         block: int = KNN_BLOCK) -> tuple[Tensor, Tensor]:
     """Exact ``k`` nearest ``points [P, D]`` of each of ``queries [M, D]`` (Euclidean):
@@ -112,6 +123,8 @@ def knn(queries: Tensor, points: Tensor, k: int, *, exclude: Optional[Tensor] = 
     ``k`` is capped at the points available. The distance matrix is formed in blocks of at most
     ``block`` entries (queries by points), keeping a running best ``k`` per query."""
     M, P = queries.shape[0], points.shape[0]
+    if queries.is_cuda:  # (the blocks' differences are made whole on CUDA: bytes = 4 x D x block)
+        block = min(block, KNN_BLOCK_CUDA)
     k = max(0, min(int(k), P - (1 if exclude is not None else 0)))
     dev = queries.device
     out_d = torch.empty(M, k, dtype=queries.dtype, device=dev)
@@ -126,7 +139,7 @@ def knn(queries: Tensor, points: Tensor, k: int, *, exclude: Optional[Tensor] = 
         best_d = torch.empty(m, 0, dtype=queries.dtype, device=dev)
         best_i = torch.empty(m, 0, dtype=torch.long, device=dev)
         for p0 in range(0, P, pc):
-            d = torch.cdist(q, points[p0:p0 + pc], compute_mode="donot_use_mm_for_euclid_dist")  # (exact near 0)
+            d = pairwise_distances(q, points[p0:p0 + pc])
             n = d.shape[1]
             if exclude is not None:  # the excluded point, where it falls in this block, at infinity
                 e = exclude[q0:q0 + m, None] - p0
