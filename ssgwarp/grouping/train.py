@@ -169,8 +169,14 @@ class GroupingHook:
         self.classifier = make_classifier(self.dim, self.num_groups, generator=self.generator,
                                           device=device, dtype=dtype)
         self.targets = targets
-        self.last: dict = {}
+        self._last: dict = {}  # the last step's terms, detached on the device (read through ``last``)
         self.history: list[dict] = []   # {"step", "ce", "reg"} every 10 steps (the first view of a step)
+
+    @property
+    def last(self) -> dict:
+        """The last step's terms as numbers: ``ce`` and, on a step with the 3D term, ``reg`` (None otherwise)."""
+        return {"ce": float(self._last["ce"]) if "ce" in self._last else None,
+                "reg": float(self._last["reg"]) if "reg" in self._last else None}
 
     def parameters(self) -> list[dict]:
         """The classifier's Adam parameter group."""
@@ -185,14 +191,14 @@ class GroupingHook:
         t = self.targets[view_index].to(identity_render.device)
         ce = mask_loss(cls(identity_render), t, self.num_groups)
         loss = ce
-        self.last = {"ce": float(ce.detach())}
+        self._last = {"ce": ce.detach()}   # (no host synchronisation per step: read when ``last`` is)
         cfg = self.config
         if scene is not None and scene.identities is not None and cfg.reg_weight > 0 and cfg.reg_every > 0 \
                 and step % cfg.reg_every == 0:
             reg = regularizer_3d(scene.identities, scene.means, cls, generator=self.generator, k=cfg.reg_k,
                                  samples=cfg.reg_samples, max_points=cfg.reg_max_points)
             loss = loss + cfg.reg_weight * reg
-            self.last["reg"] = float(reg.detach())
+            self._last["reg"] = reg.detach()
         if step % 10 == 0 and (not self.history or self.history[-1]["step"] != step):
-            self.history.append({"step": step, "ce": self.last["ce"], "reg": self.last.get("reg")})
+            self.history.append({"step": step, **self.last})
         return loss
