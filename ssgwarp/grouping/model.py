@@ -153,10 +153,9 @@ def mask_loss(logits: Tensor, targets: Tensor, num_groups: int) -> Tensor:
     """
     flat_t = targets.reshape(-1).to(logits.device).long()
     flat_l = logits.reshape(-1, logits.shape[-1])
-    valid = flat_t >= 0
-    if not bool(valid.any()):
-        return flat_l.sum() * 0.0
-    ce = F.cross_entropy(flat_l[valid], flat_t[valid])
+    valid = flat_t >= 0   # (ignored pixels as cross_entropy's ignore_index: no boolean indexing, no host sync)
+    ce = F.cross_entropy(flat_l, torch.where(valid, flat_t, -100), ignore_index=-100, reduction="sum") \
+        / valid.sum().clamp_min(1)
     return ce / math.log(num_groups) if num_groups > 1 else ce
 
 
