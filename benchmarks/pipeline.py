@@ -20,6 +20,7 @@ import argparse
 import json
 import os
 import shlex
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -58,7 +59,6 @@ def main(argv=None) -> int:
         label, _, body = spec.partition(":")
         run = args.work / label.strip().replace(" ", "_")
         if run.exists():
-            import shutil
             shutil.rmtree(run)
         run.mkdir(parents=True)
         stages = []

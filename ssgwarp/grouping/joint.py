@@ -34,7 +34,7 @@ from ..core.fileio import read_json, write_json
 from ..errors import InputError
 from ..reconstruction import reconstruct as rec
 from ..services.runs import Run, claim
-from .mask_files import load_masks
+from .mask_files import load_masks, resolve_masks
 from .model import DEFAULT_DIM, FORMAT, GroupConfig
 from .pseudomasks import IGNORE, ClusterConfig, pseudo_masks
 from .segment import read_record
@@ -58,16 +58,6 @@ def parse_groups(text) -> Optional[int]:
         raise InputError(f"--groups {k}: at least 2 groups (or auto); one group is the whole scene, which "
                          f"needs no grouping")
     return k
-
-
-def _resolve_masks(masks, data_dir: Path) -> Optional[Path]:
-    """"auto": ``<data_dir>/object_mask`` when it exists (else mask-free); None/"none": mask-free; else the folder."""
-    if masks is None or str(masks).lower() == "none":
-        return None
-    if str(masks).lower() == "auto":
-        cand = Path(data_dir) / "object_mask"
-        return cand if cand.is_dir() else None
-    return Path(masks)
 
 
 class GroupsDuringReconstruction:
@@ -123,7 +113,7 @@ class GroupsDuringReconstruction:
                              what="groups", scratch=("groups/classifier.pt", "groups/group_maps"))
         data = trainer.data
         self.device = trainer.device
-        mask_dir = _resolve_masks(self.masks, data.data_dir)
+        mask_dir = resolve_masks(self.masks, [Path(data.data_dir) / "object_mask"])  # (auto: DATA/object_mask)
         if mask_dir is not None:
             t0 = time.perf_counter()
             made = read_record(mask_dir)   # written by `ssgwarp masks`: instances associated across views

@@ -22,6 +22,16 @@ from .pseudomasks import IGNORE
 Tensor = torch.Tensor
 
 
+
+def resolve_masks(masks, candidates: Sequence[Path]) -> Optional[Path]:
+    """The mask folder a ``--masks`` value names: None/"none": mask-free (None); "auto": the first of the
+    ``candidates`` folders that exists (none: mask-free); else the folder given."""
+    if masks is None or str(masks).lower() == "none":
+        return None
+    if str(masks).lower() == "auto":
+        return next((c for c in candidates if c.is_dir()), None)
+    return Path(masks)
+
 @dataclass
 class MaskSet:
     """Instance masks at training resolution.

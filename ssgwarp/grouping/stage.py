@@ -54,7 +54,7 @@ from ..core.cameras import Cameras
 from ..errors import InputError, SsgwarpError
 from ..core.fileio import atomic_path, read_json, write_image, write_json
 from .agreement import neighbour_pairs, plot_training, reprojection_agreement
-from .mask_files import MaskSet, find_mask, load_masks, read_id_image, resize_nearest
+from .mask_files import MaskSet, find_mask, load_masks, read_id_image, resize_nearest, resolve_masks
 from ..core.geometry import knn_indices
 from .model import (DEFAULT_DIM, FORMAT, GroupConfig, GroupModel, gaussian_groups, group_labels,
                              init_identities, load_groups, make_classifier, mask_loss, regularizer_3d,
@@ -87,15 +87,8 @@ RunInfo = Run   # (the run folder: ssgwarp.services.runs.Run)
 def _resolve_masks(masks: Optional[str | Path], run: RunInfo) -> Optional[Path]:
     """``None``/"none" → mask-free; "auto" → ``RUN/object_mask`` (``ssgwarp masks``), else
     ``<data_dir>/object_mask``, when it exists; else the folder given."""
-    if masks is None or str(masks).lower() == "none":
-        return None
-    if str(masks).lower() == "auto":
-        dd = run.data.get("data_dir")
-        for cand in (run.path / "object_mask", Path(dd) / "object_mask" if dd else None):
-            if cand is not None and cand.is_dir():
-                return cand
-        return None
-    return Path(masks)
+    dd = run.data.get("data_dir")
+    return resolve_masks(masks, [run.path / "object_mask"] + ([Path(dd) / "object_mask"] if dd else []))
 
 
 def _train_images(scene_dir: Path, run: RunInfo, device) -> Optional[Tensor]:

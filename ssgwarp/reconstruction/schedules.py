@@ -205,11 +205,6 @@ class Schedules:
             return self.data.cameras, self.data.images, self.data.masks
         return self.pyramid.level(self.factor(step))
 
-    def batch(self, step: int, views: list[int]) -> tuple[Cameras, torch.Tensor, Optional[torch.Tensor]]:
-        """``(cameras, images [B, h, w, 3], masks [B, h, w] or None)`` of the training ``views`` at ``step``."""
-        cams, images, masks = self.views(step)
-        return cams[views], torch.stack([images[v] for v in views]), None if masks is None else masks[views]
-
     def means_lr(self, step: int, lr0: float, lr1: float) -> float:
         """The position learning rate at ``step``: log-linear from ``lr0`` to ``lr1`` over ``iters``, or,
         after a plateau, from where it was to ``lr1`` over the tail."""
