@@ -67,6 +67,11 @@ def main(argv=None) -> int:
             stages.append((words[0], ssgwarp(words, log)))
             print(f"{label.strip()}: {words[0]} {stages[-1][1]:.1f} s", flush=True)
         m = json.loads((run / "rec" / "metrics.json").read_text()) if (run / "rec" / "metrics.json").exists() else {}
+        for sub in sorted(p.parent for p in run.glob("*/metrics.json")):   # each stage's own clock, where kept
+            secs = json.loads((sub / "metrics.json").read_text()).get("seconds")
+            if isinstance(secs, dict):
+                print(f"{label.strip()}: {sub.name} seconds: " + ", ".join(
+                    f"{k} {v:.1f}" for k, v in secs.items() if isinstance(v, (int, float))), flush=True)
         rows.append((label.strip(), stages, m))
     print("\n| pipeline | stages (s) | total (s) | held-out PSNR | Gaussians | steps |")
     print("|---|---|---:|---:|---:|---:|")
