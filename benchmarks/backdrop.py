@@ -6,7 +6,7 @@ Each ``--runs`` entry is ``SCENE:BACKDROP:ITERS[:WIDTH[:INIT]]``: SCENE ``living
 background), ``insideout`` (the procedural
 inside-out scene, written once per width into ``--work``) or ``insideout-true`` (the same capture, initial
 points = the true surface: the ground truth's Gaussian centres), or a capture folder; BACKDROP ``auto`` / ``on`` /
-``off``; WIDTH ``-`` or left out: the capture's own; INIT the initial points (``load_dataset``'s ``init``:
+``off``; ITERS a step count or ``auto`` (the stop rule; the row gives the steps run); WIDTH ``-`` or left out: the capture's own; INIT the initial points (``load_dataset``'s ``init``:
 ``auto`` (default: the capture's points, else triangulated), ``triangulate`` (even where the capture has
 COLMAP points), ``random``, ``capture`` (the capture's points, else random: as before triangulation)).
 Rows go to stdout (markdown) and ``--out`` (JSON lines).
@@ -102,7 +102,7 @@ def main(argv=None) -> int:
     print("|---|---|---|---|---|---|---|---|---|")
     for spec in args.runs:
         parts = spec.split(":")
-        scene, mode, iters = parts[0], parts[1], int(parts[2])
+        scene, mode, iters = parts[0], parts[1], parts[2] if parts[2] == "auto" else int(parts[2])
         width = int(parts[3]) if len(parts) > 3 and parts[3] not in ("", "-") else None
         init = parts[4] if len(parts) > 4 else "auto"
         t0 = time.time()
@@ -115,13 +115,13 @@ def main(argv=None) -> int:
                "points_count": None if data.points is None else len(data.points[0]),
                "points_reprojection_error_px": data.points_stats.get("median_reprojection_error_px"),
                "load_seconds": round(load_seconds, 1), "backdrop": mode,
-               "backdrop_plan": None if tr.backdrop is None else tr.backdrop.record(), "steps": iters,
+               "backdrop_plan": None if tr.backdrop is None else tr.backdrop.record(), "steps": tr.step, "iters": iters,
                "psnr": ev["psnr"], "ssim": ev["ssim"], "gaussians": tr.num_gaussians,
                "train_seconds": round(tr.elapsed, 1), "wall_seconds": round(time.time() - t0, 1),
                "refine_stop": tr.recipe.refine_stop, "machine": machine, "date": time.strftime("%Y-%m-%d")}
         used = "yes" if row["backdrop_plan"] and row["backdrop_plan"]["used"] else "no"
         print(f"| {scene} {data.width}px | {row['points_count']} {data.points_source} ({init}) | {mode} ({used}) | "
-              f"{iters} | {ev['psnr']:.2f} | {tr.num_gaussians} | {load_seconds:.0f} | {tr.elapsed:.0f} | {machine} |",
+              f"{tr.step}{' (auto)' if iters == 'auto' else ''} | {ev['psnr']:.2f} | {tr.num_gaussians} | {load_seconds:.0f} | {tr.elapsed:.0f} | {machine} |",
               flush=True)
         if args.renders:
             save_renders(args.renders / f"{spec.replace(':', '_')}.png", tr, data)

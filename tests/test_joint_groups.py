@@ -164,3 +164,38 @@ def test_interrupted_after_grouping_started_resumes_to_the_same_run(tmp_path, ca
     ga = json.loads((tmp_path / "a" / "groups" / "groups.json").read_text())
     gb = json.loads((tmp_path / "b" / "groups" / "groups.json").read_text())
     assert ga["num_groups"] == gb["num_groups"] and np.isclose(ga["train_mask_accuracy"], gb["train_mask_accuracy"])
+
+
+def test_mask_free_grouping_takes_the_runs_last_steps_and_follows_an_auto_end():
+    from ssgwarp.grouping.joint import GROUP_STEPS, GroupsDuringReconstruction
+
+    g = GroupsDuringReconstruction("unused")
+    g.refine_stop = 3400                        # densification stopped at 3,400 (fern images_4's sparse rule)
+    assert g.start_at(30000) == 30000 - GROUP_STEPS                      # a long run: its last steps only
+    assert g.start_at(7000) == 4000 and GROUP_STEPS == 3000
+    assert g.start_at(5000) == 3400                                      # never before densification stops
+    assert g.start_at(4000) == 3000                                      # (which counts at most 3/4 of the run)
+    g.refine_stop = 10**9                                                # refining until the end: 3/4 of the run
+    assert g.start_at(2000) == 1500
+    g.refine_stop, g.share = 3400, 0.5                                   # --group-start: a share of the run
+    assert g.start_at(17880) == 8940
+    g.share, g.with_masks = None, True                                   # masks: from the first step
+    assert g.start_at(30000) == 0
+    g.with_masks, g.refine_stop = False, 30000
+    assert g.start_at(1) == 0                                            # at least one step with the groups
+
+
+def test_with_iters_auto_mask_free_grouping_starts_when_the_stop_rule_moves_the_end(tmp_path, capture):
+    from ssgwarp.grouping.joint import reconstruct_with_groups
+    from ssgwarp.reconstruction.recipe import Recipe
+
+    # checks every 10 steps from 20 (densification's end), a plateau at the third check (40), a 10-step tail:
+    # the planned 30,000-step run would group from step 27,000, which it never reaches; it groups from 40 to 50
+    recipe = Recipe(refine_start=10, refine_stop=20, refine_every=10, reset_every=0, sh_interval=5, stop_every=10,
+                    stop_patience=2, stop_tol=100.0)
+    m = reconstruct_with_groups(capture[0], tmp_path / "run", iters="auto", recipe=recipe, sh_degree=0,
+                                device="cpu", progress=False, init="random", num_random_points=600, max_gaussians=2500,
+                                backdrop="off")
+    info = json.loads((tmp_path / "run" / "groups" / "groups.json").read_text())
+    assert m["iters"] == 50 and info["start_step"] == 40 and m["groups"]["start_step"] == 40
+    assert info["kind"] == "mask-free clusters" and info["iters"] == 50

@@ -164,6 +164,21 @@ def test_auto_trains_until_the_plateau_and_a_tail_with_the_learning_rate_anneale
         Trainer(toy, iters="soon", progress=False, device="cpu")
 
 
+def test_auto_decides_on_the_main_processs_psnr(toy):
+    """Under torchrun every process must stop at the same step: the checks take rank 0's PSNR (broadcast)."""
+    from ssgwarp.services.distributed import Group
+
+    class Rank0Says(Group):
+        def broadcast(self, obj):
+            return 99.0 if isinstance(obj, float) else obj
+
+    t = Trainer(toy, iters="auto", sh_degree=1, recipe=_auto_recipe(), progress=False, device="cpu", backdrop="off",
+                group=Rank0Says())
+    t.train()
+    checks = t.schedules.record(t.step)["stop_rule"]["checks"]
+    assert t.step == 50 and [c[1] for c in checks] == [99.0, 99.0, 99.0]
+
+
 @pytest.mark.parametrize("stop_at", [15, 35])
 def test_resume_mid_schedule_is_bit_exact(toy, tmp_path, stop_at):
     """Coarse-to-fine from 4x until step 30, SH from step 25, --iters auto: interrupted at 15 (mid

@@ -215,3 +215,15 @@ def test_adam_is_fused_on_the_cpu_and_takes_torchs_default_steps():
     assert fusable({("cpu", f32)}) and fusable({("cuda", f32), ("cuda", f64)})
     assert not fusable({("cpu", f32), ("cuda", f32)})                       # mixed devices
     assert not fusable({("cuda", f16)}) and not fusable({("mps", f32)}) and not fusable(set())
+
+
+def test_png_writes_are_lossless_at_the_fast_zlib_level(tmp_path):
+    from ssgwarp.core.fileio import PNG_LEVEL, read_image, write_image
+
+    img = torch.rand(37, 53, 3, generator=torch.Generator().manual_seed(0))
+    path = write_image(tmp_path / "a.png", img)
+    assert (torch.from_numpy(read_image(path)) - img).abs().max() <= 0.5 / 255 + 1e-6     # 8-bit, nothing else lost
+    data = path.read_bytes()
+    idat = data.index(b"IDAT") + 4
+    # the zlib stream's header says the level class: FLEVEL 0 ("fastest") for PNG_LEVEL 1 (libpng's default 6: 2)
+    assert PNG_LEVEL == 1 and data[idat] & 0x0F == 8 and data[idat + 1] >> 6 == 0

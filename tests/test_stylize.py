@@ -1,6 +1,7 @@
 """Stage 2: group matching, NNFM loss, deferred back-propagation, IST vs global, frozen geometry, resume."""
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
@@ -913,6 +914,11 @@ def test_path_video_is_a_looping_gif_of_every_frame(tmp_path):
     with Image.open(path) as im:
         assert im.format == "GIF" and im.n_frames == 5 and im.size == (16, 12) and im.info["loop"] == 0
         assert im.info["duration"] == 100
+    big = [np.full((300, 1024, 3), 40 * i, dtype=np.uint8) for i in range(3)]   # shrunk to 512 px, colours kept
+    with Image.open(st.write_path_video(tmp_path / "big.gif", big)) as im:
+        assert im.size == (512, 150) and im.n_frames == 3
+        im.seek(2)
+        assert np.allclose(np.asarray(im.convert("RGB")), 80, atol=1)
     with pytest.raises(InputError):
         st.write_path_video(tmp_path / "none.gif", [])
     assert not (tmp_path / "none.gif").exists()

@@ -131,10 +131,13 @@ def read_image(path: str | os.PathLike, channels: int | None = None) -> np.ndarr
     return np.ascontiguousarray(img)
 
 
+PNG_LEVEL = 1   # zlib level of written PNGs: about 4x faster than libpng's default (6) for files ~7 % larger
+
+
 def write_image(path: str | os.PathLike, img: Any) -> Path:
     """Write ``img`` (``[H, W]`` or ``[H, W, C]``, numpy or torch) atomically.
 
-    PNG/JPEG are written as 8-bit after clipping to [0, 1]; EXR as float32.
+    PNG/JPEG are written as 8-bit after clipping to [0, 1] (PNG at zlib level :data:`PNG_LEVEL`); EXR as float32.
     """
     import OpenImageIO as oiio
 
@@ -158,6 +161,8 @@ def write_image(path: str | os.PathLike, img: Any) -> Path:
         if out is None:
             raise InputError(f"{path}: no image writer for '{ext}' ({oiio.geterror()})")
         spec = oiio.ImageSpec(w, h, c, fmt)
+        if ext == ".png":
+            spec.attribute("png:compressionLevel", PNG_LEVEL)
         if not out.open(str(tmp), spec):
             raise OSError(f"{path}: cannot write image ({out.geterror()})")
         out.write_image(np.ascontiguousarray(data))

@@ -5,9 +5,10 @@ One training instead of two: the identity encodings and the group classifier are
 attached while it runs (the trainer's ``attach``; the reconstruction layer knows nothing of groups):
 
 * with instance masks (``--masks DIR``, or ``<data_dir>/object_mask``): from step 0 (or ``--group-start``);
-* mask-free: once densification stops (at the latest at 3/4 of the run, or at ``--group-start``), the
-  scene as it is then is clustered (:mod:`ssgwarp.grouping.pseudomasks`) and its labels rendered into the
-  training views are the targets of the remaining steps.
+* mask-free: for the run's last :data:`GROUP_STEPS` steps, not before densification stops (which counts at
+  most :data:`LATEST_START` of the run), or from ``--group-start``: the scene as it is then is clustered
+  (:mod:`ssgwarp.grouping.pseudomasks`) and its labels rendered into the training views are the targets of the
+  remaining steps. The start follows the run's end when ``--iters auto`` moves it (:meth:`start_at`).
 
 At the end the run folder holds what ``ssgwarp group`` writes (``groups/groups.json``, the classifier,
 group maps, identities in ``scene.ply``), so ``stylize``, ``evaluate``, ``view`` take it unchanged;
@@ -43,7 +44,8 @@ from .train import GroupingHook
 
 Tensor = torch.Tensor
 TRAINED_WITH = "reconstruct --groups"
-LATEST_START = 0.75   # mask-free grouping starts when densification stops, at the latest at this share of the run
+LATEST_START = 0.75   # mask-free: densification's stop counts at most this share of the run
+GROUP_STEPS = 3000    # mask-free: grouping trains over the run's last steps, this many (3x the `group` stage's)
 
 
 def parse_groups(text) -> Optional[int]:
@@ -68,8 +70,8 @@ class GroupsDuringReconstruction:
         out: the run folder (its ``groups/`` is claimed with ``force``/``resume`` as ``ssgwarp group`` does).
         num_groups: K, or None (the masks' ids; mask-free: chosen per scene up to ``max_groups``).
         masks: a folder of instance masks, ``"auto"`` (``<data_dir>/object_mask`` when present) or None/"none".
-        start: the share of the run (0..1) after which grouping starts; None: 0 with masks, mask-free when
-            densification stops (at the latest at :data:`LATEST_START`).
+        start: the share of the run (0..1) after which grouping starts; None: 0 with masks, mask-free the last
+            :data:`GROUP_STEPS` steps, not before densification stops (:meth:`start_at`).
         config: :class:`GroupConfig` (``dim``, learning rates, the 3D regulariser; ``iters`` is unused).
         cluster: :class:`ClusterConfig` of the mask-free path.
     """
@@ -93,7 +95,7 @@ class GroupsDuringReconstruction:
         self.ignore_id, self.force, self.resume = ignore_id, force, resume
         self.dim = int(config.dim)
         self.identity_lr = config.identity_lr
-        self.start = 0
+        self.start, self.refine_stop, self.with_masks = 0, 0, False
         self.targets: Optional[Tensor] = None
         self.k: Optional[int] = None
         self.info: dict = {}
@@ -127,18 +129,27 @@ class GroupsDuringReconstruction:
             self.info = masks_info(mask_dir, ms, made)
             self.info["test_masks"] = True
             self.seconds += time.perf_counter() - t0
-        it = trainer.iters
+        self.refine_stop = int(trainer.recipe.refine_stop or 0)
+        self.with_masks = mask_dir is not None
+        self.start = self.start_at(trainer.iters)
+
+    def start_at(self, end: int) -> int:
+        """The step grouping starts at in a run that ends at step ``end`` (the trainer asks again when
+        ``--iters auto`` moves the end): ``--group-start``'s share of it; 0 with masks; mask-free the last
+        :data:`GROUP_STEPS` steps, not before densification stops (counted at most :data:`LATEST_START` of it).
+        At least one step trains the groups."""
+        end = int(end)
         if self.share is not None:
-            self.start = int(round(self.share * it))
-        elif mask_dir is not None:
-            self.start = 0
+            start = int(round(self.share * end))
+        elif self.with_masks:
+            start = 0
         else:
-            stop = trainer.recipe.refine_stop or 0
-            self.start = int(min(stop, round(LATEST_START * it)))
-        self.start = max(0, min(self.start, it - 1))   # (at least one step with the groups)
+            start = max(min(self.refine_stop, round(LATEST_START * end)), end - GROUP_STEPS)
+        return max(0, min(int(start), end - 1))
 
     def __call__(self, trainer) -> list:
         """The hook, from the scene being trained (mask-free: its clusters rendered into the training views)."""
+        self.start = int(trainer.step)   # (the step it really started at: --iters auto may have moved it)
         if self.targets is None:
             t0 = time.perf_counter()
             data = trainer.data
@@ -234,7 +245,7 @@ def add_arguments(parser) -> None:
                    help="with --groups, mask-free: the largest K considered (default 8)")
     g.add_argument("--group-start", type=float, default=None, metavar="F",
                    help="with --groups: start grouping after this share of the run (default: at once with masks; "
-                        "mask-free when densification stops, at the latest at 0.75)")
+                        f"mask-free the last {GROUP_STEPS} steps, not before densification stops)")
     g.add_argument("--group-dim", type=int, default=DEFAULT_DIM, metavar="E",
                    help="with --groups: identity length (default 16)")
 

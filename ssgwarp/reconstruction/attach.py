@@ -4,7 +4,8 @@
 The protocol of ``obj``:
 
 * ``prepare(trainer)``: called when the trainer is built, before anything is written: validate, set ``start``;
-* ``start``: the step before which ``obj(trainer) -> hooks`` is called (:func:`attach_hooks`); the scene then
+* ``start_at(end) -> step``: the step before which ``obj(trainer) -> hooks`` is called (:func:`attach_hooks`) in a
+  run that ends at ``end`` (asked each step until then: ``--iters auto`` may move the end); the scene then
   gets identity encodings of length ``obj.dim`` if it has none (learnt at ``obj.identity_lr`` when it has one,
   else at the recipe's), and the hooks' parameters an optimiser;
 * ``state() -> dict``: what a checkpoint holds of them; ``restore(state) -> hooks``: the hooks back from it

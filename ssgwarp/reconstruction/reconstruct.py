@@ -107,7 +107,7 @@ def _run_metrics(trainer: Trainer, data, scene, device: torch.device, group, see
     return metrics
 
 
-def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = 30000, images: str = "images",
+def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = "auto", images: str = "images",
                 sh_degree: int = 3, max_gaussians: int = 1_000_000, resume: bool = False, force: bool = False,
                 device=None, seed: int = 0, hooks: Sequence = (), identity_dim: Optional[int] = None,
                 split_every: int = 8, width: Optional[int] = None, max_images: Optional[int] = None,
@@ -130,8 +130,8 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = 300
     ``backdrop``: ``"auto"`` / ``"on"`` / ``"off"``, far points and a far shell for what lies beyond the
     initial points (:mod:`ssgwarp.reconstruction.backdrop`); the decision goes to ``metrics.json`` and
     ``data.json`` (``backdrop``).
-    ``iters``: steps, or ``"auto"``: until the training views' PSNR stops improving
-    (:mod:`ssgwarp.reconstruction.schedules`); ``metrics.json`` and ``data.json`` record the steps run and why
+    ``iters``: steps, or ``"auto"`` (the default): the 30,000-step schedule until the training views' PSNR stops
+    improving (:mod:`ssgwarp.reconstruction.schedules`); ``metrics.json`` and ``data.json`` record the steps run and why
     the run stopped (``schedule``).
     ``attach``: hooks made during the run (:class:`~ssgwarp.reconstruction.trainer.Trainer`'s ``attach``;
     ``reconstruct --groups``); its ``finish(out, metrics) -> dict`` runs once the run files are written
@@ -237,11 +237,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("data_dir", type=Path, help="the capture: COLMAP (sparse/0), LLFF (poses_bounds.npy) "
                         "or NeRF/instant-ngp (transforms*.json) folder")
     parser.add_argument("--out", type=Path, required=True, help="run folder to write")
-    parser.add_argument("--iters", type=_iters, default=30000, metavar="N|auto",
-                        help="training steps (default 30000, the 3DGS schedule: hours on a CPU; 7000 gives most of "
-                             "the quality, about 30-50 min for fern images_8 on 2 CPU cores; see --quick), or auto: "
-                             "the 30000-step schedule, ended once the PSNR of a few training views stops improving "
-                             "(docs/reconstruction.md)")
+    parser.add_argument("--iters", type=_iters, default="auto", metavar="N|auto",
+                        help="training steps, or auto (default): the 3DGS 30000-step schedule, ended once the PSNR "
+                             "of a few training views stops improving (docs/reconstruction.md; hours on a CPU: 7000 "
+                             "steps take about 30-50 min for fern images_8 on 2 CPU cores; see --quick)")
     parser.add_argument("--coarse-to-fine", type=_factor, default=1.0, metavar="F",
                         help="train on the images downsampled by F at first, raised to full resolution by the end "
                              "of densification (default 1: off; e.g. 4)")

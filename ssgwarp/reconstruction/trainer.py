@@ -276,7 +276,7 @@ class Trainer:
     def train_step(self) -> dict:
         """One optimisation step (``self.step`` counts completed steps)."""
         r = self.recipe
-        if self.attach is not None and not self._attached and self.step >= self.attach.start:
+        if self.attach is not None and not self._attached and self.step >= self.attach.start_at(self.schedules.end):
             attach_hooks(self)
         views = self.group.share(self.next_batch())  # this process's views of the step's batch
         self._set_lrs()
@@ -334,7 +334,8 @@ class Trainer:
         info.update(self.strategy.step(self.gaussians, self.step, self.gaussians.groups["means"]["lr"]))
         if self.check_every and self.step % self.check_every == 0:
             self.group.check_identical(self._synced_tensors(), self.step)
-        self.schedules.check(self.step, lambda ids: self.evaluate(ids)["psnr"], self._loop)
+        # (--iters auto: every process decides on rank 0's PSNR; theirs differ by float roundoff)
+        self.schedules.check(self.step, lambda ids: self.group.broadcast(self.evaluate(ids)["psnr"]), self._loop)
         return info
 
     def _observe(self, meta: dict) -> None:

@@ -56,6 +56,7 @@ class StylizeOptions:
 OUTPUTS = ("run.json", "keyviews", "stage2.ckpt", "scene.ply", "renders", "contact_sheet.png", "loss.png",
            "metrics.json", "path.gif", "densify.pt")
 PATH_FPS = 15   # frames per second of ``path.gif``
+PATH_VIDEO_SIDE = 512   # the longer side of ``path.gif``'s frames at most (a preview: the PNG frames are full size)
 
 
 def _say(msg: str, progress: bool) -> None:
@@ -389,16 +390,26 @@ def _renders(r: _Run, styled: GaussianScene) -> torch.Tensor:
     return renders
 
 
-def write_path_video(path: Path, frames: list, fps: int = PATH_FPS) -> Path:
-    """An animated GIF (looping, ``fps`` frames per second) of ``frames`` (``[H, W, 3]`` uint8 arrays), written
-    atomically with Pillow (matplotlib's own dependency: no video codec needed). Returns ``path``."""
+def write_path_video(path: Path, frames: list, fps: int = PATH_FPS, max_side: int = PATH_VIDEO_SIDE) -> Path:
+    """An animated GIF (looping, ``fps`` frames per second) of ``frames`` (``[H, W, 3]`` uint8 arrays), shrunk
+    to at most ``max_side`` pixels on the longer side, written atomically with Pillow (matplotlib's own
+    dependency: no video codec needed). Returns ``path``."""
     from PIL import Image
 
     from ..core.fileio import atomic_path
 
     if not frames:
         raise InputError("path video: no frames")
-    images = [Image.fromarray(f).convert("P", palette=Image.Palette.ADAPTIVE, colors=255) for f in frames]
+    h, w = frames[0].shape[:2]
+    scale = min(1.0, max_side / max(h, w))
+    size = (max(1, round(w * scale)), max(1, round(h * scale)))
+
+    def frame(f):
+        im = Image.fromarray(f)
+        return (im if scale == 1.0 else im.resize(size, Image.Resampling.BOX)).convert(
+            "P", palette=Image.Palette.ADAPTIVE, colors=255)
+
+    images = [frame(f) for f in frames]
     with atomic_path(path) as tmp:
         images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=round(1000 / fps),
                        loop=0, disposal=1)
