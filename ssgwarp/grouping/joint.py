@@ -188,7 +188,7 @@ class GroupsDuringReconstruction:
             raise InputError(f"{out}: the reconstruction ended before grouping started (step {self.start} of "
                              f"{metrics.get('iters')}); lower --group-start")
         run = Run.open(out)
-        scene = read_ply(out / "scene.ply")
+        scene = read_ply(out / "scene.ply").to(self.device or "cpu")   # (group maps: rendered where it trained)
         if scene.identities is None or scene.identities.shape[1] != self.dim:
             raise InputError("the reconstruction wrote no identity encodings of the expected length")
         if self.claimed is not None:
