@@ -167,14 +167,18 @@ def test_interrupted_after_grouping_started_resumes_to_the_same_run(tmp_path, ca
 
 
 def test_mask_free_grouping_takes_the_runs_last_steps_and_follows_an_auto_end():
-    from ssgwarp.grouping.joint import GROUP_STEPS, GroupsDuringReconstruction
+    from ssgwarp.grouping.joint import GroupsDuringReconstruction
+    from ssgwarp.grouping.model import GroupConfig
 
     g = GroupsDuringReconstruction("unused")
     g.refine_stop = 3400                        # densification stopped at 3,400 (fern images_4's sparse rule)
-    assert g.start_at(30000) == 30000 - GROUP_STEPS                      # a long run: its last steps only
-    assert g.start_at(7000) == 4000 and GROUP_STEPS == 3000
-    assert g.start_at(5000) == 3400                                      # never before densification stops
-    assert g.start_at(4000) == 3000                                      # (which counts at most 3/4 of the run)
+    assert GroupConfig().iters == 1000          # the `group` stage's steps: the last 1,000 of the run
+    assert g.start_at(30000) == 29000 and g.start_at(17880) == 16880 and g.start_at(7000) == 6000
+    g3 = GroupsDuringReconstruction("unused", config=GroupConfig(iters=3000))
+    g3.refine_stop = 3400
+    assert g3.start_at(7000) == 4000
+    assert g3.start_at(5000) == 3400                                     # never before densification stops
+    assert g3.start_at(4000) == 3000                                     # (which counts at most 3/4 of the run)
     g.refine_stop = 10**9                                                # refining until the end: 3/4 of the run
     assert g.start_at(2000) == 1500
     g.refine_stop, g.share = 3400, 0.5                                   # --group-start: a share of the run
@@ -190,7 +194,7 @@ def test_with_iters_auto_mask_free_grouping_starts_when_the_stop_rule_moves_the_
     from ssgwarp.reconstruction.recipe import Recipe
 
     # checks every 10 steps from 20 (densification's end), a plateau at the third check (40), a 10-step tail:
-    # the planned 30,000-step run would group from step 27,000, which it never reaches; it groups from 40 to 50
+    # the planned 30,000-step run would group from step 29,000, which it never reaches; it groups from 40 to 50
     recipe = Recipe(refine_start=10, refine_stop=20, refine_every=10, reset_every=0, sh_interval=5, stop_every=10,
                     stop_patience=2, stop_tol=100.0)
     m = reconstruct_with_groups(capture[0], tmp_path / "run", iters="auto", recipe=recipe, sh_degree=0,

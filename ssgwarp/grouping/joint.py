@@ -5,8 +5,8 @@ One training instead of two: the identity encodings and the group classifier are
 attached while it runs (the trainer's ``attach``; the reconstruction layer knows nothing of groups):
 
 * with instance masks (``--masks DIR``, or ``<data_dir>/object_mask``): from step 0 (or ``--group-start``);
-* mask-free: for the run's last :data:`GROUP_STEPS` steps, not before densification stops (which counts at
-  most :data:`LATEST_START` of the run), or from ``--group-start``: the scene as it is then is clustered
+* mask-free: for the run's last ``GroupConfig.iters`` steps (the ``group`` stage's 1,000), not before
+  densification stops (which counts at most :data:`LATEST_START` of the run), or from ``--group-start``: the scene as it is then is clustered
   (:mod:`ssgwarp.grouping.pseudomasks`) and its labels rendered into the training views are the targets of the
   remaining steps. The start follows the run's end when ``--iters auto`` moves it (:meth:`start_at`).
 
@@ -45,7 +45,6 @@ from .train import GroupingHook
 Tensor = torch.Tensor
 TRAINED_WITH = "reconstruct --groups"
 LATEST_START = 0.75   # mask-free: densification's stop counts at most this share of the run
-GROUP_STEPS = 3000    # mask-free: grouping trains over the run's last steps, this many (3x the `group` stage's)
 
 
 def parse_groups(text) -> Optional[int]:
@@ -71,8 +70,9 @@ class GroupsDuringReconstruction:
         num_groups: K, or None (the masks' ids; mask-free: chosen per scene up to ``max_groups``).
         masks: a folder of instance masks, ``"auto"`` (``<data_dir>/object_mask`` when present) or None/"none".
         start: the share of the run (0..1) after which grouping starts; None: 0 with masks, mask-free the last
-            :data:`GROUP_STEPS` steps, not before densification stops (:meth:`start_at`).
-        config: :class:`GroupConfig` (``dim``, learning rates, the 3D regulariser; ``iters`` is unused).
+            ``config.iters`` steps, not before densification stops (:meth:`start_at`).
+        config: :class:`GroupConfig` (``dim``, learning rates, the 3D regulariser; ``iters``: the steps of
+            mask-free grouping).
         cluster: :class:`ClusterConfig` of the mask-free path.
     """
 
@@ -136,7 +136,7 @@ class GroupsDuringReconstruction:
     def start_at(self, end: int) -> int:
         """The step grouping starts at in a run that ends at step ``end`` (the trainer asks again when
         ``--iters auto`` moves the end): ``--group-start``'s share of it; 0 with masks; mask-free the last
-        :data:`GROUP_STEPS` steps, not before densification stops (counted at most :data:`LATEST_START` of it).
+        ``config.iters`` steps, not before densification stops (counted at most :data:`LATEST_START` of it).
         At least one step trains the groups."""
         end = int(end)
         if self.share is not None:
@@ -144,7 +144,7 @@ class GroupsDuringReconstruction:
         elif self.with_masks:
             start = 0
         else:
-            start = max(min(self.refine_stop, round(LATEST_START * end)), end - GROUP_STEPS)
+            start = max(min(self.refine_stop, round(LATEST_START * end)), end - int(self.config.iters))
         return max(0, min(int(start), end - 1))
 
     def __call__(self, trainer) -> list:
@@ -245,7 +245,7 @@ def add_arguments(parser) -> None:
                    help="with --groups, mask-free: the largest K considered (default 8)")
     g.add_argument("--group-start", type=float, default=None, metavar="F",
                    help="with --groups: start grouping after this share of the run (default: at once with masks; "
-                        f"mask-free the last {GROUP_STEPS} steps, not before densification stops)")
+                        f"mask-free the last {GroupConfig.iters} steps, not before densification stops)")
     g.add_argument("--group-dim", type=int, default=DEFAULT_DIM, metavar="E",
                    help="with --groups: identity length (default 16)")
 
