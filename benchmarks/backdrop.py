@@ -6,7 +6,8 @@ Each ``--runs`` entry is ``SCENE:BACKDROP:ITERS[:WIDTH[:INIT]]``: SCENE ``living
 background), ``insideout`` (the procedural
 inside-out scene, written once per width into ``--work``) or ``insideout-true`` (the same capture, initial
 points = the true surface: the ground truth's Gaussian centres), or a capture folder; BACKDROP ``auto`` / ``on`` /
-``off``; ITERS a step count or ``auto`` (the stop rule; the row gives the steps run); WIDTH ``-`` or left out: the capture's own; INIT the initial points (``load_dataset``'s ``init``:
+``off``; ITERS a step count or ``auto`` (the stop rule; the row gives the steps run); WIDTH ``-`` or left
+out: the capture's own; INIT the initial points (``load_dataset``'s ``init``:
 ``auto`` (default: the capture's points, else triangulated), ``triangulate`` (even where the capture has
 COLMAP points), ``random``, ``capture`` (the capture's points, else random: as before triangulation)).
 Rows go to stdout (markdown) and ``--out`` (JSON lines).

@@ -6,9 +6,10 @@ attached while it runs (the trainer's ``attach``; the reconstruction layer knows
 
 * with instance masks (``--masks DIR``, or ``<data_dir>/object_mask``): from step 0 (or ``--group-start``);
 * mask-free: for the run's last ``GroupConfig.iters`` steps (the ``group`` stage's 1,000), not before
-  densification stops (which counts at most :data:`LATEST_START` of the run), or from ``--group-start``: the scene as it is then is clustered
-  (:mod:`ssgwarp.grouping.pseudomasks`) and its labels rendered into the training views are the targets of the
-  remaining steps. The start follows the run's end when ``--iters auto`` moves it (:meth:`start_at`).
+  densification stops (which counts at most :data:`LATEST_START` of the run), or from ``--group-start``:
+  the scene as it is then is clustered (:mod:`ssgwarp.grouping.pseudomasks`) and its labels rendered into
+  the training views are the targets of the remaining steps. The start follows the run's end when
+  ``--iters auto`` moves it (:meth:`GroupsDuringReconstruction.start_at`).
 
 At the end the run folder holds what ``ssgwarp group`` writes (``groups/groups.json``, the classifier,
 group maps, identities in ``scene.ply``), so ``stylize``, ``evaluate``, ``view`` take it unchanged;

@@ -3,7 +3,8 @@
 
 The protocol of ``obj``:
 
-* ``prepare(trainer)``: called when the trainer is built, before anything is written: validate, set ``start``;
+* ``prepare(trainer)``: called when the trainer is built, before anything is written: validate, read what
+  ``start_at`` needs;
 * ``start_at(end) -> step``: the step before which ``obj(trainer) -> hooks`` is called (:func:`attach_hooks`) in a
   run that ends at ``end`` (asked each step until then: ``--iters auto`` may move the end); the scene then
   gets identity encodings of length ``obj.dim`` if it has none (learnt at ``obj.identity_lr`` when it has one,

@@ -276,7 +276,8 @@ class Trainer:
     def train_step(self) -> dict:
         """One optimisation step (``self.step`` counts completed steps)."""
         r = self.recipe
-        if self.attach is not None and not self._attached and self.step >= self.attach.start_at(self.schedules.end):
+        attach = self.attach
+        if attach is not None and not self._attached and self.step >= attach.start_at(self.schedules.end):
             attach_hooks(self)
         views = self.group.share(self.next_batch())  # this process's views of the step's batch
         self._set_lrs()
