@@ -275,7 +275,9 @@ def backward_views(render: Callable[[Cameras], torch.Tensor], cameras: Cameras,
         grads.append(grad if weight == 1.0 else grad * weight)
         values.append(value.detach())
     del images
-    render(cameras).backward(torch.stack(grads))
+    # (= .backward(gradient=stacked grads) to the bit, without the shape check that imports torch.fx's symbolic
+    # shapes and sympy, ~0.3 s, the first time a gradient is handed in)
+    (render(cameras) * torch.stack(grads)).sum().backward()
     return values
 
 
