@@ -275,9 +275,7 @@ def backward_views(render: Callable[[Cameras], torch.Tensor], cameras: Cameras,
         grads.append(grad if weight == 1.0 else grad * weight)
         values.append(value.detach())
     del images
-    # (= .backward(gradient=stacked grads) to the bit, without the shape check that imports torch.fx's symbolic
-    # shapes and sympy, ~0.3 s, the first time a gradient is handed in)
-    (render(cameras) * torch.stack(grads)).sum().backward()
+    (render(cameras) * torch.stack(grads)).sum().backward()   # (= .backward(grads) to the bit, no sympy import)
     return values
 
 
