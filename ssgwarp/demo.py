@@ -403,8 +403,8 @@ def run_demo(out: str | Path = "ssgwarp-demo", size="default", *, device=None, s
 
     Args:
         out: output folder (created; never overwritten without ``force``).
-        size: ``"small"`` (8 views 48x36, seconds), ``"default"`` (24 views 96x72, a few
-            minutes on 2 CPU cores) or a :class:`ssgwarp.procedural.DemoSize`.
+        size: ``"small"`` (8 views 48x36, seconds), ``"default"`` (24 views 80x60, about half a
+            minute on 2 idle CPU cores) or a :class:`ssgwarp.procedural.DemoSize`.
         device: torch device or ``"auto"``/None (the GPU when there is one).
         seed: seeds every stage; a seed gives the same run.
         force: overwrite an existing demo in ``out``. resume: continue one (after Ctrl-C).
@@ -564,7 +564,7 @@ def claims_hold(stated: dict, measured: dict) -> list[str]:
 def add_arguments(parser) -> None:
     parser.add_argument("--out", type=Path, default=Path("ssgwarp-demo"), help="output folder (default ssgwarp-demo)")
     parser.add_argument("--size", choices=("small", "default"), default="default",
-                        help="default: 24 views 96x72, a few minutes on 2 CPU cores; small: 8 views 48x36, "
+                        help="default: 24 views 80x60, about half a minute on 2 idle CPU cores; small: 8 views 48x36, "
                              "well under a minute (what the tests run)")
     parser.add_argument("--force", action="store_true", help="overwrite an existing demo in --out")
     parser.add_argument("--resume", action="store_true", help="continue an interrupted demo in --out")
