@@ -32,8 +32,8 @@ SHEET = ROOT / "docs" / "images" / "demo_contact_sheet.png"
 CLAIM_FILES = (ROOT / "README.md", ROOT / "docs" / "demo.md")
 TABLE_FILE = ROOT / "docs" / "demo.md"
 END = "<!-- /figures -->"
-# the default demo on an idle 2-core CPU machine (the size of 2026-11-28: not measured idle yet)
-IDLE_RANGE = "about 35 s (measured 2026-11-28: 32 s by its own clock, 36 s with the start of Python)"
+# the default demo on an idle 2-core CPU machine (three runs of `/usr/bin/time ssgwarp demo`, load average < 0.5)
+IDLE_RANGE = "about 28 s (measured 2026-11-28: 26-29 s with the start of Python, 24-26 s by its own clock)"
 
 
 def span(text: str, name: str, body: str, where: Path) -> str:

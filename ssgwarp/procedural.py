@@ -88,7 +88,7 @@ SIZES: dict[str, DemoSize] = {
                       max_gaussians=2500, group_iters=40, keyviews=2, max_side=48, stylize_iters=20,
                       stylize_lr=0.05, path_frames=0, eval_pairs=4),
     "default": DemoSize(views=24, width=80, height=60, density=1.0, reconstruct_iters=700, init_points=2000,
-                        max_gaussians=5000, group_iters=150, keyviews=4, max_side=80, stylize_iters=60,
+                        max_gaussians=5000, group_iters=150, keyviews=4, max_side=80, stylize_iters=40,
                         stylize_lr=0.05, path_frames=0, eval_pairs=4, group_dim=8),
 }
 

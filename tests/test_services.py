@@ -227,3 +227,51 @@ def test_png_writes_are_lossless_at_the_fast_zlib_level(tmp_path):
     idat = data.index(b"IDAT") + 4
     # the zlib stream's header says the level class: FLEVEL 0 ("fastest") for PNG_LEVEL 1 (libpng's default 6: 2)
     assert PNG_LEVEL == 1 and data[idat] & 0x0F == 8 and data[idat + 1] >> 6 == 0
+
+
+def test_adam_takes_torchs_steps_to_the_bit_without_importing_dynamo():
+    """core.optim.Adam is torch's Adam whose methods skip the dynamo guard (which imports torch._dynamo and
+    sympy, ~1.5 s on 2 cores): the same steps, state dicts and step hooks, and no torch._dynamo afterwards."""
+    import subprocess
+    import sys
+
+    code = """
+import sys, torch
+from ssgwarp.core.optim import Adam, adam
+from ssgwarp.reconstruction.step import adam_step
+torch.manual_seed(0)
+a = [torch.nn.Parameter(torch.randn(40, 3)), torch.nn.Parameter(torch.randn(40))]
+groups = lambda ps: [{"params": [ps[0]], "lr": 0.1}, {"params": [ps[1]], "lr": 0.01}]
+mine = adam(groups(a), eps=1e-15, betas=(0.9, 0.99))
+assert type(mine) is Adam and mine.defaults["fused"] is True
+calls = []
+hook = mine.register_step_post_hook(lambda *args: calls.append(1))
+saved = []
+for i in range(4):
+    for p in a:
+        p.grad = torch.randn_like(p)
+    saved.append([p.grad.clone() for p in a])
+    if i < 2:
+        mine.step()
+    else:   # (the project's step without torch's: once the hook is gone)
+        hook.remove()
+        adam_step(mine)
+    mine.zero_grad()
+assert calls == [1, 1] and all(p.grad is None for p in a)
+state = mine.state_dict()
+mine.load_state_dict(state)
+assert "torch._dynamo" not in sys.modules and "sympy" not in sys.modules, "dynamo imported"
+torch.manual_seed(0)
+b = [torch.nn.Parameter(torch.randn(40, 3)), torch.nn.Parameter(torch.randn(40))]
+ref = torch.optim.Adam(groups(b), eps=1e-15, betas=(0.9, 0.99), fused=True)
+for gs in saved:
+    for p, g in zip(b, gs):
+        p.grad = g.clone()
+    ref.step()
+for p, q in zip(a, b):
+    assert torch.equal(p, q)
+ref.load_state_dict(state)                                          # the state dicts are torch's
+print("ok")
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]

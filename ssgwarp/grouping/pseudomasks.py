@@ -118,7 +118,9 @@ def gaussian_sums(scene: GaussianScene, camera: Cameras, signal: Tensor, **raste
     x = torch.zeros(len(geom), signal.shape[-1], dtype=geom.dtype, device=geom.device, requires_grad=True)
     with torch.enable_grad():
         img, _, _ = geom.render(camera.to(geom.device), rgb=False, extra=x, **raster_kwargs)
-        (w,) = torch.autograd.grad(img[0], x, grad_outputs=signal.to(img.device, img.dtype))
+        # (the gradient of the sum of image x signal: exactly grad_outputs=signal, without the shape check that
+        # imports torch.fx's symbolic shapes and sympy, ~0.3 s, the first time a gradient is handed in)
+        (w,) = torch.autograd.grad((img[0] * signal.to(img.device, img.dtype)).sum(), x)
     return w.detach()
 
 

@@ -8,6 +8,8 @@ from typing import Optional
 
 import torch
 
+from ..core.optim import Adam
+
 
 class ViewCache:
     """``cache(views, channels) -> (cameras, ground truth [B, H, W, 3], backgrounds [B, channels])`` of
@@ -108,7 +110,7 @@ def _fused_groups(opt) -> Optional[list]:
     None where :func:`adam_step` leaves the step to torch."""
     from torch.optim import optimizer as torch_optimizer
 
-    if (type(opt) is not torch.optim.Adam or getattr(opt, "grad_scale", None) is not None
+    if (type(opt) not in (torch.optim.Adam, Adam) or getattr(opt, "grad_scale", None) is not None
             or opt._optimizer_step_pre_hooks or opt._optimizer_step_post_hooks
             or torch_optimizer._global_optimizer_pre_hooks or torch_optimizer._global_optimizer_post_hooks):
         return None

@@ -275,7 +275,7 @@ def backward_views(render: Callable[[Cameras], torch.Tensor], cameras: Cameras,
         grads.append(grad if weight == 1.0 else grad * weight)
         values.append(value.detach())
     del images
-    render(cameras).backward(torch.stack(grads))
+    (render(cameras) * torch.stack(grads)).sum().backward()   # (= .backward(grads) to the bit, no sympy import)
     return values
 
 
