@@ -31,7 +31,6 @@ from typing import Optional
 
 import torch
 
-from ..capture.ply import read_ply
 from ..core.fileio import read_json, write_json
 from ..errors import InputError
 from ..reconstruction import reconstruct as rec
@@ -181,15 +180,14 @@ class GroupsDuringReconstruction:
         self.hook.history = list(state["history"])
         return [self.hook]
 
-    def finish(self, out: Path, metrics: dict) -> dict:
-        """Write the groups of the finished run (what ``ssgwarp group`` writes); returns ``{"groups": summary}``
-        for ``metrics.json``."""
+    def finish(self, out: Path, metrics: dict, scene) -> dict:
+        """Write the groups of the finished run's ``scene`` (what ``ssgwarp group`` writes; its group maps
+        rendered on the scene's device); returns ``{"groups": summary}`` for ``metrics.json``."""
         t0 = time.perf_counter()
         if self.hook is None:
             raise InputError(f"{out}: the reconstruction ended before grouping started (step {self.start} of "
                              f"{metrics.get('iters')}); lower --group-start")
         run = Run.open(out)
-        scene = read_ply(out / "scene.ply").to(self.device or "cpu")   # (group maps: rendered where it trained)
         if scene.identities is None or scene.identities.shape[1] != self.dim:
             raise InputError("the reconstruction wrote no identity encodings of the expected length")
         if self.claimed is not None:

@@ -11,8 +11,9 @@ The protocol of ``obj``:
   else at the recipe's), and the hooks' parameters an optimiser;
 * ``state() -> dict``: what a checkpoint holds of them; ``restore(state) -> hooks``: the hooks back from it
   (:func:`restore_attached`; a checkpoint with attached hooks resumes only with an ``attach``);
-* ``finish(out, metrics) -> dict`` (for :func:`ssgwarp.reconstruction.reconstruct.reconstruct`): called once
-  the run files are written; what it returns joins ``metrics.json``.
+* ``finish(out, metrics, scene) -> dict`` (for :func:`ssgwarp.reconstruction.reconstruct.reconstruct`): called
+  once the run files are written, with the final scene as written to ``scene.ply`` (on the training device);
+  what it returns joins ``metrics.json``.
 """
 from __future__ import annotations
 

@@ -134,7 +134,7 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = "au
     improving (:mod:`ssgwarp.reconstruction.schedules`); ``metrics.json`` and ``data.json`` record the steps run and why
     the run stopped (``schedule``).
     ``attach``: hooks made during the run (:class:`~ssgwarp.reconstruction.trainer.Trainer`'s ``attach``;
-    ``reconstruct --groups``); its ``finish(out, metrics) -> dict`` runs once the run files are written
+    ``reconstruct --groups``); its ``finish(out, metrics, scene) -> dict`` runs once the run files are written
     and what it returns joins ``metrics.json``.
     Returns the metrics dict (on the other processes: ``{}``).
     """
@@ -190,7 +190,7 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = "au
     write_json(out / "data.json", data_json(data, seed=seed, backdrop=metrics["backdrop"],
                                             schedule={k: v for k, v in metrics["schedule"].items() if k != "stop_rule"}))
     if attach is not None:
-        metrics.update(attach.finish(out, metrics) or {})
+        metrics.update(attach.finish(out, metrics, scene) or {})
     write_json(out / "metrics.json", metrics)
     log.info("wrote %s: %d Gaussians, held-out PSNR %s", out, len(scene),
              "n/a" if metrics["psnr"] is None else f"{metrics['psnr']:.2f} dB")
