@@ -22,7 +22,6 @@ from .pseudomasks import IGNORE
 Tensor = torch.Tensor
 
 
-
 def resolve_masks(masks, candidates: Sequence[Path]) -> Optional[Path]:
     """The mask folder a ``--masks`` value names: None/"none": mask-free (None); "auto": the first of the
     ``candidates`` folders that exists (none: mask-free); else the folder given."""
@@ -31,6 +30,7 @@ def resolve_masks(masks, candidates: Sequence[Path]) -> Optional[Path]:
     if str(masks).lower() == "auto":
         return next((c for c in candidates if c.is_dir()), None)
     return Path(masks)
+
 
 @dataclass
 class MaskSet:

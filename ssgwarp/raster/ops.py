@@ -274,8 +274,8 @@ def _project_cfg(*args) -> dict:
     """What :class:`_Project` needs besides tensors: ``params`` (:class:`ProjectionParams`),
     ``variant`` (the kernel's build: covariance form, fast maths), ``tile_size``,
     ``sh_degree`` and ``activations`` (log-scales and logits in: the kernels apply ``exp`` and the
-    sigmoid, ``kernels/projection.py: activated_func``); arguments as :func:`_build_project_cfg`'s. The same arguments give the same
-    dict (cached; read only)."""
+    sigmoid, ``kernels/projection.py: activation_funcs``); arguments as :func:`_build_project_cfg`'s. The
+    same arguments give the same dict (cached; read only)."""
     try:
         return _cached_project_cfg(*args)
     except TypeError:  # (an unhashable argument)

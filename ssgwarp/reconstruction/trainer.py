@@ -412,9 +412,9 @@ class Trainer:
         raise Diverged(diverged_message(self.step + 1 if step is None else step, where, why))
 
     def train(self, until: Optional[int] = None) -> GaussianScene:
-        """Train up to step ``until`` (default: the end, :attr:`end`) under :mod:`ssgwarp.services.loop`'s policy:
-        checkpoints every ``checkpoint_every`` steps, at the end and on Ctrl-C (the step in flight
-        finishes first); a NaN loss stops with the last good checkpoint kept."""
+        """Train up to step ``until`` (default: the run's end, ``iters`` or where ``--iters auto`` stops)
+        under :mod:`ssgwarp.services.loop`'s policy: checkpoints every ``checkpoint_every`` steps, at the end
+        and on Ctrl-C (the step in flight finishes first); a NaN loss stops with the last good checkpoint kept."""
         cap = self.iters if until is None else min(int(until), self.iters)
         until = lambda: min(cap, self.schedules.end)  # noqa: E731  (--iters auto: the stop rule may end it sooner)
         save = self.save_checkpoint if self.checkpoint_path is not None else None
