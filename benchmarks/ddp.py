@@ -12,11 +12,11 @@ seed and number of images (``--iters`` one-view steps; a batch of B trains ``--i
 Held-out PSNR is measured every ``--eval-every`` images (evaluation time is not counted). The
 target is the reference's final PSNR minus 0.1 dB; for each configuration the table gives the
 training time at which its PSNR first reached it, the time from which it stayed there to the end of the
-run (curves dip after every opacity reset), the speed-up over the reference at the latter
-(issue 18's target: >= 1.7x on 2 GPUs), final PSNR, Gaussians and peak memory per GPU.
+run (curves dip after every opacity reset), the speed-up over the reference at the latter,
+final PSNR, Gaussians and peak memory per GPU.
 Prints a markdown table and writes the rows and PSNR curves to ``--out``.
 
-    # the GPU run (2 GPUs; about 4 minutes on 2 H200s at 7k; data from the lead's machine):
+    # the GPU run (2 GPUs; about 2 minutes on 2 H200s at 7k, fresh kernel cache included):
     python benchmarks/ddp.py --data /root/data/llff_fern --images images_4 --iters 7000 --gpus 2 \
         --out ddp_fern4.json
     # the largest capture (COLMAP, 800x600, 67 training views) at 30k images, the 1-GPU runs of both
