@@ -6,8 +6,8 @@ Stage 1 weights needed: Stage 2 matches the style image) and ``ssgwarp evaluate`
 protocol: 30 novel views on a smooth path through the training cameras), and prints one row per
 style: colour and texture distances (sliced Wasserstein in Lab / of a derivative-of-Gaussian
 filter bank, ``ssgwarp.evaluation.metrics.StyleDistance``) of the original and the stylized renders, the Gram
-loss of the extractor Stage 2 used, and short/long-range consistency RMSE as ratios to the
-unstylized scene's. The last rows check the issue's targets (both distances >= 30 % lower on
+loss of the extractor Stage 2 used, short/long-range consistency RMSE as ratios to the
+unstylized scene's, and floaters over the regions the unstylized scene leaves empty (the worst style). The last rows check the issue's targets (both distances >= 30 % lower on
 average; consistency at most 1.5x the unstylized scene's). ``--ablation`` runs the Stage 2
 ablations (colour transfer, content/TV weights, SH bands, colour gain cap) on a few styles instead.
 
@@ -112,7 +112,8 @@ def run_style(run: Path, style: Path, out: Path, cfg, device, extractor: str, ev
            "gram_after": m["gram_style_loss"], "content": sc.get("content_loss", m["content_loss"]),
            "short": rep["short"]["rmse"], "long": rep["long"]["rmse"],
            "stylize_seconds": seconds, "stage2_seconds": m["seconds"]["stage2"], "extractor": m["extractor"],
-           "config": m["config"], "views_scored": ev["views_scored"], "device": m["device"]}
+           "config": m["config"], "views_scored": ev["views_scored"], "device": m["device"],
+           "empty_spread": sc.get("empty_spread"), "empty_spread_original": sc.get("empty_spread_original")}
     write_json(res_file, row)
     return row
 
@@ -164,6 +165,11 @@ def table(rows: list[dict], src: dict, title: str) -> str:
                   f"Styles not closer on both terms: {', '.join(worse) if worse else 'none'}.",
                   f"Worst consistency ratio: short {ms:.2f}x, long {ml:.2f}x "
                   f"(target <= 1.5x: {'met' if ms <= 1.5 and ml <= 1.5 else 'NOT met'})."]
+        empty = [r for r in rows if r.get("empty_spread") is not None]
+        if empty:
+            w = max(empty, key=lambda r: r["empty_spread"])
+            lines.append(f"Floaters (RMS colour spread over the pixels the unstylized scene leaves empty): worst "
+                         f"{w['empty_spread']:.4f} ({w['style']}), unstylized {w['empty_spread_original']:.4f}.")
     return "\n".join(lines) + "\n"
 
 

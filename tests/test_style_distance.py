@@ -6,8 +6,8 @@ import math
 import pytest
 import torch
 
-from ssgwarp.evaluation.metrics import (StyleDistance, filter_responses, projections, sliced_wasserstein, texture_levels,
-                             wasserstein_1d_sorted)
+from ssgwarp.evaluation.metrics import (StyleDistance, empty_spread, filter_responses, projections, sliced_wasserstein,
+                             style_scores, texture_levels, wasserstein_1d_sorted)
 
 
 def _image(seed: int, h: int = 48, w: int = 64) -> torch.Tensor:
@@ -115,3 +115,26 @@ def test_style_distance_compares_the_scene_pixels_only_when_alphas_are_given():
     assert float(masked["texture"][0]) < float(full["texture"][0])
     none = dist(img[None], torch.zeros(1, *img.shape[:2]))
     assert math.isnan(float(none["color"][0])) and dist.mean(img[None], torch.zeros(1, *img.shape[:2]))["color"] is None
+
+
+def test_empty_spread_is_zero_on_a_flat_background_and_grows_with_blobs():
+    img = torch.full((2, 20, 30, 3), 0.9)                   # a white-ish background ...
+    img[:, 5:15, 5:15] = torch.tensor([0.2, 0.4, 0.1])      # ... and an object
+    alpha0 = torch.zeros(2, 20, 30)
+    alpha0[:, 5:15, 5:15] = 1.0
+    empty = alpha0 < 0.05
+    assert empty_spread(img, empty) == pytest.approx(0.0, abs=1e-7)
+    blob = img.clone()
+    blob[0, 0:4, 20:24] = torch.tensor([1.0, 0.0, 0.0])     # a red floater over the background: 16 of 1,000 empty px
+    one = empty_spread(blob, empty)
+    expected = math.sqrt(16 / (2 * 500) * (0.1 ** 2 + 0.9 ** 2 + 0.9 ** 2))
+    assert one == pytest.approx(expected, rel=1e-5)
+    blob[1, 0:4, 20:24] = torch.tensor([1.0, 0.0, 0.0])     # twice the floaters: more spread
+    assert empty_spread(blob, empty) > one
+    assert empty_spread(img, torch.zeros_like(empty)) is None            # a capture that fills the frame
+    # style_scores reports it with the original alphas (a stylize output's source), not without
+    style = torch.rand(16, 16, 3, generator=torch.Generator().manual_seed(0))
+    sc = style_scores(None, blob, style, img, alphas=alpha0, original_alphas=alpha0)
+    assert sc["empty_share"] == pytest.approx(500 / 600) and sc["empty_spread_original"] == pytest.approx(0.0, abs=1e-7)
+    assert sc["empty_spread"] > 0.05
+    assert "empty_spread" not in style_scores(None, blob, style, img, alphas=alpha0)

@@ -333,6 +333,8 @@ def test_cli_stylize_end_to_end_without_stage1_weights(tmp_path, monkeypatch, ca
     assert m["gram_style_loss"] > 0 and m["content_loss"] > 0
     for k in ("color", "texture"):
         assert m["style_distance"][k] > 0 and m["style_distance_original"][k] > 0
+    er = m["empty_regions"]          # floaters over the pixels the source leaves empty (this scene has some)
+    assert 0 < er["share"] < 1 and er["spread_original"] >= 0 and abs(er["spread"] - er["spread_original"]) < 0.05
     ct = m["color_transfer"]
     assert ct["setting"] == "both" and ct["against"] == "the style image's regions"
     assert ct["pre"]["per_group"] is True and ct["post"]["per_group"] is True

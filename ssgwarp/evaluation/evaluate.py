@@ -511,7 +511,9 @@ def style_line(sc: dict) -> str:
     parts = [f"Gram style loss {g('gram_style_loss')}" if "gram_style_loss" in sc else "",
              f"content {g('content_loss')}" if "content_loss" in sc else "",
              f"style distance colour {g('style_distance_color')}, texture {g('style_distance_texture')}"
-             if "style_distance_color" in sc else ""]
+             if "style_distance_color" in sc else "",
+             f"empty regions {g('empty_spread')} (unstylized {g('empty_spread_original')})"
+             if "empty_spread" in sc else ""]
     ext = f", {sc['extractor']}" if sc.get("extractor") else ""
     return f"on {sc.get('views', 'the scored views')}{ext}: " + "; ".join(p for p in parts if p)
 

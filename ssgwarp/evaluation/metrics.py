@@ -381,6 +381,20 @@ def reconstruction_quality(renders: Tensor, targets: Tensor) -> dict[str, list[f
     return {"psnr": ps, "ssim": ss}
 
 
+EMPTY_ALPHA = 0.05   # a pixel the unstylized scene leaves (nearly) empty: its render alpha below this
+
+
+def empty_spread(images: Tensor, empty: Tensor, min_pixels: int = 64) -> Optional[float]:
+    """Floaters, as a number: the RMS distance of ``images [V, H, W, 3]``'s colours from their median colour
+    over the pixels ``empty [V, H, W]`` (bool; those the unstylized scene leaves empty). 0 when the empty
+    regions stay one flat colour (the background); coloured blobs over them raise it. None with fewer than
+    ``min_pixels`` empty pixels (a capture that fills the frame)."""
+    px = images.float()[empty.to(images.device)]
+    if px.shape[0] < min_pixels:
+        return None
+    med = px.median(dim=0).values
+    return float(((px - med) ** 2).sum(-1).mean().sqrt())
+
 
 @torch.no_grad()
 def style_scores(extractor, images: Tensor, style: Optional[Tensor], originals: Optional[Tensor] = None, *,
@@ -394,7 +408,11 @@ def style_scores(extractor, images: Tensor, style: Optional[Tensor], originals: 
     None: no Gram / content numbers. Returns the means over the views of ``gram_style_loss``
     (Gram matrices normalised by ``h*w``, :func:`gram_style_loss`), ``content_loss`` (absolute
     feature MSE, :func:`content_loss`), ``style_distance_color`` / ``style_distance_texture``
-    (:class:`StyleDistance`) and, with ``originals``, the same of the originals (``..._original``).
+    (:class:`StyleDistance`) and, with ``originals``, the same of the originals (``..._original``). With
+    ``original_alphas`` too: floaters over the pixels the unstylized scene leaves empty (alpha below
+    :data:`EMPTY_ALPHA`): ``empty_share`` (their share of the pixels), ``empty_spread`` and
+    ``empty_spread_original`` (:func:`empty_spread` of the stylized and the unstylized renders), when there
+    are enough such pixels.
     """
     out: dict[str, float] = {}
     images = images.float().clamp(0, 1)              # as the renders are shown and saved
@@ -415,6 +433,12 @@ def style_scores(extractor, images: Tensor, style: Optional[Tensor], originals: 
             out.update({f"style_distance_{k}_original": v
                         for k, v in dist.mean(originals, original_alphas if original_alphas is not None
                                               else alphas).items()})
+    if originals is not None and original_alphas is not None:
+        empty = original_alphas.to(images.device) < EMPTY_ALPHA
+        after, before = empty_spread(images, empty), empty_spread(originals, empty)
+        if after is not None:
+            out.update({"empty_share": float(empty.float().mean()), "empty_spread": after,
+                        "empty_spread_original": before})
     return out
 
 

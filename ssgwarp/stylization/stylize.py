@@ -431,7 +431,9 @@ def _scores(r: _Run, styled: GaussianScene, renders: torch.Tensor, originals: to
     dist = lambda suffix: {k: sc.get(f"style_distance_{k}{suffix}") for k in ("color", "texture")}  # noqa: E731
     return {"gram_style_loss": sc["gram_style_loss"], "gram_style_loss_original": sc["gram_style_loss_original"],
             "style_distance": dist(""), "style_distance_original": dist("_original"),
-            "content_loss": sc["content_loss"]}
+            "content_loss": sc["content_loss"],
+            "empty_regions": ({"share": sc["empty_share"], "spread": sc["empty_spread"],
+                               "spread_original": sc["empty_spread_original"]} if "empty_spread" in sc else None)}
 
 
 def _metrics(r: _Run, s2: dict, renders: torch.Tensor, kv, stage1_info: dict, t_start: float) -> dict:
@@ -453,6 +455,7 @@ def _metrics(r: _Run, s2: dict, renders: torch.Tensor, kv, stage1_info: dict, t_
         "style_loss": style_loss_kind(stage2, r.extractor), "tv_weight": tv_weight_for(stage2, r.extractor),
         "gram_style_loss": scores["gram_style_loss"], "gram_style_loss_original": scores["gram_style_loss_original"],
         "style_distance": scores["style_distance"], "style_distance_original": scores["style_distance_original"],
+        "empty_regions": scores["empty_regions"],
         "metric_views": f"the {len(train_ids)} training views at {r.cams.width}x{r.cams.height} "
                         f"(`ssgwarp evaluate --views train` scores the same; its default is novel path views)",
         "groups_used": bool(r.num_groups) and "per group" in s2["matching"],
