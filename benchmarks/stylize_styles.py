@@ -7,8 +7,9 @@ protocol: 30 novel views on a smooth path through the training cameras), and pri
 style: colour and texture distances (sliced Wasserstein in Lab / of a derivative-of-Gaussian
 filter bank, ``ssgwarp.evaluation.metrics.StyleDistance``) of the original and the stylized renders, the Gram
 loss of the extractor Stage 2 used, short/long-range consistency RMSE as ratios to the
-unstylized scene's, and floaters over the regions the unstylized scene leaves empty (the worst style). The last rows check the issue's targets (both distances >= 30 % lower on
-average; consistency at most 1.5x the unstylized scene's). ``--ablation`` runs the Stage 2
+unstylized scene's, and floaters over the regions the unstylized scene leaves empty (the worst
+style). The last rows check the issue's targets (both distances >= 30 % lower on average;
+consistency at most 1.5x the unstylized scene's). ``--ablation`` runs the Stage 2
 ablations (colour transfer, content/TV weights, SH bands, colour gain cap) on a few styles instead.
 
     python benchmarks/stylize_styles.py --scene demo                  # the demo scene (built first)
