@@ -249,14 +249,16 @@ def test_evaluate_reproduces_the_numbers_stylize_reports(tmp_path, capsys):
 def test_style_scores_extractor_names_round_trip():
     from ssgwarp.errors import InputError, WeightsNotFound
     from ssgwarp.evaluation.metrics import extractor_from_name
-    from ssgwarp.services.features import RandomMultiScale
+    from ssgwarp.services.features import PyramidPatches, RandomMultiScale, RandomStrokes
 
-    for kw in ({}, {"seed": 3, "channels": 64, "stride": 4}, {"edges": True, "scales": (2, 4, 8)}):
-        ext = RandomMultiScale(**kw)
+    made = [RandomMultiScale(**kw) for kw in ({}, {"seed": 3, "channels": 64, "stride": 4},
+                                              {"edges": True, "scales": (2, 4, 8)})]
+    made += [RandomStrokes(seed=2, channels=8, scales=(2,), dilations=(1, 2)), PyramidPatches(3, (1, 2))]
+    for ext in made:
         again = extractor_from_name(ext.name)
         x = torch.rand(1, 3, 16, 16)
         assert again.name == ext.name and all(torch.equal(a, b) for a, b in zip(again(x), ext(x)))
-    for bad in ("random-multiscale:seed0,zz", "resnet:1", "random-multiscale:seedx"):
+    for bad in ("random-multiscale:seed0,zz", "resnet:1", "random-multiscale:seedx", "patches:p3", "random-strokes:x"):
         with pytest.raises(InputError):
             extractor_from_name(bad)
     with pytest.raises(WeightsNotFound):

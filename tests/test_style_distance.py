@@ -138,3 +138,20 @@ def test_empty_spread_is_zero_on_a_flat_background_and_grows_with_blobs():
     assert sc["empty_share"] == pytest.approx(500 / 600) and sc["empty_spread_original"] == pytest.approx(0.0, abs=1e-7)
     assert sc["empty_spread"] > 0.05
     assert "empty_spread" not in style_scores(None, blob, style, img, alphas=alpha0)
+
+
+def test_halves_of_a_uniform_style_are_close_and_of_a_split_style_far():
+    """StyleDistance.halves: a style that is the same pattern across the canvas scores about 0 against itself
+    (its halves are alike); one whose left half is flat and right half striped scores a large texture and
+    colour distance (each half misses what the other holds); the value is the mean of the two halves."""
+    stripes = _stripes(48, 128)
+    uniform = StyleDistance(stripes).halves(48, 128)
+    split = stripes.clone()
+    split[:, :64] = torch.tensor([0.5, 0.5, 0.5])
+    far = StyleDistance(split).halves(48, 128)
+    assert uniform["texture"] < 0.1 * far["texture"] and uniform["color"] < 0.05 * far["color"]
+    assert far["texture"] > 1.0 and far["color"] > 5.0
+    d = StyleDistance(split)
+    whole = d(split[:, :64][None])["texture"][0], d(split[:, 64:][None])["texture"][0]
+    # the same as scoring each half as an image (same fit of the style, same levels)
+    assert far["texture"] == pytest.approx(float(sum(whole)) / 2, rel=1e-9)

@@ -756,6 +756,36 @@ def test_random_strokes_features_see_far_and_ignore_flat_colour():
         RandomStrokes(dilations=(0,))
 
 
+def test_patches_features_are_centred_windows_at_every_level():
+    """patches: per level a pixel's feature is the normalised image's 5x5 window there (box-averaged for the
+    coarser levels), each colour channel's window mean removed: a flat colour gives exact zeros, an edge
+    gives the window's values; every level at full resolution; differentiable; the edge-feature defaults."""
+    from ssgwarp.services.features import IMAGENET_MEAN, IMAGENET_STD, PyramidPatches, load_extractor, stack_features
+    from ssgwarp.stylization.feature_defaults import resolve_for
+
+    ext = PyramidPatches().freeze()
+    assert ext.name == "patches:p5s1-2-4" and load_extractor(kind="patches").name == ext.name
+    x = torch.rand(1, 3, 24, 32, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    f = ext.to(torch.float64)(x)
+    assert [t.shape for t in f] == [(1, 75, 24, 32)] * 3
+    xn = (x - torch.tensor(IMAGENET_MEAN, dtype=x.dtype).view(1, 3, 1, 1)) / torch.tensor(IMAGENET_STD, dtype=x.dtype).view(1, 3, 1, 1)
+    for level, (s, y, c) in enumerate([(1, 10, 13), (2, 10, 13), (4, 9, 21)]):
+        xs = F.avg_pool2d(xn, s) if s > 1 else xn
+        win = xs[0, :, y // s - 2:y // s + 3, c // s - 2:c // s + 3].reshape(3, 25)
+        torch.testing.assert_close(f[level][0, :, y, c], (win - win.mean(1, keepdim=True)).reshape(75))
+    flat = ext(torch.full((2, 3, 16, 16), 0.3))
+    assert all(float(t.abs().max()) < 1e-6 for t in flat)
+    g = x.clone().requires_grad_(True)
+    stack_features(ext.to(torch.float64)(g)).pow(2).sum().backward()
+    assert g.grad is not None and float(g.grad.abs().sum()) > 0
+    cfg = resolve_for(st.Stage2Config(), ext)
+    assert (cfg.blend_weight, cfg.color_max_gain, cfg.color_detail) == (0.65, 1.0, "keep")
+    with pytest.raises(InputError):
+        PyramidPatches(patch=1)
+    with pytest.raises(InputError):
+        PyramidPatches(scales=(0, 2))
+
+
 def test_split_gaussians_keeps_each_gaussians_moments_and_the_render():
     from ssgwarp.core.geometry import quat_to_rotmat
     from ssgwarp.stylization.densify import replay, split_gaussians

@@ -451,7 +451,7 @@ def extractor_from_name(name: str, device="cpu", *, vgg_weights=None, config=Non
     """
     import re
 
-    from ..services.features import RandomMultiScale, load_extractor
+    from ..services.features import PyramidPatches, RandomMultiScale, RandomStrokes, load_extractor
 
     kind, _, spec = str(name).partition(":")
     if kind == "vgg16":
@@ -474,4 +474,12 @@ def extractor_from_name(name: str, device="cpu", *, vgg_weights=None, config=Non
         if ext.name != name:
             raise InputError(f"feature extractor '{name}': rebuilt as '{ext.name}'")
         return ext.freeze().to(device)
-    raise InputError(f"feature extractor '{name}': not one ssgwarp makes (vgg16:..., random-multiscale:...)")
+    if kind == "patches" and (m := re.fullmatch(r"p(\d+)s([\d-]+)", spec)):
+        ext = PyramidPatches(int(m.group(1)), tuple(int(x) for x in m.group(2).split("-")))
+        return ext.freeze().to(device)
+    if kind == "random-strokes" and (m := re.fullmatch(r"seed(-?\d+),c(\d+)s(\d+)p([\d-]+)d([\d-]+)", spec)):
+        ext = RandomStrokes(int(m.group(1)), int(m.group(2)), tuple(int(x) for x in m.group(4).split("-")),
+                            tuple(int(x) for x in m.group(5).split("-")), stride=int(m.group(3)))
+        return ext.freeze().to(device)
+    raise InputError(f"feature extractor '{name}': not one ssgwarp makes (vgg16:..., random-multiscale:..., "
+                     f"random-strokes:..., patches:...)")

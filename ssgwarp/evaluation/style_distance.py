@@ -229,12 +229,34 @@ class StyleDistance:
                 color.append(float("nan"))
                 texture.append(float("nan"))
                 continue
-            lab, resp = self._features(images[v], self.levels_for(H, W), mask)
-            color.append(float(sliced_wasserstein(lab, None, self.color_projections, self.seed, s_lab)))
-            per = [float(sliced_wasserstein(a, None, self.texture_projections, self.seed, b))
-                   for a, b in zip(resp, s_resp)]
-            texture.append(sum(per) / len(per) if per else float("nan"))
+            c, t = self._against_style(images[v], self.levels_for(H, W), s_lab, s_resp, mask)
+            color.append(c)
+            texture.append(t)
         return {"color": torch.tensor(color, dtype=torch.float64), "texture": torch.tensor(texture, dtype=torch.float64)}
+
+    def _against_style(self, image: Tensor, levels: int, s_lab: Tensor, s_resp: list[Tensor],
+                       mask: Optional[Tensor] = None) -> tuple[float, float]:
+        lab, resp = self._features(image, levels, mask)
+        color = float(sliced_wasserstein(lab, None, self.color_projections, self.seed, s_lab))
+        per = [float(sliced_wasserstein(a, None, self.texture_projections, self.seed, b)) for a, b in zip(resp, s_resp)]
+        return color, (sum(per) / len(per) if per else float("nan"))
+
+    @torch.no_grad()
+    def halves(self, height: int, width: int, device=None) -> dict[str, float]:
+        """The distances of the style image's own halves to the whole, at the scale of ``height x width``
+        images (the style fitted as for them; split across its longer side; the mean of the two halves).
+
+        A reference for the numbers of :meth:`__call__`: a render that is literally half of the painting
+        scores this, so it is about as close as a render can be expected to get (a style that is uniform
+        across the canvas gives ~0, one whose halves differ gives more).
+        """
+        device = device if device is not None else self.style.device
+        s_lab, s_resp = self._style_at(height, width, device)
+        s = fit_style(self.style.to(device), height, width)[0].permute(1, 2, 0)
+        h, w = s.shape[:2]
+        parts = [s[:, : w // 2], s[:, w // 2:]] if w >= h else [s[: h // 2], s[h // 2:]]
+        d = [self._against_style(p, self.levels_for(height, width), s_lab, s_resp) for p in parts]
+        return {"color": sum(c for c, _ in d) / 2, "texture": sum(t for _, t in d) / 2}
 
     def mean(self, images: Tensor, alphas: Optional[Tensor] = None) -> dict[str, Optional[float]]:
         """``{"color", "texture"}`` averaged over the views (views without scene pixels skipped; None if none)."""

@@ -1,6 +1,6 @@
 """Image feature extractors for style losses and metrics.
 
-Two extractors share one interface (:class:`FeatureExtractor`):
+These extractors share one interface (:class:`FeatureExtractor`):
 
 * **VGG16** (``vgg16:<layers>``): the 13 convolution layers of VGG16 written
   out by hand in torchvision's ``features`` layout, so a torchvision state dict
@@ -22,6 +22,11 @@ Two extractors share one interface (:class:`FeatureExtractor`):
   ``random-multiscale:seed<S>``.) Filters are drawn from a seeded CPU
   generator, so the extractor is identical for a seed on every machine and
   device.
+* **Random strokes** (``random-strokes:...``, :class:`RandomStrokes`): deeper
+  random networks with dilated convolutions (receptive fields to 124 px).
+* **Pyramid patches** (``patches:p5s1-2-4``, :class:`PyramidPatches`): no
+  network; the centred 5x5 windows of the image at full, 1/2 and 1/4
+  resolution, matched as a distribution.
 
 Every output that depends on features records :attr:`FeatureExtractor.name`.
 
@@ -116,8 +121,10 @@ class FeatureExtractor(nn.Module):
     def _check(self, images: torch.Tensor) -> torch.Tensor:
         if images.ndim != 4 or images.shape[1] != 3:
             raise InputError(f"{self.name}: expected images [B,3,H,W], got {tuple(images.shape)}")
-        p = next(self.parameters())
-        return images.to(device=p.device, dtype=p.dtype)
+        p = next(self.parameters(), None)
+        if p is None:
+            p = next(self.buffers(), None)
+        return images if p is None else images.to(device=p.device, dtype=p.dtype)
 
     @property
     def stride(self) -> int:
@@ -340,7 +347,46 @@ class RandomStrokes(FeatureExtractor):
                 for b, ms in enumerate(self._raw(x)) for j, m in enumerate(ms)]
 
 
-EXTRACTOR_KINDS = ("auto", "vgg16", "random", "random-edges", "random-strokes")
+class PyramidPatches(FeatureExtractor):
+    """Raw image patches on a pyramid, matched as a distribution (weight-free, no network).
+
+    Level ``s`` of ``scales`` (default 1, 2, 4: full, 1/2 and 1/4 resolution, box-averaged) contributes every
+    ``patch x patch`` window of the normalised image at that level (``3 * patch^2`` values), with each window's
+    mean per colour channel removed (flat colour gives zeros, as ``random-edges``: the colour transfer matches
+    colour), brought back to full resolution (nearest), so a pixel's feature is its own window at every
+    level, fine to coarse (the parent-child vectors of pyramid texture synthesis, De Bonet 1997). Matched by
+    the sliced Wasserstein loss, whose fresh random directions are fresh random linear filters over those
+    windows at every step: the distribution of the style's patches, not of a fixed filter bank, is matched
+    (patch-distribution texture synthesis: Elnekave & Weiss 2022). Name ``patches:p<patch>s<scales>``.
+    """
+
+    def __init__(self, patch: int = 5, scales: Sequence[int] = (1, 2, 4), normalize: bool = True) -> None:
+        super().__init__()
+        if patch < 2 or not scales or min(scales) < 1:
+            raise InputError(f"PyramidPatches: patch >= 2 and scales >= 1 needed (got {patch}, {tuple(scales)})")
+        self.patch, self.scales = int(patch), tuple(int(s) for s in scales)
+        self.normalize = _Normalize() if normalize else None
+        self.name = f"patches:p{self.patch}s{'-'.join(map(str, self.scales))}"
+        self.strides = [1] * len(self.scales)
+
+    def forward(self, images: torch.Tensor) -> list[torch.Tensor]:
+        x = self._check(images)
+        if self.normalize is not None:
+            x = self.normalize(x)
+        B, _, H, W = x.shape
+        k, r = self.patch, self.patch // 2
+        out = []
+        for s in self.scales:
+            xs = F.avg_pool2d(x, s) if s > 1 and min(H, W) >= 2 * s else x
+            h, w = xs.shape[-2:]
+            pad = (r, k - 1 - r, r, k - 1 - r)
+            win = F.unfold(F.pad(xs, pad, mode="replicate"), k).reshape(B, 3, k * k, h, w)
+            win = (win - win.mean(dim=2, keepdim=True)).reshape(B, 3 * k * k, h, w)
+            out.append(win if (h, w) == (H, W) else F.interpolate(win, size=(H, W), mode="nearest"))
+        return out
+
+
+EXTRACTOR_KINDS = ("auto", "vgg16", "random", "random-edges", "random-strokes", "patches")
 # branches of ``random-edges``: 1/2, 1/4, 1/8 (measured against 1, 1/2, 1/4 with the blend spread, docs/stylize.md:
 # more texture and a lower consistency error on the demo scene, 25 styles)
 EDGE_SCALES = (2, 4, 8)
@@ -358,7 +404,8 @@ def load_extractor(vgg_weights: Optional[str | os.PathLike] = None, device: torc
     are off — else the random extractor; a failed download says so in one line),
     ``"vgg16"`` (weights required: raises :class:`~ssgwarp.errors.WeightsNotFound`
     otherwise), ``"random"`` or ``"random-edges"`` (:class:`RandomMultiScale` with
-    ``edges=True`` and branches at :data:`EDGE_SCALES`). ``layers`` applies to VGG16 (default the
+    ``edges=True`` and branches at :data:`EDGE_SCALES`), ``"random-strokes"`` (:class:`RandomStrokes`) or
+    ``"patches"`` (:class:`PyramidPatches`). ``layers`` applies to VGG16 (default the
     conv3 block); ``seed`` to the random extractor. ``fallback``: what ``"auto"`` gives without VGG16
     weights, ``"random"`` or ``"random-edges"`` (``ssgwarp stylize``'s weight-free default, measured:
     docs/stylize.md).
@@ -387,6 +434,8 @@ def load_extractor(vgg_weights: Optional[str | os.PathLike] = None, device: torc
         ext.load_torchvision(state)
     elif kind == "random-strokes" or (kind == "auto" and fallback == "random-strokes"):
         ext = RandomStrokes(seed=seed, normalize=normalize)
+    elif kind == "patches":
+        ext = PyramidPatches(normalize=normalize)
     else:
         edges = kind == "random-edges" or (kind == "auto" and fallback == "random-edges")
         coarse = {"edges": True, "scales": EDGE_SCALES} if edges else {}

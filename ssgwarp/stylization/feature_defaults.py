@@ -21,10 +21,10 @@ def _is_vgg(extractor) -> bool:
 
 
 def _is_edges(extractor) -> bool:
-    """Zero-mean first-layer features: ``random-edges`` and ``random-strokes`` (the same defaults suit both:
-    they see no flat colour, which the colour transfer matches)."""
+    """Features blind to flat colour: ``random-edges``, ``random-strokes`` (zero-mean first-layer filters) and
+    ``patches`` (centred windows); the same defaults suit all three: the colour transfer matches colour."""
     name = str(getattr(extractor, "name", ""))
-    return "edges" in name.split(",") or name.startswith("random-strokes:")
+    return "edges" in name.split(",") or name.startswith(("random-strokes:", "patches:"))
 
 
 def style_loss_kind(cfg, extractor) -> str:

@@ -100,7 +100,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--batch-scaling", choices=("sqrt", "linear", "none"), default=d.batch_scaling,
                    help="Adam for batches: learning rates x sqrt(B) (default) or x B with betas ** B, or none")
     g.add_argument("--extractor", default="auto", choices=EXTRACTOR_KINDS, help="features: auto = VGG16 when "
-                   "weights are found, else random-edges (weight-free, zero-mean random filters); random: the "
+                   "weights are found, else random-edges (weight-free, zero-mean random filters); patches: raw image "
+                   "patches on a pyramid (weight-free; with --mode global the most consistent); random: the "
                    "earlier weight-free default (docs/stylize.md)")
     g.add_argument("--vgg16", default=None, help="torchvision VGG16 state dict (or SSGWARP_VGG16)")
     g.add_argument("--layers", default=None, help="VGG16 layers, comma separated (default conv3 = relu3_1..3)")
