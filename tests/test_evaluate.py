@@ -266,6 +266,26 @@ def test_style_scores_extractor_names_round_trip():
 
 
 # ----------------------------------------------------------------------------- --force
+def test_evaluate_reproduces_stylize_with_the_patch_features(tmp_path, capsys):
+    """stylize --extractor patches records the extractor's name; evaluate rebuilds that extractor from the name
+    and gives the same Gram and content numbers on the same views (no note about a different extractor)."""
+    from test_stylize import _write_run
+
+    from ssgwarp.cli import main
+
+    run, style = _write_run(tmp_path)
+    out = tmp_path / "styled"
+    assert main(["stylize", str(run), "--style", str(style), "--out", str(out), "--iters", "3", "--mode", "global",
+                 "--extractor", "patches", "--path-frames", "0", "--device", "cpu"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["extractor"] == "patches:p5s1-2-4" and m["mode"] == "global"
+    assert main(["evaluate", str(out), "--views", "train", "--max-pairs", "1", "--device", "cpu"]) == 0
+    sc = json.loads((out / "metrics.json").read_text())["evaluation"]["style_content"]
+    assert sc["extractor"] == m["extractor"] and "differ" not in capsys.readouterr().out
+    for key in ("gram_style_loss", "gram_style_loss_original", "content_loss"):
+        assert sc[key] == pytest.approx(m[key], rel=1e-4, abs=1e-7), key
+
+
 def test_evaluate_refuses_to_overwrite_an_evaluation_without_force(runs, tmp_path, capsys):
     from ssgwarp.cli import main
 

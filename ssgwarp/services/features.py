@@ -7,8 +7,10 @@ These extractors share one interface (:class:`FeatureExtractor`):
   (``features.N.weight`` / ``features.N.bias``, e.g. ``vgg16-397923af.pth``)
   loads as is. Inputs are ImageNet-normalised. The default layers are the
   conv3 block (relu3_1, relu3_2, relu3_3), as ARF's NNFM loss uses.
-* **Random multi-scale** (``random-multiscale:seed<S>,c128s2``): the
-  weight-free default when no VGG16 weights are configured. Shallow
+* **Random multi-scale** (``random-multiscale:seed<S>,c128s2``; with
+  zero-mean first-layer filters and branches at 1/2, 1/4, 1/8,
+  ``...,c128s2p2-4-8,edges``, ``random-edges``: the weight-free default of
+  ``ssgwarp stylize`` when no VGG16 weights are found). Shallow
   convolutional networks with random filters followed by ReLU already produce
   feature statistics that capture texture (Ustyuzhaninov et al., "Texture
   synthesis using shallow convolutional networks with random filters", 2016;
