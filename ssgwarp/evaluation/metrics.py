@@ -457,6 +457,7 @@ def extractor_from_name(name: str, device="cpu", *, vgg_weights=None, config=Non
     if kind == "vgg16":
         layers = [x for x in spec.split("+") if x] or None
         return load_extractor(vgg_weights, device, layers, kind="vgg16", config=config)
+    ints = lambda text: tuple(int(x) for x in text.split("-"))  # noqa: E731  ("2-4-8" -> (2, 4, 8))
     if kind == "random-multiscale":
         kw: dict = {"channels": 64, "stride": 4}
         for part in spec.split(","):
@@ -465,21 +466,20 @@ def extractor_from_name(name: str, device="cpu", *, vgg_weights=None, config=Non
             elif m := re.fullmatch(r"c(\d+)s(\d+)(?:p([\d-]+))?", part):
                 kw["channels"], kw["stride"] = int(m.group(1)), int(m.group(2))
                 if m.group(3):
-                    kw["scales"] = tuple(int(x) for x in m.group(3).split("-"))
+                    kw["scales"] = ints(m.group(3))
             elif part == "edges":
                 kw["edges"] = True
             else:
                 raise InputError(f"feature extractor '{name}': unknown part '{part}'")
         ext = RandomMultiScale(**kw)
-        if ext.name != name:
-            raise InputError(f"feature extractor '{name}': rebuilt as '{ext.name}'")
-        return ext.freeze().to(device)
-    if kind == "patches" and (m := re.fullmatch(r"p(\d+)s([\d-]+)", spec)):
-        ext = PyramidPatches(int(m.group(1)), tuple(int(x) for x in m.group(2).split("-")))
-        return ext.freeze().to(device)
-    if kind == "random-strokes" and (m := re.fullmatch(r"seed(-?\d+),c(\d+)s(\d+)p([\d-]+)d([\d-]+)", spec)):
-        ext = RandomStrokes(int(m.group(1)), int(m.group(2)), tuple(int(x) for x in m.group(4).split("-")),
-                            tuple(int(x) for x in m.group(5).split("-")), stride=int(m.group(3)))
-        return ext.freeze().to(device)
-    raise InputError(f"feature extractor '{name}': not one ssgwarp makes (vgg16:..., random-multiscale:..., "
-                     f"random-strokes:..., patches:...)")
+    elif kind == "patches" and (m := re.fullmatch(r"p(\d+)s([\d-]+)", spec)):
+        ext = PyramidPatches(int(m.group(1)), ints(m.group(2)))
+    elif kind == "random-strokes" and (m := re.fullmatch(r"seed(-?\d+),c(\d+)s(\d+)p([\d-]+)d([\d-]+)", spec)):
+        ext = RandomStrokes(int(m.group(1)), int(m.group(2)), ints(m.group(4)), ints(m.group(5)),
+                            stride=int(m.group(3)))
+    else:
+        raise InputError(f"feature extractor '{name}': not one ssgwarp makes (vgg16:..., random-multiscale:..., "
+                         f"random-strokes:..., patches:...)")
+    if ext.name != name:
+        raise InputError(f"feature extractor '{name}': rebuilt as '{ext.name}'")
+    return ext.freeze().to(device)
