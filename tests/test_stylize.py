@@ -617,6 +617,7 @@ def test_tv_default_resolves_by_extractor_and_smooths_the_weight_free_renders():
     add_arguments(parser)
     args = parser.parse_args(["scene", "--style", "s.png", "--out", "o"])
     assert args.tv_weight is None and args.blend_weight is None and args.color_max_gain is None
+    assert args.content_weight is None and st.Stage2Config().content_weight is None
     assert args.color_detail == "auto"
     # the options left to the features: edge features -> spread 0.65, gain 1.0, texture kept; else 0, 1.3, off
     edges = RandomMultiScale(seed=0, edges=True, scales=(2, 4, 8)).freeze()
@@ -626,7 +627,9 @@ def test_tv_default_resolves_by_extractor_and_smooths_the_weight_free_renders():
     for other in (ext, _Vgg()):
         r = st.resolve_for(st.Stage2Config(), other)
         assert (r.blend_weight, r.color_max_gain, r.color_detail) == (0.0, st.COLOR_GAIN_OTHER, "off")
-    mine = st.Stage2Config(blend_weight=0.1, color_max_gain=2.0, color_detail="off")
+    for any_but_patches in (edges, ext, _Vgg()):
+        assert st.resolve_for(st.Stage2Config(), any_but_patches).content_weight == 0.05
+    mine = st.Stage2Config(content_weight=0.3, blend_weight=0.1, color_max_gain=2.0, color_detail="off")
     assert st.resolve_for(mine, edges) == mine                   # what is set stays set
     assert st.ViewLoss(edges, None, st.Stage2Config()).cfg.blend_weight == st.BLEND_WEIGHT_EDGES
 
@@ -780,6 +783,16 @@ def test_patches_features_are_centred_windows_at_every_level():
     assert g.grad is not None and float(g.grad.abs().sum()) > 0
     cfg = resolve_for(st.Stage2Config(), ext)
     assert (cfg.blend_weight, cfg.color_max_gain, cfg.color_detail) == (0.65, 1.0, "keep")
+    assert cfg.content_weight == 0.01          # their content term holds the scene's own patterns: lighter
+    assert resolve_for(st.Stage2Config(content_weight=0.05), ext).content_weight == 0.05
+    # ... and the loss weighs its content term so: style, TV and spread off, total = 0.01 x content
+    view = torch.rand(1, 12, 16, 3, generator=torch.Generator().manual_seed(2))
+    quiet = st.Stage2Config(mode="global", style_weight=0.0, tv_weight=0.0, blend_weight=0.0)
+    loss = st.ViewLoss(ext, st.build_targets(ext, view, None, quiet), quiet, originals=view.flip(2))
+    total = float(loss(view[0], 0))
+    assert loss.last["content"] > 0.1 and total == pytest.approx(0.01 * loss.last["content"], rel=1e-6)
+    with pytest.raises(InputError):
+        st.Stage2Config(content_weight=-1.0).validate()
     with pytest.raises(InputError):
         PyramidPatches(patch=1)
     with pytest.raises(InputError):

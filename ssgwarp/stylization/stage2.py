@@ -25,8 +25,7 @@ features ``phi`` = the extractor's layers concatenated at the coarsest resolutio
   both with per-group matching; ``style_loss="auto"`` uses NNFM on VGG16
   features and SW on the weight-free random features (NNFM on random features
   collapses a view onto the style's dominant mode: docs/stylize.md);
-- content: ``mean((phi(I) - phi(I0))^2) / mean(phi(I0)^2)`` (relative, so the
-  weight means the same for every extractor);
+- content: ``mean((phi(I) - phi(I0))^2) / mean(phi(I0)^2)`` (relative; weight by the extractor by default);
 - TV: mean squared difference of neighbouring pixels; ``tv_weight=None`` (default): by the extractor
   (:func:`tv_weight_for`: 0.5 weight-free, measured in docs/stylize.md; 0.02 on VGG16).
 - blend spread (``blend_weight``; default by the extractor, :func:`resolve_for` in
@@ -92,8 +91,9 @@ class Stage2Config:
         mode: ``ist`` | ``finetune`` | ``global``.
         iters: optimisation steps (``batch_size`` training views each).
         lr: Adam learning rate of ``sh_dc`` (higher bands: ``lr / 20``; opacity logits: ``lr * 5``).
-        style_weight, content_weight, tv_weight: loss weights; ``tv_weight=None`` (default): by the
-            extractor, :func:`tv_weight_for` (0.5 on the weight-free random features, 0.02 on VGG16).
+        style_weight, content_weight, tv_weight: loss weights; the last two ``None`` (default): by the extractor,
+            content :func:`resolve_for` (0.01 on the patch features, whose content term holds the scene's own
+            patterns, 0.05 on the others), TV :func:`tv_weight_for` (0.5 weight-free, 0.02 on VGG16).
         blend_weight: weight of the blend spread (:func:`ssgwarp.stylization.spread.blend_spread`; 0: off);
             ``None`` (default): by the extractor, :func:`resolve_for` (0.65 on the weight-free edge features,
             0 otherwise).
@@ -144,7 +144,7 @@ class Stage2Config:
     iters: int = 600
     lr: float = 0.02
     style_weight: float = 1.0
-    content_weight: float = 0.05
+    content_weight: Optional[float] = None
     tv_weight: Optional[float] = None
     blend_weight: Optional[float] = None
     style_loss: str = "auto"
@@ -179,7 +179,7 @@ class Stage2Config:
         for k in ("lr", "style_weight", "content_weight", "tv_weight", "blend_weight", "densify", "hold_empty",
                   "consistency_weight"):
             v = getattr(self, k)
-            if v is None and k in ("tv_weight", "blend_weight"):
+            if v is None and k in ("content_weight", "tv_weight", "blend_weight"):
                 continue
             if not math.isfinite(v) or v < 0:
                 raise InputError(f"--{k.replace('_', '-')} {v}: must be a finite number >= 0")

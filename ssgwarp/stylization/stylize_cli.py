@@ -10,6 +10,7 @@ from typing import Optional
 import torch
 
 from ..services.features import EXTRACTOR_KINDS
+from .feature_defaults import CONTENT_WEIGHT, CONTENT_WEIGHT_PATCHES
 from .stage2 import (BACKGROUNDS, BLEND_WEIGHT_EDGES, COLOR_DETAIL, COLOR_GAIN_EDGES, COLOR_GAIN_OTHER,
                      COLOR_TRANSFER, MODES, SH_REST, STYLE_LOSSES, TV_WEIGHT_FREE, TV_WEIGHT_VGG, Stage2Config)
 from . import stylize as _stylize      # (stylize_run looked up at call time: tests replace it)
@@ -42,7 +43,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--lr", type=float, default=d.lr, help=f"learning rate of the SH DC colour (default {d.lr})")
     g.add_argument("--style-weight", type=float, default=d.style_weight, help="NNFM style loss weight")
     g.add_argument("--content-weight", type=float, default=d.content_weight,
-                   help=f"content loss weight (relative feature MSE; default {d.content_weight})")
+                   help=f"content loss weight (relative feature MSE; default: {CONTENT_WEIGHT_PATCHES} with "
+                        f"--extractor patches, {CONTENT_WEIGHT} with the others; lower paints more texture)")
     g.add_argument("--tv-weight", type=float, default=d.tv_weight,
                    help=f"total variation weight (default: {TV_WEIGHT_FREE} with the weight-free random features, "
                         f"{TV_WEIGHT_VGG} with VGG16)")
