@@ -279,6 +279,7 @@ def test_evaluate_reproduces_stylize_with_the_patch_features(tmp_path, capsys):
                  "--extractor", "patches", "--path-frames", "0", "--device", "cpu"]) == 0
     m = json.loads((out / "metrics.json").read_text())
     assert m["extractor"] == "patches:p5s1-2-4" and m["mode"] == "global"
+    assert m["config"]["content_weight"] == 0.01        # the patch features' own default, recorded resolved
     assert main(["evaluate", str(out), "--views", "train", "--max-pairs", "1", "--device", "cpu"]) == 0
     sc = json.loads((out / "metrics.json").read_text())["evaluation"]["style_content"]
     assert sc["extractor"] == m["extractor"] and "differ" not in capsys.readouterr().out
