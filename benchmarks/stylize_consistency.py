@@ -68,7 +68,7 @@ def score(scene, cams, bg, opts, style_distance, alpha0) -> dict:
     if style_distance is not None:
         per = []
         H, W = rgb.shape[1:3]
-        s_lab, s_resp = style_distance._style_at(H, W, rgb.device)
+        _, s_lab, s_resp = style_distance._style_at(H, W, rgb.device)
         n = style_distance.levels_for(H, W)
         for v in range(len(rgb)):
             _, resp = style_distance._features(rgb[v], n, alpha0[v] >= 0.5)

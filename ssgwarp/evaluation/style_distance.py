@@ -189,7 +189,7 @@ class StyleDistance:
         self.style = style.detach().float()
         self.color_projections, self.texture_projections = color_projections, texture_projections
         self.levels, self.seed = levels, seed
-        self._cache: dict[tuple[int, str], tuple[Tensor, list[Tensor]]] = {}
+        self._cache: dict[tuple[int, str], tuple[Tensor, Tensor, list[Tensor]]] = {}
 
     def _features(self, image: Tensor, levels: int, mask: Optional[Tensor] = None) -> tuple[Tensor, list[Tensor]]:
         lab = rgb_to_lab(image.float())
@@ -200,13 +200,14 @@ class StyleDistance:
         """Pyramid levels used at this image size (``levels``, or :func:`texture_levels` when None)."""
         return self.levels if self.levels is not None else texture_levels(height, width)
 
-    def _style_at(self, height: int, width: int, device) -> tuple[Tensor, list[Tensor]]:
-        """The style's sorted projections (colour; texture per level) at the images' scale, cached."""
+    def _style_at(self, height: int, width: int, device) -> tuple[Tensor, Tensor, list[Tensor]]:
+        """The style fitted to the images' scale ``[h, w, 3]`` and its sorted projections (colour; texture
+        per level), cached."""
         key = (min(height, width), str(device))
         if key not in self._cache:
             s = fit_style(self.style.to(device), height, width)[0].permute(1, 2, 0)
             lab, resp = self._features(s, self.levels_for(height, width))
-            self._cache[key] = (sorted_projections(lab, self.color_projections, self.seed),
+            self._cache[key] = (s, sorted_projections(lab, self.color_projections, self.seed),
                                 [sorted_projections(r, self.texture_projections, self.seed) for r in resp])
         return self._cache[key]
 
@@ -221,7 +222,7 @@ class StyleDistance:
             images = images[None]
             alphas = None if alphas is None else alphas.reshape(1, *images.shape[1:3])
         V, H, W, _ = images.shape
-        s_lab, s_resp = self._style_at(H, W, images.device)
+        _, s_lab, s_resp = self._style_at(H, W, images.device)
         color, texture = [], []
         for v in range(V):
             mask = None if alphas is None else alphas[v].reshape(H, W).to(images.device) >= alpha_min
@@ -251,8 +252,7 @@ class StyleDistance:
         across the canvas gives ~0, one whose halves differ gives more).
         """
         device = device if device is not None else self.style.device
-        s_lab, s_resp = self._style_at(height, width, device)
-        s = fit_style(self.style.to(device), height, width)[0].permute(1, 2, 0)
+        s, s_lab, s_resp = self._style_at(height, width, device)
         h, w = s.shape[:2]
         parts = [s[:, : w // 2], s[:, w // 2:]] if w >= h else [s[: h // 2], s[h // 2:]]
         d = [self._against_style(p, self.levels_for(height, width), s_lab, s_resp) for p in parts]
