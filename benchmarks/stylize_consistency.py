@@ -16,7 +16,6 @@ concentrated the squared error is (share in the worst 10 % / 25 % of the scored 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path

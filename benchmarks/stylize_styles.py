@@ -21,6 +21,8 @@ ablations (colour transfer, content/TV weights, SH bands, colour gain cap) on a 
     python benchmarks/stylize_styles.py --scene fern --ablation --styles-subset mondrian,asheville \
         --ablation-rows "default;SH rest: keep;paper objective (content 0, TV 0)"   # some rows, some styles
     python benchmarks/stylize_styles.py --scene fern --report         # table of what is finished, no new runs
+    python benchmarks/stylize_styles.py --scene fern --prepare-only   # build the scene once; then configurations
+                                                                      # (--tag each) may run as parallel processes
 
 Every finished style is kept (``OUT/<scene>/<style>/result.json``) and skipped when the script
 runs again, so shards and interrupted runs add up; ``--report`` prints the table of everything
@@ -276,6 +278,9 @@ def main() -> int:
     p.add_argument("--ablation-rows", default=None,
                    help="ablation row labels to run, separated by ; (default: all rows of ABLATIONS)")
     p.add_argument("--report", action="store_true", help="print the table of finished styles only")
+    p.add_argument("--prepare-only", action="store_true",
+                   help="build the scene (fern: reconstruct + group; demo: the demo) under OUT and stop: run this "
+                        "once before several configurations share OUT in parallel processes")
     p.add_argument("--tag", default="", help="results in OUT/<scene>_<tag> (one folder per configuration; the "
                    "scene is built once in OUT and shared)")
     p.add_argument("--quiet", action="store_true")
@@ -315,6 +320,9 @@ def main() -> int:
         styles = [q for q in styles if q.stem in want]
     if not styles:
         raise SystemExit(f"no style images in {args.styles}")
+    if args.prepare_only:
+        print(f"scene ready: {prepare_scene(args.scene, args.out, device, args.fern_iters, progress, args.demo_size, args.fern)}")
+        return 0
     name = args.scene if args.scene in ("fern", "demo") else Path(args.scene).name
     out = args.out / (f"{name}_{args.tag}" if args.tag else name)
     out.mkdir(parents=True, exist_ok=True)

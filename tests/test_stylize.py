@@ -305,6 +305,14 @@ def _write_run(tmp_path, grouped: bool = True):
     return run, tmp_path / "style.png"
 
 
+def test_resume_refusal_names_the_changed_stage2_fields():
+    old = {"style": "a.png", "stage2": {"lr": 0.02}}
+    assert st._changed(old, {"style": "a.png", "stage2": {"lr": 0.02, "content_weight": 0.01}}) == \
+        ["stage2.content_weight (not recorded) -> 0.01"]          # a field added since the earlier run
+    assert st._changed(old, {"style": "b.png", "stage2": {"lr": 0.5}}) == ["stage2.lr 0.02 -> 0.5", "style"]
+    assert st._changed(old, dict(old)) == []
+
+
 def test_cli_stylize_end_to_end_without_stage1_weights(tmp_path, monkeypatch, capsys):
     import json
 
@@ -349,7 +357,9 @@ def test_cli_stylize_end_to_end_without_stage1_weights(tmp_path, monkeypatch, ca
     assert main(["stylize", *argv]) == 2
     assert main(["stylize", *argv, "--resume"]) == 0
     assert torch.equal(read_ply(out / "scene.ply").sh_dc, styled.sh_dc)
-    assert main(["stylize", *argv, "--resume", "--lr", "0.5"]) == 2     # different options
+    capsys.readouterr()
+    assert main(["stylize", *argv, "--resume", "--lr", "0.5"]) == 2     # different options: the field is named
+    assert "--resume with different options (stage2.lr 0.02 -> 0.5)" in capsys.readouterr().err
     assert main(["stylize", *argv, "--force", "--mode", "global", "--color-transfer", "off", "--style-loss", "nnfm"]) == 0
     m2 = json.loads((out / "metrics.json").read_text())
     assert m2["mode"] == "global" and m2["style_loss"] == "nnfm" and set(m2["color_transfer"]) == {"setting", "against"}

@@ -77,6 +77,20 @@ def _signature(style: Path, scene_dir: Path, s2: Stage2Config, opts: StylizeOpti
     return json.loads(json.dumps(sig, default=str))   # as it reads back from run.json (tuples -> lists)
 
 
+def _changed(old: dict, new: dict) -> list[str]:
+    """The options of ``new`` that differ from ``old`` (two :func:`_signature` s), Stage 2's by field:
+    ``stage2.content_weight 0.05 -> 0.01``; a field the earlier run did not record reads ``(not recorded)``."""
+    out = []
+    for k in sorted(new):
+        a, b = old.get(k), new[k]
+        if k == "stage2" and isinstance(a, dict) and isinstance(b, dict):
+            out += [f"stage2.{f} {a[f] if f in a else '(not recorded)'} -> {b.get(f)}"
+                    for f in sorted(set(a) | set(b)) if a.get(f) != b.get(f) or (f in a) != (f in b)]
+        elif a != b:
+            out.append(k)
+    return out
+
+
 def _prepare_out(out: Path, scene_dir: Path, signature: dict, resume: bool, force: bool, group) -> dict:
     """Claim ``out`` (:func:`ssgwarp.services.runs.claim`: the policy every stage shares) and return the run's
     record: on ``--resume`` the finished stages of the earlier run, which must have had the same options.
@@ -91,8 +105,7 @@ def _prepare_out(out: Path, scene_dir: Path, signature: dict, resume: bool, forc
     if claimed.existing and resume and (out / "run.json").is_file():
         old = read_json(out / "run.json")
         if old.get("signature") != signature:
-            changed = sorted(k for k in signature if old.get("signature", {}).get(k) != signature[k])
-            raise InputError(f"{out}: --resume with different options ({', '.join(changed)}); "
+            raise InputError(f"{out}: --resume with different options ({', '.join(_changed(old.get('signature') or {}, signature))}); "
                              f"use the same options or --force to start over")
         state["stages"] = dict(old.get("stages", {}))
     group.barrier()
