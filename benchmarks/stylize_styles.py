@@ -21,8 +21,8 @@ ablations (colour transfer, content/TV weights, SH bands, colour gain cap) on a 
     python benchmarks/stylize_styles.py --scene fern --ablation --styles-subset mondrian,asheville \
         --ablation-rows "default;SH rest: keep;paper objective (content 0, TV 0)"   # some rows, some styles
     python benchmarks/stylize_styles.py --scene fern --report         # table of what is finished, no new runs
-    python benchmarks/stylize_styles.py --scene fern --prepare-only   # build the scene once; then configurations
-                                                                      # (--tag each) may run as parallel processes
+    python benchmarks/stylize_styles.py --scene fern --configs FILE --timeout 420  # several configurations at once
+                                                                      # on one GPU, FILE lines 'TAG: FLAGS'
 
 Every finished style is kept (``OUT/<scene>/<style>/result.json``) and skipped when the script
 runs again, so shards and interrupted runs add up; ``--report`` prints the table of everything
@@ -260,6 +260,62 @@ ABLATIONS = {
 }
 
 
+def parse_configs(path: Path) -> list[tuple[str, list[str]]]:
+    """``[(tag, flags)]`` from a file of ``TAG: FLAGS`` lines (blank lines and ``#`` comments skipped)."""
+    import shlex
+
+    out = []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        tag, sep, flags = line.partition(":")
+        tag = tag.strip()
+        if not sep or not tag or not all(c.isalnum() or c in "._-" for c in tag):
+            raise SystemExit(f"{path}:{n}: expected 'TAG: FLAGS' with a TAG of letters, digits, '.', '_', '-'")
+        out.append((tag, shlex.split(flags)))
+    if len({t for t, _ in out}) != len(out):
+        raise SystemExit(f"{path}: a TAG appears twice")
+    if not out:
+        raise SystemExit(f"{path}: no configuration")
+    return out
+
+
+def run_configs(args, styles, device, progress: bool) -> int:
+    """``--configs``: build the scene once, then every configuration as its own process, all at once."""
+    import subprocess
+
+    configs = parse_configs(args.configs)
+    prepare_scene(args.scene, args.out, device, args.fern_iters, progress, args.demo_size, args.fern)
+    name = args.scene if args.scene in ("fern", "demo") else Path(args.scene).name
+    shared = [sys.executable, str(Path(__file__).resolve()), "--scene", args.scene, "--out", str(args.out),
+              "--device", str(device), "--styles", str(args.styles), "--fern", str(args.fern), "--fern-iters",
+              str(args.fern_iters), "--demo-size", args.demo_size, "--path-frames", str(args.path_frames), "--quiet"]
+    if args.styles_subset:
+        shared += ["--styles-subset", args.styles_subset]
+    procs = []
+    for tag, flags in configs:
+        log = args.out / f"{name}_{tag}.log"
+        procs.append((tag, log, subprocess.Popen(shared + ["--tag", tag, *flags], stdout=log.open("w"),
+                                                 stderr=subprocess.STDOUT)))
+    print(f"{len(procs)} configurations running on {device} (logs {args.out}/{name}_<TAG>.log)", flush=True)
+    t0, failed = time.monotonic(), 0
+    for tag, log, proc in procs:
+        try:
+            left = None if args.timeout is None else max(1.0, args.timeout - (time.monotonic() - t0))
+            rc = proc.wait(timeout=left)
+        except subprocess.TimeoutExpired:
+            proc.terminate()
+            rc = proc.wait()
+        done = len(list((args.out / f"{name}_{tag}" / "styles").glob("*/result.json")))
+        summary = [ln for ln in log.read_text(errors="replace").splitlines()
+                   if ln.startswith(("Mean reduction", "Worst consistency", "Styles not closer"))]
+        failed += rc not in (0, -15)
+        print(f"== {tag} (exit {rc}): {done}/{len(styles)} styles finished" +
+              "".join(f"\n   {ln}" for ln in summary), flush=True)
+    return 1 if failed else 0
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scene", default="demo", help="fern, demo, or a (grouped) reconstruction run folder")
@@ -278,9 +334,14 @@ def main() -> int:
     p.add_argument("--ablation-rows", default=None,
                    help="ablation row labels to run, separated by ; (default: all rows of ABLATIONS)")
     p.add_argument("--report", action="store_true", help="print the table of finished styles only")
-    p.add_argument("--prepare-only", action="store_true",
-                   help="build the scene (fern: reconstruct + group; demo: the demo) under OUT and stop: run this "
-                        "once before several configurations share OUT in parallel processes")
+    p.add_argument("--configs", type=Path, default=None,
+                   help="a file of configurations, one per line 'TAG: FLAGS' (# comments): the scene is built once, "
+                        "then each runs as its own process, all at once on the one device (--tag TAG and the line's "
+                        "FLAGS; --scene, --out, --device, --styles, --styles-subset, --fern*, --demo-size and "
+                        "--path-frames shared); logs in OUT/<scene>_<TAG>.log")
+    p.add_argument("--timeout", type=float, default=None,
+                   help="with --configs: stop each configuration after this many seconds (finished styles are kept; "
+                        "run again to continue)")
     p.add_argument("--tag", default="", help="results in OUT/<scene>_<tag> (one folder per configuration; the "
                    "scene is built once in OUT and shared)")
     p.add_argument("--quiet", action="store_true")
@@ -320,9 +381,8 @@ def main() -> int:
         styles = [q for q in styles if q.stem in want]
     if not styles:
         raise SystemExit(f"no style images in {args.styles}")
-    if args.prepare_only:
-        print(f"scene ready: {prepare_scene(args.scene, args.out, device, args.fern_iters, progress, args.demo_size, args.fern)}")
-        return 0
+    if args.configs is not None:
+        return run_configs(args, styles, device, progress)
     name = args.scene if args.scene in ("fern", "demo") else Path(args.scene).name
     out = args.out / (f"{name}_{args.tag}" if args.tag else name)
     out.mkdir(parents=True, exist_ok=True)
