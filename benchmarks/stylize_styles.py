@@ -106,7 +106,7 @@ def run_style(run: Path, style: Path, out: Path, cfg, device, extractor: str, ev
                                                                         extractor=extractor),
                     device=device, force=True, progress=progress)
     seconds = time.perf_counter() - t0
-    ev = evaluate_run(out, eval_opts, device, write=True)
+    ev = evaluate_run(out, eval_opts, device, write=True, progress=progress)
     sc = ev["style_content"]
     rep = ev["consistency"]["reprojection"]
     row = {"style": style.stem, "color_before": sc["style_distance_color_original"],
@@ -137,14 +137,14 @@ def add_halves(rows: list[dict], styles: list[Path], run: Path) -> None:
             r["color_half"], r["texture_half"] = h["color"], h["texture"]
 
 
-def source_consistency(run: Path, out: Path, device, eval_opts) -> dict:
+def source_consistency(run: Path, out: Path, device, eval_opts, progress: bool = True) -> dict:
     from ssgwarp.evaluation.evaluate import evaluate_run
     from ssgwarp.core.fileio import read_json, write_json
 
     f = out / "source_consistency.json"
     if f.is_file():
         return read_json(f)
-    ev = evaluate_run(run, eval_opts, device, write=False)
+    ev = evaluate_run(run, eval_opts, device, write=False, progress=progress)
     rep = ev["consistency"]["reprojection"]
     d = {"short": rep["short"]["rmse"], "long": rep["long"]["rmse"], "views_scored": ev["views_scored"]}
     write_json(f, d)
@@ -388,7 +388,7 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
     run = prepare_scene(args.scene, args.out, device, args.fern_iters, progress, args.demo_size, args.fern)
     eval_opts = EvalOptions(path_frames=args.path_frames, max_pairs=16, save_pairs=0)
-    src = source_consistency(run, out, device, eval_opts)
+    src = source_consistency(run, out, device, eval_opts, progress)
     dev = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
 
     if args.ablation:

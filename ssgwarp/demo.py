@@ -320,7 +320,7 @@ def _stage_evaluate(d: _Demo) -> tuple[dict, dict]:
     t0 = time.perf_counter()
     eopts = EvalOptions(max_pairs=d.sz.eval_pairs, gap=max(2, d.sz.views // 3), save_pairs=1).validate()
     extractor, raft, lpips, skipped = load_models(eopts, d.device)
-    kw = dict(extractor=extractor, raft=raft, lpips=lpips, skipped=skipped)
+    kw = dict(extractor=extractor, raft=raft, lpips=lpips, skipped=skipped, progress=d.progress)
     ev_rec = evaluate_run(d.scene_dir, eopts, d.device, **kw)
     ev_sty = evaluate_run(d.styl_dir, eopts, d.device, **kw)
     with atomic_path(d.out / "evaluation.md") as tmp:

@@ -458,6 +458,17 @@ def test_outputs_are_never_overwritten_without_force(world, tmp_path, capsys, co
     assert (digest(out) if out.exists() else None) == before_out
 
 
+def test_evaluate_quiet_prints_no_progress_bars(world, tmp_path, capsys):
+    run = copy(world.grouped, tmp_path / "run")
+    argv = [str(a) for a in ["evaluate", run, "--max-pairs", "1", "--path-frames", "3", "--save-pairs", "0", *FAST]]
+    capsys.readouterr()
+    assert main(argv) == 0
+    assert "view/s]" in capsys.readouterr().err                    # the renders' bars, by default
+    assert main([*argv, "--force", "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert "%|" not in captured.err and "metrics written to" in captured.out
+
+
 def test_force_overwrites(world, tmp_path, capsys):
     run = copy(world.run, tmp_path / "run")
     before = (run / "scene.ply").read_bytes()

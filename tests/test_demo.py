@@ -77,6 +77,7 @@ def test_demo_runs_every_stage_and_prints_a_summary(demo):
                  "evaluate", "held-out PSNR", "Gram style loss", "consistency RMSE"):
         assert word in stdout, word
     assert "skipped: no local weights for sd15, controlnet_depth, ip_adapter, image_encoder" in stdout
+    assert "%|" not in stderr                       # --quiet: no progress bars, the evaluation's included
     assert summary["stage1"]["ran"] is False and "Stage 1 did not run" in summary["matching"]
     # which Stage 2 path ran: weight-free here (no VGG16, no Stage 1), said in the output and the summary
     assert "Stage 2 path: weight-free (no Stage 1, random features random-multiscale" in stdout

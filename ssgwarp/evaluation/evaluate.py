@@ -233,10 +233,16 @@ def _load_style(path: Path, device) -> torch.Tensor:
 
 
 # ----------------------------------------------------------------------------- one run
+def _desc(what: str, info, progress: bool) -> Optional[str]:
+    """The progress bar's label (``render RUN``), or None (no bar) without ``progress``."""
+    return f"{what} {info.path.name}" if progress else None
+
+
 def evaluate_run(run_dir: str | Path, opts: EvalOptions, device: torch.device | str = "cpu", *,
                  extractor=None, raft=None, lpips=None, skipped: Optional[dict] = None,
-                 write: bool = True) -> dict:
-    """Evaluate one run folder; returns the ``evaluation`` dict (also merged into ``RUN/metrics.json``)."""
+                 write: bool = True, progress: bool = True) -> dict:
+    """Evaluate one run folder; returns the ``evaluation`` dict (also merged into ``RUN/metrics.json``).
+    ``progress``: progress bars of the renders and the pairs."""
     opts.validate()
     device = torch.device(device)
     info = inspect_run(run_dir)
@@ -272,10 +278,10 @@ def evaluate_run(run_dir: str | Path, opts: EvalOptions, device: torch.device | 
                    "resolution": [cams.width, cams.height],
                    "gaussians": len(scene), "sh_degree": scene.sh_degree, "background": bg_run})
 
-    rgb, depth, alpha = render_views(scene, cams, bg_run, desc=f"render {info.path.name}")
+    rgb, depth, alpha = render_views(scene, cams, bg_run, desc=_desc("render", info, progress))
     result["consistency"] = consistency(rgb, depth, alpha, cams, opts, raft=raft, lpips=lpips,
                                         save_dir=out_dir / "pairs", names=names,
-                                        desc=f"pairs {info.path.name}")
+                                        desc=_desc("pairs", info, progress))
     result["consistency_settings"] = {"depth_tol": opts.depth_tol, "alpha_min": opts.alpha_min,
                                       "max_pairs": opts.max_pairs, "gap": opts.gap,
                                       "flow_iters": opts.flow_iters if raft is not None else None}
@@ -293,7 +299,7 @@ def evaluate_run(run_dir: str | Path, opts: EvalOptions, device: torch.device | 
         skipped.setdefault("style", "no style image (pass --style)")
     originals = orig_alpha = None
     if info.kind == "stylized" and (extractor is not None or style is not None):
-        originals, _, orig_alpha = render_views(src_scene, cams, bg, desc=f"source {info.path.name}")
+        originals, _, orig_alpha = render_views(src_scene, cams, bg, desc=_desc("source", info, progress))
     if extractor is not None:
         extractor, note = _run_extractor(info, extractor, device, opts)
         sc["extractor"] = getattr(extractor, "name", type(extractor).__name__)
@@ -319,7 +325,7 @@ def evaluate_run(run_dir: str | Path, opts: EvalOptions, device: torch.device | 
         if ids is not None and all(i in pos for i in qids) and qcams.width == cams.width:
             renders = rgb[[pos[i] for i in qids]]
         else:
-            renders, _, _ = render_views(scene, qcams, bg, desc=f"quality {info.path.name}")
+            renders, _, _ = render_views(scene, qcams, bg, desc=_desc("quality", info, progress))
         q = reconstruction_quality(renders, targets)
         qd: dict[str, Any] = {"split": qsplit, "views": len(qids),
                               "psnr": sum(q["psnr"]) / len(q["psnr"]), "ssim": sum(q["ssim"]) / len(q["ssim"]),
@@ -409,6 +415,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--raft", type=Path, default=None, help="torchvision raft_large state dict")
     p.add_argument("--layers", default=None, help="VGG16 feature layers, comma separated (default conv3)")
     p.add_argument("--data-dir", type=Path, default=None, help="where a reconstruction's capture is now")
+    p.add_argument("--quiet", "--no-progress", dest="quiet", action="store_true", help="no progress bars")
     p.add_argument("--force", action="store_true",
                    help="replace an earlier evaluation of these runs (RUN/evaluation/, the 'evaluation' entry of "
                         "RUN/metrics.json) and an existing --table file")
@@ -479,7 +486,8 @@ def run(args: argparse.Namespace) -> int:
     results = []
     for info, c in zip(infos, claims):
         c.clear()
-        res = evaluate_run(info.path, opts, device, extractor=extractor, raft=raft, lpips=lpips, skipped=skipped)
+        res = evaluate_run(info.path, opts, device, extractor=extractor, raft=raft, lpips=lpips, skipped=skipped,
+                           progress=not getattr(args, "quiet", False))
         results.append(res)
         print(f"{info.path}: metrics written to {info.path / 'metrics.json'} (inspection images in "
               f"{info.path / 'evaluation'})")
