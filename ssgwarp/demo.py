@@ -215,7 +215,8 @@ def _stage_reconstruct(d: _Demo, joint: bool) -> dict:
               if joint else ""))
     if d.todo("reconstruct"):
         t0 = time.perf_counter()
-        data = load_dataset(d.data_dir, num_random_points=sz.init_points, seed=d.seed, init="random")
+        data = load_dataset(d.data_dir, num_random_points=sz.init_points, seed=d.seed, init="random",
+                            progress=d.progress)
         it = sz.reconstruct_iters
         every = max(10, it // 25)
         # a short run: densify every 1/25 of it until half-way, no opacity reset, positions at 3x the 3DGS

@@ -352,13 +352,14 @@ def data_json(data: SceneData, **extra) -> dict:
 
 
 def load_run(scene_dir: str | Path, device=None, *, data_dir: Optional[str | Path] = None,
-             load_images: bool = True):
+             load_images: bool = True, progress: bool = True):
     """Read a reconstruction run: ``(GaussianScene, SceneData)``.
 
     The scene comes from ``scene.ply``, the cameras from ``cameras.json`` (training
     resolution) and the split and data options from ``data.json``; the images are
     reloaded from the capture (``data_dir`` overrides the recorded folder, e.g. after
-    moving it). With ``load_images=False`` the images are left black (cameras only).
+    moving it). With ``load_images=False`` the images are left black (cameras only); ``progress``: the
+    loading bar of many images.
     """
     scene_dir = _as_path(scene_dir)
     if not scene_dir.is_dir():
@@ -394,7 +395,8 @@ def load_run(scene_dir: str | Path, device=None, *, data_dir: Optional[str | Pat
         # the capture's own points at most: a run's initial points are not made again
         data = load_dataset(data_root, init="capture", **{k: opts[k] for k in ("images", "background", "width",
                                                                                "max_images", "num_random_points",
-                                                                               "seed", "format") if k in opts})
+                                                                               "seed", "format") if k in opts},
+                            progress=progress)
         pos = {n: i for i, n in enumerate(data.names)}
         missing = [n for n in cams.names if n not in pos]
         if missing:

@@ -259,7 +259,7 @@ def evaluate_run(run_dir: str | Path, opts: EvalOptions, device: torch.device | 
     # cameras, split, background, the scene (and the source scene of a stylized run)
     need_images = info.kind == "reconstruction"
     try:
-        scene, data = info.load(device, data_dir=opts.data_dir, load_images=need_images)
+        scene, data = info.load(device, data_dir=opts.data_dir, load_images=need_images, progress=progress)
     except InputError as e:
         if not need_images:
             raise

@@ -186,12 +186,14 @@ class Run:
         s = read_ply(self.scene_ply)
         return s if device is None else s.to(device)
 
-    def load(self, device=None, *, data_dir: Optional[str | Path] = None, load_images: bool = True):
+    def load(self, device=None, *, data_dir: Optional[str | Path] = None, load_images: bool = True,
+             progress: bool = True):
         """``(GaussianScene, SceneData)``: the run's scene and its capture (cameras at the training
         resolution, the split, the images reloaded from the capture unless ``load_images=False``;
         ``data_dir`` overrides the recorded capture folder). A stylized run: its own scene with its
         source's capture. The reading of the records is :func:`ssgwarp.capture.datasets.load_run`'s."""
-        scene, data = load_run(self.camera_dir, device, data_dir=data_dir, load_images=load_images)
+        scene, data = load_run(self.camera_dir, device, data_dir=data_dir, load_images=load_images,
+                               progress=progress)
         if self.kind == "stylized":
             scene = self.scene(device)
         return scene, data
