@@ -260,6 +260,11 @@ ABLATIONS = {
 }
 
 
+def scene_name(scene: str) -> str:
+    """The results' folder prefix for ``--scene``: ``fern``, ``demo`` or the run folder's name."""
+    return scene if scene in ("fern", "demo") else Path(scene).name
+
+
 def parse_configs(path: Path) -> list[tuple[str, list[str]]]:
     """``[(tag, flags)]`` from a file of ``TAG: FLAGS`` lines (blank lines and ``#`` comments skipped)."""
     import shlex
@@ -287,7 +292,7 @@ def run_configs(args, styles, device, progress: bool) -> int:
 
     configs = parse_configs(args.configs)
     prepare_scene(args.scene, args.out, device, args.fern_iters, progress, args.demo_size, args.fern)
-    name = args.scene if args.scene in ("fern", "demo") else Path(args.scene).name
+    name = scene_name(args.scene)
     shared = [sys.executable, str(Path(__file__).resolve()), "--scene", args.scene, "--out", str(args.out),
               "--device", str(device), "--styles", str(args.styles), "--fern", str(args.fern), "--fern-iters",
               str(args.fern_iters), "--demo-size", args.demo_size, "--path-frames", str(args.path_frames), "--quiet"]
@@ -383,7 +388,7 @@ def main() -> int:
         raise SystemExit(f"no style images in {args.styles}")
     if args.configs is not None:
         return run_configs(args, styles, device, progress)
-    name = args.scene if args.scene in ("fern", "demo") else Path(args.scene).name
+    name = scene_name(args.scene)
     out = args.out / (f"{name}_{args.tag}" if args.tag else name)
     out.mkdir(parents=True, exist_ok=True)
     run = prepare_scene(args.scene, args.out, device, args.fern_iters, progress, args.demo_size, args.fern)

@@ -105,7 +105,8 @@ def _prepare_out(out: Path, scene_dir: Path, signature: dict, resume: bool, forc
     if claimed.existing and resume and (out / "run.json").is_file():
         old = read_json(out / "run.json")
         if old.get("signature") != signature:
-            raise InputError(f"{out}: --resume with different options ({', '.join(_changed(old.get('signature') or {}, signature))}); "
+            changed = _changed(old.get("signature") or {}, signature)
+            raise InputError(f"{out}: --resume with different options ({', '.join(changed)}); "
                              f"use the same options or --force to start over")
         state["stages"] = dict(old.get("stages", {}))
     group.barrier()
