@@ -291,6 +291,7 @@ def run_configs(args, styles, device, progress: bool) -> int:
     import subprocess
 
     configs = parse_configs(args.configs)
+    t0, failed = time.monotonic(), 0  # --timeout counts from here: building the scene is part of it
     prepare_scene(args.scene, args.out, device, args.fern_iters, progress, args.demo_size, args.fern)
     name = scene_name(args.scene)
     shared = [sys.executable, str(Path(__file__).resolve()), "--scene", args.scene, "--out", str(args.out),
@@ -304,7 +305,6 @@ def run_configs(args, styles, device, progress: bool) -> int:
         procs.append((tag, log, subprocess.Popen(shared + ["--tag", tag, *flags], stdout=log.open("w"),
                                                  stderr=subprocess.STDOUT)))
     print(f"{len(procs)} configurations running on {device} (logs {args.out}/{name}_<TAG>.log)", flush=True)
-    t0, failed = time.monotonic(), 0
     for tag, log, proc in procs:
         try:
             left = None if args.timeout is None else max(1.0, args.timeout - (time.monotonic() - t0))
@@ -345,8 +345,8 @@ def main() -> int:
                         "FLAGS; --scene, --out, --device, --styles, --styles-subset, --fern*, --demo-size and "
                         "--path-frames shared); logs in OUT/<scene>_<TAG>.log")
     p.add_argument("--timeout", type=float, default=None,
-                   help="with --configs: stop each configuration after this many seconds (finished styles are kept; "
-                        "run again to continue)")
+                   help="with --configs: stop every configuration this many seconds after the command started, "
+                        "building the scene included (finished styles are kept; run again to continue)")
     p.add_argument("--tag", default="", help="results in OUT/<scene>_<tag> (one folder per configuration; the "
                    "scene is built once in OUT and shared)")
     p.add_argument("--quiet", action="store_true")

@@ -1,0 +1,67 @@
+"""benchmarks/stylize_styles.py --configs: the file of ``TAG: FLAGS`` lines it reads, and --timeout counted from
+the command's start (the scene it builds first included), so a run under a device's per-call limit stops in time."""
+import argparse
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import stylize_styles as ss  # noqa: E402
+
+
+def test_configs_file_is_read_with_comments_and_quoting(tmp_path):
+    f = tmp_path / "c.txt"
+    f.write_text("# a comment\n\nc0: --mode global --content-weight 0  # trailing\n"
+                 "b.2_x: --tag-like 'two words'\n")
+    assert ss.parse_configs(f) == [("c0", ["--mode", "global", "--content-weight", "0"]),
+                                   ("b.2_x", ["--tag-like", "two words"])]
+
+
+@pytest.mark.parametrize("text, says", [("no colon here\n", "expected 'TAG: FLAGS'"),
+                                        ("bad tag: --x\n", "expected 'TAG: FLAGS'"),
+                                        ("a: --x\na: --y\n", "a TAG appears twice"),
+                                        ("# only a comment\n", "no configuration")])
+def test_bad_configs_files_are_refused_with_the_line(tmp_path, text, says):
+    f = tmp_path / "c.txt"
+    f.write_text(text)
+    with pytest.raises(SystemExit, match=says):
+        ss.parse_configs(f)
+
+
+class _FakeProcess:
+    """A configuration's process that never finishes by itself: waits until the timeout it is given."""
+    waits: list = []
+
+    def __init__(self, cmd, stdout=None, stderr=None):
+        self.cmd, self.terminated = cmd, False
+        stdout.close()
+
+    def wait(self, timeout=None):
+        if self.terminated:
+            return -15
+        _FakeProcess.waits.append(timeout)
+        raise subprocess.TimeoutExpired(self.cmd, timeout)
+
+    def terminate(self):
+        self.terminated = True
+
+
+def test_timeout_counts_the_scene_build(tmp_path, monkeypatch, capsys):
+    cfg = tmp_path / "c.txt"
+    cfg.write_text("a: --content-weight 0\nb: --content-weight 0.01\n")
+    monkeypatch.setattr(ss, "prepare_scene", lambda *a, **k: time.sleep(0.6))
+    monkeypatch.setattr(subprocess, "Popen", _FakeProcess)
+    _FakeProcess.waits = []
+    args = argparse.Namespace(configs=cfg, scene="demo", out=tmp_path, fern_iters=1, demo_size="small",
+                              fern=tmp_path, styles=tmp_path, styles_subset=None, path_frames=6, timeout=2.0)
+    (tmp_path / "demo_a" / "styles" / "candy").mkdir(parents=True)
+    (tmp_path / "demo_a" / "styles" / "candy" / "result.json").write_text("{}")
+    assert ss.run_configs(args, [tmp_path / "candy.jpg", tmp_path / "udnie.jpg"], "cpu", False) == 0
+    first, second = _FakeProcess.waits
+    assert first <= 2.0 - 0.6 + 0.05   # the 0.6 s spent building the scene came off the 2 s
+    assert second <= first
+    out = capsys.readouterr().out
+    assert "== a (exit -15): 1/2 styles finished" in out and "== b (exit -15): 0/2 styles finished" in out
