@@ -84,7 +84,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         f"into it through the depths (0: off; default {d.consistency_weight})")
     g.add_argument("--consistency-budget", type=float, default=d.consistency_budget, metavar="B",
                    help="the view-pair term lets a pair's squared error grow to B x the starting scene's "
-                        f"(default {d.consistency_budget}: an RMSE ratio of about 1.4)")
+                        f"(default {d.consistency_budget}: an RMSE ratio of about 1.4); measured on fern and the demo "
+                        "scene, the worst path-view error came out at about 0.9 x sqrt(B) x the unstylized scene's")
     g.add_argument("--consistency-neighbours", type=int, default=d.consistency_neighbours, metavar="K",
                    help=f"nearest training views a view is paired with (default {d.consistency_neighbours})")
     g.add_argument("--label-mode", default=d.label_mode, choices=("majority", "nearest"),
