@@ -348,7 +348,8 @@ def test_initial_gaussians_from_a_dense_random_cloud_are_narrower():
     d = knn_mean_distance(xyz, k=3)
     for source, scale in (("random", 0.5 ** (1 / 6)), ("colmap", 1.0)):
         data = replace(_toy_data(), points=(xyz, rgb), points_source=source)
-        s = Trainer(data, iters=10, sh_degree=0, progress=False, device="cpu").final_scene()
+        # backdrop off: random points on textured images would get one (its points start by their own rule)
+        s = Trainer(data, iters=10, sh_degree=0, progress=False, device="cpu", backdrop="off").final_scene()
         assert torch.allclose(s.scales, (d * scale)[:, None].expand(-1, 3), rtol=1e-5), source
         assert torch.allclose(s.opacities, torch.full((4000,), 0.1), atol=1e-6), source
 
@@ -402,9 +403,12 @@ def test_backdrop_decision_from_the_camera_layout_and_the_points_coverage():
     plain = torch.ones_like(images)
     plain[:, 4:8, 6:10] = images[:, 4:8, 6:10]
     assert not plan_backdrop(replace(base, images=plain), blob).use
-    # the random cube of a transforms capture without points, on textured images: a backdrop whatever it covers
-    cube = replace(base, points_source="random", format="transforms")
-    assert plan_backdrop(cube, wide).use and not plan_backdrop(replace(cube, images=plain), wide).use
+    # random initial points (a transforms capture's cube, or --init random in the views' frusta) on textured
+    # images: a backdrop whatever they cover; an object on a plain ground (lego) needs none
+    for fmt in ("transforms", "colmap"):
+        cube = replace(base, points_source="random", format=fmt)
+        p = plan_backdrop(cube, wide)
+        assert p.use and "random initial points" in p.why and not plan_backdrop(replace(cube, images=plain), wide).use
     # triangulated points of a forward-facing capture get one however much they cover; of an orbit, not
     fwd = _toy_data()
     fwd_wide = torch.randn(30000, 3, generator=g) * 4.0 + torch.tensor([0.0, 0.0, 6.0])
