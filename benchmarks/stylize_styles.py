@@ -21,6 +21,7 @@ ablations (colour transfer, content/TV weights, SH bands, colour gain cap) on a 
     python benchmarks/stylize_styles.py --scene fern --ablation --styles-subset mondrian,asheville \
         --ablation-rows "default;SH rest: keep;paper objective (content 0, TV 0)"   # some rows, some styles
     python benchmarks/stylize_styles.py --scene fern --report         # table of what is finished, no new runs
+    python benchmarks/stylize_styles.py --scene fern --paint --tag paint   # stylize's --paint preset
     python benchmarks/stylize_styles.py --scene fern --configs FILE --timeout 420  # several configurations at once
                                                                       # on one GPU, FILE lines 'TAG: FLAGS'
 
@@ -47,7 +48,7 @@ DATA = ROOT.parent / "shared" / "data"
 if not DATA.is_dir():
     DATA = Path("/work/shared/data")
 
-SHEET_STYLES = ("candy", "la_muse", "mosaic", "the_resevoir_at_poitiers", "sketch", "udnie")
+SHEET_STYLES = ("brushstrokes", "candy", "la_muse", "mosaic", "the_resevoir_at_poitiers", "sketch", "udnie")
 ABLATION_STYLES = ("candy", "la_muse", "sketch", "udnie")
 
 
@@ -371,6 +372,9 @@ def main() -> int:
     g.add_argument("--consistency-neighbours", type=int, default=None)
     g.add_argument("--consistency-budget", type=float, default=None,
                    help="pair error (x the starting scene's, squared) left free by the view-pair term")
+    from ssgwarp.core.presets import add_preset
+    from ssgwarp.stylization.stylize_cli import PAINT
+    add_preset(p, "--paint", PAINT, "ssgwarp stylize's painting preset: {values} (options given explicitly win)")
     args = p.parse_args()
 
     from ssgwarp.cli import resolve_device

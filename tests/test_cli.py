@@ -596,6 +596,37 @@ def test_quick_presets_are_cpu_sized_and_explicit_options_win(command, positiona
     assert parse("--iters", "77", "--quick").iters == 77 and parse("--quick", "--iters", "77").iters == 77
 
 
+def test_stylize_paint_preset_sets_the_painting_configuration_and_explicit_options_win(tmp_path, capsys):
+    from test_stylize import _write_run
+
+    from ssgwarp.cli import build_parser
+    from ssgwarp.stylization import stylize_cli
+
+    with pytest.raises(SystemExit):
+        main(["stylize", "--help"])
+    help_ = " ".join(capsys.readouterr().out.split())
+    assert "--paint the weight-free configuration" in help_ and "--mode global, --extractor patches" in help_
+    assert "-69 %" in help_ and "1.16x" in help_
+    _, subs = build_parser()
+    stylize_cli.add_arguments(subs["stylize"])
+    parse = lambda *a: subs["stylize"].parse_args(["run", "--style", "s.png", "--out", "o", *a])  # noqa: E731
+    plain, paint = parse(), parse("--paint")
+    for dest, value in stylize_cli.PAINT.items():
+        assert getattr(paint, dest) == value and getattr(plain, dest) != value, dest
+    assert parse("--tv-weight", "0.3", "--paint").tv_weight == 0.3
+    assert parse("--paint", "--consistency-budget", "3").consistency_budget == 3
+    assert parse("--paint", "--quick").iters == stylize_cli.QUICK["iters"]
+    # end to end: the run records the configuration it ran with
+    run, style = _write_run(tmp_path)
+    out = tmp_path / "painted"
+    assert main(["stylize", str(run), "--style", str(style), "--out", str(out), "--iters", "3", "--paint",
+                 "--path-frames", "0", "--device", "cpu", "--quiet"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["mode"] == "global" and m["extractor"].startswith("patches:")
+    for dest in ("tv_weight", "blend_weight", "content_weight", "consistency_weight", "consistency_budget"):
+        assert m["config"][dest] == stylize_cli.PAINT[dest], dest
+
+
 def test_stylize_on_cpu_prints_one_hint_with_the_quick_preset(world, tmp_path, capsys):
     argv = ["stylize", str(world.grouped), "--style", str(world.style), "--iters", "2", "--path-frames", "0",
             "--max-side", "32", "--device", "cpu"]

@@ -1,8 +1,8 @@
-"""``--quick``: a command's CPU-sized preset of option values, as one flag.
+"""Presets: a set of option values as one flag (``--quick``, a command's CPU-sized preset; ``stylize --paint``).
 
-:func:`add_quick` adds ``--quick`` to a command's parser; it sets each option of the
-preset that the command line (or ``--config``) left at its default, so an option given
-explicitly, before or after ``--quick``, wins.
+:func:`add_preset` adds such a flag to a command's parser; it sets each option of the preset that the
+command line (or ``--config``) left at its default, so an option given explicitly, before or after the
+flag, wins. :func:`add_quick` adds ``--quick``.
 """
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import argparse
 from typing import Any, Mapping
 
 
-class _Quick(argparse.Action):
+class _Preset(argparse.Action):
     def __init__(self, option_strings, dest, preset: Mapping[str, Any], defaults: Mapping[str, Any], **kw):
         super().__init__(option_strings, dest, nargs=0, default=False, **kw)
         self.preset, self.defaults = dict(preset), dict(defaults)
@@ -22,17 +22,22 @@ class _Quick(argparse.Action):
         setattr(namespace, self.dest, True)
 
 
-def add_quick(parser: argparse.ArgumentParser, preset: Mapping[str, Any], measured: str) -> None:
-    """Add ``--quick``: the ``preset`` option values (by dest) unless given explicitly; ``measured`` says what
-    the preset costs (shown in ``--help``). Call after the preset's options are added."""
+def add_preset(parser: argparse.ArgumentParser, flag: str, preset: Mapping[str, Any], help: str) -> None:
+    """Add ``flag``: the ``preset`` option values (by dest) unless given explicitly. ``{values}`` in ``help``
+    becomes the values as they read in ``--help``. Call after the preset's options are added."""
     flags = {a.dest: a.option_strings[0] for a in parser._actions if a.option_strings}
     unknown = [d for d in preset if d not in flags]
     if unknown:
-        raise ValueError(f"--quick preset names unknown options: {unknown}")
+        raise ValueError(f"{flag} preset names unknown options: {unknown}")
     text = ", ".join(f"{flags[d]} {v}" for d, v in preset.items())
-    parser.add_argument("--quick", action=_Quick, preset=preset,
-                        defaults={d: parser.get_default(d) for d in preset},
-                        help=f"CPU-sized preset: {text} (options given explicitly win); {measured}")
+    parser.add_argument(flag, action=_Preset, preset=preset, defaults={d: parser.get_default(d) for d in preset},
+                        help=help.replace("{values}", text).replace("%", "%%"))
+
+
+def add_quick(parser: argparse.ArgumentParser, preset: Mapping[str, Any], measured: str) -> None:
+    """Add ``--quick``: the ``preset`` option values (by dest) unless given explicitly; ``measured`` says what
+    the preset costs (shown in ``--help``). Call after the preset's options are added."""
+    add_preset(parser, "--quick", preset, "CPU-sized preset: {values} (options given explicitly win); " + measured)
 
 
 def quick_text(preset: Mapping[str, Any]) -> str:
