@@ -118,6 +118,13 @@ def _apply_config(parser: argparse.ArgumentParser, argv: list[str]) -> None:
             raise SsgwarpError(f"--config {path}: {k!r} is not an option of 'ssgwarp {parser.prog.split()[-1]}'"
                                f"{hint}; see its --help")
         defaults[names[key]] = v
+    # a preset flag set in the file (``"quick": true``, ``"paint": true``) sets its options as the command line
+    # would, below the file's own keys
+    from .core.presets import preset_values
+    for dest, on in list(defaults.items()):
+        if on is True:
+            for k, v in preset_values(parser, dest).items():
+                defaults.setdefault(k, v)
     parser.set_defaults(**defaults)
 
 

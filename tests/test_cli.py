@@ -616,6 +616,15 @@ def test_stylize_paint_preset_sets_the_painting_configuration_and_explicit_optio
     assert parse("--tv-weight", "0.3", "--paint").tv_weight == 0.3
     assert parse("--paint", "--consistency-budget", "3").consistency_budget == 3
     assert parse("--paint", "--quick").iters == stylize_cli.QUICK["iters"]
+    # in a --config file the preset sets its options too, below the file's own keys and the command line's
+    (tmp_path / "paint.json").write_text(json.dumps({"paint": True, "tv_weight": 0.3}))
+    from ssgwarp.cli import _apply_config
+    _apply_config(subs["stylize"], ["--config", str(tmp_path / "paint.json")])
+    cfg = parse()
+    assert cfg.mode == "global" and cfg.consistency_budget == 1.6 and cfg.tv_weight == 0.3
+    assert parse("--mode", "ist").mode == "ist"
+    _, subs = build_parser()
+    stylize_cli.add_arguments(subs["stylize"])
     # end to end: the run records the configuration it ran with
     run, style = _write_run(tmp_path)
     out = tmp_path / "painted"

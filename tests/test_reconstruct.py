@@ -348,7 +348,7 @@ def test_initial_gaussians_from_a_dense_random_cloud_are_narrower():
     d = knn_mean_distance(xyz, k=3)
     for source, scale in (("random", 0.5 ** (1 / 6)), ("colmap", 1.0)):
         data = replace(_toy_data(), points=(xyz, rgb), points_source=source)
-        # backdrop off: random points on textured images would get one (its points start by their own rule)
+        # backdrop off: random points on textured images would get one, whose points start with other scales
         s = Trainer(data, iters=10, sh_degree=0, progress=False, device="cpu", backdrop="off").final_scene()
         assert torch.allclose(s.scales, (d * scale)[:, None].expand(-1, 3), rtol=1e-5), source
         assert torch.allclose(s.opacities, torch.full((4000,), 0.1), atol=1e-6), source

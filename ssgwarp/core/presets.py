@@ -40,6 +40,12 @@ def add_quick(parser: argparse.ArgumentParser, preset: Mapping[str, Any], measur
     add_preset(parser, "--quick", preset, "CPU-sized preset: {values} (options given explicitly win); " + measured)
 
 
+def preset_values(parser: argparse.ArgumentParser, dest: str) -> dict[str, Any]:
+    """The option values of the preset flag whose dest is ``dest`` in ``parser`` (empty if it is no preset)."""
+    act = next((a for a in parser._actions if a.dest == dest), None)
+    return dict(act.preset) if isinstance(act, _Preset) else {}
+
+
 def quick_text(preset: Mapping[str, Any]) -> str:
     """The preset as it reads on a command line (``--iters 150 --path-frames 20``)."""
     return " ".join(f"--{d.replace('_', '-')} {v}" for d, v in preset.items())
