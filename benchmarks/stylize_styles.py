@@ -85,7 +85,7 @@ def stage2_config(args, **over):
     kw = {}
     for k in ("iters", "lr", "content_weight", "tv_weight", "blend_weight", "color_transfer", "color_max_gain",
               "color_detail", "sh_rest", "background", "mode", "densify", "densify_views", "hold_empty",
-              "consistency_weight", "consistency_neighbours", "consistency_budget"):
+              "consistency_weight", "consistency_neighbours", "consistency_budget", "style_scale"):
         v = getattr(args, k)
         if v is not None:
             kw[k] = v
@@ -370,6 +370,7 @@ def main() -> int:
     g.add_argument("--hold-empty", type=float, default=None, help="weight of the empty-region term (0: off)")
     g.add_argument("--consistency-weight", type=float, default=None, help="weight of the view-pair term (0: off)")
     g.add_argument("--consistency-neighbours", type=int, default=None)
+    g.add_argument("--style-scale", type=float, default=None, help="style image size against the views (1: fit)")
     g.add_argument("--consistency-budget", type=float, default=None,
                    help="pair error (x the starting scene's, squared) left free by the view-pair term")
     from ssgwarp.core.presets import add_preset

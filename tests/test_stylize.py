@@ -269,6 +269,11 @@ def test_bad_options_are_one_line_errors():
         st.Stage2Config(color_max_gain=0.0).validate()
     with pytest.raises(InputError, match="--color-detail"):
         st.Stage2Config(color_detail="more").validate()
+    for bad in (0.1, 5.0, float("nan")):
+        with pytest.raises(InputError, match="--style-scale"):
+            st.Stage2Config(style_scale=bad).validate()
+    with pytest.raises(InputError, match="--label-mode mean: use one of majority, nearest"):
+        st.Stage2Config(label_mode="mean").validate()
 
 
 # ----------------------------------------------------------------------------- end to end (CLI)
@@ -360,9 +365,11 @@ def test_cli_stylize_end_to_end_without_stage1_weights(tmp_path, monkeypatch, ca
     capsys.readouterr()
     assert main(["stylize", *argv, "--resume", "--lr", "0.5"]) == 2     # different options: the field is named
     assert "--resume with different options (stage2.lr 0.02 -> 0.5)" in capsys.readouterr().err
-    assert main(["stylize", *argv, "--force", "--mode", "global", "--color-transfer", "off", "--style-loss", "nnfm"]) == 0
+    assert main(["stylize", *argv, "--force", "--mode", "global", "--color-transfer", "off", "--style-loss", "nnfm",
+                 "--style-scale", "1.5"]) == 0
     m2 = json.loads((out / "metrics.json").read_text())
     assert m2["mode"] == "global" and m2["style_loss"] == "nnfm" and set(m2["color_transfer"]) == {"setting", "against"}
+    assert m2["config"]["style_scale"] == 1.5
     assert m2["matching"].startswith("global against the style image")     # --mode global: today's behaviour
     # densify: more Gaussians; a resumed run replays the same splits and continues from the checkpoint
     # (with the view-pair term, built on the densified geometry)
@@ -583,6 +590,44 @@ def test_fit_style_scales_the_style_to_the_views_shorter_side_keeping_its_aspect
     assert torch.equal(fit_style(same, 24, 99)[0].permute(1, 2, 0), same)   # already the size: untouched
     small = fit_style(torch.rand(50, 50, 3), 4, 6)
     assert small.shape == (1, 3, 4, 4) and 0.0 <= float(small.min()) and float(small.max()) <= 1.0
+    assert fit_style(style, 24, 32, scale=2).shape == (1, 3, 48, 144)      # --style-scale: patterns twice as large
+    assert fit_style(style, 24, 32, scale=0.5).shape == (1, 3, 12, 36)
+
+
+def test_style_scale_sizes_the_style_the_loss_and_the_colour_transfer_see(tmp_path, monkeypatch):
+    """``--style-scale 2``: Stage 2's style targets (and the colour transfer) take the style image at twice the
+    views' shorter side, so a stripe of the style spans twice as many pixels of a render; the run records it."""
+    import ssgwarp.stylization.stylize as stylize_mod
+    import ssgwarp.stylization.targets as targets_mod
+    from ssgwarp.core.fileio import read_json, write_image
+    from ssgwarp.core.imaging import fit_style
+
+    run, _ = _write_run(tmp_path, grouped=False)
+    stripes = torch.zeros(64, 96, 3)
+    stripes[:, (torch.arange(96) // 8) % 2 == 1] = 1.0             # vertical stripes 8 px wide
+    write_image(tmp_path / "stripes.png", stripes)
+    seen = {"targets": [], "colour": []}
+    real_targets, real_colours = stylize_mod.build_targets, targets_mod.transfer_colors
+    monkeypatch.setattr(stylize_mod, "build_targets", lambda ext, images, *a, **kw: seen["targets"].append(images)
+                        or real_targets(ext, images, *a, **kw))
+    monkeypatch.setattr(targets_mod, "transfer_colors", lambda sc, cams, target, **kw: seen["colour"].append(target)
+                        or real_colours(sc, cams, target, **kw))
+    cams = Cameras.load(run / "cameras.json")
+    for scale in (1.0, 2.0):
+        seen["targets"].clear(), seen["colour"].clear()
+        st.stylize_run(run, tmp_path / "stripes.png", tmp_path / f"o{scale:g}", device="cpu", progress=False,
+                       opts=st.StylizeOptions(path_frames=0, sheet_views=1),
+                       stage2=st.Stage2Config(mode="global", iters=2, checkpoint_every=1000, style_scale=scale))
+        want = fit_style(stripes, cams.height, cams.width, scale).permute(0, 2, 3, 1)
+        assert min(want.shape[1:3]) == round(scale * min(cams.height, cams.width))
+        for target in seen["targets"] + seen["colour"]:
+            assert target.shape == want.shape
+            torch.testing.assert_close(target.float(), want, atol=2e-3, rtol=0)
+        assert len(seen["targets"]) == 1 and len(seen["colour"]) == 2
+        bright = seen["targets"][0][0, 0, :, 0] > 0.5                # one row of the style as the loss sees it
+        edges = bright[1:].ne(bright[:-1]).nonzero()[:, 0]
+        assert set(edges.diff().tolist()) == {round(8 * scale * min(cams.height, cams.width) / 64)}   # stripe width
+        assert read_json(tmp_path / f"o{scale:g}" / "metrics.json")["config"]["style_scale"] == scale
 
 
 def test_content_loss_relative_is_the_feature_mse_over_the_references_mean_square():

@@ -116,11 +116,12 @@ def save_sheet(original, stylized, path: str | Path, gap: int = 4) -> Path:
     return write_image(path, np.concatenate(rows, axis=0))
 
 
-def fit_style(style: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """Resize ``style [H_s, W_s, 3]`` so its shorter side equals ``min(height, width)`` (aspect kept): ``[1,3,h,w]``."""
+def fit_style(style: torch.Tensor, height: int, width: int, scale: float = 1.0) -> torch.Tensor:
+    """Resize ``style [H_s, W_s, 3]`` so its shorter side equals ``scale * min(height, width)`` (aspect kept):
+    ``[1,3,h,w]``. ``scale > 1`` makes the style's strokes and patterns larger in a view."""
     s = style.permute(2, 0, 1)[None]
     hs, ws = s.shape[-2:]
-    k = min(height, width) / min(hs, ws)
+    k = max(1, round(scale * min(height, width))) / min(hs, ws)
     size = (max(1, round(hs * k)), max(1, round(ws * k)))
     if size == (hs, ws):
         return s

@@ -130,6 +130,9 @@ class Stage2Config:
         label_mode: group maps to feature resolution by ``majority`` or ``nearest``.
         feature_scale: images are resized by this factor before the feature
             extractor (speed/accuracy knob; 1 = full resolution).
+        style_scale: size of the style image against the views (its shorter side = ``style_scale`` x the views'
+            shorter side, :func:`ssgwarp.core.imaging.fit_style`): above 1 the style's strokes and patterns are
+            painted larger, below 1 smaller. Without Stage 1 only (the stylized key views are views already).
         deferred: deferred back-propagation (False: direct, for comparison).
         chunk: similarity entries per block of the nearest-neighbour search.
         nn_precision: dtype of the nearest-neighbour search (``auto``: bf16 on CUDA, fp32 on CPU).
@@ -163,6 +166,7 @@ class Stage2Config:
     background: str = "transfer"
     label_mode: str = "majority"
     feature_scale: float = 1.0
+    style_scale: float = 1.0
     deferred: bool = True
     chunk: int = DEFAULT_CHUNK
     nn_precision: str = "auto"
@@ -172,8 +176,12 @@ class Stage2Config:
     batch_scaling: str = "sqrt"
 
     def validate(self) -> "Stage2Config":
-        if self.mode not in MODES:
-            raise InputError(f"--mode {self.mode}: use one of {', '.join(MODES)}")
+        for key, allowed in (("mode", MODES), ("style_loss", STYLE_LOSSES), ("color_transfer", COLOR_TRANSFER),
+                             ("color_detail", COLOR_DETAIL), ("background", BACKGROUNDS), ("sh_rest", SH_REST),
+                             ("label_mode", ("majority", "nearest")), ("nn_precision", ("auto", "fp32", "bf16", "fp16")),
+                             ("batch_scaling", ("sqrt", "linear", "none"))):
+            if getattr(self, key) not in allowed:
+                raise InputError(f"--{key.replace('_', '-')} {getattr(self, key)}: use one of {', '.join(allowed)}")
         if self.iters < 0:
             raise InputError(f"--iters {self.iters}: must be >= 0")
         for k in ("lr", "style_weight", "content_weight", "tv_weight", "blend_weight", "densify", "hold_empty",
@@ -188,32 +196,18 @@ class Stage2Config:
             raise InputError(f"--densify-views {self.densify_views}: must be >= 1")
         if not 0 < self.feature_scale <= 4:
             raise InputError(f"--feature-scale {self.feature_scale}: must be in (0, 4]")
-        if self.style_loss not in STYLE_LOSSES:
-            raise InputError(f"--style-loss {self.style_loss}: use one of {', '.join(STYLE_LOSSES)}")
+        if not (math.isfinite(self.style_scale) and 0.25 <= self.style_scale <= 4):
+            raise InputError(f"--style-scale {self.style_scale}: must be in [0.25, 4] (1: the style fits the views)")
         if self.sw_projections < 1:
             raise InputError(f"--sw-projections {self.sw_projections}: must be >= 1")
-        if self.color_transfer not in COLOR_TRANSFER:
-            raise InputError(f"--color-transfer {self.color_transfer}: use one of {', '.join(COLOR_TRANSFER)}")
         if self.color_max_gain is not None and not (math.isfinite(self.color_max_gain) and self.color_max_gain > 0):
             raise InputError(f"--color-max-gain {self.color_max_gain}: must be a finite number > 0")
-        if self.color_detail not in COLOR_DETAIL:
-            raise InputError(f"--color-detail {self.color_detail}: use one of {', '.join(COLOR_DETAIL)}")
-        if self.background not in BACKGROUNDS:
-            raise InputError(f"--background {self.background}: use one of {', '.join(BACKGROUNDS)}")
-        if self.sh_rest not in SH_REST:
-            raise InputError(f"--sh-rest {self.sh_rest}: use one of {', '.join(SH_REST)}")
-        if self.label_mode not in ("majority", "nearest"):
-            raise InputError(f"--label-mode {self.label_mode}: use majority or nearest")
-        if self.nn_precision not in ("auto", "fp32", "bf16", "fp16"):
-            raise InputError(f"--nn-precision {self.nn_precision}: use auto, fp32, bf16 or fp16")
         if self.chunk < 1:
             raise InputError(f"--chunk {self.chunk}: must be >= 1")
         if self.checkpoint_every < 1:
             raise InputError("--checkpoint-every must be >= 1")
         if self.batch_size is not None and self.batch_size < 1:
             raise InputError(f"--batch-size {self.batch_size}: must be >= 1")
-        if self.batch_scaling not in ("sqrt", "linear", "none"):
-            raise InputError(f"--batch-scaling {self.batch_scaling}: use sqrt, linear or none")
         return self
 
 

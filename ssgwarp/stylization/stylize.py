@@ -161,8 +161,10 @@ class _Run:
 
     @property
     def style_at_views(self) -> torch.Tensor:
-        """The style ``[1, H, W, 3]`` as the style loss and the colour transfer take it (:func:`fit_style`)."""
-        return fit_style(self.style.to(self.scene.dtype), self.cams.height, self.cams.width).permute(0, 2, 3, 1)
+        """The style ``[1, H, W, 3]`` as the style loss and the colour transfer take it (:func:`fit_style`,
+        ``--style-scale``)."""
+        return fit_style(self.style.to(self.scene.dtype), self.cams.height, self.cams.width,
+                         self.stage2.style_scale).permute(0, 2, 3, 1)
 
     def say(self, msg: str) -> None:
         _say(msg, self.progress)
@@ -310,6 +312,9 @@ def _stage2_loss(r: _Run, t: Targets, kv, content_ref: torch.Tensor, alphas: tor
     if t.use_keys and stage2.mode == "finetune":
         return None, t.key_images, t.key_cams, "none (fine-tuned on the stylized key views)"
     if t.use_keys:
+        if stage2.style_scale != 1:
+            r.say(f"--style-scale {stage2.style_scale:g} not used: Stage 2 matches the stylized key views, which are "
+                  "views already (--mode global matches the style image)")
         view_labels = None if r.classifier is None else group_maps(r.scene, r.train_cams, r.classifier, r.progress)
         targets = build_targets(r.extractor, t.key_images, t.key_labels, stage2)
         matching = (f"per group ({r.num_groups} groups) against {len(kv)} stylized key views"

@@ -92,6 +92,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="group maps to feature resolution (default majority)")
     g.add_argument("--feature-scale", type=float, default=d.feature_scale,
                    help="resize images by this factor before the feature extractor (default 1)")
+    g.add_argument("--style-scale", type=float, default=d.style_scale, metavar="S",
+                   help="size of the style's strokes and patterns in the views: the style image is resized so its "
+                        "shorter side is S x the views' (default 1; 2 paints them twice as large). Without Stage 1")
     g.add_argument("--direct", action="store_true", help="direct back-propagation instead of deferred")
     g.add_argument("--chunk", type=int, default=d.chunk, help="similarity entries per nearest-neighbour block")
     g.add_argument("--nn-precision", default=d.nn_precision, choices=("auto", "fp32", "bf16", "fp16"),
