@@ -122,11 +122,12 @@ def run_style(run: Path, style: Path, out: Path, cfg, device, extractor: str, ev
     return row
 
 
-def add_halves(rows: list[dict], styles: list[Path], run: Path) -> None:
+def add_halves(rows: list[dict], styles: list[Path], run: Path, results: Path) -> None:
     """Each row's ``color_half`` / ``texture_half``: the distances of the style image's own halves to the whole
-    at the scored views' size (:meth:`StyleDistance.halves`), a reference for how close a render can get."""
+    at the scored views' size (:meth:`StyleDistance.halves`), a reference for how close a render can get;
+    computed once and kept in the style's ``result.json`` (in ``results``, ``OUT/<scene>/styles``)."""
     from ssgwarp.core.cameras import Cameras
-    from ssgwarp.core.fileio import read_image
+    from ssgwarp.core.fileio import read_image, write_json
     from ssgwarp.evaluation.metrics import StyleDistance
 
     cams = Cameras.load(run / "cameras.json")
@@ -136,6 +137,8 @@ def add_halves(rows: list[dict], styles: list[Path], run: Path) -> None:
             style = torch.as_tensor(read_image(by_name[r["style"]], 3)).float()
             h = StyleDistance(style).halves(cams.height, cams.width)
             r["color_half"], r["texture_half"] = h["color"], h["texture"]
+            if (results / r["style"] / "result.json").is_file():
+                write_json(results / r["style"] / "result.json", r)
 
 
 def source_consistency(run: Path, out: Path, device, eval_opts, progress: bool = True) -> dict:
@@ -448,7 +451,7 @@ def main() -> int:
             rows.append(run_style(run, s, out / "styles" / s.stem, cfg, device, args.extractor, eval_opts, progress))
         elif (out / "styles" / s.stem / "result.json").is_file():
             rows.append(json.loads((out / "styles" / s.stem / "result.json").read_text()))
-    add_halves(rows, styles, run)
+    add_halves(rows, styles, run, out / "styles")
     title = (f"`ssgwarp stylize` (weight-free: no Stage 1, {rows[0]['extractor'] if rows else '-'}) on {name}, "
              f"{dev}, {time.strftime('%Y-%m-%d')}; scored by `ssgwarp evaluate` on {src['views_scored']}. "
              f"Distances: sliced Wasserstein to the style (colour in Lab, texture of a derivative-of-Gaussian "

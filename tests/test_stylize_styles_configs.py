@@ -65,3 +65,33 @@ def test_timeout_counts_the_scene_build(tmp_path, monkeypatch, capsys):
     assert second <= first
     out = capsys.readouterr().out
     assert "== a (exit -15): 1/2 styles finished" in out and "== b (exit -15): 0/2 styles finished" in out
+
+
+def test_half_style_references_are_computed_once_and_kept_with_the_result(tmp_path, monkeypatch):
+    """``--report`` re-reads every finished style: the half-of-the-style reference is stored in the style's
+    result.json the first time, not recomputed on every report."""
+    import json
+
+    import torch
+
+    from ssgwarp.core.cameras import Cameras
+    from ssgwarp.core.fileio import write_image, write_json
+    from ssgwarp.evaluation.metrics import StyleDistance
+
+    run = tmp_path / "run"
+    run.mkdir()
+    Cameras(torch.eye(4)[None], torch.tensor([[[20.0, 0, 16], [0, 20.0, 12], [0, 0, 1]]]), 32, 24).save(
+        run / "cameras.json")
+    write_image(tmp_path / "candy.png", torch.rand(40, 50, 3))
+    res = tmp_path / "styles" / "candy"
+    res.mkdir(parents=True)
+    write_json(res / "result.json", {"style": "candy", "texture_after": 1.0})
+    calls = []
+    real = StyleDistance.halves
+    monkeypatch.setattr(StyleDistance, "halves", lambda self, h, w: calls.append((h, w)) or real(self, h, w))
+    for _ in range(2):
+        rows = [json.loads((res / "result.json").read_text())]
+        ss.add_halves(rows, [tmp_path / "candy.png"], run, tmp_path / "styles")
+        assert rows[0]["texture_half"] > 0 and rows[0]["color_half"] > 0 and rows[0]["texture_after"] == 1.0
+    assert calls == [(24, 32)]                      # once, at the views' size
+    assert json.loads((res / "result.json").read_text())["texture_half"] == rows[0]["texture_half"]
