@@ -373,9 +373,9 @@ def main() -> int:
     g.add_argument("--hold-empty", type=float, default=None, help="weight of the empty-region term (0: off)")
     g.add_argument("--consistency-weight", type=float, default=None, help="weight of the view-pair term (0: off)")
     g.add_argument("--consistency-neighbours", type=int, default=None)
-    g.add_argument("--style-scale", type=float, default=None, help="style image size against the views (1: fit)")
     g.add_argument("--consistency-budget", type=float, default=None,
                    help="pair error (x the starting scene's, squared) left free by the view-pair term")
+    g.add_argument("--style-scale", type=float, default=None, help="style image size against the views (1: fit)")
     from ssgwarp.core.presets import add_preset
     from ssgwarp.stylization.stylize_cli import PAINT
     add_preset(p, "--paint", PAINT, "ssgwarp stylize's painting preset: {values} (options given explicitly win)")

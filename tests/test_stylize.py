@@ -418,6 +418,12 @@ def test_stylize_with_tiny_stage1_runs_ist_on_the_stylized_key_views(tmp_path, m
     # a different CVSA setting is a different run
     with pytest.raises(InputError, match="stage1"):
         st.stylize_run(run, style, out, stage1=Stage1Config(steps=2, cvsa=True, progress=False), resume=True, **kw)
+    # --style-scale sizes the style image, which Stage 2 does not match here: the run says so
+    kw["stage2"] = st.Stage2Config(iters=1, style_scale=2)
+    m3 = st.stylize_run(run, style, tmp_path / "scaled", stage1=Stage1Config(steps=2, cvsa=False, progress=False),
+                        stage1_models=models, **kw)
+    assert m3["matching"] == m["matching"] + " (--style-scale 2 not used: the stylized key views are views already " \
+        "(--mode global matches the style image))"
 
 
 # ----------------------------------------------------------------------------- the Stage 2 objective, by hand

@@ -312,13 +312,15 @@ def _stage2_loss(r: _Run, t: Targets, kv, content_ref: torch.Tensor, alphas: tor
     if t.use_keys and stage2.mode == "finetune":
         return None, t.key_images, t.key_cams, "none (fine-tuned on the stylized key views)"
     if t.use_keys:
-        if stage2.style_scale != 1:
-            r.say(f"--style-scale {stage2.style_scale:g} not used: Stage 2 matches the stylized key views, which are "
-                  "views already (--mode global matches the style image)")
         view_labels = None if r.classifier is None else group_maps(r.scene, r.train_cams, r.classifier, r.progress)
         targets = build_targets(r.extractor, t.key_images, t.key_labels, stage2)
         matching = (f"per group ({r.num_groups} groups) against {len(kv)} stylized key views"
                     if r.classifier is not None else f"global against {len(kv)} stylized key views (no groups)")
+        if stage2.style_scale != 1:
+            unused = (f"--style-scale {stage2.style_scale:g} not used: the stylized key views are views already "
+                      "(--mode global matches the style image)")
+            r.say(unused)
+            matching += f" ({unused})"
         return ViewLoss(r.extractor, targets, stage2, view_labels=view_labels, **ref), \
             None, None, matching
     if t.regions is not None:
