@@ -5,6 +5,12 @@ import torch
 
 torch.set_num_threads(1)  # the tests' tensors are tiny: threads cost more than they give
 
+# `python -m pytest` puts the checkout's root on sys.path, where kernels/ (installed as ssgwarp.kernels) hides the
+# PyPI package `kernels` that transformers requires and diffusers imports: load the installed one first
+from ssgwarp.services.weights import unshadow_kernels  # noqa: E402
+
+unshadow_kernels()
+
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 CUDA = torch.cuda.is_available()

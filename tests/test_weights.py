@@ -446,3 +446,25 @@ def test_stylize_checks_its_output_folder_before_fetching_anything(tmp_path, mon
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "already holds a stylize output" in err[0] and "--force" in err[0]
     assert hub.calls == [] and hub.probes == []
+
+
+def test_the_checkouts_kernels_folder_does_not_hide_the_installed_kernels_package():
+    """transformers 5 requires the PyPI package ``kernels``; run from a checkout's root (``python -m``), the
+    root's ``kernels/`` folder would be imported in its place and diffusers / transformers fail to import."""
+    import importlib.metadata
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    try:
+        importlib.metadata.version("kernels")
+    except importlib.metadata.PackageNotFoundError:
+        pytest.skip("the kernels package is not installed")
+    root = Path(__file__).resolve().parents[1]
+    probe = ("import sys; sys.path.insert(0, {root!r}); {call}import kernels; "
+             "print(kernels.__file__.startswith({folder!r}), hasattr(kernels, 'get_kernel'))")
+    folder = str(root / "kernels")
+    runs = [subprocess.run([sys.executable, "-c", probe.format(root=str(root), folder=folder, call=call)], cwd=root,
+                           capture_output=True, text=True, timeout=120)
+            for call in ("", "from ssgwarp.services.weights import unshadow_kernels; unshadow_kernels(); ")]
+    assert [r.stdout.split() for r in runs] == [["True", "False"], ["False", "True"]], [r.stderr for r in runs]

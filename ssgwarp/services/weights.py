@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import contextlib
 import fnmatch
+import importlib
 import importlib.util
 import os
 import socket
@@ -53,7 +54,7 @@ from .weight_specs import (  # noqa: F401 (re-exported: part of this module's AP
 
 __all__ = ["WeightSpec", "SPECS", "GROUPS", "DownloadFailed", "find", "locate", "require", "obtain", "fetch",
            "message", "notice", "load_error", "offline_reason", "offline", "verbose", "probe", "hub_cache",
-           "torch_checkpoints"]
+           "torch_checkpoints", "unshadow_kernels"]
 
 
 class DownloadFailed(WeightsNotFound):
@@ -69,6 +70,30 @@ _SAID: set = set()                           # models whose absence this command
 
 
 # -- where the ecosystem keeps its files -----------------------------------------------------------
+def unshadow_kernels() -> None:
+    """Make ``import kernels`` give the installed Hugging Face package, not this project's ``kernels/`` folder.
+
+    transformers 5 requires the PyPI package ``kernels``, and diffusers imports it where it is installed. With a
+    source checkout's root on ``sys.path`` (``python -m ...`` or pytest run there) the checkout's ``kernels/``
+    (installed as ``ssgwarp.kernels``) is found first and those imports fail. Call before importing diffusers or
+    transformers: it imports the installed package once with the checkout's root left out of ``sys.path``; a
+    no-op where ``kernels`` is already imported, resolves elsewhere, or is not installed."""
+    if "kernels" in sys.modules:
+        return
+    ours = Path(importlib.util.find_spec("ssgwarp.kernels").origin).resolve().parent
+    spec = importlib.util.find_spec("kernels")
+    if spec is None or spec.origin is None or Path(spec.origin).resolve().parent != ours:
+        return
+    saved = list(sys.path)
+    sys.path[:] = [e for e in saved if Path(e or ".").resolve() != ours.parent]
+    try:
+        importlib.import_module("kernels")
+    except ImportError:
+        sys.modules.pop("kernels", None)
+    finally:
+        sys.path[:] = saved
+
+
 def hub_cache() -> Path:
     """The Hugging Face Hub cache folder, from the environment at call time (as ``huggingface_hub`` does)."""
     for var in ("HF_HUB_CACHE", "HUGGINGFACE_HUB_CACHE"):
