@@ -80,15 +80,14 @@ def prepare_scene(scene: str, out: Path, device, fern_iters: int, progress: bool
 
 
 def stage2_config(args, **over):
+    """Stage 2's configuration: the defaults, then every Stage 2 option given (the parser's "Stage 2" group names
+    its fields), then ``over``."""
+    import dataclasses
+
     from ssgwarp.stylization.stylize import Stage2Config
 
-    kw = {}
-    for k in ("iters", "lr", "content_weight", "tv_weight", "blend_weight", "color_transfer", "color_max_gain",
-              "color_detail", "sh_rest", "background", "mode", "densify", "densify_views", "hold_empty",
-              "consistency_weight", "consistency_neighbours", "consistency_budget", "style_scale"):
-        v = getattr(args, k)
-        if v is not None:
-            kw[k] = v
+    kw = {f.name: getattr(args, f.name) for f in dataclasses.fields(Stage2Config)
+          if getattr(args, f.name, None) is not None}
     kw.update(over)
     return Stage2Config(**kw)
 

@@ -95,3 +95,13 @@ def test_half_style_references_are_computed_once_and_kept_with_the_result(tmp_pa
         assert rows[0]["texture_half"] > 0 and rows[0]["color_half"] > 0 and rows[0]["texture_after"] == 1.0
     assert calls == [(24, 32)]                      # once, at the views' size
     assert json.loads((res / "result.json").read_text())["texture_half"] == rows[0]["texture_half"]
+
+
+def test_stage2_config_takes_the_stage2_options_given_and_overrides():
+    from ssgwarp.stylization.stylize import Stage2Config
+
+    args = argparse.Namespace(scene="demo", tag="x", iters=7, lr=None, mode="global", consistency_budget=1.6,
+                              style_scale=None)
+    cfg = ss.stage2_config(args, tv_weight=0.1)
+    assert cfg == Stage2Config(iters=7, mode="global", consistency_budget=1.6, tv_weight=0.1)
+    assert ss.stage2_config(argparse.Namespace()) == Stage2Config()
