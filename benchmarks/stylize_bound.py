@@ -9,8 +9,8 @@ whether it has converged). Beside them: the colour distance's change (the patch 
 mean colour, so colour drifts; Stage 2 maps it back with its post colour transfer), and half of the style
 image against the whole (``StyleDistance.halves``), all against the unstylized scene's distances.
 
-What it is for: a Stage 2 optimising Gaussians cannot paint more texture than its loss reaches on free
-pixels, so a scene's texture target beyond this column is beyond the loss, whatever the 3-D side does.
+What it is for: the loss's reach with no 3-D scene in its way. A scene's mean texture target beyond it is beyond
+the loss, whatever the 3-D side does (Stage 2's closing colour map moves single styles by some points either way).
 
     python benchmarks/stylize_bound.py --run RUN --styles candy,mosaic --steps 10,100
     python benchmarks/stylize_bound.py --run RUN --device cuda --frames 10 --steps 50,200 --json bound.json
