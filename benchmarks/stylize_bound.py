@@ -28,6 +28,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 STYLES = ROOT.parent / "shared" / "data" / "styles"
 
+from ssgwarp.services.features import EXTRACTOR_KINDS  # noqa: E402
+
 
 def style_paths(spec: str, folder: Path) -> list[Path]:
     """The style images named by ``spec`` (comma-separated names without extension, or paths; empty: every
@@ -79,7 +81,8 @@ def main() -> int:
     p.add_argument("--style-dir", type=Path, default=STYLES, help="folder of style images (default ../shared/data/styles)")
     p.add_argument("--steps", default="10,100", help="steps per view at which the views are scored (ascending)")
     p.add_argument("--lr", type=float, default=0.05, help="Adam learning rate on the pixels' logits")
-    p.add_argument("--extractor", default="patches", help="Stage 2's features (default patches, as --paint)")
+    p.add_argument("--extractor", default="patches", choices=EXTRACTOR_KINDS,
+                   help="Stage 2's features (default patches, as --paint)")
     p.add_argument("--tv-weight", type=float, default=0.0, help="add Stage 2's total variation term (default 0)")
     p.add_argument("--frames", type=int, default=30, help="path views (ssgwarp evaluate's default 30)")
     p.add_argument("--device", default="auto")
@@ -87,15 +90,7 @@ def main() -> int:
     p.add_argument("--json", type=Path, default=None, help="also write the rows here (after every style)")
     args = p.parse_args()
 
-    from ssgwarp.cli import resolve_device
-    from ssgwarp.core.fileio import read_image, write_json
-    from ssgwarp.core.imaging import fit_style
     from ssgwarp.errors import InputError
-    from ssgwarp.evaluation.evaluate import EvalOptions, inspect_run, render_views, scored_cameras
-    from ssgwarp.evaluation.style_distance import StyleDistance
-    from ssgwarp.services.color import transfer_colors
-    from ssgwarp.services.features import load_extractor
-    from ssgwarp.stylization.stage2 import Stage2Config, build_targets, extract, resolve_for, tv_loss
 
     try:
         counts = sorted({int(c) for c in args.steps.split(",")})
@@ -105,10 +100,22 @@ def main() -> int:
         print(f"stylize_bound: --steps takes step counts >= 0 such as 10,100, got {args.steps!r}", file=sys.stderr)
         return 2
     try:
-        styles = style_paths(args.styles, args.style_dir)
-    except InputError as e:
+        return bound(args, counts, style_paths(args.styles, args.style_dir))
+    except InputError as e:     # a style not found, a bad run folder or style image: one line
         print(f"stylize_bound: {e}", file=sys.stderr)
         return 2
+
+
+def bound(args, counts: list[int], styles: list[Path]) -> int:
+    """Score every style (main's table and ``--json``)."""
+    from ssgwarp.cli import resolve_device
+    from ssgwarp.core.fileio import read_image, write_json
+    from ssgwarp.core.imaging import fit_style
+    from ssgwarp.evaluation.evaluate import EvalOptions, inspect_run, render_views, scored_cameras
+    from ssgwarp.evaluation.style_distance import StyleDistance
+    from ssgwarp.services.color import transfer_colors
+    from ssgwarp.services.features import load_extractor
+    from ssgwarp.stylization.stage2 import Stage2Config, build_targets, extract, resolve_for, tv_loss
     device = resolve_device(args.device)
     torch.manual_seed(args.seed)
     scene, data = inspect_run(args.run).load(device, load_images=False)

@@ -81,3 +81,12 @@ def test_main_bad_flags_are_one_line_errors(tmp_path, monkeypatch, capsys, flags
     assert sb.main() == 2
     err = capsys.readouterr().err.strip()
     assert says in err and "\n" not in err
+
+
+def test_main_a_folder_that_is_no_run_is_a_one_line_error(tmp_path, monkeypatch, capsys):
+    (tmp_path / "s.png").write_bytes(b"x")
+    monkeypatch.setattr(sys, "argv", ["stylize_bound.py", "--run", str(tmp_path / "nothing"), "--styles",
+                                      str(tmp_path / "s.png"), "--device", "cpu"])
+    assert sb.main() == 2
+    err = capsys.readouterr().err.strip()
+    assert "nothing" in err and "ssgwarp reconstruct" in err and "\n" not in err
