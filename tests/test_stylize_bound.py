@@ -50,7 +50,7 @@ def _run(tmp_path):
     from test_grouping import blobs_scene, make_run, ring_cameras
 
     scene, _ = blobs_scene()
-    run = make_run(tmp_path / "run", scene, ring_cameras(n=10, size=32))
+    run = make_run(tmp_path / "run", scene, ring_cameras(n=10, size=24))
     yy, xx = np.meshgrid(np.arange(32), np.arange(32), indexing="ij")
     stripes = np.where(((xx + yy) // 3 % 2 == 0)[..., None], [0.95, 0.85, 0.1], [0.1, 0.15, 0.6]).astype(np.float32)
     write_image(tmp_path / "stripes.png", stripes)
@@ -61,14 +61,14 @@ def test_main_scores_free_pixels_per_step_count(tmp_path, monkeypatch, capsys):
     run, style = _run(tmp_path)
     out = tmp_path / "bound.json"
     monkeypatch.setattr(sys, "argv", ["stylize_bound.py", "--run", str(run), "--styles", str(style),
-                                      "--steps", "150,0", "--frames", "3", "--device", "cpu", "--json", str(out)])
+                                      "--steps", "150,0", "--frames", "2", "--device", "cpu", "--json", str(out)])
     assert sb.main() == 0
     rec = json.loads(out.read_text())
-    assert rec["steps"] == [0, 150] and rec["views"] == 3 and len(rec["rows"]) == 1
+    assert rec["steps"] == [0, 150] and rec["views"] == 2 and len(rec["rows"]) == 1
     row = rec["rows"][0]
     assert row["style"] == "stripes"
     assert row["free"]["0"] == pytest.approx(row["color_transfer"], rel=1e-5)   # 0 steps: the colour transfer
-    assert row["free"]["150"] < 0.9 * row["free"]["0"]                          # the loss paints texture
+    assert row["free"]["150"] < 0.7 * row["free"]["0"]                          # the loss paints texture
     table = capsys.readouterr().out
     assert "| stripes |" in table and "**mean of 1**" in table and "150 steps / view" in table
 
