@@ -26,9 +26,11 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-STYLES = ROOT.parent / "shared" / "data" / "styles"
 
+from shared_data import data_root  # noqa: E402
 from ssgwarp.services.features import EXTRACTOR_KINDS  # noqa: E402
+
+STYLES = data_root() / "styles"
 
 
 def style_paths(spec: str, folder: Path) -> list[Path]:
@@ -153,8 +155,9 @@ def bound(args, counts: list[int], styles: list[Path]) -> int:
 
         per = {}
         for count, images in free_pixels(start, base.alpha, loss, counts, args.lr):
-            per[count] = float(sd(images, base.alpha)["texture"].mean())
-        raw_color = float(sd(images, base.alpha)["color"].mean())
+            last = sd(images, base.alpha)
+            per[count] = float(last["texture"].mean())
+        raw_color = float(last["color"].mean())           # after the last step count
         row = {"style": path.stem, "texture": d0["texture"], "color": d0["color"], "color_transfer": dct,
                "free": per, "free_color": raw_color,
                "halves": sd.halves(H, W), "seconds": time.perf_counter() - t0}

@@ -69,7 +69,7 @@ _VERBOSE: bool = False                       # --debug: messages in their long f
 _SAID: set = set()                           # models whose absence this command has reported (notice())
 
 
-# -- where the ecosystem keeps its files -----------------------------------------------------------
+# -- importing the libraries that own the weights ------------------------------------------------
 def unshadow_kernels() -> None:
     """Make ``import kernels`` give the installed Hugging Face package, not this project's ``kernels/`` folder.
 
@@ -94,6 +94,7 @@ def unshadow_kernels() -> None:
         sys.path[:] = saved
 
 
+# -- where the ecosystem keeps its files -----------------------------------------------------------
 def hub_cache() -> Path:
     """The Hugging Face Hub cache folder, from the environment at call time (as ``huggingface_hub`` does)."""
     for var in ("HF_HUB_CACHE", "HUGGINGFACE_HUB_CACHE"):
