@@ -13,3 +13,27 @@ CANDIDATES = (ROOT.parent / "shared" / "data", Path("/root/data"), ROOT / "share
 def data_root() -> Path:
     """The first candidate folder that exists (the first one when none does, for the error message)."""
     return next((p for p in CANDIDATES if p.is_dir()), CANDIDATES[0])
+
+
+STYLE_SUFFIXES = (".jpg", ".jpeg", ".png")
+
+
+def style_paths(spec: str, folder: Path) -> list[Path]:
+    """The style images named by ``spec`` (comma-separated names without extension, or paths; empty: every
+    image in ``folder``, sorted by name); raises ``InputError`` naming what was not found."""
+    from ssgwarp.errors import InputError
+
+    folder = Path(folder)
+    images = sorted(p for p in folder.iterdir() if p.suffix.lower() in STYLE_SUFFIXES) if folder.is_dir() else []
+    if not spec:
+        if not images:
+            raise InputError(f"no style images in {folder}: give the styles or their folder")
+        return images
+    out = []
+    for name in (n.strip() for n in spec.split(",") if n.strip()):
+        p = Path(name)
+        found = p if p.is_file() else next((q for q in images if q.stem == name), None)
+        if found is None:
+            raise InputError(f"style {name!r}: not a file and not an image in {folder}")
+        out.append(found)
+    return out

@@ -27,31 +27,10 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from shared_data import data_root  # noqa: E402
+from shared_data import data_root, style_paths  # noqa: E402
 from ssgwarp.services.features import EXTRACTOR_KINDS  # noqa: E402
 
 STYLES = data_root() / "styles"
-
-
-def style_paths(spec: str, folder: Path) -> list[Path]:
-    """The style images named by ``spec`` (comma-separated names without extension, or paths; empty: every
-    image in ``folder``)."""
-    from ssgwarp.errors import InputError
-
-    images = sorted(p for p in folder.glob("*") if p.suffix.lower() in (".jpg", ".jpeg", ".png")) \
-        if folder.is_dir() else []
-    if not spec:
-        if not images:
-            raise InputError(f"no style images in {folder}: give --styles or --style-dir")
-        return images
-    out = []
-    for name in spec.split(","):
-        p = Path(name)
-        found = p if p.is_file() else next((q for q in images if q.stem == name), None)
-        if found is None:
-            raise InputError(f"style {name!r}: not a file and not an image in {folder}")
-        out.append(found)
-    return out
 
 
 def free_pixels(start: torch.Tensor, alphas: torch.Tensor, loss, counts: list[int], lr: float):

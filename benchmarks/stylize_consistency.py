@@ -10,8 +10,13 @@ shows is what the scene's geometry (blends of Gaussians at several depths, expec
 of painted contrast, the floor under any Stage 2 that paints texture of that contrast. Also reports how
 concentrated the squared error is (share in the worst 10 % / 25 % of the scored pixels).
 
+``--truth`` (a run made by ``ssgwarp demo``: ``OUT/scene``) scores the procedural scene that made the demo's
+capture too, the true geometry, with the same cameras and probes: what painted contrast costs where the
+reconstruction is not to blame.
+
     python benchmarks/stylize_consistency.py --run RUN --style ../shared/data/styles/candy.jpg
     python benchmarks/stylize_consistency.py --run RUN --periods 2,8 --amplitudes 0.15,0.3 --frames 30
+    python benchmarks/stylize_consistency.py --run ssgwarp-demo/scene --truth --periods 2,8,32
 """
 from __future__ import annotations
 
@@ -49,6 +54,23 @@ def pixel_size(scene, cams) -> float:
     return float(z.median() if len(z) else 1.0) / float(cams.Ks[0, 0, 0])
 
 
+def demo_truth(run: Path):
+    """The procedural scene that made the capture of the demo whose reconstruction is ``run`` (``OUT/scene``;
+    size and seed from ``OUT/summary.json``)."""
+    from ssgwarp import procedural as P
+    from ssgwarp.core.fileio import read_json
+    from ssgwarp.errors import InputError
+
+    summary = Path(run).resolve().parent / "summary.json"
+    if not summary.is_file():
+        raise InputError(f"--truth: {summary} not found; pass the scene folder of an `ssgwarp demo` output (OUT/scene)")
+    info = read_json(summary)
+    size = P.SIZES.get(info.get("size"))
+    if size is None:
+        raise InputError(f"--truth: {summary} names demo size {info.get('size')!r}; use one of {', '.join(P.SIZES)}")
+    return P.build_scene(size.density, seed=int(info.get("seed", 0))).scene
+
+
 def score(scene, cams, bg, opts, style_distance, alpha0) -> dict:
     from ssgwarp.evaluation import metrics as M
     from ssgwarp.evaluation.evaluate import consistency, render_views
@@ -78,36 +100,16 @@ def score(scene, cams, bg, opts, style_distance, alpha0) -> dict:
             "levels": levels, "alpha": alpha}
 
 
-def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--run", type=Path, required=True, help="a reconstruction run folder")
-    p.add_argument("--style", type=Path, default=None, help="style image: texture distance per filter scale too")
-    p.add_argument("--periods", default="1,2,4,8,16", help="probe periods in pixels")
-    p.add_argument("--amplitudes", default="0.15,0.3", help="probe standard deviations (colour, 0..1)")
-    p.add_argument("--frames", type=int, default=30, help="path views scored (ssgwarp evaluate's default)")
-    p.add_argument("--device", default="auto")
-    p.add_argument("--json", type=Path, default=None, help="also write the rows here")
-    args = p.parse_args()
+def probe_table(name, scene, cams, bg, opts, sd, args, described) -> dict:
+    """Prints and returns the unpainted scene's error and one row per probe period and amplitude."""
+    from ssgwarp.evaluation.evaluate import render_views
 
-    from ssgwarp.cli import resolve_device
-    from ssgwarp.core.fileio import read_image, write_json
-    from ssgwarp.evaluation.evaluate import EvalOptions, inspect_run, render_views, scored_cameras
-    from ssgwarp.evaluation.style_distance import StyleDistance
-
-    device = resolve_device(args.device)
-    info = inspect_run(args.run)
-    scene, data = info.load(device, load_images=False)
-    opts = EvalOptions(path_frames=args.frames, max_pairs=16, save_pairs=0)
-    cams, _, described = scored_cameras(data.cameras, data.train_ids, data.test_ids, opts)
-    cams = cams.to(device)
-    bg = list(data.background)
-    sd = None if args.style is None else StyleDistance(torch.from_numpy(read_image(args.style, 3)).to(device))
     alpha0 = render_views(scene, cams, bg).alpha
     base = score(scene, cams, bg, opts, sd, alpha0)
     base.pop("alpha")
     pixel = pixel_size(scene, cams)
-    print(f"{args.run}: {len(scene)} Gaussians, {described}, {cams.width}x{cams.height}; unpainted short/long RMSE "
-          f"{base['short']:.4f} / {base['long']:.4f}; worst 10 % / 25 % of pixels hold {100 * base['share10']:.0f} / "
+    print(f"{name}: {len(scene)} Gaussians, {described}, {cams.width}x{cams.height}; unpainted short/long "
+          f"RMSE {base['short']:.4f} / {base['long']:.4f}; worst 10 % / 25 % of pixels hold {100 * base['share10']:.0f} / "
           f"{100 * base['share25']:.0f} % of the squared error")
     print("| period (px) | amplitude | short (x) | long (x) | texture change per scale | worst 10 % / 25 % share |")
     print("|---|---|---|---|---|---|")
@@ -121,8 +123,42 @@ def main() -> int:
             print(f"| {period:g} | {amp:g} | {r['short'] / base['short']:.2f} | {r['long'] / base['long']:.2f} | {lv} | "
                   f"{100 * r['share10']:.0f} / {100 * r['share25']:.0f} % |", flush=True)
             rows.append({"period_px": period, "amplitude": amp, **r})
+    return {"base": base, "rows": rows}
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--run", type=Path, required=True, help="a reconstruction run folder")
+    p.add_argument("--style", type=Path, default=None, help="style image: texture distance per filter scale too")
+    p.add_argument("--periods", default="1,2,4,8,16", help="probe periods in pixels")
+    p.add_argument("--amplitudes", default="0.15,0.3", help="probe standard deviations (colour, 0..1)")
+    p.add_argument("--frames", type=int, default=30, help="path views scored (ssgwarp evaluate's default)")
+    p.add_argument("--device", default="auto")
+    p.add_argument("--truth", action="store_true",
+                   help="a demo's run (OUT/scene): also score the procedural scene that made its capture")
+    p.add_argument("--json", type=Path, default=None, help="also write the rows here")
+    args = p.parse_args()
+
+    from ssgwarp.cli import resolve_device
+    from ssgwarp.core.fileio import read_image, write_json
+    from ssgwarp.evaluation.evaluate import EvalOptions, inspect_run, scored_cameras
+    from ssgwarp.evaluation.style_distance import StyleDistance
+
+    device = resolve_device(args.device)
+    info = inspect_run(args.run)
+    scene, data = info.load(device, load_images=False)
+    opts = EvalOptions(path_frames=args.frames, max_pairs=16, save_pairs=0)
+    cams, _, described = scored_cameras(data.cameras, data.train_ids, data.test_ids, opts)
+    cams = cams.to(device)
+    bg = list(data.background)
+    sd = None if args.style is None else StyleDistance(torch.from_numpy(read_image(args.style, 3)).to(device))
+    scenes = [("reconstruction", scene)] + ([("truth", demo_truth(args.run).to(device))] if args.truth else [])
+    print(f"run {args.run}")
+    out = {"run": str(args.run)}
+    for name, sc in scenes:
+        out[name] = probe_table(name, sc, cams, bg, opts, sd, args, described)
     if args.json:
-        write_json(args.json, {"run": str(args.run), "base": base, "rows": rows})
+        write_json(args.json, out)
     return 0
 
 

@@ -43,10 +43,9 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from shared_data import data_root, style_paths  # noqa: E402
 from ssgwarp.services.features import EXTRACTOR_KINDS  # noqa: E402
-DATA = ROOT.parent / "shared" / "data"
-if not DATA.is_dir():
-    DATA = Path("/work/shared/data")
+DATA = data_root()
 
 SHEET_STYLES = ("brushstrokes", "candy", "la_muse", "mosaic", "the_resevoir_at_poitiers", "sketch", "udnie")
 ABLATION_STYLES = ("candy", "la_muse", "sketch", "udnie")
@@ -383,16 +382,15 @@ def main() -> int:
     from ssgwarp.cli import resolve_device
     from ssgwarp.evaluation.evaluate import EvalOptions
     from ssgwarp.core.fileio import atomic_path, write_json
+    from ssgwarp.errors import InputError
 
     device = resolve_device(args.device)
     torch.manual_seed(0)
     progress = not args.quiet
-    styles = sorted(q for q in args.styles.iterdir() if q.suffix.lower() in (".jpg", ".jpeg", ".png"))
-    if args.styles_subset:
-        want = [s.strip() for s in args.styles_subset.split(",") if s.strip()]
-        styles = [q for q in styles if q.stem in want]
-    if not styles:
-        raise SystemExit(f"no style images in {args.styles}")
+    try:
+        styles = style_paths(args.styles_subset or "", args.styles)
+    except InputError as e:
+        raise SystemExit(str(e)) from None
     if args.configs is not None:
         return run_configs(args, styles, device, progress)
     name = scene_name(args.scene)

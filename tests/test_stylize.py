@@ -657,7 +657,7 @@ def test_tv_default_resolves_by_extractor_and_smooths_the_weight_free_renders():
     300 Gaussians with SH degree 1, 30 steps, lr 0.3): mean TV of the renders 0.00279 vs 0.00291 (x0.957;
     unstylized 0.00170), colour distance 5.35 vs 5.23 (unstylized 15.2), texture 1.697 vs 1.684 (1.893). At this scale the consistency RMSE
     moves by < 1 % either way; on fern (H100, 25 styles) the worst ratio fell from 1.55x/1.63x to
-    1.29x/1.36x (docs/stylize.md). Asserted: half the TV margin, and still clearly closer to the style."""
+    1.29x/1.36x (docs/notes/stylize-history.md). Asserted: half the TV margin, and still clearly closer to the style."""
     from ssgwarp.core.imaging import fit_style
     from ssgwarp.evaluation.evaluate import render_views
     from ssgwarp.evaluation.metrics import StyleDistance
@@ -726,7 +726,8 @@ def test_background_is_recoloured_with_the_scene_and_evaluated_on(tmp_path):
     transfer as the scene (pre and post), the run records it, its renders and ``ssgwarp evaluate``
     show the scene on it, while the unstylized source is still scored on the capture's; ``keep``
     leaves it as captured. (Why: on the demo scene a style that darkens the scene otherwise draws a
-    hard outline against the white background, which the texture distance counts: docs/stylize.md.)"""
+    hard outline against the white background, which the texture distance counts:
+    docs/notes/stylize-history.md, "Why the demo's texture distance does not fall".)"""
     from ssgwarp.core.fileio import read_image, write_image
     from ssgwarp.evaluation.evaluate import EvalOptions, evaluate_run
     from ssgwarp.services.color import transfer_background
@@ -764,7 +765,7 @@ def test_colour_transfer_matches_the_style_as_the_loss_and_the_distance_see_it(t
     """Against the style image, the colour statistics are those of the style resized to the views
     (:func:`fit_style`, as the style loss and the style distance take it), not of the full-size file:
     a style of 1-pixel black and white lines, which at the views' size is a mid grey, must not get the
-    scene stretched to black and white (docs/stylize.md: the demo's line-art styles)."""
+    scene stretched to black and white (docs/notes/stylize-history.md: the demo's line-art styles)."""
     import ssgwarp.stylization.targets as stylize_mod     # (where stylize's colour transfer is called)
     from ssgwarp.core.fileio import write_image
     from ssgwarp.core.imaging import fit_style

@@ -105,3 +105,13 @@ def test_stage2_config_takes_the_stage2_options_given_and_overrides():
     cfg = ss.stage2_config(args, tv_weight=0.1)
     assert cfg == Stage2Config(iters=7, mode="global", consistency_budget=1.6, tv_weight=0.1)
     assert ss.stage2_config(argparse.Namespace()) == Stage2Config()
+
+
+def test_an_unknown_style_name_stops_the_run_with_one_line(tmp_path, monkeypatch):
+    (tmp_path / "candy.jpg").write_bytes(b"x")
+    monkeypatch.setattr(ss, "prepare_scene", lambda *a, **k: pytest.fail("no scene is built for a bad style name"))
+    monkeypatch.setattr(sys, "argv", ["stylize_styles.py", "--scene", "demo", "--styles", str(tmp_path),
+                                      "--styles-subset", "candy,cnady", "--out", str(tmp_path / "out")])
+    with pytest.raises(SystemExit, match="style 'cnady': not a file and not an image in"):
+        ss.main()
+    assert not (tmp_path / "out").exists()
