@@ -138,7 +138,17 @@ def main() -> int:
                    help="a demo's run (OUT/scene): also score the procedural scene that made its capture")
     p.add_argument("--json", type=Path, default=None, help="also write the rows here")
     args = p.parse_args()
+    from ssgwarp.errors import InputError
 
+    try:
+        return probe(args)
+    except InputError as e:     # a bad run folder, style image or --truth on a run that is not a demo's: one line
+        print(f"stylize_consistency: {e}", file=sys.stderr)
+        return 2
+
+
+def probe(args) -> int:
+    """Every probe on the run's scene (and on the demo's true scene with ``--truth``)."""
     from ssgwarp.cli import resolve_device
     from ssgwarp.core.fileio import read_image, write_json
     from ssgwarp.evaluation.evaluate import EvalOptions, inspect_run, scored_cameras

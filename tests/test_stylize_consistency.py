@@ -39,3 +39,10 @@ def test_probe_is_a_function_of_position_with_the_asked_contrast():
     assert torch.equal(painted.means, scene.means)
     again = sc.probe_scene(scene, period_px=4, amplitude=0.2, pixel=0.01)
     assert torch.equal(again.sh_dc, painted.sh_dc)
+
+
+def test_bad_run_folder_is_one_line_and_exit_2(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(sys, "argv", ["stylize_consistency.py", "--run", str(tmp_path), "--truth", "--device", "cpu"])
+    assert sc.main() == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("stylize_consistency: ") and "no scene.ply" in err and "\n" not in err
