@@ -32,10 +32,11 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from shared_data import data_root  # noqa: E402
 from ssgwarp.core.fileio import atomic_path  # noqa: E402
 from ssgwarp.grouping.segment import MaskConfig, load_sam, make_masks  # noqa: E402
 
-DEFAULT_DATA = ROOT.parent / "shared" / "data" / "llff_fern"
+DEFAULT_DATA = data_root() / "llff_fern"
 
 
 def save_random_sam(size: str, folder: Path) -> None:
@@ -47,6 +48,9 @@ def save_random_sam(size: str, folder: Path) -> None:
 
         save_tiny_sam(folder)
         return
+    from ssgwarp.services.weights import unshadow_kernels
+
+    unshadow_kernels()      # the checkout's root is on sys.path: its kernels/ would hide transformers' `kernels`
     from transformers import SamConfig, SamModel
 
     torch.manual_seed(0)
