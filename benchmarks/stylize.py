@@ -30,9 +30,10 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from shared_data import data_root  # noqa: E402
 from ssgwarp.services.features import EXTRACTOR_KINDS  # noqa: E402
 sys.path.insert(0, str(ROOT / "tests"))   # fakeweights: random-weight Stage 1 models
-DATA = ROOT.parent / "shared" / "data"
+DATA = data_root()
 
 
 def synthetic_run(run: Path, data_dir: Path, images: str, n: int, groups: int = 8, seed: int = 0) -> Path:

@@ -71,11 +71,14 @@ def demo_truth(run: Path):
     return P.build_scene(size.density, seed=int(info.get("seed", 0))).scene
 
 
-def score(scene, cams, bg, opts, style_distance, alpha0) -> dict:
+def score(scene, cams, bg, opts, style_distance, alpha0=None) -> dict:
+    """Consistency, error concentration and texture per scale of ``scene``'s renders; the texture is taken over
+    the pixels where ``alpha0`` (the unpainted scene's alpha; default: these renders') is at least 0.5."""
     from ssgwarp.evaluation import metrics as M
     from ssgwarp.evaluation.evaluate import consistency, render_views
 
     rgb, depth, alpha = render_views(scene, cams, bg)
+    alpha0 = alpha if alpha0 is None else alpha0
     rep = consistency(rgb, depth, alpha, cams, opts)["reprojection"]
     sq = []
     for a, b in M.consistency_pairs(len(cams), "short", opts.gap, opts.max_pairs or None):
@@ -102,11 +105,8 @@ def score(scene, cams, bg, opts, style_distance, alpha0) -> dict:
 
 def probe_table(name, scene, cams, bg, opts, sd, args, described) -> dict:
     """Prints and returns the unpainted scene's error and one row per probe period and amplitude."""
-    from ssgwarp.evaluation.evaluate import render_views
-
-    alpha0 = render_views(scene, cams, bg).alpha
-    base = score(scene, cams, bg, opts, sd, alpha0)
-    base.pop("alpha")
+    base = score(scene, cams, bg, opts, sd)
+    alpha0 = base.pop("alpha")
     pixel = pixel_size(scene, cams)
     print(f"{name}: {len(scene)} Gaussians, {described}, {cams.width}x{cams.height}; unpainted short/long "
           f"RMSE {base['short']:.4f} / {base['long']:.4f}; worst 10 % / 25 % of pixels hold {100 * base['share10']:.0f} / "
