@@ -302,8 +302,8 @@ class Trainer:
             loss = loss + reg
         hook_losses = []
         if with_ids:
-            for h, takes_scene in zip(self.hooks, self._hook_takes_scene):
-                extra = {"scene": self.scene} if takes_scene else {}
+            for h, wants_scene in zip(self.hooks, self._hook_takes_scene):
+                extra = {"scene": self.scene} if wants_scene else {}
                 per_view = [h.loss(self.step, vi, out[j, ..., 3:], **extra) for j, vi in enumerate(views)]
                 hook_losses.append(sum(per_view) / len(per_view))
         total = loss + sum(hook_losses) if hook_losses else loss
