@@ -40,7 +40,7 @@ def synthetic_run(run: Path, data_dir: Path, images: str, n: int, groups: int = 
     """A grouped run folder whose scene is N Gaussians around the capture's sparse points."""
     from ssgwarp.capture.datasets import data_json, load_dataset
     from ssgwarp.core.fileio import write_json
-    from ssgwarp.capture.ply import write_ply
+    from ssgwarp.formats.ply import write_ply
     from ssgwarp.raster.scene import GaussianScene
 
     data = load_dataset(data_dir, images=images)

@@ -105,7 +105,7 @@ def synthetic_cameras(views: int, width: int, height: int) -> Cameras:
 
 def run_scene(run_dir: Path, views: int, side: int) -> tuple[GaussianScene, Cameras]:
     """A reconstruction's scene and ``views`` of its cameras (evenly spread), longer side ``side``."""
-    from ssgwarp.capture.ply import read_ply
+    from ssgwarp.formats.ply import read_ply
 
     scene = read_ply(run_dir / "scene.ply")
     cams = Cameras.load(run_dir / "cameras.json")
@@ -222,7 +222,7 @@ def raster_study(scene: GaussianScene, cams: Cameras, device: torch.device, repe
 def _synthetic_run(folder: Path, scene: GaussianScene, cams: Cameras) -> Path:
     """A minimal reconstruction folder (scene.ply, cameras.json, data.json) for Stage 2."""
     from ssgwarp.core.fileio import write_json
-    from ssgwarp.capture.ply import write_ply
+    from ssgwarp.formats.ply import write_ply
 
     folder.mkdir(parents=True, exist_ok=True)
     write_ply(folder / "scene.ply", scene)

@@ -46,7 +46,7 @@ from .grouping.joint import reconstruct_with_groups
 from .grouping.stage import GroupConfig, group_scene, load_groups, render_group_maps
 from .grouping.segment import make_masks
 from .core.palette import colorize_labels
-from .capture.ply import read_ply
+from .formats.ply import read_ply
 from .procedural import SIZES
 from .reconstruction.reconstruct import Recipe, reconstruct
 from .services.runs import Run, claim

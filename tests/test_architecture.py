@@ -257,7 +257,7 @@ def test_meta_holds_gsplats_binning_keys_only():
 # -- the layers ------------------------------------------------------------------------------------------
 
 # ssgwarp's sub-packages in import order (docs/architecture.md: "The package, layer by layer")
-LAYERS = ["core", "raster", "capture", "services", "evaluation", "reconstruction", "grouping", "stylization"]
+LAYERS = ["core", "raster", "formats", "capture", "services", "evaluation", "reconstruction", "grouping", "stylization"]
 SHARED = {"ssgwarp.errors"}   # what every layer may import besides the layers above it (and ssgwarp.kernels)
 
 

@@ -36,7 +36,7 @@ def _no_weights(monkeypatch):
 
 def _write_colmap(root: Path, gt: P.ProceduralScene, cams, images: torch.Tensor, n_points: int = 200) -> None:
     """The procedural views as a COLMAP text model (PINHOLE) with a sparse cloud drawn from the true Gaussians."""
-    from ssgwarp.capture.colmap import ColmapCamera, ColmapImage, ColmapPoints, rotmat_to_qvec, write_model_text
+    from ssgwarp.formats.colmap import ColmapCamera, ColmapImage, ColmapPoints, rotmat_to_qvec, write_model_text
     from ssgwarp.core.fileio import write_image
 
     K = cams.Ks[0].double()
@@ -198,7 +198,7 @@ def test_bad_ply(world, tmp_path, capsys, damage, message):
     elif damage == "not a ply":
         ply.write_text("hello\n")
     else:
-        from ssgwarp.capture.ply import read_ply, write_ply
+        from ssgwarp.formats.ply import read_ply, write_ply
 
         s = read_ply(ply)
         m = s.means.clone()
@@ -359,7 +359,7 @@ def _interrupted(capsys, argv) -> None:
 
 
 def _same_scene(a: Path, b: Path) -> None:
-    from ssgwarp.capture.ply import read_ply
+    from ssgwarp.formats.ply import read_ply
 
     sa, sb = read_ply(a), read_ply(b)
     assert sa.tensors().keys() == sb.tensors().keys()

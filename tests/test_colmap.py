@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ssgwarp.capture.colmap import (MODEL_IDS, ColmapCamera, ColmapImage, ColmapPoints, find_model, qvec_to_rotmat,
+from ssgwarp.formats.colmap import (MODEL_IDS, ColmapCamera, ColmapImage, ColmapPoints, find_model, qvec_to_rotmat,
                             read_cameras_binary, read_images_binary, read_model, read_points3d_binary,
                             rotmat_to_qvec, write_model_text)
 from ssgwarp.errors import InputError
@@ -88,10 +88,10 @@ def test_text_and_binary_round_trip(tmp_path):
     # intrinsics and distortion per model
     assert mt.cameras[1].K.tolist() == [[50.0, 0.0, 31.5], [0.0, 52.0, 24.25], [0.0, 0.0, 1.0]]
     assert not mt.cameras[1].is_distorted and not mt.cameras[2].is_distorted
-    assert mt.cameras[1].lens is None and mt.cameras[2].lens is None
-    assert (mt.cameras[3].lens.model, mt.cameras[3].lens.params) == ("SIMPLE_RADIAL", (0.05,))
-    assert (mt.cameras[4].lens.model, mt.cameras[4].lens.params) == ("RADIAL", (0.05, -0.01))
-    assert (mt.cameras[5].lens.model, mt.cameras[5].lens.params) == ("OPENCV", (0.05, -0.01, 0.001, -0.002))
+    assert mt.cameras[1].distortion is None and mt.cameras[2].distortion is None
+    assert mt.cameras[3].distortion == ("SIMPLE_RADIAL", (0.05,))
+    assert mt.cameras[4].distortion == ("RADIAL", (0.05, -0.01))
+    assert mt.cameras[5].distortion == ("OPENCV", (0.05, -0.01, 0.001, -0.002))
     assert mt.cameras[5].K.tolist() == [[50.0, 0.0, 32.0], [0.0, 51.0, 24.0], [0.0, 0.0, 1.0]]
     # the model folder is found from the capture root
     (tmp_path / "cap" / "sparse" / "0").mkdir(parents=True)
@@ -164,10 +164,10 @@ def test_unsupported_model_is_reported(tmp_path):
     with pytest.raises(InputError, match="FOV is not supported"):
         cam.K
     with pytest.raises(InputError, match="FOV is not supported"):
-        cam.lens
+        cam.distortion
     fish = ColmapCamera(2, "OPENCV_FISHEYE", 10, 10, np.arange(1.0, 9.0))
     assert fish.K.tolist() == [[1.0, 0.0, 3.0], [0.0, 2.0, 4.0], [0.0, 0.0, 1.0]]
-    assert (fish.lens.model, fish.lens.params) == ("OPENCV_FISHEYE", (5.0, 6.0, 7.0, 8.0)) and fish.is_distorted
+    assert fish.distortion == ("OPENCV_FISHEYE", (5.0, 6.0, 7.0, 8.0)) and fish.is_distorted
 
 
 @pytest.mark.skipif(not (DATA / "colmap_cup").is_dir(), reason="shared data not present")
@@ -192,7 +192,7 @@ def test_colmap_cup_points_reproject_onto_their_observations():
 
 @pytest.mark.skipif(not (DATA / "llff_fern").is_dir(), reason="shared data not present")
 def test_fern_cameras_and_points_binary():
-    from ssgwarp.capture.colmap import read_cameras, read_points3d
+    from ssgwarp.formats.colmap import read_cameras, read_points3d
 
     cams = read_cameras(DATA / "llff_fern" / "sparse" / "0" / "cameras.bin")
     (cam,) = cams.values()

@@ -56,7 +56,7 @@ def test_flat_source_gain_is_capped():
 
 def test_transform_sh_is_the_colour_map_of_every_view():
     """Applied to the SH coefficients, the map recolours the view-dependent colour of every direction."""
-    from ssgwarp.raster.sh import spherical_harmonics
+    from ssgwarp.core.sh import spherical_harmonics
 
     g = torch.Generator().manual_seed(0)
     n = 50

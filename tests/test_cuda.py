@@ -18,7 +18,7 @@ import torch
 
 from ssgwarp import RasterSettings, rasterization
 from ssgwarp.raster.reference import project_reference
-from ssgwarp.raster.sh import spherical_harmonics
+from ssgwarp.core.sh import spherical_harmonics
 
 from conftest import CUDA_ONLY, assert_close_elementwise
 from test_rasterizer import GRAD_NAMES, make_cameras, make_scene

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from ssgwarp.capture.colmap import ColmapCamera, ColmapImage, ColmapPoints, rotmat_to_qvec, write_model_text
-from ssgwarp.capture.datasets import SceneData, detect_format, load_dataset
+from ssgwarp.formats.colmap import ColmapCamera, ColmapImage, ColmapPoints, rotmat_to_qvec, write_model_text
+from ssgwarp.capture.datasets import SceneData, detect_layout, load_dataset
 from ssgwarp.errors import InputError
 from ssgwarp.core.fileio import write_image
 
@@ -49,7 +49,7 @@ def _colmap_scene(root: Path, n=9, w=32, h=24, full=(64, 48), folder="images", e
 
 def test_colmap_text_capture(tmp_path):
     cams, images, views, pts = _colmap_scene(tmp_path)
-    assert detect_format(tmp_path) == "colmap"
+    assert detect_layout(tmp_path) == "colmap"
     d = load_dataset(tmp_path, split_every=4)
     assert isinstance(d, SceneData) and d.format == "colmap" and not d.undistorted
     # sorted by name; files found under another extension (.png for a .jpg name)
@@ -101,7 +101,7 @@ def _llff_scene(root: Path, n=6, w=40, h=30, full=(400, 300), focal=350.0, point
 
 def test_llff_capture(tmp_path):
     views = _llff_scene(tmp_path)
-    assert detect_format(tmp_path) == "llff"
+    assert detect_layout(tmp_path) == "llff"
     d = load_dataset(tmp_path, images="images_10", num_random_points=500, init="random")
     assert d.format == "llff" and len(d) == 6 and (d.width, d.height) == (40, 30)
     for j in range(6):
@@ -163,7 +163,7 @@ def _transforms_scene(root: Path, n=4, w=12, h=8, rgba=True, name="transforms.js
 
 def test_transforms_capture_and_rgba_compositing(tmp_path):
     colors = _transforms_scene(tmp_path)
-    assert detect_format(tmp_path) == "transforms"
+    assert detect_layout(tmp_path) == "transforms"
     d = load_dataset(tmp_path, background=(0.0, 1.0, 0.0), num_random_points=100, init="random")
     assert d.names == [f"train/r_{i}.png" for i in range(4)]
     assert torch.allclose(d.cameras.Ks[0], torch.tensor([[10.0, 0, 6.0], [0, 10.0, 4.0], [0, 0, 1]]), atol=1e-5)
@@ -275,7 +275,7 @@ def test_lego_transforms():
 
 # ----------------------------------------------------------------------------- helpers, unit by unit
 def test_evenly_spaced_subsets_and_the_split():
-    from ssgwarp.capture.formats import _evenly
+    from ssgwarp.capture.loaders import _evenly
     from ssgwarp.capture.datasets import _split
 
     assert _evenly(10, None) == list(range(10)) and _evenly(10, 10) == list(range(10)) and _evenly(3, 7) == [0, 1, 2]
@@ -314,7 +314,7 @@ def test_resize_images_by_hand():
 
 def test_viewmats_from_c2w_and_the_focus_point():
     from ssgwarp.core.cameras import Cameras, intrinsics
-    from ssgwarp.capture.formats import _viewmats_from_c2w, focus_point
+    from ssgwarp.capture.loaders import _viewmats_from_c2w, focus_point
 
     eyes = [[3.0, 0.0, 0.5], [0.0, 2.0, -1.0], [-1.0, -2.0, 2.0]]
     V = np.stack([_look(e, [0.2, -0.1, 0.3]) for e in eyes])
@@ -334,7 +334,7 @@ def test_viewmats_from_c2w_and_the_focus_point():
 
 
 def test_depth_range_percentiles_of_points_in_front():
-    from ssgwarp.capture.formats import _depth_range
+    from ssgwarp.capture.loaders import _depth_range
 
     V = np.eye(4)[None]
     z = np.arange(1.0, 1001.0)
@@ -387,7 +387,7 @@ def test_random_points_lie_in_their_pixels_frustum_with_the_pixels_colour():
 
 
 def test_transforms_intrinsics_variants_and_errors():
-    from ssgwarp.capture.formats import _intrinsics_from
+    from ssgwarp.capture.loaders import _intrinsics_from
 
     assert _intrinsics_from({"fl_x": 20.0}, 40, 30, "w") == (20.0, 20.0, 20.0, 15.0)
     assert _intrinsics_from({"fl_y": 22.0, "cx": 3.0, "cy": 4.0}, 40, 30, "w") == (22.0, 22.0, 3.0, 4.0)
@@ -409,7 +409,7 @@ def test_transforms_intrinsics_variants_and_errors():
 
 
 def test_transforms_lens_variants_and_errors():
-    from ssgwarp.capture.formats import _transforms_lens
+    from ssgwarp.capture.loaders import _transforms_lens
     from ssgwarp.capture.lens import Lens
 
     assert _transforms_lens({}, "w") == Lens("OPENCV", (0.0, 0.0, 0.0, 0.0))
@@ -484,7 +484,7 @@ def _nerfstudio_from_colmap(root: Path, cams, images, pts, camera_model="OPENCV"
     frames = []
     for im in sorted(images.values(), key=lambda im: im.name):  # (ns-process-data sorts by name too)
         V = np.eye(4)
-        from ssgwarp.capture.colmap import qvec_to_rotmat
+        from ssgwarp.formats.colmap import qvec_to_rotmat
         V[:3, :3], V[:3, 3] = qvec_to_rotmat(im.qvec), im.tvec
         c2w = np.linalg.inv(V)
         c2w[0:3, 1:3] *= -1

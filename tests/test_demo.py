@@ -122,7 +122,7 @@ def test_demo_runs_every_stage_and_prints_a_summary(demo):
 def test_demo_outputs_follow_the_run_contract(demo):
     from ssgwarp.capture.datasets import load_dataset, load_run
     from ssgwarp.grouping.stage import load_groups
-    from ssgwarp.capture.ply import read_ply
+    from ssgwarp.formats.ply import read_ply
 
     out = demo[0]
     size = P.SIZES["default"]
@@ -290,7 +290,7 @@ def test_ctrl_c_in_a_demo_stage_resumes_to_the_uninterrupted_result(tmp_path, mo
     import shutil
 
     import ssgwarp.stylization.stage2 as st   # where optimise calls it
-    from ssgwarp.capture.ply import read_ply
+    from ssgwarp.formats.ply import read_ply
 
     _no_weights(monkeypatch)
     orig = fail_on_call(st, "backward_views", 7, "interrupt")

@@ -43,7 +43,7 @@ def runs(tmp_path, monkeypatch):
     """(reconstruction dir, stylized dir, style image) built with the project's own writers."""
     from ssgwarp.capture.datasets import data_json, load_dataset
     from ssgwarp.core.fileio import write_image, write_json
-    from ssgwarp.capture.ply import write_ply
+    from ssgwarp.formats.ply import write_ply
 
     for var in ("SSGWARP_WEIGHTS", "SSGWARP_RAFT", "SSGWARP_LPIPS", "SSGWARP_VGG16"):
         monkeypatch.delenv(var, raising=False)
@@ -156,7 +156,7 @@ def test_evaluate_with_style_gives_lower_style_loss_to_matching_colours(runs, tm
     """The Gram loss ranks runs: a run recoloured towards the style's colours scores lower."""
     from ssgwarp.evaluation.evaluate import EvalOptions, evaluate_run
     from ssgwarp.services.features import load_extractor
-    from ssgwarp.capture.ply import read_ply, write_ply
+    from ssgwarp.formats.ply import read_ply, write_ply
 
     recon, sty, style = runs
     ext = load_extractor(None, "cpu")

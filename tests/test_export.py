@@ -12,11 +12,12 @@ import numpy as np
 import pytest
 import torch
 
-from ssgwarp.capture.ply import write_ply
-from ssgwarp.capture.splat_codecs import (morton_order, pack_rotation, read_compressed_ply, read_splat,
-                                          unpack_rotation)
-from ssgwarp.capture.splat_formats import detect_format, format_for_path, read_scene, write_scene
-from ssgwarp.capture.spz import (encode_spz, pack_smallest_three, read_spz, sh_flip_signs,
+from ssgwarp.formats.ply import write_ply
+from ssgwarp.formats.codec import morton_order
+from ssgwarp.formats.compressed_ply import pack_rotation, read_compressed_ply, unpack_rotation
+from ssgwarp.formats.splat import read_splat
+from ssgwarp.formats.registry import detect_format, format_for_path, read_scene, write_scene
+from ssgwarp.formats.spz import (encode_spz, pack_smallest_three, read_spz, sh_flip_signs,
                                  unpack_smallest_three, write_spz)
 from ssgwarp.cli import main
 from ssgwarp.core.fileio import write_json
@@ -25,7 +26,7 @@ from ssgwarp.evaluation.export import export
 from ssgwarp.procedural import build_scene, ring_cameras
 from ssgwarp.raster.rendering import render_views
 from ssgwarp.raster.scene import GaussianScene
-from ssgwarp.raster.sh import spherical_harmonics
+from ssgwarp.core.sh import spherical_harmonics
 from ssgwarp.services.losses import psnr
 
 FORMATS = [("ply", "s.ply"), ("compressed-ply", "s.compressed.ply"), ("spz", "s.spz"), ("splat", "s.splat")]
@@ -93,7 +94,7 @@ def test_compressed_ply_header_and_layout(tmp_path):
 
 def test_compressed_ply_bit_packing():
     """Two Gaussians spanning the chunk: the packed words per the spec, bit by bit."""
-    from ssgwarp.capture.splat_codecs import compressed_ply_bytes
+    from ssgwarp.formats.compressed_ply import compressed_ply_bytes
 
     s = _tiny([[0, 0, 0], [1, 2, 3]], log_scales=[[-3, -3, -3], [-1, -2, -3]], opacity=[0.0, 10.0],
               dc=[[0, 0, 0], [1, 1, 1]])
@@ -113,7 +114,7 @@ def test_compressed_ply_without_chunk_colours(tmp_path):
     """SuperSplat's older files: 12-field chunks, colours as plain 8-bit values in [0, 1]."""
     from plyfile import PlyData, PlyElement
 
-    from ssgwarp.capture.splat_codecs import CHUNK_FIELDS
+    from ssgwarp.formats.compressed_ply import CHUNK_FIELDS
 
     chunk = np.zeros(1, [(f, "<f4") for f in CHUNK_FIELDS[:12]])
     for f, v in zip(CHUNK_FIELDS[:12], [0, 0, 0, 1, 1, 1, -4, -4, -4, -2, -2, -2]):

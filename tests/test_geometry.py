@@ -40,7 +40,7 @@ def test_rotmat_to_quat_half_turns_and_identity(diag):
 
 
 def test_colmap_and_viewer_rotations_are_the_shared_ones():
-    from ssgwarp.capture.colmap import qvec_to_rotmat, rotmat_to_qvec
+    from ssgwarp.formats.colmap import qvec_to_rotmat, rotmat_to_qvec
     from ssgwarp.viewer import geometry as viewer_geometry
 
     q = np.array([0.3, -0.5, 0.2, 0.7])

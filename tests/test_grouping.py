@@ -82,7 +82,7 @@ def best_match_accuracy(pred: torch.Tensor, gt: torch.Tensor) -> float:
 def make_run(root: Path, scene: GaussianScene, cams: Cameras, data_dir: str | None = None) -> Path:
     """A run folder as reconstruction writes it (scene.ply, cameras.json, data.json)."""
     from ssgwarp.core.fileio import write_json
-    from ssgwarp.capture.ply import write_ply
+    from ssgwarp.formats.ply import write_ply
 
     root.mkdir(parents=True, exist_ok=True)
     write_ply(root / "scene.ply", scene)
@@ -225,7 +225,7 @@ def test_given_masks_heldout_accuracy(tmp_path, synth):
     """Masks at 2x resolution with sparse ids → group maps of held-out views >= 95% (best matching)."""
     from ssgwarp.cli import main
     from ssgwarp.grouping.stage import gaussian_groups, load_groups, render_group_maps
-    from ssgwarp.capture.ply import read_ply
+    from ssgwarp.formats.ply import read_ply
 
     scene, oid, cams, gt = synth
     big = cams.rescaled(2 * SIZE, 2 * SIZE)
@@ -290,7 +290,7 @@ def test_mask_validation_errors(tmp_path, synth):
 def test_mask_free_path_heldout_accuracy_and_outputs(tmp_path, synth):
     from ssgwarp.cli import main
     from ssgwarp.grouping.stage import load_groups, render_group_maps
-    from ssgwarp.capture.ply import read_ply
+    from ssgwarp.formats.ply import read_ply
 
     scene, oid, cams, gt = synth
     run = make_run(tmp_path / "run", scene, cams)
@@ -414,7 +414,7 @@ def test_joint_grouping_of_a_run(tmp_path, synth):
     rec = pytest.importorskip("ssgwarp.reconstruction.reconstruct")
     from ssgwarp.core.fileio import write_image, write_json
     from ssgwarp.grouping.stage import GroupConfig, group_scene, load_groups
-    from ssgwarp.capture.ply import read_ply
+    from ssgwarp.formats.ply import read_ply
 
     scene, oid, cams, gt = synth
     with torch.no_grad():

@@ -16,17 +16,17 @@ import torch
 from plyfile import PlyData, PlyElement
 
 from ssgwarp import procedural as P
-from ssgwarp.capture.colmap import ColmapCamera, ColmapImage, ColmapPoints, rotmat_to_qvec, write_model_text
-from ssgwarp.capture.ply import read_ply
-from ssgwarp.capture.splats import (Similarity, gsplat_normalization, parse_cfg_args, rotate_sh, sh_rotation,
-                                    transform_scene, umeyama)
+from ssgwarp.formats.colmap import ColmapCamera, ColmapImage, ColmapPoints, rotmat_to_qvec, write_model_text
+from ssgwarp.formats.ply import read_ply
+from ssgwarp.core.frames import Similarity, rotate_sh, sh_rotation, umeyama
+from ssgwarp.formats.layouts import gsplat_normalization, parse_cfg_args, transform_scene
 from ssgwarp.cli import main
 from ssgwarp.core.cameras import Cameras
 from ssgwarp.core.fileio import write_image
 from ssgwarp.errors import InputError
 from ssgwarp.raster.rendering import render_views
 from ssgwarp.raster.scene import GaussianScene
-from ssgwarp.raster.sh import spherical_harmonics
+from ssgwarp.core.sh import spherical_harmonics
 from ssgwarp.reconstruction.importer import import_splats
 from ssgwarp.services.runs import Run
 
@@ -187,7 +187,7 @@ GSPLAT_CUP_TRANSFORM = [[-0.209281085006, 0.070726499876, 0.078485432773, 0.2781
 
 
 def test_gsplat_normalization_matches_gsplats_parser_on_a_real_capture(shared_data):
-    from ssgwarp.capture.colmap import read_model
+    from ssgwarp.formats.colmap import read_model
     model = read_model(shared_data / "colmap_cup" / "sparse" / "0")
     ims = sorted(model.images.values(), key=lambda im: im.name)
     c2w = np.linalg.inv(np.stack([im.viewmat for im in ims]))
@@ -271,7 +271,7 @@ def test_graphdeco_cameras_in_another_frame_are_aligned(world, tmp_path):
 @pytest.mark.parametrize("frame", [0, 2])
 def test_gsplat_checkpoint_in_its_normalised_world(world, tmp_path, frame):
     cap = _colmap_capture(tmp_path / "cap", world)
-    from ssgwarp.capture.colmap import read_model
+    from ssgwarp.formats.colmap import read_model
     model = read_model(cap / "sparse" / "0")
     ims = sorted(model.images.values(), key=lambda im: im.name)
     c2w = np.linalg.inv(np.stack([im.viewmat for im in ims]))

@@ -53,7 +53,7 @@ def _with_masks(tmp_path, capture):
 
 
 def _agreement(run, objects, num_objects):
-    from ssgwarp.capture.ply import read_ply
+    from ssgwarp.formats.ply import read_ply
     from ssgwarp.demo import group_agreement
     from ssgwarp.grouping.stage import load_groups, render_group_maps
     from ssgwarp.services.runs import Run
@@ -131,7 +131,7 @@ def test_groups_of_a_finished_run_are_not_overwritten_without_force(tmp_path, ca
 
 
 def test_interrupted_after_grouping_started_resumes_to_the_same_run(tmp_path, capture, capsys, monkeypatch):
-    from ssgwarp.capture.ply import read_ply
+    from ssgwarp.formats.ply import read_ply
     from ssgwarp.reconstruction.trainer import Trainer
 
     def argv(out, groups=True):

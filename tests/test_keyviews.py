@@ -206,7 +206,7 @@ def test_save_and_load_keyviews(tmp_path):
 def test_cli_keyviews_on_a_run_directory(tmp_path):
     from ssgwarp.cli import main
     from ssgwarp.core.fileio import read_json, write_json
-    from ssgwarp.capture.ply import write_ply
+    from ssgwarp.formats.ply import write_ply
 
     run = tmp_path / "run"
     run.mkdir()

@@ -31,7 +31,7 @@ import numpy as np
 import pytest
 import torch
 
-from ssgwarp.capture.colmap import MODEL_IDS, ColmapCamera, ColmapImage, ColmapPoints, rotmat_to_qvec, write_model_text
+from ssgwarp.formats.colmap import MODEL_IDS, ColmapCamera, ColmapImage, ColmapPoints, rotmat_to_qvec, write_model_text
 from ssgwarp.capture.datasets import data_json, load_dataset, load_run
 from ssgwarp.errors import InputError
 from ssgwarp.core.fileio import write_image
@@ -405,7 +405,7 @@ def test_unsupported_models_are_named(tmp_path, model):
 # ----------------------------------------------------------------------------- runs
 def test_run_files_carry_the_crop_and_load_run_reproduces_it(tmp_path):
     from ssgwarp.core.fileio import write_json
-    from ssgwarp.capture.ply import write_ply
+    from ssgwarp.formats.ply import write_ply
     from ssgwarp.raster.scene import GaussianScene
 
     cap, run = tmp_path / "cap", tmp_path / "run"
@@ -455,7 +455,7 @@ def test_reconstruct_metrics_say_which_frame(tmp_path, monkeypatch):
 def test_fern_every_pixel_is_an_interpolation_of_real_pixels():
     """fern (SIMPLE_RADIAL, k = 0.0197): each loaded pixel is the bilinear interpolation of the source
     image at its distorted position (recomputed here), and that position is inside the source."""
-    from ssgwarp.capture.colmap import read_cameras
+    from ssgwarp.formats.colmap import read_cameras
     from ssgwarp.core.fileio import read_image
 
     (cam,) = read_cameras(DATA / "llff_fern" / "sparse" / "0" / "cameras.bin").values()

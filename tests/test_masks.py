@@ -36,7 +36,7 @@ def write_run(root: Path, scene, cams, images) -> Path:
     """A run folder (scene.ply, cameras.json, data.json) whose capture is ``images`` (transforms.json)."""
     from ssgwarp.capture.datasets import data_json, load_dataset
     from ssgwarp.core.fileio import write_json
-    from ssgwarp.capture.ply import write_ply
+    from ssgwarp.formats.ply import write_ply
 
     P.write_transforms_dataset(root / "data", images, cams)
     data = load_dataset(root / "data")
@@ -360,7 +360,7 @@ def test_mask_free_groups_separate_the_demo_objects(truth, tmp_path):
     purity >= 0.95 of the group maps against the true objects); on the Gaussians' own colours it does not."""
     from ssgwarp.demo import group_agreement
     from ssgwarp.grouping.stage import GroupConfig, group_scene, load_groups, render_group_maps
-    from ssgwarp.capture.ply import read_ply
+    from ssgwarp.formats.ply import read_ply
     from ssgwarp.grouping.pseudomasks import ClusterConfig, cluster_gaussians, render_label_masks
 
     gt, cams, images, objects = truth

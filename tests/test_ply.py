@@ -8,7 +8,7 @@ import torch
 from hypothesis import given, settings, strategies as st
 
 from ssgwarp.errors import InputError
-from ssgwarp.capture.ply import field_names, read_ply, write_ply
+from ssgwarp.formats.ply import field_names, read_ply, write_ply
 from ssgwarp.raster.scene import GaussianScene
 
 

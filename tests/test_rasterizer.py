@@ -128,7 +128,7 @@ def test_many_channels_split_in_chunks():
 
 def test_sh_kernel_matches_torch():
     from ssgwarp.raster.sh_ops import spherical_harmonics_warp
-    from ssgwarp.raster.sh import spherical_harmonics
+    from ssgwarp.core.sh import spherical_harmonics
 
     g = torch.Generator().manual_seed(0)
     for deg in range(4):

@@ -205,7 +205,7 @@ def test_a_nan_step_is_never_checkpointed_nor_returned(tmp_path, nan_at, kept, s
 
 
 def _write_tiny_colmap(root: Path):
-    from ssgwarp.capture.colmap import ColmapCamera, ColmapImage, ColmapPoints, rotmat_to_qvec, write_model_text
+    from ssgwarp.formats.colmap import ColmapCamera, ColmapImage, ColmapPoints, rotmat_to_qvec, write_model_text
     from ssgwarp.core.fileio import write_image
 
     rng = np.random.default_rng(0)
@@ -227,7 +227,7 @@ def _write_tiny_colmap(root: Path):
 
 def test_cli_reconstruct_writes_the_run_contract_and_refuses_to_overwrite(tmp_path, monkeypatch, capsys):
     from ssgwarp import cli
-    from ssgwarp.capture.ply import read_ply
+    from ssgwarp.formats.ply import read_ply
 
     for var in ("SSGWARP_LPIPS", "SSGWARP_VGG16", "SSGWARP_WEIGHTS"):
         monkeypatch.delenv(var, raising=False)

@@ -9,7 +9,7 @@ import torch
 
 from ssgwarp.cli import main
 from ssgwarp.core.fileio import read_image, write_json
-from ssgwarp.capture.ply import write_ply
+from ssgwarp.formats.ply import write_ply
 from ssgwarp.errors import InputError
 from ssgwarp.services.runs import Run
 

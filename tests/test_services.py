@@ -12,7 +12,7 @@ from ssgwarp.core.cameras import Cameras
 from ssgwarp.errors import InputError, SsgwarpError
 from ssgwarp.core.fileio import write_json
 from ssgwarp.services.loop import Diverged, Loop, check_finite
-from ssgwarp.capture.ply import write_ply
+from ssgwarp.formats.ply import write_ply
 from ssgwarp.raster.rendering import gaussian_colors, render, render_views
 from ssgwarp.services.runs import Run, claim
 from ssgwarp.raster.scene import GaussianScene

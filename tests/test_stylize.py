@@ -282,7 +282,7 @@ def _write_run(tmp_path, grouped: bool = True):
     import json
 
     from ssgwarp.core.fileio import write_image
-    from ssgwarp.capture.ply import write_ply
+    from ssgwarp.formats.ply import write_ply
 
     scene, obj = two_objects(n=60)
     run = tmp_path / "run"
@@ -322,7 +322,7 @@ def test_cli_stylize_end_to_end_without_stage1_weights(tmp_path, monkeypatch, ca
     import json
 
     from ssgwarp.cli import main
-    from ssgwarp.capture.ply import read_ply
+    from ssgwarp.formats.ply import read_ply
 
     for var in ("SSGWARP_WEIGHTS", "SSGWARP_SD15", "SSGWARP_CONTROLNET_DEPTH", "SSGWARP_IP_ADAPTER",
                 "SSGWARP_IMAGE_ENCODER", "SSGWARP_VGG16"):

@@ -122,13 +122,13 @@ def _cli(run, style, out, *extra):
 
 
 def _colours(path: Path) -> torch.Tensor:
-    from ssgwarp.capture.ply import read_ply
+    from ssgwarp.formats.ply import read_ply
 
     return read_ply(path).sh_dc
 
 
 def _assert_same_ply(a: Path, b: Path):
-    from ssgwarp.capture.ply import read_ply
+    from ssgwarp.formats.ply import read_ply
 
     sa, sb = read_ply(a).tensors(), read_ply(b).tensors()
     assert set(sa) == set(sb)

@@ -324,7 +324,7 @@ def test_screenshot_api_writes_the_file(scene, tmp_path):
 
 @needs_gl
 def test_cli_screenshot_is_written(tmp_path, capsys):
-    ply = pytest.importorskip("ssgwarp.capture.ply")
+    ply = pytest.importorskip("ssgwarp.formats.ply")
     from ssgwarp.cli import main
     from ssgwarp.core.fileio import read_image
 
@@ -358,7 +358,7 @@ def test_bad_ply_gives_a_clear_error(tmp_path, capsys):
     assert main(["view", str(tmp_path / "missing.ply")]) == 2
     assert "not found" in capsys.readouterr().err
 
-    pytest.importorskip("ssgwarp.capture.ply")
+    pytest.importorskip("ssgwarp.formats.ply")
     plain = tmp_path / "points.ply"                    # a valid PLY, but a plain point cloud
     plain.write_text("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
                      "property float z\nend_header\n0 0 0\n1 1 1\n")
@@ -375,7 +375,7 @@ def _stylized_run(tmp_path, sc):
     """A reconstruction of ``sc`` (cameras, a classifier of its K identity channels onto 2 groups) and a
     stylized run of it as ``ssgwarp stylize`` writes one: scene.ply, metrics.json naming its
     source_scene, keyviews/keyviews.json. Neither holds the other's files."""
-    ply = pytest.importorskip("ssgwarp.capture.ply")
+    ply = pytest.importorskip("ssgwarp.formats.ply")
     from ssgwarp.core.fileio import write_json
 
     rec, sty = tmp_path / "rec", tmp_path / "sty"

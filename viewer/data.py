@@ -17,7 +17,7 @@ from ssgwarp.core.cameras import Cameras
 from ssgwarp.errors import InputError, SsgwarpError
 from ssgwarp.core.fileio import read_json
 from ssgwarp.grouping.model import gaussian_groups, load_groups
-from ssgwarp.capture.ply import read_ply
+from ssgwarp.formats.ply import read_ply
 from ssgwarp.raster.scene import GaussianScene
 from ssgwarp.services.runs import Run
 

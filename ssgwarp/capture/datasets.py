@@ -5,7 +5,7 @@
 intrinsics at the loaded resolution), the images as one float32 tensor, a
 train/test split, and initial points for the Gaussians. :func:`load_run` reads
 a reconstruction run directory back (scene + the data it was trained on; the run folder as a
-whole is :class:`ssgwarp.services.runs.Run`). The readers of the layouts are in :mod:`ssgwarp.capture.formats`.
+whole is :class:`ssgwarp.services.runs.Run`). The readers of the layouts are in :mod:`ssgwarp.capture.loaders`.
 
 Layouts, checked in this order:
 
@@ -34,7 +34,7 @@ line and falls back to random points). ``"triangulate"`` triangulates even when 
 ``"random"`` starts from random points (in the views' frusta, or for ``transforms*.json`` in a cube around
 the point the cameras look at), ``"capture"`` takes the capture's points or else random ones without
 triangulating (quick loads), and a path to a ``.ply`` file loads those points
-(:func:`ssgwarp.capture.ply.read_points`). ``SceneData.points_source`` says which it was
+(:func:`ssgwarp.formats.ply.read_points`). ``SceneData.points_source`` says which it was
 (``colmap``, ``triangulated``, ``random``, ``ply``) and ``points_stats`` holds the triangulation's record.
 
 Distorted images become pinhole images in which every pixel has a source
@@ -56,14 +56,14 @@ import numpy as np
 import torch
 
 from ..core.cameras import Cameras
-from .formats import (  # noqa: F401 (re-exported: part of this module's API)
+from .loaders import (  # noqa: F401 (re-exported: part of this module's API)
     IMAGE_EXTS, LOADERS, focus_point, missing_images_error, random_points_in_frusta, resize_images)
-from .formats import _depth_range
+from .loaders import _depth_range
 from .triangulate import scene_depth_range, triangulate
-from .colmap import find_model
+from ..formats.colmap import find_model
 from ..errors import InputError
 from ..core.fileio import read_json
-from .ply import read_ply, read_points
+from ..formats.ply import read_ply, read_points
 
 log = logging.getLogger("ssgwarp.capture.datasets")
 
@@ -191,7 +191,7 @@ def _as_path(p) -> Path:
     return Path(p).expanduser()
 
 
-def detect_format(path: str | Path) -> str:
+def detect_layout(path: str | Path) -> str:
     """``"transforms"``, ``"colmap"`` or ``"llff"`` for a data folder (InputError if none fits)."""
     path = _as_path(path)
     if not path.exists():
@@ -301,7 +301,7 @@ def load_dataset(path: str | Path, images: str = "images", split_every: int = 8,
         progress: progress bars (image loading, triangulation).
     """
     root = _as_path(path)
-    fmt = format or detect_format(root)
+    fmt = format or detect_layout(root)
     if fmt not in LOADERS:
         raise InputError(f"unknown data format '{fmt}' (colmap, llff or transforms)")
     if split_every is None or split_every < 0:

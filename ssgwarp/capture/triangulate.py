@@ -39,7 +39,7 @@ from tqdm import tqdm
 
 from ..core.cameras import Cameras
 from ..errors import InputError
-from .formats import focus_point, resize_images
+from .loaders import focus_point, resize_images
 
 log = logging.getLogger("ssgwarp.capture.triangulate")
 

@@ -1,6 +1,6 @@
 """Export a run's scene for other viewers: ``ssgwarp export RUN --format F --out FILE``.
 
-Formats (:mod:`ssgwarp.capture.splat_formats`): ``ply`` (the INRIA 3DGS layout, float32),
+Formats (:mod:`ssgwarp.formats.registry`): ``ply`` (the INRIA 3DGS layout, float32),
 ``compressed-ply`` (PlayCanvas / SuperSplat, chunks of 256 quantised Gaussians), ``spz``
 (Niantic, gzip, converted to SPZ's RUB axes) and ``splat`` (antimatter15, 32 bytes a Gaussian,
 SH degree 0). ``--sh-degree N`` keeps the SH bands up to N. The file is written atomically and
@@ -19,7 +19,7 @@ from typing import Optional
 
 import torch
 
-from ..capture.splat_formats import FORMATS, check_format, format_for_path, read_scene, write_scene
+from ..formats.registry import FORMATS, check_format, format_for_path, read_scene, write_scene
 from ..errors import InputError, SsgwarpError
 from ..raster.rendering import render_views
 from ..services.losses import psnr

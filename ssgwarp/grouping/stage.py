@@ -62,7 +62,7 @@ from .model import (DEFAULT_DIM, FORMAT, GroupConfig, GroupModel, gaussian_group
 from .train import GroupingHook, train_identities
 from .segment import read_record
 from ..core.palette import colorize_labels
-from ..capture.ply import read_ply, write_ply
+from ..formats.ply import read_ply, write_ply
 from .pseudomasks import IGNORE, ClusterConfig, pseudo_masks
 from ..services.runs import Run, claim
 from ..raster.scene import GaussianScene

@@ -35,7 +35,7 @@ import torch
 
 from ..core.geometry import quat_to_rotmat
 from .settings import INPUTS, RasterSettings, check_shapes, raise_for_flags, resolve_arguments
-from .sh import spherical_harmonics
+from ..core.sh import spherical_harmonics
 
 Tensor = torch.Tensor
 RADIUS_LIMIT = 1073741824.0  # radii saturate at 2^30 px (as kernels/projection.py)

@@ -23,7 +23,7 @@ import torch
 from ..errors import InputError
 from ..core.fileio import write_image
 from .rasterize import rasterization, rasterization_from_parameters
-from .sh import C0, spherical_harmonics
+from ..core.sh import C0, spherical_harmonics
 
 
 class Views(NamedTuple):

@@ -2,7 +2,7 @@
 rasterizer's fused colour step (:class:`ssgwarp.raster.ops._Project` evaluates SH itself).
 
 :func:`spherical_harmonics_warp` is the differentiable Warp version of
-:func:`ssgwarp.raster.sh.spherical_harmonics` (the spec); :func:`camera_centres` gives the
+:func:`ssgwarp.core.sh.spherical_harmonics` (the spec); :func:`camera_centres` gives the
 rasterizer the camera centres its SH directions start from when the view matrices need no gradient.
 """
 from __future__ import annotations
@@ -56,5 +56,5 @@ def _coeff_rows(c):
 
 
 def spherical_harmonics_warp(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
-    """Warp version of :func:`ssgwarp.raster.sh.spherical_harmonics`: ``dirs [...,3]``, ``coeffs [...,K,3]`` → ``[...,3]``."""
+    """Warp version of :func:`ssgwarp.core.sh.spherical_harmonics`: ``dirs [...,3]``, ``coeffs [...,K,3]`` → ``[...,3]``."""
     return _SH.apply(int(degree), dirs, coeffs)

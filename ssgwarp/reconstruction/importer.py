@@ -14,7 +14,7 @@
   ``dataparser_transforms.json`` (``--dataparser-transforms``, or found beside the PLY);
 * ``ply``: any INRIA-layout PLY with ``--data`` any capture ssgwarp loads (COLMAP, LLFF, transforms).
 
-The splats are moved into the capture's frame (:mod:`ssgwarp.capture.splats`): each layout gives
+The splats are moved into the capture's frame (:mod:`ssgwarp.formats.layouts`): each layout gives
 the candidate frames it may be in (graphdeco: the capture's own, or the similarity that aligns its
 cameras.json to the capture's cameras; gsplat: its normalised world, or the capture's; nerfstudio:
 the dataparser transform; a bare PLY: the capture's own frame, or gsplat's normalised one for a COLMAP
@@ -40,15 +40,15 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from ..capture.colmap import find_model, read_model
+from ..formats.colmap import find_model, read_model
 from ..capture.datasets import SceneData, data_json, load_dataset
-from ..capture.formats import IMAGE_EXTS
-from ..capture.ply import read_ply, write_ply
-from ..capture.splats import (Similarity, graphdeco_cameras, graphdeco_folder, gsplat_checkpoints,
-                              gsplat_normalization, match_names, nerfstudio_to_capture, read_gsplat_checkpoint,
-                              transform_scene, umeyama)
+from ..capture.loaders import IMAGE_EXTS
+from ..formats.ply import read_ply, write_ply
+from ..formats.layouts import (graphdeco_cameras, graphdeco_folder, gsplat_checkpoints, gsplat_normalization,
+                               match_names, nerfstudio_to_capture, read_gsplat_checkpoint, transform_scene)
 from ..core.cameras import Cameras
 from ..core.fileio import read_json, write_json
+from ..core.frames import Similarity, umeyama
 from ..core.geometry import project
 from ..errors import InputError
 from ..evaluation.metrics import reconstruction_quality

@@ -41,7 +41,7 @@ from ..services.distributed import SINGLE
 from ..errors import InputError, SsgwarpError, WeightsNotFound
 from ..core.fileio import write_json
 from ..services.networks import load_lpips
-from ..capture.ply import write_ply
+from ..formats.ply import write_ply
 from .recipe import BATCH_SCALINGS, Recipe, batch_factors
 from ..raster.rendering import render as render_views   # (the old name of the differentiable render)
 from ..services.runs import claim

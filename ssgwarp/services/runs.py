@@ -26,7 +26,7 @@ from ..core.cameras import Cameras
 from ..capture.datasets import load_run
 from ..errors import InputError, SsgwarpError
 from ..core.fileio import read_json
-from ..capture.ply import read_ply
+from ..formats.ply import read_ply
 
 __all__ = ["Run", "Claim", "claim"]
 

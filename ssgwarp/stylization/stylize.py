@@ -343,7 +343,7 @@ def _stage2_loss(r: _Run, t: Targets, kv, content_ref: torch.Tensor, alphas: tor
 
 def _stage2(r: _Run, kv, stylized) -> dict:
     """Colour transfer, the optimisation and colour transfer again; writes ``scene.ply`` and ``loss.png``."""
-    from ..capture.ply import write_ply
+    from ..formats.ply import write_ply
 
     stage2, t0 = r.stage2, time.perf_counter()
     originals = render_batched(r.scene, r.train_cams, r.bg, desc="original renders" if r.progress else None)

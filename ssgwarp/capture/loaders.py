@@ -15,17 +15,23 @@ import torch
 from tqdm import tqdm
 
 from ..core.cameras import Cameras
-from .colmap import _pick, find_model, read_cameras, read_model, read_points3d
+from ..formats.colmap import _pick, find_model, read_cameras, read_model, read_points3d
 from ..errors import InputError
 from ..core.fileio import read_image, read_json
 from .lens import Lens, plan_undistortion
-from .ply import read_points
+from ..formats.ply import read_points
 
 log = logging.getLogger("ssgwarp.capture.datasets")
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".bmp", ".webp", ".PNG", ".JPG", ".JPEG")
 # OpenGL camera axes (x right, y up, z back) -> OpenCV (x right, y down, z forward)
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def _lens(cam) -> Optional[Lens]:
+    """A COLMAP camera's distortion as a :class:`Lens` (None for the pinhole models)."""
+    d = cam.distortion
+    return None if d is None else Lens(*d)
 
 
 def _image_folder(root: Path, images: str) -> Path:
@@ -229,7 +235,7 @@ def _load_colmap(root: Path, images: str, max_images, width, background, progres
             K[0] *= w0 / cam.width
             K[1] *= h0 / cam.height
             Ks.append(K)
-        return np.stack(Ks), [c.lens for c in cam_of], [f"{cam_file}: camera {c.id}" for c in cam_of]
+        return np.stack(Ks), [_lens(c) for c in cam_of], [f"{cam_file}: camera {c.id}" for c in cam_of]
 
     imgs, Ks, undist = _load_images(paths, background, width, intrinsics, progress=progress)
     viewmats = np.stack([im.viewmat for im in ims])
@@ -278,7 +284,7 @@ def _load_llff(root: Path, images: str, max_images, width, background, num_rando
             cc = next(iter(ccams.values()))
             if cc.model not in ("SIMPLE_PINHOLE", "PINHOLE"):
                 if abs(cc.K[0, 0] * w_full / cc.width - focal[0]) <= 0.01 * focal[0]:
-                    lens, label = cc.lens, f"{pb_path} with the lens of {cam_file}: camera {cc.id}"
+                    lens, label = _lens(cc), f"{pb_path} with the lens of {cam_file}: camera {cc.id}"
                 else:
                     log.warning("%s: camera %d (%s) has another focal length than %s; its distortion is not "
                                 "removed", cam_file, cc.id, cc.model, pb_path.name)

@@ -16,7 +16,8 @@ Camera models handled (others are rejected with a clear error):
 ``FULL_OPENCV (fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6)``,
 ``OPENCV_FISHEYE (fx, fy, cx, cy, k1, k2, k3, k4)``,
 ``SIMPLE_RADIAL_FISHEYE (f, cx, cy, k)``, ``RADIAL_FISHEYE (f, cx, cy, k1, k2)``;
-:attr:`ColmapCamera.lens` gives the distortion as a :class:`ssgwarp.capture.lens.Lens`.
+:attr:`ColmapCamera.distortion` gives the distortion model and its coefficients (as
+:class:`ssgwarp.capture.lens.Lens` takes them).
 
 Every malformed input (truncated file, bad counts, unknown model, unparsable
 text) raises :class:`~ssgwarp.errors.InputError` naming the file.
@@ -34,7 +35,6 @@ import torch
 from ..errors import InputError
 from ..core.fileio import atomic_path
 from ..core.geometry import quat_to_rotmat, rotmat_to_quat
-from .lens import Lens
 
 # model id -> (name, number of parameters), as in COLMAP's camera model list
 MODELS: dict[int, tuple[str, int]] = {
@@ -85,18 +85,19 @@ class ColmapCamera:
         return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=np.float64)
 
     @property
-    def lens(self):
-        """The distortion as a :class:`ssgwarp.capture.lens.Lens` (None for the pinhole models)."""
+    def distortion(self) -> Optional[tuple[str, tuple[float, ...]]]:
+        """``(model, coefficients)`` of the distortion (None for the pinhole models)."""
         if self.model in ("SIMPLE_PINHOLE", "PINHOLE"):
             return None
         if self.model not in SUPPORTED:
             raise self._unsupported()
-        return Lens(self.model, tuple(self.params[3 if self.model in _ONE_FOCAL else 4:]))
+        return self.model, tuple(float(v) for v in self.params[3 if self.model in _ONE_FOCAL else 4:])
 
     @property
     def is_distorted(self) -> bool:
-        lens = self.lens
-        return lens is not None and not lens.is_pinhole
+        """Whether the camera bends lines: a fisheye model, or a radial-tangential one with a non-zero coefficient."""
+        d = self.distortion
+        return d is not None and ("FISHEYE" in d[0] or any(d[1]))
 
 
 @dataclass

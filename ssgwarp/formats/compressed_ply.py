@@ -1,7 +1,6 @@
-"""Two compact splat formats the web viewers read, written and read with numpy.
+"""PlayCanvas / SuperSplat compressed PLY (``.compressed.ply``), written and read with numpy.
 
-**PlayCanvas / SuperSplat compressed PLY** (``.compressed.ply``): a binary little-endian PLY
-with three elements --
+A binary little-endian PLY with three elements --
 
 * ``chunk`` (one per 256 Gaussians, float): ``min_x min_y min_z max_x max_y max_z``,
   ``min_scale_x .. max_scale_z`` (log scales, clamped to [-20, 20]), ``min_r min_g min_b max_r
@@ -19,107 +18,27 @@ with three elements --
 
 The Gaussians are written in Morton (Z-curve) order so each chunk of 256 is spatially tight.
 Coordinates as our PLY (no conversion).
-
-**antimatter15 ``.splat``**: no header, 32 bytes per Gaussian: position (3 float32), scale (3
-float32, linear standard deviations), colour RGBA (4 uint8: ``(0.5 + SH_C0 * f_dc) * 255`` and
-``sigmoid(opacity) * 255``), rotation (4 uint8: the unit wxyz quaternion ``q * 128 + 128``);
-sorted by ``scale_x * scale_y * scale_z * opacity``, largest first. No SH beyond degree 0.
 """
 from __future__ import annotations
 
 import math
 import re
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 
-from ..core.fileio import atomic_path
 from ..errors import InputError
 from ..raster.scene import SH_C0, GaussianScene
+from .codec import OTHER_COMPONENTS, arrays_scene, logit, morton_order, scene_arrays, sigmoid, unorm, write_atomic
 
 CHUNK = 256
 CHUNK_FIELDS = ["min_x", "min_y", "min_z", "max_x", "max_y", "max_z",
                 "min_scale_x", "min_scale_y", "min_scale_z", "max_scale_x", "max_scale_y", "max_scale_z",
                 "min_r", "min_g", "min_b", "max_r", "max_g", "max_b"]
 VERTEX_FIELDS = ["packed_position", "packed_rotation", "packed_scale", "packed_color"]
-SPLAT_BYTES = 32
 _SQRT1_2 = math.sqrt(0.5)
-OTHER_COMPONENTS = np.array([[j for j in range(4) if j != i] for i in range(4)])   # row i: the indices other than i
 
 
-# ----------------------------------------------------------------------------- shared helpers
-def sigmoid(x: np.ndarray) -> np.ndarray:
-    return 1.0 / (1.0 + np.exp(-np.asarray(x, np.float64)))
-
-
-def logit(p: np.ndarray, eps: float = 1e-6) -> np.ndarray:
-    """The inverse of :func:`sigmoid`, ``p`` kept ``eps`` off 0 and 1 (8-bit alphas of 0 and 255)."""
-    p = np.clip(np.asarray(p, np.float64), eps, 1.0 - eps)
-    return np.log(p / (1.0 - p))
-
-
-def to_u8(x: np.ndarray) -> np.ndarray:
-    """Round half away from zero (as C's ``round`` on these non-negative values), clamp to 0..255."""
-    return np.clip(np.floor(np.asarray(x, np.float64) + 0.5), 0, 255).astype(np.uint8)
-
-
-def unorm(v: np.ndarray, bits: int) -> np.ndarray:
-    """``v`` in [0, 1] on ``bits`` bits (round to nearest, clamped)."""
-    t = (1 << bits) - 1
-    return np.clip(np.floor(np.asarray(v, np.float64) * t + 0.5), 0, t).astype(np.uint32)
-
-
-def scene_arrays(scene: GaussianScene) -> dict[str, Optional[np.ndarray]]:
-    """The scene as numpy arrays: ``means``, ``log_scales``, ``quats`` (wxyz, normalised, float64),
-    ``opacity`` (logits), ``sh_dc``, ``sh_rest`` ([N, K, 3] or None)."""
-    def f32(t):
-        return None if t is None else t.detach().to("cpu").float().numpy()
-
-    q = f32(scene.quats).astype(np.float64)
-    return {"means": f32(scene.means), "log_scales": f32(scene.log_scales),
-            "quats": q / np.linalg.norm(q, axis=1, keepdims=True), "opacity": f32(scene.logit_opacities),
-            "sh_dc": f32(scene.sh_dc), "sh_rest": f32(scene.sh_rest)}
-
-
-def arrays_scene(means, log_scales, quats, opacity, sh_dc, sh_rest=None) -> GaussianScene:
-    """A :class:`GaussianScene` (float32) of numpy arrays; ``sh_rest`` [N, K, 3] with K = 3, 8, 15, or None."""
-    import torch
-
-    def t(a):
-        return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
-
-    k = 0 if sh_rest is None else int(sh_rest.shape[1])
-    degree = {0: 0, 3: 1, 8: 2, 15: 3}[k]
-    return GaussianScene(t(means), t(log_scales), t(quats), t(opacity).reshape(-1), t(sh_dc),
-                         t(sh_rest) if k else None, None, degree)
-
-
-def write_atomic(path: str | Path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` through a temporary file (an interrupted write leaves nothing)."""
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
-    return path
-
-
-def morton_order(points: np.ndarray) -> np.ndarray:
-    """Indices sorting ``points [N, 3]`` along a Z-order curve (10 bits an axis over their bounding box)."""
-    lo, hi = points.min(axis=0), points.max(axis=0)
-    span = np.where(hi - lo > 0, hi - lo, 1.0)
-    cells = np.clip(((points - lo) / span * 1023.0).astype(np.int64), 0, 1023)
-
-    def spread(v):   # bit i of v -> bit 3i
-        v = (v | (v << 16)) & 0x030000FF
-        v = (v | (v << 8)) & 0x0300F00F
-        v = (v | (v << 4)) & 0x030C30C3
-        return (v | (v << 2)) & 0x09249249
-
-    code = (spread(cells[:, 0]) << 2) | (spread(cells[:, 1]) << 1) | spread(cells[:, 2])
-    return np.argsort(code, kind="stable")
-
-
-# ----------------------------------------------------------------------------- compressed PLY
 def _chunk_range(v: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     """Per-chunk min and max of ``v [N, D]`` (the last chunk padded with its last row)."""
     c = -(-n // CHUNK)
@@ -275,46 +194,3 @@ def is_compressed_ply(path: str | Path) -> bool:
     end = head.find(b"end_header")
     return head.startswith(b"ply") and re.search(rb"^element chunk ", head[:end if end >= 0 else None],
                                                   re.MULTILINE) is not None
-
-
-# ----------------------------------------------------------------------------- .splat
-SPLAT_DTYPE = np.dtype([("position", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rot", "u1", 4)])
-assert SPLAT_DTYPE.itemsize == SPLAT_BYTES
-
-
-def splat_bytes(scene: GaussianScene) -> bytes:
-    """The ``.splat`` file of ``scene`` (SH degree 0 only: higher bands are dropped)."""
-    a = scene_arrays(scene)
-    alpha = sigmoid(a["opacity"])
-    order = np.argsort(-(np.exp(a["log_scales"].astype(np.float64).sum(axis=1)) * alpha), kind="stable")
-    rec = np.zeros(len(scene), SPLAT_DTYPE)
-    rec["position"] = a["means"][order]
-    rec["scale"] = np.exp(np.maximum(a["log_scales"][order].astype(np.float64), -80.0))   # > 0 in float32
-    rec["rgba"][:, :3] = to_u8((a["sh_dc"][order].astype(np.float64) * SH_C0 + 0.5) * 255.0)
-    rec["rgba"][:, 3] = to_u8(alpha[order] * 255.0)
-    rec["rot"] = np.clip(np.floor(a["quats"][order] * 128.0 + 128.5), 0, 255).astype(np.uint8)
-    return rec.tobytes()
-
-
-def write_splat(path: str | Path, scene: GaussianScene) -> Path:
-    """Write ``scene`` as an antimatter15 ``.splat`` file, atomically."""
-    return write_atomic(path, splat_bytes(scene))
-
-
-def read_splat(path: str | Path) -> GaussianScene:
-    """Read an antimatter15 ``.splat`` file (SH degree 0)."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: .splat file not found")
-    data = path.read_bytes()
-    if not data or len(data) % SPLAT_BYTES:
-        raise InputError(f"{path}: not a .splat file ({len(data)} bytes, expected a non-zero multiple of 32)")
-    rec = np.frombuffer(data, SPLAT_DTYPE)
-    scale = rec["scale"].astype(np.float64)
-    if not (np.isfinite(rec["position"]).all() and np.isfinite(scale).all() and (scale > 0).all()):
-        raise InputError(f"{path}: .splat file has non-finite positions or non-positive scales (corrupt?)")
-    q = (rec["rot"].astype(np.float64) - 128.0) / 128.0
-    norm = np.linalg.norm(q, axis=1, keepdims=True)
-    q = np.where(norm > 0, q / np.where(norm > 0, norm, 1.0), [1.0, 0.0, 0.0, 0.0])
-    rgba = rec["rgba"].astype(np.float64) / 255.0
-    return arrays_scene(rec["position"], np.log(scale), q, logit(rgba[:, 3]), (rgba[:, :3] - 0.5) / SH_C0)

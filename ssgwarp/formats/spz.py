@@ -40,7 +40,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..raster.scene import GaussianScene
-from .splat_codecs import OTHER_COMPONENTS, arrays_scene, logit, scene_arrays, sigmoid, to_u8, write_atomic
+from .codec import OTHER_COMPONENTS, arrays_scene, logit, scene_arrays, sigmoid, to_u8, write_atomic
 
 MAGIC = 0x5053474E
 HEADER = struct.Struct("<IIIBBBB")

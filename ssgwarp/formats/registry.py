@@ -1,10 +1,11 @@
 """The splat file formats ssgwarp writes and reads, by name: ``ply`` (the INRIA 3DGS layout,
-:mod:`ssgwarp.capture.ply`), ``compressed-ply`` (PlayCanvas / SuperSplat) and ``splat``
-(antimatter15) (:mod:`ssgwarp.capture.splat_codecs`), ``spz`` (Niantic, :mod:`ssgwarp.capture.spz`).
+:mod:`ssgwarp.formats.ply`), ``compressed-ply`` (PlayCanvas / SuperSplat,
+:mod:`ssgwarp.formats.compressed_ply`), ``splat`` (antimatter15, :mod:`ssgwarp.formats.splat`),
+``spz`` (Niantic, :mod:`ssgwarp.formats.spz`).
 
 * :func:`write_scene` -- ``scene`` to ``path`` in a named format, atomically;
-* :func:`read_scene` -- any of the four back into a :class:`GaussianScene` (in our frame),
-  the format found from the file's first bytes (and ``.splat``'s name);
+* :func:`read_scene` -- any of them back into a :class:`GaussianScene` (in our frame),
+  the format found from the file's first bytes (and ``.splat``'s name) by :func:`detect_format`;
 * :func:`format_for_path` -- the format a file name asks for (``.compressed.ply`` before ``.ply``).
 """
 from __future__ import annotations
@@ -16,7 +17,8 @@ from typing import Optional
 from ..errors import InputError
 from ..raster.scene import GaussianScene
 from .ply import read_ply, write_ply
-from .splat_codecs import is_compressed_ply, read_compressed_ply, read_splat, write_compressed_ply, write_splat
+from .compressed_ply import is_compressed_ply, read_compressed_ply, write_compressed_ply
+from .splat import read_splat, write_splat
 from .spz import MAGIC as SPZ_MAGIC, read_spz, write_spz
 
 # name -> (file suffix, highest SH degree it holds)
@@ -49,7 +51,7 @@ def format_for_path(path: str | Path) -> Optional[str]:
 def write_scene(path: str | Path, scene: GaussianScene, fmt: str, *, spz_sh_bits=None) -> Path:
     """Write ``scene`` to ``path`` as ``fmt``; a ``ply`` keeps the scene as it is (identities
     included), the other formats hold what they can (``splat``: SH degree 0). ``spz_sh_bits``:
-    (band 1, higher bands) significant bits of SPZ's SH (default :data:`ssgwarp.capture.spz.SH_BITS`)."""
+    (band 1, higher bands) significant bits of SPZ's SH (default :data:`ssgwarp.formats.spz.SH_BITS`)."""
     fmt = check_format(fmt)
     if fmt == "spz":
         return write_spz(path, scene) if spz_sh_bits is None else write_spz(path, scene, sh_bits=tuple(spz_sh_bits))
