@@ -44,7 +44,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
              "ssgwarp view runs/fern/scene.ply --color group --screenshot shot.png"),
     "render": ("ssgwarp.evaluation.render", "render a scene along its cameras or a smooth path",
                "ssgwarp render runs/fern --out runs/fern/renders [--path]"),
-    "export": ("ssgwarp.evaluation.export", "write a run's scene as PLY, compressed PLY, SPZ or .splat for other viewers",
+    "export": ("ssgwarp.evaluation.export", "write a run's scene (or convert a splat file) as PLY, compressed PLY, SPZ, .splat, SOG or GLB",
                "ssgwarp export runs/fern --format spz --out fern.spz [--sh-degree 1]"),
     "weights": ("ssgwarp.services.weights_command", "pretrained models: where each is found (or missing), size, licence; "
                 "--download fetches them into the Hugging Face / torch hub caches",

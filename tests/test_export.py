@@ -147,7 +147,7 @@ def test_spz_header_layout_and_rub_axes(tmp_path):
     fractional bits; a 60 degree turn about y is stored as its RUB quaternion (0, -0.5, 0, 0.866)."""
     c, sn = math.cos(math.radians(30)), math.sin(math.radians(30))
     s = _tiny([[1, 2, 3]], quats=[[c, 0, sn, 0]], sh_rest=[[[0.5, 0, 0], [0, 0, 0], [0.5, 0, 0]]], degree=1)
-    p = write_spz(tmp_path / "s.spz", s)
+    p = write_spz(tmp_path / "s.spz", s, version=3)
     raw = gzip.decompress(p.read_bytes())
     assert raw[:4] == b"NGSP"
     magic, version, n, deg, frac, flags, reserved = struct.unpack_from("<IIIBBBB", raw)
@@ -352,14 +352,15 @@ def test_errors(tmp_path, capsys):
 
 def test_corrupt_files_are_refused(tmp_path):
     s = _scene(1, density=0.3)
-    spz = write_spz(tmp_path / "s.spz", s)
+    spz = write_spz(tmp_path / "s.spz", s, version=3)
     raw = gzip.decompress(spz.read_bytes())
     cases = {
         "cut.spz": (gzip.compress(raw[:-10]), "truncated or corrupt"),
         "magic.spz": (gzip.compress(b"XXXX" + raw[4:]), "not an SPZ file"),
         "v9.spz": (gzip.compress(raw[:4] + struct.pack("<I", 9) + raw[8:]), "version 9"),
-        "ext.spz": (gzip.compress(raw[:14] + bytes([2]) + raw[15:]), "extension"),
-        "v4.spz": (raw[:4] + struct.pack("<I", 4) + bytes(24), "version 4"),
+        "ext.spz": (gzip.compress(raw[:14] + bytes([2]) + raw[15:] + struct.pack("<II", 7, 99)), "extension record"),
+        "v1.spz": (gzip.compress(raw[:4] + struct.pack("<I", 1) + raw[8:]), "version 1"),
+        "v4.spz": (raw[:4] + struct.pack("<I", 4) + bytes(24), "no Gaussians"),
         "gz.spz": (b"\x1f\x8b" + b"junk" * 4, "not a gzip-compressed SPZ"),
         "odd.splat": (bytes(33), "multiple of 32"),
     }

@@ -2,8 +2,10 @@
 
 Formats (:mod:`ssgwarp.formats.registry`): ``ply`` (the INRIA 3DGS layout, float32),
 ``compressed-ply`` (PlayCanvas / SuperSplat, chunks of 256 quantised Gaussians), ``spz``
-(Niantic, gzip, converted to SPZ's RUB axes) and ``splat`` (antimatter15, 32 bytes a Gaussian,
-SH degree 0). ``--sh-degree N`` keeps the SH bands up to N. The file is written atomically and
+(Niantic, version 4 with zstd streams, or ``--spz-version 3`` / 2 in gzip, converted to SPZ's RUB axes),
+``splat`` (antimatter15, 32 bytes a Gaussian, SH degree 0), ``sog`` (PlayCanvas SOG: a ``.sog`` bundle,
+or a folder when ``--out`` is its ``meta.json``) and ``glb`` (glTF with KHR_gaussian_splatting, float32).
+``.ksplat`` files are read (as a source), not written. ``--sh-degree N`` keeps the SH bands up to N. The file is written atomically and
 an existing one is kept unless ``--force``. The export is read back and compared: the size
 against the run's ``scene.ply`` and, where the run has cameras, the PSNR of renders of the file
 read back against renders of the scene (``--check-views``; the quantisation error alone: both at
@@ -19,7 +21,8 @@ from typing import Optional
 
 import torch
 
-from ..formats.registry import FORMATS, check_format, format_for_path, read_scene, write_scene
+from ..formats.registry import FORMATS, WRITABLE, check_format, format_for_path, read_scene, write_scene
+from ..formats.sog import sog_names
 from ..errors import InputError, SsgwarpError
 from ..raster.rendering import render_views
 from ..services.losses import psnr
@@ -34,6 +37,8 @@ def _source(run_dir: Path) -> tuple[Path, Optional[Run]]:
         return run_dir, None
     if not run_dir.is_dir():
         raise InputError(f"{run_dir}: run folder not found")
+    if (run_dir / "meta.json").is_file() and not (run_dir / "scene.ply").is_file():
+        return run_dir, None   # a SOG folder
     if not (run_dir / "scene.ply").is_file():
         raise InputError(f"{run_dir}: no scene.ply (expected a `ssgwarp reconstruct` or `ssgwarp stylize` "
                          f"output, or give a scene file)")
@@ -48,9 +53,9 @@ def _choose_format(fmt: Optional[str], out: Path) -> str:
         fmt = format_for_path(out)
         if fmt is None:
             raise InputError(f"--out {out.name}: cannot tell the format from its name; pass --format "
-                             f"({', '.join(FORMATS)})")
-        return fmt
-    fmt = check_format(fmt)
+                             f"({', '.join(WRITABLE)})")
+        return check_format(fmt, writing=True)
+    fmt = check_format(fmt, writing=True)
     named = format_for_path(out)
     if named not in (fmt, None) and not (fmt == "compressed-ply" and named == "ply"):
         print(f"ssgwarp: note: {out.name} ends like a {named} file but is written as {fmt}; viewers choose "
@@ -69,7 +74,7 @@ def _degree(scene, fmt: str, sh_degree: Optional[int]) -> int:
                          f"choose 0..{scene.sh_degree}")
     if sh_degree > limit:
         raise InputError(f"--sh-degree {sh_degree}: the {fmt} format holds SH up to degree {limit} "
-                         f"(use spz or compressed-ply for view-dependent colour)")
+                         f"(use spz, sog, glb or compressed-ply for view-dependent colour)")
     return sh_degree
 
 
@@ -96,7 +101,8 @@ def check_views(scene, exported, run: Run, views: int, device="cpu") -> list[flo
 
 
 def export(run_dir: str | Path, out: str | Path, fmt: Optional[str] = None, *, sh_degree: Optional[int] = None,
-           force: bool = False, views: int = 2, device="cpu", spz_sh_bits=None) -> dict:
+           force: bool = False, views: int = 2, device="cpu", spz_sh_bits=None,
+           spz_version: Optional[int] = None) -> dict:
     """Export ``run_dir``'s scene (or a scene file in any of the formats) to ``out``; returns what was
     written and measured: ``format``, ``path``, ``bytes``, ``source_bytes``, ``gaussians``, ``sh_degree``,
     ``psnr`` (one per checked view)."""
@@ -111,16 +117,23 @@ def export(run_dir: str | Path, out: str | Path, fmt: Optional[str] = None, *, s
         raise InputError(f"--check-views {views}: must be >= 0")
     if spz_sh_bits is not None and fmt != "spz":
         raise InputError(f"--spz-sh-bits: an option of the spz format, not of {fmt}")
-    claim(out.parent, [out.name], force=force, what="a file", resumable=False)
+    if spz_version is not None and (fmt != "spz" or spz_version not in (2, 3, 4)):
+        raise InputError(f"--spz-version {spz_version}: " + ("an option of the spz format, not of " + fmt
+                         if fmt != "spz" else "choose 4 (the default), or 3 or 2 for viewers older than SPZ 4"))
+    folder = fmt == "sog" and out.name.lower() == "meta.json"
+    names = sog_names() if folder else [out.name]
+    claim(out.parent, names, force=force, what="a file", resumable=False)
     scene = read_scene(src)
     degree = _degree(scene, fmt, sh_degree)
     scene = scene.with_sh_degree(degree).replace(identities=None)
-    write_scene(out, scene, fmt, spz_sh_bits=spz_sh_bits)
-    back = read_scene(out, fmt)
+    write_scene(out, scene, fmt, spz_sh_bits=spz_sh_bits, spz_version=spz_version)
+    back = read_scene(out, fmt=fmt)
     if len(back) != len(scene) or back.sh_degree != degree:
         raise SsgwarpError(f"{out}: read back {len(back)} Gaussians at SH degree {back.sh_degree}, "
                          f"wrote {len(scene)} at {degree}")
-    return {"format": fmt, "path": str(out), "bytes": out.stat().st_size, "source_bytes": src.stat().st_size,
+    size = sum((out.parent / nm).stat().st_size for nm in names if (out.parent / nm).is_file())
+    source_bytes = sum(f.stat().st_size for f in src.iterdir() if f.is_file()) if src.is_dir() else src.stat().st_size
+    return {"format": fmt, "path": str(out), "bytes": size, "source_bytes": source_bytes,
             "gaussians": len(scene), "sh_degree": degree,
             "psnr": check_views(scene, back, run, views, device) if run is not None else []}
 
@@ -128,11 +141,13 @@ def export(run_dir: str | Path, out: str | Path, fmt: Optional[str] = None, *, s
 def add_arguments(parser) -> None:
     parser.add_argument("run_dir", type=Path,
                         help="a run folder holding scene.ply (reconstruct or stylize output), or a scene file "
-                             "in any of the formats (PLY, compressed PLY, SPZ, .splat: a conversion)")
+                             "in any of the formats (PLY, compressed PLY, SPZ, .splat, .ksplat, SOG, GLB: a "
+                             "conversion)")
     parser.add_argument("--out", type=Path, required=True,
-                        help="the file to write (.ply, .compressed.ply, .spz or .splat)")
+                        help="the file to write (.ply, .compressed.ply, .spz, .splat, .sog, .glb; a SOG folder: "
+                             "FOLDER/meta.json)")
     parser.add_argument("--format", default=None, metavar="FORMAT",
-                        help=f"{', '.join(FORMATS)} (default: from --out's name)")
+                        help=f"{', '.join(WRITABLE)} (default: from --out's name)")
     parser.add_argument("--sh-degree", type=int, default=None, metavar="N",
                         help="keep SH bands up to N (default: all the scene has, as far as the format holds: "
                              "splat 0, the others 3)")
@@ -143,6 +158,9 @@ def add_arguments(parser) -> None:
                         help="spz: significant bits of the SH coefficients of band 1 and of the higher bands, "
                              "1..8 each (default 6,5; the SPZ reference writer's 5,4 makes smaller files, 8,8 the "
                              "most faithful; readers need not know)")
+    parser.add_argument("--spz-version", type=int, default=None, metavar="V",
+                        help="spz: 4 (default: zstd streams, Niantic's current format), or 3 / 2 (gzip) for "
+                             "viewers that predate SPZ 4")
     parser.add_argument("--force", action="store_true", help="overwrite an existing --out file")
 
 
@@ -159,7 +177,8 @@ def _bits(text: str) -> tuple[int, int]:
 def run(args) -> int:
     r = export(args.run_dir, args.out, args.format, sh_degree=args.sh_degree, force=args.force,
                views=args.check_views, device=args.device,
-               spz_sh_bits=None if args.spz_sh_bits is None else _bits(args.spz_sh_bits))
+               spz_sh_bits=None if args.spz_sh_bits is None else _bits(args.spz_sh_bits),
+               spz_version=args.spz_version)
     ratio = r["source_bytes"] / max(1, r["bytes"])
     size = f"{ratio:.1f}x smaller than" if ratio >= 1 else f"{1 / ratio:.1f}x the size of"
     print(f"{r['path']}: {r['format']}, {r['gaussians']} Gaussians, SH degree {r['sh_degree']}, "
