@@ -50,7 +50,7 @@ def arrays_scene(means, log_scales, quats, opacity, sh_dc, sh_rest=None) -> Gaus
     import torch
 
     def t(a):
-        return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
+        return torch.from_numpy(np.array(a, dtype=np.float32))   # a copy: the sources may be read-only buffers
 
     k = 0 if sh_rest is None else int(sh_rest.shape[1])
     degree = {0: 0, 3: 1, 8: 2, 15: 3}[k]

@@ -24,6 +24,8 @@ import difflib
 from pathlib import Path
 from typing import Optional
 
+import torch
+
 from ..errors import InputError
 from ..raster.scene import GaussianScene
 from .compressed_ply import is_compressed_ply, read_compressed_ply, write_compressed_ply
@@ -122,4 +124,8 @@ def read_scene(path: str | Path, device=None, *, fmt: Optional[str] = None) -> G
     """Read a scene written in any of :data:`FORMATS` (``fmt``: found from the file when None), on ``device``."""
     fmt = detect_format(path) if fmt is None else check_format(fmt)
     scene = _READERS[fmt](path)
+    for name, t in scene.tensors().items():
+        bad = ~torch.isfinite(t.reshape(len(scene), -1)).all(dim=1)
+        if bad.any():
+            raise InputError(f"{path}: {int(bad.sum())} Gaussian(s) have NaN/inf {name} values (corrupt file)")
     return scene if device is None else scene.to(device)
