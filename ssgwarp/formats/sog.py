@@ -45,11 +45,16 @@ MAX_RATIO = 1024   # the most texels per file byte a reader accepts (lossless We
 
 
 # ----------------------------------------------------------------------------- quantisers
-def codebook(values: np.ndarray, size: int = 256, iters: int = 12) -> tuple[np.ndarray, np.ndarray]:
+def codebook(values: np.ndarray, size: int = 256, iters: int = 8) -> tuple[np.ndarray, np.ndarray]:
     """1D k-means of ``values`` into ``size`` levels: ``(codebook [size] float32 ascending, labels uint8)``."""
     v = np.asarray(values, np.float64).reshape(-1)
-    sample = v if len(v) <= 200_000 else np.random.default_rng(0).choice(v, 200_000, replace=False)
-    c = np.unique(np.quantile(sample, (np.arange(size) + 0.5) / size))
+    sample = v if len(v) <= 200_000 else np.concatenate(
+        [np.random.default_rng(0).choice(v, 200_000, replace=False), [v.min(), v.max()]])
+    # half the levels at the quantiles, half evenly over the range: the sparse tails (a scene's few very
+    # large Gaussians) keep levels near them
+    half = size // 2
+    c = np.unique(np.concatenate([np.quantile(sample, (np.arange(size - half) + 0.5) / (size - half)),
+                                  np.linspace(sample.min(), sample.max(), half)]))
     for _ in range(iters):
         lab = _nearest(sample, c)
         sums, counts = np.bincount(lab, sample, len(c)), np.bincount(lab, minlength=len(c))
@@ -217,8 +222,8 @@ class _Files:
         else:
             try:
                 self.zip = zipfile.ZipFile(path)
-            except (zipfile.BadZipFile, OSError, ValueError) as e:
-                raise InputError(f"{path}: not a SOG bundle (not a zip file: {e})") from None
+            except Exception as e:   # zipfile raises BadZipFile, OSError, ValueError, NotImplementedError...
+                raise InputError(f"{path}: not a SOG bundle (not a readable zip file: {e})") from None
         self.budget = path.stat().st_size if self.zip else sum(
             f.stat().st_size for f in self.root.iterdir() if f.is_file())
 
