@@ -310,7 +310,12 @@ def test_sog_bad_files(tmp_path):
              (bundle("out.sog", **{"meta.json": json.dumps({**meta, "sh0": {**meta["sh0"], "files": ["../x"]}})}),
               "outside")]
     (tmp_path / "nozip.sog").write_bytes(b"PK\x03\x04junk")
-    cases.append((tmp_path / "nozip.sog", "not a zip"))
+    cases.append((tmp_path / "nozip.sog", "not a readable zip"))
+    central = bytearray(good)
+    at = good.index(b"PK\x01\x02")             # the first central-directory entry: "version needed" at +6
+    central[at + 6:at + 8] = struct.pack("<H", 192)   # 19.2, which zipfile meets with NotImplementedError
+    (tmp_path / "zipver.sog").write_bytes(bytes(central))
+    cases.append((tmp_path / "zipver.sog", "not a readable zip"))
     for p, msg in cases:
         with pytest.raises(InputError, match=msg):
             read_scene(p)

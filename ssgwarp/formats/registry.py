@@ -24,6 +24,7 @@ import difflib
 from pathlib import Path
 from typing import Optional
 
+import numpy as np
 import torch
 
 from ..errors import InputError
@@ -123,7 +124,8 @@ def detect_format(path: str | Path) -> str:
 def read_scene(path: str | Path, device=None, *, fmt: Optional[str] = None) -> GaussianScene:
     """Read a scene written in any of :data:`FORMATS` (``fmt``: found from the file when None), on ``device``."""
     fmt = detect_format(path) if fmt is None else check_format(fmt)
-    scene = _READERS[fmt](path)
+    with np.errstate(all="ignore"):   # a damaged file's overflows end in the finite check below, not in warnings
+        scene = _READERS[fmt](path)
     for name, t in scene.tensors().items():
         bad = ~torch.isfinite(t.reshape(len(scene), -1)).all(dim=1)
         if bad.any():
