@@ -221,7 +221,8 @@ def test_ksplat_bad_files(tmp_path):
     cases = {"short": (good[:100], "header alone"), "cut": (good[:-5], "past the file's end"),
              "mode": (good[:20] + b"\x07\x00" + good[22:], "compression mode 7"),
              "count": (good[:16] + struct.pack("<I", 10 ** 9) + good[20:], "claims"),
-             "version": (b"\x01" + good[1:], "version 1.1")}
+             "version": (b"\x01" + good[1:], "version 1.1"),
+             "buckets": (good[:4096 + 32] + struct.pack("<I", 2 ** 31) + good[4096 + 36:], "buckets")}
     for name, (data, msg) in cases.items():
         (tmp_path / f"{name}.ksplat").write_bytes(data)
         with pytest.raises(InputError, match=msg):

@@ -125,8 +125,10 @@ def _counts(kind: str, data: bytes, value: int) -> bytes:
         struct.pack_into("<I", raw, 8, v32)
         return gzip.compress(bytes(raw))
     elif kind == "ksplat":
-        struct.pack_into("<I", b, 16, v32)
-        struct.pack_into("<I", b, 4096, v32 % 4096)
+        if value % 3 == 0:
+            struct.pack_into("<I", b, 16, v32)
+            struct.pack_into("<I", b, 4096, v32 % 4096)
+        struct.pack_into("<I", b, 4096 + 32 if value % 2 else 4096 + 36, v32)   # full or partial buckets
     elif kind in ("ply", "compressed-ply"):
         return re.sub(rb"element (vertex|chunk|sh) \d+", lambda m: b"element " + m.group(1) + b" %d" % value,
                       data, count=1 if kind == "ply" else 3)

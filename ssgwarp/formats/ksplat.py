@@ -84,7 +84,7 @@ def read_ksplat(path: str | Path) -> GaussianScene:
         rec = cb + sb + rb + colb + sk3 * shb
         meta = partial * 4 + bucket_bytes * buckets
         end = off + meta + rec * cap
-        if count > cap or end > size or (mode and bucket_bytes < 12 and buckets):
+        if count > cap or end > size or (mode and (bucket_bytes < 12 and buckets or full + partial != buckets)):
             raise InputError(f"{path}: .ksplat section {i} ({count} Gaussians, {buckets} buckets) runs past the "
                              f"file's end or its own room (truncated or corrupt)")
         if count:

@@ -41,7 +41,7 @@ from .codec import arrays_scene, logit, scene_arrays, sigmoid, to_u8, write_atom
 PALETTE = 65536
 _SQRT2 = math.sqrt(2.0)
 _OTHERS = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
-MAX_RATIO = 1024   # the most texels per file byte a reader accepts (lossless WebP of real data: far less)
+MAX_RATIO = 16     # the most Gaussians per byte of the files a reader accepts (real SOGs: under 0.1)
 
 
 # ----------------------------------------------------------------------------- quantisers

@@ -329,7 +329,14 @@ def decode_spz_v4(data: bytes, name: str = "SPZ") -> tuple[GaussianScene, dict]:
                              f"{n} Gaussians (truncated or corrupt)")
         try:
             with dctx.stream_reader(io.BytesIO(data[off:off + packed])) as r:
-                out = r.read(want + 1)
+                parts, got = [], 0
+                while got <= want:   # in pieces: memory follows what the stream holds, not what the header claims
+                    piece = r.read(min(1 << 20, want + 1 - got))
+                    if not piece:
+                        break
+                    parts.append(piece)
+                    got += len(piece)
+                out = b"".join(parts)
         except zstandard.ZstdError as e:
             raise InputError(f"{name}: SPZ stream {i} is not valid zstd ({e})") from None
         if len(out) != want:
