@@ -30,7 +30,7 @@ from ssgwarp.formats.registry import read_scene, write_scene  # noqa: E402
 from ssgwarp.formats.spz import encode_spz  # noqa: E402
 from ssgwarp.raster.scene import GaussianScene  # noqa: E402
 
-EXAMPLES = int(os.environ.get("SSGWARP_FUZZ_EXAMPLES", "12"))
+EXAMPLES = int(os.environ.get("SSGWARP_FUZZ_EXAMPLES", "8"))
 FUZZ = settings(max_examples=EXAMPLES, derandomize=True, deadline=5000, database=None,
                 suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 ALLOC_FACTOR, ALLOC_SLACK = 64, 8 << 20   # peak numpy allocation <= 64 x the file's bytes + 8 MB
