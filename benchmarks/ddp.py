@@ -43,9 +43,7 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-from shared_data import data_root  # noqa: E402
+from harness import data_root, machine
 
 
 # ----------------------------------------------------------------------------- one configuration
@@ -91,7 +89,7 @@ def worker(a) -> int:
             row = {"gpus": group.world_size, "batch_size": b, "batch_scaling": a.batch_scaling, "seed": a.seed, "steps": steps,
                    "images": steps * b, "train_seconds": round(train_s, 2), "psnr": ev["psnr"], "ssim": ev["ssim"],
                    "gaussians": t.num_gaussians, "peak_mb_per_gpu": [round(p, 1) for p in peaks],
-                   "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
+                   "device": machine(device),
                    "resolution": [data.width, data.height], "curve": curve}
             Path(a.result).write_text(json.dumps(row))
     finally:

@@ -9,7 +9,6 @@ reference. Prints a markdown table (docs/numerics.md holds a run of it).
 """
 from __future__ import annotations
 
-import datetime
 import sys
 from pathlib import Path
 
@@ -17,6 +16,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
+from harness import header  # noqa: E402
 from ssgwarp import RasterSettings, rasterization  # noqa: E402
 from test_rasterizer_extremes import _extreme_case, _front_camera  # noqa: E402
 
@@ -83,7 +83,7 @@ def main():
             print(row, flush=True)
     head = ["case", "settings", "f64 image rel err", "f64 grad rel err", "f64 finite",
             "f32 image rel err", "f32 grad rel err", "f32 finite"]
-    print(f"\n{datetime.date.today().isoformat()}, {torch.__version__}, CPU\n")
+    print(f"\n{header('cpu')}\n")
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
     for r in rows:

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shlex
 import shutil
 import subprocess
@@ -27,7 +26,9 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+import torch
+
+from harness import append_jsonl, data_root, header, table
 
 
 def ssgwarp(args: list[str], log) -> float:
@@ -41,14 +42,17 @@ def ssgwarp(args: list[str], log) -> float:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", required=True, help="the capture folder")
+    ap.add_argument("--data", required=True, help="the capture folder, or its name in the shared data folder")
     ap.add_argument("--style", default="", help="a style image ({style})")
     ap.add_argument("--pipeline", action="append", required=True, help="'LABEL: command; command; ...'")
     ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "ssgwarp_pipeline")
     ap.add_argument("--warm", default="reconstruct {data} --out {run} --iters 30 --width 64 --init random "
                     "--random-points 500 --quiet --force",
                     help="the warm-up command ('' to skip; add e.g. --images images_8 where the capture needs it)")
+    ap.add_argument("--out", default=None, help="append the rows as JSON lines")
     args = ap.parse_args(argv)
+    if not Path(args.data).is_dir() and (data_root() / args.data).is_dir():
+        args.data = str(data_root() / args.data)
     args.work.mkdir(parents=True, exist_ok=True)
     log = open(args.work / "log.txt", "a")
     if args.warm:
@@ -72,15 +76,13 @@ def main(argv=None) -> int:
             if isinstance(secs, dict):
                 print(f"{label.strip()}: {sub.name} seconds: " + ", ".join(
                     f"{k} {v:.1f}" for k, v in secs.items() if isinstance(v, (int, float))), flush=True)
-        rows.append((label.strip(), stages, m))
-    print("\n| pipeline | stages (s) | total (s) | held-out PSNR | Gaussians | steps |")
-    print("|---|---|---:|---:|---:|---:|")
-    for label, stages, m in rows:
-        st = ", ".join(f"{n} {s:.0f}" for n, s in stages)
-        ps = "n/a" if m.get("psnr") is None else f"{m['psnr']:.2f}"
-        print(f"| {label} | {st} | {sum(s for _, s in stages):.0f} | {ps} | {m.get('num_gaussians', 'n/a')} | "
-              f"{m.get('iters', 'n/a')} |")
-    print(f"\n{os.uname().nodename}, {time.strftime('%Y-%m-%d')}")
+        rows.append({"pipeline": label.strip(), "stages": ", ".join(f"{n} {t:.0f}" for n, t in stages),
+                     "total": round(sum(t for _, t in stages), 1), "psnr": m.get("psnr"),
+                     "gaussians": m.get("num_gaussians"), "steps": m.get("iters"), "seconds": dict(stages)})
+        append_jsonl(args.out, {"machine": header("cuda" if torch.cuda.is_available() else "cpu"), **rows[-1]})
+    print(f"\n{header('cuda' if torch.cuda.is_available() else 'cpu')}\n")
+    print(table(rows, [("pipeline", "pipeline"), ("stages", "stages (s)"), ("total", "total (s)"),
+                       ("psnr", "held-out PSNR"), ("gaussians", "Gaussians"), ("steps", "steps")]))
     return 0
 
 
