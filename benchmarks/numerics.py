@@ -9,6 +9,7 @@ reference. Prints a markdown table (docs/numerics.md holds a run of it).
 """
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -57,9 +58,12 @@ def rel(a, b, floor=1e-12):
     return float((a - b).abs().max()) / scale if a.numel() else 0.0
 
 
-def main():
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--cases", nargs="+", choices=list(CASES), default=list(CASES), help="default: all")
+    args = ap.parse_args(argv)
     rows = []
-    for case, text in CASES.items():
+    for case, text in ((c, CASES[c]) for c in args.cases):
         if case == "stack5000":
             params, (vm, K), (w, h) = stacked(), _front_camera(8, 8, f=8.0), (8, 8)
         else:
@@ -88,7 +92,8 @@ def main():
     print("|" + "---|" * len(head))
     for r in rows:
         print("| " + " | ".join(r) + " |")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
