@@ -11,6 +11,17 @@ Each ``--pipeline`` is a label and the commands it runs, ``;``-separated, with `
         --pipeline "default: reconstruct {data} --images images_4 --out {run}/rec --groups auto; \\
                     stylize {run}/rec --style {style} --out {run}/sty"
 
+``--data`` is a capture folder, a folder of the shared data (``llff_fern``, ``livingroom_360``, ...) or a procedural
+capture written once into ``--work``: ``demo:WIDTH`` (the demo's scene seen by 24 ring cameras) or ``insideout:WIDTH``
+(a room seen from inside by 40 rig cameras; docs/reconstruction.md "Backdrops"). The schedules and backdrops of
+docs/reconstruction.md are pipelines of one ``reconstruct`` each:
+
+    python benchmarks/pipeline.py --data livingroom_360 --pipeline "auto: reconstruct {data} --out {run}/rec" \
+        --pipeline "30k: reconstruct {data} --iters 30000 --out {run}/rec" \
+        --pipeline "c2f: reconstruct {data} --coarse-to-fine 4 --out {run}/rec"
+    python benchmarks/pipeline.py --data insideout:256 --pipeline "auto: reconstruct {data} --iters 7000 --out {run}/rec" \
+        --pipeline "off: reconstruct {data} --iters 7000 --backdrop off --out {run}/rec"
+
 Prints a markdown table: one row per pipeline, the seconds of each stage, the total, and the held-out PSNR and
 Gaussians of ``{run}/rec/metrics.json``.
 """
@@ -40,6 +51,21 @@ def ssgwarp(args: list[str], log) -> float:
     return time.perf_counter() - t0
 
 
+def procedural_capture(spec: str, work: Path) -> Path:
+    """The procedural capture ``demo:WIDTH`` or ``insideout:WIDTH`` (4:3 views), written into ``work`` once."""
+    from ssgwarp import procedural as P
+
+    kind, _, width = spec.partition(":")
+    w = int(width or 96)
+    out = work / f"{kind}_{w}"
+    if not (out / "transforms.json").is_file():
+        gt, cams = ((P.build_scene(1.0), P.ring_cameras(24, w, w * 3 // 4)) if kind == "demo" else
+                    (P.build_inside_out(1.0), P.rig_cameras(40, w, w * 3 // 4)))
+        bg = {} if kind == "demo" else {"background": (1.0, 1.0, 1.0)}
+        P.write_transforms_dataset(out, P.render_views(gt, cams, **bg)[0], cams)
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", required=True, help="the capture folder, or its name in the shared data folder")
@@ -51,9 +77,11 @@ def main(argv=None) -> int:
                     help="the warm-up command ('' to skip; add e.g. --images images_8 where the capture needs it)")
     ap.add_argument("--out", default=None, help="append the rows as JSON lines")
     args = ap.parse_args(argv)
-    if not Path(args.data).is_dir() and (data_root() / args.data).is_dir():
-        args.data = str(data_root() / args.data)
     args.work.mkdir(parents=True, exist_ok=True)
+    if args.data.split(":")[0] in ("demo", "insideout"):
+        args.data = str(procedural_capture(args.data, args.work))
+    elif not Path(args.data).is_dir() and (data_root() / args.data).is_dir():
+        args.data = str(data_root() / args.data)
     log = open(args.work / "log.txt", "a")
     if args.warm:
         secs = ssgwarp(shlex.split(args.warm.format(data=args.data, run=args.work / "warm", style=args.style)), log)
