@@ -28,6 +28,30 @@ def data_root() -> Path:
     return next((p for p in CANDIDATES if p.is_dir()), CANDIDATES[0])
 
 
+# the shared captures by short name: (folder under the data root, image sub-folder)
+CAPTURES = {"fern8": ("llff_fern", "images_8"), "fern4": ("llff_fern", "images_4"), "cup": ("colmap_cup", "images"),
+            "lego": ("lego_200", "images"), "livingroom": ("livingroom_360", "images"),
+            "bird": ("bird_360", "images")}
+
+
+def capture_folder(spec: str, root: Path | None = None) -> tuple[Path, str]:
+    """``(folder, image sub-folder)`` of a capture named by ``spec``: a name of :data:`CAPTURES` (under ``root``,
+    default :func:`data_root`) or ``PATH[:IMAGES]`` (default ``images``); raises ``InputError`` when the folder
+    is missing."""
+    from ssgwarp.errors import InputError
+
+    if spec in CAPTURES:
+        name, images = CAPTURES[spec]
+        folder = Path(root or data_root()) / name
+    else:
+        path, _, images = spec.partition(":")
+        folder, images = Path(path).expanduser(), images or "images"
+    if not folder.is_dir():
+        raise InputError(f"capture {spec!r}: {folder} is not a folder (shared captures: {', '.join(CAPTURES)}; "
+                         "or give PATH[:IMAGES], or --data-root)")
+    return folder, images
+
+
 def style_paths(spec: str, folder: Path) -> list[Path]:
     """The style images named by ``spec`` (comma-separated names without extension, or paths; empty: every
     image in ``folder``, sorted by name); raises ``InputError`` naming what was not found."""

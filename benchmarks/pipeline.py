@@ -22,6 +22,14 @@ docs/reconstruction.md are pipelines of one ``reconstruct`` each:
     python benchmarks/pipeline.py --data insideout:256 --pipeline "auto: reconstruct {data} --iters 7000 --out {run}/rec" \
         --pipeline "off: reconstruct {data} --iters 7000 --backdrop off --out {run}/rec"
 
+``--random-sam vit-b`` saves a Segment Anything model with random weights (``facebook/sam-vit-base``'s sizes; they
+time as trained ones do) and fills in ``{sam}``, so ``ssgwarp masks`` is timed without downloading weights (the
+paper's filters drop every random candidate: ``--pred-iou-thresh 0 --stability-thresh 0`` keeps them all):
+
+    python benchmarks/pipeline.py --data llff_fern --random-sam vit-b --pipeline "masks: reconstruct {data} \
+        --images images_4 --iters 3000 --out {run}/rec; masks {run}/rec --sam {sam} --pred-iou-thresh 0 \
+        --stability-thresh 0; masks {run}/rec --sam {sam} --pred-iou-thresh 0 --stability-thresh 0 --force"
+
 Prints a markdown table: one row per pipeline, the seconds of each stage, the total, and the held-out PSNR and
 Gaussians of ``{run}/rec/metrics.json``.
 """
@@ -39,7 +47,7 @@ from pathlib import Path
 
 import torch
 
-from harness import append_jsonl, data_root, header, table
+from harness import ROOT, append_jsonl, data_root, header, table
 
 
 def ssgwarp(args: list[str], log) -> float:
@@ -66,6 +74,23 @@ def procedural_capture(spec: str, work: Path) -> Path:
     return out
 
 
+def random_sam(size: str, work: Path) -> Path:
+    """A random-weight ``SamModel`` saved in ``work`` once: ViT-B (``SamConfig()``) or the tests' tiny one."""
+    folder = work / f"sam-{size}"
+    if not (folder / "config.json").is_file():
+        sys.path.insert(0, str(ROOT / "tests"))   # fakeweights: the tests' random-weight models
+        from fakeweights import save_tiny_sam
+
+        if size == "tiny":
+            save_tiny_sam(folder)
+        else:
+            from transformers import SamConfig, SamModel
+
+            torch.manual_seed(0)
+            SamModel(SamConfig()).save_pretrained(folder)
+    return folder
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", required=True, help="the capture folder, or its name in the shared data folder")
@@ -75,6 +100,8 @@ def main(argv=None) -> int:
     ap.add_argument("--warm", default="reconstruct {data} --out {run} --iters 30 --width 64 --init random "
                     "--random-points 500 --quiet --force",
                     help="the warm-up command ('' to skip; add e.g. --images images_8 where the capture needs it)")
+    ap.add_argument("--random-sam", choices=("vit-b", "tiny"), default=None,
+                    help="save a random-weight Segment Anything model for {sam}")
     ap.add_argument("--out", default=None, help="append the rows as JSON lines")
     args = ap.parse_args(argv)
     args.work.mkdir(parents=True, exist_ok=True)
@@ -82,6 +109,7 @@ def main(argv=None) -> int:
         args.data = str(procedural_capture(args.data, args.work))
     elif not Path(args.data).is_dir() and (data_root() / args.data).is_dir():
         args.data = str(data_root() / args.data)
+    sam = random_sam(args.random_sam, args.work) if args.random_sam else ""
     log = open(args.work / "log.txt", "a")
     if args.warm:
         secs = ssgwarp(shlex.split(args.warm.format(data=args.data, run=args.work / "warm", style=args.style)), log)
@@ -95,14 +123,14 @@ def main(argv=None) -> int:
         run.mkdir(parents=True)
         stages = []
         for cmd in filter(None, (c.strip() for c in body.split(";"))):
-            words = shlex.split(cmd.format(data=args.data, run=run, style=args.style))
+            words = shlex.split(cmd.format(data=args.data, run=run, style=args.style, sam=sam))
             stages.append((words[0], ssgwarp(words, log)))
             print(f"{label.strip()}: {words[0]} {stages[-1][1]:.1f} s", flush=True)
         m = json.loads((run / "rec" / "metrics.json").read_text()) if (run / "rec" / "metrics.json").exists() else {}
-        for sub in sorted(p.parent for p in run.glob("*/metrics.json")):   # each stage's own clock, where kept
-            secs = json.loads((sub / "metrics.json").read_text()).get("seconds")
+        for rec in sorted([*run.glob("*/metrics.json"), *run.glob("*/masks.json")]):   # each stage's own clock
+            secs = json.loads(rec.read_text()).get("seconds")
             if isinstance(secs, dict):
-                print(f"{label.strip()}: {sub.name} seconds: " + ", ".join(
+                print(f"{label.strip()}: {rec.parent.name}/{rec.name} seconds: " + ", ".join(
                     f"{k} {v:.1f}" for k, v in secs.items() if isinstance(v, (int, float))), flush=True)
         rows.append({"pipeline": label.strip(), "stages": ", ".join(f"{n} {t:.0f}" for n, t in stages),
                      "total": round(sum(t for _, t in stages), 1), "psnr": m.get("psnr"),

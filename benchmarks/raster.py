@@ -19,7 +19,13 @@ float32 rounding both share).
     python benchmarks/raster.py --device cpu --tile 4 8 16 --threads 1 2   # tile size / CPU threads (CPU rows)
     python benchmarks/raster.py --out raster.jsonl --markdown raster.md
 
-``--cases`` takes a set name or ``NxWxH[:SH[:CAMERAS]]`` cases. On the CPU the time is the process's CPU time
+``--cases`` takes a set name or ``[ball:|ball2:]NxWxH[:SH[:CAMERAS]]`` cases: ``ball`` is tradeoffs.py's scene (Gaussians
+of a few to ~15 pixels in a ball seen from 4 units, SH degree 3; ``ball2``: twice the scales) instead of the issue's
+(about a pixel each), e.g. the CPU tile sizes of docs/tradeoffs.md:
+
+    python benchmarks/raster.py --device cpu --clock cpu --repeats 15 --tile 4 6 8 12 16 \
+        --cases ball:20000x256x192 ball:100000x200x200 10000x256x256 ball2:20000x256x192
+ On the CPU the time is the process's CPU time
 (``--clock cpu``: what the work costs on a shared machine) or wall time (default).
 """
 from __future__ import annotations
@@ -53,11 +59,12 @@ def parse_cases(specs: list[str]) -> list[tuple]:
         if s in CASES:
             out += CASES[s]
             continue
-        size, *rest = s.split(":")
+        kind, _, spec = s.partition(":") if s.startswith("ball") else ("", "", s)
+        size, *rest = spec.split(":")
         try:
             n, w, h = (int(v) for v in size.split("x"))
-            deg = int(rest[0]) if rest and rest[0] not in ("", "rgb") else None
-            out.append((n, w, h, deg, int(rest[1]) if len(rest) > 1 else 1))
+            deg = 3 if kind else int(rest[0]) if rest and rest[0] not in ("", "rgb") else None
+            out.append((n, w, h, deg, int(rest[1]) if len(rest) > 1 else 1) + ((kind,) if kind else ()))
         except ValueError:
             raise SystemExit(f"--cases: {s!r} is neither {'/'.join(CASES)} nor NxWxH[:SH[:CAMERAS]]") from None
     return out
@@ -87,11 +94,24 @@ def camera(width: int, height: int, device, dtype=torch.float32, cameras: int = 
     return vm, K[None].repeat(cameras, 1, 1)
 
 
-def closures(raster, n, w, h, device, sh_degree=None, cameras=1, **kw):
+def ball(n, w, h, device, grow: float = 1.0):
+    """tradeoffs.py's scene and camera: ``(params, viewmats, Ks)``."""
+    from tradeoffs import synthetic_cameras, synthetic_scene
+
+    sc = synthetic_scene(n, 3, seed=0).to(device=device, dtype=torch.float32)
+    cams = synthetic_cameras(1, w, h)
+    params = [sc.means, sc.quats, sc.scales * grow, sc.opacities, sc.sh_coeffs.contiguous()]
+    return [p.detach().contiguous() for p in params], cams.viewmats.to(device), cams.Ks.to(device)
+
+
+def closures(raster, n, w, h, device, sh_degree=None, cameras=1, kind="", **kw):
     """``(fwd, fwd_bwd)``: one call of ``raster`` on the case's scene without gradients, and one with the
     backward of ``image.sum() + alpha.sum()`` into copies of the parameters (made once, here)."""
-    params = make_scene(n, device, sh_degree=sh_degree)
-    vm, K = camera(w, h, device, cameras=cameras)
+    if kind:
+        params, vm, K = ball(n, w, h, device, 2.0 if kind == "ball2" else 1.0)
+    else:
+        params = make_scene(n, device, sh_degree=sh_degree)
+        vm, K = camera(w, h, device, cameras=cameras)
     if sh_degree is not None:
         kw["sh_degree"] = sh_degree
     leaves = [p.clone().requires_grad_(True) for p in params]
@@ -150,7 +170,9 @@ def agreement(row: dict, n, w, h, deg, cams, dev, gsplat) -> None:
 
 
 def cuda_row(row, case, args, gsplat) -> None:
-    n, w, h, deg, cams = case
+    n, w, h, deg, cams, *kind = case
+    if kind:
+        raise SystemExit("raster.py: the ball scenes are CPU cases (--device cpu)")
     dev = torch.device("cuda")
     kw = dict(sh_degree=deg, cameras=cams, packed=False)
     fns = dict(zip(("ssg_f", "ssg_fb"), closures(ssgwarp.rasterization, n, w, h, dev, **kw)))
@@ -187,7 +209,7 @@ def cpu_rows(case, args) -> list[dict]:
     """One row per tile size and thread count on the CPU."""
     from ssgwarp import RasterSettings
 
-    n, w, h, deg, cams = case
+    n, w, h, deg, cams, *kind = case
     clock = time.process_time if args.clock == "cpu" else time.perf_counter
     rows = []
     for tile in args.tile or [None]:
@@ -195,7 +217,8 @@ def cpu_rows(case, args) -> list[dict]:
             kw = {} if tile is None else {"tile_size": tile}
             if threads is not None:
                 kw["settings"] = RasterSettings(cpu_threads=threads)
-            f, fb = closures(ssgwarp.rasterization, n, w, h, torch.device("cpu"), sh_degree=deg, cameras=cams, **kw)
+            f, fb = closures(ssgwarp.rasterization, n, w, h, torch.device("cpu"), sh_degree=deg, cameras=cams,
+                             kind=(kind or [""])[0], **kw)
             reps = max(2, args.repeats // 5)
             tf, tfb = measure(f, "cpu", reps, clock=clock), measure(fb, "cpu", reps, clock=clock)
             rows.append({"tile": tile or "default", "threads": threads or "default", "cpu_f": tf["median"],
@@ -204,7 +227,7 @@ def cpu_rows(case, args) -> list[dict]:
     return rows
 
 
-COLS = [("N", "N"), ("res", "resolution"), ("sh", "SH degree"), ("cams", "cameras"), ("tile", "tile"),
+COLS = [("scene", "scene"), ("N", "N"), ("res", "resolution"), ("sh", "SH degree"), ("cams", "cameras"), ("tile", "tile"),
         ("threads", "CPU threads"), ("ssg_f", "ssgwarp CUDA fwd ms"), ("ssg_f_range", "min-max"),
         ("ssg_fb", "ssgwarp CUDA fwd+bwd ms"), ("ssg_fb_range", "min-max"), ("gs_f", "gsplat fwd ms"),
         ("gs_fb", "gsplat fwd+bwd ms"), ("ratio_f", "fwd ratio"), ("ratio_fb", "fwd+bwd ratio"),
@@ -243,8 +266,10 @@ def main(argv=None) -> int:
         warm_gpu()
     rows = []
     for case in cases:
-        n, w, h, deg, cams = case
+        n, w, h, deg, cams, *kind = case
         row = {"N": n, "res": f"{w}x{h}", "sh": "colours" if deg is None else str(deg), "cams": cams}
+        if kind:
+            row["scene"] = kind[0]
         cpu_ok = args.device == "cpu" or (args.device == "auto" and not args.no_cpu and n * cams <= args.cpu_max)
         if cuda:
             cuda_row(row, case, args, gsplat)

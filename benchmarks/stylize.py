@@ -59,61 +59,38 @@ from harness import ROOT, data_root, machine, style_paths
 from ssgwarp.services.features import EXTRACTOR_KINDS
 
 DATA = data_root()
-STAGE2_DOC = """Benchmark `ssgwarp stylize` on fern (images_4, 1008x756): seconds per stage and in total.
+STAGE2_DOC = """Seconds per stage of `ssgwarp stylize` on fern images_4 (1008x756), in total and per Stage 2 mode.
 
-    python benchmarks/stylize.py stage2                       # reconstruct + group fern, then stylize (defaults)
-    python benchmarks/stylize.py stage2 --run runs/fern4      # an existing grouped reconstruction of fern images_4
-    python benchmarks/stylize.py stage2 --synthetic 300000    # no reconstruction: Gaussians from fern's COLMAP points
-    python benchmarks/stylize.py stage2 --modes ist,global --iters 600
-    python benchmarks/stylize.py stage2 --synthetic 300000 --random-stage1 sd15   # time Stage 1 without weights
+Stage 2 defaults unless flags say otherwise; 4 key views; Stage 1 runs when its weights are configured
+(docs/stylize.md), else it is skipped and said so. ``--synthetic N``: a stand-in scene of N Gaussians sampled around
+fern's COLMAP points (8 groups by k-means), no reconstruction needed. ``--random-stage1 sd15``: Stage 1 on random
+SD1.5-sized models (tests/fakeweights.py; real compute, noise images). Results: a markdown table and OUT/benchmark.json.
 
-Stage 2 defaults unless flags say otherwise; 4 key views. Stage 1 runs when the
-diffusion weights are configured (see docs/stylize.md), otherwise it is skipped
-and reported as such. ``--synthetic N`` builds a stand-in scene (N Gaussians
-sampled around fern's sparse COLMAP points, 8 groups by k-means on position)
-so Stage 2 can be timed at realistic size without a 7k-iteration
-reconstruction. ``--random-stage1 sd15`` runs Stage 1 on randomly initialised
-SD1.5-size models (``tests/fakeweights.py``: ``random_stage1_components``): the times
-are those of the real models, the images are noise — so Stage 2 then times
-IST's per-group matching against 4 key views. Results: a markdown table on
-stdout and ``OUT/benchmark.json``.
+    python benchmarks/stylize.py stage2                       # reconstruct + group fern, then stylize
+    python benchmarks/stylize.py stage2 --run runs/fern4 --modes ist,global --iters 600
+    python benchmarks/stylize.py stage2 --synthetic 300000 --random-stage1 sd15
 """
 PROBE_DOC = """What texture costs in the consistency metric when the texture is consistent by construction.
 
-Paints a scene's Gaussians with a probe colour that is a fixed function of 3-D position (a sum of six
-seeded sinusoids, ``period`` pixels at the scene's median depth, grey, standard deviation ``amplitude``
-added to the base colour; view-dependent SH bands zeroed), renders ``ssgwarp evaluate``'s novel path views
-and scores them as ``evaluate`` does: short/long-range reprojection RMSE as a ratio to the unpainted scene's,
-and the weight-free texture distance to a style image per filter scale (change against the unpainted scene).
-No optimisation: every colour here is view-independent and attached to the surface, so what the ratio
-shows is what the scene's geometry (blends of Gaussians at several depths, expected depth at edges) makes
-of painted contrast, the floor under any Stage 2 that paints texture of that contrast. Also reports how
-concentrated the squared error is (share in the worst 10 % / 25 % of the scored pixels).
-
-``--truth`` (a run made by ``ssgwarp demo``: ``OUT/scene``) scores the procedural scene that made the demo's
-capture too, the true geometry, with the same cameras and probes: what painted contrast costs where the
-reconstruction is not to blame.
+Paints the scene's Gaussians with a grey probe colour that is a fixed function of 3-D position (six seeded
+sinusoids, ``period`` pixels at the median depth, standard deviation ``amplitude``; SH bands above 0 zeroed), renders
+``ssgwarp evaluate``'s path views and scores them as ``evaluate`` does: short/long-range reprojection RMSE as a ratio
+to the unpainted scene's, the share of squared error in the worst 10 % / 25 % of pixels, and with ``--style`` the
+texture distance per filter scale. No optimisation: what the ratio shows is what the geometry makes of painted
+contrast. ``--truth`` (a run of ``ssgwarp demo``: OUT/scene) also scores the procedural scene that made the capture.
 
     python benchmarks/stylize.py probe --run RUN --style ../shared/data/styles/candy.jpg
-    python benchmarks/stylize.py probe --run RUN --periods 2,8 --amplitudes 0.15,0.3 --frames 30
     python benchmarks/stylize.py probe --run ssgwarp-demo/scene --truth --periods 2,8,32
 """
-BOUND_DOC = """How far Stage 2's weight-free style loss can take the texture distance with nothing holding it back.
+BOUND_DOC = """How far Stage 2's weight-free style loss takes the texture distance with nothing holding it back.
 
-For each style: the reconstruction's colours go through Stage 2's colour transfer (as ``ssgwarp stylize``
-does before its optimisation), ``ssgwarp evaluate``'s path views are rendered, and then each view's scene
-pixels (alpha >= 0.5) are optimised *freely* with the style loss alone (Adam on the pixels' logits, one view
-per step in turn; no 3-D scene, no consistency, no content or smoothing terms unless asked). The views are
-scored with ``evaluate``'s weight-free texture distance after ``--steps`` steps per view (several counts show
-whether it has converged). Beside them: the colour distance's change (the patch features do not see a patch's
-mean colour, so colour drifts; Stage 2 maps it back with its post colour transfer), and half of the style
-image against the whole (``StyleDistance.halves``), all against the unstylized scene's distances.
-
-What it is for: the loss's reach with no 3-D scene in its way. A scene's mean texture target beyond it is beyond
-the loss, whatever the 3-D side does (Stage 2's closing colour map moves single styles by some points either way).
+Per style: the colours go through Stage 2's colour transfer, ``ssgwarp evaluate``'s path views are rendered, and each
+view's scene pixels (alpha >= 0.5) are optimised freely with the style loss alone (Adam on the pixels' logits; no 3-D
+scene, consistency, content or smoothing terms unless asked), then scored with the texture distance after each of
+``--steps`` steps per view; beside them the colour distance's change and half of the style image against the whole.
+A texture target beyond this is beyond the loss, whatever the 3-D side does.
 
     python benchmarks/stylize.py bound --run RUN --styles candy,mosaic --steps 10,100
-    python benchmarks/stylize.py bound --run RUN --device cuda --frames 10 --steps 50,200 --json bound.json
 """
 
 SHEET_STYLES = ("brushstrokes", "candy", "la_muse", "mosaic", "the_resevoir_at_poitiers", "sketch", "udnie")

@@ -47,52 +47,33 @@ from pathlib import Path
 
 import torch
 
-from harness import ROOT, append_jsonl, cuda_kernel_ms, data_root, header, interleaved, per_call_us, write_text
+from harness import (CAPTURES, ROOT, append_jsonl, capture_folder, cuda_kernel_ms, header, interleaved, per_call_us,
+                     write_text)
 
 from ssgwarp.capture.datasets import load_dataset
+from ssgwarp.errors import InputError
 from ssgwarp.core.fileio import write_json
 from ssgwarp.reconstruction.reconstruct import Recipe, Trainer, render_views
 from ssgwarp.reconstruction.strategy import DefaultStrategy, MCMCStrategy, Strategy
 
 RUNS_DOC = """Whole training runs: our 3DGS loop with either rasterizer and each densification strategy.
 
-One :class:`ssgwarp.reconstruction.reconstruct.Trainer` loop (same data, seed, recipe, schedule); what varies:
-
-* ``--backend``: ``ssgwarp`` (our Warp rasterizer) or ``gsplat`` (``gsplat.rasterization``,
-  non-packed; imported only when asked);
-* ``--strategy``: ``default`` / ``mcmc`` (ours, :mod:`ssgwarp.reconstruction.strategy`) or ``gsplat-default`` /
-  ``gsplat-mcmc`` (gsplat 1.5's ``DefaultStrategy`` / ``MCMCStrategy`` editing our loop's
-  tensors and Adam state through :class:`GsplatStrategy`; MCMC needs gsplat's CUDA ops). The gsplat
-  strategies get our resolved schedule and thresholds, the MCMC regulariser is ours for both
-  (gsplat keeps it in its trainer), and gsplat's MCMC noise gets the position learning rate divided
-  by ``extent^2`` so its noise ``lr * noise_lr * Sigma z`` is ours (the paper's formula in units of
-  the scene extent, as on gsplat's own normalised scenes);
-* ``--scenes``: ``fern8`` / ``fern4`` (LLFF fern ``images_8`` / ``images_4``), ``cup`` (COLMAP
-  ``colmap_cup``), ``lego`` (``lego_200`` transforms, white background), or ``PATH[:IMAGES]``;
-* ``--iters`` (several allowed) and ``--max-gaussians`` (several: with ``mcmc`` this is the budget
-  sweep of docs/tradeoffs.md).
-
-``--dssim-scale 0.5`` trains with the halved D-SSIM term ssgwarp used before (default 1: the 3DGS loss).
-Distorted captures (fern is SIMPLE_RADIAL) are undistorted into a pinhole crop (every pixel has a
-source, ``ssgwarp.capture.lens``); PSNR/SSIM are measured on that crop (``metric_frame`` in the JSON rows).
-
-``--match-default`` also runs ``mcmc`` with the budget set to the Gaussian count the ``default`` run of
-the same scene / backend / iters ended with (MCMC at an equal count). Prints markdown tables (runs;
-backend pairs; strategy pairs; budget sweep) and writes them with the raw numbers to ``--out``.
+One Trainer loop (same data, seed, recipe, schedule) per scene x ``--backend`` (``ssgwarp``; ``gsplat``:
+gsplat.rasterization, non-packed) x ``--strategy`` (ours: ``default`` / ``mcmc``; gsplat 1.5's ``gsplat-default`` /
+``gsplat-mcmc`` editing our tensors and Adam state through GsplatStrategy, given our schedule and thresholds; MCMC's
+regulariser is ours for both, its noise learning rate divided by extent^2) x ``--iters`` x ``--max-gaussians``
+(with mcmc: the budget sweep of docs/tradeoffs.md). ``--scenes``: fern8 / fern4 (LLFF fern images_8 / images_4),
+cup (colmap_cup), lego (lego_200, white background) or PATH[:IMAGES]. Distorted captures are undistorted into a
+pinhole crop, where PSNR / SSIM are measured. ``--match-default`` also runs mcmc at the default run's final count;
+``--dssim-scale 0.5`` trains with the halved D-SSIM term of before. Prints tables (runs; rasterizer pairs; strategy
+pairs; budget sweep) and writes them with the raw rows to ``--out``. Targets (issues 3, 14): ssgwarp vs gsplat's
+rasterizer within 0.2 dB and 1.5x time; our default within 0.2 dB of gsplat's; MCMC at an equal count >= default.
 
     python benchmarks/train_step.py runs --scenes fern8 --backend ssgwarp gsplat --strategy default
     python benchmarks/train_step.py runs --scenes fern8 cup lego --strategy default gsplat-default --match-default
-    python benchmarks/train_step.py runs --scenes fern8 --strategy mcmc --max-gaussians 50000 100000 300000 1000000
-    python benchmarks/train_step.py runs --scenes PATH --iters 120 --device cpu --strategy default mcmc \\
-        --random-points 2000                                                        # CPU smoke test
-
-Targets (issues 3, 14): held-out PSNR ssgwarp vs gsplat rasterizer within 0.2 dB, time within 1.5x;
-fern ``images_8`` 7k >= 25.2 dB; our default within 0.2 dB of gsplat's DefaultStrategy; MCMC at an
-equal count >= default.
+    python benchmarks/train_step.py runs --scenes PATH --iters 120 --device cpu --strategy default mcmc
 """
 
-SCENES = {"fern8": ("llff_fern", "images_8"), "fern4": ("llff_fern", "images_4"), "cup": ("colmap_cup", "images"),
-          "lego": ("lego_200", "images")}
 STRATEGIES = ("default", "mcmc", "gsplat-default", "gsplat-mcmc")
 
 
@@ -294,15 +275,12 @@ def tables(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def load_scene(spec: str, root: Path, device: torch.device, random_points: int = 100_000):
-    name, images = SCENES.get(spec, (None, None))
-    if name is None:
-        path, _, images = spec.partition(":")
-        folder, images = Path(path), images or "images"
-    else:
-        folder = root / name
-    if not folder.is_dir():
-        raise SystemExit(f"scene {spec!r}: {folder} not found (pass --data-root)")
+def load_scene(spec: str, root: Path | None, device: torch.device, random_points: int = 100_000):
+    """A shared capture by name (harness.CAPTURES) or PATH[:IMAGES], loaded on ``device``."""
+    try:
+        folder, images = capture_folder(spec, root)
+    except InputError as e:
+        raise SystemExit(str(e)) from None
     return load_dataset(folder, images=images, device=device, num_random_points=random_points)
 
 
@@ -318,7 +296,7 @@ def runs_main(argv=None) -> int:
     """`train_step.py runs`: whole training runs (see the module's docstring)."""
     p = argparse.ArgumentParser(prog="train_step.py runs", description=RUNS_DOC,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--scenes", nargs="+", default=["fern8", "fern4"], help=f"{', '.join(SCENES)} or PATH[:IMAGES]")
+    p.add_argument("--scenes", nargs="+", default=["fern8", "fern4"], help=f"{', '.join(CAPTURES)} or PATH[:IMAGES]")
     p.add_argument("--data-root", type=Path, default=None, help="folder holding llff_fern, colmap_cup, lego_200")
     p.add_argument("--backend", nargs="+", choices=("ssgwarp", "gsplat", "both"), default=["ssgwarp"])
     p.add_argument("--strategy", nargs="+", choices=STRATEGIES, default=["default"])
@@ -341,7 +319,7 @@ def runs_main(argv=None) -> int:
     device = torch.device(a.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise SystemExit("CUDA is not available (pass --device cpu for a (slow) CPU run)")
-    root = a.data_root or data_root()
+    root = a.data_root
     backends = list(dict.fromkeys(b for x in a.backend for b in (("ssgwarp", "gsplat") if x == "both" else (x,))))
     rows = []
 
@@ -638,7 +616,7 @@ def step_main(argv=None) -> int:
     p.add_argument("--out", default=None, help="append the rows as JSON lines")
     args = p.parse_args(argv)
     device = torch.device(args.device)
-    data = load_scene(args.scene, args.data_root or data_root(), device)
+    data = load_scene(args.scene, args.data_root, device)
     rows = [measure(data, b, args, device) for b in args.backend]
     for r in rows:
         append_jsonl(args.out, {k: v for k, v in r.items() if k not in ("profile", "ops")})
