@@ -522,10 +522,13 @@ def plot(rows: list[dict], out: Path, title: str) -> Path:
     sweep = sorted((r for r in rows if r["strategy"] == "mcmc" and not r.get("matched")),
                    key=lambda r: r["max_gaussians"])
     others = [r for r in rows if r not in sweep]
-    fig, axes = plt.subplots(1, 2, figsize=(12, 5.4))
+    panels = [("gaussians", "Gaussians at the end")]
+    if all(math.isfinite(r.get("peak_mib") or math.nan) for r in rows):   # (CPU runs have no GPU memory)
+        panels.append(("peak_mib", "peak GPU memory (MiB)"))
+    fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 5.4), squeeze=False)
+    axes = axes[0]
     cmap = plt.get_cmap("tab10")
-    for ax, key, xlabel in ((axes[0], "gaussians", "Gaussians at the end"),
-                            (axes[1], "peak_mib", "peak GPU memory (MiB)")):
+    for ax, (key, xlabel) in zip(axes, panels):
         if sweep:
             ax.plot([r[key] for r in sweep], [r["psnr"] for r in sweep], "o-", color="k", label="mcmc, budget sweep",
                     zorder=3)
