@@ -78,3 +78,24 @@ def test_table_and_json_lines(tmp_path):
     lines = (tmp_path / "d" / "r.jsonl").read_text().splitlines()
     assert [json.loads(x)["n"] for x in lines] == [10000, 2]
     assert "torch" in harness.header("cpu") and "cores" in harness.machine("cpu")
+
+
+def test_capture_folder_by_name_or_path(tmp_path):
+    from ssgwarp.errors import InputError
+
+    (tmp_path / "llff_fern").mkdir()
+    assert harness.capture_folder("fern4", tmp_path) == (tmp_path / "llff_fern", "images_4")
+    assert harness.capture_folder(f"{tmp_path}:images_2") == (tmp_path, "images_2")
+    assert harness.capture_folder(str(tmp_path)) == (tmp_path, "images")
+    with pytest.raises(InputError, match="capture 'cup'.*shared captures: fern8"):
+        harness.capture_folder("cup", tmp_path)
+
+
+def test_raster_cases_by_set_or_spec():
+    import raster
+
+    assert raster.parse_cases(["quick"]) == raster.CASES["quick"]
+    assert raster.parse_cases(["1000x64x48", "2000x32x32:3:4", "ball2:500x64x48"]) == [
+        (1000, 64, 48, None, 1), (2000, 32, 32, 3, 4), (500, 64, 48, 3, 1, "ball2")]
+    with pytest.raises(SystemExit, match="neither"):
+        raster.parse_cases(["10kx64"])
