@@ -19,14 +19,10 @@ Prints a markdown table and writes the rows and PSNR curves to ``--out``.
     # the GPU run (2 GPUs; about 2 minutes on 2 H200s at 7k, fresh kernel cache included):
     python benchmarks/ddp.py --data /root/data/llff_fern --images images_4 --iters 7000 --gpus 2 \
         --out ddp_fern4.json
-    # the largest capture (COLMAP, 800x600, 67 training views) at 30k images, the 1-GPU runs of both
-    # captures side by side (one per GPU), then the 2-GPU runs one after the other:
-    CUDA_VISIBLE_DEVICES=0 python benchmarks/ddp.py --data /root/data/llff_fern --iters 30000 --only 1gpu-b1 1gpu-bN --out f.json &
-    CUDA_VISIBLE_DEVICES=1 python benchmarks/ddp.py --data /root/data/colmap_cup --images images --iters 30000 \
-        --only 1gpu-b1 1gpu-bN --out c.json & wait
-    python benchmarks/ddp.py --data /root/data/llff_fern --iters 30000 --only Ngpu-bN --out f.json
-    # the table again from those runs (nothing is trained: every configuration is read back):
-    python benchmarks/ddp.py --data /root/data/llff_fern --iters 30000 --only 1gpu-bN --no-single-batch --out f.json
+    # colmap_cup at 30k images, only some configurations (--only), the table again from earlier runs (read back):
+    python benchmarks/ddp.py --data /root/data/colmap_cup --images images --iters 30000 --only 1gpu-b1 1gpu-bN --out c.json
+    python benchmarks/ddp.py --data /root/data/colmap_cup --images images --iters 30000 --only 1gpu-bN \
+        --no-single-batch --out c.json
     # CPU smoke test (gloo, 2 processes):
     python benchmarks/ddp.py --images images_8 --width 64 --iters 40 --eval-every 20 --device cpu --out /tmp/ddp.json
 
@@ -43,9 +39,7 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-from shared_data import data_root  # noqa: E402
+from harness import data_root, machine
 
 
 # ----------------------------------------------------------------------------- one configuration
@@ -91,7 +85,7 @@ def worker(a) -> int:
             row = {"gpus": group.world_size, "batch_size": b, "batch_scaling": a.batch_scaling, "seed": a.seed, "steps": steps,
                    "images": steps * b, "train_seconds": round(train_s, 2), "psnr": ev["psnr"], "ssim": ev["ssim"],
                    "gaussians": t.num_gaussians, "peak_mb_per_gpu": [round(p, 1) for p in peaks],
-                   "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
+                   "device": machine(device),
                    "resolution": [data.width, data.height], "curve": curve}
             Path(a.result).write_text(json.dumps(row))
     finally:

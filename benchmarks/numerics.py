@@ -9,7 +9,7 @@ reference. Prints a markdown table (docs/numerics.md holds a run of it).
 """
 from __future__ import annotations
 
-import datetime
+import argparse
 import sys
 from pathlib import Path
 
@@ -17,6 +17,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
+from harness import header  # noqa: E402
 from ssgwarp import RasterSettings, rasterization  # noqa: E402
 from test_rasterizer_extremes import _extreme_case, _front_camera  # noqa: E402
 
@@ -57,9 +58,12 @@ def rel(a, b, floor=1e-12):
     return float((a - b).abs().max()) / scale if a.numel() else 0.0
 
 
-def main():
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--cases", nargs="+", choices=list(CASES), default=list(CASES), help="default: all")
+    args = ap.parse_args(argv)
     rows = []
-    for case, text in CASES.items():
+    for case, text in ((c, CASES[c]) for c in args.cases):
         if case == "stack5000":
             params, (vm, K), (w, h) = stacked(), _front_camera(8, 8, f=8.0), (8, 8)
         else:
@@ -83,12 +87,13 @@ def main():
             print(row, flush=True)
     head = ["case", "settings", "f64 image rel err", "f64 grad rel err", "f64 finite",
             "f32 image rel err", "f32 grad rel err", "f32 finite"]
-    print(f"\n{datetime.date.today().isoformat()}, {torch.__version__}, CPU\n")
+    print(f"\n{header('cpu')}\n")
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
     for r in rows:
         print("| " + " | ".join(r) + " |")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

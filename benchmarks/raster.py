@@ -1,36 +1,46 @@
-"""Rasterizer speed and agreement: ssgwarp (CUDA, CPU) side by side with gsplat 1.5.3 in one run.
+"""The rasterizer against gsplat 1.5.3: speed and agreement, ssgwarp (CUDA, CPU) side by side in one run.
 
-Scene (the issue's): N Gaussians with means ~ N(0, 2) around z = 8 in front of
-the cameras (60 deg horizontal field of view), scales ~ U(0, 0.02), random
-quaternions and opacities; colours U(0, 1), or SH coefficients (degree 3: DC
-term U(0, 1) / C0, higher bands N(0, 0.1)); one camera at the origin or four
-(translated by +-0.5 in x and y). For each case: forward and forward+backward
-milliseconds (median of repeats, CUDA-synchronised; on CUDA ssgwarp and gsplat
-are timed in turns, after a warm-up that brings the GPU's clocks up, so that
-drift affects both alike), the ratio to gsplat, the
-image difference against gsplat, and how far each float32 image is from the
-same scene rendered by ssgwarp in float64 under the same rules (the float32
-rounding both renderers share: a contribution at the 1/255 alpha threshold can
-land on either side of it).
+Scene (issue 16's): N Gaussians with means ~ N(0, 2) around z = 8 in front of the cameras (60 deg horizontal
+field of view), scales ~ U(0, 0.02), random quaternions and opacities; colours U(0, 1), or SH coefficients
+(degree 3: DC term U(0, 1) / C0, higher bands N(0, 0.1)); one camera at the origin or four (translated by
++-0.5 in x and y). For each case: forward and forward+backward (``img.sum() + alpha.sum()``) milliseconds,
+median / min / max of ``--repeats`` synchronised calls (on CUDA ssgwarp and gsplat in turns, after a warm-up
+that brings the GPU's clocks up, so that drift affects both alike), the ratio to gsplat, the image difference
+against gsplat, and how far each float32 image is from the same scene rendered by ssgwarp in float64 (the
+float32 rounding both share).
 
-    python benchmarks/raster.py                    # the issue's five cases, CUDA if present
+    python benchmarks/raster.py                    # the issue's five cases, CUDA if present (and the CPU)
     python benchmarks/raster.py --cases grid       # 10k/100k/1M Gaussians x 256^2/1080p, colours
-    python benchmarks/raster.py --cases quick      # small sizes only (CPU smoke run)
-    python benchmarks/raster.py --markdown out.md  # also write the table
+    python benchmarks/raster.py --cases quick --no-gsplat --device cpu          # CPU smoke run
+    python benchmarks/raster.py --agreement        # + share of bit-identical projected Gaussians (radii, means2d,
+                                                   #   conics, opacities, depths) against gsplat's
+    python benchmarks/raster.py --profile --cases 10000x256x256 1000000x1920x1080   # per-kernel GPU time and
+                                                   #   the host's Python functions (cProfile), beside gsplat
+    python benchmarks/raster.py --device cpu --tile 4 8 16 --threads 1 2   # tile size / CPU threads (CPU rows)
+    python benchmarks/raster.py --out raster.jsonl --markdown raster.md
+
+``--cases`` takes a set name or ``[ball:|ball2:]NxWxH[:SH[:CAMERAS]]`` cases: ``ball`` is tradeoffs.py's scene (Gaussians
+of a few to ~15 pixels in a ball seen from 4 units, SH degree 3; ``ball2``: twice the scales) instead of the issue's
+(about a pixel each), e.g. the CPU tile sizes of docs/tradeoffs.md:
+
+    python benchmarks/raster.py --device cpu --clock cpu --repeats 15 --tile 4 6 8 12 16 \
+        --cases ball:20000x256x192 ball:100000x200x200 10000x256x256 ball2:20000x256x192
+ On the CPU the time is the process's CPU time
+(``--clock cpu``: what the work costs on a shared machine) or wall time (default).
 """
 from __future__ import annotations
 
 import argparse
-import datetime
+import cProfile
+import io
 import math
-import statistics
+import pstats
 import time
 
 import torch
 
 import ssgwarp
-from timing import sync, timed
-
+from harness import append_jsonl, header, interleaved, measure, optional_gsplat, table, warm_gpu, write_text
 
 C0 = 0.28209479177387814
 # (N, width, height, SH degree or None for colours, cameras)
@@ -40,6 +50,24 @@ CASES = {
     "grid": [(n, w, h, None, 1) for n in (10_000, 100_000, 1_000_000) for (w, h) in ((256, 256), (1920, 1080))],
     "quick": [(1_000, 128, 128, None, 1), (10_000, 256, 256, None, 1), (2_000, 128, 96, 3, 2)],
 }
+META_KEYS = ("radii", "means2d", "conics", "opacities", "depths")
+
+
+def parse_cases(specs: list[str]) -> list[tuple]:
+    out = []
+    for s in specs:
+        if s in CASES:
+            out += CASES[s]
+            continue
+        kind, _, spec = s.partition(":") if s.startswith("ball") else ("", "", s)
+        size, *rest = spec.split(":")
+        try:
+            n, w, h = (int(v) for v in size.split("x"))
+            deg = 3 if kind else int(rest[0]) if rest and rest[0] not in ("", "rgb") else None
+            out.append((n, w, h, deg, int(rest[1]) if len(rest) > 1 else 1) + ((kind,) if kind else ()))
+        except ValueError:
+            raise SystemExit(f"--cases: {s!r} is neither {'/'.join(CASES)} nor NxWxH[:SH[:CAMERAS]]") from None
+    return out
 
 
 def make_scene(n: int, device, dtype=torch.float32, seed: int = 0, sh_degree=None):
@@ -66,18 +94,26 @@ def camera(width: int, height: int, device, dtype=torch.float32, cameras: int = 
     return vm, K[None].repeat(cameras, 1, 1)
 
 
-def closures(raster, n, w, h, device, sh_degree=None, cameras=1, **kw):
-    """``(fwd, fwd_bwd)`` of one renderer on the case's scene."""
-    params = make_scene(n, device, sh_degree=sh_degree)
-    vm, K = camera(w, h, device, cameras=cameras)
+def ball(n, w, h, device, grow: float = 1.0):
+    """tradeoffs.py's scene and camera: ``(params, viewmats, Ks)``."""
+    from tradeoffs import synthetic_cameras, synthetic_scene
+
+    sc = synthetic_scene(n, 3, seed=0).to(device=device, dtype=torch.float32)
+    cams = synthetic_cameras(1, w, h)
+    params = [sc.means, sc.quats, sc.scales * grow, sc.opacities, sc.sh_coeffs.contiguous()]
+    return [p.detach().contiguous() for p in params], cams.viewmats.to(device), cams.Ks.to(device)
+
+
+def closures(raster, n, w, h, device, sh_degree=None, cameras=1, kind="", **kw):
+    """``(fwd, fwd_bwd)``: one call of ``raster`` on the case's scene without gradients, and one with the
+    backward of ``image.sum() + alpha.sum()`` into copies of the parameters (made once, here)."""
+    if kind:
+        params, vm, K = ball(n, w, h, device, 2.0 if kind == "ball2" else 1.0)
+    else:
+        params = make_scene(n, device, sh_degree=sh_degree)
+        vm, K = camera(w, h, device, cameras=cameras)
     if sh_degree is not None:
         kw["sh_degree"] = sh_degree
-    return pass_closures(raster, params, vm, K, w, h, **kw)
-
-
-def pass_closures(raster, params, vm, K, w, h, **kw):
-    """``(fwd, fwd_bwd)``: one call of ``raster`` on ``params`` without gradients, and one with the
-    backward of ``image.sum() + alpha.sum()`` into copies of ``params`` (made once, here)."""
     leaves = [p.clone().requires_grad_(True) for p in params]
 
     def fwd():
@@ -93,157 +129,168 @@ def pass_closures(raster, params, vm, K, w, h, **kw):
     return fwd, fwd_bwd
 
 
-def run_case(raster, n, w, h, device, repeats, sh_degree=None, cameras=1, **kw):
-    fwd, fwd_bwd = closures(raster, n, w, h, device, sh_degree, cameras, **kw)
-    t_f = timed(fwd, device, repeats)
-    t_fb = timed(fwd_bwd, device, repeats)
-    img = fwd()[0]
-    return t_f, t_fb, img
+def profile_pass(name: str, fn, iters: int, host_rows: int, kernel_rows: int = 14) -> None:
+    """Print ``fn``'s GPU kernels (torch profiler; kernel time per call against wall time: the rest is the GPU
+    waiting for the host) and the Python functions with the most host time (cProfile)."""
+    from torch.profiler import ProfilerActivity, profile
 
-
-def interleaved(fns: dict, device, repeats: int, rounds: int = 4) -> dict:
-    """Median milliseconds of each function, timed in turns (``rounds`` rounds of
-    ``repeats / rounds`` synchronised calls each) so that a drifting GPU clock or host load
-    affects all of them alike."""
-    for fn in fns.values():
+    wall = measure(fn, "cuda", iters)["median"]
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        for _ in range(iters):
+            fn()
+        torch.cuda.synchronize()
+    ka = prof.key_averages()
+    gpu = sum(e.self_device_time_total for e in ka if str(e.device_type).endswith("CUDA")) / iters / 1e3
+    print(f"--- {name}: wall {wall:.2f} ms, GPU kernel time {gpu:.2f} ms per call")
+    print(ka.table(sort_by="self_device_time_total", row_limit=kernel_rows, max_name_column_width=60))
+    pr = cProfile.Profile()
+    pr.enable()
+    for _ in range(iters):
         fn()
-    sync(device)
-    out = {k: [] for k in fns}
-    for _ in range(rounds):
-        for k, fn in fns.items():
-            for _ in range(max(1, repeats // rounds)):
-                t0 = time.perf_counter()
-                fn()
-                sync(device)
-                out[k].append((time.perf_counter() - t0) * 1e3)
-    return {k: statistics.median(v) for k, v in out.items()}
-
-
-def optional_gsplat(skip: bool = False):
-    """The gsplat module, or None (asked to skip it, or not importable: then said so once)."""
-    if skip:
-        return None
-    try:
-        import gsplat
-    except Exception as e:  # noqa: BLE001
-        print(f"gsplat not available ({e}); its columns stay empty")
-        return None
-    return gsplat
-
-
-def with_setting(fn, owner, name: str, value):
-    """``fn`` run with ``owner.name`` set to ``value`` for the call (restored after it): one
-    function, two code paths of a switch such as ``blend_ops.BATCHED``."""
-    def run():
-        saved = getattr(owner, name)
-        setattr(owner, name, value)
-        try:
-            return fn()
-        finally:
-            setattr(owner, name, saved)
-    return run
-
-
-def warm_gpu(seconds: float = 1.0) -> None:
-    """Busy the GPU for a moment so its clocks are up before the first timing."""
-    x = torch.randn(4096, 4096, device="cuda")
-    t0 = time.perf_counter()
-    while time.perf_counter() - t0 < seconds:
-        x = (x @ x).clamp_(-1, 1)
     torch.cuda.synchronize()
+    pr.disable()
+    s = io.StringIO()
+    pstats.Stats(pr, stream=s).sort_stats("tottime").print_stats(host_rows)
+    print("\n".join(s.getvalue().splitlines()[:host_rows + 12]))
 
 
-def cuda_only(script: str, measures: str) -> torch.device:
-    """The CUDA device, its clocks warmed (:func:`warm_gpu`), for a script that only measures CUDA;
-    without a GPU, exit saying so (``measures``: what the script measures)."""
-    if not torch.cuda.is_available():
-        raise SystemExit(f"{script} {measures}: run it on a machine with a GPU")
-    warm_gpu()
-    return torch.device("cuda")
+def agreement(row: dict, n, w, h, deg, cams, dev, gsplat) -> None:
+    """The share of Gaussians visible in both whose projected values are bit-identical to gsplat's."""
+    params = make_scene(n, dev, sh_degree=deg)
+    vm, K = camera(w, h, dev, cameras=cams)
+    kw = {} if deg is None else {"sh_degree": deg}
+    with torch.no_grad():
+        ours = ssgwarp.rasterization(*params, vm, K, w, h, packed=False, **kw)[2]
+        theirs = gsplat.rasterization(*params, vm, K, w, h, packed=False, **kw)[2]
+    vis = (ours["radii"] > 0).all(-1) & (theirs["radii"] > 0).all(-1)
+    row["visible"] = int(vis.sum())
+    for key in META_KEYS:
+        a, b = ours[key][vis], theirs[key][vis]
+        row[f"same_{key}"] = float((a == b).reshape(a.shape[0], -1).all(-1).float().mean())
 
 
-def main() -> None:
+def cuda_row(row, case, args, gsplat) -> None:
+    n, w, h, deg, cams, *kind = case
+    if kind:
+        raise SystemExit("raster.py: the ball scenes are CPU cases (--device cpu)")
+    dev = torch.device("cuda")
+    kw = dict(sh_degree=deg, cameras=cams, packed=False)
+    fns = dict(zip(("ssg_f", "ssg_fb"), closures(ssgwarp.rasterization, n, w, h, dev, **kw)))
+    if gsplat is not None:
+        fns.update(zip(("gs_f", "gs_fb"), closures(gsplat.rasterization, n, w, h, dev, **kw)))
+    t = interleaved(fns, dev, args.repeats)
+    for k, s in t.items():
+        row.update({k: s["median"], f"{k}_range": f"{s['min']:.2f}-{s['max']:.2f}"})
+    img = fns["ssg_f"]()[0]
+    params64 = [p.double() for p in make_scene(n, dev, sh_degree=deg)]
+    vm64, K64 = camera(w, h, dev, torch.float64, cameras=cams)
+    with torch.no_grad():
+        img64 = ssgwarp.rasterization(*params64, vm64, K64, w, h, sh_degree=deg)[0]
+    row["f64diff"] = float((img.double() - img64).abs().max())
+    if gsplat is not None:
+        gimg = fns["gs_f"]()[0]
+        diff = (img - gimg).abs()
+        row.update(ratio_f=row["ssg_f"] / row["gs_f"], ratio_fb=row["ssg_fb"] / row["gs_fb"],
+                   maxdiff=float(diff.max()), over=float((diff > 1e-4).float().mean()),
+                   gs64diff=float((gimg.double() - img64).abs().max()))
+        if args.agreement:
+            agreement(row, n, w, h, deg, cams, dev, gsplat)
+    if args.profile:
+        libs = [("ssgwarp", fns["ssg_f"], fns["ssg_fb"])]
+        if gsplat is not None:
+            libs.append(("gsplat", fns["gs_f"], fns["gs_fb"]))
+        for lib, f, fb in libs:
+            print(f"\n=== {lib}: N={n:,} {w}x{h}")
+            profile_pass(f"{lib} forward", f, args.repeats, args.host_rows)
+            profile_pass(f"{lib} forward+backward", fb, args.repeats, args.host_rows)
+
+
+def cpu_rows(case, args) -> list[dict]:
+    """One row per tile size and thread count on the CPU."""
+    from ssgwarp import RasterSettings
+
+    n, w, h, deg, cams, *kind = case
+    clock = time.process_time if args.clock == "cpu" else time.perf_counter
+    rows = []
+    for tile in args.tile or [None]:
+        for threads in args.threads or [None]:
+            kw = {} if tile is None else {"tile_size": tile}
+            if threads is not None:
+                kw["settings"] = RasterSettings(cpu_threads=threads)
+            f, fb = closures(ssgwarp.rasterization, n, w, h, torch.device("cpu"), sh_degree=deg, cameras=cams,
+                             kind=(kind or [""])[0], **kw)
+            reps = max(2, args.repeats // 5)
+            tf, tfb = measure(f, "cpu", reps, clock=clock), measure(fb, "cpu", reps, clock=clock)
+            rows.append({"tile": tile or "default", "threads": threads or "default", "cpu_f": tf["median"],
+                         "cpu_f_range": f"{tf['min']:.2f}-{tf['max']:.2f}", "cpu_fb": tfb["median"],
+                         "cpu_fb_range": f"{tfb['min']:.2f}-{tfb['max']:.2f}"})
+    return rows
+
+
+COLS = [("scene", "scene"), ("N", "N"), ("res", "resolution"), ("sh", "SH degree"), ("cams", "cameras"), ("tile", "tile"),
+        ("threads", "CPU threads"), ("ssg_f", "ssgwarp CUDA fwd ms"), ("ssg_f_range", "min-max"),
+        ("ssg_fb", "ssgwarp CUDA fwd+bwd ms"), ("ssg_fb_range", "min-max"), ("gs_f", "gsplat fwd ms"),
+        ("gs_fb", "gsplat fwd+bwd ms"), ("ratio_f", "fwd ratio"), ("ratio_fb", "fwd+bwd ratio"),
+        ("maxdiff", "max abs image diff"), ("over", "share of values off by > 1e-4"),
+        ("f64diff", "ssgwarp max abs diff to float64"), ("gs64diff", "gsplat max abs diff to float64"),
+        ("visible", "visible in both")] + [(f"same_{k}", f"{k} bit-identical") for k in META_KEYS] + [
+        ("cpu_f", "ssgwarp CPU fwd ms"), ("cpu_f_range", "min-max"), ("cpu_fb", "ssgwarp CPU fwd+bwd ms"),
+        ("cpu_fb_range", "min-max")]
+
+
+def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cases", choices=sorted(CASES), default="issue")
+    ap.add_argument("--cases", nargs="+", default=["issue"], help="issue, grid, quick or NxWxH[:SH[:CAMERAS]]")
+    ap.add_argument("--device", choices=("auto", "cuda", "cpu"), default="auto",
+                    help="auto (default): CUDA when present, and the CPU for cases up to --cpu-max")
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--no-gsplat", action="store_true")
-    ap.add_argument("--no-cpu", action="store_true")
-    ap.add_argument("--cpu-max", type=int, default=10_000, help="largest N also timed on the CPU")
-    ap.add_argument("--deterministic", action="store_true", help="also time deterministic=True")
-    ap.add_argument("--markdown", default=None)
-    args = ap.parse_args()
+    ap.add_argument("--no-cpu", action="store_true", help="with --device auto: CUDA only")
+    ap.add_argument("--cpu-max", type=int, default=10_000, help="largest N x cameras also timed on the CPU")
+    ap.add_argument("--agreement", action="store_true", help="CUDA: bit-identical shares of projected Gaussians")
+    ap.add_argument("--profile", action="store_true", help="CUDA: per-kernel GPU time and host functions")
+    ap.add_argument("--host-rows", type=int, default=15, help="with --profile: cProfile rows")
+    ap.add_argument("--tile", nargs="+", type=int, default=None, help="CPU: tile sizes to time")
+    ap.add_argument("--threads", nargs="+", type=int, default=None, help="CPU: blending threads to time")
+    ap.add_argument("--clock", choices=("wall", "cpu"), default="wall", help="CPU: wall or process CPU time")
+    ap.add_argument("--out", default=None, help="append the rows as JSON lines")
+    ap.add_argument("--markdown", default=None, help="also write the table")
+    args = ap.parse_args(argv)
 
-    gsplat = optional_gsplat(args.no_gsplat)
-    cuda = torch.cuda.is_available()
-    dev_name = torch.cuda.get_device_name() if cuda else "cpu only"
+    cases = parse_cases(args.cases)
+    cuda = torch.cuda.is_available() and args.device != "cpu"
+    if args.device == "cuda" and not cuda:
+        raise SystemExit("raster.py --device cuda: no GPU here (--device cpu times the CPU kernels)")
+    gsplat = optional_gsplat(args.no_gsplat or not cuda)
+    if cuda:
+        warm_gpu()
     rows = []
-    for n, w, h, deg, cams in CASES[args.cases]:
+    for case in cases:
+        n, w, h, deg, cams, *kind = case
         row = {"N": n, "res": f"{w}x{h}", "sh": "colours" if deg is None else str(deg), "cams": cams}
-        case = dict(sh_degree=deg, cameras=cams)
+        if kind:
+            row["scene"] = kind[0]
+        cpu_ok = args.device == "cpu" or (args.device == "auto" and not args.no_cpu and n * cams <= args.cpu_max)
         if cuda:
-            dev = torch.device("cuda")
-            if not rows:
-                warm_gpu()
-            # ssgwarp and gsplat timed in turns on the same scene
-            fns = dict(zip(("ssg_f", "ssg_fb"), closures(ssgwarp.rasterization, n, w, h, dev, packed=False, **case)))
-            if gsplat is not None:
-                fns.update(zip(("gs_f", "gs_fb"), closures(gsplat.rasterization, n, w, h, dev, packed=False, **case)))
-            t = interleaved(fns, dev, args.repeats)
-            f, fb = t["ssg_f"], t["ssg_fb"]
-            img = fns["ssg_f"]()[0]
-            row.update(ssg_f=f, ssg_fb=fb)
-            if args.deterministic:
-                _, fbd, _ = run_case(ssgwarp.rasterization, n, w, h, dev, max(3, args.repeats // 3),
-                                     deterministic=True, **case)
-                row.update(ssg_det_fb=fbd)
-            # the same scene and rules in float64: how far each float32 renderer is from it
-            params64 = [p.double() for p in make_scene(n, dev, sh_degree=deg)]
-            vm64, K64 = camera(w, h, dev, torch.float64, cameras=cams)
-            with torch.no_grad():
-                img64 = ssgwarp.rasterization(*params64, vm64, K64, w, h, sh_degree=deg)[0]
-            row.update(f64diff=float((img.double() - img64).abs().max()))
-            if gsplat is not None:
-                gf, gfb, gimg = t["gs_f"], t["gs_fb"], fns["gs_f"]()[0]
-                diff = (img - gimg).abs()
-                row.update(gs_f=gf, gs_fb=gfb, ratio_f=f / gf, ratio_fb=fb / gfb,
-                           maxdiff=float(diff.max()), meandiff=float(diff.mean()),
-                           over=float((diff > 1e-4).float().mean()),
-                           gs64diff=float((gimg.double() - img64).abs().max()))
-            del params64, img64, fns
-        if not args.no_cpu and n * cams <= args.cpu_max:
-            f, fb, _ = run_case(ssgwarp.rasterization, n, w, h, torch.device("cpu"), max(2, args.repeats // 5),
-                                **case)
-            row.update(cpu_f=f, cpu_fb=fb)
-        rows.append(row)
-        print(row, flush=True)
+            cuda_row(row, case, args, gsplat)
+            if cpu_ok:
+                row.update(cpu_rows(case, args)[0])
+            new = [row]
+        else:
+            new = [{**row, **r} for r in cpu_rows(case, args)] if cpu_ok else []
+        for r in new:
+            append_jsonl(args.out, r)
+            print(r, flush=True)
+        rows += new
 
-    cols = [("N", "N"), ("res", "resolution"), ("sh", "SH degree"), ("cams", "cameras"), ("ssg_f", "ssgwarp CUDA fwd ms"), ("ssg_fb", "ssgwarp CUDA fwd+bwd ms"),
-            ("gs_f", "gsplat fwd ms"), ("gs_fb", "gsplat fwd+bwd ms"), ("ratio_f", "fwd ratio"),
-            ("ratio_fb", "fwd+bwd ratio"), ("maxdiff", "max abs image diff"), ("meandiff", "mean abs image diff"),
-            ("over", "share of values off by > 1e-4"), ("f64diff", "ssgwarp max abs diff to float64"),
-            ("gs64diff", "gsplat max abs diff to float64"), ("ssg_det_fb", "deterministic fwd+bwd ms"),
-            ("cpu_f", "ssgwarp CPU fwd ms"), ("cpu_fb", "ssgwarp CPU fwd+bwd ms")]
-    cols = [c for c in cols if any(c[0] in r for r in rows)]
-
-    def fmt(v):
-        if v is None:
-            return "-"
-        if isinstance(v, float):
-            return f"{v:.2e}" if abs(v) < 1e-2 and v != 0 else f"{v:.2f}"
-        return f"{v:,}" if isinstance(v, int) else str(v)
-
-    lines = [f"device: {dev_name}; torch {torch.__version__}; gsplat {getattr(gsplat, '__version__', 'n/a')}; "
-             f"{datetime.date.today().isoformat()}", "",
-             "| " + " | ".join(c[1] for c in cols) + " |", "|" + "---|" * len(cols)]
-    for r in rows:
-        if len(r) > 4:  # something was measured for this case
-            lines.append("| " + " | ".join(fmt(r.get(c[0])) for c in cols) + " |")
-    table = "\n".join(lines)
-    print(table)
+    dev = "cuda" if cuda else "cpu"
+    gv = getattr(gsplat, "__version__", "n/a")
+    text = f"{header(dev, f'gsplat {gv}')}\n\n{table(rows, COLS)}"
+    print(text)
     if args.markdown:
-        with open(args.markdown, "w") as f:
-            f.write(table + "\n")
+        write_text(args.markdown, text + "\n")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -1,41 +1,515 @@
-"""Benchmark `ssgwarp stylize` on fern (images_4, 1008x756): seconds per stage and in total.
+"""Stylization across styles, and the probes behind docs/stylize.md's tables (no Stage 1 weights needed).
 
-    python benchmarks/stylize.py                       # reconstruct + group fern, then stylize (defaults)
-    python benchmarks/stylize.py --run runs/fern4      # an existing grouped reconstruction of fern images_4
-    python benchmarks/stylize.py --synthetic 300000    # no reconstruction: Gaussians from fern's COLMAP points
-    python benchmarks/stylize.py --modes ist,global --iters 600
-    python benchmarks/stylize.py --synthetic 300000 --random-stage1 sd15   # time Stage 1 without weights
+``python benchmarks/stylize.py [options]``: weight-free stylization over many styles (``--help`` for the options).
 
-Stage 2 defaults unless flags say otherwise; 4 key views. Stage 1 runs when the
-diffusion weights are configured (see docs/stylize.md), otherwise it is skipped
-and reported as such. ``--synthetic N`` builds a stand-in scene (N Gaussians
-sampled around fern's sparse COLMAP points, 8 groups by k-means on position)
-so Stage 2 can be timed at realistic size without a 7k-iteration
-reconstruction. ``--random-stage1 sd15`` runs Stage 1 on randomly initialised
-SD1.5-size models (``tests/fakeweights.py``: ``random_stage1_components``): the times
-are those of the real models, the images are noise — so Stage 2 then times
-IST's per-group matching against 4 key views. Results: a markdown table on
-stdout and ``OUT/benchmark.json``.
+For a scene (fern ``images_8`` reconstruction, the demo scene, or any grouped run) and every style
+image in a folder (default ``../shared/data/styles``, 25 images), runs ``ssgwarp stylize`` (no
+Stage 1 weights needed: Stage 2 matches the style image) and ``ssgwarp evaluate`` (default
+protocol: 30 novel views on a smooth path through the training cameras), and prints one row per
+style: colour and texture distances (sliced Wasserstein in Lab / of a derivative-of-Gaussian
+filter bank, ``ssgwarp.evaluation.metrics.StyleDistance``) of the original and the stylized renders, the Gram
+loss of the extractor Stage 2 used, short/long-range consistency RMSE as ratios to the
+unstylized scene's, and floaters over the regions the unstylized scene leaves empty (the worst
+style). For reference, each row also scores half of the style image against the whole with the same
+distances (about as close as a render can be expected to get; ``StyleDistance.halves``). ``--ablation`` runs the Stage 2
+ablations (colour transfer, content/TV weights, SH bands, colour gain cap) on a few styles instead.
+
+    python benchmarks/stylize.py --scene demo                  # the demo scene (built first)
+    python benchmarks/stylize.py --scene fern                  # fern images_8 (reconstructed + grouped first)
+    python benchmarks/stylize.py --scene fern --shard 0/3      # a third of the styles (10-minute slots)
+    python benchmarks/stylize.py --scene demo --demo-size small --styles-subset candy,udnie \
+        --iters 10 --path-frames 6 --out /tmp/ss                       # CPU check (~2 min on 2 cores)
+    python benchmarks/stylize.py --scene fern --ablation       # Stage 2 ablation table
+    python benchmarks/stylize.py --scene fern --ablation --styles-subset mondrian,asheville \
+        --ablation-rows "default;SH rest: keep;paper objective (content 0, TV 0)"   # some rows, some styles
+    python benchmarks/stylize.py --scene fern --report         # table of what is finished, no new runs
+    python benchmarks/stylize.py --scene fern --paint --tag paint   # stylize's --paint preset
+    python benchmarks/stylize.py --scene fern --configs FILE --timeout 420  # several configurations at once
+                                                                      # on one GPU, FILE lines 'TAG: FLAGS'
+
+Every finished style is kept (``OUT/<scene>/<style>/result.json``) and skipped when the script
+runs again, so shards and interrupted runs add up; ``--report`` prints the table of everything
+finished. Writes ``OUT/<scene>/table.md``, ``OUT/<scene>/results.json`` and a contact sheet of a
+few styles, ``OUT/<scene>/styles_sheet.jpg``.
+
+Modes, each with its own ``--help``:
+
+``python benchmarks/stylize.py stage2 [options]``: seconds per stage of ``ssgwarp stylize`` on fern ``images_4``.
+
+``python benchmarks/stylize.py probe --run RUN [--style STYLE] [--truth]``: the consistency error that texture
+fixed in 3-D costs, per period and contrast.
+
+``python benchmarks/stylize.py bound --run RUN [--styles candy,mosaic] [--steps 50,200]``: the texture distance
+Stage 2's style loss alone reaches on freely optimised pixels.
 """
 from __future__ import annotations
 
 import argparse
 import json
-import platform
+import math
 import sys
 import time
 from pathlib import Path
+from typing import Optional
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-from shared_data import data_root  # noqa: E402
-from ssgwarp.services.features import EXTRACTOR_KINDS  # noqa: E402
-sys.path.insert(0, str(ROOT / "tests"))   # fakeweights: random-weight Stage 1 models
+from harness import ROOT, data_root, machine, style_paths
+
+from ssgwarp.services.features import EXTRACTOR_KINDS
+
 DATA = data_root()
+STAGE2_DOC = """Seconds per stage of `ssgwarp stylize` on fern images_4 (1008x756), in total and per Stage 2 mode.
+
+Stage 2 defaults unless flags say otherwise; 4 key views; Stage 1 runs when its weights are configured
+(docs/stylize.md), else it is skipped and said so. ``--synthetic N``: a stand-in scene of N Gaussians sampled around
+fern's COLMAP points (8 groups by k-means), no reconstruction needed. ``--random-stage1 sd15``: Stage 1 on random
+SD1.5-sized models (tests/fakeweights.py; real compute, noise images). Results: a markdown table and OUT/benchmark.json.
+
+    python benchmarks/stylize.py stage2                       # reconstruct + group fern, then stylize
+    python benchmarks/stylize.py stage2 --run runs/fern4 --modes ist,global --iters 600
+    python benchmarks/stylize.py stage2 --synthetic 300000 --random-stage1 sd15
+"""
+PROBE_DOC = """What texture costs in the consistency metric when the texture is consistent by construction.
+
+Paints the scene's Gaussians with a grey probe colour that is a fixed function of 3-D position (six seeded
+sinusoids, ``period`` pixels at the median depth, standard deviation ``amplitude``; SH bands above 0 zeroed), renders
+``ssgwarp evaluate``'s path views and scores them as ``evaluate`` does: short/long-range reprojection RMSE as a ratio
+to the unpainted scene's, the share of squared error in the worst 10 % / 25 % of pixels, and with ``--style`` the
+texture distance per filter scale. No optimisation: what the ratio shows is what the geometry makes of painted
+contrast. ``--truth`` (a run of ``ssgwarp demo``: OUT/scene) also scores the procedural scene that made the capture.
+
+    python benchmarks/stylize.py probe --run RUN --style ../shared/data/styles/candy.jpg
+    python benchmarks/stylize.py probe --run ssgwarp-demo/scene --truth --periods 2,8,32
+"""
+BOUND_DOC = """How far Stage 2's weight-free style loss takes the texture distance with nothing holding it back.
+
+Per style: the colours go through Stage 2's colour transfer, ``ssgwarp evaluate``'s path views are rendered, and each
+view's scene pixels (alpha >= 0.5) are optimised freely with the style loss alone (Adam on the pixels' logits; no 3-D
+scene, consistency, content or smoothing terms unless asked), then scored with the texture distance after each of
+``--steps`` steps per view; beside them the colour distance's change and half of the style image against the whole.
+A texture target beyond this is beyond the loss, whatever the 3-D side does.
+
+    python benchmarks/stylize.py bound --run RUN --styles candy,mosaic --steps 10,100
+"""
+
+SHEET_STYLES = ("brushstrokes", "candy", "la_muse", "mosaic", "the_resevoir_at_poitiers", "sketch", "udnie")
+ABLATION_STYLES = ("candy", "la_muse", "sketch", "udnie")
 
 
+def prepare_scene(scene: str, out: Path, device, fern_iters: int, progress: bool, demo_size: str = "default",
+                  fern: Path = DATA / "llff_fern") -> Path:
+    """A grouped reconstruction run folder for ``scene`` (built once, reused)."""
+    if scene not in ("fern", "demo"):
+        run = Path(scene)
+        if not (run / "scene.ply").is_file():
+            raise SystemExit(f"--scene {scene}: not a run folder (no scene.ply); use fern, demo or a run folder")
+        return run
+    if scene == "demo":
+        from ssgwarp.demo import run_demo
+
+        demo = out / f"demo_build_{demo_size}"
+        if not (demo / "scene" / "groups" / "classifier.pt").is_file():
+            run_demo(demo, demo_size, device=device, force=True, progress=progress)
+        return demo / "scene"
+    from ssgwarp.grouping.stage import group_scene
+    from ssgwarp.reconstruction.reconstruct import reconstruct
+
+    run = out / "fern_images_8"
+    if not (run / "scene.ply").is_file():
+        reconstruct(fern, run, images="images_8", iters=fern_iters, device=device,
+                    progress=progress, force=True)
+    if not (run / "groups" / "classifier.pt").is_file():
+        group_scene(run, masks=None, device=device, progress=progress, force=True)     # mask-free: no SAM weights
+    return run
+
+
+def stage2_config(args, **over):
+    """Stage 2's configuration: the defaults, then every Stage 2 option given (the parser's "Stage 2" group names
+    its fields), then ``over``."""
+    import dataclasses
+
+    from ssgwarp.stylization.stylize import Stage2Config
+
+    kw = {f.name: getattr(args, f.name) for f in dataclasses.fields(Stage2Config)
+          if getattr(args, f.name, None) is not None}
+    kw.update(over)
+    return Stage2Config(**kw)
+
+
+def run_style(run: Path, style: Path, out: Path, cfg, device, extractor: str, eval_opts, progress: bool) -> dict:
+    """Stylize ``run`` with ``style`` into ``out`` and evaluate it; returns the result row (cached in out)."""
+    from ssgwarp.evaluation.evaluate import evaluate_run
+    from ssgwarp.core.fileio import read_json, write_json
+    from ssgwarp.stylization.stylize import StylizeOptions, stylize_run
+
+    res_file = out / "result.json"
+    if res_file.is_file():
+        return read_json(res_file)
+    t0 = time.perf_counter()
+    m = stylize_run(run, style, out, stage2=cfg, opts=StylizeOptions(path_frames=0, sheet_views=2,
+                                                                        extractor=extractor),
+                    device=device, force=True, progress=progress)
+    seconds = time.perf_counter() - t0
+    ev = evaluate_run(out, eval_opts, device, write=True, progress=progress)
+    sc = ev["style_content"]
+    rep = ev["consistency"]["reprojection"]
+    row = {"style": style.stem, "color_before": sc["style_distance_color_original"],
+           "color_after": sc["style_distance_color"], "texture_before": sc["style_distance_texture_original"],
+           "texture_after": sc["style_distance_texture"], "gram_before": m["gram_style_loss_original"],
+           "gram_after": m["gram_style_loss"], "content": sc.get("content_loss", m["content_loss"]),
+           "short": rep["short"]["rmse"], "long": rep["long"]["rmse"],
+           "stylize_seconds": seconds, "stage2_seconds": m["seconds"]["stage2"], "extractor": m["extractor"],
+           "config": m["config"], "views_scored": ev["views_scored"], "device": m["device"],
+           "empty_spread": sc.get("empty_spread"), "empty_spread_original": sc.get("empty_spread_original")}
+    write_json(res_file, row)
+    return row
+
+
+def add_halves(rows: list[dict], styles: list[Path], run: Path, results: Path) -> None:
+    """Each row's ``color_half`` / ``texture_half``: the distances of the style image's own halves to the whole
+    at the scored views' size (:meth:`StyleDistance.halves`), a reference for how close a render can get;
+    computed once and kept in the style's ``result.json`` (in ``results``, ``OUT/<scene>/styles``)."""
+    from ssgwarp.core.cameras import Cameras
+    from ssgwarp.core.fileio import read_image, write_json
+    from ssgwarp.evaluation.metrics import StyleDistance
+
+    cams = Cameras.load(run / "cameras.json")
+    by_name = {s.stem: s for s in styles}
+    for r in rows:
+        if r.get("texture_half") is None and r["style"] in by_name:
+            style = torch.as_tensor(read_image(by_name[r["style"]], 3)).float()
+            h = StyleDistance(style).halves(cams.height, cams.width)
+            r["color_half"], r["texture_half"] = h["color"], h["texture"]
+            if (results / r["style"] / "result.json").is_file():
+                write_json(results / r["style"] / "result.json", r)
+
+
+def source_consistency(run: Path, out: Path, device, eval_opts, progress: bool = True) -> dict:
+    from ssgwarp.evaluation.evaluate import evaluate_run
+    from ssgwarp.core.fileio import read_json, write_json
+
+    f = out / "source_consistency.json"
+    if f.is_file():
+        return read_json(f)
+    ev = evaluate_run(run, eval_opts, device, write=False, progress=progress)
+    rep = ev["consistency"]["reprojection"]
+    d = {"short": rep["short"]["rmse"], "long": rep["long"]["rmse"], "views_scored": ev["views_scored"]}
+    write_json(f, d)
+    return d
+
+
+def _pct(before: Optional[float], after: Optional[float]) -> str:
+    if before is None or after is None or before == 0:
+        return "-"
+    return f"{100 * (after - before) / before:+.0f}%"
+
+
+def table(rows: list[dict], src: dict, title: str) -> str:
+    lines = [title, "",
+             "| style | colour before | colour after | Δ | half of the style | texture before | texture after | Δ | "
+             "half of the style | Gram before | Gram after | content loss | short RMSE (x src) | long RMSE (x src) | "
+             "Stage 2 s | stylize s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(
+            f"| {r['style']} | {r['color_before']:.2f} | {r['color_after']:.2f} | "
+            f"{_pct(r['color_before'], r['color_after'])} | {_pct(r['color_before'], r.get('color_half'))} | "
+            f"{r['texture_before']:.3f} | {r['texture_after']:.3f} | {_pct(r['texture_before'], r['texture_after'])} | "
+            f"{_pct(r['texture_before'], r.get('texture_half'))} | {r['gram_before']:.3g} | {r['gram_after']:.3g} | "
+            f"{r.get('content', float('nan')):.3g} | "
+            f"{r['short']:.4f} ({r['short'] / src['short']:.2f}) | {r['long']:.4f} ({r['long'] / src['long']:.2f}) | "
+            f"{r['stage2_seconds']:.1f} | {r['stylize_seconds']:.1f} |")
+    if rows:
+        n = len(rows)
+        dc = sum(1 - r["color_after"] / r["color_before"] for r in rows) / n
+        dt = sum(1 - r["texture_after"] / r["texture_before"] for r in rows) / n
+        worse = [r["style"] for r in rows if r["color_after"] >= r["color_before"] or r["texture_after"] >= r["texture_before"]]
+        ms = max(r["short"] / src["short"] for r in rows)
+        ml = max(r["long"] / src["long"] for r in rows)
+        lines += ["", f"Unstylized scene: short-range RMSE {src['short']:.4f}, long-range {src['long']:.4f} "
+                      f"({src['views_scored']}).",
+                  f"Mean reduction over {n} styles: colour {100 * dc:.1f}%, texture {100 * dt:.1f}%.",
+                  f"Styles not closer on both terms: {', '.join(worse) if worse else 'none'}.",
+                  f"Worst consistency ratio: short {ms:.2f}x, long {ml:.2f}x."]
+        half = [r for r in rows if r.get("texture_half") is not None]
+        if half:
+            hc = sum(1 - r["color_half"] / r["color_before"] for r in half) / len(half)
+            ht = sum(1 - r["texture_half"] / r["texture_before"] for r in half) / len(half)
+            lines.append(f"Half of each style image against the whole (the same measure at the views' scale): colour "
+                         f"{100 * hc:.1f}%, texture {100 * ht:.1f}% below the unstylized distance; the stylized scene "
+                         f"is closer than that on {sum(r['color_after'] <= r['color_half'] for r in half)} (colour) and "
+                         f"{sum(r['texture_after'] <= r['texture_half'] for r in half)} (texture) of {len(half)} styles.")
+        empty = [r for r in rows if r.get("empty_spread") is not None]
+        if empty:
+            w = max(empty, key=lambda r: r["empty_spread"])
+            lines.append(f"Floaters (RMS colour spread over the pixels the unstylized scene leaves empty): worst "
+                         f"{w['empty_spread']:.4f} ({w['style']}), unstylized {w['empty_spread_original']:.4f}.")
+    return "\n".join(lines) + "\n"
+
+
+def sheet(path: Path, run: Path, results_dir: Path, styles: list[Path], device) -> Optional[Path]:
+    """Rows: style image | original | stylized (one view), for the styles that finished; a small JPEG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ssgwarp.capture.datasets import load_run
+    from ssgwarp.core.fileio import atomic_path, read_image
+    from ssgwarp.capture.ply import read_ply
+    from ssgwarp.services.runs import Run
+    from ssgwarp.stylization.stylize import render_rgb
+
+    done = [s for s in styles if (results_dir / s.stem / "scene.ply").is_file()]
+    if not done:
+        return None
+    src, data = load_run(run, device, load_images=False)
+    cam = data.cameras[[list(data.test_ids or data.train_ids)[0]]].to(device)
+    bg = torch.tensor(data.background[:3], dtype=src.dtype, device=device)
+    with torch.no_grad():
+        orig = render_rgb(src, cam, bg)[0].clamp(0, 1).cpu()
+    h, w = orig.shape[:2]
+    fig, axes = plt.subplots(len(done), 3, figsize=(3 * 2.4, len(done) * 2.4 * h / w + 0.3), dpi=90, squeeze=False)
+    for i, s in enumerate(done):
+        bg_s = torch.tensor(Run.open(results_dir / s.stem).background(data.background), dtype=src.dtype, device=device)
+        with torch.no_grad():
+            styl = render_rgb(read_ply(results_dir / s.stem / "scene.ply", device=device), cam, bg_s)[0].clamp(0, 1).cpu()
+        for j, (img, label) in enumerate([(torch.from_numpy(read_image(s, 3)), s.stem), (orig, "original"),
+                                          (styl, "stylized")]):
+            axes[i, j].imshow(img.numpy())
+            axes[i, j].set_title(label, fontsize=7)
+            axes[i, j].axis("off")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="jpg", pil_kwargs={"quality": 82})
+    plt.close(fig)
+    return path
+
+
+ABLATIONS = {
+    "default": {},
+    "color transfer off": {"color_transfer": "off"},
+    "color transfer pre": {"color_transfer": "pre"},
+    "color transfer post": {"color_transfer": "post"},
+    "colour transfer only (0 steps)": {"iters": 0},
+    "paper objective (content 0, TV 0)": {"content_weight": 0.0, "tv_weight": 0.0},
+    "content 0": {"content_weight": 0.0},
+    "TV 0": {"tv_weight": 0.0},
+    "SH rest: keep": {"sh_rest": "keep"},
+    "SH rest: zero": {"sh_rest": "zero"},
+    "SH rest: optimise": {"sh_rest": "optimise"},
+    "TV 0.02 (previous default)": {"tv_weight": 0.02},
+    "TV 0.1": {"tv_weight": 0.1},
+    "TV 0.5": {"tv_weight": 0.5},
+    "colour gain 1.0": {"color_max_gain": 1.0},
+    "background: keep": {"background": "keep"},
+    "free opacity": {"free_opacity": True},
+}
+
+
+def scene_name(scene: str) -> str:
+    """The results' folder prefix for ``--scene``: ``fern``, ``demo`` or the run folder's name."""
+    return scene if scene in ("fern", "demo") else Path(scene).name
+
+
+def parse_configs(path: Path) -> list[tuple[str, list[str]]]:
+    """``[(tag, flags)]`` from a file of ``TAG: FLAGS`` lines (blank lines and ``#`` comments skipped)."""
+    import shlex
+
+    out = []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        tag, sep, flags = line.partition(":")
+        tag = tag.strip()
+        if not sep or not tag or not all(c.isalnum() or c in "._-" for c in tag):
+            raise SystemExit(f"{path}:{n}: expected 'TAG: FLAGS' with a TAG of letters, digits, '.', '_', '-'")
+        out.append((tag, shlex.split(flags)))
+    if len({t for t, _ in out}) != len(out):
+        raise SystemExit(f"{path}: a TAG appears twice")
+    if not out:
+        raise SystemExit(f"{path}: no configuration")
+    return out
+
+
+def run_configs(args, styles, device, progress: bool) -> int:
+    """``--configs``: build the scene once, then every configuration as its own process, all at once."""
+    import subprocess
+
+    configs = parse_configs(args.configs)
+    t0, failed = time.monotonic(), 0  # --timeout counts from here: building the scene is part of it
+    prepare_scene(args.scene, args.out, device, args.fern_iters, progress, args.demo_size, args.fern)
+    name = scene_name(args.scene)
+    shared = [sys.executable, str(Path(__file__).resolve()), "--scene", args.scene, "--out", str(args.out),
+              "--device", str(device), "--styles", str(args.styles), "--fern", str(args.fern), "--fern-iters",
+              str(args.fern_iters), "--demo-size", args.demo_size, "--path-frames", str(args.path_frames), "--quiet"]
+    if args.styles_subset:
+        shared += ["--styles-subset", args.styles_subset]
+    procs = []
+    for tag, flags in configs:
+        log = args.out / f"{name}_{tag}.log"
+        procs.append((tag, log, subprocess.Popen(shared + ["--tag", tag, *flags], stdout=log.open("w"),
+                                                 stderr=subprocess.STDOUT)))
+    print(f"{len(procs)} configurations running on {device} (logs {args.out}/{name}_<TAG>.log)", flush=True)
+    for tag, log, proc in procs:
+        try:
+            left = None if args.timeout is None else max(1.0, args.timeout - (time.monotonic() - t0))
+            rc = proc.wait(timeout=left)
+        except subprocess.TimeoutExpired:
+            proc.terminate()
+            rc = proc.wait()
+        done = len(list((args.out / f"{name}_{tag}" / "styles").glob("*/result.json")))
+        summary = [ln for ln in log.read_text(errors="replace").splitlines()
+                   if ln.startswith(("Mean reduction", "Worst consistency", "Styles not closer"))]
+        failed += rc not in (0, -15)
+        print(f"== {tag} (exit {rc}): {done}/{len(styles)} styles finished" +
+              "".join(f"\n   {ln}" for ln in summary), flush=True)
+    return 1 if failed else 0
+
+
+def styles_main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--scene", default="demo", help="fern, demo, or a (grouped) reconstruction run folder")
+    p.add_argument("--styles", type=Path, default=DATA / "styles", help="folder of style images")
+    p.add_argument("--styles-subset", default=None, help="comma-separated style names (file stems)")
+    p.add_argument("--shard", default=None, help="i/n: run the i-th of n interleaved slices of the styles")
+    p.add_argument("--out", type=Path, default=ROOT / "out" / "stylize")
+    p.add_argument("--device", default="auto")
+    p.add_argument("--fern-iters", type=int, default=7000, help="reconstruction steps of fern images_8")
+    p.add_argument("--fern", type=Path, default=DATA / "llff_fern", help="the LLFF fern capture (--scene fern)")
+    p.add_argument("--demo-size", default="default", choices=("small", "default"),
+                   help="demo scene size (--scene demo; small: the tests' scene, for a CPU check)")
+    p.add_argument("--extractor", default="auto", choices=EXTRACTOR_KINDS)
+    p.add_argument("--path-frames", type=int, default=30, help="novel path views scored by evaluate")
+    p.add_argument("--ablation", action="store_true", help="the Stage 2 ablation table on a few styles")
+    p.add_argument("--ablation-rows", default=None,
+                   help="ablation row labels to run, separated by ; (default: all rows of ABLATIONS)")
+    p.add_argument("--report", action="store_true", help="print the table of finished styles only")
+    p.add_argument("--configs", type=Path, default=None,
+                   help="a file of configurations, one per line 'TAG: FLAGS' (# comments): the scene is built once, "
+                        "then each runs as its own process, all at once on the one device (--tag TAG and the line's "
+                        "FLAGS; --scene, --out, --device, --styles, --styles-subset, --fern*, --demo-size and "
+                        "--path-frames shared); logs in OUT/<scene>_<TAG>.log")
+    p.add_argument("--timeout", type=float, default=None,
+                   help="with --configs: stop every configuration this many seconds after the command started, "
+                        "building the scene included (finished styles are kept; run again to continue)")
+    p.add_argument("--tag", default="", help="results in OUT/<scene>_<tag> (one folder per configuration; the "
+                   "scene is built once in OUT and shared)")
+    p.add_argument("--quiet", action="store_true")
+    g = p.add_argument_group("Stage 2 (default: the CLI defaults)")
+    g.add_argument("--iters", type=int, default=None)
+    g.add_argument("--lr", type=float, default=None)
+    g.add_argument("--content-weight", type=float, default=None)
+    g.add_argument("--tv-weight", type=float, default=None)
+    g.add_argument("--blend-weight", type=float, default=None)
+    g.add_argument("--color-transfer", default=None)
+    g.add_argument("--color-max-gain", type=float, default=None)
+    g.add_argument("--color-detail", default=None, choices=("keep", "off"))
+    g.add_argument("--sh-rest", default=None)
+    g.add_argument("--background", default=None, choices=("transfer", "keep"))
+    g.add_argument("--mode", default=None, choices=("ist", "global"),
+                   help="ist (the CLI default: per group against the style image's regions on a grouped scene) "
+                        "or global (one match against the whole style image, the behaviour before issue 39)")
+    g.add_argument("--densify", type=float, default=None, help="split budget (fraction of the Gaussians; 0: off)")
+    g.add_argument("--densify-views", type=int, default=None)
+    g.add_argument("--hold-empty", type=float, default=None, help="weight of the empty-region term (0: off)")
+    g.add_argument("--consistency-weight", type=float, default=None, help="weight of the view-pair term (0: off)")
+    g.add_argument("--consistency-neighbours", type=int, default=None)
+    g.add_argument("--consistency-budget", type=float, default=None,
+                   help="pair error (x the starting scene's, squared) left free by the view-pair term")
+    g.add_argument("--style-scale", type=float, default=None, help="style image size against the views (1: fit)")
+    from ssgwarp.core.presets import add_preset
+    from ssgwarp.stylization.stylize_cli import PAINT
+    add_preset(p, "--paint", PAINT, "ssgwarp stylize's painting preset: {values} (options given explicitly win)")
+    args = p.parse_args(argv)
+
+    from ssgwarp.cli import resolve_device
+    from ssgwarp.evaluation.evaluate import EvalOptions
+    from ssgwarp.core.fileio import atomic_path, write_json
+    from ssgwarp.errors import InputError
+
+    device = resolve_device(args.device)
+    torch.manual_seed(0)
+    progress = not args.quiet
+    try:
+        styles = style_paths(args.styles_subset or "", args.styles)
+    except InputError as e:
+        raise SystemExit(str(e)) from None
+    if args.configs is not None:
+        return run_configs(args, styles, device, progress)
+    name = scene_name(args.scene)
+    out = args.out / (f"{name}_{args.tag}" if args.tag else name)
+    out.mkdir(parents=True, exist_ok=True)
+    run = prepare_scene(args.scene, args.out, device, args.fern_iters, progress, args.demo_size, args.fern)
+    eval_opts = EvalOptions(path_frames=args.path_frames, max_pairs=16, save_pairs=0)
+    src = source_consistency(run, out, device, eval_opts, progress)
+    dev = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
+
+    if args.ablation:
+        abl = [s for s in styles if s.stem in ABLATION_STYLES] or styles[:4]
+        lines = [f"Stage 2 ablation on {name} ({dev}, {time.strftime('%Y-%m-%d')}), styles "
+                 f"{', '.join(s.stem for s in abl)}; means over the styles", "",
+                 "| configuration | colour Δ | texture Δ | Gram after/before | short RMSE (x src) | long RMSE (x src) | Stage 2 s |",
+                 "|---|---|---|---|---|---|---|"]
+        raw = {}
+        rows_wanted = ABLATIONS
+        if args.ablation_rows:
+            want = [w.strip() for w in args.ablation_rows.split(";") if w.strip()]
+            bad = [w for w in want if w not in ABLATIONS]
+            if bad:
+                raise SystemExit(f"--ablation-rows: unknown {', '.join(bad)}; known: {', '.join(ABLATIONS)}")
+            rows_wanted = {w: ABLATIONS[w] for w in want}
+        for label, over in rows_wanted.items():
+            cfg = stage2_config(args, **over)
+            tag = "abl_" + "".join(c if c.isalnum() else "_" for c in label)
+            rows = [] if args.report else [run_style(run, s, out / tag / s.stem, cfg, device, args.extractor,
+                                                      eval_opts, progress) for s in abl]
+            if not rows:
+                continue
+            raw[label] = rows
+            n = len(rows)
+            mean = lambda f: sum(f(r) for r in rows) / n  # noqa: E731
+            lines.append(f"| {label} | {100 * mean(lambda r: r['color_after'] / r['color_before'] - 1):+.1f}% | "
+                         f"{100 * mean(lambda r: r['texture_after'] / r['texture_before'] - 1):+.1f}% | "
+                         f"{mean(lambda r: r['gram_after'] / r['gram_before']):.2f} | "
+                         f"{mean(lambda r: r['short'] / src['short']):.2f} | {mean(lambda r: r['long'] / src['long']):.2f} | "
+                         f"{mean(lambda r: r['stage2_seconds']):.1f} |")
+        text = "\n".join(lines) + "\n"
+        with atomic_path(out / "ablation.md") as tmp:
+            tmp.write_text(text)
+        write_json(out / "ablation.json", {"device": dev, "source": src, "runs": raw})
+        print(text)
+        return 0
+
+    todo = styles
+    if args.shard:
+        i, n = (int(x) for x in args.shard.split("/"))
+        todo = styles[i::n]
+    cfg = stage2_config(args)
+    rows = []
+    for s in styles:
+        if s in todo and not args.report:
+            rows.append(run_style(run, s, out / "styles" / s.stem, cfg, device, args.extractor, eval_opts, progress))
+        elif (out / "styles" / s.stem / "result.json").is_file():
+            rows.append(json.loads((out / "styles" / s.stem / "result.json").read_text()))
+    add_halves(rows, styles, run, out / "styles")
+    title = (f"`ssgwarp stylize` (weight-free: no Stage 1, {rows[0]['extractor'] if rows else '-'}) on {name}, "
+             f"{dev}, {time.strftime('%Y-%m-%d')}; scored by `ssgwarp evaluate` on {src['views_scored']}. "
+             f"Distances: sliced Wasserstein to the style (colour in Lab, texture of a derivative-of-Gaussian "
+             f"filter bank), on the scene's pixels; lower is closer.")
+    text = table(rows, src, title)
+    with atomic_path(out / "table.md") as tmp:
+        tmp.write_text(text)
+    write_json(out / "results.json", {"device": dev, "source": src, "rows": rows})
+    sheet(out / "styles_sheet.jpg", run, out / "styles", [s for s in styles if s.stem in SHEET_STYLES], device)
+    print(text)
+    print(f"{len(rows)}/{len(styles)} styles finished; table {out / 'table.md'}, sheet {out / 'styles_sheet.jpg'}")
+    return 0
+
+
+# ----------------------------------------------------------------------------- stage2: seconds per stage
 def synthetic_run(run: Path, data_dir: Path, images: str, n: int, groups: int = 8, seed: int = 0) -> Path:
     """A grouped run folder whose scene is N Gaussians around the capture's sparse points."""
     from ssgwarp.capture.datasets import data_json, load_dataset
@@ -78,8 +552,8 @@ def synthetic_run(run: Path, data_dir: Path, images: str, n: int, groups: int = 
     return run
 
 
-def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def stage2_main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="stylize.py stage2", description=STAGE2_DOC, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run", type=Path, default=None, help="existing grouped reconstruction of the capture")
     p.add_argument("--data", type=Path, default=DATA / "llff_fern")
     p.add_argument("--images", default="images_4")
@@ -98,7 +572,7 @@ def main() -> int:
     p.add_argument("--stage1-steps", type=int, default=50)
     p.add_argument("--out", type=Path, default=ROOT / "out" / "bench_stylize")
     p.add_argument("--device", default="auto")
-    args = p.parse_args()
+    args = p.parse_args(argv)
 
     from ssgwarp.cli import main as cli, resolve_device
     from ssgwarp.stylization.stylize import Stage2Config, StylizeOptions, stylize_run
@@ -126,6 +600,7 @@ def main() -> int:
                 prep["group"] = time.perf_counter() - t1
     models, s1 = None, None
     if args.random_stage1:
+        sys.path.insert(0, str(ROOT / "tests"))   # fakeweights: random-weight Stage 1 models
         from fakeweights import random_stage1_components
         from ssgwarp.stylization.diffusion import Stage1Config, assemble_stage1
 
@@ -152,7 +627,7 @@ def main() -> int:
                         stage1_models=models if mode != "global" else None)
         m["peak_gpu_memory_gib"] = (torch.cuda.max_memory_allocated(device) / 2**30) if device.type == "cuda" else None
         results[mode] = m
-    dev = torch.cuda.get_device_name(device) if device.type == "cuda" else f"cpu ({platform.machine()})"
+    dev = machine(device)
     rows = ["keyviews", "stage1", "stage2", "stage2_optimisation", "renders", "metrics", "total"]
     print(f"\n`ssgwarp stylize` on {args.data.name} {args.images}, {dev}, {time.strftime('%Y-%m-%d')}")
     if prep:
@@ -169,6 +644,287 @@ def main() -> int:
     (args.out / "benchmark.json").write_text(json.dumps({"device": dev, "prep_seconds": prep, "runs": results},
                                                         indent=2, default=str))
     return 0
+
+
+# ----------------------------------------------------------------------------- probe: texture fixed in 3-D
+def probe_scene(scene, period_px: float, amplitude: float, pixel: float, seed: int = 0):
+    """``scene`` with ``amplitude`` x a unit-variance sum of six 3-D sinusoids of ``period_px`` pixels added to
+    its base colour (grey) and its SH bands above 0 zeroed."""
+    from ssgwarp.raster.scene import SH_C0
+
+    g = torch.Generator().manual_seed(seed)
+    xyz = scene.means.detach().double().cpu()
+    k = torch.nn.functional.normalize(torch.randn(6, 3, generator=g, dtype=torch.float64), dim=1)
+    k = k * (2 * math.pi / (period_px * pixel))
+    phase = torch.rand(6, generator=g, dtype=torch.float64) * 2 * math.pi
+    pattern = (torch.sin(xyz @ k.T + phase).sum(1) / math.sqrt(3)).to(scene.sh_dc)
+    rest = None if scene.sh_rest is None else torch.zeros_like(scene.sh_rest)
+    return scene.replace(sh_dc=scene.sh_dc + (amplitude * pattern / SH_C0)[:, None], sh_rest=rest)
+
+
+def pixel_size(scene, cams) -> float:
+    """World size of one pixel at the scene's median depth in the first camera."""
+    xyz = scene.means.detach().double().cpu()
+    X = torch.cat([xyz, torch.ones(len(xyz), 1, dtype=xyz.dtype)], 1) @ cams.viewmats[0].double().cpu().T
+    z = X[:, 2][X[:, 2] > 0]
+    return float(z.median() if len(z) else 1.0) / float(cams.Ks[0, 0, 0])
+
+
+def demo_truth(run: Path):
+    """The procedural scene that made the capture of the demo whose reconstruction is ``run`` (``OUT/scene``;
+    size and seed from ``OUT/summary.json``)."""
+    from ssgwarp import procedural as P
+    from ssgwarp.core.fileio import read_json
+    from ssgwarp.errors import InputError
+
+    summary = Path(run).resolve().parent / "summary.json"
+    if not summary.is_file():
+        raise InputError(f"--truth: {summary} not found; pass the scene folder of an `ssgwarp demo` output (OUT/scene)")
+    info = read_json(summary)
+    size = P.SIZES.get(info.get("size"))
+    if size is None:
+        raise InputError(f"--truth: {summary} names demo size {info.get('size')!r}; use one of {', '.join(P.SIZES)}")
+    return P.build_scene(size.density, seed=int(info.get("seed", 0))).scene
+
+
+def score(scene, cams, bg, opts, style_distance, alpha0=None) -> dict:
+    """Consistency, error concentration and texture per scale of ``scene``'s renders; the texture is taken over
+    the pixels where ``alpha0`` (the unpainted scene's alpha; default: these renders') is at least 0.5."""
+    from ssgwarp.evaluation import metrics as M
+    from ssgwarp.evaluation.evaluate import consistency, render_views
+
+    rgb, depth, alpha = render_views(scene, cams, bg)
+    alpha0 = alpha if alpha0 is None else alpha0
+    rep = consistency(rgb, depth, alpha, cams, opts)["reprojection"]
+    sq = []
+    for a, b in M.consistency_pairs(len(cams), "short", opts.gap, opts.max_pairs or None):
+        res = M.reprojection_warp(M.View(rgb[a], depth[a], alpha[a], cams.viewmats[a], cams.Ks[a]),
+                                  M.View(rgb[b], depth[b], alpha[b], cams.viewmats[b], cams.Ks[b]),
+                                  rel_tol=opts.depth_tol, alpha_min=opts.alpha_min)
+        sq.append(((res.warped - rgb[b]) ** 2).sum(-1)[res.mask])
+    e = torch.cat(sq).sort(descending=True).values
+    share = [float(e[: max(1, int(f * len(e)))].sum() / e.sum().clamp_min(1e-12)) for f in (0.10, 0.25)]
+    levels = None
+    if style_distance is not None:
+        per = []
+        H, W = rgb.shape[1:3]
+        _, s_lab, s_resp = style_distance._style_at(H, W, rgb.device)
+        n = style_distance.levels_for(H, W)
+        for v in range(len(rgb)):
+            _, resp = style_distance._features(rgb[v], n, alpha0[v] >= 0.5)
+            per.append([float(M.sliced_wasserstein(x, None, style_distance.texture_projections, style_distance.seed, y))
+                        for x, y in zip(resp, s_resp)])
+        levels = torch.tensor(per).mean(0).tolist()
+    return {"short": rep["short"]["rmse"], "long": rep["long"]["rmse"], "share10": share[0], "share25": share[1],
+            "levels": levels, "alpha": alpha}
+
+
+def probe_table(name, scene, cams, bg, opts, sd, args, described) -> dict:
+    """Prints and returns the unpainted scene's error and one row per probe period and amplitude."""
+    base = score(scene, cams, bg, opts, sd)
+    alpha0 = base.pop("alpha")
+    pixel = pixel_size(scene, cams)
+    print(f"{name}: {len(scene)} Gaussians, {described}, {cams.width}x{cams.height}; unpainted short/long "
+          f"RMSE {base['short']:.4f} / {base['long']:.4f}; worst 10 % / 25 % of pixels hold {100 * base['share10']:.0f} / "
+          f"{100 * base['share25']:.0f} % of the squared error")
+    print("| period (px) | amplitude | short (x) | long (x) | texture change per scale | worst 10 % / 25 % share |")
+    print("|---|---|---|---|---|---|")
+    rows = []
+    for period in [float(x) for x in args.periods.split(",")]:
+        for amp in [float(x) for x in args.amplitudes.split(",")]:
+            r = score(probe_scene(scene, period, amp, pixel), cams, bg, opts, sd, alpha0)
+            r.pop("alpha")
+            lv = "-" if r["levels"] is None else " / ".join(
+                f"{100 * (a / b - 1):+.0f} %" for a, b in zip(r["levels"], base["levels"]))
+            print(f"| {period:g} | {amp:g} | {r['short'] / base['short']:.2f} | {r['long'] / base['long']:.2f} | {lv} | "
+                  f"{100 * r['share10']:.0f} / {100 * r['share25']:.0f} % |", flush=True)
+            rows.append({"period_px": period, "amplitude": amp, **r})
+    return {"base": base, "rows": rows}
+
+
+def probe_main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="stylize.py probe", description=PROBE_DOC, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--run", type=Path, required=True, help="a reconstruction run folder")
+    p.add_argument("--style", type=Path, default=None, help="style image: texture distance per filter scale too")
+    p.add_argument("--periods", default="1,2,4,8,16", help="probe periods in pixels")
+    p.add_argument("--amplitudes", default="0.15,0.3", help="probe standard deviations (colour, 0..1)")
+    p.add_argument("--frames", type=int, default=30, help="path views scored (ssgwarp evaluate's default)")
+    p.add_argument("--device", default="auto")
+    p.add_argument("--truth", action="store_true",
+                   help="a demo's run (OUT/scene): also score the procedural scene that made its capture")
+    p.add_argument("--json", type=Path, default=None, help="also write the rows here")
+    args = p.parse_args(argv)
+    from ssgwarp.errors import InputError
+
+    try:
+        return probe(args)
+    except InputError as e:     # a bad run folder, style image or --truth on a run that is not a demo's: one line
+        print(f"stylize.py probe: {e}", file=sys.stderr)
+        return 2
+
+
+def probe(args) -> int:
+    """Every probe on the run's scene (and on the demo's true scene with ``--truth``)."""
+    from ssgwarp.cli import resolve_device
+    from ssgwarp.core.fileio import read_image, write_json
+    from ssgwarp.evaluation.evaluate import EvalOptions, inspect_run, scored_cameras
+    from ssgwarp.evaluation.style_distance import StyleDistance
+
+    device = resolve_device(args.device)
+    info = inspect_run(args.run)
+    scene, data = info.load(device, load_images=False)
+    opts = EvalOptions(path_frames=args.frames, max_pairs=16, save_pairs=0)
+    cams, _, described = scored_cameras(data.cameras, data.train_ids, data.test_ids, opts)
+    cams = cams.to(device)
+    bg = list(data.background)
+    sd = None if args.style is None else StyleDistance(torch.from_numpy(read_image(args.style, 3)).to(device))
+    scenes = [("reconstruction", scene)] + ([("truth", demo_truth(args.run).to(device))] if args.truth else [])
+    print(f"run {args.run}")
+    out = {"run": str(args.run)}
+    for name, sc in scenes:
+        out[name] = probe_table(name, sc, cams, bg, opts, sd, args, described)
+    if args.json:
+        write_json(args.json, out)
+    return 0
+
+
+# ----------------------------------------------------------------------------- bound: the style loss on free pixels
+def free_pixels(start: torch.Tensor, alphas: torch.Tensor, loss, counts: list[int], lr: float):
+    """Optimise each view's scene pixels with ``loss(image [H, W, 3], view, step)``; yields ``(count, images)``
+    after each step count per view in ``counts`` (ascending)."""
+    keep = (alphas >= 0.5).to(start)[..., None]
+    params = [torch.logit(start[v].clamp(0.01, 0.99)).clone().requires_grad_(True) for v in range(len(start))]
+    opts = [torch.optim.Adam([p], lr=lr) for p in params]
+
+    def image(v: int) -> torch.Tensor:
+        return torch.sigmoid(params[v]) * keep[v] + start[v] * (1 - keep[v])
+
+    done = 0
+    for count in counts:
+        for step in range(done, count):
+            for v in range(len(start)):
+                opts[v].zero_grad(set_to_none=True)
+                loss(image(v), v, step).backward()
+                opts[v].step()
+        done = count
+        with torch.no_grad():
+            yield count, torch.stack([image(v) for v in range(len(start))])
+
+
+def bound_main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="stylize.py bound", description=BOUND_DOC, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--run", type=Path, required=True, help="a reconstruction run folder")
+    p.add_argument("--styles", default="", help="comma-separated style names (in --style-dir) or paths; default: all")
+    p.add_argument("--style-dir", type=Path, default=data_root() / "styles", help="folder of style images (default ../shared/data/styles)")
+    p.add_argument("--steps", default="10,100", help="steps per view at which the views are scored (ascending)")
+    p.add_argument("--lr", type=float, default=0.05, help="Adam learning rate on the pixels' logits")
+    p.add_argument("--extractor", default="patches", choices=EXTRACTOR_KINDS,
+                   help="Stage 2's features (default patches, as --paint)")
+    p.add_argument("--tv-weight", type=float, default=0.0, help="add Stage 2's total variation term (default 0)")
+    p.add_argument("--frames", type=int, default=30, help="path views (ssgwarp evaluate's default 30)")
+    p.add_argument("--device", default="auto")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", type=Path, default=None, help="also write the rows here (after every style)")
+    args = p.parse_args(argv)
+
+    from ssgwarp.errors import InputError
+
+    try:
+        counts = sorted({int(c) for c in args.steps.split(",")})
+    except ValueError:
+        counts = [-1]
+    if counts[0] < 0:
+        print(f"stylize.py bound: --steps takes step counts >= 0 such as 10,100, got {args.steps!r}", file=sys.stderr)
+        return 2
+    try:
+        return bound(args, counts, style_paths(args.styles, args.style_dir))
+    except InputError as e:     # a style not found, a bad run folder or style image: one line
+        print(f"stylize.py bound: {e}", file=sys.stderr)
+        return 2
+
+
+def bound(args, counts: list[int], styles: list[Path]) -> int:
+    """Score every style (main's table and ``--json``)."""
+    from ssgwarp.cli import resolve_device
+    from ssgwarp.core.fileio import read_image, write_json
+    from ssgwarp.core.imaging import fit_style
+    from ssgwarp.evaluation.evaluate import EvalOptions, inspect_run, render_views, scored_cameras
+    from ssgwarp.evaluation.style_distance import StyleDistance
+    from ssgwarp.services.color import transfer_colors
+    from ssgwarp.services.features import load_extractor
+    from ssgwarp.stylization.stage2 import Stage2Config, build_targets, extract, resolve_for, tv_loss
+    device = resolve_device(args.device)
+    torch.manual_seed(args.seed)
+    scene, data = inspect_run(args.run).load(device, load_images=False)
+    scene = scene.replace(sh_rest=None if scene.sh_rest is None else torch.zeros_like(scene.sh_rest))
+    cams, _, described = scored_cameras(data.cameras, data.train_ids, data.test_ids,
+                                        EvalOptions(path_frames=args.frames, save_pairs=0))
+    cams, train = cams.to(device), data.cameras[list(data.train_ids) or list(range(len(data.cameras)))].to(device)
+    bg = list(data.background)
+    base = render_views(scene, cams, bg)
+    H, W = base.rgb.shape[1:3]
+    extractor = load_extractor(None, device, None, kind=args.extractor, seed=args.seed, config=None)
+    cfg = resolve_for(Stage2Config(mode="global", seed=args.seed), extractor)
+    print(f"{args.run}: {len(scene)} Gaussians, {described}, {W}x{H}; features {extractor.name}, style loss alone"
+          f"{f' + TV {args.tv_weight:g}' if args.tv_weight else ''}, lr {args.lr:g}; texture / colour change "
+          f"against the unstylized scene")
+    head = " | ".join(f"{c} steps / view" for c in counts)
+    print(f"| style | unstylized texture | colour transfer | {head} | half of the style | colour |")
+    print("|---|---|---|" + "---|" * len(counts) + "---|---|")
+    rows = []
+    for path in styles:
+        t0 = time.perf_counter()
+        style = torch.from_numpy(read_image(path, 3)).to(device)
+        at_views = fit_style(style.to(scene.dtype), H, W).permute(0, 2, 3, 1)
+        sd = StyleDistance(style)
+        d0 = {k: float(v.mean()) for k, v in sd(base.rgb, base.alpha).items()}
+        recoloured, _ = transfer_colors(scene, train, at_views, max_gain=cfg.color_max_gain,
+                                        keep_detail=cfg.color_detail == "keep")
+        start = render_views(recoloured, cams, bg).rgb
+        dct = float(sd(start, base.alpha)["texture"].mean())
+        targets = build_targets(extractor, at_views, None, cfg)
+
+        def loss(img, view, step):
+            out = targets.loss(extract(extractor, img, 1.0)[0], None, step=step)
+            return out + args.tv_weight * tv_loss(img) if args.tv_weight else out
+
+        per = {}
+        for count, images in free_pixels(start, base.alpha, loss, counts, args.lr):
+            last = sd(images, base.alpha)
+            per[count] = float(last["texture"].mean())
+        raw_color = float(last["color"].mean())           # after the last step count
+        row = {"style": path.stem, "texture": d0["texture"], "color": d0["color"], "color_transfer": dct,
+               "free": per, "free_color": raw_color,
+               "halves": sd.halves(H, W), "seconds": time.perf_counter() - t0}
+        rows.append(row)
+        if args.json:      # after every style: a run stopped early keeps the finished ones
+            write_json(args.json, {"run": str(args.run), "features": extractor.name, "steps": counts, "lr": args.lr,
+                                   "tv_weight": args.tv_weight, "views": len(cams), "rows": rows})
+
+        def ch(x: float, ref: float) -> str:
+            return f"{100 * (x / ref - 1):+.1f} %"
+
+        cells = " | ".join(ch(per[c], d0["texture"]) for c in counts)
+        print(f"| {path.stem} | {d0['texture']:.3f} | {ch(dct, d0['texture'])} | {cells} | "
+              f"{ch(row['halves']['texture'], d0['texture'])} | {ch(raw_color, d0['color'])} |", flush=True)
+
+    def mean(f) -> str:
+        return f"{100 * sum(f(r) for r in rows) / len(rows):+.1f} %"
+
+    cells = " | ".join(mean(lambda r, c=c: r["free"][c] / r["texture"] - 1) for c in counts)
+    print(f"| **mean of {len(rows)}** | | {mean(lambda r: r['color_transfer'] / r['texture'] - 1)} | {cells} | "
+          f"{mean(lambda r: r['halves']['texture'] / r['texture'] - 1)} | {mean(lambda r: r['free_color'] / r['color'] - 1)} |")
+    return 0
+
+
+MODES = {"stage2": stage2_main, "probe": probe_main, "bound": bound_main}
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] in MODES:
+        return MODES[argv[0]](argv[1:])
+    return styles_main(argv)
 
 
 if __name__ == "__main__":

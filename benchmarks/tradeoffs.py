@@ -38,6 +38,9 @@ front drawn).
     python benchmarks/tradeoffs.py --devices cpu --n 20000 --size 256 --out bench/tradeoffs
     python benchmarks/tradeoffs.py --devices cuda --n 500000 --size 1024 --stylize --append --out bench/tradeoffs
     python benchmarks/tradeoffs.py --scene runs/fern --size 504 --out bench/fern   # a real reconstruction
+
+``python benchmarks/tradeoffs.py budget RESULTS.json ... --scene fern8`` plots held-out PSNR against Gaussians and
+peak memory from ``benchmarks/train_step.py runs`` results (the MCMC budget sweep beside the other strategies).
 """
 from __future__ import annotations
 
@@ -45,7 +48,6 @@ import argparse
 import datetime
 import json
 import math
-import platform
 import sys
 import time
 from dataclasses import dataclass, field, replace
@@ -54,26 +56,11 @@ from typing import Any, Optional
 
 import torch
 
-_ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(_ROOT))  # run from a checkout without installing
-
-import ssgwarp  # noqa: E402
-
-try:  # a checkout that was not pip-installed has kernels/ but no ssgwarp.kernels: map it
-    import ssgwarp.kernels  # noqa: F401
-except ImportError:
-    import importlib.util
-
-    _spec = importlib.util.spec_from_file_location("ssgwarp.kernels", _ROOT / "kernels" / "__init__.py",
-                                                   submodule_search_locations=[str(_ROOT / "kernels")])
-    if _spec is not None and _spec.loader is not None:
-        _mod = importlib.util.module_from_spec(_spec)
-        sys.modules["ssgwarp.kernels"] = _mod
-        _spec.loader.exec_module(_mod)
-from ssgwarp import RasterSettings  # noqa: E402
-from ssgwarp.core.cameras import Cameras, look_at  # noqa: E402
-from ssgwarp.raster.scene import GaussianScene  # noqa: E402
-from timing import sync, timed  # noqa: E402
+import ssgwarp
+from ssgwarp import RasterSettings
+from ssgwarp.core.cameras import Cameras, look_at
+from ssgwarp.raster.scene import GaussianScene
+from harness import ROOT, machine, sync, timed, write_text
 
 
 # ----------------------------------------------------------------------------- scene and cameras
@@ -283,20 +270,6 @@ def stylize_study(run_dir: Path, style: Path, out: Path, device: torch.device, i
 
 
 # ----------------------------------------------------------------------------- report
-def device_name(device: torch.device) -> str:
-    if device.type == "cuda":
-        return torch.cuda.get_device_name(device)
-    import os
-
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} cores, torch threads {torch.get_num_threads()}"
 
 
 def _f(x: Any, digits: int = 3) -> str:
@@ -406,13 +379,6 @@ def pareto_plot(results: dict, path: Path) -> Path:
 
 
 # ----------------------------------------------------------------------------- main
-def _write_text(path: Path, text: str) -> None:
-    from ssgwarp.core.fileio import atomic_path
-
-    with atomic_path(path) as tmp:
-        tmp.write_text(text)
-
-
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -475,7 +441,7 @@ def main(argv=None) -> int:
         device = torch.device(d)
         t0 = time.perf_counter()
         rows = raster_study(scene, cams, device, args.repeats)
-        meta = {"device_name": device_name(device), "date": datetime.datetime.now().isoformat(timespec="seconds"),
+        meta = {"device_name": machine(device), "date": datetime.datetime.now().isoformat(timespec="seconds"),
                 "torch": torch.__version__, "warp": warp.__version__, "scene": scene_desc, "views": len(cams),
                 "width": cams.width, "height": cams.height, "repeats": args.repeats, "quick": args.quick,
                 "backend": BACKEND}
@@ -492,14 +458,124 @@ def main(argv=None) -> int:
                                              max_side=max(cams.width, cams.height))
         meta["seconds"] = round(time.perf_counter() - t0, 1)
         results["devices"][d] = entry
-        _write_text(json_path, json.dumps(results, indent=1))
+        write_text(json_path, json.dumps(results, indent=1))
 
-    _write_text(args.out / "tradeoffs.md", markdown(results))
+    write_text(args.out / "tradeoffs.md", markdown(results))
     pareto_plot(results, args.out / "tradeoffs_pareto.png")
     print(markdown(results))
     print(f"wrote {args.out / 'tradeoffs.md'}, {json_path}, {args.out / 'tradeoffs_pareto.png'}")
     return 0
 
 
+
+# ----------------------------------------------------------------------------- budget: PSNR against size
+BUDGET_DOC = """Plot quality against size from ``benchmarks/train_step.py runs`` results: the MCMC budget sweep beside the
+other strategies of the same scene.
+
+Reads one or more ``results.json`` files (their ``rows``), keeps the rows of ``--scene`` at ``--iters``, and
+draws held-out PSNR against the final Gaussian count and against peak GPU memory: one line for the MCMC
+budget sweep (each point labelled with its budget and train time), one marker per other run (strategy,
+backend, D-SSIM scale). Writes a PNG (default ``docs/tradeoffs_budget.png``).
+
+    python benchmarks/tradeoffs.py budget sweep/results.json f8ours/results.json f8gs/results.json \\
+        dssim/results.json --scene fern8 --iters 7000 --out docs/tradeoffs_budget.png
+"""
+
+
+def load_rows(paths: list[Path], scene: str, iters: int) -> list[dict]:
+    """The rows of ``scene`` at ``iters`` from every file, in file order."""
+    rows = []
+    for p in paths:
+        data = json.loads(Path(p).read_text())
+        rows += [r for r in data.get("rows", []) if r.get("scene") == scene and r.get("iters") == iters]
+    if not rows:
+        raise SystemExit(f"no rows of scene {scene!r} at {iters} steps in {', '.join(map(str, paths))}")
+    return rows
+
+
+def label(r: dict) -> str:
+    """A legend entry for a run that is not part of the budget sweep."""
+    parts = [r["strategy"]]
+    if r.get("matched"):
+        parts.append(f"budget = default's count ({r['max_gaussians']:,})")
+    if r.get("backend", "ssgwarp") != "ssgwarp":
+        parts.append(f"{r['backend']} rasterizer")
+    if r.get("dssim_scale", 1.0) != 1.0:
+        parts.append(f"D-SSIM x{r['dssim_scale']:g}")
+    return ", ".join(parts)
+
+
+def _by_point(rows: list[dict], key: str) -> dict:
+    """Rows that ended alike (same Gaussian count, PSNR to 0.1 dB) grouped under their first row's point."""
+    out: dict = {}
+    for r in rows:
+        out.setdefault((r["gaussians"], round(r["psnr"], 1)), []).append(r)
+    return {(same[0][key], same[0]["psnr"]): same for same in out.values()}
+
+
+def plot(rows: list[dict], out: Path, title: str) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sweep = sorted((r for r in rows if r["strategy"] == "mcmc" and not r.get("matched")),
+                   key=lambda r: r["max_gaussians"])
+    others = [r for r in rows if r not in sweep]
+    panels = [("gaussians", "Gaussians at the end")]
+    if all(math.isfinite(r.get("peak_mib") or math.nan) for r in rows):   # (CPU runs have no GPU memory)
+        panels.append(("peak_mib", "peak GPU memory (MiB)"))
+    fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 5.4), squeeze=False)
+    axes = axes[0]
+    cmap = plt.get_cmap("tab10")
+    for ax, (key, xlabel) in zip(axes, panels):
+        if sweep:
+            ax.plot([r[key] for r in sweep], [r["psnr"] for r in sweep], "o-", color="k", label="mcmc, budget sweep",
+                    zorder=3)
+            for pt, same in _by_point(sweep, key).items():  # budgets that ended at one count share a label
+                text = " / ".join(f"{r['max_gaussians'] // 1000}k" for r in same) + " budget, " + \
+                    " / ".join(f"{r['seconds']:.0f}" for r in same) + " s"
+                ax.annotate(text, pt, fontsize=7, xytext=(4, -10), textcoords="offset points")
+        for j, r in enumerate(others):
+            ax.scatter([r[key]], [r["psnr"]], color=cmap(j % 10), marker="s", s=40, label=label(r), zorder=3)
+            ax.annotate(f"{r['seconds']:.0f} s", (r[key], r["psnr"]), fontsize=7, xytext=(4, 4),
+                        textcoords="offset points")
+        ax.set_xscale("log")
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("held-out PSNR (dB)")
+        ax.grid(True, which="both", alpha=0.3)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, fontsize=8, loc="lower center", ncol=4, frameon=False)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout(rect=(0, 0.1, 1, 1))
+    from ssgwarp.core.fileio import atomic_path
+
+    with atomic_path(out) as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
+    plt.close(fig)
+    return out
+
+
+def budget_main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="tradeoffs.py budget", description=BUDGET_DOC, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("results", nargs="+", type=Path, help="results.json files of benchmarks/train_step.py runs")
+    ap.add_argument("--scene", default="fern8")
+    ap.add_argument("--iters", type=int, default=7000)
+    ap.add_argument("--title", default=None)
+    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "tradeoffs_budget.png")
+    a = ap.parse_args(argv)
+    rows = load_rows(a.results, a.scene, a.iters)
+    title = a.title or f"{a.scene}, {a.iters} steps: held-out PSNR against size (times in the labels)"
+    print(plot(rows, a.out, title))
+    return 0
+
+
+def dispatch(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] == "budget":
+        return budget_main(argv[1:])
+    return main(argv)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(dispatch())

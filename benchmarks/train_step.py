@@ -1,46 +1,357 @@
-"""Cost of one step of our training loop with each rasterizer: milliseconds per step, the device
-synchronisations a step makes (and where), and the host ops that cost the most.
+"""A training step's cost, and whole training runs, with ssgwarp's rasterizer or gsplat's (and its strategies).
 
-One :class:`ssgwarp.reconstruction.reconstruct.Trainer` per backend on the same capture, seed and recipe
-(the loop of ``benchmarks/reconstruct.py``): ``--warm`` steps first (past the first refinements, so the
-Gaussian count is a trained scene's), then ``--steps`` timed steps between two refinements. On CUDA the
-synchronisations come from torch's sync debug mode (each synchronising call and the ssgwarp / kornia /
-gsplat / torch.optim frames that made it); ``--profile`` adds torch.profiler's top host ops.
-
-``--ops`` adds the step's op table: every torch op a step calls from Python (top-level ``aten::`` ops,
-forward and backward) and every Warp launch (``warp::<kernel>``), one row per op and source line
-(the innermost ssgwarp line; a backward op names the autograd node and the line of its forward op),
-with calls per step, host microseconds per step (under the profiler, so inflated alike for all rows),
-and the launches queued on the GPU (CUDA: kernels, memsets and copies through the CUDA runtime or
-driver; CPU: the Warp launches).
+``python benchmarks/train_step.py [options]``: one step of our training loop per backend: milliseconds per step, the
+device synchronisations a step makes (and where) and, with ``--profile``, torch.profiler's top host ops. One
+:class:`ssgwarp.reconstruction.trainer.Trainer` per backend on the same capture, seed and recipe: ``--warm`` steps
+first (past the first refinements, so the Gaussian count is a trained scene's), then ``--steps`` timed steps
+between two refinements. On CUDA the synchronisations come from torch's sync debug mode (each synchronising call
+and the ssgwarp / kornia / gsplat / torch.optim frames that made it). ``--ops`` adds the step's op table: every
+torch op a step calls from Python (top-level ``aten::`` ops, forward and backward) and every Warp launch
+(``warp::<kernel>``), one row per op and source line (the innermost ssgwarp line; a backward op names the
+autograd node and the line of its forward op), with calls per step, host microseconds per step (under the
+profiler, so inflated alike for all rows) and the launches queued on the GPU.
 
     python benchmarks/train_step.py                              # fern images_8, ssgwarp and gsplat
     python benchmarks/train_step.py --scene fern4 --backend ssgwarp --profile
     OMP_NUM_THREADS=2 python benchmarks/train_step.py --device cpu --backend ssgwarp --warm 20 --steps 5 --ops
-    python benchmarks/train_step.py --scene PATH:images --warm 100 --steps 20 --device cpu
+
+``python benchmarks/train_step.py runs [options]``: whole runs (held-out PSNR / SSIM, Gaussians, time, memory)
+per scene x backend x strategy x budget (``runs --help``).
+
+    python benchmarks/train_step.py runs --scenes fern8 fern4 --backend ssgwarp gsplat   # training time vs gsplat
+    python benchmarks/train_step.py runs --scenes fern8 --strategy mcmc --max-gaussians 50000 100000 300000 1000000
+
+``python benchmarks/train_step.py loss [options]``: the photometric loss every step computes (0.8 L1 + 0.2
+(1 - SSIM)): the torch reference against the fused Warp kernels per image size, forward and forward+backward,
+median ms of synchronised calls taken in turns; on CUDA also the host time with 20 calls queued and the kernels'
+GPU time (``loss --help``).
+
+    python benchmarks/train_step.py loss --device cuda
+    OMP_NUM_THREADS=1 python benchmarks/train_step.py loss --device cpu --clock cpu
 """
 from __future__ import annotations
 
 import argparse
 import collections
 import contextlib
+import gc
+import json
+import math
 import sys
 import threading
 import time
 import traceback
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).parent))
-from reconstruct import load_scene, rasterizer, warm_up  # noqa: E402
-from shared_data import data_root  # noqa: E402
+from harness import (CAPTURES, ROOT, append_jsonl, capture_folder, cuda_kernel_ms, header, interleaved, per_call_us,
+                     write_text)
 
-from ssgwarp.reconstruction.reconstruct import Trainer  # noqa: E402
+from ssgwarp.capture.datasets import load_dataset
+from ssgwarp.errors import InputError
+from ssgwarp.core.fileio import write_json
+from ssgwarp.reconstruction.reconstruct import Recipe, Trainer, render_views
+from ssgwarp.reconstruction.strategy import DefaultStrategy, MCMCStrategy, Strategy
+
+RUNS_DOC = """Whole training runs: our 3DGS loop with either rasterizer and each densification strategy.
+
+One Trainer loop (same data, seed, recipe, schedule) per scene x ``--backend`` (``ssgwarp``; ``gsplat``:
+gsplat.rasterization, non-packed) x ``--strategy`` (ours: ``default`` / ``mcmc``; gsplat 1.5's ``gsplat-default`` /
+``gsplat-mcmc`` editing our tensors and Adam state through GsplatStrategy, given our schedule and thresholds; MCMC's
+regulariser is ours for both, its noise learning rate divided by extent^2) x ``--iters`` x ``--max-gaussians``
+(with mcmc: the budget sweep of docs/tradeoffs.md). ``--scenes``: fern8 / fern4 (LLFF fern images_8 / images_4),
+cup (colmap_cup), lego (lego_200, white background) or PATH[:IMAGES]. Distorted captures are undistorted into a
+pinhole crop, where PSNR / SSIM are measured. ``--match-default`` also runs mcmc at the default run's final count;
+``--dssim-scale 0.5`` trains with the halved D-SSIM term of before. Prints tables (runs; rasterizer pairs; strategy
+pairs; budget sweep) and writes them with the raw rows to ``--out``. Targets (issues 3, 14): ssgwarp vs gsplat's
+rasterizer within 0.2 dB and 1.5x time; our default within 0.2 dB of gsplat's; MCMC at an equal count >= default.
+
+    python benchmarks/train_step.py runs --scenes fern8 --backend ssgwarp gsplat --strategy default
+    python benchmarks/train_step.py runs --scenes fern8 cup lego --strategy default gsplat-default --match-default
+    python benchmarks/train_step.py runs --scenes PATH --iters 120 --device cpu --strategy default mcmc
+"""
+
+STRATEGIES = ("default", "mcmc", "gsplat-default", "gsplat-mcmc")
+
+
+def rasterizer(backend: str):
+    """``(rasterize function or None, extra kwargs)`` for a backend name."""
+    if backend == "ssgwarp":
+        return None, {}  # the Trainer's default: ssgwarp.rasterization (Warp kernels on CUDA)
+    if backend == "gsplat":
+        try:
+            from gsplat import rasterization
+        except ImportError as e:
+            raise SystemExit(f"--backend gsplat needs the gsplat package ({e}); pip install gsplat") from None
+        return rasterization, {"packed": False}  # [C, N] layout, as the densification statistics read it
+    raise SystemExit(f"unknown backend {backend!r}")
+
+
+class _OneGroup:
+    """What gsplat's strategy ops expect of an optimizer (``param_groups`` of one group, ``state``),
+    as a view of one named group of the Trainer's Adam."""
+
+    def __init__(self, opt: torch.optim.Optimizer, group: dict):
+        self.state = opt.state
+        self.param_groups = [group]
+
+
+class GsplatStrategy(Strategy):
+    """gsplat's ``DefaultStrategy`` or ``MCMCStrategy`` driving the Trainer's Gaussians (a reference for ours).
+
+    Our tensors go to gsplat under its names (``scales``, ``opacities``, ``sh0``, ``shN``; the rest as
+    they are) with one-group optimizer views; what gsplat puts back (new parameters, moved Adam
+    state) is written back under our names. gsplat's schedule is given as ours: it refines when its
+    step (our completed-step count) is past ``refine_start_iter``, hence ``refine_start - 1``.
+    """
+
+    to_gsplat = {"log_scales": "scales", "logit_opacities": "opacities", "sh_dc": "sh0", "sh_rest": "shN"}
+
+    def __init__(self, kind: str):
+        super().__init__()
+        if kind not in ("default", "mcmc"):
+            raise ValueError(kind)
+        self.kind = kind
+        self.name = f"gsplat-{kind}"
+        ours = DefaultStrategy if kind == "default" else MCMCStrategy
+        self.reference, self.recipe_defaults = ours.reference, ours.recipe_defaults
+        self.budgeted = kind == "mcmc"
+        self.uses_means2d_grad = kind == "default"
+        self._meta = None
+
+    def setup(self, gaussians, *, recipe, extent, max_gaussians, seed) -> None:
+        super().setup(gaussians, recipe=recipe, extent=extent, max_gaussians=max_gaussians, seed=seed)
+        import gsplat.strategy as gs
+
+        sch = self.schedule
+        common = dict(refine_start_iter=sch.refine_start - 1, refine_stop_iter=sch.refine_stop,
+                      refine_every=sch.refine_every)
+        if self.kind == "default":
+            self.impl = gs.DefaultStrategy(prune_opa=recipe.prune_opacity, grow_grad2d=recipe.grad_threshold,
+                                           grow_scale3d=recipe.percent_dense, prune_scale3d=recipe.prune_world,
+                                           reset_every=sch.reset_every or 10**12, **common)
+            self.state = self.impl.initialize_state(scene_scale=extent)
+        else:
+            self.impl = gs.MCMCStrategy(cap_max=max_gaussians, noise_lr=recipe.noise_lr,
+                                        min_opacity=recipe.prune_opacity, **common)
+            self.state = self.impl.initialize_state()
+        self.impl.check_sanity(*self._views(gaussians))
+
+    def _views(self, g):
+        params = {self.to_gsplat.get(k, k): v for k, v in g.params.items()}
+        groups = g.groups
+        return params, {self.to_gsplat.get(k, k): _OneGroup(g.opt, groups[k]) for k in g.params}
+
+    def regularizer(self, g):
+        return MCMCStrategy.regularizer(self, g) if self.kind == "mcmc" else None
+
+    def observe(self, g, meta: dict) -> None:
+        meta.setdefault("gaussian_ids", None)  # gsplat reads it (None in the non-packed layout)
+        self._meta = meta
+
+    def step(self, g, step: int, lr_means: float) -> dict:
+        params, opts = self._views(g)
+        n0 = len(g)
+        if self.kind == "default":
+            self.impl.step_post_backward(params, opts, self.state, step, self._meta, packed=False)
+        else:
+            self.impl.step_post_backward(params, opts, self.state, step, self._meta,
+                                         lr=lr_means / self.extent ** 2)
+        back = {v: k for k, v in self.to_gsplat.items()}
+        for k, v in params.items():
+            g.params[back.get(k, k)] = v
+        self._meta = None
+        return {"refine": {"gaussians": len(g) - n0}} if len(g) != n0 else {}
+
+
+def make(strategy: str):
+    return GsplatStrategy(strategy.split("-", 1)[1]) if strategy.startswith("gsplat-") else strategy
+
+
+def warm_up(trainer: Trainer) -> None:
+    """Compile/JIT the rasterizer's kernels (every SH degree, forward and backward) outside the timed loop."""
+    scene = trainer.scene.detach()
+    scene = scene.map(lambda t: t.requires_grad_(True))
+    cam = trainer.data.cameras[trainer.data.train_ids[0]]
+    bg = trainer.data.background_tensor(3)[None]
+    for deg in range(trainer.sh_degree + 1):
+        out, _, meta = render_views(scene, cam, sh_degree=deg, backgrounds=bg, rasterize=trainer.rasterize,
+                                    **trainer.raster_kwargs)
+        meta["means2d"].retain_grad()
+        out.sum().backward()
+
+
+def train_and_measure(data, *, backend: str = "ssgwarp", strategy="default", iters: int = 7000,
+                      sh_degree: int = 3, seed: int = 0, max_gaussians: int = 1_000_000,
+                      recipe: Recipe | None = None, device: torch.device, progress: bool = False,
+                      dssim_scale: float = 1.0) -> dict:
+    """Train one run on ``data`` (warm-up outside the timing) and return its held-out metrics and cost."""
+    fn, kw = rasterizer(backend)
+    torch.manual_seed(seed)
+    recipe = replace(recipe or Recipe(), dssim_scale=dssim_scale)
+    trainer = Trainer(data, iters=iters, sh_degree=sh_degree, max_gaussians=max_gaussians, recipe=recipe,
+                      rasterize=fn, raster_kwargs=kw, device=device, seed=seed, progress=progress,
+                      strategy=make(strategy) if isinstance(strategy, str) else strategy)
+    warm_up(trainer)
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+        torch.cuda.reset_peak_memory_stats(device)
+    t0 = time.perf_counter()
+    trainer.train()
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    seconds = time.perf_counter() - t0
+    peak = torch.cuda.max_memory_allocated(device) / 2**20 if device.type == "cuda" else float("nan")
+    ev = trainer.evaluate()
+    r = trainer.recipe
+    out = {"backend": backend, "strategy": trainer.strategy.name, "resolution": f"{data.width}x{data.height}",
+           "iters": iters, "max_gaussians": max_gaussians, "psnr": ev["psnr"], "ssim": ev["ssim"],
+           "gaussians": trainer.num_gaussians, "seconds": seconds, "peak_mib": peak, "test_views": ev["views"],
+           "schedule": [r.refine_start, r.refine_stop, r.refine_every, r.reset_every], "dssim_scale": dssim_scale,
+           **data.metric_frame}
+    del trainer
+    gc.collect()
+    if device.type == "cuda":
+        torch.cuda.empty_cache()
+    return out
+
+
+def _f(v, spec=".2f"):
+    return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, spec)
+
+
+def tables(rows: list[dict]) -> str:
+    lines = ["| scene | resolution | iters | backend | strategy | budget | held-out PSNR (dB) | SSIM | Gaussians | "
+             "train time (s) | peak GPU mem (MiB) |", "|---|---|---:|---|---|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {r['scene']} | {r['resolution']} | {r['iters']} | {r['backend']} | {r['strategy']} | "
+                     f"{r['max_gaussians']:,} | {_f(r['psnr'])} | {_f(r['ssim'], '.4f')} | {r['gaussians']:,} | "
+                     f"{r['seconds']:.1f} | {_f(r['peak_mib'], '.0f')} |")
+    key = lambda r, **kw: tuple({**r, **kw}[k] for k in ("scene", "iters", "backend", "strategy", "max_gaussians"))
+    by = {key(r): r for r in rows}
+    pairs = []
+    for r in rows:  # rasterizers: ssgwarp vs gsplat, same everything else
+        if r["backend"] == "ssgwarp" and key(r, backend="gsplat") in by:
+            b = by[key(r, backend="gsplat")]
+            pairs.append(f"| {r['scene']} | {r['iters']} | {r['strategy']} | {r['psnr'] - b['psnr']:+.2f} dB | "
+                         f"{r['seconds'] / b['seconds']:.2f}x | {_f(r['peak_mib'] / b['peak_mib'], '.2f')}x |")
+    if pairs:
+        lines += ["", "| scene | iters | strategy | PSNR ssgwarp - gsplat rasterizer (target >= -0.2 dB) | "
+                      "time ssgwarp / gsplat (target <= 1.5x) | memory ssgwarp / gsplat |",
+                  "|---|---:|---|---:|---:|---:|"] + pairs
+    strat = []
+    for r in rows:  # strategies: ours vs gsplat's; MCMC at the default's count vs default
+        for ref in (f"gsplat-{r['strategy']}",):
+            if key(r, strategy=ref) in by:
+                b = by[key(r, strategy=ref)]
+                strat.append(f"| {r['scene']} | {r['iters']} | {r['backend']} | {r['strategy']} - {ref} | "
+                             f"{r['psnr'] - b['psnr']:+.2f} dB | {r['gaussians']:,} / {b['gaussians']:,} | "
+                             f"{r['seconds'] / b['seconds']:.2f}x |")
+        if r["strategy"] == "mcmc" and r.get("matched"):
+            d = by.get(key(r, strategy="default", max_gaussians=r["matched_budget"]))
+            if d:
+                strat.append(f"| {r['scene']} | {r['iters']} | {r['backend']} | mcmc - default (equal count) | "
+                             f"{r['psnr'] - d['psnr']:+.2f} dB | {r['gaussians']:,} / {d['gaussians']:,} | "
+                             f"{r['seconds'] / d['seconds']:.2f}x |")
+    if strat:
+        lines += ["", "| scene | iters | backend | pair | PSNR difference (targets: ours - gsplat's >= -0.2 dB; "
+                      "mcmc - default >= 0) | Gaussians | time ratio |", "|---|---:|---|---|---:|---:|---:|"] + strat
+    sweep = [r for r in rows if r["strategy"] in ("mcmc", "gsplat-mcmc") and not r.get("matched")]
+    groups = {}
+    for r in sweep:
+        groups.setdefault((r["scene"], r["iters"], r["backend"], r["strategy"]), []).append(r)
+    budget = [g for g in groups.values() if len(g) > 1]
+    if budget:
+        lines += ["", "| scene | iters | backend | strategy | budget | Gaussians | held-out PSNR (dB) | SSIM | "
+                      "train time (s) |", "|---|---:|---|---|---:|---:|---:|---:|---:|"]
+        for g in budget:
+            for r in sorted(g, key=lambda r: r["max_gaussians"]):
+                lines.append(f"| {r['scene']} | {r['iters']} | {r['backend']} | {r['strategy']} | "
+                             f"{r['max_gaussians']:,} | {r['gaussians']:,} | {_f(r['psnr'])} | "
+                             f"{_f(r['ssim'], '.4f')} | {r['seconds']:.1f} |")
+    return "\n".join(lines)
+
+
+def load_scene(spec: str, root: Path | None, device: torch.device, random_points: int = 100_000):
+    """A shared capture by name (harness.CAPTURES) or PATH[:IMAGES], loaded on ``device``."""
+    try:
+        folder, images = capture_folder(spec, root)
+    except InputError as e:
+        raise SystemExit(str(e)) from None
+    return load_dataset(folder, images=images, device=device, num_random_points=random_points)
+
+
+def report(out: Path, setup: str, md: str, rows: list[dict], device: torch.device) -> None:
+    """Print the tables under a header (date, machine, setup) and write results.json / results.md to ``out``."""
+    head = header(device, setup)
+    print(f"\n{head}\n\n{md}")
+    write_json(out / "results.json", {"setup": head, "rows": rows})
+    write_text(out / "results.md", f"{head}\n\n{md}\n")
+
+
+def runs_main(argv=None) -> int:
+    """`train_step.py runs`: whole training runs (see the module's docstring)."""
+    p = argparse.ArgumentParser(prog="train_step.py runs", description=RUNS_DOC,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--scenes", nargs="+", default=["fern8", "fern4"], help=f"{', '.join(CAPTURES)} or PATH[:IMAGES]")
+    p.add_argument("--data-root", type=Path, default=None, help="folder holding llff_fern, colmap_cup, lego_200")
+    p.add_argument("--backend", nargs="+", choices=("ssgwarp", "gsplat", "both"), default=["ssgwarp"])
+    p.add_argument("--strategy", nargs="+", choices=STRATEGIES, default=["default"])
+    p.add_argument("--iters", nargs="+", type=int, default=[7000])
+    p.add_argument("--max-gaussians", nargs="+", type=int, default=[1_000_000])
+    p.add_argument("--match-default", action="store_true",
+                   help="also run mcmc with the budget set to the default run's final count")
+    p.add_argument("--sh-degree", type=int, default=3)
+    p.add_argument("--random-points", type=int, default=100_000,
+                   help="initial points of captures without a point cloud (lego; default 100000, as the CLI)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--dssim-scale", type=float, default=1.0,
+                   help="multiplier of the D-SSIM term: 1 (default) is the 3DGS loss, 0.5 the halved term ssgwarp "
+                        "used before")
+    p.add_argument("--device", default="cuda")
+    p.add_argument("--out", type=Path, default=Path("benchmark-runs"),
+                   help="folder for results.json / results.md")
+    p.add_argument("--no-progress", action="store_true")
+    a = p.parse_args(argv)
+    device = torch.device(a.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise SystemExit("CUDA is not available (pass --device cpu for a (slow) CPU run)")
+    root = a.data_root
+    backends = list(dict.fromkeys(b for x in a.backend for b in (("ssgwarp", "gsplat") if x == "both" else (x,))))
+    rows = []
+
+    def record(r):
+        print(json.dumps(r), flush=True)
+        rows.append(r)
+        write_json(a.out / "results.json", {"rows": rows})  # partial results survive an interruption
+
+    for spec in a.scenes:
+        data = load_scene(spec, root, device, a.random_points)
+        for iters in a.iters:
+            for backend in backends:
+                for strategy in a.strategy:
+                    for budget in a.max_gaussians:
+                        r = train_and_measure(data, backend=backend, strategy=strategy, iters=iters,
+                                              sh_degree=a.sh_degree, seed=a.seed, max_gaussians=budget,
+                                              device=device, progress=not a.no_progress,
+                                              dssim_scale=a.dssim_scale)
+                        record({"scene": spec, **r})
+                        if a.match_default and strategy == "default":
+                            m = train_and_measure(data, backend=backend, strategy="mcmc", iters=iters,
+                                                  sh_degree=a.sh_degree, seed=a.seed, max_gaussians=r["gaussians"],
+                                                  device=device, progress=not a.no_progress,
+                                                  dssim_scale=a.dssim_scale)
+                            record({"scene": spec, **m, "matched": r["gaussians"], "matched_budget": budget})
+        del data
+    report(a.out, f"SH degree {a.sh_degree}, seed {a.seed}, D-SSIM scale {a.dssim_scale:g}; held-out views every 8th",
+           tables(rows), rows, device)
+    return 0
+
 
 FRAMES = ("ssgwarp", "kornia", "gsplat", "torch/optim")  # the frames a synchronisation is attributed to
-ROOT = Path(__file__).resolve().parents[1]
 OPS_STEPS = 5  # steps the op table averages over
 # CUDA runtime / driver calls that queue work on the GPU
 LAUNCH_CALLS = ("cudaLaunchKernel", "cuLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernelEx", "cudaMemsetAsync",
@@ -288,7 +599,7 @@ def measure(data, backend: str, args, device: torch.device) -> dict:
     return row
 
 
-def main(argv=None) -> int:
+def step_main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scene", default="fern8", help="fern8, fern4, cup, lego or PATH[:IMAGES]")
     p.add_argument("--data-root", type=Path, default=None)
@@ -302,11 +613,14 @@ def main(argv=None) -> int:
     p.add_argument("--ops", action="store_true", help=f"also print the step's op table (over {OPS_STEPS} steps: "
                    "every torch op and Warp launch, calls and host µs per step, the source line)")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--out", default=None, help="append the rows as JSON lines")
     args = p.parse_args(argv)
     device = torch.device(args.device)
-    data = load_scene(args.scene, args.data_root or data_root(), device)
+    data = load_scene(args.scene, args.data_root, device)
     rows = [measure(data, b, args, device) for b in args.backend]
-    print(f"\n{args.scene}, {device.type}: steps {args.warm + 1}-{args.warm + args.steps} of a {args.iters}-step run\n")
+    for r in rows:
+        append_jsonl(args.out, {k: v for k, v in r.items() if k not in ("profile", "ops")})
+    print(f"\n{header(device)}; {args.scene}: steps {args.warm + 1}-{args.warm + args.steps} of a {args.iters}-step run\n")
     print("| backend | ms per step | Gaussians | synchronisations per step |")
     print("|---|---:|---:|---|")
     for r in rows:
@@ -319,6 +633,78 @@ def main(argv=None) -> int:
         if "ops" in r:
             print(f"\n{r['backend']}: the step's ops, per step (mean of {OPS_STEPS})\n\n{op_table(*r['ops'])}")
     return 0
+
+
+LOSS_SIZES = ("504x378", "1008x756", "1920x1080")
+
+
+def loss_images(w: int, h: int, views: int, dtype, device):
+    """A render-like pair: the target and a noisy, slightly blurred copy (the render, needing a gradient)."""
+    g = torch.Generator().manual_seed(0)
+    gt = torch.rand(views, h, w, 3, generator=g).to(dtype)
+    img = (0.9 * gt + 0.1 * torch.rand(views, h, w, 3, generator=g).to(dtype)).clamp(0, 1)
+    return img.to(device).requires_grad_(True), gt.to(device)
+
+
+def loss_closures(img, gt, fused: bool):
+    from ssgwarp.services.losses import photometric
+
+    def forward():
+        with torch.no_grad():
+            photometric(img, gt, fused=fused)
+
+    def both():
+        img.grad = None
+        photometric(img, gt, fused=fused).backward()
+    return forward, both
+
+
+def loss_main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="train_step.py loss", description="the photometric loss: torch reference "
+                                "against the fused Warp kernels, per image size")
+    p.add_argument("--device", choices=("cpu", "cuda"), default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--sizes", nargs="+", default=list(LOSS_SIZES), help="WxH (default: %(default)s)")
+    p.add_argument("--views", type=int, default=1, help="images per call ([V, H, W, 3])")
+    p.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    p.add_argument("--repeats", type=int, default=None, help="timed calls per case (default: 5 CPU, 50 CUDA)")
+    p.add_argument("--clock", choices=("wall", "cpu"), default="wall",
+                   help="wall-clock time, or this process's CPU time (a shared machine's load does not count)")
+    p.add_argument("--out", default=None, help="append the rows as JSON lines")
+    args = p.parse_args(argv)
+    dev = torch.device(args.device)
+    repeats = args.repeats or (5 if dev.type == "cpu" else 50)
+    clock = time.process_time if args.clock == "cpu" else time.perf_counter
+    print(f"{header(dev)}; photometric loss, {args.views} view(s) x 3 channels, {args.dtype}; median of {repeats}, "
+          f"{args.clock} clock\n\n| size | pass | reference ms | fused ms | fused / reference |\n|---|---|---|---|---|")
+    for size in args.sizes:
+        w, h = (int(v) for v in size.lower().split("x"))
+        img, gt = loss_images(w, h, args.views, getattr(torch, args.dtype), dev)
+        ref_f, ref_b = loss_closures(img, gt, False)
+        fus_f, fus_b = loss_closures(img, gt, True)
+        rows = []
+        for name, fns in (("forward", (ref_f, fus_f)), ("forward+backward", (ref_b, fus_b))):
+            t = interleaved(dict(enumerate(fns)), dev, repeats, rounds=repeats, clock=clock)
+            rows.append((name, t[0]["median"], t[1]["median"]))
+        if dev.type == "cuda":  # host cost per step: one synchronisation per block of 20 calls
+            r, f = (per_call_us(fn, dev, 20, max(3, repeats // 10)) / 1e3 for fn in (ref_b, fus_b))
+            rows.append(("fwd+bwd, 20 queued", r, f))
+            kr, kf = (cuda_kernel_ms(fn) for fn in (ref_b, fus_b))
+            rows.append((f"fwd+bwd GPU kernels ({len(kr)} / {len(kf)} kinds)", sum(kr.values()), sum(kf.values())))
+        for name, r, f in rows:
+            print(f"| {w}x{h} | {name} | {r:.3f} | {f:.3f} | {f / r:.2f} |")
+            append_jsonl(args.out, {"size": f"{w}x{h}", "pass": name, "reference_ms": r, "fused_ms": f})
+        del img, gt
+    return 0
+
+
+MODES = {"runs": runs_main, "loss": loss_main}
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] in MODES:
+        return MODES[argv[0]](argv[1:])
+    return step_main(argv)
 
 
 if __name__ == "__main__":

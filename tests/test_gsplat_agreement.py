@@ -5,7 +5,7 @@ threshold, alpha clamp 0.999, fast maths), every render mode, SH degree 3, antia
 backgrounds: images per pixel, the projected Gaussians, and the gradients to every input, the view
 matrices, the backgrounds and the screen-space means, entry by entry.
 
-Tolerances: images 1e-5 (depth channels 5e-5; benchmarks/agreement.py measures ~1e-6 at 1M
+Tolerances: images 1e-5 (depth channels 5e-5; benchmarks/raster.py measures ~1e-6 at 1M
 Gaussians, the last bit of the colour sums), projected Gaussians 1e-6 relative (measured
 bit-identical; conics relative to their trace), gradients 1e-3 relative per entry plus 64 float32
 roundoffs of the tensor's largest entry (both sum per-pixel terms with atomics, in different orders).

@@ -251,7 +251,7 @@ BATCHED = True
 # sorted ids (one launch, two buffers and the colour gradient's copy fewer per call: 10k Gaussians
 # at 256x256, 15k intersections, forward+backward 3-14 % faster; at 0.3M a wash). Above it the
 # backward's contiguous reads of the gather win (2.5-3M intersections: 6-8 % slower through the
-# ids). Measured on H100s, docs/notes/benchmarks-history.md (benchmarks/blend_ids.py)
+# ids). Measured on H100s, docs/notes/benchmarks-history.md (the retired benchmarks/blend_ids.py)
 IDS_BACKWARD_MAX = 1 << 19
 
 

@@ -99,7 +99,7 @@ _DEFAULT_SETTINGS = RasterSettings()
 
 # tile size when the caller gives none, per device type: gsplat's 16 on CUDA (its layout, and the
 # fastest forward+backward there); 8 on the CPU, where a pixel walks its whole tile's list one
-# Gaussian at a time, so shorter lists win (measured 1.6-3x faster than 16; benchmarks/tile_size.py,
+# Gaussian at a time, so shorter lists win (measured 1.6-3x faster than 16; benchmarks/raster.py --tile,
 # docs/tradeoffs.md). Under the default rules the image does not depend on the tile size.
 DEFAULT_TILE_SIZE = {"cuda": 16, "cpu": 8}
 
