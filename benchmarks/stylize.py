@@ -257,7 +257,7 @@ def sheet(path: Path, run: Path, results_dir: Path, styles: list[Path], device) 
 
     from ssgwarp.capture.datasets import load_run
     from ssgwarp.core.fileio import atomic_path, read_image
-    from ssgwarp.capture.ply import read_ply
+    from ssgwarp.formats.ply import read_ply
     from ssgwarp.services.runs import Run
     from ssgwarp.stylization.stylize import render_rgb
 
