@@ -30,7 +30,6 @@ from pathlib import Path
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 from shared_data import data_root  # noqa: E402
 from ssgwarp.core.fileio import atomic_path  # noqa: E402
@@ -48,9 +47,6 @@ def save_random_sam(size: str, folder: Path) -> None:
 
         save_tiny_sam(folder)
         return
-    from ssgwarp.services.weights import unshadow_kernels
-
-    unshadow_kernels()      # the checkout's root is on sys.path: its kernels/ would hide transformers' `kernels`
     from transformers import SamConfig, SamModel
 
     torch.manual_seed(0)

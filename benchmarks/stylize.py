@@ -29,7 +29,6 @@ from pathlib import Path
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 from shared_data import data_root  # noqa: E402
 from ssgwarp.services.features import EXTRACTOR_KINDS  # noqa: E402
 sys.path.insert(0, str(ROOT / "tests"))   # fakeweights: random-weight Stage 1 models
