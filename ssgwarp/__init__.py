@@ -5,22 +5,34 @@ Public API:
     RasterSettings       speed/accuracy knobs of the rasterizer
     GaussianScene        the scene model
     Cameras              pinhole cameras (world-to-camera viewmats, intrinsics)
+
+Importing the package changes nothing in the process (no environment variable, no ``sys.path`` entry) and
+loads no heavy library: the names above are loaded from their modules when first used (PEP 562), so that the
+``ssgwarp`` command can choose torch's OpenMP wait policy before torch loads (``ssgwarp.cli.main``).
 """
-import os as _os
-import sys as _sys
+from __future__ import annotations
 
-# torch's OpenMP workers busy-wait after every parallel region by default and so take the cores the
-# CPU blending's threads need (ssgwarp/raster/cpu_threads.py; measured: half the CPU time of a small
-# render's step, docs/notes/benchmarks-history.md). Wait passively instead, unless the user chose a policy. Read once,
-# when torch loads: no effect where torch was imported before ssgwarp.
-if "torch" not in _sys.modules:
-    _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+import importlib as _importlib
 
-from .core.cameras import Cameras  # noqa: E402
-from .errors import InputError, SsgwarpError, WeightsNotFound  # noqa: E402
-from .raster.rasterize import RasterSettings, rasterization  # noqa: E402
-from .raster.scene import GaussianScene  # noqa: E402
+from .errors import InputError, SsgwarpError, WeightsNotFound
+
+# public name -> the module that defines it
+_LAZY = {"rasterization": "ssgwarp.raster.rasterize", "RasterSettings": "ssgwarp.raster.rasterize",
+         "GaussianScene": "ssgwarp.raster.scene", "Cameras": "ssgwarp.core.cameras"}
 
 __all__ = ["rasterization", "RasterSettings", "GaussianScene", "Cameras",
            "SsgwarpError", "InputError", "WeightsNotFound"]
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'ssgwarp' has no attribute {name!r}")
+    value = getattr(_importlib.import_module(module), name)
+    globals()[name] = value   # (looked up once)
+    return value
+
+
+def __dir__() -> list:
+    return sorted(set(globals()) | set(__all__))

@@ -18,7 +18,6 @@ import traceback
 from pathlib import Path
 from typing import Optional, Sequence
 
-from .services import distributed, weights
 from .errors import SsgwarpError
 
 # name -> (module, one-line help, examples)
@@ -147,12 +146,24 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
+    """The ``ssgwarp`` command. Before anything loads torch, it chooses OpenMP's passive wait policy unless the
+    user set one: torch's OpenMP workers otherwise busy-wait after every parallel region and take the cores the
+    CPU blending's threads need (``ssgwarp/raster/cpu_threads.py``; measured: half the CPU time of a small
+    render's step, docs/notes/benchmarks-history.md). OpenMP reads it once, when torch loads, so it does nothing
+    where torch was imported before (a program calling ``main``); importing ``ssgwarp`` or this module sets
+    nothing."""
+    if "torch" not in sys.modules:
+        os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    from .services import distributed
+
     code = _main(argv)
     distributed.exit_after_group(code)  # (under torchrun only: see its docstring)
     return code
 
 
 def _main(argv: Optional[Sequence[str]] = None) -> int:
+    from .services import weights
+
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv or os.environ.get("SSGWARP_DEBUG") == "1"
     try:

@@ -1,15 +1,25 @@
+import os
+import sys
 from pathlib import Path
 
-import pytest
-import torch
+# The tests import the installed package (``pip install -e .``: ssgwarp, with kernels/ and viewer/ as
+# ssgwarp.kernels and ssgwarp.viewer), never the checkout's folders as top-level packages: ``python -m pytest``
+# (the README's command) puts the working directory on sys.path, and pytest-xdist's workers start from the
+# controller's sys.path, so with the checkout's root there its kernels/ would hide the registry package
+# ``kernels`` that transformers imports. This runs before any test module is imported, in the controller and in
+# every worker (tests/test_packaging.py checks the outcome).
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:] = [p for p in sys.path if Path(p or os.getcwd()).resolve() != ROOT]
+
+import importlib.util  # noqa: E402
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
+
+if importlib.util.find_spec("ssgwarp") is None:
+    pytest.exit(f"ssgwarp is not installed: run `python -m pip install -e '.[dev]'` in {ROOT} first", returncode=4)
 
 torch.set_num_threads(1)  # the tests' tensors are tiny: threads cost more than they give
-
-# `python -m pytest` puts the checkout's root on sys.path, where kernels/ (installed as ssgwarp.kernels) hides the
-# PyPI package `kernels` that transformers requires and diffusers imports: load the installed one first
-from ssgwarp.services.weights import unshadow_kernels  # noqa: E402
-
-unshadow_kernels()
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 

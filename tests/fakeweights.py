@@ -24,9 +24,6 @@ from typing import Mapping, Optional
 import torch
 
 from ssgwarp.errors import InputError
-from ssgwarp.services.weights import unshadow_kernels
-
-unshadow_kernels()    # benchmarks put the checkout's root on sys.path: its kernels/ would hide transformers' `kernels`
 
 FAKE_REVISION = "0123456789abcdef0123456789abcdef01234567"
 _LFS_SUFFIXES = (".safetensors", ".bin", ".pth", ".pt", ".ckpt", ".h5")

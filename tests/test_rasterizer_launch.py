@@ -5,6 +5,7 @@ import torch
 import warp as wp
 
 import ssgwarp.raster.launch as L
+import ssgwarp.raster.private_api as P
 from ssgwarp import RasterSettings, rasterization
 
 from conftest import CUDA_ONLY
@@ -40,9 +41,11 @@ def test_replayed_launches_equal_warp_launch(device, monkeypatch):
     params[4] = (torch.randn(80, 16, 3, generator=g) * 0.3).to(device)
     vm, K = (t.to(device) for t in make_cameras(2, 30, 22, dtype=torch.float32))
     kw = dict(sh_degree=3, backgrounds=torch.rand(2, 3, generator=g).to(device), deterministic=True)
+    monkeypatch.setattr(L._LOCAL, "plans", {}, raising=False)
     fast = _render_and_grads(params, vm, K, 30, 22, **kw)
+    assert L.FAST and all(p.fast is not None for p in L._LOCAL.plans.values())   # (the self-test passed here)
     monkeypatch.setattr(L, "FAST", False)
-    monkeypatch.setattr(L._LOCAL, "plans", {})
+    monkeypatch.setattr(L._LOCAL, "plans", {}, raising=False)
     slow = _render_and_grads(params, vm, K, 30, 22, **kw)
     assert all(not p.fast for p in L._LOCAL.plans.values())
     for a, b in zip(fast, slow):
@@ -59,7 +62,8 @@ def test_array_descriptors_follow_the_tensor_layout():
     assert L.grid(t.view(35, 3), 4, 35, 3, False)[2:8] == (4, 35, 0, 0, 0, 12)
     assert L.cams(t, 5, 9, 21)[2:8] == (5, 9, 0, 0, 84, 0)
     assert L.NULL == (0,) * 12
-    d = L._array_t(L.grid3(t, 2, 5, 7, 3, True))
+    v = L.grid3(t, 2, 5, 7, 3, True)
+    d = P.array_t(v[0], v[1], v[10], v[2:2 + v[10]], v[6:6 + v[10]], v[11])
     assert (d.ndim, tuple(d.shape[:3]), tuple(d.strides[:3])) == (3, (2, 5, 7), (420, 84, 12))
 
 
@@ -69,9 +73,8 @@ def test_struct_layout_matches_ctypes():
     import ctypes
     import struct
 
-    from warp._src.types import array_t
-
-    fmt = L._layout(array_t)
+    array_t = P.array_t
+    fmt = P.layout(array_t)
     assert struct.calcsize("=" + fmt) == ctypes.sizeof(array_t)
     a = array_t(123456789, 0, 2, (3, 4), (16, 4), 0)
     assert struct.pack("=" + fmt, 123456789, 0, 3, 4, 0, 0, 16, 4, 0, 0, 2, 0) == bytes(a)
@@ -80,7 +83,7 @@ def test_struct_layout_matches_ctypes():
         _fields_ = [("a", ctypes.c_int32), ("b", array_t), ("c", ctypes.c_float), ("d", ctypes.c_double)]
 
     m = Mixed(7, a, 1.5, 2.25)
-    fmt = L._layout(Mixed)
+    fmt = P.layout(Mixed)
     assert struct.pack("=" + fmt, 7, 123456789, 0, 3, 4, 0, 0, 16, 4, 0, 0, 2, 0, 1.5, 2.25) == bytes(m)
 
 
@@ -277,7 +280,8 @@ def test_no_autograd_node_where_no_backward_can_follow(monkeypatch):
     means, quats, scales, opac, colors = make_scene(40, seed=5)
     vm, K = make_cameras(1, 24, 18)
     entered = []
-    monkeypatch.setattr(L, "_BASE_APPLY", _counting(L._BASE_APPLY, entered))
+    assert P.function_apply(P._Probe) is not None   # (its self-test run before counting)
+    monkeypatch.setattr(P, "_BASE_APPLY", _counting(P._BASE_APPLY, entered))
     with torch.no_grad():
         img0, alpha0, _ = rasterization(means, quats, scales, opac, colors, vm, K, 24, 18)
     img1, alpha1, meta1 = rasterization(means, quats, scales, opac, colors, vm, K, 24, 18)

@@ -20,7 +20,7 @@ from ssgwarp.raster.scene import GaussianScene
 from ssgwarp.reconstruction import statistics as S
 from ssgwarp.reconstruction.recipe import Recipe
 from ssgwarp.reconstruction import trainer as trainer_module
-from ssgwarp.reconstruction.step import StepInfo, _fused_groups, adam_step
+from ssgwarp.reconstruction.step import StepInfo, adam_step
 from ssgwarp.reconstruction.trainer import Trainer
 
 
@@ -258,6 +258,13 @@ def test_activations_in_the_kernels_check_what_they_make():
 
 
 # -- Adam without its per-group Python (step.adam_step) ------------------------------------------
+def _fused_groups(opt):
+    from ssgwarp.core.optim import Adam
+    from ssgwarp.raster.private_api import fused_adam_groups
+
+    return fused_adam_groups(opt, (torch.optim.Adam, Adam))
+
+
 def _adams():
     g = torch.Generator().manual_seed(4)
     made = []

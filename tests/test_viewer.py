@@ -6,9 +6,6 @@ render in a child process fails.
 """
 from __future__ import annotations
 
-import importlib
-import sys
-
 import numpy as np
 import pytest
 import torch
@@ -18,25 +15,9 @@ from ssgwarp.errors import InputError, SsgwarpError
 from ssgwarp.core.palette import palette
 from ssgwarp.raster.scene import GaussianScene, rgb_to_sh_dc
 
-
-def _import_viewer():
-    """``ssgwarp.viewer`` (installed from ``viewer/``); from a plain checkout, alias the top-level package."""
-    try:
-        return importlib.import_module("ssgwarp.viewer")
-    except ModuleNotFoundError:
-        import ssgwarp
-
-        pkg = importlib.import_module("viewer")
-        sys.modules["ssgwarp.viewer"] = pkg
-        ssgwarp.viewer = pkg
-        for sub in ("app", "data", "geometry", "headless"):
-            sys.modules[f"ssgwarp.viewer.{sub}"] = importlib.import_module(f"viewer.{sub}")
-        return pkg
-
-
-viewer = _import_viewer()
-from ssgwarp.viewer import geometry  # noqa: E402
-from ssgwarp.viewer.data import resolve_groups, resolve_keyviews  # noqa: E402
+from ssgwarp import viewer  # (installed from viewer/)
+from ssgwarp.viewer import geometry
+from ssgwarp.viewer.data import resolve_groups, resolve_keyviews
 
 OK, REASON = viewer.offscreen_status()
 needs_gl = pytest.mark.skipif(not OK, reason=REASON)

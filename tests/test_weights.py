@@ -448,23 +448,24 @@ def test_stylize_checks_its_output_folder_before_fetching_anything(tmp_path, mon
     assert hub.calls == [] and hub.probes == []
 
 
-def test_the_checkouts_kernels_folder_does_not_hide_the_installed_kernels_package():
-    """transformers 5 requires the PyPI package ``kernels``; run from a checkout's root (``python -m``), the
-    root's ``kernels/`` folder would be imported in its place and diffusers / transformers fail to import."""
-    import importlib.metadata
+def test_a_checkout_root_on_sys_path_is_refused_in_one_line_before_transformers_loads():
+    """transformers 5 imports the registry package ``kernels``; with a checkout's root on ``sys.path`` (``python -m
+    ssgwarp`` run there) its ``kernels/`` folder would be imported in its place. The library edits no ``sys.path``:
+    it names the way out in one line before importing transformers, and lets the registry package through."""
     import subprocess
     import sys
     from pathlib import Path
 
-    try:
-        importlib.metadata.version("kernels")
-    except importlib.metadata.PackageNotFoundError:
-        pytest.skip("the kernels package is not installed")
     root = Path(__file__).resolve().parents[1]
-    probe = ("import sys; sys.path.insert(0, {root!r}); {call}import kernels; "
-             "print(kernels.__file__.startswith({folder!r}), hasattr(kernels, 'get_kernel'))")
-    folder = str(root / "kernels")
-    runs = [subprocess.run([sys.executable, "-c", probe.format(root=str(root), folder=folder, call=call)], cwd=root,
-                           capture_output=True, text=True, timeout=120)
-            for call in ("", "from ssgwarp.services.weights import unshadow_kernels; unshadow_kernels(); ")]
-    assert [r.stdout.split() for r in runs] == [["True", "False"], ["False", "True"]], [r.stderr for r in runs]
+    probe = ("import sys\nfrom ssgwarp.services.weights import check_kernels_package\nfrom ssgwarp.errors import InputError\n"
+             "for shadow in (False, True):\n"
+             "    if shadow: sys.path.insert(0, {root!r})\n"
+             "    try:\n        check_kernels_package(); print('ok', 'kernels' in sys.modules)\n"
+             "    except InputError as e:\n        print('refused', 'kernels' in sys.modules, e)")
+    r = subprocess.run([sys.executable, "-c", probe.format(root=str(root))], cwd=Path.home(), capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    clean, shadowed = r.stdout.strip().splitlines()
+    assert clean == "ok False"
+    assert shadowed.startswith("refused False the source checkout's folder")
+    assert str(root / "kernels") in shadowed and "installed `ssgwarp` command" in shadowed

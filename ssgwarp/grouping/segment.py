@@ -143,7 +143,7 @@ class SamSegmenter:
 
 def load_sam(path: str | Path, device=None) -> SamSegmenter:
     """Load a transformers ``SamModel`` folder (``config.json`` + weights) for inference."""
-    weights.unshadow_kernels()
+    weights.check_kernels_package()
     from transformers import SamModel
     from transformers.utils import logging as tlog
 

@@ -13,27 +13,22 @@ the argument list), with no ``wp.array`` in between. Measured per launch of a 33
 kernel: 8 µs on the CPU and 18 µs on CUDA, against 49 and 93 µs through ``wp.launch``
 (docs/notes/benchmarks-history.md).
 
-Where Warp's internals differ from what this expects (another Warp version), every launch
-falls back to ``wp.launch``; ``FAST`` says which path is in use.
+Every use of Warp's and torch's private APIs (the replay itself, Warp's native calls, torch's direct autograd
+entry) lives in :mod:`ssgwarp.raster.private_api`, behind its version gate and self-test; where they are not
+usable, every launch goes through ``wp.launch`` (same results); ``FAST`` says whether they may be tried.
 """
 from __future__ import annotations
 
 import ctypes
 import math
-import struct
 import threading
 
 import torch
 import warp as wp
 
-try:  # Warp 1.x internals: the array descriptor, the launch-bounds structure and the runtime
-    from warp._src.types import array_t
-    from warp._src import context as _wpc
+from . import private_api as P
 
-    FAST = all(hasattr(_wpc, n) for n in ("runtime", "Launch")) and hasattr(array_t, "_fields_")
-except ImportError:  # pragma: no cover - another Warp layout
-    array_t, _wpc, FAST = None, None, False
-
+FAST = P.AVAILABLE   # (per device, the self-test decides too: Target.fast)
 INT32_MAX = 2**31 - 1
 _INIT = False
 
@@ -112,16 +107,6 @@ def at(ptr: int, n: int, itemsize: int) -> tuple:
     return (ptr, 0, n, 0, 0, 0, itemsize, 0, 0, 0, 1, 0)
 
 
-def _is_struct_type(t) -> bool:
-    """Whether a kernel parameter's type is a ``wp.struct`` (its fields and ctypes layout)."""
-    return hasattr(t, "vars") and hasattr(t, "ctype") and hasattr(t, "instance_type")
-
-
-def _array_t(v: tuple):
-    nd = v[10]
-    return array_t(v[0], v[1], nd, v[2:2 + nd], v[6:6 + nd], v[11])
-
-
 class _NoBackward:
     """What a Function's forward is handed for a context when no backward can follow: what it
     records for the backward (attributes, saved tensors) goes nowhere."""
@@ -144,18 +129,14 @@ def apply(fn, *args, needs_grad: bool | None = None):
     requires one), ``fn.forward`` runs on its own, without an autograd node: the same outputs,
     which then need no gradient either way. ``needs_grad``: whether a backward can follow, where
     the caller knows it already (else found from ``args``)."""
-    if _BASE_APPLY is None or _functorch_active():
+    entry = P.function_apply(fn)
+    if entry is None:
         return fn.apply(*args)
     if needs_grad is None:
         needs_grad = torch.is_grad_enabled() and any(isinstance(a, torch.Tensor) and a.requires_grad for a in args)
     if not needs_grad:
         return fn.forward(_NoBackward(), *args)
-    return _BASE_APPLY.__get__(None, fn)(*args)
-
-
-_functorch_active = getattr(torch._C, "_are_functorch_transforms_active", lambda: True)
-# what Function.apply ends in (None where this torch has no such entry point)
-_BASE_APPLY = getattr(getattr(torch._C, "_FunctionBase", None), "__dict__", {}).get("apply")
+    return entry(*args)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -234,7 +215,7 @@ def pixel_rows(g, inner: int):
 class Target:
     """A torch device (and on CUDA torch's current stream there) as Warp launch target."""
 
-    __slots__ = ("key", "dkey", "cpu", "device", "device_torch", "context", "stream", "primary")
+    __slots__ = ("key", "dkey", "cpu", "device", "device_torch", "context", "stream", "primary", "fast")
 
     def __init__(self, key, device, stream):
         self.key = key
@@ -245,11 +226,12 @@ class Target:
         self.context = None if self.cpu else device.context
         self.primary = self.cpu or bool(getattr(device, "is_primary", False))
         self.stream = stream  # raw CUDA stream handle (int), None on the CPU
+        self.fast = False     # whether launches here take the private fast path (set by target())
 
 
 _TARGETS: dict = {}
 _STREAMS: dict = {}  # Warp's wrappers of torch's streams, for the wp.launch fall-back
-_raw_stream = getattr(torch._C, "_cuda_getCurrentRawStream", None)
+_raw_stream = P.raw_stream
 
 
 def target(t: torch.Tensor) -> Target:
@@ -273,6 +255,7 @@ def target(t: torch.Tensor) -> Target:
             tg = Target(key, wp.get_device("cpu"), None)
         else:
             tg = Target(key, wp.get_device(f"cuda:{key[0]}"), key[1])
+        tg.fast = FAST and P.fast_path_works(tg, _stream(tg))
         _TARGETS[key] = tg
     return tg
 
@@ -280,136 +263,22 @@ def target(t: torch.Tensor) -> Target:
 # ---------------------------------------------------------------------------------------------
 # recorded launches
 # ---------------------------------------------------------------------------------------------
-_CODES = {ctypes.c_int8: "b", ctypes.c_uint8: "B", ctypes.c_int16: "h", ctypes.c_uint16: "H", ctypes.c_int32: "i",
-          ctypes.c_uint32: "I", ctypes.c_int64: "q", ctypes.c_uint64: "Q", ctypes.c_float: "f",
-          ctypes.c_double: "d", ctypes.c_bool: "?"}
-
-
-def _layout(ctype) -> str | None:
-    """``struct`` format (native byte order, explicit padding) of a ctypes scalar, array or
-    structure, laid out as ctypes lays it out; None for anything else."""
-    if ctype in _CODES:
-        return _CODES[ctype]
-    for base, code in _CODES.items():  # ctypes aliases (c_long, c_size_t, ...)
-        if ctypes.sizeof(ctype) == ctypes.sizeof(base) and getattr(ctype, "_type_", None) == getattr(base, "_type_", 0):
-            return code
-    if issubclass(ctype, ctypes.Array):
-        inner = _layout(ctype._type_)
-        return None if inner is None else inner * ctype._length_
-    if issubclass(ctype, ctypes.Structure):
-        out, pos = "", 0
-        for name, ft in ctype._fields_:
-            off = getattr(ctype, name).offset
-            f = _layout(ft)
-            if f is None:
-                return None
-            out += "x" * (off - pos) + f
-            pos = off + ctypes.sizeof(ft)
-        return out + "x" * (ctypes.sizeof(ctype) - pos)
-    return None
-
-
 class _Plan:
-    """One kernel (forward or adjoint, one block size) on one device, recorded by Warp once and
-    replayed: its parameters (launch bounds, arguments, adjoint arguments) live in one buffer
-    that one ``struct.pack_into`` refills per launch; the compiled kernel reads them in place."""
+    """One kernel (forward or adjoint, one block size) on one device: replayed through
+    :class:`ssgwarp.raster.private_api.Replay` where the target allows it, else launched with ``wp.launch``."""
 
     def __init__(self, kernel, tg: Target, dim: tuple, args: list, adj: list | None, block_dim):
         self.kernel, self.block_dim = kernel, block_dim
-        self.nargs = len(kernel.adj.args)
-        fwd, adjv = self.unflatten(args), (self.unflatten(adj) if adj is not None else None)
-        rec = wp.launch(kernel, dim=dim, inputs=fwd, adj_inputs=adjv or [], adjoint=adj is not None,
-                        device=tg.device, record_tape=False, record_cmd=True, block_dim=block_dim)
-        det = getattr(getattr(rec, "hooks", None), "det_launch_meta", None)
-        self.fast = (FAST and isinstance(rec, _wpc.Launch) and len(dim) == kernel.adj.kernel_dim
-                     and not (det is not None and getattr(det, "needs_deterministic", False)))
-        if not self.fast:
-            return
-        params = rec.params  # [bounds, forward args..., adjoint args...] as Warp packed them
-        blocks = [type(params[0])._fields_, [(f"a{i}", type(p)) for i, p in enumerate(params[1:1 + self.nargs])]]
-        if adj is not None:
-            blocks.append([(f"a{i}", type(p)) for i, p in enumerate(params[1 + self.nargs:])])
-        structs = [type(f"P{j}", (ctypes.Structure,), {"_fields_": f}) for j, f in enumerate(blocks)]
-        fmts = [_layout(st) for st in structs]
-        if any(f is None for f in fmts):
-            self.fast = False
-            return
-        self.rec = rec  # keeps the loaded module alive
-        # one buffer: each block at an 8-byte aligned offset
-        offs, pos = [], 0
-        for st in structs:
-            pos = -(-pos // 16) * 16
-            offs.append(pos)
-            pos += ctypes.sizeof(st)
-        self.buf = ctypes.create_string_buffer(max(pos, 16))
-        base = ctypes.addressof(self.buf)
-        fmt = "="  # (the padding is explicit)
-        cur = 0
-        for off, f, st in zip(offs, fmts, structs):
-            fmt += "x" * (off - cur) + f
-            cur = off + ctypes.sizeof(st)
-        self.pack = struct.Struct(fmt).pack_into
-        self.cpu = tg.cpu
-        self.hook = rec.hooks.backward if adj is not None else rec.hooks.forward
-        self.block = rec.block_dim
-        if self.cpu:
-            self.ptrs = tuple(ctypes.c_void_p(base + o) for o in offs)
-        else:
-            addrs = [base + offs[0]]
-            for st, off in zip(structs[1:], offs[1:]):
-                addrs += [base + off + getattr(st, name).offset for name, _ in st._fields_]
-            self.addr = (ctypes.c_void_p * len(addrs))(*addrs)
-            self.grid_stride = int(rec.grid_stride)
-            self.cluster = int(rec.cluster_dim)
-            self.smem = rec.hooks.backward_smem_bytes if adj is not None else rec.hooks.forward_smem_bytes
-            self.cuda_launch = _wpc.runtime.core.wp_cuda_launch_kernel
-
-    def unflatten(self, flat: list) -> list:
-        """The Warp arguments of a flat argument list (array descriptors spliced in as 12 values,
-        structures of scalars as their fields in order)."""
-        out, i = [], 0
-        for a in self.kernel.adj.args:
-            if wp.types.is_array(a.type):
-                out.append(_array_t(tuple(flat[i:i + 12])))
-                i += 12
-            elif _is_struct_type(a.type):  # a parameter block: its fields in order
-                inst = a.type()
-                for name in a.type.vars:
-                    setattr(inst, name, flat[i])
-                    i += 1
-                out.append(inst)
-            else:
-                out.append(flat[i])
-                i += 1
-        if i != len(flat):
-            raise TypeError(f"internal: {len(flat)} values for the arguments of kernel '{self.kernel.key}'")
-        return out
+        self.fast = P.Replay.record(kernel, tg, dim, args, adj, block_dim) if FAST and tg.fast else None
 
     def run(self, tg: Target, dim: tuple, size: int, args: list, adj: list | None) -> None:
-        if size > INT32_MAX or not self.fast:
-            wp.launch(self.kernel, dim=dim, inputs=self.unflatten(args),
-                      adj_inputs=self.unflatten(adj) if adj is not None else [], adjoint=adj is not None,
-                      device=tg.device, stream=_stream(tg), record_tape=False, block_dim=self.block_dim)
+        if size > INT32_MAX or self.fast is None:
+            wp.launch(self.kernel, dim=dim, inputs=P.warp_args(self.kernel, args, tg.device),
+                      adj_inputs=P.warp_args(self.kernel, adj, tg.device) if adj is not None else [],
+                      adjoint=adj is not None, device=tg.device, stream=_stream(tg), record_tape=False,
+                      block_dim=self.block_dim)
             return
-        if adj is None:
-            self.pack(self.buf, 0, *dim, size, 1, *args)
-        else:
-            self.pack(self.buf, 0, *dim, size, 1, *args, *adj)
-        if self.cpu:
-            if self.block > 1:
-                core = _wpc.runtime.core
-                core.wp_take_cpu_block_error()
-                self.hook(*self.ptrs)
-                err = core.wp_take_cpu_block_error()
-                if err:
-                    raise RuntimeError(f"Error launching kernel '{self.kernel.key}' on the CPU: "
-                                       f"{err.decode('utf-8', errors='replace')}")
-            else:
-                self.hook(*self.ptrs)
-        elif self.cuda_launch(tg.context, self.hook, size, 0, self.block, self.grid_stride, self.cluster, self.smem,
-                              self.addr, tg.stream, None):
-            raise RuntimeError(f"Error launching kernel '{self.kernel.key}' on {tg.device}: "
-                               f"{_wpc.runtime.get_error_string()}")
+        self.fast.run(tg, dim, size, args, adj)
 
 
 _LOCAL = threading.local()  # plans per thread: a plan's parameter buffer is filled, then launched
@@ -453,12 +322,12 @@ def zeros(shape: tuple, dtype: torch.dtype, tg: Target) -> torch.Tensor:
     """``torch.zeros(shape)`` on the target's device: on CUDA an uninitialised tensor cleared by one
     ``cudaMemsetAsync`` on the target's stream (Warp's native call: one call instead of torch's fill
     kernel and its dispatch, what a backward's gradient buffer costs on every training step)."""
-    if tg.cpu or not FAST or not tg.primary:
+    if tg.cpu or not (FAST and tg.fast) or not tg.primary:
         return torch.zeros(shape, dtype=dtype, device=tg.device_torch)
     t = torch.empty(shape, dtype=dtype, device=tg.device_torch)
     n = t.numel() * _itemsize(t)
-    if n and not _wpc.runtime.core.wp_memset_device(tg.context, t.data_ptr(), 0, n, tg.stream):
-        raise RuntimeError(f"ssgwarp: clearing a buffer on {tg.device} failed: {_wpc.runtime.get_error_string()}")
+    if n:
+        P.memset(tg, t.data_ptr(), n)
     return t
 
 
@@ -479,13 +348,12 @@ def start_read_int64(t: torch.Tensor, index: int, tg: Target):
     once; hand what it returns to :func:`finish_read_int64` (one read at a time per thread)."""
     if tg.cpu:
         return ctypes.c_int64.from_address(t.data_ptr() + 8 * index).value
-    if not FAST or not tg.primary:
+    if not (FAST and tg.fast) or not tg.primary:
         return t[index:index + 1].clone()  # (the value as the stream has it now; read in the second half)
     host = getattr(_PINNED, "buf", None)
     if host is None:
         host = _PINNED.buf = torch.empty(1, dtype=torch.int64, pin_memory=True)
-    if not _wpc.runtime.core.wp_memcpy_d2h(tg.context, host.data_ptr(), t.data_ptr() + 8 * index, 8, tg.stream):
-        raise RuntimeError(f"ssgwarp: reading a count back from {tg.device} failed: {_wpc.runtime.get_error_string()}")
+    P.copy_to_host(tg, host.data_ptr(), t.data_ptr() + 8 * index, 8)
     return host
 
 
@@ -493,10 +361,9 @@ def finish_read_int64(pending, tg: Target) -> int:
     """The value :func:`start_read_int64` queued, once it has arrived (waits for the target's stream)."""
     if tg.cpu:
         return pending
-    if not FAST or not tg.primary:
+    if not (FAST and tg.fast) or not tg.primary:
         return int(pending.item())
-    if not _wpc.runtime.core.wp_cuda_stream_synchronize(tg.stream):
-        raise RuntimeError(f"ssgwarp: waiting for {tg.device} failed: {_wpc.runtime.get_error_string()}")
+    P.synchronize(tg)
     return ctypes.c_int64.from_address(pending.data_ptr()).value
 
 
@@ -506,20 +373,7 @@ def sort_pairs(keys: torch.Tensor, values: torch.Tensor, count: int, end_bit: in
     ``count`` are scratch), on the target's stream."""
     if count == 0:
         return
-    if not FAST or not tg.primary:
-        ka = wp.from_torch(keys, dtype=wp.int64)
-        va = wp.from_torch(values, dtype=wp.int32)
-        with wp.ScopedDevice(tg.device), wp.ScopedStream(_stream(tg)):
-            wp.utils.radix_sort_pairs(ka, va, count, 0, end_bit)
+    if not (FAST and tg.fast) or not tg.primary:
+        P.sort_pairs_public(keys, values, count, end_bit, tg, _stream(tg))
         return
-    core = _wpc.runtime.core
-    if tg.cpu:
-        core.wp_radix_sort_pairs_int64_host(keys.data_ptr(), values.data_ptr(), count, 0, end_bit, 4)
-        return
-    # Warp's device sort runs on the device's current Warp stream: point it at torch's for the call
-    saved = tg.device.stream.cuda_stream
-    core.wp_cuda_context_set_stream(tg.context, tg.stream, 0)
-    try:
-        core.wp_radix_sort_pairs_int64_device(keys.data_ptr(), values.data_ptr(), count, 0, end_bit, 4)
-    finally:
-        core.wp_cuda_context_set_stream(tg.context, saved, 0)
+    P.sort_pairs_int64(keys, values, count, end_bit, tg)

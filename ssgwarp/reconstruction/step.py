@@ -9,6 +9,7 @@ from typing import Optional
 import torch
 
 from ..core.optim import Adam
+from ..raster import private_api as P
 
 
 class ViewCache:
@@ -79,53 +80,17 @@ class StepInfo(dict):
 
 def adam_step(opt: torch.optim.Optimizer) -> None:
     """``opt.step()`` then ``opt.zero_grad(set_to_none=True)``. A fused torch Adam whose parameters all
-    have their state (every step but the first) is stepped here without the per-group Python of
-    ``Adam.step`` (about 1 ms of host time per step for the scene's six groups on the 2-core machine):
-    the same ``torch._fused_adam_`` call per group, with the same arguments, so the same numbers to the
-    bit, and the step counts of all groups advanced (and, with ``found_inf`` set, taken back) in one
-    call each instead of one per group. Anything else (hooks, another Adam variant, a first step)
-    goes through ``opt.step()``. The optimizer and its state are torch's either way (checkpoints,
-    densification's moment surgery)."""
-    groups = _fused_groups(opt)
+    have their state (every step but the first) is stepped without the per-group Python of ``Adam.step``
+    (about 1 ms of host time per step for the scene's six groups on the 2-core machine): the same
+    ``torch._fused_adam_`` call per group, with the same arguments, so the same numbers to the bit
+    (``ssgwarp.raster.private_api.fused_adam_step``, self-tested against ``Adam.step``). Anything else (hooks,
+    another Adam variant, a first step) goes through ``opt.step()``. The optimizer and its state are torch's
+    either way (checkpoints, densification's moment surgery)."""
+    groups = P.fused_adam_groups(opt, (torch.optim.Adam, Adam))
     if groups is None:
         opt.step()
     elif groups:
-        found_inf = getattr(opt, "found_inf", None)
-        steps = [s for g in groups for s in g[5]]
-        torch._foreach_add_(steps, 1)
-        for group, params, grads, exp_avgs, exp_avg_sqs, group_steps in groups:
-            beta1, beta2 = group["betas"]
-            torch._fused_adam_(params, grads, exp_avgs, exp_avg_sqs, [], group_steps, amsgrad=False,
-                               lr=group["lr"], beta1=beta1, beta2=beta2, weight_decay=group["weight_decay"],
-                               eps=group["eps"], maximize=False, grad_scale=None, found_inf=found_inf)
-        if found_inf is not None:
-            torch._foreach_sub_(steps, [found_inf] * len(steps))
+        P.fused_adam_step(groups, getattr(opt, "found_inf", None))
     for group in opt.param_groups:
         for p in group["params"]:
             p.grad = None
-
-
-def _fused_groups(opt) -> Optional[list]:
-    """``[(group, params, grads, exp_avgs, exp_avg_sqs, steps), ...]`` of the groups with gradients, or
-    None where :func:`adam_step` leaves the step to torch."""
-    from torch.optim import optimizer as torch_optimizer
-
-    if (type(opt) not in (torch.optim.Adam, Adam) or getattr(opt, "grad_scale", None) is not None
-            or opt._optimizer_step_pre_hooks or opt._optimizer_step_post_hooks
-            or torch_optimizer._global_optimizer_pre_hooks or torch_optimizer._global_optimizer_post_hooks):
-        return None
-    out = []
-    for group in opt.param_groups:
-        if (not group["fused"] or group["amsgrad"] or group["maximize"] or group["differentiable"]
-                or group["decoupled_weight_decay"] or isinstance(group["lr"], torch.Tensor)
-                or isinstance(group["betas"][0], torch.Tensor)):
-            return None
-        rows = [p for p in group["params"] if p.grad is not None]
-        if not rows:
-            continue
-        states = [opt.state.get(p) for p in rows]
-        if not all(states) or len({(p.device, p.dtype) for p in rows}) > 1:
-            return None
-        out.append((group, rows, [p.grad for p in rows], [s["exp_avg"] for s in states],
-                    [s["exp_avg_sq"] for s in states], [s["step"] for s in states]))
-    return out

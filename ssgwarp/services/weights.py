@@ -54,7 +54,7 @@ from .weight_specs import (  # noqa: F401 (re-exported: part of this module's AP
 
 __all__ = ["WeightSpec", "SPECS", "GROUPS", "DownloadFailed", "find", "locate", "require", "obtain", "fetch",
            "message", "notice", "load_error", "offline_reason", "offline", "verbose", "probe", "hub_cache",
-           "torch_checkpoints", "unshadow_kernels"]
+           "torch_checkpoints", "check_kernels_package"]
 
 
 class DownloadFailed(WeightsNotFound):
@@ -70,28 +70,26 @@ _SAID: set = set()                           # models whose absence this command
 
 
 # -- importing the libraries that own the weights ------------------------------------------------
-def unshadow_kernels() -> None:
-    """Make ``import kernels`` give the installed Hugging Face package, not this project's ``kernels/`` folder.
+def check_kernels_package() -> None:
+    """Refuse, in one line, to go on where ``import kernels`` would load this project's ``kernels/`` folder.
 
-    transformers 5 requires the PyPI package ``kernels``, and diffusers imports it where it is installed. With a
-    source checkout's root on ``sys.path`` (``python -m ...`` or pytest run there) the checkout's ``kernels/``
-    (installed as ``ssgwarp.kernels``) is found first and those imports fail. Call before importing diffusers or
-    transformers: it imports the installed package once with the checkout's root left out of ``sys.path``; a
-    no-op where ``kernels`` is already imported, resolves elsewhere, or is not installed."""
-    if "kernels" in sys.modules:
+    transformers 5 requires the registry package ``kernels`` (and diffusers imports it where it is installed).
+    With a source checkout's root on ``sys.path`` (``python -m ssgwarp ...`` or a script run from there) the
+    checkout's ``kernels/`` (installed as ``ssgwarp.kernels``) would be found first and those imports fail deep
+    inside transformers. Nothing here changes ``sys.path``: the error names the way out. Call before importing
+    diffusers or transformers."""
+    found = sys.modules.get("kernels")
+    origin = getattr(found, "__file__", None) if found is not None else None
+    if found is None:
+        spec = importlib.util.find_spec("kernels")
+        origin = None if spec is None else spec.origin
+    if origin is None:
         return
     ours = Path(importlib.util.find_spec("ssgwarp.kernels").origin).resolve().parent
-    spec = importlib.util.find_spec("kernels")
-    if spec is None or spec.origin is None or Path(spec.origin).resolve().parent != ours:
-        return
-    saved = list(sys.path)
-    sys.path[:] = [e for e in saved if Path(e or ".").resolve() != ours.parent]
-    try:
-        importlib.import_module("kernels")
-    except ImportError:
-        sys.modules.pop("kernels", None)
-    finally:
-        sys.path[:] = saved
+    if Path(origin).resolve().parent == ours:
+        raise InputError(f"the source checkout's folder {ours} hides the `kernels` package that transformers "
+                         f"imports (the checkout's root {ours.parent} is on sys.path): run the installed `ssgwarp` "
+                         "command, or run python from another folder")
 
 
 # -- where the ecosystem keeps its files -----------------------------------------------------------

@@ -166,7 +166,7 @@ def load_stage1(cfg: Stage1Config, device) -> Stage1Models:
     absent, and :class:`~ssgwarp.errors.InputError` naming the file and how to
     fetch it again when one is truncated or corrupt.
     """
-    W.unshadow_kernels()
+    W.check_kernels_package()
     from diffusers import AutoencoderKL, ControlNetModel, DDIMScheduler, UNet2DConditionModel
     from transformers import CLIPTextModel, CLIPTokenizer, CLIPVisionModelWithProjection
 
@@ -206,7 +206,7 @@ def assemble_stage1(components: Mapping[str, Any], device, dtype: torch.dtype = 
 
     The scheduler is converted to DDIM (same betas). Modules go to ``device``/``dtype`` in eval mode.
     """
-    W.unshadow_kernels()
+    W.check_kernels_package()
     from diffusers import DDIMScheduler
 
     c = dict(components)
