@@ -131,3 +131,13 @@ def test_the_fused_adam_step_falls_back_to_adam_step_when_it_differs(monkeypatch
     p.grad = torch.ones(4)
     assert P.fused_adam_groups(opt_p, (torch.optim.Adam, Adam)) is None
     assert torch.equal(p, q) and not torch.equal(p, torch.ones(4))
+
+
+def test_the_self_tests_hold_when_first_used_inside_no_grad_or_inference_mode(monkeypatch):
+    # a render under torch.no_grad() (evaluate, render) can be the first use: the checks must still pass
+    for ctx in (torch.no_grad, torch.inference_mode):
+        monkeypatch.setattr(P, "_APPLY_OK", [])
+        monkeypatch.setattr(P, "_ADAM_OK", {})
+        with ctx():
+            assert P.function_apply(P._Probe) is not None
+            assert P._adam_works("cpu", torch.float32)

@@ -393,6 +393,12 @@ class _Probe(torch.autograd.Function):
 
 
 def _apply_self_test() -> str | None:
+    # (its first use may come inside torch.no_grad() or inference mode: the check itself needs autograd)
+    with torch.inference_mode(False), torch.enable_grad():
+        return _apply_compare()
+
+
+def _apply_compare() -> str | None:
     outs = []
     for entry in (_Probe.apply, _BASE_APPLY.__get__(None, _Probe)):
         a = torch.tensor([1.5, -2.0], requires_grad=True)
@@ -475,28 +481,33 @@ def _adam_works(device_type: str, dtype: torch.dtype) -> bool:
     ok = _ADAM_OK.get(key)
     if ok is None:
         try:
-            dev = torch.device(device_type)
-            g = torch.Generator().manual_seed(3)
-            start = torch.randn(5, generator=g, dtype=dtype).to(dev)
-            grads = [torch.randn(5, generator=g, dtype=dtype).to(dev) for _ in range(3)]
-            a, b = torch.nn.Parameter(start.clone()), torch.nn.Parameter(start.clone())
-            oa = torch.optim.Adam([a], lr=0.1, betas=(0.9, 0.99), eps=1e-15, weight_decay=0.01, fused=True)
-            ob = torch.optim.Adam([b], lr=0.1, betas=(0.9, 0.99), eps=1e-15, weight_decay=0.01, fused=True)
-            for i, gr in enumerate(grads):
-                a.grad, b.grad = gr.clone(), gr.clone()
-                oa.step()
-                if i == 0:
-                    ob.step()   # (the state made)
-                else:
-                    s = ob.state[b]
-                    fused_adam_step([(ob.param_groups[0], [b], [b.grad], [s["exp_avg"]], [s["exp_avg_sq"]],
-                                      [s["step"]])], None)
-            same = torch.equal(a, b) and all(torch.equal(oa.state[a][k], ob.state[b][k])
-                                             for k in ("exp_avg", "exp_avg_sq", "step"))
-            why = None if same else "torch._fused_adam_ differs from Adam.step"
+            ok = _adam_compare(device_type, dtype)
+            why = None if ok else "torch._fused_adam_ differs from Adam.step"
         except Exception as e:
             why = f"{type(e).__name__}: {e}"
         ok = _ADAM_OK[key] = why is None
         if not ok:
             _warn(f"the fused Adam step on {device_type}", why)
     return ok
+
+
+def _adam_compare(device_type: str, dtype: torch.dtype) -> bool:
+    with torch.inference_mode(False), torch.no_grad():
+        dev = torch.device(device_type)
+        g = torch.Generator().manual_seed(3)
+        start = torch.randn(5, generator=g, dtype=dtype).to(dev)
+        grads = [torch.randn(5, generator=g, dtype=dtype).to(dev) for _ in range(3)]
+        a, b = torch.nn.Parameter(start.clone()), torch.nn.Parameter(start.clone())
+        oa = torch.optim.Adam([a], lr=0.1, betas=(0.9, 0.99), eps=1e-15, weight_decay=0.01, fused=True)
+        ob = torch.optim.Adam([b], lr=0.1, betas=(0.9, 0.99), eps=1e-15, weight_decay=0.01, fused=True)
+        for i, gr in enumerate(grads):
+            a.grad, b.grad = gr.clone(), gr.clone()
+            oa.step()
+            if i == 0:
+                ob.step()   # (the state made)
+            else:
+                s = ob.state[b]
+                fused_adam_step([(ob.param_groups[0], [b], [b.grad], [s["exp_avg"]], [s["exp_avg_sq"]],
+                                  [s["step"]])], None)
+        return torch.equal(a, b) and all(torch.equal(oa.state[a][k], ob.state[b][k])
+                                         for k in ("exp_avg", "exp_avg_sq", "step"))
