@@ -25,7 +25,7 @@ def is_splat_file(path: str | Path) -> bool:
     try:
         splat_formats.detect_format(path)
     except (SsgwarpError, OSError, ValueError):
-        return splat_formats.format_for_path(path) is not None
+        return False
     return True
 
 
