@@ -72,7 +72,7 @@ def test_fit_finds_up_centre_and_extent_despite_outliers(demo):
     fit = fit_splats(_moved(noisy, R, t))
     true_up = R @ torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
     assert float(torch.from_numpy(fit.up) @ true_up) > math.cos(math.radians(6)), fit.record()
-    assert "thinnest axis" in fit.up_rule and "stand out" in fit.up_rule
+    assert "plane holding" in fit.up_rule and "stand out" in fit.up_rule
     clean = fit_splats(_moved(demo, R, t))
     assert np.linalg.norm(fit.centre - clean.centre) < 0.1           # the floaters do not pull the centre
     assert np.allclose(fit.half_extent[:2], clean.half_extent[:2], rtol=0.1)
@@ -86,6 +86,18 @@ def test_fit_finds_up_centre_and_extent_despite_outliers(demo):
 def test_up_upside_down_scene_and_the_file_convention(demo):
     flipped = fit_splats(_moved(demo, _rotation((1.0, 0.0, 0.0), 180.0), (0, 0, 0)))
     assert np.allclose(flipped.up, [0, 0, -1])                       # the objects still stand "up"
+    # the same scene in the OpenCV / COLMAP convention (its up along -y): the ground faces y, its -y side is up
+    cv = fit_splats(_moved(demo, _rotation((1.0, 0.0, 0.0), 90.0), (0, 0, 0)))
+    assert np.allclose(cv.up, [0, -1, 0]) and "-y side" in cv.up_rule
+    # a wall beside the ground holding fewer splats does not change which plane is the ground
+    wall = _moved(demo, _rotation((0.0, 1.0, 0.0), 90.0), (2.5, 0.0, 2.2))   # standing on the ground
+    keep = wall.means[:, 0] > 2.45                                    # the turned ground disc only: a wall at x=2.5
+    w = GaussianScene(wall.means[keep][::2], wall.log_scales[keep][::2], wall.quats[keep][::2],
+                      wall.logit_opacities[keep][::2], wall.sh_dc[keep][::2])
+    both = GaussianScene(*(torch.cat([a, b]) for a, b in zip(
+        (demo.means, demo.log_scales, demo.quats, demo.logit_opacities, demo.sh_dc),
+        (w.means, w.log_scales, w.quats, w.logit_opacities, w.sh_dc))))
+    assert np.allclose(fit_splats(both).up, [0, 0, 1])
     # a ball (no layer): the file's -y, the OpenCV / COLMAP convention
     g = torch.Generator().manual_seed(0)
     ball = GaussianScene(torch.randn(500, 3, generator=g), torch.full((500, 3), -3.0),
@@ -125,7 +137,7 @@ def test_orbit_cameras_look_at_the_splats_and_fill_the_frame(demo):
         reach = ((uv - half).abs() / half).max(dim=1).values          # 1: at the frame's edge
         filled.append(float(torch.quantile(reach, 0.995)))
     # the splats fill the frame: the farthest of them reach the 0.9 of the frame the orbit leaves them
-    assert max(filled) == pytest.approx(0.9, abs=0.03) and min(filled) > 0.6, filled
+    assert max(filled) == pytest.approx(0.9, abs=0.05) and min(filled) > 0.5, filled
     # up is up in every view: the objects above the ground project above its centre
     up_pt = torch.from_numpy(fit.centre + fit.up)[None]
     for i in range(len(cams)):

@@ -13,12 +13,14 @@
 * :func:`write_orbit_run` -- a reconstruction-run folder (``scene.ply``, ``cameras.json``, ``data.json``
   with the fit's record under ``orbit``) that every later stage takes as it takes a reconstruction.
 
-Up: the axis along which the splats are thinnest when they lie in a layer (a ground-plane scene: the
-smallest principal variance below :data:`FLAT_RATIO` x the middle one), pointing to the side the splats
-stand out to (the third moment along it: things stand on the ground), or, when that is unclear, to the
-file's ``-y`` (the OpenCV / COLMAP convention of 3DGS files); a scene without such a layer is taken upright
-in that convention (``-y`` up). An up within :data:`SNAP_DEG` degrees of one of the file's axes is taken to be
-that axis (files are usually aligned to a ground or gravity axis). ``up`` overrides it (an axis like ``+z`` or ``x,y,z``).
+Up: the normal of the ground (or table) when the splats have one: of 256 planes through random triples of
+kept centres, the one holding the largest opacity-weighted share of them within :data:`PLANE_TOL` x their largest
+principal deviation, when that share is at least :data:`PLANE_SHARE` (else, when the smallest principal variance is
+below :data:`FLAT_RATIO` x the middle one, that thinnest axis). Its side: when the normal is within 60 degrees of the
+file's y axis, the file's ``-y`` side (the OpenCV / COLMAP convention of 3DGS files: y down); otherwise the side the
+splats stand out to (the third moment along it: things stand on the ground). Without a ground or layer, up is the
+file's ``-y``. An up within :data:`SNAP_DEG` degrees of one of the file's axes is taken to be that axis. ``up``
+overrides it all (an axis like ``+z`` or ``x,y,z``).
 """
 from __future__ import annotations
 
@@ -36,7 +38,12 @@ from ..raster.scene import GaussianScene
 
 __all__ = ["SplatFit", "fit_splats", "orbit_cameras", "parse_up", "write_orbit_run", "FLAT_RATIO"]
 
-FLAT_RATIO = 0.3        # smallest / middle principal variance below which the splats form a layer (ground)
+PLANE_TOL = 0.02        # a splat lies on a plane within this x the splats' largest principal deviation
+PLANE_SHARE = 0.12      # a plane holding this opacity-weighted share of the splats is the ground (or a table)
+PLANE_TRIES = 256       # random triples of splats tried as planes
+FLAT_RATIO = 0.3        # else: smallest / middle principal variance below which the splats form a layer
+FILE_UP_COS = 0.5       # a layer whose normal is this close to the file's y axis: up is on its -y side; else up
+                        # is the side the splats stand out to (things stand on the ground)
 MIN_OPACITY = 0.05      # splats less opaque than this are left out of the fit
 KEEP_QUANTILE = 0.95    # inliers: distance to the median centre at most this weighted quantile ...
 KEEP_MEDIANS = 3.0      # ... and at most this many times the weighted median distance
@@ -106,23 +113,53 @@ class SplatFit:
                 "box": f"weighted percentiles {BOX_QUANTILES[0]:g}-{BOX_QUANTILES[1]:g} along the axes"}
 
 
+def _dominant_plane(x: np.ndarray, w: np.ndarray, scale: float, seed: int) -> Optional[tuple[np.ndarray, float]]:
+    """The ground (or table) plane of the splat centres ``x``: of :data:`PLANE_TRIES` planes through random triples,
+    the one holding the largest opacity-weighted share of the centres within :data:`PLANE_TOL` x ``scale``, when
+    that share is at least :data:`PLANE_SHARE`, refined by a weighted principal-axis fit of its points:
+    ``(unit normal, share)``, or None."""
+    if len(x) < 20 or scale <= 0:
+        return None
+    rng = np.random.default_rng(seed)
+    if len(x) > 20_000:
+        pick = rng.choice(len(x), 20_000, replace=False)
+        x, w = x[pick], w[pick]
+    tol, total = PLANE_TOL * scale, float(w.sum())
+    tri = x[rng.choice(len(x), (PLANE_TRIES, 3), p=w / total)]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    ok = np.linalg.norm(n, axis=1) > 1e-12 * scale ** 2
+    if not ok.any():
+        return None
+    n, a = n[ok] / np.linalg.norm(n[ok], axis=1, keepdims=True), tri[ok, 0]
+    shares = ((np.abs((x[None] - a[:, None]) @ n[..., None])[..., 0] < tol) * w).sum(axis=1) / total
+    best = int(np.argmax(shares))
+    if shares[best] < PLANE_SHARE:
+        return None
+    on = np.abs((x - a[best]) @ n[best]) < tol
+    c = np.average(x[on], axis=0, weights=w[on])
+    normal = np.linalg.eigh(np.cov((x[on] - c).T, aweights=w[on], bias=True))[1][:, 0]
+    return normal, float(w[np.abs((x - c) @ normal) < tol].sum() / total)
+
+
 def _choose_up(x: np.ndarray, w: np.ndarray, vecs: np.ndarray, lam: np.ndarray,
-               up: Optional[np.ndarray]) -> tuple[np.ndarray, str]:
+               up: Optional[np.ndarray], seed: int) -> tuple[np.ndarray, str]:
     if up is not None:
         return up, "given (--up)"
-    if lam[1] > 0 and lam[0] / lam[1] < FLAT_RATIO:
-        v = vecs[:, 0]
-        h = (x - np.average(x, axis=0, weights=w)) @ v
-        sd = math.sqrt(max(float(np.average(h ** 2, weights=w)), 1e-300))
-        skew = float(np.average((h / sd) ** 3, weights=w))
-        if abs(skew) > 0.2:
-            return (v if skew > 0 else -v), (f"the splats' thinnest axis (a layer: variance ratio "
-                                             f"{lam[0] / lam[1]:.2f}), towards the side they stand out to "
-                                             f"(skewness {abs(skew):.2f})")
-        s = 1.0 if float(v @ FILE_UP) >= 0 else -1.0
-        return s * v, (f"the splats' thinnest axis (a layer: variance ratio {lam[0] / lam[1]:.2f}), on the "
-                       f"file's -y side (no clear side: skewness {abs(skew):.2f})")
-    return FILE_UP.copy(), "the file's -y (OpenCV / COLMAP convention; the splats form no layer)"
+    plane = _dominant_plane(x, w, math.sqrt(float(lam[-1])), seed)
+    if plane is not None:
+        v, what = plane[0], f"the normal of the plane holding {plane[1]:.0%} of the splats (a ground or table)"
+    elif lam[1] > 0 and lam[0] / lam[1] < FLAT_RATIO:
+        v, what = vecs[:, 0], f"the splats' thinnest axis (a layer: variance ratio {lam[0] / lam[1]:.2f})"
+    else:
+        return FILE_UP.copy(), "the file's -y (OpenCV / COLMAP convention; the splats form no layer)"
+    h = (x - np.average(x, axis=0, weights=w)) @ v
+    sd = math.sqrt(max(float(np.average(h ** 2, weights=w)), 1e-300))
+    skew = float(np.average((h / sd) ** 3, weights=w))
+    towards = float(v @ FILE_UP)
+    if abs(towards) < FILE_UP_COS and skew != 0:
+        return (v if skew > 0 else -v), (f"{what}, towards the side the splats stand out to (skewness {abs(skew):.2f}; "
+                                         f"the layer does not face the file's y axis)")
+    return (v if towards >= 0 else -v), f"{what}, on the file's -y side (OpenCV / COLMAP convention)"
 
 
 def fit_splats(scene: GaussianScene, *, up: Optional[np.ndarray] = None, max_points: int = 200_000,
@@ -150,7 +187,7 @@ def fit_splats(scene: GaussianScene, *, up: Optional[np.ndarray] = None, max_poi
     cov = np.cov((x - mean).T, aweights=w, bias=True) if len(x) > 1 else np.zeros((3, 3))
     lam, vecs = np.linalg.eigh(np.atleast_2d(cov))
     lam = np.maximum(lam, 0.0)
-    up_v, rule = _choose_up(x, w, vecs, lam, up)
+    up_v, rule = _choose_up(x, w, vecs, lam, up, seed)
     axis = int(np.argmax(np.abs(up_v)))
     if up is None and abs(up_v[axis]) > math.cos(math.radians(SNAP_DEG)) and abs(up_v[axis]) < 1:
         snapped = np.zeros(3)
