@@ -242,6 +242,11 @@ def test_import_a_splat_file_without_its_capture(files, demo, tmp_path, capsys):
     assert len(read_ply(run / "scene.ply")) == len(demo)
     assert main(["render", str(run), "--out", str(tmp_path / "r"), "--quiet", *FAST]) == 0
     assert len(list((tmp_path / "r").glob("orbit_*.png"))) == 6
+    # a run folder's smooth path as a video too
+    assert main(["render", str(run), "--out", str(tmp_path / "p"), "--path", "3", "--video", "loop.gif", "--quiet",
+                 *FAST]) == 0
+    with Image.open(tmp_path / "p" / "loop.gif") as gif:
+        assert gif.n_frames == 3
 
 
 def test_version(capsys):

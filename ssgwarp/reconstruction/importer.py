@@ -12,7 +12,9 @@
 * ``nerfstudio``: the PLY of ``ns-export gaussian-splat`` with ``--data`` the dataset folder
   (``transforms.json``, or the COLMAP folder of nerfstudio's colmap dataparser) and the run's
   ``dataparser_transforms.json`` (``--dataparser-transforms``, or found beside the PLY);
-* ``ply``: any INRIA-layout PLY with ``--data`` any capture ssgwarp loads (COLMAP, LLFF, transforms).
+* ``ply``: any splat file (INRIA-layout PLY, compressed PLY, SPZ, ``.splat``:
+  :mod:`ssgwarp.capture.splat_input`) with ``--data`` any capture ssgwarp loads (COLMAP, LLFF, transforms);
+  without ``--data``, a run with cameras made around its splats (:mod:`ssgwarp.capture.orbit`; no PSNR).
 
 The splats are moved into the capture's frame (:mod:`ssgwarp.capture.splats`): each layout gives
 the candidate frames it may be in (graphdeco: the capture's own, or the similarity that aligns its
