@@ -51,6 +51,17 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
 }
 
 
+def version() -> str:
+    """The installed package's version (its metadata: pyproject.toml's ``version``)."""
+    from importlib.metadata import PackageNotFoundError, version as _version
+
+    try:
+        return _version("ssgwarp")
+    except PackageNotFoundError:       # (a source tree on sys.path without an install)
+        from . import __version__
+        return __version__
+
+
 def add_common(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("common")
     g.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (GPU when there is one)")
@@ -135,6 +146,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
         epilog=f"examples:\n{examples}\n\n'ssgwarp COMMAND --help' shows each command's options.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    parser.add_argument("--version", "-V", action="version", version=f"ssgwarp {version()}",
+                        help="print the installed version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     subs = {}
     for name, (mod, help_, example) in COMMANDS.items():
@@ -166,6 +179,9 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
 
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv or os.environ.get("SSGWARP_DEBUG") == "1"
+    if argv[:1] in (["--version"], ["-V"]):
+        print(f"ssgwarp {version()}")
+        return 0
     try:
         parser, subs = build_parser()
         name = next((a for a in argv if not a.startswith("-")), None)

@@ -369,15 +369,32 @@ def test_bare_ply_aligned_and_mismatched(world, tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and "do not match the frame" in err, err
         assert not (tmp_path / f"r{i}").exists()
-    # no capture, an existing run, a missing source
-    assert main(["import", str(ply), "--out", str(tmp_path / "r3"), *FAST]) == 2
-    assert "--data" in capsys.readouterr().err
+    # no capture: a run with cameras made around the splats (tests/test_bare_splats.py), no PSNR
+    assert main(["import", str(ply), "--out", str(tmp_path / "r3"), "--views", "3", "--width", "24", *FAST]) == 0
+    assert json.loads((tmp_path / "r3" / "data.json").read_text())["format"] == "orbit"
+    assert json.loads((tmp_path / "r3" / "metrics.json").read_text())["psnr"] is None
+    # an existing run, a missing source
     assert main(["import", str(ply), "--data", str(cap), "--out", str(tmp_path / "run"), *FAST]) == 2
     assert "--force" in capsys.readouterr().err
     (tmp_path / "run" / "scene.ply").write_bytes(b"stale")
     assert main(["import", str(ply), "--data", str(cap), "--out", str(tmp_path / "run"), "--force", *FAST]) == 0
     _assert_renders(tmp_path / "run", world)
     assert main(["import", str(tmp_path / "nope.ply"), "--data", str(cap), "--out", str(tmp_path / "r4"), *FAST]) == 2
+
+
+@pytest.mark.parametrize("fmt", ["compressed-ply", "spz"])
+def test_other_splat_formats_import_against_their_capture(world, tmp_path, fmt):
+    """A compressed PLY or an SPZ of the scene imports with --data as its PLY does (to their quantisation)."""
+    from ssgwarp.formats.registry import write_scene
+
+    cap = tmp_path / "cap"
+    P.write_transforms_dataset(cap, world["white"], world["cams"])
+    f = write_scene(tmp_path / ("splats" + {"compressed-ply": ".compressed.ply", "spz": ".spz"}[fmt]),
+                    world["scene"], fmt)
+    assert main(["import", str(f), "--data", str(cap), "--out", str(tmp_path / "run"), *FAST]) == 0
+    m = _assert_renders(tmp_path / "run", world, tol=0.25)
+    assert m["imported"]["tool"] == "ply" and m["imported"]["frame"] == "the capture's own frame"
+    assert m["psnr"] > 30 and m["num_gaussians"] == len(world["scene"])
 
 
 def test_imported_run_works_with_group_and_render(world, tmp_path, capsys):

@@ -450,7 +450,7 @@ def screenshot(scene: GaussianScene, path: str | Path | None = None, *, render_v
 # -- CLI ---------------------------------------------------------------------------
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", type=Path,
-                   help="a Gaussian-splat PLY (INRIA 3DGS layout) or a run directory with scene.ply: a "
+                   help="a splat file (3DGS PLY, compressed PLY, SPZ, .splat) or a run directory with scene.ply: a "
                         "reconstruction or a stylize output (its source's cameras and groups, its key views)")
     p.add_argument("--color", "--colour", dest="color", choices=COLOR_MODES, default=None,
                    help="colouring: SH-DC colour, group label or opacity (default: group when the scene has "

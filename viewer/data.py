@@ -17,7 +17,7 @@ from ssgwarp.core.cameras import Cameras
 from ssgwarp.errors import InputError, SsgwarpError
 from ssgwarp.core.fileio import read_json
 from ssgwarp.grouping.model import gaussian_groups, load_groups
-from ssgwarp.formats.ply import read_ply
+from ssgwarp.formats.registry import is_splat_file, read_splat_file
 from ssgwarp.raster.scene import GaussianScene
 from ssgwarp.services.runs import Run
 
@@ -59,10 +59,11 @@ def resolve_ply(path: str | Path) -> Path:
 
 
 def load_scene(path: str | Path) -> GaussianScene:
-    """Read a Gaussian scene PLY (INRIA 3DGS layout, ``obj_dc_*`` identities when present).
+    """Read a Gaussian scene: a PLY (INRIA 3DGS layout, ``obj_dc_*`` identities when present) or any other splat
+    file (compressed PLY, SPZ, ``.splat``: :func:`ssgwarp.formats.registry.read_splat_file`).
 
     Raises :class:`InputError` with the file name for anything that is not a
-    readable Gaussian PLY (missing, empty, wrong magic, truncated, missing fields).
+    readable splat file (missing, empty, wrong magic, truncated, missing fields).
     """
     path = resolve_ply(path)
     try:
@@ -72,11 +73,13 @@ def load_scene(path: str | Path) -> GaussianScene:
         raise InputError(f"{path}: cannot open ({e.strerror})") from None
     if not head:
         raise InputError(f"{path}: file is empty (expected a Gaussian-splat PLY)")
+    if head[:3] != b"ply" and is_splat_file(path):
+        return read_splat_file(path)
     if head[:3] != b"ply":
-        raise InputError(f"{path}: not a PLY file (it does not start with the 'ply' magic line); "
-                         "pass the scene.ply written by `ssgwarp reconstruct`")
+        raise InputError(f"{path}: not a PLY file (it does not start with the 'ply' magic line) nor another splat "
+                         "file (compressed PLY, SPZ, .splat); pass the scene.ply written by `ssgwarp reconstruct`")
     try:
-        return read_ply(path)
+        return read_splat_file(path)
     except SsgwarpError:
         raise
     except (ValueError, KeyError, IndexError, TypeError, EOFError, OSError, RuntimeError) as e:

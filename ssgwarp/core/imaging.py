@@ -173,3 +173,59 @@ def contact_sheet(path: Path, originals: torch.Tensor, stylized: torch.Tensor, s
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
     return path
+
+
+VIDEO_FPS = 15      # frames per second of the videos (stylize's path.gif, render --video)
+VIDEO_SIDE = 512    # their longer side at most (a preview: the PNG frames are full size)
+VIDEO_SUFFIXES = (".gif", ".mp4")
+
+
+def mp4_writer_missing() -> str | None:
+    """None when an MP4 can be written here (``imageio`` with ``imageio-ffmpeg``), else the line saying what
+    to install."""
+    try:
+        import imageio.v2  # noqa: F401
+        import imageio_ffmpeg  # noqa: F401
+    except ImportError:
+        return "MP4 needs the imageio and imageio-ffmpeg packages (pip install imageio imageio-ffmpeg); .gif needs nothing"
+    return None
+
+
+def write_video(path: Path, frames: list, fps: int = VIDEO_FPS, max_side: int = VIDEO_SIDE) -> Path:
+    """A looping video of ``frames`` (``[H, W, 3]`` uint8 arrays) at ``fps`` frames per second, shrunk to at most
+    ``max_side`` pixels on the longer side, written atomically: an animated GIF with Pillow (matplotlib's own
+    dependency: no video codec needed), or, for a ``.mp4`` name, H.264 through ``imageio-ffmpeg`` when it is
+    installed (sides rounded down to even). Returns ``path``."""
+    from PIL import Image
+
+    path = Path(path)
+    kind = path.suffix.lower()
+    if kind not in VIDEO_SUFFIXES:
+        raise InputError(f"{path}: a video is a .gif or .mp4 file")
+    if kind == ".mp4" and mp4_writer_missing():
+        raise InputError(f"{path}: {mp4_writer_missing()}")
+    if not frames:
+        raise InputError("path video: no frames")
+    h, w = frames[0].shape[:2]
+    scale = min(1.0, max_side / max(h, w))
+    size = (max(1, round(w * scale)), max(1, round(h * scale)))
+    if kind == ".mp4":
+        size = (max(2, size[0] - size[0] % 2), max(2, size[1] - size[1] % 2))
+
+    def frame(f):
+        im = Image.fromarray(f)
+        return im if im.size == size else im.resize(size, Image.Resampling.BOX)
+
+    images = [frame(f) for f in frames]
+    with atomic_path(path) as tmp:
+        if kind == ".gif":
+            images = [im.convert("P", palette=Image.Palette.ADAPTIVE, colors=255) for im in images]
+            images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=round(1000 / fps),
+                           loop=0, disposal=1)
+        else:
+            import imageio.v2 as iio
+
+            with iio.get_writer(tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264", macro_block_size=1) as wr:
+                for im in images:
+                    wr.append_data(np.asarray(im.convert("RGB")))
+    return path

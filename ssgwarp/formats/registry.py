@@ -27,7 +27,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from ..errors import InputError
+from ..errors import InputError, SsgwarpError
 from ..raster.scene import GaussianScene
 from .compressed_ply import is_compressed_ply, read_compressed_ply, write_compressed_ply
 from .gltf import read_glb, write_glb
@@ -130,4 +130,36 @@ def read_scene(path: str | Path, device=None, *, fmt: Optional[str] = None) -> G
         bad = ~torch.isfinite(t.reshape(len(scene), -1)).all(dim=1)
         if bad.any():
             raise InputError(f"{path}: {int(bad.sum())} Gaussian(s) have NaN/inf {name} values (corrupt file)")
+    return scene if device is None else scene.to(device)
+
+
+def is_splat_file(path: str | Path) -> bool:
+    """True when ``path`` is a file whose first bytes (or, for headerless formats, name) make it a splat file."""
+    path = Path(path).expanduser()
+    if not path.is_file():
+        return False
+    try:
+        detect_format(path)
+    except (SsgwarpError, OSError, ValueError):
+        return False
+    return True
+
+
+def read_splat_file(path: str | Path, device=None) -> GaussianScene:
+    """A splat file a user gives a command (``import``, ``render``, ``stylize``, ``view``), any format
+    :func:`read_scene` reads, on ``device`` (None: the CPU); a missing, empty, damaged or foreign file is one
+    :class:`~ssgwarp.errors.InputError` line naming it."""
+    path = Path(path).expanduser()
+    if not path.exists():
+        raise InputError(f"{path}: file not found")
+    if path.is_dir() and not (path / "meta.json").is_file():
+        raise InputError(f"{path}: is a folder, not a splat file")
+    try:
+        scene = read_scene(path)
+    except SsgwarpError:
+        raise
+    except (ValueError, KeyError, IndexError, TypeError, EOFError, OSError, RuntimeError) as e:
+        raise InputError(f"{path}: cannot read as a splat file ({type(e).__name__}: {e})") from None
+    if len(scene) == 0:
+        raise InputError(f"{path}: holds no Gaussians")
     return scene if device is None else scene.to(device)

@@ -12,7 +12,9 @@
 * ``nerfstudio``: the PLY of ``ns-export gaussian-splat`` with ``--data`` the dataset folder
   (``transforms.json``, or the COLMAP folder of nerfstudio's colmap dataparser) and the run's
   ``dataparser_transforms.json`` (``--dataparser-transforms``, or found beside the PLY);
-* ``ply``: any INRIA-layout PLY with ``--data`` any capture ssgwarp loads (COLMAP, LLFF, transforms).
+* ``ply``: any splat file (INRIA-layout PLY, compressed PLY, SPZ, ``.splat``:
+  :func:`ssgwarp.formats.registry.read_splat_file`) with ``--data`` any capture ssgwarp loads (COLMAP, LLFF, transforms);
+  without ``--data``, a run with cameras made around its splats (:mod:`ssgwarp.capture.orbit`; no PSNR).
 
 The splats are moved into the capture's frame (:mod:`ssgwarp.formats.layouts`): each layout gives
 the candidate frames it may be in (graphdeco: the capture's own, or the similarity that aligns its
@@ -43,7 +45,9 @@ from tqdm.auto import tqdm
 from ..formats.colmap import find_model, read_model
 from ..capture.datasets import SceneData, data_json, load_dataset
 from ..capture.loaders import IMAGE_EXTS
+from ..capture.orbit import parse_up, write_orbit_run
 from ..formats.ply import read_ply, write_ply
+from ..formats.registry import is_splat_file, read_splat_file
 from ..formats.layouts import (graphdeco_cameras, graphdeco_folder, gsplat_checkpoints, gsplat_normalization,
                                match_names, nerfstudio_to_capture, read_gsplat_checkpoint, transform_scene)
 from ..core.cameras import Cameras
@@ -81,11 +85,13 @@ def detect_tool(source: Path, dataparser_transforms: Optional[Path] = None) -> s
                          f"file with --data for other tools")
     if source.suffix == ".pt":
         return "gsplat"
-    if source.suffix.lower() == ".ply":
-        if dataparser_transforms is not None or (source.parent / "dataparser_transforms.json").is_file():
-            return "nerfstudio"
+    if source.suffix.lower() == ".ply" and (dataparser_transforms is not None or
+                                            (source.parent / "dataparser_transforms.json").is_file()):
+        return "nerfstudio"
+    if is_splat_file(source):
         return "ply"
-    raise InputError(f"{source}: expected a folder, a .ply or a gsplat .pt checkpoint")
+    raise InputError(f"{source}: expected a folder, a splat file (PLY, compressed PLY, SPZ, .splat) or a gsplat .pt "
+                     f"checkpoint")
 
 
 def _cfg_yml(folder: Path) -> dict:
@@ -263,7 +269,7 @@ def _gsplat(source: Path, data_dir: Optional[Path], iteration) -> _Source:
         scene, step2 = read_gsplat_checkpoint(file)
         step = step if step is not None else step2
     else:
-        scene = read_ply(file)
+        scene = read_splat_file(file)
     factor = int(cfg.get("data_factor", 1) or 1)
     if data_dir is None and cfg.get("data_dir"):
         data_dir = _resolve(str(cfg["data_dir"]), source if source.is_dir() else source.parent)
@@ -296,7 +302,8 @@ def _nerfstudio(source: Path, data_dir: Optional[Path], dp: Optional[Path]) -> _
         cands = [("nerfstudio's dataparser frame (COLMAP data)", nerfstudio_to_capture(dp))]
     else:
         raise InputError(f"{data_dir}: no transforms.json nor COLMAP model (the dataset splatfacto was trained on)")
-    return _Source(read_ply(source), dict(file=str(source), dataparser_transforms=str(dp)), cands, data_dir=data_dir)
+    return _Source(read_splat_file(source), dict(file=str(source), dataparser_transforms=str(dp)), cands,
+                   data_dir=data_dir)
 
 
 def _frames_of(src: _Source, tool: str, capture: SceneData) -> list:
@@ -337,14 +344,16 @@ def import_splats(source: str | Path, out: str | Path, *, data: Optional[str | P
                   iteration: Optional[int] = None, images: Optional[str] = None, width: Optional[int] = None,
                   split_every: Optional[int] = None, background: Optional[Sequence[float]] = None,
                   dataparser_transforms: Optional[str | Path] = None, force: bool = False, device=None,
-                  progress: bool = True) -> dict:
+                  progress: bool = True, up: Optional[str] = None, views: int = 24, seed: int = 0) -> dict:
     """Import ``source`` into the run folder ``out`` (see the module docs); returns the metrics dict.
 
     ``data``: the capture (default: the one the source records, where it records one);
     ``images`` / ``width``: its image folder and training width (default: the source tool's);
     ``split_every``: hold out every N-th view (default: the tool's split: graphdeco's ``eval`` every
     8th or none, gsplat's ``test_every``, otherwise 8); ``background``: default the tool's
-    (graphdeco: black unless ``white_background``; others white)."""
+    (graphdeco: black unless ``white_background``; others white). A splat file without ``data``: a run with
+    ``views`` cameras made around its splats (:func:`ssgwarp.capture.orbit.write_orbit_run`; ``up``: its
+    ``--up``, ``width`` its width), no PSNR."""
     source = Path(source).expanduser()
     out = Path(out).expanduser()
     device = torch.device(device) if device is not None else torch.device("cpu")
@@ -364,8 +373,9 @@ def import_splats(source: str | Path, out: str | Path, *, data: Optional[str | P
         src = _nerfstudio(source, data_dir, dp)
     else:
         if data_dir is None:
-            raise InputError(f"{source}: a PLY alone has no cameras: pass --data with the capture it was trained on")
-        src = _Source(read_ply(source), dict(file=str(source)), data_dir=data_dir)
+            return _import_orbit(source, out, claimed, width=width, up=up, background=background,
+                                 views=views, seed=seed)
+        src = _Source(read_splat_file(source), dict(file=str(source)), data_dir=data_dir)
     info = {"tool": tool, "source": str(source.resolve()), **src.info}
     split = src.split if split_every is None else split_every
     bg = src.background if background is None else tuple(float(v) for v in background)
@@ -395,6 +405,29 @@ def import_splats(source: str | Path, out: str | Path, *, data: Optional[str | P
     write_json(out / "metrics.json", metrics)
     log.info("wrote %s: %d Gaussians from %s (%s), held-out PSNR %s", out, len(scene), tool, frame,
              "n/a" if metrics["psnr"] is None else f"{metrics['psnr']:.2f} dB")
+    return metrics
+
+
+def _import_orbit(source: Path, out: Path, claimed, *, width, up, background, views: int, seed: int) -> dict:
+    """A splat file without its capture: the run of its splats with cameras made around them (no PSNR)."""
+    if views < 1:
+        raise InputError(f"--views must be >= 1, got {views}")
+    scene = read_splat_file(source)
+    up_v = parse_up(up)
+    bg = (1.0, 1.0, 1.0) if background is None else tuple(float(v) for v in background)
+    claimed.clear()
+    orbit = write_orbit_run(scene, out, source=source, views=views, width=width, up=up_v, background=bg, seed=seed)
+    c = orbit["cameras"]
+    metrics = {"num_gaussians": len(scene), "sh_degree": scene.sh_degree, "identity_dim": None,
+               "resolution": [c["width"], c["height"]], "psnr": None, "ssim": None, "lpips": None,
+               "train_psnr": None, "test_views": 0, "per_view": [],
+               "note": "no capture: cameras made around the splats (data.json's orbit); pass --data to import "
+                       "against the capture and measure PSNR",
+               "imported": {"tool": "splat file", "source": str(source.resolve()),
+                            "frame": "the file's own (no capture: cameras made around the splats)"}}
+    write_json(out / "metrics.json", metrics)
+    log.info("wrote %s: %d Gaussians, no capture: %d cameras made around them at %dx%d", out, len(scene), views,
+             c["width"], c["height"])
     return metrics
 
 
@@ -430,7 +463,8 @@ def add_arguments(parser) -> None:
     from .reconstruct import _background
 
     parser.add_argument("source", type=Path, help="a graphdeco 3DGS output folder, a gsplat result folder or "
-                        "checkpoint (.pt), a nerfstudio `ns-export gaussian-splat` PLY, or any 3DGS PLY")
+                        "checkpoint (.pt), a nerfstudio `ns-export gaussian-splat` PLY, or any splat file (3DGS "
+                        "PLY, compressed PLY, SPZ, .splat; without --data: cameras made around its splats)")
     parser.add_argument("--out", type=Path, required=True, help="run folder to write")
     parser.add_argument("--data", type=Path, default=None,
                         help="the capture the splats were trained on (COLMAP, LLFF or transforms.json folder); "
@@ -449,6 +483,10 @@ def add_arguments(parser) -> None:
                              "gsplat test_every, else 8)")
     parser.add_argument("--background", type=_background, default=None,
                         help="white, black or R,G,B (default: graphdeco's white_background, else white)")
+    parser.add_argument("--views", type=int, default=24,
+                        help="a splat file without --data: the cameras made around its splats (default 24)")
+    parser.add_argument("--up", default="auto", help="a splat file without --data: its up axis: auto (default: the "
+                        "thinnest principal axis of a layer of splats, else the file's -y), +z, -y ... or x,y,z")
     parser.add_argument("--force", action="store_true", help="overwrite an existing run in OUT")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
@@ -460,7 +498,8 @@ def run(args) -> int:
     m = import_splats(args.source, args.out, data=args.data, tool=args.tool, iteration=args.iteration,
                       images=args.images, width=args.width, split_every=args.split_every,
                       background=args.background, dataparser_transforms=args.dataparser_transforms,
-                      force=args.force, device=args.device, progress=not args.quiet)
+                      force=args.force, device=args.device, progress=not args.quiet, up=args.up, views=args.views,
+                      seed=args.seed)
     fmt = lambda v: "n/a" if v is None else f"{v:.2f} dB"  # noqa: E731
     print(f"{args.out}: {m['num_gaussians']} Gaussians imported from {m['imported']['tool']} "
           f"({m['imported']['frame']}), held-out PSNR {fmt(m['psnr'])}, train PSNR {fmt(m['train_psnr'])}")

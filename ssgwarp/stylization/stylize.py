@@ -22,6 +22,9 @@ import torch
 from ..core.cameras import Cameras
 from ..errors import InputError, WeightsNotFound
 from ..core.imaging import contact_sheet, fit_style, plot_losses  # noqa: F401  (contact_sheet re-exported)
+# ``path.gif``'s writer, frames per second and longer side: ssgwarp.core.imaging's (``ssgwarp render --video`` too)
+from ..core.imaging import VIDEO_FPS as PATH_FPS, VIDEO_SIDE as PATH_VIDEO_SIDE  # noqa: F401
+from ..core.imaging import write_video as write_path_video
 from ..raster.scene import GaussianScene
 from .targets import Targets, color_transfer, densify_run, group_maps, targets_for
 from .stage2 import (  # noqa: F401  (re-exported: the public Stage 2 API lives in ssgwarp.stylization.stage2)
@@ -55,8 +58,6 @@ class StylizeOptions:
 
 OUTPUTS = ("run.json", "keyviews", "stage2.ckpt", "scene.ply", "renders", "contact_sheet.png", "loss.png",
            "metrics.json", "path.gif", "densify.pt")
-PATH_FPS = 15   # frames per second of ``path.gif``
-PATH_VIDEO_SIDE = 512   # the longer side of ``path.gif``'s frames at most (a preview: the PNG frames are full size)
 
 
 def _say(msg: str, progress: bool) -> None:
@@ -409,32 +410,6 @@ def _renders(r: _Run, styled: GaussianScene) -> torch.Tensor:
         write_path_video(r.out / "path.gif", frames)
     r.times["renders"] = time.perf_counter() - t0
     return renders
-
-
-def write_path_video(path: Path, frames: list, fps: int = PATH_FPS, max_side: int = PATH_VIDEO_SIDE) -> Path:
-    """An animated GIF (looping, ``fps`` frames per second) of ``frames`` (``[H, W, 3]`` uint8 arrays), shrunk
-    to at most ``max_side`` pixels on the longer side, written atomically with Pillow (matplotlib's own
-    dependency: no video codec needed). Returns ``path``."""
-    from PIL import Image
-
-    from ..core.fileio import atomic_path
-
-    if not frames:
-        raise InputError("path video: no frames")
-    h, w = frames[0].shape[:2]
-    scale = min(1.0, max_side / max(h, w))
-    size = (max(1, round(w * scale)), max(1, round(h * scale)))
-
-    def frame(f):
-        im = Image.fromarray(f)
-        return (im if scale == 1.0 else im.resize(size, Image.Resampling.BOX)).convert(
-            "P", palette=Image.Palette.ADAPTIVE, colors=255)
-
-    images = [frame(f) for f in frames]
-    with atomic_path(path) as tmp:
-        images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=round(1000 / fps),
-                       loop=0, disposal=1)
-    return path
 
 
 def _scores(r: _Run, styled: GaussianScene, renders: torch.Tensor, originals: torch.Tensor) -> dict:

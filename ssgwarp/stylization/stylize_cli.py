@@ -13,15 +13,19 @@ from ..services.features import EXTRACTOR_KINDS
 from .feature_defaults import CONTENT_WEIGHT, CONTENT_WEIGHT_PATCHES
 from .stage2 import (BACKGROUNDS, BLEND_WEIGHT_EDGES, COLOR_DETAIL, COLOR_GAIN_EDGES, COLOR_GAIN_OTHER,
                      COLOR_TRANSFER, MODES, SH_REST, STYLE_LOSSES, TV_WEIGHT_FREE, TV_WEIGHT_VGG, Stage2Config)
+from . import from_splats
 from . import stylize as _stylize      # (stylize_run looked up at call time: tests replace it)
+from ..errors import InputError
 from .stylize import StylizeOptions, _say
 
 __all__ = ["add_arguments", "run", "QUICK", "PAINT", "cpu_hint"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scene_dir", type=Path, help="a reconstruction run (scene.ply, cameras.json, data.json; "
-                                                "groups/ when grouped)")
+    p.add_argument("scene_dir", type=Path, metavar="RUN_OR_FILE",
+                   help="a reconstruction run (scene.ply, cameras.json, data.json; groups/ when grouped), or a splat "
+                        "file (PLY, compressed PLY, SPZ, .splat) without a capture: cameras are made around its "
+                        "splats and it is grouped mask-free in OUT/source (docs/your_splats.md)")
     p.add_argument("--style", type=Path, required=True, help="style image (PNG/JPG)")
     p.add_argument("--quiet", action="store_true", help="no progress bars or stage messages")
     p.add_argument("--out", type=Path, required=True, help="output folder")
@@ -111,6 +115,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "earlier weight-free default (docs/stylize.md)")
     g.add_argument("--vgg16", default=None, help="torchvision VGG16 state dict (or SSGWARP_VGG16)")
     g.add_argument("--layers", default=None, help="VGG16 layers, comma separated (default conv3 = relu3_1..3)")
+    g = p.add_argument_group("a splat file without its capture (RUN_OR_FILE a file)")
+    g.add_argument("--views", type=int, default=from_splats.VIEWS,
+                   help=f"cameras made around the splats (default {from_splats.VIEWS}; --quick {QUICK_VIEWS})")
+    g.add_argument("--width", type=int, default=None,
+                   help=f"their width (default: at most {from_splats.MAX_WIDTH}, --quick {QUICK_MAX_WIDTH}, and at "
+                        "most the width at which the median splat is one pixel across)")
+    g.add_argument("--up", default="auto", help="the splats' up axis: auto (default: the thinnest principal axis of "
+                   "a layer of splats, else the file's -y), an axis (+z, -y ...) or a vector x,y,z")
+    g.add_argument("--group-iters", type=int, default=None,
+                   help=f"steps of the mask-free grouping (default the group command's; --quick {GROUP_QUICK_ITERS})")
     g = p.add_argument_group("outputs")
     g.add_argument("--path-frames", type=int, default=60, help="frames along a smooth camera path (0: none)")
     g.add_argument("--sheet-views", type=int, default=3, help="views in the contact sheet")
@@ -124,6 +138,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 QUICK = {"iters": 150, "path_frames": 20}
 QUICK_MEASURED = ("fern from reconstruct --quick (252x188), without Stage 1 weights: 9 min on 2 CPU cores shared "
                   "with other work (2.8 min of CPU time), 2026-11-28")
+# a splat file without its capture under --quick: fewer, smaller made views and the group command's --quick
+QUICK_VIEWS, QUICK_MAX_WIDTH, GROUP_QUICK_ITERS = 16, 256, 300
 CPU_DEFAULT_MEASURED = "2.6 s per step, so about 26 min for 600 steps"
 # the weight-free painting configuration (`--paint`) and what it measured (docs/stylize.md)
 PAINT = {"mode": "global", "extractor": "patches", "tv_weight": 0.2, "blend_weight": 0.2, "content_weight": 0.0,
@@ -160,14 +176,35 @@ def run(args) -> int:
     s1 = config_from_args(args) if args.mode != "global" else None
     from ..services import distributed
 
+    scene_dir = args.scene_dir
+    if Path(scene_dir).expanduser().is_file():
+        scene_dir = _splat_file_source(args)
     group, device = distributed.from_env(args.device)   # under torchrun: join the others
     hint = cpu_hint(args) if group.is_main else None
     if hint:
         _say(hint, True)
     try:
-        _stylize.stylize_run(args.scene_dir, args.style, args.out, stage2=s2, stage1=s1, opts=opts, device=device,
+        _stylize.stylize_run(scene_dir, args.style, args.out, stage2=s2, stage1=s1, opts=opts, device=device,
                     resume=args.resume, force=args.force, progress=not args.quiet, group=group)
     finally:
         distributed.shutdown(group)
+    if scene_dir != args.scene_dir and group.is_main:
+        from_splats.add_record(args.out, scene_dir)
     return 0
+
+
+def _splat_file_source(args) -> Path:
+    """``stylize FILE``: ``OUT/source``, the splat file's run with cameras made around it, grouped mask-free."""
+    import os
+
+    if int(os.environ.get("WORLD_SIZE", "1") or 1) > 1:
+        raise InputError(f"{args.scene_dir}: a splat file is stylized by one process; run `ssgwarp stylize` once "
+                         f"without torchrun (it writes {args.out / from_splats.SOURCE}), then give that folder")
+    quick = bool(getattr(args, "quick", False))
+    views = QUICK_VIEWS if quick and args.views == from_splats.VIEWS else args.views
+    group_iters = args.group_iters if args.group_iters is not None else (GROUP_QUICK_ITERS if quick else None)
+    return from_splats.prepare_source(
+        args.scene_dir, args.style, args.out, _stylize.OUTPUTS, views=views, width=args.width,
+        max_width=QUICK_MAX_WIDTH if quick else from_splats.MAX_WIDTH, up=args.up, group_iters=group_iters,
+        force=args.force, resume=args.resume, device=args.device, seed=args.seed, progress=not args.quiet)
 
