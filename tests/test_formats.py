@@ -376,11 +376,21 @@ def test_sh_flips_of_the_gltf_frame():
                                                    flipped))
 
 
+def _reglb(data: bytes, edit) -> bytes:
+    """The GLB ``data`` with its JSON changed by ``edit`` (chunk and file lengths rewritten)."""
+    jlen = struct.unpack_from("<I", data, 12)[0]
+    js = json.dumps(edit(json.loads(data[20:20 + jlen]))).encode()
+    js += b" " * (-len(js) % 4)
+    rest = data[20 + jlen:]
+    return struct.pack("<III", 0x46546C67, 2, 20 + len(js) + len(rest)) + struct.pack("<II", len(js), 0x4E4F534A) + js + rest
+
+
 def test_glb_bad_files(tmp_path):
     good = write_glb(tmp_path / "g.glb", _scene(0)).read_bytes()
     cases = {"short": (good[:10], "too short"), "cut": (good[:-40], "at most the file's"),
              "magic": (b"glTX" + good[4:], "not a GLB"),
-             "plain": (good.replace(b"KHR_gaussian_splatting", b"KHR_gaussian_splattinX"), "no mesh primitive")}
+             "plain": (good.replace(b"KHR_gaussian_splatting", b"KHR_gaussian_splattinX"), "no mesh primitive"),
+             "node": (_reglb(good, lambda d: {**d, "nodes": [{"mesh": 0, "scale": [2, 2, 2]}]}), "transform")}
     for name, (data, msg) in cases.items():
         (tmp_path / f"{name}.glb").write_bytes(data)
         with pytest.raises(InputError, match=msg):
