@@ -132,7 +132,7 @@ def test_spz_bad_records_and_rotated_frames(tmp_path):
 
 
 @pytest.mark.slow   # gsply's readers may compile with numba on first use
-def test_gsply_reads_our_spz_4(tmp_path, request):
+def test_gsply_and_ours_read_each_others_files(tmp_path, request):
     gsply = pytest.importorskip("gsply")
     threads = torch.get_num_threads()
     request.addfinalizer(lambda: torch.set_num_threads(threads))
@@ -147,6 +147,29 @@ def test_gsply_reads_our_spz_4(tmp_path, request):
     np.testing.assert_allclose(np.asarray(g.means) * [1.0, -1.0, -1.0], ours.means.numpy(), atol=1e-5)
     np.testing.assert_allclose(np.asarray(g.sh0), ours.sh_dc.numpy(), atol=1e-4)
     np.testing.assert_allclose(np.asarray(g.opacities), ours.logit_opacities.numpy(), atol=1e-3)
+    # the other way: gsply writes SPZ 4 and 3 (axes as given: we read them as RUB) and compressed PLY
+    rng = np.random.default_rng(0)
+    n = 300
+    q = rng.normal(size=(n, 4))
+    data = gsply.GSData(means=rng.uniform(-2, 2, (n, 3)).astype(np.float32),
+                        scales=rng.uniform(-5, -1, (n, 3)).astype(np.float32),
+                        quats=(q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32),
+                        opacities=rng.normal(size=n).astype(np.float32), sh0=rng.normal(0, 0.5, (n, 3)).astype(np.float32),
+                        shN=rng.normal(0, 0.1, (n, 3, 3)).astype(np.float32))
+    for version in (4, 3):
+        gsply.write_spz(str(tmp_path / f"g{version}.spz"), data, version=version)
+        back, header = read_spz_with_header(tmp_path / f"g{version}.spz")
+        assert header["version"] == version and len(back) == n
+        np.testing.assert_allclose(back.means.numpy() * [1, -1, -1], data.means, atol=2 ** -12)
+        np.testing.assert_allclose(back.log_scales.numpy(), data.scales, atol=1 / 32 + 1e-6)
+        np.testing.assert_allclose(back.sh_dc.numpy(), data.sh0, atol=0.5 / (0.15 * 255) + 1e-6)
+    gsply.plywrite(str(tmp_path / "g.compressed.ply"), data, compressed=True)
+    back = read_scene(tmp_path / "g.compressed.ply")
+    assert len(back) == n and back.sh_degree == 1
+    ref = gsply.plyread(str(tmp_path / "g.compressed.ply"))
+    order = np.lexsort(np.asarray(ref.means).T)
+    mine = np.lexsort(back.means.numpy().T)
+    np.testing.assert_allclose(back.means.numpy()[mine], np.asarray(ref.means)[order], atol=1e-5)
 
 
 # ----------------------------------------------------------------------------- .ksplat
@@ -376,11 +399,21 @@ def test_sh_flips_of_the_gltf_frame():
                                                    flipped))
 
 
+def _reglb(data: bytes, edit) -> bytes:
+    """The GLB ``data`` with its JSON changed by ``edit`` (chunk and file lengths rewritten)."""
+    jlen = struct.unpack_from("<I", data, 12)[0]
+    js = json.dumps(edit(json.loads(data[20:20 + jlen]))).encode()
+    js += b" " * (-len(js) % 4)
+    rest = data[20 + jlen:]
+    return struct.pack("<III", 0x46546C67, 2, 20 + len(js) + len(rest)) + struct.pack("<II", len(js), 0x4E4F534A) + js + rest
+
+
 def test_glb_bad_files(tmp_path):
     good = write_glb(tmp_path / "g.glb", _scene(0)).read_bytes()
     cases = {"short": (good[:10], "too short"), "cut": (good[:-40], "at most the file's"),
              "magic": (b"glTX" + good[4:], "not a GLB"),
-             "plain": (good.replace(b"KHR_gaussian_splatting", b"KHR_gaussian_splattinX"), "no mesh primitive")}
+             "plain": (good.replace(b"KHR_gaussian_splatting", b"KHR_gaussian_splattinX"), "no mesh primitive"),
+             "node": (_reglb(good, lambda d: {**d, "nodes": [{"mesh": 0, "scale": [2, 2, 2]}]}), "transform")}
     for name, (data, msg) in cases.items():
         (tmp_path / f"{name}.glb").write_bytes(data)
         with pytest.raises(InputError, match=msg):

@@ -18,7 +18,8 @@ Frames: glTF is y up, +z forward, x left (LUF); our scenes are RDF, so writing a
 180 degrees about z: positions ``(-x, -y, z)``, quaternions' ``x`` and ``y`` negated, and each SH
 coefficient times its basis function's parity under that flip. Everything is kept at float32 (SH
 degree <= 3), so a scene round-trips to float rounding. The reader takes the files this writer makes and
-any other of float (or normalised integer) accessors without sparse storage or compression extensions.
+any other of float (or normalised integer) accessors without sparse storage or compression extensions,
+whose mesh node has no transform of its own (a node transform is refused, not applied).
 """
 from __future__ import annotations
 
@@ -140,6 +141,12 @@ def read_glb(path: str | Path) -> GaussianScene:
     if not prims:
         raise InputError(f"{path}: no mesh primitive with {EXT} (not a Gaussian splat glTF)")
     attrs = prims[0].get("attributes", {})
+    nodes = doc.get("nodes", []) if isinstance(doc.get("nodes"), list) else []
+    moved = [nd for nd in nodes if isinstance(nd, dict) and "mesh" in nd
+             and any(k in nd for k in ("matrix", "translation", "rotation", "scale"))]
+    if moved:
+        raise InputError(f"{path}: the splats' node carries a transform, which is not applied here; re-export "
+                         f"the glTF with the transform baked into the Gaussians")
 
     def accessor(name: str, comps: int):
         try:

@@ -71,33 +71,30 @@ def _nearest(v: np.ndarray, c: np.ndarray) -> np.ndarray:
 
 def palette(x: np.ndarray, size: int = PALETTE) -> tuple[np.ndarray, np.ndarray]:
     """``(centroids [M, D], labels [N])`` with ``M <= size``: every row its own entry when ``N <= size``,
-    else a balanced tree of median splits along each group's widest dimension (means of the leaves)."""
+    else a balanced tree of median splits, ``floor(log2(size))`` levels deep, each group split at the median
+    of its widest dimension (the centroids: the leaves' means)."""
     n = len(x)
     if n <= size:
         return x.copy(), np.arange(n)
-    groups = [np.arange(n)]
-    while len(groups) < size:
-        nxt = []
-        for g in groups:
-            if len(nxt) + len(groups) - len(nxt) // 2 >= size * 2 or len(g) < 2:
-                nxt.append(g)
-                continue
-            d = int(np.argmax(x[g].var(axis=0)))
-            h = len(g) // 2
-            part = np.argpartition(x[g, d], h)
-            nxt += [g[part[:h]], g[part[h:]]]
-        if len(nxt) == len(groups):
-            break
-        groups = nxt[:size] if len(nxt) <= size else nxt
-        if len(groups) > size:   # (the loop splits level by level: the last level stops at ``size``)
-            groups = groups[:size - 1] + [np.concatenate(groups[size - 1:])]
+    perm = np.arange(n)                 # x[perm] holds each group's rows together, groups in label order
+    gid = np.zeros(n, np.int64)         # the group of each row of x[perm]
+    for _ in range(int(math.log2(size))):
+        xs = x[perm]
+        starts = np.flatnonzero(np.r_[True, gid[1:] != gid[:-1]])
+        count = np.diff(np.r_[starts, n])
+        mean = np.add.reduceat(xs, starts, axis=0) / count[:, None]
+        var = np.add.reduceat(xs * xs, starts, axis=0) / count[:, None] - mean ** 2
+        key = xs[np.arange(n), np.argmax(var, axis=1)[gid]]
+        o = np.lexsort((key, gid))      # inside each group, along its widest dimension
+        perm = perm[o]
+        upper = np.arange(n) - starts[gid] >= count[gid] // 2
+        new = 2 * gid + upper
+        gid = np.cumsum(np.r_[0, new[1:] != new[:-1]])
+    starts = np.flatnonzero(np.r_[True, gid[1:] != gid[:-1]])
+    cent = np.add.reduceat(x[perm], starts, axis=0) / np.diff(np.r_[starts, n])[:, None]
     labels = np.empty(n, np.int64)
-    for i, g in enumerate(groups):
-        labels[g] = i
-    counts = np.bincount(labels, minlength=len(groups))[:, None]
-    cent = np.zeros((len(groups), x.shape[1]))
-    np.add.at(cent, labels, x)
-    return cent / np.maximum(counts, 1), labels
+    labels[perm] = gid
+    return cent, labels
 
 
 # ----------------------------------------------------------------------------- WebP
