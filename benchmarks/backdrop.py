@@ -32,7 +32,6 @@ from pathlib import Path
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 from shared_data import data_root  # noqa: E402
 
 from ssgwarp.capture.datasets import load_dataset  # noqa: E402

@@ -31,7 +31,6 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import ssgwarp  # noqa: E402,F401  (before torch, as the CLI: its OpenMP wait policy, ssgwarp/__init__.py)
 import torch  # noqa: E402
 import ssgwarp.raster.cpu_threads as CT  # noqa: E402

@@ -44,7 +44,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 from shared_data import data_root  # noqa: E402
 
 
@@ -55,7 +54,8 @@ def worker(a) -> int:
 
     from ssgwarp.services import distributed
     from ssgwarp.capture.datasets import load_dataset
-    from ssgwarp.reconstruction.reconstruct import Recipe, Trainer
+    from ssgwarp.reconstruction.recipe import Recipe
+    from ssgwarp.reconstruction.trainer import Trainer
 
     group, device = distributed.from_env(a.device)
     try:

@@ -36,14 +36,13 @@ from pathlib import Path
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from reconstruct import _f, report, train_and_measure  # noqa: E402  (benchmarks/reconstruct.py)
 from ssgwarp import procedural as P  # noqa: E402
 from ssgwarp.capture.datasets import SceneData  # noqa: E402
 from ssgwarp.core.fileio import write_json  # noqa: E402
-from ssgwarp.reconstruction.reconstruct import Recipe  # noqa: E402
+from ssgwarp.reconstruction.recipe import Recipe  # noqa: E402
 
 ASPECT = 4 / 3
 

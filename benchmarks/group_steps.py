@@ -20,12 +20,12 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import ssgwarp  # noqa: E402,F401  (before torch, as the CLI: its OpenMP wait policy, ssgwarp/__init__.py)
 import torch  # noqa: E402
 import ssgwarp.raster.cpu_threads as CT  # noqa: E402
 from ssgwarp.capture.ply import read_ply  # noqa: E402
-from ssgwarp.grouping.train import GroupConfig, train_identities  # noqa: E402
+from ssgwarp.grouping.train import train_identities  # noqa: E402
+from ssgwarp.grouping.model import GroupConfig
 from ssgwarp.services.runs import Run  # noqa: E402
 
 

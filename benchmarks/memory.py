@@ -32,7 +32,6 @@ from pathlib import Path
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 from shared_data import data_root  # noqa: E402
 
 
@@ -49,7 +48,8 @@ _SCENES: dict = {}
 
 
 def measure(data, n: int, batch: int, device: torch.device) -> dict:
-    from ssgwarp.reconstruction.reconstruct import Recipe, Trainer
+    from ssgwarp.reconstruction.recipe import Recipe
+    from ssgwarp.reconstruction.trainer import Trainer
 
     if n not in _SCENES:  # (the same scene at every width and batch)
         _SCENES[n] = make_scene(data, n, device)
@@ -90,7 +90,8 @@ def measure(data, n: int, batch: int, device: torch.device) -> dict:
 
 def make_scene(data, n: int, device: torch.device):
     """``n`` Gaussians: the capture's points replicated with jitter, 3DGS initial widths (3-NN distance)."""
-    from ssgwarp.raster.scene import GaussianScene, knn_mean_distance
+    from ssgwarp.raster.scene import GaussianScene
+    from ssgwarp.core.geometry import knn_mean_distance
 
     xyz, rgb = data.points
     g = torch.Generator().manual_seed(0)

@@ -48,12 +48,13 @@ from pathlib import Path
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 from shared_data import data_root  # noqa: E402
 
 from ssgwarp.capture.datasets import load_dataset  # noqa: E402
 from ssgwarp.core.fileio import atomic_path, write_json  # noqa: E402
-from ssgwarp.reconstruction.reconstruct import Recipe, Trainer, render_views  # noqa: E402
+from ssgwarp.raster.rendering import render as render_views  # noqa: E402
+from ssgwarp.reconstruction.recipe import Recipe
+from ssgwarp.reconstruction.trainer import Trainer
 from ssgwarp.reconstruction.strategy import DefaultStrategy, MCMCStrategy, Strategy  # noqa: E402
 
 SCENES = {"fern8": ("llff_fern", "images_8"), "fern4": ("llff_fern", "images_4"), "cup": ("colmap_cup", "images"),

@@ -31,7 +31,7 @@ from timing import sync  # noqa: E402
 
 def build(args, device):
     from fakeweights import random_stage1_components
-    from ssgwarp.stylization.diffusion import Stage1Config, assemble_stage1, load_stage1
+    from ssgwarp.stylization.diffusion_models import Stage1Config, assemble_stage1, load_stage1
 
     cfg = Stage1Config(sd15=args.sd15, controlnet_depth=args.controlnet_depth, ip_adapter=args.ip_adapter,
                        image_encoder=args.image_encoder, dtype=args.dtype, progress=False)

@@ -30,7 +30,7 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 from shared_data import data_root  # noqa: E402
-from ssgwarp.services.features import EXTRACTOR_KINDS  # noqa: E402
+from ssgwarp.evaluation.features import EXTRACTOR_KINDS  # noqa: E402
 sys.path.insert(0, str(ROOT / "tests"))   # fakeweights: random-weight Stage 1 models
 DATA = data_root()
 
@@ -100,7 +100,8 @@ def main() -> int:
     args = p.parse_args()
 
     from ssgwarp.cli import main as cli, resolve_device
-    from ssgwarp.stylization.stylize import Stage2Config, StylizeOptions, stylize_run
+    from ssgwarp.stylization.stylize import StylizeOptions, stylize_run
+    from ssgwarp.stylization.stage2 import Stage2Config
 
     device = resolve_device(args.device)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -126,7 +127,7 @@ def main() -> int:
     models, s1 = None, None
     if args.random_stage1:
         from fakeweights import random_stage1_components
-        from ssgwarp.stylization.diffusion import Stage1Config, assemble_stage1
+        from ssgwarp.stylization.diffusion_models import Stage1Config, assemble_stage1
 
         t0 = time.perf_counter()
         dtype = torch.float16 if device.type == "cuda" else torch.float32

@@ -25,10 +25,9 @@ from pathlib import Path
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 from shared_data import data_root, style_paths  # noqa: E402
-from ssgwarp.services.features import EXTRACTOR_KINDS  # noqa: E402
+from ssgwarp.evaluation.features import EXTRACTOR_KINDS  # noqa: E402
 
 STYLES = data_root() / "styles"
 
@@ -92,11 +91,13 @@ def bound(args, counts: list[int], styles: list[Path]) -> int:
     from ssgwarp.cli import resolve_device
     from ssgwarp.core.fileio import read_image, write_json
     from ssgwarp.core.imaging import fit_style
-    from ssgwarp.evaluation.evaluate import EvalOptions, inspect_run, render_views, scored_cameras
+    from ssgwarp.evaluation.evaluate import EvalOptions, inspect_run, scored_cameras
+    from ssgwarp.raster.rendering import render_views
     from ssgwarp.evaluation.style_distance import StyleDistance
-    from ssgwarp.services.color import transfer_colors
-    from ssgwarp.services.features import load_extractor
-    from ssgwarp.stylization.stage2 import Stage2Config, build_targets, extract, resolve_for, tv_loss
+    from ssgwarp.stylization.color import transfer_colors
+    from ssgwarp.evaluation.features import load_extractor
+    from ssgwarp.stylization.stage2 import Stage2Config, build_targets, extract, tv_loss
+    from ssgwarp.stylization.feature_defaults import resolve_for
     device = resolve_device(args.device)
     torch.manual_seed(args.seed)
     scene, data = inspect_run(args.run).load(device, load_images=False)

@@ -28,7 +28,6 @@ from pathlib import Path
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 
 def probe_scene(scene, period_px: float, amplitude: float, pixel: float, seed: int = 0):
@@ -75,7 +74,9 @@ def score(scene, cams, bg, opts, style_distance, alpha0=None) -> dict:
     """Consistency, error concentration and texture per scale of ``scene``'s renders; the texture is taken over
     the pixels where ``alpha0`` (the unpainted scene's alpha; default: these renders') is at least 0.5."""
     from ssgwarp.evaluation import metrics as M
-    from ssgwarp.evaluation.evaluate import consistency, render_views
+    from ssgwarp.evaluation.style_distance import sliced_wasserstein
+    from ssgwarp.evaluation.evaluate import consistency
+    from ssgwarp.raster.rendering import render_views
 
     rgb, depth, alpha = render_views(scene, cams, bg)
     alpha0 = alpha if alpha0 is None else alpha0
@@ -96,7 +97,7 @@ def score(scene, cams, bg, opts, style_distance, alpha0=None) -> dict:
         n = style_distance.levels_for(H, W)
         for v in range(len(rgb)):
             _, resp = style_distance._features(rgb[v], n, alpha0[v] >= 0.5)
-            per.append([float(M.sliced_wasserstein(x, None, style_distance.texture_projections, style_distance.seed, y))
+            per.append([float(sliced_wasserstein(x, None, style_distance.texture_projections, style_distance.seed, y))
                         for x, y in zip(resp, s_resp)])
         levels = torch.tensor(per).mean(0).tolist()
     return {"short": rep["short"]["rmse"], "long": rep["long"]["rmse"], "share10": share[0], "share25": share[1],

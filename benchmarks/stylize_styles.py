@@ -42,9 +42,8 @@ from typing import Optional
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 from shared_data import data_root, style_paths  # noqa: E402
-from ssgwarp.services.features import EXTRACTOR_KINDS  # noqa: E402
+from ssgwarp.evaluation.features import EXTRACTOR_KINDS  # noqa: E402
 DATA = data_root()
 
 SHEET_STYLES = ("brushstrokes", "candy", "la_muse", "mosaic", "the_resevoir_at_poitiers", "sketch", "udnie")
@@ -83,7 +82,7 @@ def stage2_config(args, **over):
     its fields), then ``over``."""
     import dataclasses
 
-    from ssgwarp.stylization.stylize import Stage2Config
+    from ssgwarp.stylization.stage2 import Stage2Config
 
     kw = {f.name: getattr(args, f.name) for f in dataclasses.fields(Stage2Config)
           if getattr(args, f.name, None) is not None}
@@ -126,7 +125,7 @@ def add_halves(rows: list[dict], styles: list[Path], run: Path, results: Path) -
     computed once and kept in the style's ``result.json`` (in ``results``, ``OUT/<scene>/styles``)."""
     from ssgwarp.core.cameras import Cameras
     from ssgwarp.core.fileio import read_image, write_json
-    from ssgwarp.evaluation.metrics import StyleDistance
+    from ssgwarp.evaluation.style_distance import StyleDistance
 
     cams = Cameras.load(run / "cameras.json")
     by_name = {s.stem: s for s in styles}
@@ -213,7 +212,7 @@ def sheet(path: Path, run: Path, results_dir: Path, styles: list[Path], device) 
     from ssgwarp.core.fileio import atomic_path, read_image
     from ssgwarp.capture.ply import read_ply
     from ssgwarp.services.runs import Run
-    from ssgwarp.stylization.stylize import render_rgb
+    from ssgwarp.stylization.stage2 import render_rgb
 
     done = [s for s in styles if (results_dir / s.stem / "scene.ply").is_file()]
     if not done:

@@ -37,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from reconstruct import load_scene, rasterizer, warm_up  # noqa: E402
 from shared_data import data_root  # noqa: E402
 
-from ssgwarp.reconstruction.reconstruct import Trainer  # noqa: E402
+from ssgwarp.reconstruction.trainer import Trainer  # noqa: E402
 
 FRAMES = ("ssgwarp", "kornia", "gsplat", "torch/optim")  # the frames a synchronisation is attributed to
 ROOT = Path(__file__).resolve().parents[1]

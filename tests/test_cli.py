@@ -368,7 +368,7 @@ def _same_scene(a: Path, b: Path) -> None:
 
 
 def test_ctrl_c_in_reconstruct_then_resume_matches_an_uninterrupted_run(world, tmp_path, capsys, monkeypatch):
-    from ssgwarp.reconstruction.reconstruct import Trainer
+    from ssgwarp.reconstruction.trainer import Trainer
 
     def argv(out):
         return ["reconstruct", world.cap, "--out", out, "--iters", "24", "--sh-degree", "1",

@@ -9,10 +9,10 @@ from typing import Optional
 
 import torch
 
-from ..services.features import EXTRACTOR_KINDS
+from ..evaluation.features import EXTRACTOR_KINDS
 from .feature_defaults import CONTENT_WEIGHT, CONTENT_WEIGHT_PATCHES
-from .stage2 import (BACKGROUNDS, BLEND_WEIGHT_EDGES, COLOR_DETAIL, COLOR_GAIN_EDGES, COLOR_GAIN_OTHER,
-                     COLOR_TRANSFER, MODES, SH_REST, STYLE_LOSSES, TV_WEIGHT_FREE, TV_WEIGHT_VGG, Stage2Config)
+from .stage2 import BACKGROUNDS, COLOR_DETAIL, COLOR_TRANSFER, MODES, SH_REST, STYLE_LOSSES, Stage2Config
+from .feature_defaults import BLEND_WEIGHT_EDGES, COLOR_GAIN_EDGES, COLOR_GAIN_OTHER, TV_WEIGHT_FREE, TV_WEIGHT_VGG
 from . import stylize as _stylize      # (stylize_run looked up at call time: tests replace it)
 from .stylize import StylizeOptions, _say
 
