@@ -30,7 +30,6 @@ import statistics
 import sys
 import time
 from pathlib import Path
-from types import SimpleNamespace
 
 import torch
 
@@ -174,12 +173,14 @@ def launch_paths(device: torch.device, launches: int) -> list[dict]:
             *L.arr(outs[0], 2), *L.arr(outs[1]), *L.arr(outs[2], 3), *L.arr(outs[3]), *L.arr(outs[4], 2),
             *L.arr(outs[5]), *L.arr(outs[6]), *L.arr(outs[7], 6), 0]
 
+    from ssgwarp.raster import private_api as P
+
     kern = projection.projection_kernel(wp.float32, *cfg["variant"])
     tg = L.target(params[0])
     stream = L._stream(tg)
 
     def warp_args():  # (the flat list as Warp's own arguments, the way ssgwarp's fall-back builds them)
-        return L._Plan.unflatten(SimpleNamespace(kernel=kern), flat())
+        return P.warp_args(kern, flat(), tg.device)
 
     def via_wp_launch():
         wp.launch(kern, dim=(C, N), inputs=warp_args(), device=tg.device, stream=stream, record_tape=False)
