@@ -88,7 +88,7 @@ def check_kernels_package() -> None:
     if Path(origin).resolve().parent == ours:
         raise InputError(f"the source checkout's folder {ours} hides the `kernels` package that transformers "
                          f"imports (the checkout's root {ours.parent} is on sys.path): run the installed `ssgwarp` "
-                         "command, or run python from another folder")
+                         "command (under torchrun: --no-python ssgwarp ...), or run python from another folder")
 
 
 # -- where the ecosystem keeps its files -----------------------------------------------------------
