@@ -49,7 +49,8 @@ def worker(a) -> int:
 
     from ssgwarp.services import distributed
     from ssgwarp.capture.datasets import load_dataset
-    from ssgwarp.reconstruction.reconstruct import Recipe, Trainer
+    from ssgwarp.reconstruction.recipe import Recipe
+    from ssgwarp.reconstruction.trainer import Trainer
 
     group, device = distributed.from_env(a.device)
     try:

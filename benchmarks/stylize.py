@@ -56,7 +56,7 @@ import torch
 
 from harness import ROOT, data_root, machine, style_paths
 
-from ssgwarp.services.features import EXTRACTOR_KINDS
+from ssgwarp.evaluation.features import EXTRACTOR_KINDS
 
 DATA = data_root()
 STAGE2_DOC = """Seconds per stage of `ssgwarp stylize` on fern images_4 (1008x756), in total and per Stage 2 mode.
@@ -129,7 +129,7 @@ def stage2_config(args, **over):
     its fields), then ``over``."""
     import dataclasses
 
-    from ssgwarp.stylization.stylize import Stage2Config
+    from ssgwarp.stylization.stage2 import Stage2Config
 
     kw = {f.name: getattr(args, f.name) for f in dataclasses.fields(Stage2Config)
           if getattr(args, f.name, None) is not None}
@@ -172,7 +172,7 @@ def add_halves(rows: list[dict], styles: list[Path], run: Path, results: Path) -
     computed once and kept in the style's ``result.json`` (in ``results``, ``OUT/<scene>/styles``)."""
     from ssgwarp.core.cameras import Cameras
     from ssgwarp.core.fileio import read_image, write_json
-    from ssgwarp.evaluation.metrics import StyleDistance
+    from ssgwarp.evaluation.style_distance import StyleDistance
 
     cams = Cameras.load(run / "cameras.json")
     by_name = {s.stem: s for s in styles}
@@ -259,7 +259,7 @@ def sheet(path: Path, run: Path, results_dir: Path, styles: list[Path], device) 
     from ssgwarp.core.fileio import atomic_path, read_image
     from ssgwarp.formats.ply import read_ply
     from ssgwarp.services.runs import Run
-    from ssgwarp.stylization.stylize import render_rgb
+    from ssgwarp.stylization.stage2 import render_rgb
 
     done = [s for s in styles if (results_dir / s.stem / "scene.ply").is_file()]
     if not done:
@@ -575,7 +575,8 @@ def stage2_main(argv=None) -> int:
     args = p.parse_args(argv)
 
     from ssgwarp.cli import main as cli, resolve_device
-    from ssgwarp.stylization.stylize import Stage2Config, StylizeOptions, stylize_run
+    from ssgwarp.stylization.stage2 import Stage2Config
+    from ssgwarp.stylization.stylize import StylizeOptions, stylize_run
 
     device = resolve_device(args.device)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -602,7 +603,7 @@ def stage2_main(argv=None) -> int:
     if args.random_stage1:
         sys.path.insert(0, str(ROOT / "tests"))   # fakeweights: random-weight Stage 1 models
         from fakeweights import random_stage1_components
-        from ssgwarp.stylization.diffusion import Stage1Config, assemble_stage1
+        from ssgwarp.stylization.diffusion_models import Stage1Config, assemble_stage1
 
         t0 = time.perf_counter()
         dtype = torch.float16 if device.type == "cuda" else torch.float32
@@ -691,7 +692,8 @@ def score(scene, cams, bg, opts, style_distance, alpha0=None) -> dict:
     """Consistency, error concentration and texture per scale of ``scene``'s renders; the texture is taken over
     the pixels where ``alpha0`` (the unpainted scene's alpha; default: these renders') is at least 0.5."""
     from ssgwarp.evaluation import metrics as M
-    from ssgwarp.evaluation.evaluate import consistency, render_views
+    from ssgwarp.evaluation.evaluate import consistency
+    from ssgwarp.raster.rendering import render_views
 
     rgb, depth, alpha = render_views(scene, cams, bg)
     alpha0 = alpha if alpha0 is None else alpha0
@@ -848,11 +850,13 @@ def bound(args, counts: list[int], styles: list[Path]) -> int:
     from ssgwarp.cli import resolve_device
     from ssgwarp.core.fileio import read_image, write_json
     from ssgwarp.core.imaging import fit_style
-    from ssgwarp.evaluation.evaluate import EvalOptions, inspect_run, render_views, scored_cameras
+    from ssgwarp.evaluation.evaluate import EvalOptions, inspect_run, scored_cameras
+    from ssgwarp.raster.rendering import render_views
     from ssgwarp.evaluation.style_distance import StyleDistance
-    from ssgwarp.services.color import transfer_colors
-    from ssgwarp.services.features import load_extractor
-    from ssgwarp.stylization.stage2 import Stage2Config, build_targets, extract, resolve_for, tv_loss
+    from ssgwarp.stylization.color import transfer_colors
+    from ssgwarp.evaluation.features import load_extractor
+    from ssgwarp.stylization.feature_defaults import resolve_for
+    from ssgwarp.stylization.stage2 import Stage2Config, build_targets, extract, tv_loss
     device = resolve_device(args.device)
     torch.manual_seed(args.seed)
     scene, data = inspect_run(args.run).load(device, load_images=False)

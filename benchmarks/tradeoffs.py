@@ -233,7 +233,8 @@ def _procedural_style(path: Path, size: int = 64) -> Path:
 def stylize_study(run_dir: Path, style: Path, out: Path, device: torch.device, iters: int,
                   keyviews=(2, 4, 8), scales=(0.25, 0.5, 1.0), max_side: int = 256) -> list[dict]:
     try:
-        from ssgwarp.stylization.stylize import Stage2Config, StylizeOptions, stylize_run
+        from ssgwarp.stylization.stage2 import Stage2Config
+        from ssgwarp.stylization.stylize import StylizeOptions, stylize_run
     except ImportError as e:
         return [{"knob": "stylize", "value": "-", "skipped": f"ssgwarp.stylization.stylize not available ({e})"}]
     rows = []

@@ -53,7 +53,9 @@ from harness import (CAPTURES, ROOT, append_jsonl, capture_folder, cuda_kernel_m
 from ssgwarp.capture.datasets import load_dataset
 from ssgwarp.errors import InputError
 from ssgwarp.core.fileio import write_json
-from ssgwarp.reconstruction.reconstruct import Recipe, Trainer, render_views
+from ssgwarp.raster.rendering import render as render_views
+from ssgwarp.reconstruction.recipe import Recipe
+from ssgwarp.reconstruction.trainer import Trainer
 from ssgwarp.reconstruction.strategy import DefaultStrategy, MCMCStrategy, Strategy
 
 RUNS_DOC = """Whole training runs: our 3DGS loop with either rasterizer and each densification strategy.

@@ -16,6 +16,7 @@
 - :mod:`.validate`: input value checks in one pass.
 - :mod:`.ssim`: the 3DGS photometric loss (L1 + D-SSIM) fused, with its hand-written backward.
 - :mod:`.stats`: the densification statistics of a render, accumulated per Gaussian.
+- :mod:`.probe`: a small kernel the launch layer's self-test runs both ways (ssgwarp/raster/private_api.py).
 
 Every kernel family is built by a factory for one scalar type (``wp.float32``
 or ``wp.float64``), so the same source serves both precisions. The projection's and

@@ -17,7 +17,7 @@ import importlib as _importlib
 from .errors import InputError, SsgwarpError, WeightsNotFound
 
 # public name -> the module that defines it
-_LAZY = {"rasterization": "ssgwarp.raster.rasterize", "RasterSettings": "ssgwarp.raster.rasterize",
+_LAZY = {"rasterization": "ssgwarp.raster.rasterize", "RasterSettings": "ssgwarp.raster.settings",
          "GaussianScene": "ssgwarp.raster.scene", "Cameras": "ssgwarp.core.cameras"}
 
 __all__ = ["rasterization", "RasterSettings", "GaussianScene", "Cameras",

@@ -35,7 +35,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
               "ssgwarp group runs/fern [--masks runs/fern/object_mask] [--groups 8]"),
     "keyviews": ("ssgwarp.stylization.keyviews", "choose key views and render their RGB, depth and group maps",
                  "ssgwarp keyviews runs/fern --keyviews 4 --out runs/fern/keyviews"),
-    "stylize": ("ssgwarp.stylization.stylize_cli", "key views, Stage 1 (diffusion + CVSA) and Stage 2 (instance-level style transfer)",
+    "stylize": ("ssgwarp.from_splats", "key views, Stage 1 (diffusion + CVSA) and Stage 2 (instance-level style transfer)",
                 "ssgwarp stylize runs/fern --style style.jpg --out runs/fern-styled"),
     "evaluate": ("ssgwarp.evaluation.evaluate", "consistency and style/content metrics of one or more runs",
                  "ssgwarp evaluate runs/fern-styled runs/fern-global"),

@@ -38,19 +38,25 @@ import torch
 from . import procedural as P
 from .services import weights as W
 from .capture.datasets import load_dataset
-from .stylization.diffusion import WEIGHT_KEYS
+from .stylization.diffusion_models import WEIGHT_KEYS
 from .errors import InputError
-from .evaluation.evaluate import EvalOptions, comparison_table, evaluate_run, load_models
+from .evaluation.evaluate import EvalOptions, evaluate_run, load_models
+from .evaluation.table import comparison_table
 from .core.fileio import atomic_path, read_image, read_json, write_image, write_json
 from .grouping.joint import reconstruct_with_groups
-from .grouping.stage import GroupConfig, group_scene, load_groups, render_group_maps
+from .grouping.stage import group_scene
+from .grouping.model import GroupConfig
+from .raster.groups import load_groups
+from .raster.groups import render_group_maps
 from .grouping.segment import make_masks
 from .core.palette import colorize_labels
 from .formats.ply import read_ply
 from .procedural import SIZES
-from .reconstruction.reconstruct import Recipe, reconstruct
+from .reconstruction.reconstruct import reconstruct
+from .reconstruction.recipe import Recipe
 from .services.runs import Run, claim
-from .stylization.stylize import Stage2Config, StylizeOptions, stylize_run
+from .stylization.stylize import StylizeOptions, stylize_run
+from .stylization.stage2 import Stage2Config
 
 OUTPUTS = ("demo.json", "data", "style.png", "scene", "stylized", "evaluation.md", "contact_sheet.png",
            "summary.json")

@@ -38,7 +38,8 @@ def make_trainer(data_dir, *, batch_size: int = 2, group=None, steps: int = 12, 
     """Default strategy refining every 4 steps (clone, split, prune, an opacity reset), SH degree 1,
     identity encodings trained by a :class:`HeadHook`."""
     from ssgwarp.capture.datasets import load_dataset
-    from ssgwarp.reconstruction.reconstruct import Recipe, Trainer
+    from ssgwarp.reconstruction.recipe import Recipe
+    from ssgwarp.reconstruction.trainer import Trainer
 
     data = load_dataset(data_dir, split_every=0)
     rec = Recipe(refine_start=4, refine_every=4, reset_every=8, sh_interval=4, grad_threshold=2e-5,

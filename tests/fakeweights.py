@@ -206,7 +206,7 @@ def save_tiny_sam(path: str | os.PathLike, seed: int = 0) -> Path:
 
 def vgg16_state(upto: str = "relu3_3", seed: int = 0) -> dict[str, torch.Tensor]:
     """A random torchvision VGG16 state dict (``features.N.weight/bias``, the real shapes) up to layer ``upto``."""
-    from ssgwarp.services.features import VGG16Features
+    from ssgwarp.evaluation.features import VGG16Features
 
     torch.manual_seed(seed)
     return {f"features.{k}": v for k, v in VGG16Features(layers=[upto]).features.state_dict().items()}
@@ -251,27 +251,27 @@ def _tree(folder: Path, prefix: str = "") -> dict[str, Path]:
 def fake_hf_cache(cache: str | os.PathLike, saved: Mapping[str, Path], sam: Optional[Path] = None) -> Path:
     """The Stage 1 folders of :func:`save_stage1` (and a SAM folder) as Hugging Face cache entries
     of the public repos (``stable-diffusion-v1-5/stable-diffusion-v1-5``, ...). Returns ``cache``."""
-    from ssgwarp.services import weights as W
+    from ssgwarp.services.weight_specs import SPECS
 
     cache = Path(cache)
-    hf_cache_entry(cache, W.SPECS["sd15"].repo, _tree(saved["sd15"]))
-    hf_cache_entry(cache, W.SPECS["controlnet_depth"].repo, _tree(saved["controlnet_depth"]))
+    hf_cache_entry(cache, SPECS["sd15"].repo, _tree(saved["sd15"]))
+    hf_cache_entry(cache, SPECS["controlnet_depth"].repo, _tree(saved["controlnet_depth"]))
     hf_cache_entry(cache, "h94/IP-Adapter", {"models/ip-adapter_sd15.safetensors": saved["ip_adapter"],
                                             **_tree(saved["image_encoder"], "models/image_encoder/")})
     if sam is not None:
-        hf_cache_entry(cache, W.SPECS["sam"].repo, _tree(sam))
+        hf_cache_entry(cache, SPECS["sam"].repo, _tree(sam))
     return cache
 
 
 def fake_torch_hub(torch_home: str | os.PathLike, vgg: Optional[dict] = None, raft: Optional[dict] = None) -> Path:
     """State dicts saved as torchvision names them in ``TORCH_HOME/hub/checkpoints``; returns that folder."""
-    from ssgwarp.services import weights as W
+    from ssgwarp.services.weight_specs import SPECS
 
     ck = Path(torch_home) / "hub" / "checkpoints"
     ck.mkdir(parents=True, exist_ok=True)
     for key, state in (("vgg16", vgg), ("raft", raft)):
         if state is not None:
-            torch.save(state, ck / W.SPECS[key].filename)
+            torch.save(state, ck / SPECS[key].filename)
     return ck
 
 

@@ -80,7 +80,7 @@ def test_half_style_references_are_computed_once_and_kept_with_the_result(tmp_pa
 
     from ssgwarp.core.cameras import Cameras
     from ssgwarp.core.fileio import write_image, write_json
-    from ssgwarp.evaluation.metrics import StyleDistance
+    from ssgwarp.evaluation.style_distance import StyleDistance
 
     run = tmp_path / "run"
     run.mkdir()
@@ -102,7 +102,7 @@ def test_half_style_references_are_computed_once_and_kept_with_the_result(tmp_pa
 
 
 def test_stage2_config_takes_the_stage2_options_given_and_overrides():
-    from ssgwarp.stylization.stylize import Stage2Config
+    from ssgwarp.stylization.stage2 import Stage2Config
 
     args = argparse.Namespace(scene="demo", tag="x", iters=7, lr=None, mode="global", consistency_budget=1.6,
                               style_scale=None)

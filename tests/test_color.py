@@ -1,11 +1,12 @@
-"""Colour transfer (ssgwarp.services.color and stylize.transfer_colors): hand cases, SH linearity, per-group path and its fallback."""
+"""Colour transfer (ssgwarp.stylization.color and stylize.transfer_colors): hand cases, SH linearity, per-group path and its fallback."""
 from __future__ import annotations
 
 import pytest
 import torch
 
-from ssgwarp.services.color import (ColorStats, ColorTransform, fit_group_transforms, fit_transform, pixel_stats,
-                           rgb_to_lab, transform_sh)
+from ssgwarp.stylization.color import ColorStats, ColorTransform, fit_group_transforms, fit_transform, pixel_stats, transform_sh
+from ssgwarp.stylization.color import transfer_colors
+from ssgwarp.core.imaging import rgb_to_lab
 from ssgwarp.raster.scene import GaussianScene, sh_dc_to_rgb
 
 
@@ -116,7 +117,7 @@ def test_transfer_colors_on_a_rendered_scene_per_group_and_global():
     labels = object_labels(scene, obj, cams)                 # 0, 1 objects, 2 background
     # global: against a style image of warm colours (no colour is pushed below 0, where renders clamp)
     style = _cloud(400, [0.6, 0.5, 0.4], [[0.04, 0, 0], [0.02, 0.03, 0], [0.0, 0.01, 0.03]], 5).reshape(1, 20, 20, 3)
-    out, info = st.transfer_colors(scene, cams, style, max_gain=4.0)     # a cap that this map stays under
+    out, info = transfer_colors(scene, cams, style, max_gain=4.0)     # a cap that this map stays under
     assert float(sh_dc_to_rgb(out.sh_dc).min()) > 0
     assert info["per_group"] is False
     col, alpha, _ = out.render(cams)
@@ -127,7 +128,7 @@ def test_transfer_colors_on_a_rendered_scene_per_group_and_global():
     torch.testing.assert_close(stats.cov, target_stats.cov, atol=0.05 * float(target_stats.cov.diagonal().max()), rtol=0.05)
 
     # the default cap (Stage 2's --color-max-gain 1.3) limits the stretch of every colour direction
-    _, info_d = st.transfer_colors(scene, cams, style)
+    _, info_d = transfer_colors(scene, cams, style)
     gains = torch.linalg.eigvalsh(torch.tensor(info_d["transform"]["A"], dtype=torch.float64))
     assert float(gains.max()) == pytest.approx(1.3, abs=1e-5), gains      # this map wants more: capped
 
@@ -136,7 +137,7 @@ def test_transfer_colors_on_a_rendered_scene_per_group_and_global():
     tlab = torch.full(labels.shape[1:], 2)[None]
     target[0, :, :] = torch.tensor([0.9, 0.1, 0.1], dtype=torch.float64)
     tlab[0, labels[0] == 0] = 0                               # target view 0 shows object 0 only (as red)
-    out_g, info_g = st.transfer_colors(scene, cams[[0]], target, labels=labels[[0]], target_labels=tlab,
+    out_g, info_g = transfer_colors(scene, cams[[0]], target, labels=labels[[0]], target_labels=tlab,
                                        assign=obj, num_groups=2, max_gain=4.0)
     assert info_g["per_group"] and info_g["how"] == ["group", "global"]
     c0 = out_g.base_colors[obj == 0].mean(0)
@@ -154,7 +155,7 @@ def test_transfer_background_makes_the_colour_map_exact_on_every_pixel():
     affine in colour); over the capture's background the outline and the background are not."""
     from test_stylize import object_labels, ring, two_objects
 
-    from ssgwarp.services.color import transfer_background
+    from ssgwarp.stylization.color import transfer_background
     from ssgwarp.stylization import stylize as st
 
     scene, obj = two_objects(n=80, dtype=torch.float64)
@@ -162,7 +163,7 @@ def test_transfer_background_makes_the_colour_map_exact_on_every_pixel():
     white = torch.ones(3, dtype=torch.float64)
     # a dark style with little colour spread, no stretch: white maps inside [0, 1] (no clamp)
     style = _cloud(400, [0.25, 0.2, 0.3], [[0.05, 0, 0], [0.02, 0.04, 0], [0.0, 0.01, 0.05]], 6).reshape(1, 20, 20, 3)
-    out, info = st.transfer_colors(scene, cams, style, max_gain=1.0)
+    out, info = transfer_colors(scene, cams, style, max_gain=1.0)
     bg = transfer_background([1.0, 1.0, 1.0], info)
     t = ColorTransform(torch.tensor(info["transform"]["A"], dtype=torch.float64),
                        torch.tensor(info["transform"]["b"], dtype=torch.float64))
@@ -179,13 +180,13 @@ def test_transfer_background_makes_the_colour_map_exact_on_every_pixel():
 
     # a map taking white above 1 is clamped into [0, 1]; per group, the global map of the record is used
     light = _cloud(400, [0.9, 0.85, 0.8], [[0.05, 0, 0], [0, 0.05, 0], [0, 0, 0.05]], 7).reshape(1, 20, 20, 3)
-    _, info_l = st.transfer_colors(scene, cams, light, max_gain=4.0)
+    _, info_l = transfer_colors(scene, cams, light, max_gain=4.0)
     glob = ColorTransform(torch.tensor(info_l["transform"]["A"], dtype=torch.float64),
                           torch.tensor(info_l["transform"]["b"], dtype=torch.float64))
     assert float(glob(white).max()) > 1.0
     assert transfer_background([1.0, 1.0, 1.0], info_l) == [min(1.0, float(v)) for v in glob(white)]
     labels = object_labels(scene, obj, cams)
-    _, info_g = st.transfer_colors(scene, cams, style, labels=labels, target_labels=torch.zeros(1, 20, 20).long(),
+    _, info_g = transfer_colors(scene, cams, style, labels=labels, target_labels=torch.zeros(1, 20, 20).long(),
                                    assign=obj, num_groups=2, max_gain=1.0)
     assert info_g["per_group"] and "transform" not in info_g
     assert transfer_background([1.0, 1.0, 1.0], info_g) == pytest.approx(bg, abs=1e-9)   # the same global map
@@ -197,7 +198,7 @@ def test_texture_bands_hand_cases():
     have a closed form at the finest band and almost nothing at the coarser ones."""
     import math
 
-    from ssgwarp.services.color import texture_bands
+    from ssgwarp.stylization.color import texture_bands
 
     img = torch.zeros(1, 24, 24, 3, dtype=torch.float64)
     img[:, :, 1::2] = 1.0                                       # columns alternate black (L* 0) and white (100)
@@ -224,7 +225,7 @@ def test_texture_bands_hand_cases():
 def test_texture_bands_by_chunks_and_the_view_sample():
     """Views taken a few at a time give the bands of all at once (the RMS of every counted pixel);
     ``detail_views`` keeps every view of a small capture and an even spread of a large one."""
-    from ssgwarp.services.color import DETAIL_VIEWS, detail_views, texture_bands
+    from ssgwarp.stylization.color import DETAIL_VIEWS, detail_views, texture_bands
 
     g = torch.Generator().manual_seed(7)
     imgs = torch.rand(7, 20, 24, 3, generator=g, dtype=torch.float64)
@@ -240,7 +241,7 @@ def test_texture_bands_by_chunks_and_the_view_sample():
 
 
 def test_stretch_lightness_scales_luminance_about_the_center_and_keeps_chroma():
-    from ssgwarp.services.color import LUMA
+    from ssgwarp.stylization.color import LUMA
 
     g = torch.Generator().manual_seed(1)
     A = torch.randn(3, 3, generator=g, dtype=torch.float64) * 0.3 + torch.eye(3, dtype=torch.float64)
@@ -269,7 +270,7 @@ def test_detail_gain_restores_texture_the_plain_map_flattens():
     """A scene whose lightness varies mostly at large scale, a style with more grain but less variance:
     the plain map shrinks the scene's grain below both; the stretch brings the finest band to
     min(style, scene), or to the reference's when one is given."""
-    from ssgwarp.services.color import detail_gain, texture_bands
+    from ssgwarp.stylization.color import detail_gain, texture_bands
 
     renders = _textured(2, 32, 32, 0, 0.5, 0.15, 0.02)        # strong layout, fine grain
     alphas = torch.ones(2, 32, 32, dtype=torch.float64)
@@ -303,7 +304,7 @@ def test_detail_gain_stops_where_a_coarser_band_would_pass_the_style():
     layout and texture at every scale, which the plain map flattens: stretching up to the fine target
     would push the coarse bands past the style's, so the stretch stops where the first band reaches the
     style's there."""
-    from ssgwarp.services.color import detail_gain, texture_bands
+    from ssgwarp.stylization.color import detail_gain, texture_bands
 
     g = torch.Generator().manual_seed(5)
     base = torch.randn(2, 1, 16, 16, generator=g, dtype=torch.float64)
@@ -333,7 +334,7 @@ def test_transfer_colors_keep_detail_on_a_rendered_scene():
     and the record and its description say what was done; without it nothing is stretched."""
     from test_stylize import ring, two_objects
 
-    from ssgwarp.services.color import describe_transfer, texture_bands
+    from ssgwarp.stylization.color import describe_transfer, texture_bands
     from ssgwarp.stylization import stylize as st
 
     from ssgwarp.raster.scene import rgb_to_sh_dc
@@ -348,8 +349,8 @@ def test_transfer_colors_keep_detail_on_a_rendered_scene():
     blotch = torch.nn.functional.interpolate(torch.randn(1, 1, 8, 12, generator=g, dtype=torch.float64),
                                              size=(32, 48), mode="bilinear", align_corners=False)[0, 0]
     style = style + 0.12 * blotch[None, :, :, None]
-    plain, info_p = st.transfer_colors(scene, cams, style, max_gain=4.0)
-    kept, info_k = st.transfer_colors(scene, cams, style, max_gain=4.0, keep_detail=True)
+    plain, info_p = transfer_colors(scene, cams, style, max_gain=4.0)
+    kept, info_k = transfer_colors(scene, cams, style, max_gain=4.0, keep_detail=True)
     assert "detail" not in info_p and "texture" not in describe_transfer(info_p, "the style")
     d = info_k["detail"]
     assert d["gain"] > 1.0 and "texture" in describe_transfer(info_k, "the style")
@@ -367,8 +368,8 @@ def test_transfer_colors_keep_detail_on_a_rendered_scene():
     torch.testing.assert_close(s_k[keep].mean(0), s_p[keep].mean(0), atol=2e-3, rtol=0)   # about the target mean
     # recolouring a scene that is already flatter than the capture (Stage 2's output, the `post` transfer):
     # with `capture`, the stretch is bounded by the capture's texture, not by the flattened scene's own
-    again, info_c = st.transfer_colors(plain, cams, style, max_gain=4.0, keep_detail=True, capture=scene)
-    own, info_o = st.transfer_colors(plain, cams, style, max_gain=4.0, keep_detail=True)
+    again, info_c = transfer_colors(plain, cams, style, max_gain=4.0, keep_detail=True, capture=scene)
+    own, info_o = transfer_colors(plain, cams, style, max_gain=4.0, keep_detail=True)
     c, o = info_c["detail"], info_o["detail"]
     assert c["reference"] == pytest.approx(d["scene"], rel=1e-3)         # the capture's bands
     assert o["reference"] == o["scene"] and o["scene"][0] < 0.9 * c["reference"][0]
@@ -380,7 +381,7 @@ def test_transfer_colors_measures_texture_on_the_view_sample(monkeypatch):
     scene's and the capture's alike)."""
     from test_stylize import ring, two_objects
 
-    import ssgwarp.services.color as color
+    import ssgwarp.stylization.color as color
 
     scene, _ = two_objects(n=60, dtype=torch.float64)
     cams = ring(n=3, dtype=torch.float64)
@@ -413,9 +414,9 @@ def test_transfer_colors_target_groups_give_each_group_the_region_assigned_to_it
     target[0, :, 10:] = torch.tensor([0.1, 0.2, 0.85], dtype=torch.float64)     # region 1: blue
     tlab[0, :, 10:] = 1
     kw = dict(labels=labels, target_labels=tlab, assign=obj, num_groups=2, max_gain=4.0)
-    swapped, info = st.transfer_colors(scene, cams, target, target_groups=[1, 0], **kw)
-    straight, _ = st.transfer_colors(scene, cams, target, **kw)
-    shared, _ = st.transfer_colors(scene, cams, target, target_groups=[1, 1], **kw)
+    swapped, info = transfer_colors(scene, cams, target, target_groups=[1, 0], **kw)
+    straight, _ = transfer_colors(scene, cams, target, **kw)
+    shared, _ = transfer_colors(scene, cams, target, target_groups=[1, 1], **kw)
     blue = lambda sc, k: float(sc.base_colors[obj == k].mean(0)[2] - sc.base_colors[obj == k].mean(0)[0])  # noqa: E731
     assert info["how"] == ["group", "group"]
     assert blue(swapped, 0) > 0.5 and blue(swapped, 1) < -0.5           # object 0 -> region 1 (blue), 1 -> red
@@ -426,7 +427,7 @@ def test_transfer_colors_target_groups_give_each_group_the_region_assigned_to_it
 def test_region_target_keeps_half_the_styles_spread_around_the_regions_mean():
     """A group that takes a flat region of the style keeps its shading: the region's mean, half the
     whole style's covariance (a flat region alone would map every Gaussian of the group onto one colour)."""
-    from ssgwarp.services.color import region_target
+    from ssgwarp.stylization.color import region_target
 
     whole = ColorStats().add(_cloud(500, [0.5, 0.4, 0.3], [[0.1, 0, 0], [0.02, 0.08, 0], [0, 0.01, 0.05]], 3))
     flat = ColorStats().add(torch.tensor([[0.2, 0.6, 0.9]], dtype=torch.float64).expand(50, 3))

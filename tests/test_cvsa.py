@@ -10,7 +10,7 @@ pytest.importorskip("diffusers")
 
 from fakeweights import random_stage1_components  # noqa: E402
 from ssgwarp.stylization.cvsa import CVSAProcessor, cvsa_enabled, cvsa_names, install_cvsa, remove_cvsa  # noqa: E402
-from ssgwarp.stylization.diffusion import assemble_stage1  # noqa: E402
+from ssgwarp.stylization.diffusion_models import assemble_stage1  # noqa: E402
 from ssgwarp.errors import InputError  # noqa: E402
 
 

@@ -121,7 +121,7 @@ def test_demo_runs_every_stage_and_prints_a_summary(demo):
 @pytest.mark.slow  # the demo fixture runs the default demo once per session
 def test_demo_outputs_follow_the_run_contract(demo):
     from ssgwarp.capture.datasets import load_dataset, load_run
-    from ssgwarp.grouping.stage import load_groups
+    from ssgwarp.raster.groups import load_groups
     from ssgwarp.formats.ply import read_ply
 
     out = demo[0]

@@ -11,9 +11,9 @@ pytest.importorskip("transformers")
 
 from ssgwarp.core.cameras import Cameras, intrinsics, look_at  # noqa: E402
 from fakeweights import random_stage1_components, save_stage1  # noqa: E402
-from ssgwarp.stylization.diffusion import (Stage1Config, assemble_stage1, ddim_denoise, ddim_invert, ddim_step,  # noqa: E402
-                               depth_to_control, encode_latents, load_stage1, save_sheet, schedule,
-                               set_ip_adapter_scales, stylize_keyviews, stylize_views)
+from ssgwarp.stylization.diffusion import ddim_denoise, ddim_invert, ddim_step, depth_to_control, encode_latents, schedule, stylize_keyviews, stylize_views
+from ssgwarp.stylization.diffusion_models import Stage1Config, assemble_stage1, load_stage1, set_ip_adapter_scales
+from ssgwarp.core.imaging import save_sheet
 from ssgwarp.errors import InputError, WeightsNotFound  # noqa: E402
 from ssgwarp.stylization.keyviews import KeyViews  # noqa: E402
 from ssgwarp.procedural import smooth_views  # noqa: E402
@@ -163,7 +163,7 @@ def test_load_stage1_from_local_folders(tmp_path, models, monkeypatch):
     torch.testing.assert_close(stylize_views(loaded, rgb, depth, style, cfg),
                                stylize_views(models, rgb, depth, style, cfg), atol=1e-5, rtol=1e-5)
     # the same folders found through the environment variables
-    from ssgwarp.stylization.diffusion import missing_weights
+    from ssgwarp.stylization.diffusion_models import missing_weights
     assert len(missing_weights(Stage1Config())) == 4
     for key, env in [("sd15", "SSGWARP_SD15"), ("controlnet_depth", "SSGWARP_CONTROLNET_DEPTH"),
                      ("ip_adapter", "SSGWARP_IP_ADAPTER"), ("image_encoder", "SSGWARP_IMAGE_ENCODER")]:

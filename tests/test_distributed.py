@@ -24,7 +24,10 @@ import torch
 
 from ssgwarp.services.distributed import Group
 from ssgwarp.errors import InputError
-from ssgwarp.reconstruction.reconstruct import Recipe, Trainer, batch_factors, read_checkpoint
+from ssgwarp.reconstruction.recipe import Recipe
+from ssgwarp.reconstruction.trainer import Trainer
+from ssgwarp.core.optim import batch_factors
+from ssgwarp.services.loop import read_checkpoint
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))

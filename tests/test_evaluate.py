@@ -155,7 +155,7 @@ def test_evaluate_scores_novel_path_views_by_default(runs, tmp_path):
 def test_evaluate_with_style_gives_lower_style_loss_to_matching_colours(runs, tmp_path):
     """The Gram loss ranks runs: a run recoloured towards the style's colours scores lower."""
     from ssgwarp.evaluation.evaluate import EvalOptions, evaluate_run
-    from ssgwarp.services.features import load_extractor
+    from ssgwarp.evaluation.features import load_extractor
     from ssgwarp.formats.ply import read_ply, write_ply
 
     recon, sty, style = runs
@@ -249,7 +249,7 @@ def test_evaluate_reproduces_the_numbers_stylize_reports(tmp_path, capsys):
 def test_style_scores_extractor_names_round_trip():
     from ssgwarp.errors import InputError, WeightsNotFound
     from ssgwarp.evaluation.metrics import extractor_from_name
-    from ssgwarp.services.features import PyramidPatches, RandomMultiScale, RandomStrokes
+    from ssgwarp.evaluation.features import PyramidPatches, RandomMultiScale, RandomStrokes
 
     made = [RandomMultiScale(**kw) for kw in ({}, {"seed": 3, "channels": 64, "stride": 4},
                                               {"edges": True, "scales": (2, 4, 8)})]
@@ -324,7 +324,7 @@ def test_style_scores_score_the_renders_as_shown():
     """A colour transfer can push renders above 1: the numbers are those of the clamped images (as saved and as
     evaluate renders them), so stylize's unclamped renders and evaluate's clamped ones give the same numbers."""
     from ssgwarp.evaluation.metrics import style_scores
-    from ssgwarp.services.features import RandomMultiScale
+    from ssgwarp.evaluation.features import RandomMultiScale
 
     g = torch.Generator().manual_seed(0)
     ext = RandomMultiScale(seed=0).freeze()

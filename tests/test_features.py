@@ -6,7 +6,7 @@ import torch
 import torch.nn.functional as F
 
 from ssgwarp.errors import InputError, WeightsNotFound
-from ssgwarp.services.features import (VGG16_LAYERS, RandomMultiScale, gram_loss, gram_matrix,
+from ssgwarp.evaluation.features import (VGG16_LAYERS, RandomMultiScale, gram_loss, gram_matrix,
                               load_extractor, resolve_layers, stack_features)
 
 
@@ -100,7 +100,7 @@ def test_random_extractor_deterministic_for_seed_and_differentiable():
 def test_edges_extractor_sees_edges_not_colour():
     """``edges=True`` (``--extractor random-edges``): first-layer filters with no mean over the window,
     norms kept, so every flat colour gives the same features, while an edge still responds."""
-    from ssgwarp.services.features import zero_mean_filters
+    from ssgwarp.evaluation.features import zero_mean_filters
 
     w = torch.randn(8, 3, 3, 3, generator=torch.Generator().manual_seed(0))
     z = zero_mean_filters(w)

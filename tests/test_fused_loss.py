@@ -228,7 +228,8 @@ def test_the_trainer_trains_with_the_fused_loss(monkeypatch):
     from ssgwarp.core.cameras import Cameras, intrinsics, look_at
     from ssgwarp.capture.datasets import SceneData
     from ssgwarp.raster.scene import GaussianScene
-    from ssgwarp.reconstruction.reconstruct import Recipe, Trainer
+    from ssgwarp.reconstruction.recipe import Recipe
+    from ssgwarp.reconstruction.trainer import Trainer
 
     calls = []
     real = losses.photometric_warp

@@ -135,7 +135,8 @@ def test_identity_channels_match_torch_reference(synth):
 # -- losses -----------------------------------------------------------------------------------------
 
 def test_mask_loss_and_3d_regulariser():
-    from ssgwarp.grouping.stage import knn_indices, make_classifier, mask_loss, regularizer_3d
+    from ssgwarp.core.geometry import knn_indices
+    from ssgwarp.grouping.model import make_classifier, mask_loss, regularizer_3d
 
     g = torch.Generator().manual_seed(0)
     logits = torch.randn(5, 7, 4, generator=g)
@@ -224,7 +225,8 @@ def _write_masks(folder: Path, labels: torch.Tensor, names, values=(0, 10, 20, 3
 def test_given_masks_heldout_accuracy(tmp_path, synth):
     """Masks at 2x resolution with sparse ids → group maps of held-out views >= 95% (best matching)."""
     from ssgwarp.cli import main
-    from ssgwarp.grouping.stage import gaussian_groups, load_groups, render_group_maps
+    from ssgwarp.raster.groups import load_groups
+    from ssgwarp.raster.groups import gaussian_groups, render_group_maps
     from ssgwarp.formats.ply import read_ply
 
     scene, oid, cams, gt = synth
@@ -256,7 +258,7 @@ def test_given_masks_heldout_accuracy(tmp_path, synth):
 
 def test_mask_validation_errors(tmp_path, synth):
     from ssgwarp.core.fileio import write_image
-    from ssgwarp.grouping.stage import load_masks
+    from ssgwarp.grouping.mask_files import load_masks
 
     scene, oid, cams, gt = synth
     names = [cams.names[i] for i in TRAIN]
@@ -289,7 +291,8 @@ def test_mask_validation_errors(tmp_path, synth):
 
 def test_mask_free_path_heldout_accuracy_and_outputs(tmp_path, synth):
     from ssgwarp.cli import main
-    from ssgwarp.grouping.stage import load_groups, render_group_maps
+    from ssgwarp.raster.groups import load_groups
+    from ssgwarp.raster.groups import render_group_maps
     from ssgwarp.formats.ply import read_ply
 
     scene, oid, cams, gt = synth
@@ -350,7 +353,8 @@ def test_cap_and_min_fraction():
 
 def test_deterministic_for_a_seed_and_resume_after_interrupt(tmp_path, synth, monkeypatch, fail_on_call):
     import ssgwarp.grouping.train as grouping  # (the training loop calls mask_loss there)
-    from ssgwarp.grouping.stage import GroupConfig, train_identities
+    from ssgwarp.grouping.model import GroupConfig
+    from ssgwarp.grouping.train import train_identities
     from ssgwarp.grouping.pseudomasks import pseudo_masks
 
     scene, oid, cams, gt = synth
@@ -386,7 +390,8 @@ def test_deterministic_for_a_seed_and_resume_after_interrupt(tmp_path, synth, mo
 def test_grouping_hook_trains_with_reconstruction(synth):
     rec = pytest.importorskip("ssgwarp.reconstruction.reconstruct")
     from ssgwarp.capture.datasets import SceneData
-    from ssgwarp.grouping.stage import GroupConfig, GroupingHook
+    from ssgwarp.grouping.model import GroupConfig
+    from ssgwarp.grouping.train import GroupingHook
 
     scene, oid, cams, gt = synth
     with torch.no_grad():
@@ -413,7 +418,9 @@ def test_joint_grouping_of_a_run(tmp_path, synth):
     """`group --joint`: the run's capture is reconstructed again with the grouping hook."""
     rec = pytest.importorskip("ssgwarp.reconstruction.reconstruct")
     from ssgwarp.core.fileio import write_image, write_json
-    from ssgwarp.grouping.stage import GroupConfig, group_scene, load_groups
+    from ssgwarp.grouping.stage import group_scene
+    from ssgwarp.grouping.model import GroupConfig
+    from ssgwarp.raster.groups import load_groups
     from ssgwarp.formats.ply import read_ply
 
     scene, oid, cams, gt = synth
@@ -443,8 +450,10 @@ def test_joint_grouping_of_a_run(tmp_path, synth):
 def test_mask_free_on_real_capture(shared_data):
     """A points-based scene of LLFF fern: more than one group, and group maps that agree across views."""
     from ssgwarp.capture.datasets import load_dataset
-    from ssgwarp.grouping.stage import (GroupConfig, neighbour_pairs, render_group_maps, reprojection_agreement,
-                                  train_identities)
+    from ssgwarp.grouping.model import GroupConfig
+    from ssgwarp.raster.groups import render_group_maps
+    from ssgwarp.grouping.agreement import neighbour_pairs, reprojection_agreement
+    from ssgwarp.grouping.train import train_identities
     from ssgwarp.grouping.pseudomasks import pseudo_masks
 
     data = load_dataset(shared_data / "llff_fern", images="images_8", width=48)

@@ -55,7 +55,8 @@ def _with_masks(tmp_path, capture):
 def _agreement(run, objects, num_objects):
     from ssgwarp.formats.ply import read_ply
     from ssgwarp.demo import group_agreement
-    from ssgwarp.grouping.stage import load_groups, render_group_maps
+    from ssgwarp.raster.groups import load_groups
+    from ssgwarp.raster.groups import render_group_maps
     from ssgwarp.services.runs import Run
 
     r = Run.open(run)
@@ -79,8 +80,9 @@ def test_given_masks_train_from_step_0_and_the_groups_follow_the_objects(tmp_pat
 
 def test_mask_free_groups_come_from_the_scene_and_stylize_reads_them(tmp_path, capture):
     from ssgwarp.core.fileio import write_image
-    from ssgwarp.grouping.stage import load_groups
-    from ssgwarp.stylization.stylize import Stage2Config, StylizeOptions, stylize_run
+    from ssgwarp.raster.groups import load_groups
+    from ssgwarp.stylization.stylize import StylizeOptions, stylize_run
+    from ssgwarp.stylization.stage2 import Stage2Config
 
     cap, objects, n_obj = capture
     run = tmp_path / "run"

@@ -13,7 +13,9 @@ import torch
 from ssgwarp.core.cameras import Cameras, intrinsics, look_at
 from ssgwarp.capture.datasets import SceneData
 from ssgwarp.services.losses import dssim, gaussian_window, photometric, ssim_map
-from ssgwarp.reconstruction.reconstruct import Recipe, Trainer, render_views
+from ssgwarp.raster.rendering import render as render_views
+from ssgwarp.reconstruction.recipe import Recipe
+from ssgwarp.reconstruction.trainer import Trainer
 from ssgwarp.raster.scene import GaussianScene
 
 
@@ -72,7 +74,7 @@ def test_photometric_loss_weights():
 
 
 def test_stage2_finetune_loss_is_the_3dgs_loss():
-    from ssgwarp.stylization.stylize import finetune_loss
+    from ssgwarp.stylization.stage2 import finetune_loss
 
     a, b = _images()
     want = 0.8 * (a - b).abs().mean() + 0.2 * (1.0 - _ssim(a, b))

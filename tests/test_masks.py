@@ -229,7 +229,7 @@ def _fake_hf_cache(hf_home: Path) -> Path:
     tiny random SamModel as facebook/sam-vit-base. Returns the snapshot folder."""
     from fakeweights import _tree, hf_cache_entry, save_tiny_sam
 
-    from ssgwarp.services.weights import SPECS
+    from ssgwarp.services.weight_specs import SPECS
 
     saved = save_tiny_sam(hf_home.parent / "tiny_sam", seed=0)
     return hf_cache_entry(hf_home / "hub", SPECS["sam"].repo, _tree(saved))
@@ -313,8 +313,9 @@ def test_masks_command_with_tiny_sam_from_hf_cache(truth, tmp_path, monkeypatch,
     code, _, err = _main([a if a != "6" else "5" for a in argv] + ["--resume"])
     assert code == 2 and "other settings" in err
     # joint training with the reconstruction takes them too
-    from ssgwarp.grouping.stage import GroupConfig, group_scene
-    from ssgwarp.reconstruction.reconstruct import Recipe
+    from ssgwarp.grouping.stage import group_scene
+    from ssgwarp.grouping.model import GroupConfig
+    from ssgwarp.reconstruction.recipe import Recipe
 
     info = group_scene(run, joint=True, config=GroupConfig(dim=8), progress=False,
                        reconstruct_kwargs={"iters": 6, "recipe": Recipe(init_max_points=300)})
@@ -359,7 +360,10 @@ def test_mask_free_groups_separate_the_demo_objects(truth, tmp_path):
     the captured colour lifted onto the Gaussians finds the five objects (each in a group of its own,
     purity >= 0.95 of the group maps against the true objects); on the Gaussians' own colours it does not."""
     from ssgwarp.demo import group_agreement
-    from ssgwarp.grouping.stage import GroupConfig, group_scene, load_groups, render_group_maps
+    from ssgwarp.grouping.stage import group_scene
+    from ssgwarp.grouping.model import GroupConfig
+    from ssgwarp.raster.groups import load_groups
+    from ssgwarp.raster.groups import render_group_maps
     from ssgwarp.formats.ply import read_ply
     from ssgwarp.grouping.pseudomasks import ClusterConfig, cluster_gaussians, render_label_masks
 

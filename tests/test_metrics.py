@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from ssgwarp.evaluation import metrics as M
+from ssgwarp.evaluation import networks as N
 from ssgwarp.errors import InputError, WeightsNotFound
 
 F_PX, W, H = 40.0, 32, 24
@@ -242,12 +243,12 @@ def test_reconstruction_quality():
 
 def test_lpips_loads_lpips_layout_and_is_a_distance(tmp_path):
     torch.manual_seed(0)
-    model = M.LPIPS()
+    model = N.LPIPS()
     vgg = {f"features.{k}": v for k, v in model.trunk.features.state_dict().items()}
-    lins = {f"lin{i}.model.1.weight": torch.rand(1, c, 1, 1) for i, c in enumerate(M.LPIPS_CHANNELS)}
+    lins = {f"lin{i}.model.1.weight": torch.rand(1, c, 1, 1) for i, c in enumerate(N.LPIPS_CHANNELS)}
     torch.save(vgg, tmp_path / "vgg16.pth")
     torch.save(lins, tmp_path / "lpips_vgg.pth")
-    lp = M.load_lpips(tmp_path / "lpips_vgg.pth", tmp_path / "vgg16.pth")
+    lp = N.load_lpips(tmp_path / "lpips_vgg.pth", tmp_path / "vgg16.pth")
     assert torch.equal(lp.lins[3].weight, lins["lin3.model.1.weight"])
     x = torch.rand(2, 3, 32, 32)
     y = (x + 0.2 * torch.randn_like(x)).clamp(0, 1)
@@ -265,7 +266,7 @@ def test_raft_large_matches_torchvision_layout_and_loads(tmp_path, monkeypatch):
     for var in ("SSGWARP_RAFT", "SSGWARP_WEIGHTS"):
         monkeypatch.delenv(var, raising=False)
     torch.manual_seed(0)
-    model = M.RAFTLarge()
+    model = N.RAFTLarge()
     # torchvision documents raft_large as 5,257,536 parameters
     assert sum(p.numel() for p in model.parameters()) == 5_257_536
     sd = model.state_dict()
@@ -275,17 +276,17 @@ def test_raft_large_matches_torchvision_layout_and_loads(tmp_path, monkeypatch):
     assert "context_encoder.layer2.0.downsample.1.running_var" in sd
     assert "feature_encoder.convnormrelu.1.weight" not in sd  # instance norm without affine parameters
     with pytest.raises(WeightsNotFound):
-        M.load_raft(None)
+        N.load_raft(None)
     torch.save(sd, tmp_path / "raft_large.pth")
-    loaded = M.load_raft(tmp_path / "raft_large.pth")
+    loaded = N.load_raft(tmp_path / "raft_large.pth")
     a, b = torch.rand(36, 44, 3), torch.rand(36, 44, 3)   # not multiples of 8: padded inside
-    f1 = M.estimate_flow(loaded, a, b, iters=2)
+    f1 = N.estimate_flow(loaded, a, b, iters=2)
     assert f1.shape == (36, 44, 2) and torch.isfinite(f1).all()
     model.eval()
-    f2 = M.estimate_flow(model, a, b, iters=2)
+    f2 = N.estimate_flow(model, a, b, iters=2)
     assert torch.allclose(f1, f2, atol=1e-5)
     bad = dict(sd)
     bad.pop("mask_predictor.conv.bias")
     torch.save(bad, tmp_path / "bad.pth")
     with pytest.raises(InputError, match="raft_large"):
-        M.load_raft(tmp_path / "bad.pth")
+        N.load_raft(tmp_path / "bad.pth")

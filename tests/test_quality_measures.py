@@ -11,6 +11,7 @@ import torch
 import torch.nn.functional as F
 
 from ssgwarp.evaluation import metrics as M
+from ssgwarp.evaluation import networks as N
 from ssgwarp.services.losses import psnr, ssim
 
 C1, C2 = 0.01 ** 2, 0.03 ** 2       # SSIM's stabilisers for images in [0, 1] (K1 = 0.01, K2 = 0.03)
@@ -86,14 +87,14 @@ def test_lpips_value_follows_its_definition(tmp_path):
     (-0.030, -0.088, -0.188) and scaled by (0.458, 0.448, 0.450); features unit-normalised along
     channels; squared difference weighted per channel by the head, averaged over space, summed."""
     torch.manual_seed(0)
-    vgg = {f"features.{k}": v for k, v in M.LPIPS().trunk.features.state_dict().items()}
+    vgg = {f"features.{k}": v for k, v in N.LPIPS().trunk.features.state_dict().items()}
     g = torch.Generator().manual_seed(1)
     w0, w1 = torch.rand(1, 64, 1, 1, generator=g), torch.rand(1, 128, 1, 1, generator=g)
     lins = {"lin0.model.1.weight": w0, "lin1.model.1.weight": w1}
-    lins.update({f"lin{i}.model.1.weight": torch.zeros(1, c, 1, 1) for i, c in enumerate(M.LPIPS_CHANNELS) if i > 1})
+    lins.update({f"lin{i}.model.1.weight": torch.zeros(1, c, 1, 1) for i, c in enumerate(N.LPIPS_CHANNELS) if i > 1})
     torch.save(vgg, tmp_path / "vgg16.pth")
     torch.save(lins, tmp_path / "lpips_vgg.pth")
-    lp = M.load_lpips(tmp_path / "lpips_vgg.pth", tmp_path / "vgg16.pth")
+    lp = N.load_lpips(tmp_path / "lpips_vgg.pth", tmp_path / "vgg16.pth")
     x = torch.rand(2, 3, 24, 20, generator=g)
     y = (x + 0.2 * torch.randn(x.shape, generator=g)).clamp(0, 1)
     shift = torch.tensor([-0.030, -0.088, -0.188]).view(1, 3, 1, 1)

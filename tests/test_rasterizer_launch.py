@@ -217,7 +217,7 @@ def test_cuda_float64_matches_reference(sh):
 def test_tile_size_default_per_device():
     """Without ``tile_size`` the CPU uses 8 (measured faster than gsplat's 16 there), CUDA keeps 16;
     under the default rules the image is the same at both."""
-    from ssgwarp.raster.rasterize import DEFAULT_TILE_SIZE
+    from ssgwarp.raster.settings import DEFAULT_TILE_SIZE
 
     assert DEFAULT_TILE_SIZE == {"cuda": 16, "cpu": 8}
     params = make_scene(120, dtype=torch.float32, seed=7)

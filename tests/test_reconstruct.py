@@ -15,7 +15,8 @@ import torch
 from ssgwarp.core.cameras import Cameras, intrinsics, look_at
 from ssgwarp.capture.datasets import SceneData, load_dataset, load_run
 from ssgwarp.errors import InputError, SsgwarpError
-from ssgwarp.reconstruction.reconstruct import Recipe, Trainer
+from ssgwarp.reconstruction.recipe import Recipe
+from ssgwarp.reconstruction.trainer import Trainer
 from ssgwarp.raster.scene import GaussianScene
 
 from conftest import SHARED_DATA as DATA
@@ -341,7 +342,7 @@ def test_initial_gaussians_from_a_dense_random_cloud_are_narrower():
     the cloud kept at that of 2000 points); a reconstructed cloud keeps the 3DGS start."""
     from dataclasses import replace
 
-    from ssgwarp.raster.scene import knn_mean_distance
+    from ssgwarp.core.geometry import knn_mean_distance
 
     g = torch.Generator().manual_seed(0)
     xyz, rgb = torch.randn(4000, 3, generator=g), torch.rand(4000, 3, generator=g)

@@ -15,7 +15,7 @@ from ssgwarp.raster.rendering import render
 from ssgwarp.reconstruction.recipe import Recipe
 from ssgwarp.reconstruction.schedules import (AUTO_MAX_ITERS, Pyramid, StopMonitor, check_views,
                                               level_size, plateaued, resolution_factor, resolution_levels, tail_lr)
-from ssgwarp.reconstruction.strategy import accumulate_grad2d
+from ssgwarp.reconstruction.statistics import accumulate_grad2d
 from ssgwarp.reconstruction.trainer import Trainer
 from ssgwarp.services.losses import photometric, psnr
 

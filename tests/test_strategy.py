@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from ssgwarp.core.cameras import Cameras, intrinsics, look_at
-from ssgwarp.reconstruction.reconstruct import Recipe
+from ssgwarp.reconstruction.recipe import Recipe
 from ssgwarp.raster.scene import GaussianScene
-from ssgwarp.reconstruction.strategy import (REFERENCE_ITERS, REFINE_EPOCHS, DefaultStrategy, GaussianParams, MCMCStrategy, Schedule,
-                              accumulate_grad2d, make_strategy, relocation, scaled_schedule)
+from ssgwarp.reconstruction.strategy import REFERENCE_ITERS, REFINE_EPOCHS, DefaultStrategy, GaussianParams, MCMCStrategy, Schedule, make_strategy, relocation, scaled_schedule
+from ssgwarp.reconstruction.statistics import accumulate_grad2d
 from ssgwarp.errors import InputError
 
 NAMES = ("means", "log_scales", "quats", "logit_opacities", "sh_dc", "sh_rest", "identities")

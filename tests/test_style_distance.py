@@ -6,8 +6,8 @@ import math
 import pytest
 import torch
 
-from ssgwarp.evaluation.metrics import (StyleDistance, empty_spread, filter_responses, projections, sliced_wasserstein,
-                             style_scores, texture_levels, wasserstein_1d_sorted)
+from ssgwarp.evaluation.metrics import empty_spread, style_scores
+from ssgwarp.evaluation.style_distance import StyleDistance, filter_responses, projections, sliced_wasserstein, texture_levels, wasserstein_1d_sorted
 
 
 def _image(seed: int, h: int = 48, w: int = 64) -> torch.Tensor:

@@ -7,9 +7,10 @@ import torch
 import torch.nn.functional as F
 
 from ssgwarp.stylization import stylize as st
+from ssgwarp.stylization import color as stylize_color, feature_defaults as fd, stage2 as s2
 from ssgwarp.core.cameras import Cameras, intrinsics, look_at
 from ssgwarp.errors import InputError
-from ssgwarp.services.features import RandomMultiScale
+from ssgwarp.evaluation.features import RandomMultiScale
 from ssgwarp.stylization.matching import MatchTargets, downsample_labels, match_mask, nearest_neighbors, nnfm_loss
 from ssgwarp.raster.scene import GaussianScene, rgb_to_sh_dc
 
@@ -141,7 +142,7 @@ def test_deferred_backprop_equals_direct():
         means = scene.means.clone().requires_grad_(True)
         render = lambda c: st.render_rgb(scene.replace(sh_dc=dc, logit_opacities=op, means=means), c)  # noqa: E731
         fn = lambda img: loss(img, 1)  # noqa: E731
-        value = (st.deferred_backward if deferred else st.direct_backward)(render, cams[1], fn)
+        value = (s2.deferred_backward if deferred else s2.direct_backward)(render, cams[1], fn)
         return value, dc.grad, op.grad, means.grad
 
     direct, deferred = grads(False), grads(True)
@@ -395,7 +396,7 @@ def test_stylize_with_tiny_stage1_runs_ist_on_the_stylized_key_views(tmp_path, m
 
     pytest.importorskip("diffusers")
     from fakeweights import random_stage1_components
-    from ssgwarp.stylization.diffusion import Stage1Config, assemble_stage1
+    from ssgwarp.stylization.diffusion_models import Stage1Config, assemble_stage1
     from ssgwarp.stylization.keyviews import load_keyviews
 
     for var in ("SSGWARP_WEIGHTS", "SSGWARP_SD15"):
@@ -551,9 +552,10 @@ def test_default_zeroes_the_view_dependent_bands_and_lowers_the_consistency_erro
     between views is lower. Measured here (2026-11-23, CPU, 6 steps): short 0.0195 vs 0.0291
     (x0.67), long 0.0549 vs 0.0691 (x0.79); colour distance to the style 12.3 (unstylized 17.2).
     Asserted with about half of those margins."""
-    from ssgwarp.evaluation.evaluate import EvalOptions, consistency, render_views
+    from ssgwarp.evaluation.evaluate import EvalOptions, consistency
+    from ssgwarp.raster.rendering import render_views
     from ssgwarp.core.imaging import fit_style
-    from ssgwarp.evaluation.metrics import StyleDistance
+    from ssgwarp.evaluation.style_distance import StyleDistance
 
     assert st.Stage2Config().sh_rest == "zero"
     scene, _ = two_objects(n=50)
@@ -574,10 +576,10 @@ def test_default_zeroes_the_view_dependent_bands_and_lowers_the_consistency_erro
     out = {}
     for sh in ("keep", None):
         cfg = st.Stage2Config(mode="global", iters=6, lr=0.05, **({"sh_rest": sh} if sh else {}))
-        work, _ = st.transfer_colors(scene, cams, style[None], max_gain=st.resolve_for(cfg, ext).color_max_gain)
+        work, _ = stylize_color.transfer_colors(scene, cams, style[None], max_gain=st.resolve_for(cfg, ext).color_max_gain)
         targets = st.build_targets(ext, fit_style(style, 32, 48).permute(0, 2, 3, 1), None, cfg)
         res = st.optimise(work, cams, cfg, loss=st.ViewLoss(ext, targets, cfg), progress=False)
-        out[sh or "default"], _ = st.transfer_colors(res.scene, cams, style[None], max_gain=st.resolve_for(cfg, ext).color_max_gain)
+        out[sh or "default"], _ = stylize_color.transfer_colors(res.scene, cams, style[None], max_gain=st.resolve_for(cfg, ext).color_max_gain)
     assert float(out["default"].sh_rest.abs().max()) == 0.0 and float(out["keep"].sh_rest.abs().max()) > 0.1
     src, keep, default = score(scene), score(out["keep"]), score(out["default"])
     assert default[0] < 0.85 * keep[0] and default[1] < 0.9 * keep[1], (keep, default)
@@ -639,7 +641,7 @@ def test_style_scale_sizes_the_style_the_loss_and_the_colour_transfer_see(tmp_pa
 def test_content_loss_relative_is_the_feature_mse_over_the_references_mean_square():
     """One content loss: absolute for the metric, ``relative=True`` for Stage 2's term (so a weight
     means the same for every extractor): by hand on two layers."""
-    from ssgwarp.evaluation.metrics import content_loss
+    from ssgwarp.evaluation.features import content_loss
 
     f = [torch.full((2, 1, 2, 2), 3.0), torch.full((2, 4, 1, 1), 1.0)]
     r = [torch.full((2, 1, 2, 2), 1.0), torch.full((2, 4, 1, 1), 2.0)]
@@ -659,8 +661,8 @@ def test_tv_default_resolves_by_extractor_and_smooths_the_weight_free_renders():
     moves by < 1 % either way; on fern (H100, 25 styles) the worst ratio fell from 1.55x/1.63x to
     1.29x/1.36x (docs/notes/stylize-history.md). Asserted: half the TV margin, and still clearly closer to the style."""
     from ssgwarp.core.imaging import fit_style
-    from ssgwarp.evaluation.evaluate import render_views
-    from ssgwarp.evaluation.metrics import StyleDistance
+    from ssgwarp.raster.rendering import render_views
+    from ssgwarp.evaluation.style_distance import StyleDistance
     import argparse
 
     ext = RandomMultiScale(seed=0).freeze()
@@ -669,8 +671,8 @@ def test_tv_default_resolves_by_extractor_and_smooths_the_weight_free_renders():
         name = "vgg16:conv3"
 
     assert st.Stage2Config().tv_weight is None
-    assert st.tv_weight_for(st.Stage2Config(), ext) == st.TV_WEIGHT_FREE == 0.5
-    assert st.tv_weight_for(st.Stage2Config(), _Vgg()) == st.TV_WEIGHT_VGG == 0.02
+    assert st.tv_weight_for(st.Stage2Config(), ext) == fd.TV_WEIGHT_FREE == 0.5
+    assert st.tv_weight_for(st.Stage2Config(), _Vgg()) == fd.TV_WEIGHT_VGG == 0.02
     assert st.tv_weight_for(st.Stage2Config(tv_weight=0.0), ext) == 0.0
     from ssgwarp.stylization.stylize_cli import add_arguments
 
@@ -683,16 +685,16 @@ def test_tv_default_resolves_by_extractor_and_smooths_the_weight_free_renders():
     # the options left to the features: edge features -> spread 0.65, gain 1.0, texture kept; else 0, 1.3, off
     edges = RandomMultiScale(seed=0, edges=True, scales=(2, 4, 8)).freeze()
     r = st.resolve_for(st.Stage2Config(), edges)
-    assert (r.blend_weight, r.color_max_gain, r.color_detail) == (st.BLEND_WEIGHT_EDGES, st.COLOR_GAIN_EDGES, "keep")
-    assert (st.BLEND_WEIGHT_EDGES, st.COLOR_GAIN_EDGES) == (0.65, 1.0)
+    assert (r.blend_weight, r.color_max_gain, r.color_detail) == (fd.BLEND_WEIGHT_EDGES, fd.COLOR_GAIN_EDGES, "keep")
+    assert (fd.BLEND_WEIGHT_EDGES, fd.COLOR_GAIN_EDGES) == (0.65, 1.0)
     for other in (ext, _Vgg()):
         r = st.resolve_for(st.Stage2Config(), other)
-        assert (r.blend_weight, r.color_max_gain, r.color_detail) == (0.0, st.COLOR_GAIN_OTHER, "off")
+        assert (r.blend_weight, r.color_max_gain, r.color_detail) == (0.0, fd.COLOR_GAIN_OTHER, "off")
     for any_but_patches in (edges, ext, _Vgg()):
         assert st.resolve_for(st.Stage2Config(), any_but_patches).content_weight == 0.05
     mine = st.Stage2Config(content_weight=0.3, blend_weight=0.1, color_max_gain=2.0, color_detail="off")
     assert st.resolve_for(mine, edges) == mine                   # what is set stays set
-    assert st.ViewLoss(edges, None, st.Stage2Config()).cfg.blend_weight == st.BLEND_WEIGHT_EDGES
+    assert st.ViewLoss(edges, None, st.Stage2Config()).cfg.blend_weight == fd.BLEND_WEIGHT_EDGES
 
     scene, _ = two_objects(n=300)
     g = torch.Generator().manual_seed(1)
@@ -706,16 +708,16 @@ def test_tv_default_resolves_by_extractor_and_smooths_the_weight_free_renders():
     def score(sc):
         rgb, _, alpha = render_views(sc, cams, [0.0, 0.0, 0.0])
         d = dist.mean(rgb, alpha)
-        return float(sum(st.tv_loss(x) for x in rgb)) / len(rgb), float(d["color"]), float(d["texture"])
+        return float(sum(s2.tv_loss(x) for x in rgb)) / len(rgb), float(d["color"]), float(d["texture"])
 
     out = {}
     for tv in (0.02, None):
         cfg = st.Stage2Config(mode="global", iters=30, lr=0.3, tv_weight=tv)
-        work, _ = st.transfer_colors(scene, cams, style[None], max_gain=st.resolve_for(cfg, ext).color_max_gain)
+        work, _ = stylize_color.transfer_colors(scene, cams, style[None], max_gain=st.resolve_for(cfg, ext).color_max_gain)
         loss = st.ViewLoss(ext, st.build_targets(ext, fit_style(style, 32, 48).permute(0, 2, 3, 1), None, cfg), cfg)
         assert loss.tv_weight == (0.5 if tv is None else tv)
         res = st.optimise(work, cams, cfg, loss=loss, progress=False)
-        out[tv], _ = st.transfer_colors(res.scene, cams, style[None], max_gain=st.resolve_for(cfg, ext).color_max_gain)
+        out[tv], _ = stylize_color.transfer_colors(res.scene, cams, style[None], max_gain=st.resolve_for(cfg, ext).color_max_gain)
     src, prev, default = score(scene), score(out[0.02]), score(out[None])
     assert default[0] < 0.98 * prev[0], (prev, default)
     assert default[1] < 0.5 * src[1] and default[2] < src[2], (src, default)
@@ -730,7 +732,7 @@ def test_background_is_recoloured_with_the_scene_and_evaluated_on(tmp_path):
     docs/notes/stylize-history.md, "Why the demo's texture distance does not fall".)"""
     from ssgwarp.core.fileio import read_image, write_image
     from ssgwarp.evaluation.evaluate import EvalOptions, evaluate_run
-    from ssgwarp.services.color import transfer_background
+    from ssgwarp.stylization.color import transfer_background
     from ssgwarp.services.runs import Run
 
     assert st.Stage2Config().background == "transfer"
@@ -795,7 +797,7 @@ def test_random_strokes_features_see_far_and_ignore_flat_colour():
     """random-strokes: seeded (same filters for a seed), one output per branch and dilation, unit mean square
     per layer on noise; the deepest layer of the coarsest branch responds to a change ~40 px away (the
     shallow branches cannot), and a flat colour gives the same response everywhere in the first layer."""
-    from ssgwarp.services.features import RandomStrokes, load_extractor, stack_features
+    from ssgwarp.evaluation.features import RandomStrokes, load_extractor, stack_features
 
     a, b = RandomStrokes(seed=3).freeze(), RandomStrokes(seed=3).freeze()
     assert a.name == "random-strokes:seed3,c48s2p2-4d1-2-4-8" and len(a.strides) == 8
@@ -825,7 +827,7 @@ def test_patches_features_are_centred_windows_at_every_level():
     """patches: per level a pixel's feature is the normalised image's 5x5 window there (box-averaged for the
     coarser levels), each colour channel's window mean removed: a flat colour gives exact zeros, an edge
     gives the window's values; every level at full resolution; differentiable; the edge-feature defaults."""
-    from ssgwarp.services.features import IMAGENET_MEAN, IMAGENET_STD, PyramidPatches, load_extractor, stack_features
+    from ssgwarp.evaluation.features import IMAGENET_MEAN, IMAGENET_STD, PyramidPatches, load_extractor, stack_features
     from ssgwarp.stylization.feature_defaults import resolve_for
 
     ext = PyramidPatches().freeze()

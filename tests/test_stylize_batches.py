@@ -16,9 +16,10 @@ import pytest
 import torch
 
 import ssgwarp.stylization.stage2 as st
+from ssgwarp.stylization.batches import view_order
 from ssgwarp.errors import InputError
 from ssgwarp.services.distributed import Group
-from ssgwarp.services.features import RandomMultiScale
+from ssgwarp.evaluation.features import RandomMultiScale
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
@@ -46,7 +47,7 @@ def test_a_batch_is_the_mean_of_its_views_with_adam_adapted(tmp_path):
     scene, obj, cams, labels, keys, key_ids = _style_setup(n_views=5)
     ext = RandomMultiScale(seed=0).freeze()
     # views: consecutive runs of the one-view order
-    order = [st.view_order(s, 5, 3) for s in range(8)]
+    order = [view_order(s, 5, 3) for s in range(8)]
     assert [v for s in range(4) for v in st.batch_views(s, 2, 5, 3)] == order
 
     # one step of a batch of two (no Adam scaling): the mean loss, the mean gradient, one Adam step

@@ -245,7 +245,7 @@ def test_camera_frustums_appear_with_key_views_highlighted(scene):
         # the start view frames the cloud; these cameras stand 2-3x its size away: step back to see them
         v.plotter.camera.zoom(0.4)
         img = v.screenshot()
-        from ssgwarp.viewer.app import CAMERA_COLOR, KEYVIEW_COLOR, SELECTED_COLOR
+        from ssgwarp.viewer.drawing import CAMERA_COLOR, KEYVIEW_COLOR, SELECTED_COLOR
         assert colour_pixels(img, CAMERA_COLOR) > 10
         assert colour_pixels(img, SELECTED_COLOR) > 5
         press(v, "n")                                   # select the next camera: the key view shows orange
@@ -407,7 +407,7 @@ def test_a_stylized_run_shows_its_sources_groups_and_cameras_and_its_key_views(t
 def test_view_of_a_stylized_run_draws_its_key_views_and_groups(tmp_path, capsys):
     from ssgwarp.cli import main
     from ssgwarp.core.fileio import read_image
-    from ssgwarp.viewer.app import KEYVIEW_COLOR
+    from ssgwarp.viewer.drawing import KEYVIEW_COLOR
 
     sc, labels = make_scene(identities=True)
     _, sty = _stylized_run(tmp_path, sc)

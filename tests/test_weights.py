@@ -13,6 +13,7 @@ import torch
 from fakeweights import (copy_tree, fake_hf_cache, fake_torch_hub, hf_cache_entry, random_stage1_components,
                          save_stage1, save_tiny_sam, vgg16_state)
 from ssgwarp.services import weights as W
+from ssgwarp.services.weight_specs import SPECS
 from ssgwarp.cli import main
 from ssgwarp.errors import InputError, WeightsNotFound
 
@@ -228,7 +229,7 @@ def test_download_only_when_allowed_and_asked_for_the_right_files(caches, tmp_pa
 
 
 def test_failed_download_falls_back_once_with_one_line(tmp_path, monkeypatch, capsys):
-    from ssgwarp.services.features import load_extractor
+    from ssgwarp.evaluation.features import load_extractor
 
     hub = FakeHub(monkeypatch, tmp_path, fail=OSError("[Errno -2] Name or service not known"))
     use(monkeypatch, tmp_path, online=True)
@@ -241,7 +242,7 @@ def test_failed_download_falls_back_once_with_one_line(tmp_path, monkeypatch, ca
     with pytest.raises(WeightsNotFound, match="no network"):   # later models do not wait on the network again
         W.require("sd15")
     assert len(hub.calls) == n
-    from ssgwarp.stylization.diffusion import Stage1Config, missing_weights
+    from ssgwarp.stylization.diffusion_models import Stage1Config, missing_weights
     assert len(missing_weights(Stage1Config())) == 4 and len(hub.calls) == n
 
 
@@ -287,9 +288,9 @@ def test_interrupted_or_wrong_download_leaves_nothing_behind(tmp_path, monkeypat
 
 
 def test_corrupt_or_truncated_files_are_clear_errors(caches, tmp_path, monkeypatch):
-    from ssgwarp.stylization.diffusion import Stage1Config, load_stage1
-    from ssgwarp.services.features import load_extractor
-    from ssgwarp.evaluation.metrics import load_raft
+    from ssgwarp.stylization.diffusion_models import Stage1Config, load_stage1
+    from ssgwarp.evaluation.features import load_extractor
+    from ssgwarp.evaluation.networks import load_raft
 
     root = copy_tree(caches, tmp_path / "c")
     use(monkeypatch, root)
@@ -324,7 +325,7 @@ def test_weights_command_table(caches, tmp_path, monkeypatch, capsys):
     assert main(["weights", "--verify"]) == 0
     out = capsys.readouterr().out
     rows = {line.split()[0]: line for line in out.splitlines()[2:] if line and not line.startswith("Hugging")}
-    assert set(rows) == set(W.SPECS)
+    assert set(rows) == set(SPECS)
     for key in STAGE1 + ("sam",):
         assert "Hugging Face cache: " + str(caches / "hf" / "hub" / "models--") in rows[key], key
         assert rows[key].rstrip().endswith("ok"), key                 # blobs match their hub hashes
@@ -339,7 +340,7 @@ def test_weights_command_table(caches, tmp_path, monkeypatch, capsys):
     assert main(["weights", "--download", "stage1", "evaluate"]) == 0
     out = capsys.readouterr().out
     assert out.count("already here") == 5
-    assert [c[1] for c in hub.calls] == [W.SPECS["raft"].url, W.SPECS["lpips"].url]
+    assert [c[1] for c in hub.calls] == [SPECS["raft"].url, SPECS["lpips"].url]
     assert main(["weights", "--download", "vgg19"]) == 2
     assert "known models are" in capsys.readouterr().err
     # the --config file's "weights" mapping names a model's file (an explicit path wins over the caches)
@@ -382,8 +383,8 @@ def test_no_network_is_probed_once_and_each_missing_model_said_once(tmp_path, mo
     """Downloads allowed but no network: the first model wanted probes it (one connection attempt), every later one
     is reported missing at once; no download is attempted; a stage running without a model says so in one short
     line (its size and the command that fetches it), once per model however often it is asked for."""
-    from ssgwarp.services.features import load_extractor
-    from ssgwarp.stylization.diffusion import Stage1Config, missing_weights
+    from ssgwarp.evaluation.features import load_extractor
+    from ssgwarp.stylization.diffusion_models import Stage1Config, missing_weights
 
     hub = FakeHub(monkeypatch, tmp_path, fail=OSError("probe: [Errno -3] Temporary failure in name resolution"))
     use(monkeypatch, tmp_path, online=True)

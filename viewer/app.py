@@ -40,7 +40,7 @@ from ssgwarp.raster.scene import GaussianScene
 from . import geometry
 from .data import (GroupInfo, as_numpy, camera_index, finite_mask, load_cameras, load_scene, resolve_groups,
                    resolve_keyviews, resolve_ply, run_folders)
-from .drawing import CAMERA_COLOR, KEYVIEW_COLOR, SELECTED_COLOR, Drawing  # noqa: F401  (re-exported)
+from .drawing import Drawing
 from .headless import has_display, prepare_offscreen
 
 COLOR_MODES = ("rgb", "group", "opacity")

@@ -16,7 +16,7 @@ import torch
 from ssgwarp.core.cameras import Cameras
 from ssgwarp.errors import InputError, SsgwarpError
 from ssgwarp.core.fileio import read_json
-from ssgwarp.grouping.model import gaussian_groups, load_groups
+from ssgwarp.raster.groups import gaussian_groups, load_groups
 from ssgwarp.formats.registry import is_splat_file, read_splat_file
 from ssgwarp.raster.scene import GaussianScene
 from ssgwarp.services.runs import Run
@@ -121,7 +121,7 @@ def resolve_groups(scene: GaussianScene, *, labels=None, scene_dir: str | Path |
 
     Order: ``labels`` given (array, tensor or a path to ``.npy``) → the
     grouping classifier in ``scene_dir/groups/`` applied to the scene's
-    identity encodings (``ssgwarp.grouping.stage.gaussian_groups``) → the argmax of
+    identity encodings (``ssgwarp.raster.groups.gaussian_groups``) → the argmax of
     the identity channels (an approximation, said so in ``source``) → None
     (a scene that was never grouped).
     """

@@ -51,6 +51,8 @@ BOX_QUANTILES = (0.01, 0.99)
 SNAP_DEG = 5.0          # an up found within this many degrees of one of the file's axes becomes that axis
 FILE_UP = np.array([0.0, -1.0, 0.0])   # up in the OpenCV / COLMAP convention of 3DGS files
 _AXES = {"x": 0, "y": 1, "z": 2}
+VIEWS = 24              # cameras made around a splat file by default (stylize FILE, import FILE)
+MAX_WIDTH = 512         # their width at most by default (and at most the splats' own resolution)
 
 
 def parse_up(text: Optional[str]) -> Optional[np.ndarray]:

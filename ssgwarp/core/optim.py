@@ -16,6 +16,7 @@ project compiles nothing, so :class:`Adam` calls the methods' own code (the same
 from __future__ import annotations
 
 import inspect
+import math
 from typing import Iterable
 
 import torch
@@ -83,3 +84,16 @@ def adam(params: Iterable, **kwargs) -> Adam:
     if kinds and "fused" not in kwargs and "foreach" not in kwargs and fusable(kinds):
         kwargs["fused"] = True
     return Adam(groups, **kwargs)
+
+
+def batch_factors(batch_size: int, scaling: str = "sqrt") -> tuple[float, float]:
+    """``(lr factor, beta exponent)`` of Adam for ``batch_size`` views per step.
+
+    ``"sqrt"``: learning rates x sqrt(B) (the square-root rule for adaptive optimizers: the mean
+    gradient of B views has 1/sqrt(B) of one view's noise); ``"linear"``: x B; both raise Adam's
+    betas to the power B, so the moments forget at the same rate per image seen. ``"none"``:
+    one view's settings."""
+    b = max(1, int(batch_size))
+    if scaling == "none":
+        return 1.0, 1.0
+    return (math.sqrt(b) if scaling == "sqrt" else float(b)), float(b)

@@ -32,11 +32,12 @@ import torch
 from tqdm.auto import tqdm
 
 from . import metrics as M
+from . import networks as N
 from ..core.cameras import Cameras
 from ..capture.datasets import resize_images
 from ..errors import InputError, SsgwarpError, WeightsNotFound
 from .table import PAIR_KINDS, comparison_table, default_table_path
-from ..services.features import load_extractor
+from .features import load_extractor
 from ..core.fileio import atomic_path, read_image, read_json, write_image, write_json
 from .metrics import extractor_from_name, reconstruction_quality, style_scores
 from .render import smooth_path
@@ -186,7 +187,7 @@ def consistency(images: torch.Tensor, depths: torch.Tensor, alphas: torch.Tensor
 
     def flow(a: int, b: int) -> torch.Tensor:
         if (a, b) not in flow_cache:
-            flow_cache[(a, b)] = M.estimate_flow(raft, images[a], images[b], iters=opts.flow_iters)
+            flow_cache[(a, b)] = N.estimate_flow(raft, images[a], images[b], iters=opts.flow_iters)
         return flow_cache[(a, b)]
 
     views = [M.View(images[i], depths[i], alphas[i], cams.viewmats[i], cams.Ks[i]) for i in range(V)]
@@ -450,18 +451,18 @@ def load_models(opts: EvalOptions, device) -> tuple[Any, Any, Any, dict]:
     skipped: dict[str, str] = {}
     raft = None
     if opts.warp in ("flow", "both"):     # required: raises WeightsNotFound, before any other model is reported
-        raft = M.load_raft(opts.raft, device, opts.weights_config)
+        raft = N.load_raft(opts.raft, device, opts.weights_config)
     extractor = load_extractor(opts.vgg, device, layers=opts.layers, config=opts.weights_config)
     if opts.warp == "auto":
         try:
-            raft = M.load_raft(opts.raft, device, opts.weights_config)
+            raft = N.load_raft(opts.raft, device, opts.weights_config)
         except WeightsNotFound as e:
             if opts.raft:
                 raise
             skipped["flow warp"] = str(e)
     lpips = None
     try:
-        lpips = M.load_lpips(opts.lpips, opts.vgg, device, opts.weights_config)
+        lpips = N.load_lpips(opts.lpips, opts.vgg, device, opts.weights_config)
     except WeightsNotFound as e:
         if opts.lpips:
             raise
@@ -526,5 +527,5 @@ def style_line(sc: dict) -> str:
     return f"on {sc.get('views', 'the scored views')}{ext}: " + "; ".join(p for p in parts if p)
 
 
-__all__ = ["EvalOptions", "RunInfo", "inspect_run", "render_views", "consistency", "evaluate_run", "scored_cameras",
-           "comparison_table", "load_models", "claim_evaluation", "style_line", "add_arguments", "run"]
+__all__ = ["EvalOptions", "RunInfo", "inspect_run", "consistency", "evaluate_run", "scored_cameras",
+           "load_models", "claim_evaluation", "style_line", "add_arguments", "run"]

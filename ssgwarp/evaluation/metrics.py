@@ -14,18 +14,18 @@ Two warps are provided:
 * :func:`flow_warp`: A is forward-warped into B along an optical flow A→B by
   softmax splatting (Niklaus & Liu 2020; importance metric from brightness
   constancy), masking occlusions by a forward-backward flow check. The flow
-  comes from RAFT (:class:`ssgwarp.services.networks.RAFTLarge`, torchvision ``raft_large`` state-dict
+  comes from RAFT (:class:`ssgwarp.evaluation.networks.RAFTLarge`, torchvision ``raft_large`` state-dict
   layout; weights through :mod:`ssgwarp.services.weights`) to match the published protocol, or from the
   geometry (:func:`reprojection_flow`).
 
 Errors on the mask are :func:`masked_rmse` (images in [0, 1]) and, when LPIPS
-weights are configured, masked LPIPS (:class:`ssgwarp.services.networks.LPIPS`, both images multiplied by
-the mask). The two networks live in :mod:`ssgwarp.services.networks` (re-exported here); the pixel
+weights are configured, masked LPIPS (:class:`ssgwarp.evaluation.networks.LPIPS`, both images multiplied by
+the mask). The two networks live in :mod:`ssgwarp.evaluation.networks` (re-exported here); the pixel
 geometry (:func:`pixel_centers`, :func:`unproject`, :func:`project`) in :mod:`ssgwarp.core.geometry`.
 
 Quality: Gram-matrix style loss against the style image and feature content
 loss against the unstylized renders (:func:`style_content_losses`) with any
-:mod:`ssgwarp.services.features` extractor; PSNR / SSIM for reconstructions
+:mod:`ssgwarp.evaluation.features` extractor; PSNR / SSIM for reconstructions
 (:func:`reconstruction_quality`). :func:`style_scores` is the one definition of the
 style / content numbers that ``ssgwarp stylize`` and ``ssgwarp evaluate`` report
 (the same views and extractor give the same numbers; :func:`extractor_from_name`
@@ -44,28 +44,17 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import InputError
-from ..services.features import gram_matrix
+from .features import content_loss, gram_matrix
 from ..core.geometry import pixel_centers, project, unproject
 from ..core.imaging import fit_style
 from ..services.losses import psnr, ssim
-from .style_distance import (  # noqa: F401 (re-exported: part of this module's API)
-    COLOR_PROJECTIONS, SW_SEED, TEXTURE_LEVELS, TEXTURE_MAX_SCALE, TEXTURE_ORIENTATIONS, TEXTURE_PROJECTIONS,
-    StyleDistance, filter_responses, projections, sliced_wasserstein, sorted_projections, style_distances,
-    texture_levels, wasserstein_1d_sorted)
-from ..services.networks import (  # noqa: F401 (re-exported: part of this module's API)
-    LPIPS, LPIPS_CHANNELS, LPIPS_SCALE, LPIPS_SHIFT, LPIPS_TAPS, RAFTLarge, estimate_flow, load_lpips, load_raft)
+from .style_distance import StyleDistance
 
 Tensor = torch.Tensor
 
-__all__ = [
-    "View", "WarpResult", "pixel_centers", "unproject", "project", "sample_bilinear",
-    "reprojection_warp", "reprojection_flow", "softmax_splat", "flow_warp", "forward_backward_mask",
-    "masked_rmse", "consistency_pairs", "LPIPS", "load_lpips", "RAFTLarge", "load_raft", "estimate_flow",
-    "gram_style_loss", "content_loss", "style_content_losses", "fit_style", "reconstruction_quality",
-    "projections", "wasserstein_1d_sorted", "sorted_projections", "sliced_wasserstein", "filter_responses",
-    "texture_levels",
-    "StyleDistance", "style_distances", "style_scores", "extractor_from_name",
-]
+__all__ = ["View", "WarpResult", "sample_bilinear", "reprojection_warp", "reprojection_flow", "softmax_splat",
+           "flow_warp", "forward_backward_mask", "masked_rmse", "consistency_pairs", "gram_style_loss",
+           "style_content_losses", "reconstruction_quality", "style_scores", "extractor_from_name"]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -322,21 +311,12 @@ def gram_style_loss(feats: Sequence[Tensor], style_grams: Sequence[Tensor]) -> T
     """``[B]`` Gram style loss: mean over layers of ``mean_ij (G(f)_ij - S_ij)^2``.
 
     ``feats``: per layer ``[B, C, h, w]``; ``style_grams``: per layer ``[1, C, C]``
-    (:func:`ssgwarp.services.features.gram_matrix`, normalised by ``h*w``).
+    (:func:`ssgwarp.evaluation.features.gram_matrix`, normalised by ``h*w``).
     """
     per = [((gram_matrix(f) - s) ** 2).mean(dim=(1, 2)) for f, s in zip(feats, style_grams)]
     return torch.stack(per, 0).mean(0)
 
 
-def content_loss(feats: Sequence[Tensor], ref_feats: Sequence[Tensor], *, relative: bool = False) -> Tensor:
-    """``[B]`` content loss: mean over layers of the mean squared feature difference (per layer
-    ``[B, C, h, w]``). ``relative``: each layer's divided by the mean square of its reference
-    features, ``mean((f - r)^2) / mean(r^2)``, so that a weight means the same for every extractor
-    (Stage 2's content term, :class:`ssgwarp.stylization.stage2.ViewLoss`); the metric is absolute."""
-    per = [((f - r) ** 2).mean(dim=(1, 2, 3)) for f, r in zip(feats, ref_feats)]
-    if relative:
-        per = [p / (r ** 2).mean(dim=(1, 2, 3)).clamp_min(1e-12) for p, r in zip(per, ref_feats)]
-    return torch.stack(per, 0).mean(0)
 
 
 @torch.no_grad()
@@ -345,7 +325,7 @@ def style_content_losses(extractor, images: Tensor, style: Optional[Tensor] = No
     """Per-view Gram style and content losses.
 
     Args:
-        extractor: ``ssgwarp.services.features`` extractor (``__call__([B,3,H,W]) -> list``).
+        extractor: ``ssgwarp.evaluation.features`` extractor (``__call__([B,3,H,W]) -> list``).
         images: ``[V, H, W, 3]`` stylized renders.
         style: ``[H_s, W_s, 3]`` style image (resized by :func:`fit_style`) or None.
         originals: ``[V, H, W, 3]`` unstylized renders from the same cameras, or None.
@@ -443,7 +423,7 @@ def style_scores(extractor, images: Tensor, style: Optional[Tensor], originals: 
 
 
 def extractor_from_name(name: str, device="cpu", *, vgg_weights=None, config=None):
-    """The feature extractor whose :attr:`~ssgwarp.services.features.FeatureExtractor.name` is ``name``
+    """The feature extractor whose :attr:`~ssgwarp.evaluation.features.FeatureExtractor.name` is ``name``
     (what a run recorded: ``random-multiscale:seed0,c128s2,edges``, ``vgg16:relu3_1+relu3_2``, ...).
 
     Raises :class:`~ssgwarp.errors.InputError` for a name it does not know, and
@@ -451,7 +431,7 @@ def extractor_from_name(name: str, device="cpu", *, vgg_weights=None, config=Non
     """
     import re
 
-    from ..services.features import PyramidPatches, RandomMultiScale, RandomStrokes, load_extractor
+    from .features import PyramidPatches, RandomMultiScale, RandomStrokes, load_extractor
 
     kind, _, spec = str(name).partition(":")
     if kind == "vgg16":

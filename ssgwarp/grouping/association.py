@@ -53,7 +53,7 @@ import torch
 
 from ..core.cameras import Cameras
 from ..errors import InputError
-from .pseudomasks import IGNORE, _knn_vote, gaussian_sums, render_label_masks
+from .pseudomasks import _knn_vote, gaussian_sums, render_label_masks
 from ..raster.scene import GaussianScene
 
 Tensor = torch.Tensor
@@ -477,4 +477,4 @@ def adjusted_rand_index(a: Tensor, b: Tensor) -> float:
 
 
 __all__ = ["AssociationConfig", "Association", "compact_masks", "lift_masks", "associate", "adjusted_rand_index",
-           "UNLABELLED", "UNSEEN", "BACKGROUND", "IGNORE"]
+           "UNLABELLED", "UNSEEN", "BACKGROUND",]

@@ -54,11 +54,10 @@ from ..core.cameras import Cameras
 from ..errors import InputError, SsgwarpError
 from ..core.fileio import atomic_path, read_json, write_image, write_json
 from .agreement import neighbour_pairs, plot_training, reprojection_agreement
-from .mask_files import MaskSet, find_mask, load_masks, read_id_image, resize_nearest, resolve_masks
-from ..core.geometry import knn_indices
-from .model import (DEFAULT_DIM, FORMAT, GroupConfig, GroupModel, gaussian_groups, group_labels,
-                             init_identities, load_groups, make_classifier, mask_loss, regularizer_3d,
-                             render_group_maps)
+from .mask_files import MaskSet, load_masks, read_id_image, resolve_masks
+from ..core.imaging import resize_nearest
+from .model import DEFAULT_DIM, FORMAT, GroupConfig
+from ..raster.groups import gaussian_groups, group_labels
 from .train import GroupingHook, train_identities
 from .segment import read_record
 from ..core.palette import colorize_labels
@@ -73,12 +72,8 @@ KINDS = {"segmenter": "segmenter instances", "masks": "given masks", "mask-free"
 # the former private names of the parts (kept importable from here)
 _read_id_image, _resize_nearest, _plot = read_id_image, resize_nearest, plot_training
 
-__all__ = ["GroupConfig", "GroupModel", "GroupingHook", "MaskSet", "RunInfo", "DEFAULT_DIM", "FORMAT", "KINDS",
-           "make_classifier", "init_identities", "render_group_maps", "group_labels", "gaussian_groups",
-           "mask_loss", "knn_indices", "regularizer_3d", "find_mask", "load_masks", "read_id_image",
-           "train_identities", "neighbour_pairs", "reprojection_agreement", "map_name", "write_group_outputs",
-           "masks_info", "clusters_info", "finish_groups",
-           "group_scene", "load_groups", "add_arguments", "run"]
+__all__ = ["RunInfo", "KINDS", "map_name", "write_group_outputs", "masks_info", "clusters_info", "finish_groups",
+           "group_scene", "add_arguments", "run"]
 
 
 RunInfo = Run   # (the run folder: ssgwarp.services.runs.Run)

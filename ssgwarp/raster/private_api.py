@@ -498,8 +498,10 @@ def _adam_compare(device_type: str, dtype: torch.dtype) -> bool:
         start = torch.randn(5, generator=g, dtype=dtype).to(dev)
         grads = [torch.randn(5, generator=g, dtype=dtype).to(dev) for _ in range(3)]
         a, b = torch.nn.Parameter(start.clone()), torch.nn.Parameter(start.clone())
-        oa = torch.optim.Adam([a], lr=0.1, betas=(0.9, 0.99), eps=1e-15, weight_decay=0.01, fused=True)
-        ob = torch.optim.Adam([b], lr=0.1, betas=(0.9, 0.99), eps=1e-15, weight_decay=0.01, fused=True)
+        from ..core.optim import Adam   # (torch's Adam, whose step would import torch._dynamo)
+
+        oa = Adam([a], lr=0.1, betas=(0.9, 0.99), eps=1e-15, weight_decay=0.01, fused=True)
+        ob = Adam([b], lr=0.1, betas=(0.9, 0.99), eps=1e-15, weight_decay=0.01, fused=True)
         for i, gr in enumerate(grads):
             a.grad, b.grad = gr.clone(), gr.clone()
             oa.step()

@@ -19,9 +19,7 @@ from typing import Optional
 import torch
 
 from . import reference
-from .settings import (  # noqa: F401 (re-exported: their historical home)
-    DEFAULT_TILE_SIZE, N_FLAGS, RENDER_MODES, T_MIN_FLOOR, RasterSettings, check_shapes, raise_for_flags,
-    resolve_arguments)
+from .settings import RasterSettings, check_shapes, raise_for_flags, resolve_arguments
 
 try:  # the Warp path; without warp-lang (or ssgwarp.kernels) only backend="torch" is available
     from . import blend_ops, ops, sh_ops

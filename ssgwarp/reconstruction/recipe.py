@@ -3,7 +3,6 @@ resolved for a run's length, strategy and batch size) and :func:`batch_factors` 
 The loop that follows it is :class:`ssgwarp.reconstruction.trainer.Trainer`."""
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 from typing import Optional
 
@@ -14,17 +13,6 @@ BATCH_SCALINGS = ("sqrt", "linear", "none")
 _STEP_FIELDS = ("sh_interval", "refine_start", "refine_stop", "refine_every", "reset_every")
 
 
-def batch_factors(batch_size: int, scaling: str = "sqrt") -> tuple[float, float]:
-    """``(lr factor, beta exponent)`` of Adam for ``batch_size`` views per step.
-
-    ``"sqrt"``: learning rates x sqrt(B) (the square-root rule for adaptive optimizers: the mean
-    gradient of B views has 1/sqrt(B) of one view's noise); ``"linear"``: x B; both raise Adam's
-    betas to the power B, so the moments forget at the same rate per image seen. ``"none"``:
-    one view's settings."""
-    b = max(1, int(batch_size))
-    if scaling == "none":
-        return 1.0, 1.0
-    return (math.sqrt(b) if scaling == "sqrt" else float(b)), float(b)
 
 
 @dataclass

@@ -40,20 +40,19 @@ from ..capture.datasets import check_init, data_json, load_dataset
 from ..services.distributed import SINGLE
 from ..errors import InputError, SsgwarpError, WeightsNotFound
 from ..core.fileio import write_json
-from ..services.networks import load_lpips
+from ..evaluation.networks import load_lpips
 from ..formats.ply import write_ply
-from .recipe import BATCH_SCALINGS, Recipe, batch_factors
-from ..raster.rendering import render as render_views   # (the old name of the differentiable render)
+from .recipe import Recipe
 from ..services.runs import claim
 from .schedules import AUTO
-from .trainer import CHECKPOINT_FORMAT, Trainer, read_checkpoint
+from .trainer import Trainer
+from ..services.loop import read_checkpoint
 
 log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
 
 OUTPUTS = ("scene.ply", "cameras.json", "data.json", "metrics.json")
 
-__all__ = ["BATCH_SCALINGS", "CHECKPOINT_FORMAT", "OUTPUTS", "Recipe", "Trainer", "batch_factors", "read_checkpoint",
-           "reconstruct", "render_views"]
+__all__ = ["OUTPUTS", "reconstruct"]
 
 
 # ----------------------------------------------------------------------------- the stage

@@ -26,7 +26,8 @@ from ..core.geometry import knn_mean_distance
 from ..core.optim import adam
 from ..services.loop import Diverged, Loop, diverged_message, read_checkpoint, to_cpu
 from ..services.losses import photometric, psnr, ssim
-from .recipe import Recipe, batch_factors
+from ..core.optim import batch_factors
+from .recipe import Recipe
 from ..raster.rendering import render
 from ..raster.scene import GaussianScene
 from .attach import attach_hooks, restore_attached, takes_scene

@@ -1,3 +1,3 @@
-"""Shared services: run folders, the checkpointed loop, losses, weights, DDP, networks, colour.
+"""Shared plumbing that several layers use: run folders, the checkpointed loop, losses, weights, DDP.
 
-Modules: color, distributed, features, loop, losses, networks, runs, weight_specs, weights."""
+Modules: distributed, loop, losses, runs, weight_specs, weights, weights_command (``ssgwarp weights``)."""

@@ -12,14 +12,14 @@
 * **non-finite losses**: :func:`check_finite` (``torch.isfinite`` on the value, never the text
   of an error) raises :class:`Diverged` with the step and where the last good state is;
 * **randomness**: a stage draws from its own :class:`torch.Generator` objects and saves their
-  states (:func:`generator_states`); resuming restores those, never the process-wide RNGs.
+  states in its checkpoint; resuming restores those, never the process-wide RNGs.
 """
 from __future__ import annotations
 
 import logging
 import signal
 import threading
-from typing import Callable, Iterable, Optional
+from typing import Callable, Optional
 
 import torch
 from tqdm.auto import tqdm
@@ -43,17 +43,6 @@ def check_finite(loss: torch.Tensor, step: int, kept: str, what: str = "the loss
 def diverged_message(step: int, kept: str, why: str) -> str:
     return (f"training diverged at step {step} ({why}); {kept}; try a lower learning rate, another --seed, "
             f"or --resume from the checkpoint")
-
-
-def generator_states(gens: Iterable[Optional[torch.Generator]]) -> list[Optional[torch.Tensor]]:
-    """The states of a stage's own generators (None stays None), for a checkpoint."""
-    return [None if g is None else g.get_state() for g in gens]
-
-
-def set_generator_states(gens: Iterable[Optional[torch.Generator]], states: Iterable) -> None:
-    for g, s in zip(gens, states):
-        if g is not None and s is not None:
-            g.set_state(s)
 
 
 class StopRequest:

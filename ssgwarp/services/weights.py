@@ -49,12 +49,11 @@ from pathlib import Path
 from typing import Iterator, Mapping, Optional
 
 from ..errors import InputError, WeightsNotFound
-from .weight_specs import (  # noqa: F401 (re-exported: part of this module's API)
-    GROUPS, SPECS, WeightSpec, _git_blob_sha1, _sha256, _spec)
+from .weight_specs import WeightSpec, _spec
 
-__all__ = ["WeightSpec", "SPECS", "GROUPS", "DownloadFailed", "find", "locate", "require", "obtain", "fetch",
-           "message", "notice", "load_error", "offline_reason", "offline", "verbose", "probe", "hub_cache",
-           "torch_checkpoints", "check_kernels_package"]
+__all__ = ["DownloadFailed", "find", "locate", "require", "obtain", "fetch", "message", "notice", "load_error",
+           "offline_reason", "offline", "verbose", "probe", "hub_cache", "torch_checkpoints",
+           "check_kernels_package"]
 
 
 class DownloadFailed(WeightsNotFound):
@@ -89,7 +88,7 @@ def check_kernels_package() -> None:
     if Path(origin).resolve().parent == ours:
         raise InputError(f"the source checkout's folder {ours} hides the `kernels` package that transformers "
                          f"imports (the checkout's root {ours.parent} is on sys.path): run the installed `ssgwarp` "
-                         "command, or run python from another folder")
+                         "command (under torchrun: --no-python ssgwarp ...), or run python from another folder")
 
 
 # -- where the ecosystem keeps its files -----------------------------------------------------------

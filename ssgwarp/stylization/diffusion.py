@@ -45,18 +45,13 @@ import numpy as np
 import torch
 
 from .cvsa import cvsa_enabled
-from .diffusion_models import (  # noqa: F401 (re-exported: part of this module's API)
-    CLIP_MEAN, CLIP_STD, WEIGHT_KEYS, Stage1Config, Stage1Models, assemble_stage1, clip_preprocess, load_ip_adapter,
-    load_stage1, missing_weights, read_ip_adapter, set_ip_adapter_scales)
+from .diffusion_models import Stage1Config, Stage1Models, load_stage1, set_ip_adapter_scales
 from ..errors import InputError, SsgwarpError, WeightsNotFound
 from ..core.fileio import read_image
-from ..core.imaging import save_sheet  # noqa: F401 (re-exported: part of this module's API)
 
-__all__ = ["Stage1Config", "Stage1Models", "load_stage1", "assemble_stage1", "load_ip_adapter",
-           "read_ip_adapter", "set_ip_adapter_scales", "depth_to_control", "clip_preprocess", "schedule",
-           "ddim_step", "encode_latents", "decode_latents", "predict_noise", "ddim_invert", "ddim_denoise",
-           "stylize_views", "stylize_keyviews", "save_sheet", "add_stage1_arguments", "config_from_args",
-           "missing_weights"]
+__all__ = ["depth_to_control", "schedule", "ddim_step", "encode_latents", "decode_latents", "predict_noise",
+           "ddim_invert", "ddim_denoise", "stylize_views", "stylize_keyviews", "add_stage1_arguments",
+           "config_from_args"]
 
 # -- conditioning -------------------------------------------------------------------------------
 def depth_to_control(depth: torch.Tensor, alpha: Optional[torch.Tensor] = None, min_alpha: float = 0.5

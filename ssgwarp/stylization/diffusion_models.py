@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from ..services import weights as W
+from ..services.weight_specs import SPECS
 from ..errors import InputError, SsgwarpError, WeightsNotFound
 
 WEIGHT_KEYS = ("sd15", "controlnet_depth", "ip_adapter", "image_encoder")
@@ -144,7 +145,7 @@ def missing_weights(cfg: Stage1Config, download: Optional[bool] = None) -> list[
             except WeightsNotFound as e:
                 out.append(str(e))
                 continue
-        spec = W.SPECS[key]
+        spec = SPECS[key]
         need = [f for f in spec.required if not (found[key] / f).exists()]
         if need:
             out.append(f"{found[key]} lacks {', '.join(need)}: {spec.expected} (from '{spec.source}')")

@@ -33,7 +33,7 @@ import torch.nn.functional as F
 from ..core.cameras import Cameras
 from ..errors import InputError
 from ..core.fileio import claim_output_dir, read_image, read_json, write_image, write_json
-from ..grouping.model import load_groups
+from ..raster.groups import load_groups
 from ..core.imaging import as_bhwc, resize_bhwc, save_sheet
 from ..core.palette import colorize_labels
 from ..raster.rendering import background_tensor

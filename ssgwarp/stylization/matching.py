@@ -142,10 +142,6 @@ class _GroupedTargets:
     groups: dict
     keys: torch.Tensor
 
-    @property
-    def num_keys(self) -> int:
-        return int(self.keys.shape[0])
-
     def for_regions(self, region) -> "_GroupedTargets":
         """These targets with group ``g`` matched against the key positions labelled ``region[g]`` (the
         key labels being regions of the style image, :mod:`ssgwarp.stylization.regions`; several groups may

@@ -11,7 +11,7 @@ the colour transfer changes anyway), weighted by its share of pixels, and an ent
 (Sinkhorn) between the two sets gives each group the region that receives most of its mass. Large groups
 spread their mass over the regions in proportion to the regions' sizes, so the style's main parts are
 all used. Stage 2 then matches group ``g``'s features (and colours) against region ``region[g]``
-only (:meth:`ssgwarp.stylization.matching.SlicedTargets.for_regions`, :func:`ssgwarp.services.color.transfer_colors`'s
+only (:meth:`ssgwarp.stylization.matching.SlicedTargets.for_regions`, :func:`ssgwarp.stylization.color.transfer_colors`'s
 ``target_groups``): each instance takes its own part of the style and group boundaries stay crisp.
 """
 from __future__ import annotations

@@ -6,9 +6,9 @@ group (:mod:`ssgwarp.stylization.matching`), or of the style image when Stage 1 
 
 0. **colour transfer** (``pre``, ARF): one linear colour map per group, applied
    to the SH coefficients, gives the renders the colour mean and covariance of
-   the targets (:func:`transfer_colors`, :mod:`ssgwarp.services.color`);
+   the targets (:func:`transfer_colors`, :mod:`ssgwarp.stylization.color`);
 1. for ``iters`` steps, ``batch_size`` training views each (default one; the loss is their
-   mean, Adam adapted by :func:`ssgwarp.reconstruction.recipe.batch_factors`; under ``torchrun``
+   mean, Adam adapted by :func:`ssgwarp.core.optim.batch_factors`; under ``torchrun``
    each process renders its share, :mod:`ssgwarp.services.distributed`): render without gradient, treat
    the image as a leaf, compute the loss
    ``style_weight * L_style + content_weight * content + tv_weight * TV`` and
@@ -62,16 +62,13 @@ from ..core.cameras import Cameras
 from ..core.optim import adam
 from ..errors import InputError
 from ..services.distributed import SINGLE
-from .feature_defaults import (  # noqa: F401  (re-exported: Stage 2's options left to the features)
-    BLEND_WEIGHT_EDGES, COLOR_GAIN_EDGES, COLOR_GAIN_OTHER, TV_WEIGHT_FREE, TV_WEIGHT_VGG, resolve_for,
-    style_loss_kind, tv_weight_for)
-from ..services.color import describe_transfer, transfer_background, transfer_colors  # noqa: F401  (re-exported)
+from .feature_defaults import resolve_for, style_loss_kind, tv_weight_for
 from ..services.loop import Diverged, Loop
-from .batches import batch_size_for, batch_views, start_state, view_order  # noqa: F401  (view_order re-exported)
+from .batches import batch_size_for, batch_views, start_state
 from .spread import SPREAD_CHANNELS, ViewPairs, blend_spread, check_pair_options, empty_loss, render_with_spread
 from .matching import DEFAULT_CHUNK, MatchTargets, SlicedTargets, downsample_labels
-from ..evaluation.metrics import content_loss
-from ..reconstruction.recipe import batch_factors
+from ..evaluation.features import content_loss
+from ..core.optim import batch_factors
 from ..raster.scene import GaussianScene
 
 MODES = ("ist", "finetune", "global")
@@ -102,14 +99,14 @@ class Stage2Config:
             ``auto``: NNFM on VGG16 features, SW on the weight-free random features (measured:
             docs/stylize.md).
         sw_projections: random directions per step of the ``sw`` loss.
-        color_transfer: ARF's view-consistent colour transfer (:mod:`ssgwarp.services.color`) ``pre`` (before
+        color_transfer: ARF's view-consistent colour transfer (:mod:`ssgwarp.stylization.color`) ``pre`` (before
             the optimisation), ``post`` (after it), ``both`` or ``off``.
         color_max_gain: the colour transfer's map may stretch colour differences by at most this
             factor (its largest eigenvalue; the consistency figures grow with it, see docs/stylize.md);
             ``None`` (default): by the extractor (1.0 on the weight-free edge features, 1.3 otherwise).
         color_detail: ``keep``: the colour transfer does not flatten the scene's lightness texture below
             the style's (nor raise it above the capture's own, nor any scale above the style's), by
-            stretching its lightness output (:func:`ssgwarp.services.color.detail_gain`); ``off``: the
+            stretching its lightness output (:func:`ssgwarp.stylization.color.detail_gain`); ``off``: the
             plain mean-and-covariance map; ``auto`` (default): ``keep`` on the weight-free edge features,
             ``off`` otherwise.
         sh_rest: the higher SH bands (view-dependent colour): ``zero`` them at the start (default:
@@ -123,7 +120,7 @@ class Stage2Config:
             (:class:`ssgwarp.stylization.spread.ViewPairs`: each step's view against one of its
             ``consistency_neighbours`` nearest training views, reprojected through the fixed depths; 0: off).
         background: the stylized scene's background colour: ``transfer`` (default) maps the capture's
-            background by the same colour transfer as the scene (:func:`ssgwarp.services.color.transfer_background`;
+            background by the same colour transfer as the scene (:func:`ssgwarp.stylization.color.transfer_background`;
             the optimisation renders over it and the run records it, ``metrics.json`` ``background``), so that
             the scene's outline keeps its contrast instead of, e.g., a darkened scene standing out against a
             white background (measured on the demo scene: docs/stylize.md); ``keep``: the capture's.
@@ -140,7 +137,7 @@ class Stage2Config:
         seed: view order.
         batch_size: training views per step over all processes (None: one per process); the
             loss is their mean. batch_scaling: Adam for batches (``sqrt``: lr x sqrt(B), ``linear``:
-            x B, both with betas ** B; ``none``), :func:`ssgwarp.reconstruction.recipe.batch_factors`.
+            x B, both with betas ** B; ``none``), :func:`ssgwarp.core.optim.batch_factors`.
     """
 
     mode: str = "ist"
@@ -294,7 +291,7 @@ def to_nchw(image: torch.Tensor) -> torch.Tensor:
 
 def extract(extractor, images: torch.Tensor, feature_scale: float = 1.0) -> torch.Tensor:
     """Stacked features ``[B, C, h, w]`` of images ``[B,H,W,3]`` / ``[H,W,3]`` (see :func:`stack_features`)."""
-    from ..services.features import stack_features
+    from ..evaluation.features import stack_features
 
     x = to_nchw(images)
     if feature_scale != 1.0:
@@ -334,7 +331,7 @@ class ViewLoss:
     """The Stage 2 loss of one training view (``ist`` / ``global``).
 
     Args:
-        extractor: a :class:`~ssgwarp.services.features.FeatureExtractor`.
+        extractor: a :class:`~ssgwarp.evaluation.features.FeatureExtractor`.
         targets: the style features to match.
         cfg: weights and knobs.
         view_labels: ``[C, H, W]`` group maps of the training views (None: global).

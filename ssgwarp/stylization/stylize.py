@@ -5,7 +5,8 @@ through ``run.json``): load the run, the style and the feature extractor
 (:func:`_open`); key views and Stage 1 (:func:`_keyviews_and_stage1`, :mod:`ssgwarp.stylization.keyviews`,
 :mod:`ssgwarp.stylization.diffusion`); Stage 2 (:func:`_stage2`, :mod:`ssgwarp.stylization.stage2`); renders along
 the training cameras and a smooth path (:func:`_renders`); metrics, the contact sheet and
-``metrics.json`` (:func:`_metrics`). The Stage 2 names (:class:`Stage2Config`, ...) are re-exported. The
+``metrics.json`` (:func:`_metrics`). The steps read one frozen :class:`Inputs`, add to the run's
+:class:`Record` and hand their results on (:class:`Stage2Output`, :class:`ssgwarp.stylization.targets.Targets`). The
 command line (options, ``--quick``, the CPU hint) is :mod:`ssgwarp.stylization.stylize_cli`.
 """
 from __future__ import annotations
@@ -21,18 +22,11 @@ import torch
 
 from ..core.cameras import Cameras
 from ..errors import InputError, WeightsNotFound
-from ..core.imaging import contact_sheet, fit_style, plot_losses  # noqa: F401  (contact_sheet re-exported)
-# ``path.gif``'s writer, frames per second and longer side: ssgwarp.core.imaging's (``ssgwarp render --video`` too)
-from ..core.imaging import VIDEO_FPS as PATH_FPS, VIDEO_SIDE as PATH_VIDEO_SIDE  # noqa: F401
-from ..core.imaging import write_video as write_path_video
+from ..core.imaging import contact_sheet, fit_style, plot_losses, write_video
 from ..raster.scene import GaussianScene
 from .targets import Targets, color_transfer, densify_run, group_maps, targets_for
-from .stage2 import (  # noqa: F401  (re-exported: the public Stage 2 API lives in ssgwarp.stylization.stage2)
-    BACKGROUNDS, BLEND_WEIGHT_EDGES, COLOR_DETAIL, COLOR_GAIN_EDGES, COLOR_GAIN_OTHER, COLOR_TRANSFER, MODES, SH_REST,
-    STYLE_LOSSES, TV_WEIGHT_FREE, TV_WEIGHT_VGG, Stage2Config, Stage2Result, ViewLoss, build_targets, deferred_backward,
-    direct_backward, extract, finetune_loss, optimise, render_alphas, render_batched, render_rgb, style_loss_kind,
-    to_nchw, trainable_names, transfer_background, transfer_colors, tv_loss, tv_weight_for, view_order,
-    describe_transfer, resolve_for)
+from .stage2 import Stage2Config, ViewLoss, build_targets, optimise, render_alphas, render_batched, render_rgb, trainable_names
+from .feature_defaults import style_loss_kind, tv_weight_for, resolve_for
 
 # ----------------------------------------------------------------------------- end to end
 @dataclass
@@ -40,7 +34,7 @@ class StylizeOptions:
     """Options of :func:`stylize_run` besides Stage 1 and Stage 2 (CLI flags of the same names).
 
     keyviews / ids / max_side: key-view choice and diffusion resolution (:mod:`ssgwarp.stylization.keyviews`);
-    extractor / vgg16 / layers: the feature extractor (:func:`ssgwarp.services.features.load_extractor`);
+    extractor / vgg16 / layers: the feature extractor (:func:`ssgwarp.evaluation.features.load_extractor`);
     path_frames: frames of the smooth camera path (0: none); sheet_views: rows of the contact sheet;
     weights: the config file's ``weights`` mapping.
     """
@@ -120,16 +114,18 @@ def _prepare_out(out: Path, scene_dir: Path, signature: dict, resume: bool, forc
 def _check_explicit_stage1_paths(stage1) -> None:
     """A Stage 1 weight path the user gave explicitly must exist (absent defaults just skip Stage 1)."""
     from ..services import weights as W
-    from .diffusion import WEIGHT_KEYS
+    from ..services.weight_specs import SPECS
+    from .diffusion_models import WEIGHT_KEYS
 
     for key in WEIGHT_KEYS:
         explicit = getattr(stage1, key, None)
         if explicit and W.find(key, explicit) is None:
             raise WeightsNotFound(W.message(key, explicit))
 
-@dataclass
-class _Run:
-    """What the steps of :func:`stylize_run` share: the inputs, the loaded run and the progress record."""
+@dataclass(frozen=True)
+class Inputs:
+    """What the steps of :func:`stylize_run` read and none changes (:func:`_open` makes it): the options, the
+    loaded run (scene, cameras, background), the style, the feature extractor and the scene's groups."""
 
     scene_dir: Path
     style_path: Path
@@ -141,24 +137,21 @@ class _Run:
     resume: bool
     progress: bool
     stage1_models: object
-    state: dict
     scene: GaussianScene
     data: object
     extractor: object
     style_np: object
     style: torch.Tensor
     cams: Cameras
-    train_ids: list
+    train_ids: tuple
     bg: torch.Tensor
     group: object = None
     classifier: object = None
     num_groups: Optional[int] = None
-    times: dict = dataclasses.field(default_factory=dict)
-    bg_styled: Optional[torch.Tensor] = None     # the stylized scene's background (Stage2Config.background)
 
     @property
     def train_cams(self) -> Cameras:
-        return self.cams[self.train_ids]
+        return self.cams[list(self.train_ids)]
 
     @property
     def style_at_views(self) -> torch.Tensor:
@@ -170,6 +163,16 @@ class _Run:
     def say(self, msg: str) -> None:
         _say(msg, self.progress)
 
+
+@dataclass
+class Record:
+    """The run's progress record: ``OUT/run.json`` (the finished steps, for ``--resume``) and the seconds of each
+    step, the one thing the steps add to."""
+
+    out: Path
+    state: dict
+    times: dict = dataclasses.field(default_factory=dict)
+
     def mark(self, stage: str, **info) -> None:
         from ..core.fileio import write_json
 
@@ -177,12 +180,25 @@ class _Run:
         write_json(self.out / "run.json", self.state)
 
 
+@dataclass(frozen=True)
+class Stage2Output:
+    """What :func:`_stage2` hands to the renders and the metrics."""
+
+    scene: GaussianScene
+    result: object
+    originals: torch.Tensor
+    matching: str
+    transfer: dict
+    densify: Optional[dict]
+    background: torch.Tensor     # the stylized scene's background (Stage2Config.background)
+
+
 def _open(scene_dir: Path, style_path: Path, out: Path, stage2: Stage2Config, stage1, opts: StylizeOptions,
-          device: torch.device, resume: bool, force: bool, progress: bool, stage1_models, group) -> _Run:
+          device: torch.device, resume: bool, force: bool, progress: bool, stage1_models, group) -> tuple:
     """Read the inputs and the weights (a missing or corrupt one fails before anything is written to OUT),
-    then claim OUT."""
+    then claim OUT: ``(Inputs, Record)``."""
     from ..capture.datasets import load_run
-    from ..services.features import load_extractor
+    from ..evaluation.features import load_extractor
     from ..core.fileio import read_image, write_json
 
     from ..services.runs import claim
@@ -201,32 +217,34 @@ def _open(scene_dir: Path, style_path: Path, out: Path, stage2: Stage2Config, st
     if group.is_main:
         write_json(out / "run.json", state)
     cams = data.cameras.to(device)
-    r = _Run(scene_dir, style_path, out, stage2, stage1, opts, device, resume, progress, stage1_models, state,
-             scene, data, extractor, style_np, torch.from_numpy(style_np).to(device), cams,
-             list(data.train_ids) or list(range(len(cams))),
-             torch.tensor(data.background[:3], dtype=scene.dtype, device=device), group)
+    classifier, num_groups = None, None
     if (scene_dir / "groups").is_dir():
         if scene.identities is None:
-            r.say(f"{scene_dir}/groups exists but scene.ply has no identity fields: using one group")
+            _say(f"{scene_dir}/groups exists but scene.ply has no identity fields: using one group", progress)
         else:
-            from ..grouping.stage import load_groups
+            from ..raster.groups import load_groups
             gm = load_groups(scene_dir, device)
-            r.classifier, r.num_groups = gm.classifier, gm.num_groups
+            classifier, num_groups = gm.classifier, gm.num_groups
+    r = Inputs(scene_dir, style_path, out, stage2, stage1, opts, device, resume, progress, stage1_models,
+               scene, data, extractor, style_np, torch.from_numpy(style_np).to(device), cams,
+               tuple(data.train_ids) or tuple(range(len(cams))),
+               torch.tensor(data.background[:3], dtype=scene.dtype, device=device), group, classifier, num_groups)
     r.say(f"{len(scene)} Gaussians, {len(r.train_ids)} training views {cams.width}x{cams.height}, "
           f"{'%d groups' % r.num_groups if r.num_groups else 'no groups (one group)'}, features {extractor.name}, "
           f"device {device}")
-    return r
+    return r, Record(out, state)
 
 
 def _missing_models(stage1) -> list[str]:
     """The Stage 1 models not (completely) on this machine, by name."""
     from ..services import weights as W
-    from .diffusion import WEIGHT_KEYS
+    from ..services.weight_specs import SPECS
+    from .diffusion_models import WEIGHT_KEYS
 
     out = []
     for key in WEIGHT_KEYS:
         found = W.find(key, getattr(stage1, key, None), getattr(stage1, "weights", None))
-        if found is None or any(not (found / f).exists() for f in W.SPECS[key].required):
+        if found is None or any(not (found / f).exists() for f in SPECS[key].required):
             out.append(key)
     return out
 
@@ -234,10 +252,11 @@ def _missing_models(stage1) -> list[str]:
 def _stage1_skipped(names: list[str]) -> str:
     """The one line saying that Stage 1 is skipped: which models are missing and what fetching them costs."""
     from ..services import weights as W
+    from ..services.weight_specs import SPECS
 
     if not names:
         return "Stage 1 skipped: its models are incomplete (`ssgwarp weights` shows what is missing)"
-    size = sum(W.SPECS[k].size for k in names)
+    size = sum(SPECS[k].size for k in names)
     return (f"Stage 1 skipped: no local {', '.join(names)} (~{size / 1e9:.1f} GB; `ssgwarp weights --download "
             f"stage1` fetches them, `ssgwarp weights` shows where they are looked for)")
 
@@ -253,38 +272,39 @@ def groups_unused(num_groups: Optional[int], mode: str) -> Optional[str]:
             f"weights, `ssgwarp weights --download stage1`, make them count)")
 
 
-def _keyviews(r: _Run):
+def _keyviews(r: Inputs, rec: Record):
     """Select, render and save the key views (or load them on ``--resume``); ``(keyviews, stylized or None)``."""
     from . import keyviews as K
 
     kv_dir, t0 = r.out / "keyviews", time.perf_counter()
-    if r.resume and (kv_dir / "keyviews.json").is_file() and r.state["stages"].get("keyviews", {}).get("done"):
+    if r.resume and (kv_dir / "keyviews.json").is_file() and rec.state["stages"].get("keyviews", {}).get("done"):
         kv, stylized = K.load_keyviews(kv_dir, r.device)
-        r.times["keyviews"] = r.state["stages"]["keyviews"].get("seconds", 0.0)
+        rec.times["keyviews"] = rec.state["stages"]["keyviews"].get("seconds", 0.0)
         r.say(f"key views {kv.ids} loaded from {kv_dir}")
         return kv, stylized
-    ids = K.select_keyviews(r.cams, r.opts.keyviews, r.opts.ids, candidates=r.train_ids)
+    ids = K.select_keyviews(r.cams, r.opts.keyviews, r.opts.ids, candidates=list(r.train_ids))
     size = K.diffusion_size(r.cams.width, r.cams.height, r.opts.max_side)
     kv = K.render_keyviews(r.scene, r.cams, ids, size, r.classifier, background=r.data.background)
     K.save_keyviews(kv, kv_dir)
-    r.times["keyviews"] = time.perf_counter() - t0
-    r.mark("keyviews", seconds=r.times["keyviews"], ids=list(kv.ids))
+    rec.times["keyviews"] = time.perf_counter() - t0
+    rec.mark("keyviews", seconds=rec.times["keyviews"], ids=list(kv.ids))
     r.say(f"key views {kv.ids} ({', '.join(kv.cameras.names)}) at {size[0]}x{size[1]} -> {kv_dir}")
     return kv, None
 
 
-def _keyviews_and_stage1(r: _Run):
+def _keyviews_and_stage1(r: Inputs, rec: Record):
     """Key views and Stage 1: ``(keyviews or None, stylized key views or None, the Stage 1 record)``."""
     if r.stage2.mode == "global":
         return None, None, {"ran": False, "reason": "global mode matches against the style image (no key views)"}
     from . import keyviews as K
 
-    kv, stylized = _keyviews(r)
+    kv, stylized = _keyviews(r, rec)
     stage1, t0 = r.stage1, time.perf_counter()
     if stylized is not None:
-        r.times["stage1"] = r.state["stages"].get("stage1", {}).get("seconds", 0.0)
+        rec.times["stage1"] = rec.state["stages"].get("stage1", {}).get("seconds", 0.0)
         return kv, stylized, {"ran": True, "cvsa": bool(stage1.cvsa), "resumed": True}
-    from .diffusion import missing_weights, stylize_keyviews
+    from .diffusion import stylize_keyviews
+    from .diffusion_models import missing_weights
 
     # check the weights before anything imports diffusers (seconds of import for nothing)
     missing = [] if r.stage1_models is not None else missing_weights(stage1)
@@ -294,7 +314,7 @@ def _keyviews_and_stage1(r: _Run):
         r.say(f"Stage 1: diffusion on {len(kv)} key views (CVSA {'on' if stage1.cvsa else 'off'})")
         stylized = stylize_keyviews(kv, r.style_np, stage1, r.device, models=r.stage1_models)
         missing = [] if stylized is not None else missing_weights(stage1)
-    r.times["stage1"] = time.perf_counter() - t0
+    rec.times["stage1"] = time.perf_counter() - t0
     if stylized is None:
         info = {"ran": False, "reason": "no local diffusion weights: " + " | ".join(missing),
                 "cvsa": bool(stage1.cvsa)}
@@ -302,11 +322,11 @@ def _keyviews_and_stage1(r: _Run):
         info = {"ran": True, "cvsa": bool(stage1.cvsa), "steps": stage1.steps,
                 "guidance": stage1.guidance, "ip_adapter_scale": stage1.ip_adapter_scale}
         K.save_keyviews(kv, r.out / "keyviews", stylized.to(kv.rgb.device), extra={"stage1": info})
-    r.mark("stage1", seconds=r.times["stage1"], **info)
+    rec.mark("stage1", seconds=rec.times["stage1"], **info)
     return kv, stylized, info
 
 
-def _stage2_loss(r: _Run, t: Targets, kv, content_ref: torch.Tensor, alphas: torch.Tensor):
+def _stage2_loss(r: Inputs, t: Targets, kv, content_ref: torch.Tensor, alphas: torch.Tensor):
     """``(ViewLoss or None, finetune images, finetune cameras, the matching's description)``."""
     stage2 = r.stage2
     ref = {"originals": content_ref, "alphas": alphas}
@@ -342,7 +362,7 @@ def _stage2_loss(r: _Run, t: Targets, kv, content_ref: torch.Tensor, alphas: tor
     return ViewLoss(r.extractor, targets, stage2, **ref), None, None, matching
 
 
-def _stage2(r: _Run, kv, stylized) -> dict:
+def _stage2(r: Inputs, rec: Record, kv, stylized) -> Optional[Stage2Output]:
     """Colour transfer, the optimisation and colour transfer again; writes ``scene.ply`` and ``loss.png``."""
     from ..formats.ply import write_ply
 
@@ -352,49 +372,48 @@ def _stage2(r: _Run, kv, stylized) -> dict:
     transfer: dict = {"setting": stage2.color_transfer,
                       "against": "the stylized key views" if t.use_keys else
                       "the style image's regions" if t.regions is not None else "the style image"}
-    work, r.bg_styled = r.scene, r.bg
+    work, bg = r.scene, r.bg
     if stage2.color_transfer in ("pre", "both"):
-        work, transfer["pre"] = color_transfer(r, t, r.scene, "pre", transfer["against"])
-    content_ref = originals if work is r.scene else render_batched(work, r.train_cams, r.bg_styled)
+        work, transfer["pre"], bg = color_transfer(r, t, r.scene, "pre", transfer["against"], bg)
+    content_ref = originals if work is r.scene else render_batched(work, r.train_cams, bg)
     alphas = render_alphas(r.scene, r.train_cams)
     loss, ft_images, ft_cams, matching = _stage2_loss(r, t, kv, content_ref, alphas)
     densified = None
     if stage2.densify > 0 and loss is not None:
-        work, densified = densify_run(r, t, work, loss)
+        work, densified, t = densify_run(r, t, work, loss, bg)
     if stage2.consistency_weight > 0 and loss is not None:   # the geometry is final: its depths once
         from .spread import ViewPairs
 
-        loss.pairs = ViewPairs.build(work, r.train_cams, stage2.consistency_neighbours, r.bg_styled,
+        loss.pairs = ViewPairs.build(work, r.train_cams, stage2.consistency_neighbours, bg,
                                      stage2.consistency_budget, stage2.seed)
     run_cfg = stage2
     if stage2.mode == "finetune" and ft_images is None:   # no stylized key views to fit: global fallback
         run_cfg = dataclasses.replace(stage2, mode="global")
     r.say(f"Stage 2 ({stage2.mode}): {stage2.iters} steps, matching {matching}")
     res = optimise(work, r.train_cams, run_cfg, loss=loss, finetune_images=ft_images, finetune_cameras=ft_cams,
-                   background=r.bg_styled, checkpoint=r.out / "stage2.ckpt", resume=r.resume, progress=r.progress,
+                   background=bg, checkpoint=r.out / "stage2.ckpt", resume=r.resume, progress=r.progress,
                    group=r.group)
     if not r.group.is_main:   # the others only helped with the optimisation
-        return {}
+        return None
     styled = res.scene
     if stage2.color_transfer in ("post", "both"):
-        styled, transfer["post"] = color_transfer(r, t, styled, "post", transfer["against"])
-    r.times["stage2"] = time.perf_counter() - t0
-    r.times["stage2_optimisation"] = res.seconds
+        styled, transfer["post"], bg = color_transfer(r, t, styled, "post", transfer["against"], bg)
+    rec.times["stage2"] = time.perf_counter() - t0
+    rec.times["stage2_optimisation"] = res.seconds
     write_ply(r.out / "scene.ply", styled)
-    r.mark("stage2", seconds=r.times["stage2"], iters=stage2.iters)
+    rec.mark("stage2", seconds=rec.times["stage2"], iters=stage2.iters)
     plot_losses(r.out / "loss.png", res.history, f"Stage 2 ({stage2.mode}, {r.extractor.name})")
-    return {"scene": styled, "result": res, "originals": originals, "matching": matching, "transfer": transfer,
-            "densify": densified}
+    return Stage2Output(styled, res, originals, matching, transfer, densified, bg)
 
 
-def _renders(r: _Run, styled: GaussianScene) -> torch.Tensor:
+def _renders(r: Inputs, rec: Record, styled: GaussianScene, bg: torch.Tensor) -> torch.Tensor:
     """``renders/train/*.png`` and ``renders/path/frame_*.png``; returns the training renders."""
     from tqdm.auto import tqdm
 
     from ..core.fileio import write_image
 
     t0, train_cams = time.perf_counter(), r.train_cams
-    renders = render_batched(styled, train_cams, r.bg_styled, desc="train renders" if r.progress else None)
+    renders = render_batched(styled, train_cams, bg, desc="train renders" if r.progress else None)
     for i, img in enumerate(renders):
         write_image(r.out / "renders" / "train" / f"{Path(train_cams.names[i]).stem}.png", img.clamp(0, 1))
     if r.opts.path_frames > 0:
@@ -404,15 +423,15 @@ def _renders(r: _Run, styled: GaussianScene) -> torch.Tensor:
         frames = []
         for s in tqdm(range(len(path)), desc="path renders", disable=not r.progress, leave=False):
             with torch.no_grad():
-                frame = render_rgb(styled, path[[s]], r.bg_styled)[0].clamp(0, 1)
+                frame = render_rgb(styled, path[[s]], bg)[0].clamp(0, 1)
             write_image(r.out / "renders" / "path" / f"frame_{s:04d}.png", frame)
             frames.append((frame.float().cpu().numpy() * 255 + 0.5).astype("uint8"))
-        write_path_video(r.out / "path.gif", frames)
-    r.times["renders"] = time.perf_counter() - t0
+        write_video(r.out / "path.gif", frames)
+    rec.times["renders"] = time.perf_counter() - t0
     return renders
 
 
-def _scores(r: _Run, styled: GaussianScene, renders: torch.Tensor, originals: torch.Tensor) -> dict:
+def _scores(r: Inputs, rec: Record, styled: GaussianScene, renders: torch.Tensor, originals: torch.Tensor) -> dict:
     """Gram style and content losses and style distances, before and after, on the training views
     (:func:`ssgwarp.evaluation.metrics.style_scores`: ``ssgwarp evaluate --views train`` gives the same numbers)."""
     from ..evaluation.metrics import style_scores
@@ -423,7 +442,7 @@ def _scores(r: _Run, styled: GaussianScene, renders: torch.Tensor, originals: to
         changed = r.stage2.free_opacity or len(styled) != len(r.scene)    # opacities freed or Gaussians split
         alphas_after = render_alphas(styled, r.train_cams) if changed else alphas
         sc = style_scores(r.extractor, renders, r.style, originals, alphas=alphas_after, original_alphas=alphas)
-    r.times["metrics"] = time.perf_counter() - t0
+    rec.times["metrics"] = time.perf_counter() - t0
     dist = lambda suffix: {k: sc.get(f"style_distance_{k}{suffix}") for k in ("color", "texture")}  # noqa: E731
     return {"gram_style_loss": sc["gram_style_loss"], "gram_style_loss_original": sc["gram_style_loss_original"],
             "style_distance": dist(""), "style_distance_original": dist("_original"),
@@ -432,45 +451,45 @@ def _scores(r: _Run, styled: GaussianScene, renders: torch.Tensor, originals: to
                                "spread_original": sc["empty_spread_original"]} if "empty_spread" in sc else None)}
 
 
-def _metrics(r: _Run, s2: dict, renders: torch.Tensor, kv, stage1_info: dict, t_start: float) -> dict:
+def _metrics(r: Inputs, rec: Record, s2: Stage2Output, renders: torch.Tensor, kv, stage1_info: dict, t_start: float) -> dict:
     """Scores, the contact sheet and ``metrics.json``; returns the metrics dict."""
     from ..core.fileio import write_json
     from .batches import batch_record
 
-    stage2, styled, originals, train_ids, device = r.stage2, s2["scene"], s2["originals"], r.train_ids, r.device
-    scores = _scores(r, styled, renders, originals)
+    stage2, styled, originals, train_ids, device = r.stage2, s2.scene, s2.originals, r.train_ids, r.device
+    scores = _scores(r, rec, styled, renders, originals)
     rows = sorted({round(i * (len(train_ids) - 1) / max(1, r.opts.sheet_views - 1))
                    for i in range(min(r.opts.sheet_views, len(train_ids)))})
     contact_sheet(r.out / "contact_sheet.png", originals[rows], renders[rows], r.style,
                   [Path(r.train_cams.names[i]).stem for i in rows],
-                  title=f"{stage2.mode}: {s2['matching']}; features {r.extractor.name}")
-    r.times["total"] = time.perf_counter() - t_start
+                  title=f"{stage2.mode}: {s2.matching}; features {r.extractor.name}")
+    rec.times["total"] = time.perf_counter() - t_start
     metrics = {
         "source_scene": str(r.scene_dir.resolve()), "style": str(r.style_path.resolve()), "mode": stage2.mode,
-        "matching": s2["matching"], "stage1": stage1_info, "extractor": r.extractor.name,
+        "matching": s2.matching, "stage1": stage1_info, "extractor": r.extractor.name,
         "style_loss": style_loss_kind(stage2, r.extractor), "tv_weight": tv_weight_for(stage2, r.extractor),
         "gram_style_loss": scores["gram_style_loss"], "gram_style_loss_original": scores["gram_style_loss_original"],
         "style_distance": scores["style_distance"], "style_distance_original": scores["style_distance_original"],
         "empty_regions": scores["empty_regions"],
         "metric_views": f"the {len(train_ids)} training views at {r.cams.width}x{r.cams.height} "
                         f"(`ssgwarp evaluate --views train` scores the same; its default is novel path views)",
-        "groups_used": bool(r.num_groups) and "per group" in s2["matching"],
-        "content_loss": scores["content_loss"], "color_transfer": s2["transfer"], "final_losses": s2["result"].last,
+        "groups_used": bool(r.num_groups) and "per group" in s2.matching,
+        "content_loss": scores["content_loss"], "color_transfer": s2.transfer, "final_losses": s2.result.last,
         "keyviews": None if kv is None else {"ids": list(kv.ids), "names": list(kv.cameras.names),
                                               "size": list(kv.size)},
-        "background": [float(v) for v in r.bg_styled],
-        "groups": r.num_groups, "gaussians": len(styled), "densify": s2.get("densify"), "views": len(train_ids),
+        "background": [float(v) for v in s2.background],
+        "groups": r.num_groups, "gaussians": len(styled), "densify": s2.densify, "views": len(train_ids),
         "resolution": [r.cams.width, r.cams.height], "optimised": trainable_names(stage2, r.scene),
         "config": asdict(stage2),
-        **batch_record(s2["result"]),
-        "seconds": r.times,
+        **batch_record(s2.result),
+        "seconds": rec.times,
         "device": str(device) if device.type != "cuda" else f"cuda ({torch.cuda.get_device_name(device)})",
         "outputs": {"scene": "scene.ply", "renders": "renders/train", "path": "renders/path",
                     **({"path_video": "path.gif"} if r.opts.path_frames > 0 else {}),
                     "contact_sheet": "contact_sheet.png", "loss_plot": "loss.png", "keyviews": "keyviews"},
     }
     write_json(r.out / "metrics.json", metrics)
-    r.mark("done", seconds=r.times["total"])
+    rec.mark("done", seconds=rec.times["total"])
     return metrics
 
 
@@ -510,17 +529,17 @@ def stylize_run(scene_dir: str | Path, style_path: str | Path, out: str | Path, 
         stage2 = dataclasses.replace(stage2, batch_size=b)
     opts = opts or StylizeOptions()
     if stage1 is None and stage2.mode != "global":
-        from .diffusion import Stage1Config
+        from .diffusion_models import Stage1Config
         stage1 = Stage1Config(weights=opts.weights)
     if opts.path_frames < 0 or opts.sheet_views < 1:
         raise InputError("--path-frames must be >= 0 and the contact sheet needs >= 1 view")
-    r = _open(Path(scene_dir), Path(style_path), Path(out), stage2, stage1, opts, torch.device(device),
-              resume, force, progress, stage1_models, group)
-    kv, stylized, stage1_info = on_main_for_all(group, lambda: _keyviews_and_stage1(r), r.device)  # Stage 1 once
-    s2 = _stage2(r, kv, stylized)
-    if not group.is_main:
+    r, rec = _open(Path(scene_dir), Path(style_path), Path(out), stage2, stage1, opts, torch.device(device),
+                   resume, force, progress, stage1_models, group)
+    kv, stylized, stage1_info = on_main_for_all(group, lambda: _keyviews_and_stage1(r, rec), r.device)  # Stage 1 once
+    s2 = _stage2(r, rec, kv, stylized)
+    if s2 is None:     # (under torchrun, a process other than the main one)
         return {}
-    renders = _renders(r, s2["scene"])
-    metrics = _metrics(r, s2, renders, kv, stage1_info, t_start)
+    renders = _renders(r, rec, s2.scene, s2.background)
+    metrics = _metrics(r, rec, s2, renders, kv, stage1_info, t_start)
     r.say(_summary(metrics, r.out))
     return metrics

@@ -9,13 +9,12 @@ from typing import Optional
 
 import torch
 
-from ..services.features import EXTRACTOR_KINDS
+from ..evaluation.features import EXTRACTOR_KINDS
 from .feature_defaults import CONTENT_WEIGHT, CONTENT_WEIGHT_PATCHES
-from .stage2 import (BACKGROUNDS, BLEND_WEIGHT_EDGES, COLOR_DETAIL, COLOR_GAIN_EDGES, COLOR_GAIN_OTHER,
-                     COLOR_TRANSFER, MODES, SH_REST, STYLE_LOSSES, TV_WEIGHT_FREE, TV_WEIGHT_VGG, Stage2Config)
-from . import from_splats
+from .stage2 import BACKGROUNDS, COLOR_DETAIL, COLOR_TRANSFER, MODES, SH_REST, STYLE_LOSSES, Stage2Config
+from .feature_defaults import BLEND_WEIGHT_EDGES, COLOR_GAIN_EDGES, COLOR_GAIN_OTHER, TV_WEIGHT_FREE, TV_WEIGHT_VGG
+from ..capture.orbit import MAX_WIDTH as ORBIT_MAX_WIDTH, VIEWS as ORBIT_VIEWS
 from . import stylize as _stylize      # (stylize_run looked up at call time: tests replace it)
-from ..errors import InputError
 from .stylize import StylizeOptions, _say
 
 __all__ = ["add_arguments", "run", "QUICK", "PAINT", "cpu_hint"]
@@ -116,10 +115,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--vgg16", default=None, help="torchvision VGG16 state dict (or SSGWARP_VGG16)")
     g.add_argument("--layers", default=None, help="VGG16 layers, comma separated (default conv3 = relu3_1..3)")
     g = p.add_argument_group("a splat file without its capture (RUN_OR_FILE a file)")
-    g.add_argument("--views", type=int, default=from_splats.VIEWS,
-                   help=f"cameras made around the splats (default {from_splats.VIEWS}; --quick {QUICK_VIEWS})")
+    g.add_argument("--views", type=int, default=ORBIT_VIEWS,
+                   help=f"cameras made around the splats (default {ORBIT_VIEWS}; --quick {QUICK_VIEWS})")
     g.add_argument("--width", type=int, default=None,
-                   help=f"their width (default: at most {from_splats.MAX_WIDTH}, --quick {QUICK_MAX_WIDTH}, and at "
+                   help=f"their width (default: at most {ORBIT_MAX_WIDTH}, --quick {QUICK_MAX_WIDTH}, and at "
                         "most the width at which the median splat is one pixel across)")
     g.add_argument("--up", default="auto", help="the splats' up axis: auto (default: the thinnest principal axis of "
                    "a layer of splats, else the file's -y), an axis (+z, -y ...) or a vector x,y,z")
@@ -160,7 +159,9 @@ def cpu_hint(args) -> Optional[str]:
             f"{CPU_DEFAULT_MEASURED}); --quick ({quick_text(QUICK)}) took 9 min there in all")
 
 
-def run(args) -> int:
+def run(args, scene_dir=None) -> int:
+    """Stylize the run ``scene_dir`` (default ``args.scene_dir``; a splat file is made into a run by
+    :mod:`ssgwarp.from_splats`, the ``stylize`` command, first)."""
     from .diffusion import config_from_args
     from .keyviews import parse_ids
 
@@ -176,9 +177,7 @@ def run(args) -> int:
     s1 = config_from_args(args) if args.mode != "global" else None
     from ..services import distributed
 
-    scene_dir = args.scene_dir
-    if Path(scene_dir).expanduser().is_file():
-        scene_dir = _splat_file_source(args)
+    scene_dir = args.scene_dir if scene_dir is None else scene_dir
     group, device = distributed.from_env(args.device)   # under torchrun: join the others
     hint = cpu_hint(args) if group.is_main else None
     if hint:
@@ -188,23 +187,4 @@ def run(args) -> int:
                     resume=args.resume, force=args.force, progress=not args.quiet, group=group)
     finally:
         distributed.shutdown(group)
-    if scene_dir != args.scene_dir and group.is_main:
-        from_splats.add_record(args.out, scene_dir)
     return 0
-
-
-def _splat_file_source(args) -> Path:
-    """``stylize FILE``: ``OUT/source``, the splat file's run with cameras made around it, grouped mask-free."""
-    import os
-
-    if int(os.environ.get("WORLD_SIZE", "1") or 1) > 1:
-        raise InputError(f"{args.scene_dir}: a splat file is stylized by one process; run `ssgwarp stylize` once "
-                         f"without torchrun (it writes {args.out / from_splats.SOURCE}), then give that folder")
-    quick = bool(getattr(args, "quick", False))
-    views = QUICK_VIEWS if quick and args.views == from_splats.VIEWS else args.views
-    group_iters = args.group_iters if args.group_iters is not None else (GROUP_QUICK_ITERS if quick else None)
-    return from_splats.prepare_source(
-        args.scene_dir, args.style, args.out, _stylize.OUTPUTS, views=views, width=args.width,
-        max_width=QUICK_MAX_WIDTH if quick else from_splats.MAX_WIDTH, up=args.up, group_iters=group_iters,
-        force=args.force, resume=args.resume, device=args.device, seed=args.seed, progress=not args.quiet)
-

@@ -8,22 +8,25 @@ change the scene before the optimisation.
 * :func:`densify_run`: Gaussians split where the style loss wants detail (:mod:`ssgwarp.stylization.densify`),
   recorded in ``OUT/densify.pt`` and replayed on ``--resume``.
 
-The functions take the command's run state ``r`` (``stylize._Run``: scene, cameras, style, options).
+The functions read the command's inputs ``r`` (:class:`ssgwarp.stylization.stylize.Inputs`: scene, cameras,
+style, options; frozen) and return what they make: the targets, a recoloured scene and its background, a densified
+scene with its groups.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Optional
 
 import torch
 
 from ..core.cameras import Cameras
 from ..raster.scene import GaussianScene
-from .stage2 import describe_transfer, render_alphas, render_rgb, transfer_background, transfer_colors
+from .stage2 import render_alphas, render_rgb
+from .color import describe_transfer, transfer_background, transfer_colors
 
 
 def group_maps(scene: GaussianScene, cams: Cameras, classifier, progress: bool) -> torch.Tensor:
-    from ..grouping.stage import render_group_maps
+    from ..raster.groups import render_group_maps
 
     labels = []
     for c in range(len(cams)):  # one view at a time: the probabilities are dropped right away
@@ -32,7 +35,7 @@ def group_maps(scene: GaussianScene, cams: Cameras, classifier, progress: bool) 
     return torch.cat(labels)
 
 
-@dataclass
+@dataclass(frozen=True)
 class Targets:
     """What Stage 2 matches: the stylized key views (with their cameras and group maps) or the style image."""
 
@@ -45,41 +48,43 @@ class Targets:
     view_labels: Optional[torch.Tensor] = None   # the training views' group maps (when regions are used)
 
 
-def style_regions_for(r, t: Targets, originals: torch.Tensor) -> None:
+def style_regions_for(r, originals: torch.Tensor) -> Targets:
     """Without Stage 1 (``ist`` on a grouped scene): the style image's regions and each group's region
     (:mod:`ssgwarp.stylization.regions`), so that Stage 2 still matches per group."""
-    from ..grouping.stage import gaussian_groups
+    from ..raster.groups import gaussian_groups
     from .regions import style_regions
 
-    t.view_labels = group_maps(r.scene, r.train_cams, r.classifier, r.progress)
+    view_labels = group_maps(r.scene, r.train_cams, r.classifier, r.progress)
     alphas = render_alphas(r.scene, r.train_cams)
-    t.regions = style_regions(r.style_at_views[0].float(), originals.float(), t.view_labels, int(r.num_groups),
-                              alphas=alphas, seed=r.stage2.seed)
-    t.key_labels = t.regions["labels"][None].to(r.device)
-    t.assign = gaussian_groups(r.scene, r.classifier)[0]
+    regions = style_regions(r.style_at_views[0].float(), originals.float(), view_labels, int(r.num_groups),
+                            alphas=alphas, seed=r.stage2.seed)
+    return Targets(False, key_labels=regions["labels"][None].to(r.device),
+                   assign=gaussian_groups(r.scene, r.classifier)[0], regions=regions, view_labels=view_labels)
 
 
 def targets_for(r, kv, stylized, originals: Optional[torch.Tensor] = None) -> Targets:
-    t = Targets(stylized is not None and r.stage2.mode in ("ist", "finetune"))
-    if not t.use_keys and r.stage2.mode == "ist" and r.classifier is not None and (r.num_groups or 0) > 1 \
-            and originals is not None:
-        style_regions_for(r, t, originals)
-    if t.use_keys:
-        from .keyviews import from_diffusion
+    use_keys = stylized is not None and r.stage2.mode in ("ist", "finetune")
+    if not use_keys:
+        if r.stage2.mode == "ist" and r.classifier is not None and (r.num_groups or 0) > 1 and originals is not None:
+            return style_regions_for(r, originals)
+        return Targets(False)
+    from .keyviews import from_diffusion
 
-        t.key_images = from_diffusion(stylized.to(r.device).float(), r.cams.width, r.cams.height).to(r.scene.dtype)
-        t.key_cams = r.cams[list(kv.ids)]
-        if r.classifier is not None:
-            from ..grouping.stage import gaussian_groups
+    key_images = from_diffusion(stylized.to(r.device).float(), r.cams.width, r.cams.height).to(r.scene.dtype)
+    key_cams = r.cams[list(kv.ids)]
+    if r.classifier is None:
+        return Targets(True, key_images, key_cams)
+    from ..raster.groups import gaussian_groups
 
-            t.key_labels = group_maps(r.scene, t.key_cams, r.classifier, r.progress)
-            t.assign = gaussian_groups(r.scene, r.classifier)[0]
-    return t
+    return Targets(True, key_images, key_cams, key_labels=group_maps(r.scene, key_cams, r.classifier, r.progress),
+                   assign=gaussian_groups(r.scene, r.classifier)[0])
 
 
-def color_transfer(r, t: Targets, sc: GaussianScene, when: str, against: str) -> tuple[GaussianScene, dict]:
-    """ARF's colour transfer against the stylized key views (per group when grouped) or the style image;
-    with ``--background transfer`` the stylized scene's background ``r.bg_styled`` goes through its global map."""
+def color_transfer(r, t: Targets, sc: GaussianScene, when: str, against: str,
+                   bg: torch.Tensor) -> tuple[GaussianScene, dict, torch.Tensor]:
+    """ARF's colour transfer against the stylized key views (per group when grouped) or the style image:
+    ``(scene, what it did, background)``; with ``--background transfer`` the stylized scene's background ``bg``
+    goes through its global map (else it comes back as it was)."""
     kw = {"max_gain": r.stage2.color_max_gain, "keep_detail": r.stage2.color_detail == "keep", "capture": r.scene}
     if t.use_keys:
         out, info = transfer_colors(sc, t.key_cams, t.key_images, labels=t.key_labels, target_labels=t.key_labels,
@@ -91,14 +96,15 @@ def color_transfer(r, t: Targets, sc: GaussianScene, when: str, against: str) ->
     else:
         out, info = transfer_colors(sc, r.train_cams, r.style_at_views, **kw)
     if r.stage2.background == "transfer":
-        r.bg_styled = r.bg.new_tensor(transfer_background(r.bg_styled.tolist(), info))
+        bg = r.bg.new_tensor(transfer_background(bg.tolist(), info))
     r.say(f"colour transfer ({when}): " + describe_transfer(info, against))
-    return out, info
+    return out, info, bg
 
 
-def densify_run(r, t: Targets, work: GaussianScene, loss) -> tuple[GaussianScene, dict]:
+def densify_run(r, t: Targets, work: GaussianScene, loss, bg: torch.Tensor) -> tuple[GaussianScene, dict, Targets]:
     """Split Gaussians where the style loss wants detail (:mod:`ssgwarp.stylization.densify`); on ``--resume``
-    the splits recorded in ``OUT/densify.pt`` are replayed (the exact Gaussians the checkpoint holds)."""
+    the splits recorded in ``OUT/densify.pt`` are replayed (the exact Gaussians the checkpoint holds).
+    ``(scene, the record, the targets with the new Gaussians' groups)``; ``bg``: the background renders use."""
     from ..core.fileio import atomic_path
     from .densify import densify_for_style, replay
     from .spread import render_with_spread
@@ -112,12 +118,12 @@ def densify_run(r, t: Targets, work: GaussianScene, loss) -> tuple[GaussianScene
 
         def image_grad(scene: GaussianScene, view: int) -> torch.Tensor:
             with torch.no_grad():
-                image = draw(scene, r.train_cams[[view]], r.bg_styled)[0]
+                image = draw(scene, r.train_cams[[view]], bg)[0]
             image = image.detach().requires_grad_(True)
             return torch.autograd.grad(loss(image, view, 0), image)[0]
 
         work, parent, record = densify_for_style(
-            work, r.train_cams, image_grad, lambda sc, cam: render_rgb(sc, cam, r.bg_styled), stage2.densify,
+            work, r.train_cams, image_grad, lambda sc, cam: render_rgb(sc, cam, bg), stage2.densify,
             views=stage2.densify_views, progress=lambda m: r.say(m))
         with atomic_path(path) as tmp:
             torch.save(record, tmp)
@@ -125,5 +131,5 @@ def densify_run(r, t: Targets, work: GaussianScene, loss) -> tuple[GaussianScene
     if parent is None:
         work, parent = replay(work, record["indices"])
     if t.assign is not None:
-        t.assign = t.assign[parent.to(t.assign.device)]
-    return work, {k: v for k, v in record.items() if k != "indices"}
+        t = replace(t, assign=t.assign[parent.to(t.assign.device)])
+    return work, {k: v for k, v in record.items() if k != "indices"}, t

@@ -412,7 +412,7 @@ def load_extractor(vgg_weights: Optional[str | os.PathLike] = None, device: torc
     weights, ``"random"`` or ``"random-edges"`` (``ssgwarp stylize``'s weight-free default, measured:
     docs/stylize.md).
     """
-    from . import weights
+    from ..services import weights
 
     if kind not in EXTRACTOR_KINDS:
         raise InputError(f"feature extractor kind '{kind}': use {', '.join(EXTRACTOR_KINDS)}")
@@ -470,4 +470,15 @@ def gram_loss(extractor: FeatureExtractor, images: torch.Tensor, style: torch.Te
     fi = extractor(images)
     fs = extractor(style)
     per = [((gram_matrix(a) - gram_matrix(b)) ** 2).mean(dim=(1, 2)) for a, b in zip(fi, fs)]
+    return torch.stack(per, 0).mean(0)
+
+
+def content_loss(feats: Sequence[torch.Tensor], ref_feats: Sequence[torch.Tensor], *, relative: bool = False) -> torch.Tensor:
+    """``[B]`` content loss: mean over layers of the mean squared feature difference (per layer
+    ``[B, C, h, w]``). ``relative``: each layer's divided by the mean square of its reference
+    features, ``mean((f - r)^2) / mean(r^2)``, so that a weight means the same for every extractor
+    (Stage 2's content term, :class:`ssgwarp.stylization.stage2.ViewLoss`); the metric is absolute."""
+    per = [((f - r) ** 2).mean(dim=(1, 2, 3)) for f, r in zip(feats, ref_feats)]
+    if relative:
+        per = [p / (r ** 2).mean(dim=(1, 2, 3)).clamp_min(1e-12) for p, r in zip(per, ref_feats)]
     return torch.stack(per, 0).mean(0)

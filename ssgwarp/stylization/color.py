@@ -345,9 +345,9 @@ def fit_group_transforms(source: tuple[ColorStats, dict[int, ColorStats]],
     return out, how
 
 
-__all__ = ["rgb_to_lab", "ColorStats", "ColorTransform", "fit_transform", "transform_sh", "pixel_stats",
-           "LUMA", "texture_bands", "detail_views", "detail_gain", "surface_renders",
-           "fit_group_transforms", "region_target", "transfer_colors", "transfer_background", "describe_transfer"]
+__all__ = ["ColorStats", "ColorTransform", "fit_transform", "transform_sh", "pixel_stats", "LUMA",
+           "texture_bands", "detail_views", "detail_gain", "surface_renders", "fit_group_transforms",
+           "region_target", "transfer_colors", "transfer_background", "describe_transfer"]
 
 
 # ----------------------------------------------------------------------------- colour transfer

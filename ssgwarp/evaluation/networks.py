@@ -1,7 +1,7 @@
 """The pretrained networks the metrics use, written to their published state-dict layouts (weights
 through :mod:`ssgwarp.services.weights`; never bundled):
 
-* :class:`LPIPS` -- the LPIPS distance, VGG variant (VGG16 trunk from :mod:`ssgwarp.services.features`,
+* :class:`LPIPS` -- the LPIPS distance, VGG variant (VGG16 trunk from :mod:`ssgwarp.evaluation.features`,
   the lpips package's linear heads), :func:`load_lpips`;
 * :class:`RAFTLarge` -- RAFT optical flow (Teed & Deng 2020) in torchvision's ``raft_large``
   layout, :func:`load_raft`, and :func:`estimate_flow` on ``[H, W, 3]`` images.
@@ -19,7 +19,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from . import weights
+from ..services import weights
 from ..errors import InputError
 from .features import VGG16Features
 
