@@ -115,6 +115,7 @@ def copy(src: Path, dst: Path) -> Path:
     ("missing", "missing"),
     ("corrupt", "cannot read image"),
     pytest.param("truncated", "r_002.png"),
+    pytest.param("truncated jpeg", "Premature end of JPEG"),
 ])
 def test_bad_image(world, tmp_path, capsys, damage, message):
     cap = copy(world.cap, tmp_path / "cap")
@@ -123,10 +124,22 @@ def test_bad_image(world, tmp_path, capsys, damage, message):
         img.unlink()
     elif damage == "corrupt":
         img.write_bytes(b"this is not a png")
+    elif damage == "truncated jpeg":        # libjpeg decodes the missing part as grey and only warns
+        _truncated_jpeg(img, np.random.default_rng(2).random((24, 32, 3)).astype(np.float32))
     else:
         img.write_bytes(img.read_bytes()[:60])
     fails(capsys, ["reconstruct", cap, "--out", tmp_path / "run", "--iters", "3", *FAST], message, "r_002.png")
     assert not (tmp_path / "run").exists()
+
+
+def _truncated_jpeg(path: Path, img: np.ndarray, keep: float = 0.6) -> None:
+    """``img`` written as a JPEG, then cut to ``keep`` of its bytes, under ``path`` (whatever its suffix)."""
+    from ssgwarp.core.fileio import write_image
+
+    full = write_image(path.with_name(path.stem + "_full.jpg"), img)
+    data = full.read_bytes()
+    full.unlink()
+    path.write_bytes(data[: int(len(data) * keep)])
 
 
 def _nerf_meta(path: Path) -> dict:
@@ -226,6 +239,7 @@ def _write_masks(folder: Path, names, n: int, h: int = 24, w: int = 32) -> None:
     ("folder missing", "folder not found"),
     ("mask missing", "no mask for image"),
     ("corrupt mask", "cannot read mask image"),
+    ("truncated mask", "cannot decode mask image"),
     ("colour mask", "single-channel"),
     ("wrong aspect", "aspect"),
 ])
@@ -241,6 +255,8 @@ def test_bad_masks(world, tmp_path, capsys, damage, message):
         target.unlink()
     elif damage == "corrupt mask":
         target.write_bytes(b"\x89PNG garbage")
+    elif damage == "truncated mask":
+        target.write_bytes(target.read_bytes()[:-30])
     elif damage == "colour mask":
         write_image(target, np.random.default_rng(0).random((24, 32, 3)).astype(np.float32))
     elif damage == "wrong aspect":
@@ -251,13 +267,19 @@ def test_bad_masks(world, tmp_path, capsys, damage, message):
 
 
 # ----------------------------------------------------------------------------- style image
-@pytest.mark.parametrize("damage, message", [("missing", "image not found"), ("corrupt", "cannot read image")])
+@pytest.mark.parametrize("damage, message", [("missing", "image not found"), ("corrupt", "cannot read image"),
+                                             ("truncated jpeg", "truncated or corrupt")])
 def test_bad_style_image(world, tmp_path, capsys, damage, message):
+    """(issue 60: the first 3 KB of a JPEG style image used to stylize toward grey, exit 0.)"""
     style = tmp_path / "style.png"
     if damage == "corrupt":
         style.write_bytes(b"GIF89a-not-really")
+    elif damage == "truncated jpeg":
+        style = tmp_path / "style.jpg"
+        _truncated_jpeg(style, np.asarray(P.style_image(64, 64)))
     out = tmp_path / "styled"
-    fails(capsys, ["stylize", world.grouped, "--style", style, "--out", out, "--iters", "2", *FAST], message)
+    fails(capsys, ["stylize", world.grouped, "--style", style, "--out", out, "--iters", "2", *FAST], message,
+          style.name)
     assert not out.exists()
 
 
