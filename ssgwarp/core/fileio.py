@@ -70,9 +70,17 @@ def read_json(path: str | os.PathLike) -> Any:
     if not path.is_file():
         raise InputError(f"{path}: file not found")
     try:
-        return json.loads(path.read_text())
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise InputError(f"{path}: not valid JSON (not UTF-8 text at byte {e.start})") from None
+    except OSError as e:
+        raise InputError(f"{path}: cannot read ({e.strerror})") from None
+    try:
+        return json.loads(text)
     except json.JSONDecodeError as e:
         raise InputError(f"{path}: not valid JSON ({e})") from None
+    except RecursionError:
+        raise InputError(f"{path}: not valid JSON (nested too deeply)") from None
 
 
 def _json_default(o: Any) -> Any:
@@ -126,7 +134,8 @@ def read_image_native(path: str | os.PathLike, fmt: str = "float", what: str = "
             finally:
                 inp.close()
     if inp is None:
-        raise InputError(f"{path}: cannot read {what} ({oiio.geterror() or summary(said) or 'unknown format'})")
+        detail = " ".join((oiio.geterror() or summary(said) or "unknown format").split())
+        raise InputError(f"{path}: cannot read {what} ({detail})")
     oiio.geterror()                 # clear OIIO's global error, so none is left pending at exit
     if data is None and err.startswith("its header"):
         raise InputError(f"{path}: not a usable {what}: {err}")
