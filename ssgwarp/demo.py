@@ -49,7 +49,7 @@ from .core.palette import colorize_labels
 from .capture.ply import read_ply
 from .procedural import SIZES
 from .reconstruction.reconstruct import Recipe, reconstruct
-from .services.runs import Run, claim
+from .services.runs import Run, check_resume, claim, resume_record
 from .stylization.stylize import Stage2Config, StylizeOptions, stylize_run
 
 OUTPUTS = ("demo.json", "data", "style.png", "scene", "stylized", "evaluation.md", "contact_sheet.png",
@@ -88,9 +88,9 @@ def _prepare_out(out: Path, force: bool, resume: bool, record: dict) -> dict:
         old = read_json(out / "demo.json")
         if not isinstance(old, dict) or old.get("format") != FORMAT:
             raise InputError(f"{out / 'demo.json'}: not a demo record; pass --force to start over")
-        if old.get("options") != record["options"]:
-            raise InputError(f"{out}: --resume with other options ({old.get('options')} before, "
-                             f"{record['options']} now); use the same ones or --force")
+        opts = old.get("options")
+        check_resume(opts if isinstance(opts, dict) else {"options": opts}, resume_record(**record["options"]), out,
+                     "the earlier demo")
         record["stages"] = dict(old.get("stages", {}))
         return record
     claimed.clear()   # --force: remove only what the demo writes

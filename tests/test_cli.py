@@ -414,6 +414,31 @@ def test_ctrl_c_in_reconstruct_then_resume_matches_an_uninterrupted_run(world, t
     _same_scene(tmp_path / "a" / "scene.ply", tmp_path / "b" / "scene.ply")
 
 
+@pytest.mark.parametrize("change, named", [
+    (["--width", "16"], ["--width 24 -> 16", "resolution [24, 18] -> [16, 12]"]),
+    ([], ["--width 24 -> none", "resolution [24, 18] -> [32, 24]"]),      # (issue 60: --quick resumed without it)
+    (["--width", "24", "--seed", "4"], ["--seed 3 -> 4"]),
+    (["--width", "24", "--sh-degree", "0"], ["--sh-degree 1 -> 0"]),
+    (["--width", "24", "--max-gaussians", "999"], ["--max-gaussians 1000000 -> 999"]),
+    (["--width", "24", "--strategy", "mcmc"], ["--strategy default -> mcmc"]),
+    (["--width", "24", "--split-every", "2"], ["--split-every 3 -> 2"]),
+])
+def test_resume_refuses_options_that_change_what_the_checkpoint_means(world, tmp_path, capsys, change, named):
+    """A reconstruction checkpoint resumed with another resolution, seed, SH degree, budget, strategy or split is
+    one line naming each option and both values, the checkpoint untouched; more steps are allowed."""
+    out = tmp_path / "run"
+    base = ["reconstruct", world.cap, "--out", out, "--sh-degree", "1", "--split-every", "3", "--no-progress",
+            "--device", "cpu"]
+    seed = ["--seed", "3"] if "--seed" not in change else []
+    assert main([str(a) for a in base + ["--iters", "4", "--width", "24", "--seed", "3"]]) == 0
+    ck = digest(out)
+    msg = fails(capsys, base + ["--iters", "6", "--resume", *seed, *change], "--resume with other options",
+                "checkpoint.pt", *named)
+    assert "--iters" not in msg and digest(out) == ck
+    assert main([str(a) for a in base + ["--iters", "6", "--width", "24", "--seed", "3", "--resume"]]) == 0
+    assert json.loads((out / "metrics.json").read_text())["iters"] == 6
+
+
 def test_ctrl_c_in_grouping_then_resume_matches_an_uninterrupted_run(world, tmp_path, capsys, monkeypatch,
                                                                      fail_on_call):
     import ssgwarp.grouping.train as G  # (the training loop calls mask_loss there)
@@ -425,6 +450,11 @@ def test_ctrl_c_in_grouping_then_resume_matches_an_uninterrupted_run(world, tmp_
     _interrupted(capsys, ["group", b, *args])
     assert (b / "groups" / "checkpoint.pt").is_file() and not (b / "groups" / "groups.json").exists()
     monkeypatch.setattr(G, "mask_loss", orig)
+    ck = digest(b)       # another seed, dimension or K is refused, naming it; more steps would not be
+    args3 = [a if a != "3" else "4" for a in args]
+    fails(capsys, ["group", b, *args3, "--resume"], "checkpoint.pt", "--resume with other options", "--seed 3 -> 4")
+    fails(capsys, ["group", b, *args, "--dim", "5", "--resume"], "--dim 16 -> 5")
+    assert digest(b) == ck
     assert main(["group", str(b), *args, "--resume"]) == 0
     _same_scene(a / "scene.ply", b / "scene.ply")
     ca = torch.load(a / "groups" / "classifier.pt", weights_only=True)["state_dict"]

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+from dataclasses import asdict
 from pathlib import Path
 from typing import Callable, Optional, Sequence
 
@@ -44,7 +45,7 @@ from ..services.networks import load_lpips
 from ..capture.ply import write_ply
 from .recipe import BATCH_SCALINGS, Recipe, batch_factors
 from ..raster.rendering import render as render_views   # (the old name of the differentiable render)
-from ..services.runs import claim
+from ..services.runs import check_resume, claim, resume_record
 from .schedules import AUTO
 from .trainer import CHECKPOINT_FORMAT, Trainer, read_checkpoint
 
@@ -152,12 +153,26 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = "au
     state = read_checkpoint(ckpt) if resume and ckpt.is_file() else None
     if state is not None and batch_size is None:
         batch_size = int(state.get("batch_size", 1))
+    # what the checkpoint means: a resume with another value of any of these is refused (more --iters is not)
+    record = resume_record(**{
+        "data": str(Path(data_dir).expanduser().resolve()) if data_dir is not None else None,
+        "--images": data.image_dir, "images": list(data.names), "resolution": [data.cameras.width, data.cameras.height],
+        "--width": width, "--max-images": max_images, "--split-every": split_every, "--seed": seed,
+        "--sh-degree": sh_degree, "--max-gaussians": max_gaussians,
+        "--strategy": strategy if isinstance(strategy, str) else getattr(strategy, "name", str(strategy)),
+        "--background": list(data.background) if data.background is not None else None,
+        "--init": str(init), "--backdrop": backdrop,      # (--batch-size: the trainer checks it, naming the fix)
+        "recipe": asdict(recipe) if recipe is not None else None,
+        "--groups": bool(attach is not None)})
+    if state is not None:
+        check_resume(state.get("options"), record, ckpt, "the checkpoint")
     group.barrier()  # everyone has looked at OUT before the main process changes it
     trainer = Trainer(data, iters=iters, sh_degree=sh_degree, max_gaussians=max_gaussians, recipe=recipe,
                       hooks=hooks, identity_dim=identity_dim, checkpoint_path=ckpt,
                       checkpoint_every=checkpoint_every, rasterize=rasterize, raster_kwargs=raster_kwargs,
                       device=device, seed=seed, progress=progress, strategy=strategy, batch_size=batch_size,
                       group=group, backdrop=backdrop, attach=attach)
+    trainer.resume_options = record
     if state is not None:
         trainer.load_checkpoint(ckpt, state=state)
         del state

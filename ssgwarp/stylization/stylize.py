@@ -11,7 +11,6 @@ command line (options, ``--quick``, the CPU hint) is :mod:`ssgwarp.stylization.s
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -23,6 +22,7 @@ from ..core.cameras import Cameras
 from ..errors import InputError, WeightsNotFound
 from ..core.imaging import contact_sheet, fit_style, plot_losses  # noqa: F401  (contact_sheet re-exported)
 from ..raster.scene import GaussianScene
+from ..services.runs import resume_record
 from .targets import Targets, color_transfer, densify_run, group_maps, targets_for
 from .stage2 import (  # noqa: F401  (re-exported: the public Stage 2 API lives in ssgwarp.stylization.stage2)
     BACKGROUNDS, BLEND_WEIGHT_EDGES, COLOR_DETAIL, COLOR_GAIN_EDGES, COLOR_GAIN_OTHER, COLOR_TRANSFER, MODES, SH_REST,
@@ -74,21 +74,7 @@ def _signature(style: Path, scene_dir: Path, s2: Stage2Config, opts: StylizeOpti
     sig = {"scene_dir": str(scene_dir.resolve()), "style": str(style.resolve()), "stage2": cfg,
            "keyviews": opts.keyviews, "ids": opts.ids, "max_side": opts.max_side, "extractor": opts.extractor,
            "vgg16": opts.vgg16, "layers": opts.layers, "stage1": s1d}
-    return json.loads(json.dumps(sig, default=str))   # as it reads back from run.json (tuples -> lists)
-
-
-def _changed(old: dict, new: dict) -> list[str]:
-    """The options of ``new`` that differ from ``old`` (two :func:`_signature` s), Stage 2's by field:
-    ``stage2.content_weight 0.05 -> 0.01``; a field the earlier run did not record reads ``(not recorded)``."""
-    out = []
-    for k in sorted(new):
-        a, b = old.get(k), new[k]
-        if k == "stage2" and isinstance(a, dict) and isinstance(b, dict):
-            out += [f"stage2.{f} {a[f] if f in a else '(not recorded)'} -> {b.get(f)}"
-                    for f in sorted(set(a) | set(b)) if a.get(f) != b.get(f) or (f in a) != (f in b)]
-        elif a != b:
-            out.append(k)
-    return out
+    return resume_record(**sig)      # (the resume record: as it reads back from run.json)
 
 
 def _prepare_out(out: Path, scene_dir: Path, signature: dict, resume: bool, force: bool, group) -> dict:
@@ -96,7 +82,7 @@ def _prepare_out(out: Path, scene_dir: Path, signature: dict, resume: bool, forc
     record: on ``--resume`` the finished stages of the earlier run, which must have had the same options.
     Every process checks; only the main one changes ``out``, after all have looked."""
     from ..core.fileio import read_json
-    from ..services.runs import claim
+    from ..services.runs import check_resume, claim
 
     if out.resolve() == scene_dir.resolve():
         raise InputError(f"--out {out}: must differ from the scene folder (it would overwrite its scene.ply)")
@@ -104,10 +90,7 @@ def _prepare_out(out: Path, scene_dir: Path, signature: dict, resume: bool, forc
     state: dict = {"signature": signature, "stages": {}}
     if claimed.existing and resume and (out / "run.json").is_file():
         old = read_json(out / "run.json")
-        if old.get("signature") != signature:
-            changed = _changed(old.get("signature") or {}, signature)
-            raise InputError(f"{out}: --resume with different options ({', '.join(changed)}); "
-                             f"use the same options or --force to start over")
+        check_resume(old.get("signature") or {}, signature, out, "the earlier run")
         state["stages"] = dict(old.get("stages", {}))
     group.barrier()
     if group.is_main:
