@@ -439,6 +439,20 @@ def test_resume_refuses_options_that_change_what_the_checkpoint_means(world, tmp
     assert json.loads((out / "metrics.json").read_text())["iters"] == 6
 
 
+def test_quick_never_raises_a_captures_resolution(world, tmp_path):
+    """(issue 60: --quick set --width 252 always, so a 200x200 capture trained and scored at 252x252.) A capture
+    narrower than the preset's 252 px keeps its size; an explicit --width is taken as given."""
+    out = tmp_path / "q"
+    assert main([str(a) for a in ["reconstruct", world.cap, "--out", out, "--quick", "--iters", "2", "--no-progress",
+                                  "--split-every", "3", *FAST]]) == 0
+    assert json.loads((out / "metrics.json").read_text())["resolution"] == [32, 24]
+    assert json.loads((out / "cameras.json").read_text())["width"] == 32
+    from ssgwarp.capture.datasets import load_dataset
+    from ssgwarp.core.presets import AtMost
+
+    assert load_dataset(world.cap, width=AtMost(16), init="random", num_random_points=10).width == 16   # (narrower: resized)
+
+
 def test_ctrl_c_in_grouping_then_resume_matches_an_uninterrupted_run(world, tmp_path, capsys, monkeypatch,
                                                                      fail_on_call):
     import ssgwarp.grouping.train as G  # (the training loop calls mask_loss there)

@@ -116,6 +116,8 @@ def _load_images(paths: Sequence[Path], background, width: Optional[int],
                 log.info("undistorting %d images (%s) into a %dx%d pinhole crop of the %dx%d images "
                          "(every pixel has a source)", len(paths), "/".join(models), *plan.size, w0, h0)
             wu, hu = plan.size if plan is not None else (w0, h0)
+            if getattr(width, "at_most", False) and width >= wu:
+                width = None              # (a preset's width: never wider than the capture)
             w, h = (width, max(1, int(round(hu * width / wu)))) if width is not None else (wu, hu)
         elif img.shape[:2] != size0:
             raise InputError(f"{p}: image size {img.shape[1]}x{img.shape[0]} differs from the others "

@@ -47,6 +47,7 @@ from .recipe import BATCH_SCALINGS, Recipe, batch_factors
 from ..raster.rendering import render as render_views   # (the old name of the differentiable render)
 from ..services.runs import check_resume, claim, resume_record
 from .schedules import AUTO
+from ..core.presets import AtMost
 from .trainer import CHECKPOINT_FORMAT, Trainer, read_checkpoint
 
 log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
@@ -301,7 +302,7 @@ def add_arguments(parser) -> None:
 
 
 # the CPU-sized preset (`--quick`) and what it cost, measured (README, docs)
-QUICK = {"iters": 1500, "width": 252, "max_gaussians": 60_000}
+QUICK = {"iters": 1500, "width": AtMost(252), "max_gaussians": 60_000}   # (252 px wide at most: never wider)
 QUICK_MEASURED = ("fern images_8 (17 training views, resized to 252x188): 20 min on 2 CPU cores shared with other "
                   "work (6.5 min of CPU time), held-out PSNR 27.1 dB, 2026-11-28")
 
