@@ -225,6 +225,19 @@ def test_bad_ply(world, tmp_path, capsys, damage, message):
         assert digest(run) == before, name
 
 
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs /proc (a folder nobody can create files in)")
+def test_an_unwritable_out_is_named_as_given(world, tmp_path, capsys):
+    """(issue 60: the error named the hidden temporary file, '/proc/.x.idg420nf.spz.tmp'.)"""
+    msg = fails(capsys, ["export", world.run, "--out", "/proc/x.spz", "--check-views", "0"], "/proc/x.spz",
+                "cannot write")
+    assert ".tmp" not in msg and "/proc/.x" not in msg
+    from ssgwarp.core.fileio import write_json
+    from ssgwarp.errors import InputError
+
+    with pytest.raises(InputError, match=r"^/proc/nope/a\.json: cannot write there"):
+        write_json("/proc/nope/a.json", {})
+
+
 # ----------------------------------------------------------------------------- masks
 def _write_masks(folder: Path, names, n: int, h: int = 24, w: int = 32) -> None:
     from ssgwarp.core.fileio import write_image
