@@ -12,7 +12,7 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 import torch
-from tqdm import tqdm
+from ..core.progress import tqdm
 
 from ..core.cameras import Cameras
 from .colmap import _pick, find_model, read_cameras, read_model, read_points3d

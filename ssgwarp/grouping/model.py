@@ -17,7 +17,7 @@ from typing import Optional
 
 import torch
 import torch.nn.functional as F
-from tqdm.auto import tqdm
+from ..core.progress import tqdm
 
 from ..core.cameras import Cameras
 from ..errors import InputError

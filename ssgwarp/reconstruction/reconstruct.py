@@ -163,8 +163,7 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = "au
         "--strategy": strategy if isinstance(strategy, str) else getattr(strategy, "name", str(strategy)),
         "--background": list(data.background) if data.background is not None else None,
         "--init": str(init), "--backdrop": backdrop,      # (--batch-size: the trainer checks it, naming the fix)
-        "recipe": asdict(recipe) if recipe is not None else None,
-        "--groups": bool(attach is not None)})
+        "recipe": asdict(recipe) if recipe is not None else None})   # (--groups: attach.py checks it, naming the fix)
     if state is not None:
         check_resume(state.get("options"), record, ckpt, "the checkpoint")
     group.barrier()  # everyone has looked at OUT before the main process changes it

@@ -362,16 +362,19 @@ def _stage2(r: _Run, kv, stylized) -> dict:
         styled, transfer["post"] = color_transfer(r, t, styled, "post", transfer["against"])
     r.times["stage2"] = time.perf_counter() - t0
     r.times["stage2_optimisation"] = res.seconds
+    sh_source = styled.sh_degree
+    styled = written_degree(styled)
     write_ply(r.out / "scene.ply", styled)
     r.mark("stage2", seconds=r.times["stage2"], iters=stage2.iters)
     plot_losses(r.out / "loss.png", res.history, f"Stage 2 ({stage2.mode}, {r.extractor.name})")
-    return {"scene": styled, "result": res, "originals": originals, "matching": matching, "transfer": transfer,
+    return {"scene": styled, "sh": _sh_record(styled, sh_source, stage2.sh_rest), "result": res,
+            "originals": originals, "matching": matching, "transfer": transfer,
             "densify": densified}
 
 
 def _renders(r: _Run, styled: GaussianScene) -> torch.Tensor:
     """``renders/train/*.png`` and ``renders/path/frame_*.png``; returns the training renders."""
-    from tqdm.auto import tqdm
+    from ..core.progress import tqdm
 
     from ..core.fileio import write_image
 
@@ -440,6 +443,26 @@ def _scores(r: _Run, styled: GaussianScene, renders: torch.Tensor, originals: to
                                "spread_original": sc["empty_spread_original"]} if "empty_spread" in sc else None)}
 
 
+def written_degree(scene: GaussianScene) -> GaussianScene:
+    """The stylized scene as it is written: when its higher SH bands are all zero (Stage 2's default
+    ``--sh-rest zero`` makes its colour view-independent), at SH degree 0, the degree it really has: the
+    same renders, a file about 4x smaller, and exports whose size and round trip are a degree-0 scene's."""
+    if scene.sh_degree > 0 and scene.sh_rest is not None and not bool(scene.sh_rest.detach().any()):
+        return scene.with_sh_degree(0)
+    return scene
+
+
+def _sh_record(styled: GaussianScene, source_degree: int, sh_rest: str) -> dict:
+    """metrics.json's ``sh``: the degree written and why."""
+    if styled.sh_degree == source_degree:
+        why = (f"the source's view-dependent colour (SH degree {source_degree}) kept (--sh-rest {sh_rest})"
+               if source_degree > 0 else "the source scene has SH degree 0")
+    else:
+        why = (f"view-independent colour: the source's SH bands 1-{source_degree} were zeroed (--sh-rest {sh_rest}), "
+               f"so the scene is written at degree 0")
+    return {"degree": styled.sh_degree, "source_degree": source_degree, "note": why}
+
+
 def _metrics(r: _Run, s2: dict, renders: torch.Tensor, kv, stage1_info: dict, t_start: float) -> dict:
     """Scores, the contact sheet and ``metrics.json``; returns the metrics dict."""
     from ..core.fileio import write_json
@@ -469,6 +492,7 @@ def _metrics(r: _Run, s2: dict, renders: torch.Tensor, kv, stage1_info: dict, t_
         "background": [float(v) for v in r.bg_styled],
         "groups": r.num_groups, "gaussians": len(styled), "densify": s2.get("densify"), "views": len(train_ids),
         "resolution": [r.cams.width, r.cams.height], "optimised": trainable_names(stage2, r.scene),
+        "sh": s2.get("sh"),
         "config": asdict(stage2),
         **batch_record(s2["result"]),
         "seconds": r.times,
