@@ -445,8 +445,12 @@ def _json_size(meta: dict, key: str, default: int, where: str) -> int:
     if key not in meta:
         return default
     v = meta[key]
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or not 0 < v < 1 << 20 \
-            or v != int(v):
+    if isinstance(v, str):               # ("64": some writers quote their numbers)
+        try:
+            v = float(v)
+        except ValueError:
+            pass
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < 1 << 20 or v != int(v):
         raise InputError(f"{where}: '{key}' must be a positive whole number of pixels (got {str(v)[:40]})")
     return int(v)
 
