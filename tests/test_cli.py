@@ -537,7 +537,10 @@ def test_outputs_are_never_overwritten_without_force(world, tmp_path, capsys, co
     assert (digest(out) if out.exists() else None) == before_out
 
 
-def test_evaluate_quiet_prints_no_progress_bars(world, tmp_path, capsys):
+def test_evaluate_quiet_prints_no_progress_bars(world, tmp_path, capsys, monkeypatch):
+    import ssgwarp.core.progress as progress
+
+    monkeypatch.setattr(progress, "on_terminal", lambda: True)     # (bars are drawn on a terminal only)
     run = copy(world.grouped, tmp_path / "run")
     argv = [str(a) for a in ["evaluate", run, "--max-pairs", "1", "--path-frames", "3", "--save-pairs", "0", *FAST]]
     capsys.readouterr()
