@@ -54,20 +54,6 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
-def claim_output_dir(path: str | os.PathLike, force: bool) -> Path:
-    """Make ``path`` ready for a command's outputs: an existing non-empty folder is refused unless
-    ``force`` (then it is emptied), so outputs are never overwritten by accident."""
-    import shutil
-
-    path = Path(path)
-    if path.exists() and (not path.is_dir() or any(path.iterdir())):
-        if not force:
-            raise InputError(f"{path}: already exists and is not empty; pass --force to overwrite it")
-        shutil.rmtree(path) if path.is_dir() else path.unlink()
-    path.mkdir(parents=True, exist_ok=True)
-    return path
-
-
 def write_json(path: str | os.PathLike, obj: Any) -> None:
     """Write ``obj`` as indented JSON, atomically."""
     with atomic_path(path) as tmp:

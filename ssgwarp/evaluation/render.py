@@ -16,10 +16,9 @@ import torch
 
 from ..core.cameras import Cameras
 from ..errors import InputError
-from ..core.fileio import claim_output_dir
 from ..core.geometry import quat_to_rotmat, rotmat_to_quat
 from ..raster.rendering import render_to_files
-from ..services.runs import Run
+from ..services.runs import Run, claim_folder
 
 log = logging.getLogger("ssgwarp.evaluation.render")
 
@@ -173,7 +172,7 @@ def run(args) -> int:
     cams = data.cameras[ids]
     if args.path is not None and args.path < 1:
         raise InputError(f"--path must be >= 1, got {args.path}")
-    claim_output_dir(args.out, args.force)
+    claim_folder(args.out, args.force)
     if args.path is not None:
         cams = smooth_path(cams, args.path, closed=not args.open)
         cams.to("cpu").save(args.out / "path_cameras.json")

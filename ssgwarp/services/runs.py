@@ -10,7 +10,9 @@
 * :func:`claim` -- one policy for ``--force`` / ``--resume`` on a stage's outputs: an output
   folder that already holds them is refused unless ``force`` (which removes only what the stage
   writes, :meth:`Claim.clear`) or ``resume`` (which the stage continues from its own record);
-  both at once are refused; a path that is a file is refused;
+  both at once are refused; a path that is a file is refused; :func:`claim_folder` -- the same policy for
+  a command whose ``--out`` is a folder of its own (``render``, ``keyviews``): a non-empty one is refused
+  unless ``force``, which empties it;
 * :func:`resume_record` / :func:`check_resume` -- the one resume record: what a run was started with that
   decides what its checkpoint means (images, resolution, seed, SH degree, strategy, ...). Every command
   that resumes (reconstruct, group, stylize, demo) stores one and checks it: ``--resume`` with another value
@@ -33,7 +35,7 @@ from ..errors import InputError, SsgwarpError
 from ..core.fileio import read_json
 from ..capture.ply import read_ply
 
-__all__ = ["Run", "Claim", "claim", "resume_record", "check_resume"]
+__all__ = ["Run", "Claim", "claim", "claim_folder", "resume_record", "check_resume"]
 
 
 def _read_dict(path: Path) -> dict:
@@ -251,6 +253,19 @@ def claim(out: str | Path, outputs: Sequence[str], *, force: bool = False, resum
         c.clear()
     return c
 
+
+
+def claim_folder(path: str | Path, force: bool) -> Path:
+    """Make ``path`` ready for a command whose outputs fill a folder of their own (``render --out``,
+    ``keyviews --out``): an existing non-empty folder (or a file) is refused unless ``force`` (then it is
+    emptied), so outputs are never overwritten by accident. Returns the folder, created."""
+    path = Path(path)
+    if path.exists() and (not path.is_dir() or any(path.iterdir())):
+        if not force:
+            raise InputError(f"{path}: already exists and is not empty; pass --force to overwrite it")
+        shutil.rmtree(path) if path.is_dir() else path.unlink()
+    path.mkdir(parents=True, exist_ok=True)
+    return path
 
 
 # ----------------------------------------------------------------------------- the resume record
