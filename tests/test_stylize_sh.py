@@ -31,10 +31,14 @@ def sh_run(tmp_path_factory):
 
 
 @pytest.mark.parametrize("sh_rest, degree", [("zero", 0), ("keep", 1)])
-def test_stylized_scene_has_the_degree_it_says(sh_run, tmp_path, sh_rest, degree):
+def test_stylized_scene_has_the_degree_it_says(sh_run, tmp_path, capsys, sh_rest, degree):
     out = tmp_path / "styled"
+    capsys.readouterr()
     assert main(["stylize", str(sh_run / "run"), "--style", str(sh_run / "style.png"), "--out", str(out),
                  "--iters", "3", "--path-frames", "0", "--max-side", "32", "--sh-rest", sh_rest, *FAST]) == 0
+    said = capsys.readouterr().out
+    # (issue 60: without Stage 1 weights the key views' line read as if Stage 1 would use them)
+    assert "key views" in said and "for inspection only (Stage 1 will not run" in said, said
     scene = read_ply(out / "scene.ply")
     assert scene.sh_degree == degree
     m = json.loads((out / "metrics.json").read_text())

@@ -235,8 +235,9 @@ def groups_unused(num_groups: Optional[int], mode: str) -> Optional[str]:
             f"weights, `ssgwarp weights --download stage1`, make them count)")
 
 
-def _keyviews(r: _Run):
-    """Select, render and save the key views (or load them on ``--resume``); ``(keyviews, stylized or None)``."""
+def _keyviews(r: _Run, for_stage1: bool = True):
+    """Select, render and save the key views (or load them on ``--resume``); ``(keyviews, stylized or None)``.
+    ``for_stage1`` False: Stage 1 will not run, and the line says that the key views are for inspection only."""
     from . import keyviews as K
 
     kv_dir, t0 = r.out / "keyviews", time.perf_counter()
@@ -251,7 +252,10 @@ def _keyviews(r: _Run):
     K.save_keyviews(kv, kv_dir)
     r.times["keyviews"] = time.perf_counter() - t0
     r.mark("keyviews", seconds=r.times["keyviews"], ids=list(kv.ids))
-    r.say(f"key views {kv.ids} ({', '.join(kv.cameras.names)}) at {size[0]}x{size[1]} -> {kv_dir}")
+    what = (f"at {size[0]}x{size[1]} (Stage 1's size)" if for_stage1 else
+            f"saved at {size[0]}x{size[1]} for inspection only (Stage 1 will not run, and Stage 2 does not use them "
+            f"without it)")
+    r.say(f"key views {kv.ids} ({', '.join(kv.cameras.names)}) {what} -> {kv_dir}")
     return kv, None
 
 
@@ -260,16 +264,16 @@ def _keyviews_and_stage1(r: _Run):
     if r.stage2.mode == "global":
         return None, None, {"ran": False, "reason": "global mode matches against the style image (no key views)"}
     from . import keyviews as K
+    from .diffusion import missing_weights, stylize_keyviews
 
-    kv, stylized = _keyviews(r)
-    stage1, t0 = r.stage1, time.perf_counter()
+    stage1 = r.stage1
+    # check the weights before anything imports diffusers (seconds of import for nothing)
+    missing = [] if r.stage1_models is not None else missing_weights(stage1)
+    kv, stylized = _keyviews(r, for_stage1=not missing)
+    t0 = time.perf_counter()
     if stylized is not None:
         r.times["stage1"] = r.state["stages"].get("stage1", {}).get("seconds", 0.0)
         return kv, stylized, {"ran": True, "cvsa": bool(stage1.cvsa), "resumed": True}
-    from .diffusion import missing_weights, stylize_keyviews
-
-    # check the weights before anything imports diffusers (seconds of import for nothing)
-    missing = [] if r.stage1_models is not None else missing_weights(stage1)
     if missing:
         r.say(_stage1_skipped(_missing_models(stage1)))
     else:
