@@ -66,6 +66,23 @@ def main() -> None:
                              "psnr_worst": worst})
                 shown = "n/a" if worst is None else "identical" if worst >= 100 else f"{worst:.1f}"
                 print(f"| {fmt} | {deg} | {r['bytes'] / r['gaussians']:.1f} | {shown} |")
+        # what .splat loses: it clips each base colour to [0, 1] (8 bits); how far beyond that range the
+        # stylized scene's base colours lie, against its source's (the reconstruction it was stylized from)
+        source = Path(meta.get("source_scene", "")) if meta.get("source_scene") else None
+        C0 = 0.28209479177387814
+        for label, folder in (("stylized", run), ("source", source)):
+            if folder is None or not (folder / "scene.ply").is_file():
+                continue
+            sc = read_ply(folder / "scene.ply")
+            rgb = 0.5 + C0 * sc.sh_dc
+            excess = (rgb - rgb.clamp(0, 1)).abs()
+            line = (f"{label}: base colour beyond [0, 1] by {excess.mean().item():.4f} on average (max "
+                    f"{excess.max().item():.3f}), {100 * (excess > 0).any(-1).float().mean().item():.1f} % of the Gaussians")
+            if label == "source" and args.run is None:
+                r = export(folder, tmp / "src.splat", "splat", sh_degree=0, views=args.views, force=True)
+                line += f"; its .splat round trip {min(r['psnr']):.1f} dB"
+            print(line)
+            rows.append({"scene": label, "mean_excess": excess.mean().item(), "max_excess": excess.max().item()})
         if args.json:
             args.json.write_text(json.dumps(rows, indent=1))
 
