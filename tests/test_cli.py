@@ -435,6 +435,7 @@ def test_ctrl_c_in_reconstruct_then_resume_matches_an_uninterrupted_run(world, t
     (["--width", "24", "--max-gaussians", "999"], ["--max-gaussians 1000000 -> 999"]),
     (["--width", "24", "--strategy", "mcmc"], ["--strategy default -> mcmc"]),
     (["--width", "24", "--split-every", "2"], ["--split-every 3 -> 2"]),
+    (["--width", "24", "--coarse-to-fine", "2"], ["--coarse-to-fine 1.0 -> 2.0"]),
 ])
 def test_resume_refuses_options_that_change_what_the_checkpoint_means(world, tmp_path, capsys, change, named):
     """A reconstruction checkpoint resumed with another resolution, seed, SH degree, budget, strategy or split is

@@ -163,7 +163,7 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = "au
         "--strategy": strategy if isinstance(strategy, str) else getattr(strategy, "name", str(strategy)),
         "--background": list(data.background) if data.background is not None else None,
         "--init": str(init), "--backdrop": backdrop,      # (--batch-size: the trainer checks it, naming the fix)
-        "recipe": asdict(recipe) if recipe is not None else None})   # (--groups: attach.py checks it, naming the fix)
+        **_recipe_record(recipe)})      # (--groups: attach.py checks it, naming the fix)
     if state is not None:
         check_resume(state.get("options"), record, ckpt, "the checkpoint")
     group.barrier()  # everyone has looked at OUT before the main process changes it
@@ -210,6 +210,12 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = "au
     log.info("wrote %s: %d Gaussians, held-out PSNR %s", out, len(scene),
              "n/a" if metrics["psnr"] is None else f"{metrics['psnr']:.2f} dB")
     return metrics
+
+
+def _recipe_record(recipe: Optional[Recipe]) -> dict:
+    """The recipe's part of the resume record: its command-line options by name, the rest as ``recipe``."""
+    r = asdict(recipe if recipe is not None else Recipe())
+    return {"--coarse-to-fine": r.pop("res_start", None), "--batch-scaling": r.pop("batch_scaling", None), "recipe": r}
 
 
 # ----------------------------------------------------------------------------- CLI

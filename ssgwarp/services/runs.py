@@ -254,7 +254,6 @@ def claim(out: str | Path, outputs: Sequence[str], *, force: bool = False, resum
     return c
 
 
-
 def claim_folder(path: str | Path, force: bool) -> Path:
     """Make ``path`` ready for a command whose outputs fill a folder of their own (``render --out``,
     ``keyviews --out``): an existing non-empty folder (or a file) is refused unless ``force`` (then it is
@@ -287,7 +286,8 @@ def resume_changes(old: dict, new: dict) -> list[str]:
     stage's whole configuration, is compared field by field: ``"stage2.lr 0.1 -> 0.5"``); an entry the
     earlier run did not record reads ``(not recorded)``."""
     def show(v: Any) -> str:
-        return NOT_RECORDED if v is _MISSING else ("none" if v is None else str(v))
+        text = NOT_RECORDED if v is _MISSING else ("none" if v is None else str(v))
+        return text if len(text) <= 60 else text[:57] + "..."     # (a list of image names: its start)
 
     out = []
     for k in sorted(set(old) | set(new)):
