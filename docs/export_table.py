@@ -18,10 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from ssgwarp.evaluation.export import export  # noqa: E402
+from ssgwarp.evaluation.export import export
 
 ROWS = [("ply", "s.ply", {}, None), ("compressed-ply", "s.compressed.ply", {}, None),
         ("spz", "s.spz", {}, None), ("spz", "s3.spz", {"spz_version": 3}, "--spz-version 3"),

@@ -104,10 +104,12 @@ def _apply_config(parser: argparse.ArgumentParser, argv: list[str]) -> None:
     path = Path(argv[i + 1])
     if not path.is_file():
         raise SsgwarpError(f"--config {path}: file not found")
+    from .core.fileio import read_json
+
     try:
-        cfg = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise SsgwarpError(f"--config {path}: not valid JSON ({e})") from None
+        cfg = read_json(path)
+    except SsgwarpError as e:
+        raise SsgwarpError(f"--config {e}") from None
     if not isinstance(cfg, dict):
         raise SsgwarpError(f"--config {path}: expected a JSON object of option defaults")
     # every spelling of an option (dest, or any of its flags without dashes) -> its dest; "weights" is the
@@ -127,7 +129,7 @@ def _apply_config(parser: argparse.ArgumentParser, argv: list[str]) -> None:
             hint = f" (did you mean {near[0].replace('_', '-')!r}?)" if near else ""
             raise SsgwarpError(f"--config {path}: {k!r} is not an option of 'ssgwarp {parser.prog.split()[-1]}'"
                                f"{hint}; see its --help")
-        defaults[names[key]] = v
+        defaults[names[key]] = _config_value(parser, names[key], k, v, path)
     # a preset flag set in the file (``"quick": true``, ``"paint": true``) sets its options as the command line
     # would, below the file's own keys
     from .core.presets import preset_values
@@ -136,6 +138,48 @@ def _apply_config(parser: argparse.ArgumentParser, argv: list[str]) -> None:
             for k, v in preset_values(parser, dest).items():
                 defaults.setdefault(k, v)
     parser.set_defaults(**defaults)
+
+
+def _config_value(parser: argparse.ArgumentParser, dest: str, key: str, v, path: Path):
+    """``--config``'s value ``v`` for option ``dest``, converted and checked as the command line would do it
+    (the option's type and choices; a switch takes true or false; a list option a list): a wrong value is one
+    line naming the file, the key and what the option takes, not a failure deep inside the command."""
+    where = f"--config {path}: {key!r}"
+    if dest == "weights":
+        if not isinstance(v, dict) or not all(isinstance(x, str) for x in [*v.keys(), *v.values()]):
+            raise SsgwarpError(f"{where} must map model names to paths (strings)")
+        return v
+    act = next(a for a in parser._actions if a.dest == dest)
+    if act.nargs == 0:                       # a switch (store_true / store_false / a preset)
+        if not isinstance(v, bool):
+            raise SsgwarpError(f"{where} is a switch: true or false (got {json.dumps(v)[:60]})")
+        return v
+    many = act.nargs in ("+", "*") or isinstance(act.nargs, int) or isinstance(act, argparse._AppendAction)
+    if v is None:
+        if act.default is None or act.nargs == "?":
+            return None
+        raise SsgwarpError(f"{where}: null is not a value of this option")
+    if many:
+        items = v if isinstance(v, list) else [v]
+        return [_config_scalar(act, x, where) for x in items]
+    return _config_scalar(act, v, where)
+
+
+def _config_scalar(act: argparse.Action, v, where: str):
+    if isinstance(v, (dict, list)) or isinstance(v, bool):
+        raise SsgwarpError(f"{where} takes {_takes(act)} (got {json.dumps(v)[:60]})")
+    try:
+        out = act.type(v if isinstance(v, str) else str(v)) if act.type is not None else str(v)
+    except (ValueError, TypeError, OverflowError, argparse.ArgumentTypeError) as e:
+        raise SsgwarpError(f"{where} takes {_takes(act)} (got {json.dumps(v)[:60]}: {_one_line(e)[:80]})") from None
+    if act.choices is not None and out not in act.choices:
+        raise SsgwarpError(f"{where} must be one of {', '.join(map(str, act.choices))} (got {json.dumps(v)[:60]})")
+    return out
+
+
+def _takes(act: argparse.Action) -> str:
+    t = getattr(act.type, "__name__", None) or "a string"
+    return {"int": "a whole number", "float": "a number", "Path": "a path", "str": "a string"}.get(t, t)
 
 
 def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParser]]:

@@ -54,7 +54,7 @@ from .formats.ply import read_ply
 from .procedural import SIZES
 from .reconstruction.reconstruct import reconstruct
 from .reconstruction.recipe import Recipe
-from .services.runs import Run, claim
+from .services.runs import Run, check_resume, claim, resume_record
 from .stylization.stylize import StylizeOptions, stylize_run
 from .stylization.stage2 import Stage2Config
 
@@ -94,9 +94,9 @@ def _prepare_out(out: Path, force: bool, resume: bool, record: dict) -> dict:
         old = read_json(out / "demo.json")
         if not isinstance(old, dict) or old.get("format") != FORMAT:
             raise InputError(f"{out / 'demo.json'}: not a demo record; pass --force to start over")
-        if old.get("options") != record["options"]:
-            raise InputError(f"{out}: --resume with other options ({old.get('options')} before, "
-                             f"{record['options']} now); use the same ones or --force")
+        opts = old.get("options")
+        check_resume(opts if isinstance(opts, dict) else {"options": opts}, resume_record(**record["options"]), out,
+                     "the earlier demo")
         record["stages"] = dict(old.get("stages", {}))
         return record
     claimed.clear()   # --force: remove only what the demo writes

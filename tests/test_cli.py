@@ -115,6 +115,7 @@ def copy(src: Path, dst: Path) -> Path:
     ("missing", "missing"),
     ("corrupt", "cannot read image"),
     pytest.param("truncated", "r_002.png"),
+    pytest.param("truncated jpeg", "Premature end of JPEG"),
 ])
 def test_bad_image(world, tmp_path, capsys, damage, message):
     cap = copy(world.cap, tmp_path / "cap")
@@ -123,10 +124,22 @@ def test_bad_image(world, tmp_path, capsys, damage, message):
         img.unlink()
     elif damage == "corrupt":
         img.write_bytes(b"this is not a png")
+    elif damage == "truncated jpeg":        # libjpeg decodes the missing part as grey and only warns
+        _truncated_jpeg(img, np.random.default_rng(2).random((24, 32, 3)).astype(np.float32))
     else:
         img.write_bytes(img.read_bytes()[:60])
     fails(capsys, ["reconstruct", cap, "--out", tmp_path / "run", "--iters", "3", *FAST], message, "r_002.png")
     assert not (tmp_path / "run").exists()
+
+
+def _truncated_jpeg(path: Path, img: np.ndarray, keep: float = 0.6) -> None:
+    """``img`` written as a JPEG, then cut to ``keep`` of its bytes, under ``path`` (whatever its suffix)."""
+    from ssgwarp.core.fileio import write_image
+
+    full = write_image(path.with_name(path.stem + "_full.jpg"), img)
+    data = full.read_bytes()
+    full.unlink()
+    path.write_bytes(data[: int(len(data) * keep)])
 
 
 def _nerf_meta(path: Path) -> dict:
@@ -212,6 +225,19 @@ def test_bad_ply(world, tmp_path, capsys, damage, message):
         assert digest(run) == before, name
 
 
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs /proc (a folder nobody can create files in)")
+def test_an_unwritable_out_is_named_as_given(world, tmp_path, capsys):
+    """(issue 60: the error named the hidden temporary file, '/proc/.x.idg420nf.spz.tmp'.)"""
+    msg = fails(capsys, ["export", world.run, "--out", "/proc/x.spz", "--check-views", "0"], "/proc/x.spz",
+                "cannot write")
+    assert ".tmp" not in msg and "/proc/.x" not in msg
+    from ssgwarp.core.fileio import write_json
+    from ssgwarp.errors import InputError
+
+    with pytest.raises(InputError, match=r"^/proc/nope/a\.json: cannot write there"):
+        write_json("/proc/nope/a.json", {})
+
+
 # ----------------------------------------------------------------------------- masks
 def _write_masks(folder: Path, names, n: int, h: int = 24, w: int = 32) -> None:
     from ssgwarp.core.fileio import write_image
@@ -226,6 +252,7 @@ def _write_masks(folder: Path, names, n: int, h: int = 24, w: int = 32) -> None:
     ("folder missing", "folder not found"),
     ("mask missing", "no mask for image"),
     ("corrupt mask", "cannot read mask image"),
+    ("truncated mask", "cannot decode mask image"),
     ("colour mask", "single-channel"),
     ("wrong aspect", "aspect"),
 ])
@@ -241,6 +268,8 @@ def test_bad_masks(world, tmp_path, capsys, damage, message):
         target.unlink()
     elif damage == "corrupt mask":
         target.write_bytes(b"\x89PNG garbage")
+    elif damage == "truncated mask":
+        target.write_bytes(target.read_bytes()[:-30])
     elif damage == "colour mask":
         write_image(target, np.random.default_rng(0).random((24, 32, 3)).astype(np.float32))
     elif damage == "wrong aspect":
@@ -251,13 +280,19 @@ def test_bad_masks(world, tmp_path, capsys, damage, message):
 
 
 # ----------------------------------------------------------------------------- style image
-@pytest.mark.parametrize("damage, message", [("missing", "image not found"), ("corrupt", "cannot read image")])
+@pytest.mark.parametrize("damage, message", [("missing", "image not found"), ("corrupt", "cannot read image"),
+                                             ("truncated jpeg", "truncated or corrupt")])
 def test_bad_style_image(world, tmp_path, capsys, damage, message):
+    """(issue 60: the first 3 KB of a JPEG style image used to stylize toward grey, exit 0.)"""
     style = tmp_path / "style.png"
     if damage == "corrupt":
         style.write_bytes(b"GIF89a-not-really")
+    elif damage == "truncated jpeg":
+        style = tmp_path / "style.jpg"
+        _truncated_jpeg(style, np.asarray(P.style_image(64, 64)))
     out = tmp_path / "styled"
-    fails(capsys, ["stylize", world.grouped, "--style", style, "--out", out, "--iters", "2", *FAST], message)
+    fails(capsys, ["stylize", world.grouped, "--style", style, "--out", out, "--iters", "2", *FAST], message,
+          style.name)
     assert not out.exists()
 
 
@@ -392,6 +427,46 @@ def test_ctrl_c_in_reconstruct_then_resume_matches_an_uninterrupted_run(world, t
     _same_scene(tmp_path / "a" / "scene.ply", tmp_path / "b" / "scene.ply")
 
 
+@pytest.mark.parametrize("change, named", [
+    (["--width", "16"], ["--width 24 -> 16", "resolution [24, 18] -> [16, 12]"]),
+    ([], ["--width 24 -> none", "resolution [24, 18] -> [32, 24]"]),      # (issue 60: --quick resumed without it)
+    (["--width", "24", "--seed", "4"], ["--seed 3 -> 4"]),
+    (["--width", "24", "--sh-degree", "0"], ["--sh-degree 1 -> 0"]),
+    (["--width", "24", "--max-gaussians", "999"], ["--max-gaussians 1000000 -> 999"]),
+    (["--width", "24", "--strategy", "mcmc"], ["--strategy default -> mcmc"]),
+    (["--width", "24", "--split-every", "2"], ["--split-every 3 -> 2"]),
+    (["--width", "24", "--coarse-to-fine", "2"], ["--coarse-to-fine 1.0 -> 2.0"]),
+])
+def test_resume_refuses_options_that_change_what_the_checkpoint_means(world, tmp_path, capsys, change, named):
+    """A reconstruction checkpoint resumed with another resolution, seed, SH degree, budget, strategy or split is
+    one line naming each option and both values, the checkpoint untouched; more steps are allowed."""
+    out = tmp_path / "run"
+    base = ["reconstruct", world.cap, "--out", out, "--sh-degree", "1", "--split-every", "3", "--no-progress",
+            "--device", "cpu"]
+    seed = ["--seed", "3"] if "--seed" not in change else []
+    assert main([str(a) for a in base + ["--iters", "4", "--width", "24", "--seed", "3"]]) == 0
+    ck = digest(out)
+    msg = fails(capsys, base + ["--iters", "6", "--resume", *seed, *change], "--resume with other options",
+                "checkpoint.pt", *named)
+    assert "--iters" not in msg and digest(out) == ck
+    assert main([str(a) for a in base + ["--iters", "6", "--width", "24", "--seed", "3", "--resume"]]) == 0
+    assert json.loads((out / "metrics.json").read_text())["iters"] == 6
+
+
+def test_quick_never_raises_a_captures_resolution(world, tmp_path):
+    """(issue 60: --quick set --width 252 always, so a 200x200 capture trained and scored at 252x252.) A capture
+    narrower than the preset's 252 px keeps its size; an explicit --width is taken as given."""
+    out = tmp_path / "q"
+    assert main([str(a) for a in ["reconstruct", world.cap, "--out", out, "--quick", "--iters", "2", "--no-progress",
+                                  "--split-every", "3", *FAST]]) == 0
+    assert json.loads((out / "metrics.json").read_text())["resolution"] == [32, 24]
+    assert json.loads((out / "cameras.json").read_text())["width"] == 32
+    from ssgwarp.capture.datasets import load_dataset
+    from ssgwarp.core.presets import AtMost
+
+    assert load_dataset(world.cap, width=AtMost(16), init="random", num_random_points=10).width == 16   # (narrower: resized)
+
+
 def test_ctrl_c_in_grouping_then_resume_matches_an_uninterrupted_run(world, tmp_path, capsys, monkeypatch,
                                                                      fail_on_call):
     import ssgwarp.grouping.train as G  # (the training loop calls mask_loss there)
@@ -403,6 +478,11 @@ def test_ctrl_c_in_grouping_then_resume_matches_an_uninterrupted_run(world, tmp_
     _interrupted(capsys, ["group", b, *args])
     assert (b / "groups" / "checkpoint.pt").is_file() and not (b / "groups" / "groups.json").exists()
     monkeypatch.setattr(G, "mask_loss", orig)
+    ck = digest(b)       # another seed, dimension or K is refused, naming it; more steps would not be
+    args3 = [a if a != "3" else "4" for a in args]
+    fails(capsys, ["group", b, *args3, "--resume"], "checkpoint.pt", "--resume with other options", "--seed 3 -> 4")
+    fails(capsys, ["group", b, *args, "--dim", "5", "--resume"], "--dim 16 -> 5")
+    assert digest(b) == ck
     assert main(["group", str(b), *args, "--resume"]) == 0
     _same_scene(a / "scene.ply", b / "scene.ply")
     ca = torch.load(a / "groups" / "classifier.pt", weights_only=True)["state_dict"]
@@ -458,7 +538,10 @@ def test_outputs_are_never_overwritten_without_force(world, tmp_path, capsys, co
     assert (digest(out) if out.exists() else None) == before_out
 
 
-def test_evaluate_quiet_prints_no_progress_bars(world, tmp_path, capsys):
+def test_evaluate_quiet_prints_no_progress_bars(world, tmp_path, capsys, monkeypatch):
+    import ssgwarp.core.progress as progress
+
+    monkeypatch.setattr(progress, "on_terminal", lambda: True)     # (bars are drawn on a terminal only)
     run = copy(world.grouped, tmp_path / "run")
     argv = [str(a) for a in ["evaluate", run, "--max-pairs", "1", "--path-frames", "3", "--save-pairs", "0", *FAST]]
     capsys.readouterr()

@@ -41,3 +41,29 @@ def test_flag_beats_config_beats_default(tmp_path, parsed):
     # without --config: the defaults
     assert main(["render", str(tmp_path / "run"), "--out", str(tmp_path / "o"), "--device", "cpu"]) == 0
     assert parsed["split"] == "all" and parsed["path"] is None and parsed["seed"] == 0
+
+
+@pytest.mark.parametrize("cfg, message", [
+    ({"path": "seven"}, "'path' takes a whole number"),
+    ({"split": "sideways"}, "'split' must be one of"),
+    ({"quiet": "yes"}, "'quiet' is a switch: true or false"),
+    ({"path": [1, 2]}, "'path' takes a whole number"),
+    ({"weights": ["vgg16"]}, "'weights' must map model names to paths"),
+])
+def test_config_values_of_the_wrong_type_are_one_line(tmp_path, parsed, capsys, cfg, message):
+    """(issue 60: a --config value went to the command as it was, e.g. a list where a number belongs.)"""
+    path = tmp_path / "cfg.json"
+    path.write_text(json.dumps(cfg))
+    assert main(["render", str(tmp_path / "run"), "--out", str(tmp_path / "o"), "--device", "cpu",
+                 "--config", str(path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and message in err and str(path) in err, err
+    assert not parsed
+
+
+def test_config_not_utf8_is_one_line(tmp_path, parsed, capsys):
+    path = tmp_path / "cfg.json"
+    path.write_bytes(b'{"path": "\xff"}')
+    assert main(["render", str(tmp_path / "run"), "--out", str(tmp_path / "o"), "--config", str(path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "not UTF-8" in err and "--config" in err and len(err.splitlines()) == 1, err

@@ -601,9 +601,12 @@ def test_nerfstudio_masks_are_loaded_undistorted_and_resized_with_their_images(t
         load_dataset(tmp_path, format="transforms")
 
 
-def test_no_image_loading_bar_without_progress(tmp_path, capsys):
+def test_no_image_loading_bar_without_progress(tmp_path, capsys, monkeypatch):
     """`load_dataset(progress=False)` (what `reconstruct --quiet` passes) shows no image-loading bar; with
-    progress a capture of 16 or more images shows one."""
+    progress a capture of 16 or more images shows one (on a terminal: in a log, a sub-step writes nothing)."""
+    import ssgwarp.core.progress as progress
+
+    monkeypatch.setattr(progress, "on_terminal", lambda: True)
     from ssgwarp.procedural import ring_cameras, write_transforms_dataset
 
     cams = ring_cameras(16, 12, 9)

@@ -263,6 +263,22 @@ def test_every_demo_stage_runs_with_downloads_off(tmp_path, monkeypatch):
     assert W.offline_reason() == before
 
 
+def test_demo_resume_with_other_options_names_them(tmp_path):
+    """(the resume record every command shares: ssgwarp.services.runs.check_resume)"""
+    from ssgwarp.core.fileio import write_json
+    from ssgwarp.demo import _prepare_out
+    from ssgwarp.errors import InputError
+
+    out = tmp_path / "o"
+    rec = {"format": "ssgwarp-demo/1", "options": {"size": "small", "seed": 0, "views": [4, 2]}, "stages": {}}
+    write_json(out / "demo.json", {**rec, "stages": {"reconstruct": {"done": True}}})
+    (out / "contact_sheet.png").write_text("old")
+    with pytest.raises(InputError, match=r"other options .*seed 0 -> 3; size small -> default"):
+        _prepare_out(out, force=False, resume=True, record={**rec, "options": {**rec["options"], "seed": 3,
+                                                                               "size": "default"}})
+    assert _prepare_out(out, force=False, resume=True, record=dict(rec))["stages"] == {"reconstruct": {"done": True}}
+
+
 def test_force_removes_only_what_the_demo_writes(tmp_path):
     from ssgwarp.demo import _prepare_out
     from ssgwarp.errors import InputError, SsgwarpError

@@ -312,11 +312,14 @@ def _write_run(tmp_path, grouped: bool = True):
 
 
 def test_resume_refusal_names_the_changed_stage2_fields():
+    from ssgwarp.services.runs import resume_changes
+
     old = {"style": "a.png", "stage2": {"lr": 0.02}}
-    assert st._changed(old, {"style": "a.png", "stage2": {"lr": 0.02, "content_weight": 0.01}}) == \
+    assert resume_changes(old, {"style": "a.png", "stage2": {"lr": 0.02, "content_weight": 0.01}}) == \
         ["stage2.content_weight (not recorded) -> 0.01"]          # a field added since the earlier run
-    assert st._changed(old, {"style": "b.png", "stage2": {"lr": 0.5}}) == ["stage2.lr 0.02 -> 0.5", "style"]
-    assert st._changed(old, dict(old)) == []
+    assert resume_changes(old, {"style": "b.png", "stage2": {"lr": 0.5}}) == ["stage2.lr 0.02 -> 0.5",
+                                                                              "style a.png -> b.png"]
+    assert resume_changes(old, dict(old)) == []
 
 
 def test_cli_stylize_end_to_end_without_stage1_weights(tmp_path, monkeypatch, capsys):
@@ -365,7 +368,7 @@ def test_cli_stylize_end_to_end_without_stage1_weights(tmp_path, monkeypatch, ca
     assert torch.equal(read_ply(out / "scene.ply").sh_dc, styled.sh_dc)
     capsys.readouterr()
     assert main(["stylize", *argv, "--resume", "--lr", "0.5"]) == 2     # different options: the field is named
-    assert "--resume with different options (stage2.lr 0.02 -> 0.5)" in capsys.readouterr().err
+    assert "--resume with other options than the earlier run was started with (stage2.lr 0.02 -> 0.5)" in capsys.readouterr().err
     assert main(["stylize", *argv, "--force", "--mode", "global", "--color-transfer", "off", "--style-loss", "nnfm",
                  "--style-scale", "1.5"]) == 0
     m2 = json.loads((out / "metrics.json").read_text())

@@ -315,6 +315,8 @@ def load_dataset(path: str | Path, images: str = "images", split_every: int = 8,
     test_mask = d.pop("test_mask", None)
     train, test = _split(len(d["names"]), split_every, test_mask)
     _initial_points(d, init, fmt, int(num_random_points), seed, progress, train)
+    if getattr(width, "at_most", False):      # (a preset's cap: the width the images were loaded at, or none)
+        width = int(width) if d["cameras"].width == int(width) else None
     options = dict(images=images, split_every=split_every, background=list(bg), max_images=max_images,
                    width=width, num_random_points=int(num_random_points), seed=seed, format=fmt, init=str(init))
     data = SceneData(train_ids=train, test_ids=test, background=bg, data_dir=root.resolve(), format=fmt,

@@ -12,7 +12,7 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 import torch
-from tqdm import tqdm
+from ..core.progress import tqdm
 
 from ..core.cameras import Cameras
 from ..formats.colmap import _pick, find_model, read_cameras, read_model, read_points3d
@@ -122,6 +122,8 @@ def _load_images(paths: Sequence[Path], background, width: Optional[int],
                 log.info("undistorting %d images (%s) into a %dx%d pinhole crop of the %dx%d images "
                          "(every pixel has a source)", len(paths), "/".join(models), *plan.size, w0, h0)
             wu, hu = plan.size if plan is not None else (w0, h0)
+            if getattr(width, "at_most", False) and width >= wu:
+                width = None              # (a preset's width: never wider than the capture)
             w, h = (width, max(1, int(round(hu * width / wu)))) if width is not None else (wu, hu)
         elif img.shape[:2] != size0:
             raise InputError(f"{p}: image size {img.shape[1]}x{img.shape[0]} differs from the others "
@@ -160,6 +162,10 @@ def _viewmats_from_c2w(c2w: np.ndarray) -> torch.Tensor:
     m[:, :3, :4] = c2w[:, :3, :4]
     if not np.all(np.isfinite(m)):
         raise InputError("camera poses contain NaN/inf values")
+    det = np.linalg.det(m[:, :3, :3])
+    if not (np.abs(det) > 1e-12).all():
+        raise InputError(f"camera pose {int(np.argmax(~(np.abs(det) > 1e-12)))} has a singular rotation "
+                         f"(determinant {det[np.argmax(~(np.abs(det) > 1e-12))]:.3g})")
     return torch.from_numpy(np.linalg.inv(m))
 
 
@@ -252,17 +258,61 @@ def _load_colmap(root: Path, images: str, max_images, width, background, progres
                 image_dir=folder.name, undistortion=undist)
 
 
+def read_poses_bounds(path: Path) -> np.ndarray:
+    """LLFF's ``poses_bounds.npy`` as float64 ``[N, 17]``, checked: an ``.npy`` of numbers of that shape whose
+    size is what its header says (read without trusting a count: a damaged header cannot make it allocate
+    more than the file holds), finite, with positive image size, focal length and near/far bounds and an
+    invertible rotation per pose. Anything else raises :class:`InputError` naming ``path``."""
+    path = Path(path)
+    shape_msg = "(LLFF expects [N, 17]: 3x5 pose-and-hwf + near/far per image)"
+    try:
+        with open(path, "rb") as f:
+            size = path.stat().st_size
+            version = np.lib.format.read_magic(f)
+            if version not in ((1, 0), (2, 0), (3, 0)):
+                raise ValueError(f"unknown .npy version {version}")
+            start = f.tell()
+            n_len = 2 if version == (1, 0) else 4
+            hlen = int.from_bytes(f.read(n_len), "little")
+            if start + n_len + hlen > size or hlen > 65535:      # (read() would reserve what the field says)
+                raise ValueError(f"its header length {hlen} runs past the end of the file")
+            f.seek(start)
+            read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                           else np.lib.format.read_array_header_2_0)
+            shape, fortran, dtype = read_header(f)
+            body = f.read()
+    except OSError as e:
+        raise InputError(f"{path}: cannot read ({e.strerror})") from None
+    except Exception as e:          # numpy's header parser: ValueError, SyntaxError, ...
+        raise InputError(f"{path}: cannot read (not a valid .npy file: {str(e).splitlines()[0] if str(e) else type(e).__name__})"
+                         ) from None
+    if dtype.kind not in "fiu" or dtype.hasobject:
+        raise InputError(f"{path}: holds {dtype} values, not numbers {shape_msg}")
+    if len(shape) != 2 or shape[1] != 17 or shape[0] == 0:
+        raise InputError(f"{path}: poses of the wrong shape {tuple(shape)} {shape_msg}")
+    if shape[0] * 17 * dtype.itemsize != len(body):
+        raise InputError(f"{path}: truncated or corrupt (its header says {shape[0]}x17 {dtype} values, "
+                         f"{shape[0] * 17 * dtype.itemsize} bytes; the file holds {len(body)})")
+    pb = np.frombuffer(body, dtype=dtype).reshape(shape, order="F" if fortran else "C").astype(np.float64)
+    if not np.all(np.isfinite(pb)):
+        raise InputError(f"{path}: contains NaN/inf values")
+    hwf, bounds = pb[:, :15].reshape(-1, 3, 5)[:, :, 4], pb[:, 15:17]
+    if not (hwf > 0).all():
+        i = int(np.argmax(~(hwf > 0).all(axis=1)))
+        raise InputError(f"{path}: pose {i} has image size / focal length {hwf[i].tolist()} (all must be positive)")
+    if not (bounds > 0).all():
+        i = int(np.argmax(~(bounds > 0).all(axis=1)))
+        raise InputError(f"{path}: pose {i} has near/far bounds {bounds[i].tolist()} (both must be positive)")
+    det = np.linalg.det(pb[:, :15].reshape(-1, 3, 5)[:, :, :3])
+    if not (np.abs(det) > 1e-6).all():
+        i = int(np.argmax(~(np.abs(det) > 1e-6)))
+        raise InputError(f"{path}: pose {i} has a singular rotation (determinant {det[i]:.3g})")
+    return pb
+
+
 def _load_llff(root: Path, images: str, max_images, width, background, num_random_points, seed, progress=True, **_):
     pb_path = root / "poses_bounds.npy"
-    try:
-        pb = np.load(pb_path, allow_pickle=False)
-    except Exception as e:
-        raise InputError(f"{pb_path}: cannot read ({str(e).splitlines()[0] if str(e) else type(e).__name__})") from None
-    if pb.ndim != 2 or pb.shape[1] != 17 or pb.shape[0] == 0:
-        raise InputError(f"{pb_path}: poses of the wrong shape {tuple(pb.shape)} (LLFF expects [N, 17]: "
-                         f"3x5 pose-and-hwf + near/far per image)")
-    if not np.all(np.isfinite(pb)):
-        raise InputError(f"{pb_path}: contains NaN/inf values")
+    pb = read_poses_bounds(pb_path)
     folder = _image_folder(root, images)
     files = _list_images(folder)
     if len(files) != pb.shape[0]:
@@ -322,6 +372,7 @@ def _intrinsics_from(meta: dict, w: int, h: int, where: str) -> tuple[float, flo
     """fx, fy, cx, cy at the JSON's own resolution (``meta['w'/'h']`` or the image's)."""
     if not any(k in meta for k in ("fl_x", "fl_y", "camera_angle_x")):
         raise InputError(f"{where}: no intrinsics (need camera_angle_x or fl_x/fl_y)")
+    err = np.seterr(all="ignore")      # (an angle of inf or pi: checked below, no warning)
     try:
         if "fl_x" in meta or "fl_y" in meta:
             fx = float(meta.get("fl_x", meta.get("fl_y")))
@@ -331,8 +382,10 @@ def _intrinsics_from(meta: dict, w: int, h: int, where: str) -> tuple[float, flo
             fy = 0.5 * h / np.tan(0.5 * float(meta["camera_angle_y"])) if "camera_angle_y" in meta else fx
         cx = float(meta.get("cx", w / 2.0))
         cy = float(meta.get("cy", h / 2.0))
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise InputError(f"{where}: intrinsics are not numbers") from None
+    finally:
+        np.seterr(**err)
     if not (np.isfinite([fx, fy, cx, cy]).all() and fx > 0 and fy > 0):
         raise InputError(f"{where}: invalid intrinsics fx={fx} fy={fy}")
     return fx, fy, cx, cy
@@ -358,7 +411,7 @@ def _transforms_lens(meta: dict, where: str):
                                             else bool(flag))
     try:
         k1, k2, k3, k4, p1, p2 = (float(meta.get(k, 0.0)) for k in ("k1", "k2", "k3", "k4", "p1", "p2"))
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise InputError(f"{where}: distortion coefficients are not numbers") from None
     if fisheye:
         if p1 or p2:
@@ -380,55 +433,95 @@ def _applied_transform(meta: dict, where: str) -> Optional[list]:
         return None
     try:
         m = np.asarray(meta["applied_transform"], dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         m = np.zeros(0)
     if m.shape not in ((3, 4), (4, 4)) or not np.isfinite(m).all():
         raise InputError(f"{where}: applied_transform must be a 3x4 matrix of numbers")
     return m[:3, :4].tolist()
 
 
-def _load_transforms(root: Path, images: str, max_images, width, background, num_random_points, seed, progress=True,
-                     **_):
+def _frame_path(value, jpath: Path, i: int, key: str) -> str:
+    if not isinstance(value, str) or not value.strip() or "\x00" in value:
+        raise InputError(f"{jpath}: frame {i}: {key} must be a file name (got {str(value)[:60]!r})")
+    return value
+
+
+def _json_size(meta: dict, key: str, default: int, where: str) -> int:
+    """``meta[key]`` (``w``/``h``, the size the JSON's intrinsics are given at) as a positive integer."""
+    if key not in meta:
+        return default
+    v = meta[key]
+    if isinstance(v, str):               # ("64": some writers quote their numbers)
+        try:
+            v = float(v)
+        except ValueError:
+            pass
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < 1 << 20 or v != int(v):
+        raise InputError(f"{where}: '{key}' must be a positive whole number of pixels (got {str(v)[:40]})")
+    return int(v)
+
+
+def read_transforms(root: Path, images: str = "images") -> list[dict]:
+    """The frames of a NeRF / instant-ngp / nerfstudio capture (``transforms.json``, or
+    ``transforms_train.json`` + ``transforms_test.json``), read and checked before any image is: per frame
+    ``jpath`` (its JSON), ``meta`` (that JSON's top level), ``merged`` (top level + the frame's own keys),
+    ``rel`` (its image path; a leading ``images/`` becomes ``images``), ``mask`` (``mask_path`` or None),
+    ``c2w`` (3x4 float64, OpenGL axes), ``lens``, ``test`` (from transforms_test.json). Intrinsics, sizes,
+    lens, ``applied_transform`` and poses are checked here (non-numbers, NaN/inf, wrong shapes, singular
+    rotations: :class:`InputError` naming the file and the frame)."""
     if (root / "transforms.json").is_file():
         sources = [(root / "transforms.json", False)]
     else:
         sources = [(root / "transforms_train.json", False)]
         if (root / "transforms_test.json").is_file():
             sources.append((root / "transforms_test.json", True))
-    frames, metas, is_test = [], [], []
+    out = []
     for jpath, test in sources:
         meta = read_json(jpath)
         if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
             raise InputError(f"{jpath}: expected an object with a non-empty 'frames' list")
+        _applied_transform(meta, str(jpath))
         for i, fr in enumerate(meta["frames"]):
             if not isinstance(fr, dict) or "file_path" not in fr or "transform_matrix" not in fr:
                 raise InputError(f"{jpath}: frame {i} needs 'file_path' and 'transform_matrix'")
-            frames.append(fr)
-            metas.append((jpath, meta))
-            is_test.append(test)
-    keep = _evenly(len(frames), max_images)
-    frames = [frames[i] for i in keep]
-    metas = [metas[i] for i in keep]
-    is_test = [is_test[i] for i in keep]
+            rel = Path(_frame_path(fr["file_path"], jpath, i, "file_path"))
+            if images != "images" and rel.parts and rel.parts[0] == "images":
+                rel = Path(images, *rel.parts[1:])
+            mask = _frame_path(fr["mask_path"], jpath, i, "mask_path") if "mask_path" in fr else None
+            try:
+                m = np.asarray(fr["transform_matrix"], dtype=np.float64)
+            except (TypeError, ValueError, OverflowError):
+                raise InputError(f"{jpath}: transform_matrix of {rel} is not a matrix of numbers") from None
+            if m.shape not in ((4, 4), (3, 4)):
+                raise InputError(f"{jpath}: transform_matrix of {rel} has the wrong shape {m.shape} (expected 4x4)")
+            if not np.isfinite(m).all():
+                raise InputError(f"{jpath}: transform_matrix of {rel} holds NaN/inf values")
+            if not abs(np.linalg.det(m[:3, :3])) > 1e-12:
+                raise InputError(f"{jpath}: transform_matrix of {rel} has a singular rotation")
+            merged = {**meta, **{k: v for k, v in fr.items() if k not in ("file_path", "transform_matrix")}}
+            where = f"{jpath}: frame {rel}"
+            jw, jh = _json_size(merged, "w", 64, where), _json_size(merged, "h", 64, where)
+            _intrinsics_from(merged, jw, jh, where)          # (checked now, at any size: again at the images')
+            out.append(dict(jpath=jpath, meta=meta, merged=merged, rel=rel, mask=mask, c2w=m[:3, :4],
+                            lens=_transforms_lens(merged, where), test=test, where=where))
+    return out
 
-    paths, missing, c2w = [], [], []
-    for fr, (jpath, _) in zip(frames, metas):
-        rel = Path(str(fr["file_path"]))
-        if images != "images" and rel.parts and rel.parts[0] == "images":
-            rel = Path(images, *rel.parts[1:])
-        p = _resolve_image(root, str(rel))
-        (missing.append(str(rel)) if p is None else paths.append(p))
-        try:
-            m = np.asarray(fr["transform_matrix"], dtype=np.float64)
-        except (TypeError, ValueError):
-            raise InputError(f"{jpath}: transform_matrix of {rel} is not a matrix of numbers") from None
-        if m.shape not in ((4, 4), (3, 4)):
-            raise InputError(f"{jpath}: transform_matrix of {rel} has the wrong shape {m.shape} (expected 4x4)")
-        c2w.append(m[:3, :4])
+
+def _load_transforms(root: Path, images: str, max_images, width, background, num_random_points, seed, progress=True,
+                     **_):
+    frames = read_transforms(root, images)
+    frames = [frames[i] for i in _evenly(len(frames), max_images)]
+    metas = [(f["jpath"], f["meta"]) for f in frames]
+    is_test = [f["test"] for f in frames]
+    paths, missing = [], []
+    for fr in frames:
+        p = _resolve_image(root, str(fr["rel"]))
+        (missing.append(str(fr["rel"])) if p is None else paths.append(p))
     if missing:
         raise missing_images_error(missing, root, ", ".join(sorted({m[0].name for m in metas})))
+    c2w = [fr["c2w"] for fr in frames]
     # nerfstudio masks (``mask_path`` per frame: 0 = not part of the scene): all frames or none
-    with_mask = ["mask_path" in fr for fr in frames]
+    with_mask = [fr["mask"] is not None for fr in frames]
     mask_paths = None
     if any(with_mask):
         if not all(with_mask):
@@ -436,20 +529,17 @@ def _load_transforms(root: Path, images: str, max_images, width, background, num
                              f"give it for every frame or none")
         mask_paths, missing = [], []
         for fr in frames:
-            q = _resolve_image(root, str(fr["mask_path"]))
-            (missing.append(str(fr["mask_path"])) if q is None else mask_paths.append(q))
+            q = _resolve_image(root, fr["mask"])
+            (missing.append(fr["mask"]) if q is None else mask_paths.append(q))
         if missing:
             raise missing_images_error(missing, root, f"{metas[0][0].name} (mask_path)")
-    cams_meta = []
-    for fr, (jpath, meta), p in zip(frames, metas, paths):
-        merged = {**meta, **{k: v for k, v in fr.items() if k not in ("file_path", "transform_matrix")}}
-        where = f"{jpath}: frame {p.relative_to(root)}"
-        cams_meta.append((merged, where, _transforms_lens(merged, where)))
+    cams_meta = [(fr["merged"], f"{fr['jpath']}: frame {p.relative_to(root)}", fr["lens"])
+                 for fr, p in zip(frames, paths)]
 
     def intrinsics(w0, h0):
         Ks = []
         for merged, where, _ in cams_meta:
-            jw, jh = int(merged.get("w", w0)), int(merged.get("h", h0))
+            jw, jh = _json_size(merged, "w", w0, where), _json_size(merged, "h", h0, where)
             fx, fy, cx, cy = _intrinsics_from(merged, jw, jh, where)
             sx, sy = w0 / jw, h0 / jh
             Ks.append([[fx * sx, 0.0, cx * sx], [0.0, fy * sy, cy * sy], [0.0, 0.0, 1.0]])

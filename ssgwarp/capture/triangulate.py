@@ -35,7 +35,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 import torch
-from tqdm import tqdm
+from ..core.progress import tqdm
 
 from ..core.cameras import Cameras
 from ..errors import InputError

@@ -29,8 +29,11 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     and ``path`` is left as it was.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix + ".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix + ".tmp", dir=path.parent)
+    except OSError as e:            # (named as the user wrote it, not as the hidden temporary name)
+        raise InputError(f"{path}: cannot write there ({e.strerror or e})") from None
     os.close(fd)
     tmp = Path(tmp)
     umask = os.umask(0)
@@ -39,24 +42,16 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     try:
         yield tmp
         os.replace(tmp, path)
+    except OSError as e:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        if e.filename is not None and str(tmp) in (str(e.filename), str(e.filename2)):
+            raise OSError(e.errno, f"{path}: cannot write ({e.strerror})") from None
+        raise
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
         raise
-
-
-def claim_output_dir(path: str | os.PathLike, force: bool) -> Path:
-    """Make ``path`` ready for a command's outputs: an existing non-empty folder is refused unless
-    ``force`` (then it is emptied), so outputs are never overwritten by accident."""
-    import shutil
-
-    path = Path(path)
-    if path.exists() and (not path.is_dir() or any(path.iterdir())):
-        if not force:
-            raise InputError(f"{path}: already exists and is not empty; pass --force to overwrite it")
-        shutil.rmtree(path) if path.is_dir() else path.unlink()
-    path.mkdir(parents=True, exist_ok=True)
-    return path
 
 
 def write_json(path: str | os.PathLike, obj: Any) -> None:
@@ -70,9 +65,17 @@ def read_json(path: str | os.PathLike) -> Any:
     if not path.is_file():
         raise InputError(f"{path}: file not found")
     try:
-        return json.loads(path.read_text())
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise InputError(f"{path}: not valid JSON (not UTF-8 text at byte {e.start})") from None
+    except OSError as e:
+        raise InputError(f"{path}: cannot read ({e.strerror})") from None
+    try:
+        return json.loads(text)
     except json.JSONDecodeError as e:
         raise InputError(f"{path}: not valid JSON ({e})") from None
+    except RecursionError:
+        raise InputError(f"{path}: not valid JSON (nested too deeply)") from None
 
 
 def _json_default(o: Any) -> Any:
@@ -89,34 +92,64 @@ def _json_default(o: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(o)}")
 
 
-def read_image(path: str | os.PathLike, channels: int | None = None) -> np.ndarray:
-    """Read an image with OpenImageIO as float32 ``[H, W, C]``.
+MAX_IMAGE_VALUES = 1 << 30   # width x height x channels above this is refused before decoding (4 GiB as float32)
 
-    8-bit and 16-bit files are scaled to [0, 1]; float files (EXR) keep their
-    values. ``channels`` keeps the first ``channels`` channels (a grey image is
-    repeated to 3 when 3 are asked for).
+
+def read_image_native(path: str | os.PathLike, fmt: str = "float", what: str = "image") -> np.ndarray:
+    """Decode an image file with OpenImageIO as ``[H, W, C]`` in ``fmt`` ("float" or the file's own
+    ``"native"`` type).
+
+    A missing, unreadable, truncated or corrupt file (the decoder's own errors and warnings, e.g.
+    libjpeg's "Premature end of JPEG file", which otherwise decodes the missing part as grey) and a
+    header that claims more than :data:`MAX_IMAGE_VALUES` values raise :class:`InputError` naming
+    ``path``; nothing is decoded into a partly valid image.
     """
     import OpenImageIO as oiio
 
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"{path}: image not found")
+        raise InputError(f"{path}: {what} not found")
     from .native_stderr import captured, summary
 
+    data, err, spec = None, "", None
     with captured() as said:        # libpng & co. print on stderr: their words go into our one line
         inp = oiio.ImageInput.open(str(path))
         if inp is not None:
             try:
                 spec = inp.spec()
-                data = inp.read_image(0, 0, 0, spec.nchannels, "float")
+                n = int(spec.width) * int(spec.height) * int(spec.nchannels)
+                if spec.width <= 0 or spec.height <= 0 or spec.nchannels <= 0:
+                    err = f"its header says {spec.width}x{spec.height} with {spec.nchannels} channels"
+                elif n > MAX_IMAGE_VALUES:
+                    err = (f"its header says {spec.width}x{spec.height} with {spec.nchannels} channels, "
+                           f"more than ssgwarp reads ({MAX_IMAGE_VALUES} values)")
+                else:
+                    data = inp.read_image(0, 0, 0, spec.nchannels, spec.format if fmt == "native" else fmt)
+                    err = inp.geterror() or ""
             finally:
                 inp.close()
     if inp is None:
-        raise InputError(f"{path}: cannot read image ({oiio.geterror() or summary(said)})")
-    if data is None or not isinstance(data, np.ndarray):
-        detail = summary(said) or oiio.geterror()
-        raise InputError(f"{path}: cannot decode image ({detail + '; ' if detail else ''}truncated or corrupt?)")
-    img = np.asarray(data, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+        detail = " ".join((oiio.geterror() or summary(said) or "unknown format").split())
+        raise InputError(f"{path}: cannot read {what} ({detail})")
+    oiio.geterror()                 # clear OIIO's global error, so none is left pending at exit
+    if data is None and err.startswith("its header"):
+        raise InputError(f"{path}: not a usable {what}: {err}")
+    if err or data is None or not isinstance(data, np.ndarray):
+        detail = "; ".join(t for t in (" ".join(err.split()), summary(said)) if t)
+        raise InputError(f"{path}: cannot decode {what} ({detail + '; ' if detail else ''}truncated or corrupt?)")
+    return np.asarray(data).reshape(spec.height, spec.width, spec.nchannels)
+
+
+def read_image(path: str | os.PathLike, channels: int | None = None) -> np.ndarray:
+    """Read an image with OpenImageIO as float32 ``[H, W, C]``.
+
+    8-bit and 16-bit files are scaled to [0, 1]; float files (EXR) keep their
+    values. ``channels`` keeps the first ``channels`` channels (a grey image is
+    repeated to 3 when 3 are asked for). A missing, truncated or corrupt file raises
+    :class:`InputError` naming it (:func:`read_image_native`).
+    """
+    path = Path(path)
+    img = np.asarray(read_image_native(path, "float"), dtype=np.float32)
     if channels is not None:
         if img.shape[2] == 1 and channels >= 3:
             img = np.repeat(img, 3, axis=2)

@@ -10,6 +10,14 @@ import argparse
 from typing import Any, Mapping
 
 
+class AtMost(int):
+    """A preset's image width: at most this many pixels. A capture already narrower keeps its own size, so
+    that no preset raises a capture's resolution (``reconstruct --quick`` on a 200x200 capture trains at
+    200x200, not 252x252); ``--width N`` given explicitly is taken as it is."""
+
+    at_most = True
+
+
 class _Preset(argparse.Action):
     def __init__(self, option_strings, dest, preset: Mapping[str, Any], defaults: Mapping[str, Any], **kw):
         super().__init__(option_strings, dest, nargs=0, default=False, **kw)
@@ -29,7 +37,8 @@ def add_preset(parser: argparse.ArgumentParser, flag: str, preset: Mapping[str, 
     unknown = [d for d in preset if d not in flags]
     if unknown:
         raise ValueError(f"{flag} preset names unknown options: {unknown}")
-    text = ", ".join(f"{flags[d]} {v}" for d, v in preset.items())
+    text = ", ".join(f"{flags[d]} {v}" + (" (at most: never wider than the capture)" if getattr(v, "at_most", False)
+                                          else "") for d, v in preset.items())
     parser.add_argument(flag, action=_Preset, preset=preset, defaults={d: parser.get_default(d) for d in preset},
                         help=help.replace("{values}", text).replace("%", "%%"))
 

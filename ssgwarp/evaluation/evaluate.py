@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any, Optional, Sequence
 
 import torch
-from tqdm.auto import tqdm
+from ..core.progress import tqdm
 
 from . import metrics as M
 from . import networks as N

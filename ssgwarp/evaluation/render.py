@@ -23,12 +23,12 @@ import torch
 from ..capture.orbit import fit_splats, orbit_cameras, parse_up
 from ..formats.registry import read_splat_file
 from ..core.cameras import Cameras
-from ..core.fileio import claim_output_dir, read_image, write_json
+from ..core.fileio import read_image, write_json
 from ..core.imaging import VIDEO_FPS, VIDEO_SUFFIXES, mp4_writer_missing, write_video
 from ..errors import InputError
 from ..core.geometry import quat_to_rotmat, rotmat_to_quat
 from ..raster.rendering import render_to_files
-from ..services.runs import Run
+from ..services.runs import Run, claim_folder
 
 log = logging.getLogger("ssgwarp.evaluation.render")
 
@@ -233,7 +233,7 @@ def run(args) -> int:
             cams = smooth_path(cams, args.path, closed=not args.open)
         # (a stylized run: on its recorded, recoloured background)
         background = run_.background(data.background)
-    claim_output_dir(args.out, args.force)
+    claim_folder(args.out, args.force)
     if args.path is not None:
         cams.to("cpu").save(args.out / "path_cameras.json")
     elif orbit is not None:

@@ -149,11 +149,22 @@ class ColmapModel:
 
 def qvec_to_rotmat(q: np.ndarray) -> np.ndarray:
     """``[3, 3]`` rotation of a (normalised here) wxyz quaternion (:func:`ssgwarp.core.geometry.quat_to_rotmat`)."""
+    q = _unit(q)
+    if q is None:
+        raise InputError(f"invalid quaternion {np.asarray(q).tolist()}")
+    return quat_to_rotmat(torch.from_numpy(q), normalize=False).numpy()
+
+
+def _unit(q) -> Optional[np.ndarray]:
+    """``q / |q|`` (scaled first, so that no finite quaternion overflows), or None for a zero or non-finite one."""
     q = np.asarray(q, dtype=np.float64)
-    n = np.linalg.norm(q)
-    if not np.isfinite(n) or n == 0:
-        raise InputError(f"invalid quaternion {q.tolist()}")
-    return quat_to_rotmat(torch.from_numpy(q / n), normalize=False).numpy()
+    if not np.isfinite(q).all():
+        return None
+    big = np.abs(q).max(initial=0.0)
+    if not big > 0:
+        return None
+    q = q / big
+    return q / np.linalg.norm(q)
 
 
 def rotmat_to_qvec(R: np.ndarray) -> np.ndarray:
@@ -256,7 +267,7 @@ def read_points3d_binary(path: str | Path) -> ColmapPoints:
     rgb = np.empty((n, 3), np.uint8)
     err = np.empty(n, np.float64)
     tl = np.empty(n, np.int64)
-    rec = struct.Struct("<QdddBBBdQ")
+    rec = struct.Struct("<qdddBBBdQ")   # (the id read as int64: COLMAP ids are far below 2^63)
     buf, size = r.buf, len(r.buf)
     pos = r.pos
     for i in range(n):
@@ -291,6 +302,14 @@ def _parse(path: Path, lineno: int, fn, what: str):
         raise InputError(f"{path}:{lineno}: cannot parse {what}") from None
 
 
+def _int(tok: str) -> int:
+    """An integer token of a COLMAP text file (an id, a size, a colour) in int64's range, else ValueError."""
+    v = int(tok)
+    if not -(1 << 63) <= v < 1 << 63:
+        raise ValueError(tok)
+    return v
+
+
 def read_cameras_text(path: str | Path) -> dict[int, ColmapCamera]:
     path = Path(path)
     cams = {}
@@ -305,7 +324,7 @@ def read_cameras_text(path: str | Path) -> dict[int, ColmapCamera]:
             npar = MODELS[MODEL_IDS[model]][1]
             if len(tok) != 4 + npar:
                 raise ValueError
-            return ColmapCamera(int(tok[0]), model, int(tok[2]), int(tok[3]),
+            return ColmapCamera(_int(tok[0]), model, _int(tok[2]), _int(tok[3]),
                                 np.array([float(v) for v in tok[4:]], dtype=np.float64))
 
         c = _parse(path, lineno, cam, "camera line (CAMERA_ID MODEL WIDTH HEIGHT PARAMS...)")
@@ -330,8 +349,8 @@ def read_images_text(path: str | Path) -> dict[int, ColmapImage]:
         def img():
             if len(tok) < 10:
                 raise ValueError
-            return ColmapImage(int(tok[0]), np.array([float(v) for v in tok[1:5]]),
-                               np.array([float(v) for v in tok[5:8]]), int(tok[8]), " ".join(tok[9:]))
+            return ColmapImage(_int(tok[0]), np.array([float(v) for v in tok[1:5]]),
+                               np.array([float(v) for v in tok[5:8]]), _int(tok[8]), " ".join(tok[9:]))
 
         im = _parse(path, lineno, img, "image line (IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME)")
         pts = lines[i + 1][1] if i + 1 < len(lines) else []
@@ -345,7 +364,9 @@ def read_images_text(path: str | Path) -> dict[int, ColmapImage]:
                 raise InputError(f"{path}:{lines[i - 1][0]}: cannot parse 2D points (expected X Y POINT3D_ID triples)")
             arr = _parse(path, lines[i - 1][0], lambda: np.array([float(v) for v in pts]).reshape(-1, 3),
                          "2D points")
-            im.xys, im.point3d_ids = arr[:, :2], arr[:, 2].astype(np.int64)
+            ids = _parse(path, lines[i - 1][0], lambda: np.array([_int(v) for v in pts[2::3]], np.int64),
+                         "2D points (POINT3D_ID must be a whole number)")
+            im.xys, im.point3d_ids = arr[:, :2], ids
         images[im.id] = _check_image(im, path)
     return images
 
@@ -373,7 +394,7 @@ def read_points3d_text(path: str | Path) -> ColmapPoints:
             c = [int(v) for v in tok[4:7]]
             if any(not 0 <= v <= 255 for v in c):
                 raise ValueError
-            return int(tok[0]), [float(v) for v in tok[1:4]], c, float(tok[7]), (len(tok) - 8) // 2
+            return _int(tok[0]), [float(v) for v in tok[1:4]], c, float(tok[7]), (len(tok) - 8) // 2
 
         p = _parse(path, lineno, pt, "point line (POINT3D_ID X Y Z R G B ERROR TRACK...)")
         ids.append(p[0]), xyz.append(p[1]), rgb.append(p[2]), err.append(p[3]), tl.append(p[4])
@@ -394,7 +415,7 @@ def _check_camera(c: ColmapCamera, path) -> ColmapCamera:
 
 
 def _check_image(im: ColmapImage, path) -> ColmapImage:
-    if not (np.all(np.isfinite(im.qvec)) and np.all(np.isfinite(im.tvec))) or np.linalg.norm(im.qvec) < 1e-8:
+    if not np.all(np.isfinite(im.tvec)) or _unit(im.qvec) is None:
         raise InputError(f"{path}: corrupt COLMAP file (image {im.id} '{im.name}' has an invalid pose)")
     if not im.name:
         raise InputError(f"{path}: corrupt COLMAP file (image {im.id} has no name)")

@@ -172,7 +172,7 @@ def lift_masks(scene: GaussianScene, cameras: Cameras, compact: Tensor, *, visib
         largest share of the Gaussian's blending weight (``UNLABELLED`` when the unlabelled pixels
         hold it, ``UNSEEN`` when the weights sum to less than ``visible_weight`` pixels) and that share.
     """
-    from tqdm.auto import tqdm
+    from ..core.progress import tqdm
 
     V = compact.shape[0]
     if V != len(cameras) or tuple(compact.shape[1:]) != (cameras.height, cameras.width):

@@ -11,11 +11,11 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
-import OpenImageIO as oiio
 import torch
 
 from ..errors import InputError
 from ..capture.lens import undistort_labels
+from ..core.fileio import read_image_native
 from ..core.imaging import resize_nearest  # noqa: F401  (re-exported: ssgwarp.grouping.stage)
 from .pseudomasks import IGNORE
 
@@ -49,18 +49,7 @@ class MaskSet:
 
 def read_id_image(path: Path) -> np.ndarray:
     """``[H, W]`` integer ids of a single-channel (or grey-as-RGB) mask image, in its native bit depth."""
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise InputError(f"{path}: cannot read mask image ({oiio.geterror()})")
-    try:
-        spec = inp.spec()
-        fmt = spec.format
-        data = inp.read_image(0, 0, 0, spec.nchannels, fmt)
-    finally:
-        inp.close()
-    if data is None or not isinstance(data, np.ndarray):
-        raise InputError(f"{path}: cannot decode mask image")
-    arr = np.asarray(data).reshape(spec.height, spec.width, spec.nchannels)
+    arr = read_image_native(path, "native", what="mask image")
     if arr.dtype.kind == "f":
         raise InputError(f"{path}: mask images must hold integer ids (8- or 16-bit PNG), got float data")
     channels = arr.shape[2]

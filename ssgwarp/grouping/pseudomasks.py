@@ -132,7 +132,7 @@ def lift_colours(scene: GaussianScene, cameras: Cameras, images: Tensor, *,
     Gaussian no view sees); ``colour`` the weight-averaged colour of ``images [C, H, W, 3]`` there
     (the Gaussian's own degree-0 colour where the weight is 0).
     """
-    from tqdm.auto import tqdm
+    from ..core.progress import tqdm
 
     if images.shape[:3] != (len(cameras), cameras.height, cameras.width):
         raise InputError(f"lift_colours: images {tuple(images.shape)} for {len(cameras)} cameras of "
@@ -553,7 +553,7 @@ def render_label_masks(scene: GaussianScene, cameras: Cameras, labels: Tensor, n
         blended colour, or ``IGNORE`` where alpha < ``alpha_min`` or the
         dominant label holds less than ``share_min`` of the alpha.
     """
-    from tqdm.auto import tqdm
+    from ..core.progress import tqdm
 
     onehot = torch.nn.functional.one_hot(labels.to(scene.device), num_groups).to(scene.dtype)
     out = []

@@ -313,7 +313,7 @@ def _stem(name: str) -> str:
 def _segment_views(scene_dir: Path, data, views: Sequence[int], sam: SamSegmenter, config: MaskConfig,
                    resume: bool, progress: bool) -> tuple[Tensor, list[dict]]:
     """SAM label maps of ``views`` (``[V, H, W]`` long, -1 uncovered), each saved to ``sam_masks/`` when done."""
-    from tqdm.auto import tqdm
+    from ..core.progress import tqdm
 
     cams = data.cameras
     raw_dir = scene_dir / "sam_masks"

@@ -209,7 +209,8 @@ def group_scene(scene_dir: str | Path, *, masks: Optional[str | Path] = "auto", 
     else:
         scene, classifier, history = train_identities(
             scene, train_cams, all_targets[run.train_ids], k, config=config, seed=seed, progress=progress,
-            checkpoint_path=gdir / "checkpoint.pt", resume=resume)
+            checkpoint_path=gdir / "checkpoint.pt", resume=resume,
+            record={"--masks": str(mask_dir.resolve()) if mask_dir is not None else "none"})
     info = finish_groups(scene_dir, run, scene, classifier, all_targets, info, history=history,
                          test_masks=mask_dir is not None, progress=progress)
     info["seconds"] = round(time.time() - t0, 2)

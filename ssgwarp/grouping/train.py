@@ -8,6 +8,7 @@ reconstruction (``ssgwarp group --joint``), as a hook of :class:`ssgwarp.reconst
 """
 from __future__ import annotations
 
+from dataclasses import asdict
 from pathlib import Path
 from typing import Optional
 
@@ -18,6 +19,7 @@ from ..errors import InputError
 from ..core.fileio import atomic_path
 from ..core.optim import adam
 from ..services.loop import Loop, check_finite
+from ..services.runs import check_resume, resume_record
 from .model import GroupConfig, init_identities, make_classifier, mask_loss, neighbour_table, regularizer_3d
 from ..raster.scene import GaussianScene
 
@@ -44,7 +46,7 @@ def _save_checkpoint(path: Path, step: int, identities: Tensor, classifier: torc
 def train_identities(scene: GaussianScene, cameras: Cameras, targets: Tensor, num_groups: int, *,
                      config: GroupConfig = GroupConfig(), seed: int = 0, progress: bool = True,
                      checkpoint_path: Optional[str | Path] = None, resume: bool = False,
-                     ) -> tuple[GaussianScene, torch.nn.Linear, list[dict]]:
+                     record: Optional[dict] = None) -> tuple[GaussianScene, torch.nn.Linear, list[dict]]:
     """Train identities and classifier with the geometry frozen.
 
     Args:
@@ -52,7 +54,9 @@ def train_identities(scene: GaussianScene, cameras: Cameras, targets: Tensor, nu
         cameras: the C training cameras. targets: ``[C, H, W]`` long masks
         (``IGNORE`` = -1 skipped). num_groups: K.
         checkpoint_path: where checkpoints go (every ``config.checkpoint_every``
-        steps and on Ctrl-C); with ``resume`` a compatible one is continued.
+        steps and on Ctrl-C); with ``resume`` one of the same setup is continued (its resume record:
+        the scene, views, K, dim, seed and settings but ``iters``, plus the caller's ``record``, e.g. the
+        masks folder; :func:`ssgwarp.services.runs.check_resume`).
     Returns:
         ``(scene with identities [N, E], classifier, history)``; history holds
         ``{"step", "ce", "reg"}`` every 10 steps (``reg`` None on steps without
@@ -73,14 +77,17 @@ def train_identities(scene: GaussianScene, cameras: Cameras, targets: Tensor, nu
     table = neighbour_table(geom.means, config)   # (the positions are frozen: one search, not one per step)
     history: list[dict] = []
     order: list[int] = []
-    meta = {"n": n, "dim": config.dim, "num_groups": num_groups, "seed": int(seed), "views": C}
+    # the resume record (ssgwarp.services.runs): what the checkpoint means; --iters only changes the future
+    meta = resume_record(**{"gaussians": n, "--dim": config.dim, "--groups": num_groups, "--seed": int(seed),
+                            "views": C, "config": {k: v for k, v in asdict(config).items()
+                                                   if k not in ("iters", "checkpoint_every")}, **(record or {})})
     start = 0
     ckpt = Path(checkpoint_path) if checkpoint_path is not None else None
     if resume and ckpt is not None and ckpt.is_file():
         state = torch.load(ckpt, map_location=dev, weights_only=False)
-        if state.get("meta") != meta:
-            raise InputError(f"{ckpt}: checkpoint was written for a different setup ({state.get('meta')} vs {meta}); "
-                             "rerun with --force to start over")
+        old = state.get("meta")
+        check_resume(old if isinstance(old, dict) and "config" in old else {"setup": old}, meta, ckpt,
+                     "the checkpoint")
         with torch.no_grad():
             identities.copy_(state["identities"].to(dev, dt))
         classifier.load_state_dict(state["classifier"])

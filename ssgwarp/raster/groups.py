@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
-from tqdm.auto import tqdm
+from ..core.progress import tqdm
 
 from ..core.cameras import Cameras
 from ..core.fileio import read_json

@@ -121,7 +121,7 @@ def render_views(scene, cameras, background: Optional[Sequence[float]] = None, *
     """Render ``cameras`` one at a time without gradients: colour composited over ``background``
     (None: over black, i.e. premultiplied) and clamped to [0, 1], expected depth (``depth``), alpha.
     A progress bar when ``progress`` or ``desc`` is given."""
-    from tqdm.auto import tqdm
+    from ..core.progress import tqdm
 
     rgbs, depths, alphas = [], [], []
     bg = None if background is None else background_tensor(background, scene.means)
@@ -143,7 +143,7 @@ def render_to_files(scene, cameras, out_dir: str | Path, *, background=(1.0, 1.0
                     names: Optional[list[str]] = None, progress: bool = True) -> list[Path]:
     """Render ``scene`` from each camera to ``out_dir/<name>.png`` (names default to the cameras'
     image names). Returns the written paths."""
-    from tqdm import tqdm
+    from ..core.progress import tqdm
 
     out_dir = Path(out_dir)
     names = names or list(cameras.names)

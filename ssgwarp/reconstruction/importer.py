@@ -40,7 +40,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
+from ..core.progress import tqdm
 
 from ..formats.colmap import find_model, read_model
 from ..capture.datasets import SceneData, data_json, load_dataset

@@ -473,6 +473,8 @@ class Trainer:
             "history": self.history[-1000:],
             "stop_monitor": self.schedules.state_dict(),
             "attached": self.attach.state() if self._attached else None,
+            # the resume record of the command that runs this trainer (ssgwarp.services.runs.resume_record)
+            "options": getattr(self, "resume_options", None),
         }
 
     def save_checkpoint(self, path: Optional[str | Path] = None) -> Path:

@@ -22,7 +22,7 @@ import threading
 from typing import Callable, Optional
 
 import torch
-from tqdm.auto import tqdm
+from ..core.progress import tqdm
 
 from ..errors import SsgwarpError
 

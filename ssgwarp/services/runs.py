@@ -10,7 +10,14 @@
 * :func:`claim` -- one policy for ``--force`` / ``--resume`` on a stage's outputs: an output
   folder that already holds them is refused unless ``force`` (which removes only what the stage
   writes, :meth:`Claim.clear`) or ``resume`` (which the stage continues from its own record);
-  both at once are refused; a path that is a file is refused.
+  both at once are refused; a path that is a file is refused; :func:`claim_folder` -- the same policy for
+  a command whose ``--out`` is a folder of its own (``render``, ``keyviews``): a non-empty one is refused
+  unless ``force``, which empties it;
+* :func:`resume_record` / :func:`check_resume` -- the one resume record: what a run was started with that
+  decides what its checkpoint means (images, resolution, seed, SH degree, strategy, ...). Every command
+  that resumes (reconstruct, group, stylize, demo) stores one and checks it: ``--resume`` with another value
+  of any of them is refused in one line naming each option and both values; options that only change
+  the future (more steps, the checkpoint interval, progress output) are left out of the record.
 
 The layout of the files is docs/architecture.md's "Run directories".
 """
@@ -28,7 +35,7 @@ from ..errors import InputError, SsgwarpError
 from ..core.fileio import read_json
 from ..formats.ply import read_ply
 
-__all__ = ["Run", "Claim", "claim"]
+__all__ = ["Run", "Claim", "claim", "claim_folder", "resume_record", "check_resume"]
 
 
 def _read_dict(path: Path) -> dict:
@@ -246,3 +253,65 @@ def claim(out: str | Path, outputs: Sequence[str], *, force: bool = False, resum
         c.clear()
     return c
 
+
+def claim_folder(path: str | Path, force: bool) -> Path:
+    """Make ``path`` ready for a command whose outputs fill a folder of their own (``render --out``,
+    ``keyviews --out``): an existing non-empty folder (or a file) is refused unless ``force`` (then it is
+    emptied), so outputs are never overwritten by accident. Returns the folder, created."""
+    path = Path(path)
+    if path.exists() and (not path.is_dir() or any(path.iterdir())):
+        if not force:
+            raise InputError(f"{path}: already exists and is not empty; pass --force to overwrite it")
+        shutil.rmtree(path) if path.is_dir() else path.unlink()
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+# ----------------------------------------------------------------------------- the resume record
+NOT_RECORDED = "(not recorded)"
+
+
+def resume_record(**options: Any) -> dict:
+    """The resume record of a run: ``options`` (keyed by their command-line spelling, e.g. ``"--width"``,
+    or a plain name for what is not an option, e.g. ``"resolution"``) as they read back from JSON (tuples
+    become lists, paths strings), so that a record stored in a checkpoint or a JSON file compares equal to
+    a fresh one of the same options."""
+    import json
+
+    return json.loads(json.dumps(options, default=str))
+
+
+def resume_changes(old: dict, new: dict) -> list[str]:
+    """``"--width 252 -> 200"`` for each entry of ``new`` that differs from ``old`` (a dict value, e.g. a
+    stage's whole configuration, is compared field by field: ``"stage2.lr 0.1 -> 0.5"``); an entry the
+    earlier run did not record reads ``(not recorded)``."""
+    def show(v: Any) -> str:
+        text = NOT_RECORDED if v is _MISSING else ("none" if v is None else str(v))
+        return text if len(text) <= 60 else text[:57] + "..."     # (a list of image names: its start)
+
+    out = []
+    for k in sorted(set(old) | set(new)):
+        a, b = old.get(k, _MISSING), new.get(k, _MISSING)
+        if k not in new:
+            continue                      # (what this version no longer records does not block a resume)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += [f"{k}.{f} {show(a.get(f, _MISSING))} -> {show(b.get(f, _MISSING))}"
+                    for f in sorted(set(a) | set(b)) if a.get(f, _MISSING) != b.get(f, _MISSING)]
+        elif a != b:
+            out.append(f"{k} {show(a)} -> {show(b)}")
+    return out
+
+
+_MISSING = object()
+
+
+def check_resume(old: Optional[dict], new: dict, where: str | Path, what: str = "the run") -> None:
+    """Refuse a ``--resume`` whose options (``new``, a :func:`resume_record`) differ from those ``what`` was
+    started with (``old``; None: a record written before records existed, not checked): one line naming
+    ``where``, each differing option and both values (``before -> now``)."""
+    if old is None:
+        return
+    changed = resume_changes(old, new)
+    if changed:
+        raise InputError(f"{where}: --resume with other options than {what} was started with "
+                         f"({'; '.join(changed)}); pass the same ones, or --force to start over")

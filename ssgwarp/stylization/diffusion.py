@@ -166,7 +166,7 @@ def predict_noise(models: Stage1Models, x: torch.Tensor, t: int, text: torch.Ten
 
 
 def _progress(it, desc: str, enabled: bool):
-    from tqdm.auto import tqdm
+    from ..core.progress import tqdm
 
     return tqdm(it, desc=desc, leave=False, disable=not enabled, unit="step")
 

@@ -32,12 +32,12 @@ import torch.nn.functional as F
 
 from ..core.cameras import Cameras
 from ..errors import InputError
-from ..core.fileio import claim_output_dir, read_image, read_json, write_image, write_json
+from ..core.fileio import read_image, read_json, write_image, write_json
 from ..raster.groups import load_groups
 from ..core.imaging import as_bhwc, resize_bhwc, save_sheet
 from ..core.palette import colorize_labels
 from ..raster.rendering import background_tensor
-from ..services.runs import Run
+from ..services.runs import Run, claim_folder
 
 __all__ = ["KeyViews", "select_keyviews", "diffusion_size", "content_size", "to_diffusion", "from_diffusion",
            "diffusion_cameras", "render_keyviews", "save_keyviews", "load_keyviews", "parse_ids",
@@ -361,7 +361,7 @@ def run(args) -> int:
     size = diffusion_size(cams.width, cams.height, args.max_side)
     background = getattr(data, "background", None)
     kv = render_keyviews(scene, cams, ids, size, classifier, background=background)
-    claim_output_dir(out, args.force)
+    claim_folder(out, args.force)
     path = save_keyviews(kv, out)
     groups = f", {kv.num_groups} groups" if kv.groups is not None else ", no group classifier"
     print(f"key views {ids} ({', '.join(kv.cameras.names)}) at {size[0]}x{size[1]}{groups} -> {path.parent}")

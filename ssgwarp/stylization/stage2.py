@@ -224,7 +224,7 @@ def render_rgb(scene: GaussianScene, cams: Cameras, background: Optional[torch.T
 def render_batched(scene: GaussianScene, cams: Cameras, background: Optional[torch.Tensor] = None,
                    batch: int = 1, desc: Optional[str] = None) -> torch.Tensor:
     """No-grad renders of many cameras, a few at a time (on the scene's device): ``[C,H,W,3]``."""
-    from tqdm.auto import tqdm
+    from ..core.progress import tqdm
 
     out = []
     with torch.no_grad():

@@ -12,7 +12,6 @@ command line (options, ``--quick``, the CPU hint) is :mod:`ssgwarp.stylization.s
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -24,6 +23,7 @@ from ..core.cameras import Cameras
 from ..errors import InputError, WeightsNotFound
 from ..core.imaging import contact_sheet, fit_style, plot_losses, write_video
 from ..raster.scene import GaussianScene
+from ..services.runs import resume_record
 from .targets import Targets, color_transfer, densify_run, group_maps, targets_for
 from .stage2 import Stage2Config, ViewLoss, build_targets, optimise, render_alphas, render_batched, render_rgb, trainable_names
 from .feature_defaults import style_loss_kind, tv_weight_for, resolve_for
@@ -69,21 +69,7 @@ def _signature(style: Path, scene_dir: Path, s2: Stage2Config, opts: StylizeOpti
     sig = {"scene_dir": str(scene_dir.resolve()), "style": str(style.resolve()), "stage2": cfg,
            "keyviews": opts.keyviews, "ids": opts.ids, "max_side": opts.max_side, "extractor": opts.extractor,
            "vgg16": opts.vgg16, "layers": opts.layers, "stage1": s1d}
-    return json.loads(json.dumps(sig, default=str))   # as it reads back from run.json (tuples -> lists)
-
-
-def _changed(old: dict, new: dict) -> list[str]:
-    """The options of ``new`` that differ from ``old`` (two :func:`_signature` s), Stage 2's by field:
-    ``stage2.content_weight 0.05 -> 0.01``; a field the earlier run did not record reads ``(not recorded)``."""
-    out = []
-    for k in sorted(new):
-        a, b = old.get(k), new[k]
-        if k == "stage2" and isinstance(a, dict) and isinstance(b, dict):
-            out += [f"stage2.{f} {a[f] if f in a else '(not recorded)'} -> {b.get(f)}"
-                    for f in sorted(set(a) | set(b)) if a.get(f) != b.get(f) or (f in a) != (f in b)]
-        elif a != b:
-            out.append(k)
-    return out
+    return resume_record(**sig)      # (the resume record: as it reads back from run.json)
 
 
 def _prepare_out(out: Path, scene_dir: Path, signature: dict, resume: bool, force: bool, group) -> dict:
@@ -91,7 +77,7 @@ def _prepare_out(out: Path, scene_dir: Path, signature: dict, resume: bool, forc
     record: on ``--resume`` the finished stages of the earlier run, which must have had the same options.
     Every process checks; only the main one changes ``out``, after all have looked."""
     from ..core.fileio import read_json
-    from ..services.runs import claim
+    from ..services.runs import check_resume, claim
 
     if out.resolve() == scene_dir.resolve():
         raise InputError(f"--out {out}: must differ from the scene folder (it would overwrite its scene.ply)")
@@ -99,10 +85,7 @@ def _prepare_out(out: Path, scene_dir: Path, signature: dict, resume: bool, forc
     state: dict = {"signature": signature, "stages": {}}
     if claimed.existing and resume and (out / "run.json").is_file():
         old = read_json(out / "run.json")
-        if old.get("signature") != signature:
-            changed = _changed(old.get("signature") or {}, signature)
-            raise InputError(f"{out}: --resume with different options ({', '.join(changed)}); "
-                             f"use the same options or --force to start over")
+        check_resume(old.get("signature") or {}, signature, out, "the earlier run")
         state["stages"] = dict(old.get("stages", {}))
     group.barrier()
     if group.is_main:
@@ -191,6 +174,7 @@ class Stage2Output:
     transfer: dict
     densify: Optional[dict]
     background: torch.Tensor     # the stylized scene's background (Stage2Config.background)
+    sh: dict                     # metrics.json's ``sh``: the SH degree written and why (:func:`_sh_record`)
 
 
 def _open(scene_dir: Path, style_path: Path, out: Path, stage2: Stage2Config, stage1, opts: StylizeOptions,
@@ -272,8 +256,9 @@ def groups_unused(num_groups: Optional[int], mode: str) -> Optional[str]:
             f"weights, `ssgwarp weights --download stage1`, make them count)")
 
 
-def _keyviews(r: Inputs, rec: Record):
-    """Select, render and save the key views (or load them on ``--resume``); ``(keyviews, stylized or None)``."""
+def _keyviews(r: Inputs, rec: Record, for_stage1: bool = True):
+    """Select, render and save the key views (or load them on ``--resume``); ``(keyviews, stylized or None)``.
+    ``for_stage1`` False: Stage 1 will not run, and the line says that the key views are for inspection only."""
     from . import keyviews as K
 
     kv_dir, t0 = r.out / "keyviews", time.perf_counter()
@@ -288,7 +273,10 @@ def _keyviews(r: Inputs, rec: Record):
     K.save_keyviews(kv, kv_dir)
     rec.times["keyviews"] = time.perf_counter() - t0
     rec.mark("keyviews", seconds=rec.times["keyviews"], ids=list(kv.ids))
-    r.say(f"key views {kv.ids} ({', '.join(kv.cameras.names)}) at {size[0]}x{size[1]} -> {kv_dir}")
+    what = (f"at {size[0]}x{size[1]} (Stage 1's size)" if for_stage1 else
+            f"saved at {size[0]}x{size[1]} for inspection only (Stage 1 will not run, and Stage 2 does not use them "
+            f"without it)")
+    r.say(f"key views {kv.ids} ({', '.join(kv.cameras.names)}) {what} -> {kv_dir}")
     return kv, None
 
 
@@ -297,17 +285,17 @@ def _keyviews_and_stage1(r: Inputs, rec: Record):
     if r.stage2.mode == "global":
         return None, None, {"ran": False, "reason": "global mode matches against the style image (no key views)"}
     from . import keyviews as K
-
-    kv, stylized = _keyviews(r, rec)
-    stage1, t0 = r.stage1, time.perf_counter()
-    if stylized is not None:
-        rec.times["stage1"] = rec.state["stages"].get("stage1", {}).get("seconds", 0.0)
-        return kv, stylized, {"ran": True, "cvsa": bool(stage1.cvsa), "resumed": True}
     from .diffusion import stylize_keyviews
     from .diffusion_models import missing_weights
 
+    stage1 = r.stage1
     # check the weights before anything imports diffusers (seconds of import for nothing)
     missing = [] if r.stage1_models is not None else missing_weights(stage1)
+    kv, stylized = _keyviews(r, rec, for_stage1=not missing)
+    t0 = time.perf_counter()
+    if stylized is not None:
+        rec.times["stage1"] = rec.state["stages"].get("stage1", {}).get("seconds", 0.0)
+        return kv, stylized, {"ran": True, "cvsa": bool(stage1.cvsa), "resumed": True}
     if missing:
         r.say(_stage1_skipped(_missing_models(stage1)))
     else:
@@ -400,15 +388,18 @@ def _stage2(r: Inputs, rec: Record, kv, stylized) -> Optional[Stage2Output]:
         styled, transfer["post"], bg = color_transfer(r, t, styled, "post", transfer["against"], bg)
     rec.times["stage2"] = time.perf_counter() - t0
     rec.times["stage2_optimisation"] = res.seconds
+    sh_source = styled.sh_degree
+    styled = written_degree(styled)
     write_ply(r.out / "scene.ply", styled)
     rec.mark("stage2", seconds=rec.times["stage2"], iters=stage2.iters)
     plot_losses(r.out / "loss.png", res.history, f"Stage 2 ({stage2.mode}, {r.extractor.name})")
-    return Stage2Output(styled, res, originals, matching, transfer, densified, bg)
+    return Stage2Output(styled, res, originals, matching, transfer, densified, bg,
+                        _sh_record(styled, sh_source, stage2.sh_rest))
 
 
 def _renders(r: Inputs, rec: Record, styled: GaussianScene, bg: torch.Tensor) -> torch.Tensor:
     """``renders/train/*.png`` and ``renders/path/frame_*.png``; returns the training renders."""
-    from tqdm.auto import tqdm
+    from ..core.progress import tqdm
 
     from ..core.fileio import write_image
 
@@ -451,6 +442,26 @@ def _scores(r: Inputs, rec: Record, styled: GaussianScene, renders: torch.Tensor
                                "spread_original": sc["empty_spread_original"]} if "empty_spread" in sc else None)}
 
 
+def written_degree(scene: GaussianScene) -> GaussianScene:
+    """The stylized scene as it is written: when its higher SH bands are all zero (Stage 2's default
+    ``--sh-rest zero`` makes its colour view-independent), at SH degree 0, the degree it really has: the
+    same renders, a file about 4x smaller, and exports whose size and round trip are a degree-0 scene's."""
+    if scene.sh_degree > 0 and scene.sh_rest is not None and not bool(scene.sh_rest.detach().any()):
+        return scene.with_sh_degree(0)
+    return scene
+
+
+def _sh_record(styled: GaussianScene, source_degree: int, sh_rest: str) -> dict:
+    """metrics.json's ``sh``: the degree written and why."""
+    if styled.sh_degree == source_degree:
+        why = (f"the source's view-dependent colour (SH degree {source_degree}) kept (--sh-rest {sh_rest})"
+               if source_degree > 0 else "the source scene has SH degree 0")
+    else:
+        why = (f"view-independent colour: the source's SH bands 1-{source_degree} were zeroed (--sh-rest {sh_rest}), "
+               f"so the scene is written at degree 0")
+    return {"degree": styled.sh_degree, "source_degree": source_degree, "note": why}
+
+
 def _metrics(r: Inputs, rec: Record, s2: Stage2Output, renders: torch.Tensor, kv, stage1_info: dict, t_start: float) -> dict:
     """Scores, the contact sheet and ``metrics.json``; returns the metrics dict."""
     from ..core.fileio import write_json
@@ -480,6 +491,7 @@ def _metrics(r: Inputs, rec: Record, s2: Stage2Output, renders: torch.Tensor, kv
         "background": [float(v) for v in s2.background],
         "groups": r.num_groups, "gaussians": len(styled), "densify": s2.densify, "views": len(train_ids),
         "resolution": [r.cams.width, r.cams.height], "optimised": trainable_names(stage2, r.scene),
+        "sh": s2.sh,
         "config": asdict(stage2),
         **batch_record(s2.result),
         "seconds": rec.times,
