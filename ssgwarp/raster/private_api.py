@@ -301,7 +301,8 @@ def fast_path_works(tg, stream=None) -> bool:
             ok = _FAST.get(tg.dkey)
             if ok is None:
                 try:
-                    why = _self_test(tg, stream)
+                    with torch.inference_mode(False):
+                        why = _self_test(tg, stream)
                 except Exception as e:  # (a replay that crashes Warp's side raises here, not in a render)
                     why = f"{type(e).__name__}: {e}"
                 ok = _FAST[tg.dkey] = why is None
@@ -395,10 +396,11 @@ class _Probe(torch.autograd.Function):
 def _apply_self_test() -> str | None:
     outs = []
     for entry in (_Probe.apply, _BASE_APPLY.__get__(None, _Probe)):
-        a = torch.tensor([1.5, -2.0], requires_grad=True)
-        b = torch.tensor([0.25, 3.0], requires_grad=True)
-        y, z = entry(a, b, 2.0)
-        (y.sum() * 3 + z.sum()).backward()
+        with torch.inference_mode(False), torch.enable_grad():   # (whatever mode the first caller is in)
+            a = torch.tensor([1.5, -2.0], requires_grad=True)
+            b = torch.tensor([0.25, 3.0], requires_grad=True)
+            y, z = entry(a, b, 2.0)
+            (y.sum() * 3 + z.sum()).backward()
         outs.append([y.detach(), z.detach(), a.grad, b.grad])
     same = all(torch.equal(p, q) for p, q in zip(*outs))
     return None if same else "an autograd Function entered through torch._C._FunctionBase.apply differs"
@@ -475,30 +477,38 @@ def _adam_works(device_type: str, dtype: torch.dtype) -> bool:
     ok = _ADAM_OK.get(key)
     if ok is None:
         try:
-            dev = torch.device(device_type)
-            g = torch.Generator().manual_seed(3)
-            start = torch.randn(5, generator=g, dtype=dtype).to(dev)
-            grads = [torch.randn(5, generator=g, dtype=dtype).to(dev) for _ in range(3)]
-            a, b = torch.nn.Parameter(start.clone()), torch.nn.Parameter(start.clone())
-            from ..core.optim import Adam   # (torch's Adam, whose step would import torch._dynamo)
-
-            oa = Adam([a], lr=0.1, betas=(0.9, 0.99), eps=1e-15, weight_decay=0.01, fused=True)
-            ob = Adam([b], lr=0.1, betas=(0.9, 0.99), eps=1e-15, weight_decay=0.01, fused=True)
-            for i, gr in enumerate(grads):
-                a.grad, b.grad = gr.clone(), gr.clone()
-                oa.step()
-                if i == 0:
-                    ob.step()   # (the state made)
-                else:
-                    s = ob.state[b]
-                    fused_adam_step([(ob.param_groups[0], [b], [b.grad], [s["exp_avg"]], [s["exp_avg_sq"]],
-                                      [s["step"]])], None)
-            same = torch.equal(a, b) and all(torch.equal(oa.state[a][k], ob.state[b][k])
-                                             for k in ("exp_avg", "exp_avg_sq", "step"))
-            why = None if same else "torch._fused_adam_ differs from Adam.step"
+            with torch.inference_mode(False), torch.enable_grad():
+                why = _adam_self_test(device_type, dtype)
         except Exception as e:
             why = f"{type(e).__name__}: {e}"
         ok = _ADAM_OK[key] = why is None
         if not ok:
             _warn(f"the fused Adam step on {device_type}", why)
     return ok
+
+
+def _adam_self_test(device_type: str, dtype: torch.dtype) -> str | None:
+    """Two steps of :func:`fused_adam_step` against ``Adam.step`` (one step first makes the state): None where the
+    parameters and the moments agree bit for bit, else what differed."""
+    from ..core.optim import Adam   # (torch's Adam, whose step would import torch._dynamo)
+
+    dev = torch.device(device_type)
+    g = torch.Generator().manual_seed(3)
+    start = torch.randn(5, generator=g, dtype=dtype).to(dev)
+    grads = [torch.randn(5, generator=g, dtype=dtype).to(dev) for _ in range(3)]
+    a, b = torch.nn.Parameter(start.clone()), torch.nn.Parameter(start.clone())
+
+    oa = Adam([a], lr=0.1, betas=(0.9, 0.99), eps=1e-15, weight_decay=0.01, fused=True)
+    ob = Adam([b], lr=0.1, betas=(0.9, 0.99), eps=1e-15, weight_decay=0.01, fused=True)
+    for i, gr in enumerate(grads):
+        a.grad, b.grad = gr.clone(), gr.clone()
+        oa.step()
+        if i == 0:
+            ob.step()   # (the state made)
+        else:
+            s = ob.state[b]
+            fused_adam_step([(ob.param_groups[0], [b], [b.grad], [s["exp_avg"]], [s["exp_avg_sq"]],
+                              [s["step"]])], None)
+    same = torch.equal(a, b) and all(torch.equal(oa.state[a][k], ob.state[b][k])
+                                     for k in ("exp_avg", "exp_avg_sq", "step"))
+    return None if same else "torch._fused_adam_ differs from Adam.step"
