@@ -23,7 +23,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
 
 from ssgwarp.core.fileio import atomic_path, read_json  # noqa: E402
 from ssgwarp.demo import claims_text, run_demo  # noqa: E402

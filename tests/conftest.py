@@ -16,6 +16,19 @@ import importlib.util  # noqa: E402
 import pytest  # noqa: E402
 import torch  # noqa: E402
 
+_ROOT_REAL = os.path.realpath(ROOT)
+
+
+@pytest.fixture(autouse=True)
+def _checkout_root_stays_off_sys_path():
+    """A test (or a script it loads: benchmarks/, docs/) that puts the checkout's root back on sys.path fails."""
+    yield
+    back = [p for p in sys.path if os.path.realpath(p or os.curdir) == _ROOT_REAL]
+    if back:   # (taken off again, so that only the test that put it there fails)
+        sys.path[:] = [p for p in sys.path if p not in back]
+    assert not back, f"the checkout's root is on sys.path again ({back}): import the installed package instead"
+
+
 if importlib.util.find_spec("ssgwarp") is None:
     pytest.exit(f"ssgwarp is not installed: run `python -m pip install -e '.[dev]'` in {ROOT} first", returncode=4)
 
