@@ -427,6 +427,20 @@ def test_ctrl_c_in_reconstruct_then_resume_matches_an_uninterrupted_run(world, t
     _same_scene(tmp_path / "a" / "scene.ply", tmp_path / "b" / "scene.ply")
 
 
+def _resume_base(out):
+    return ["reconstruct", "CAP", "--out", out, "--sh-degree", "1", "--split-every", "3", "--no-progress",
+            "--device", "cpu"]
+
+
+@pytest.fixture(scope="module")
+def checkpointed(world, tmp_path_factory):
+    """A 4-step reconstruction at --width 24, seed 3, with its checkpoint (copied by each test)."""
+    out = tmp_path_factory.mktemp("ckpt") / "run"
+    argv = [str(a).replace("CAP", str(world.cap)) for a in _resume_base(out)]
+    assert main(argv + ["--iters", "4", "--width", "24", "--seed", "3"]) == 0
+    return out
+
+
 @pytest.mark.parametrize("change, named", [
     (["--width", "16"], ["--width 24 -> 16", "resolution [24, 18] -> [16, 12]"]),
     ([], ["--width 24 -> none", "resolution [24, 18] -> [32, 24]"]),      # (issue 60: --quick resumed without it)
@@ -437,19 +451,24 @@ def test_ctrl_c_in_reconstruct_then_resume_matches_an_uninterrupted_run(world, t
     (["--width", "24", "--split-every", "2"], ["--split-every 3 -> 2"]),
     (["--width", "24", "--coarse-to-fine", "2"], ["--coarse-to-fine 1.0 -> 2.0"]),
 ])
-def test_resume_refuses_options_that_change_what_the_checkpoint_means(world, tmp_path, capsys, change, named):
+def test_resume_refuses_options_that_change_what_the_checkpoint_means(world, checkpointed, tmp_path, capsys, change,
+                                                                       named):
     """A reconstruction checkpoint resumed with another resolution, seed, SH degree, budget, strategy or split is
-    one line naming each option and both values, the checkpoint untouched; more steps are allowed."""
-    out = tmp_path / "run"
-    base = ["reconstruct", world.cap, "--out", out, "--sh-degree", "1", "--split-every", "3", "--no-progress",
-            "--device", "cpu"]
+    one line naming each option and both values, the checkpoint untouched."""
+    out = copy(checkpointed, tmp_path / "run")
+    base = [str(a).replace("CAP", str(world.cap)) for a in _resume_base(out)]
     seed = ["--seed", "3"] if "--seed" not in change else []
-    assert main([str(a) for a in base + ["--iters", "4", "--width", "24", "--seed", "3"]]) == 0
     ck = digest(out)
     msg = fails(capsys, base + ["--iters", "6", "--resume", *seed, *change], "--resume with other options",
                 "checkpoint.pt", *named)
     assert "--iters" not in msg and digest(out) == ck
-    assert main([str(a) for a in base + ["--iters", "6", "--width", "24", "--seed", "3", "--resume"]]) == 0
+
+
+def test_resume_with_more_steps_continues(world, checkpointed, tmp_path):
+    """Options that only change the future (more steps, the checkpoint interval) are allowed."""
+    out = copy(checkpointed, tmp_path / "run")
+    base = [str(a).replace("CAP", str(world.cap)) for a in _resume_base(out)]
+    assert main(base + ["--iters", "6", "--width", "24", "--seed", "3", "--checkpoint-every", "2", "--resume"]) == 0
     assert json.loads((out / "metrics.json").read_text())["iters"] == 6
 
 
