@@ -47,7 +47,7 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
     ap.add_argument("--keep", type=Path, default=None, help="make the run in this folder and keep it")
     args = ap.parse_args()
-    from ssgwarp.capture.ply import read_ply
+    from ssgwarp.formats.ply import read_ply
     from ssgwarp.evaluation.export import export
 
     with tempfile.TemporaryDirectory() as tmp:

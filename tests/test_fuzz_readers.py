@@ -18,8 +18,8 @@ import pytest
 from hypothesis import given, strategies as st
 
 from fuzzing import binary_damage, check_reader, fuzz_dir, fuzz_settings, text_damage
-from ssgwarp.capture import colmap
-from ssgwarp.capture.formats import read_poses_bounds, read_transforms
+from ssgwarp.formats import colmap
+from ssgwarp.capture.loaders import read_poses_bounds, read_transforms
 from ssgwarp.errors import InputError, SsgwarpError
 
 

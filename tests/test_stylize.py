@@ -1020,17 +1020,19 @@ def test_hold_empty_keeps_the_background_pixels_and_needs_alphas():
 def test_path_video_is_a_looping_gif_of_every_frame(tmp_path):
     from PIL import Image
 
+    from ssgwarp.core.imaging import write_video   # (path.gif's writer; ssgwarp render --video's too)
+
     frames = [(torch.rand(12, 16, 3, generator=torch.Generator().manual_seed(i)).numpy() * 255).astype("uint8")
               for i in range(5)]
-    path = st.write_path_video(tmp_path / "path.gif", frames, fps=10)
+    path = write_video(tmp_path / "path.gif", frames, fps=10)
     with Image.open(path) as im:
         assert im.format == "GIF" and im.n_frames == 5 and im.size == (16, 12) and im.info["loop"] == 0
         assert im.info["duration"] == 100
     big = [np.full((300, 1024, 3), 40 * i, dtype=np.uint8) for i in range(3)]   # shrunk to 512 px, colours kept
-    with Image.open(st.write_path_video(tmp_path / "big.gif", big)) as im:
+    with Image.open(write_video(tmp_path / "big.gif", big)) as im:
         assert im.size == (512, 150) and im.n_frames == 3
         im.seek(2)
         assert np.allclose(np.asarray(im.convert("RGB")), 80, atol=1)
     with pytest.raises(InputError):
-        st.write_path_video(tmp_path / "none.gif", [])
+        write_video(tmp_path / "none.gif", [])
     assert not (tmp_path / "none.gif").exists()

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from ssgwarp import procedural as P
-from ssgwarp.capture.ply import read_ply
+from ssgwarp.formats.ply import read_ply
 from ssgwarp.cli import main
 
 FAST = ["--device", "cpu", "--seed", "1"]
