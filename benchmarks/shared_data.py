@@ -37,3 +37,27 @@ def style_paths(spec: str, folder: Path) -> list[Path]:
             raise InputError(f"style {name!r}: not a file and not an image in {folder}")
         out.append(found)
     return out
+
+
+# the shared captures by short name: (folder under the data root, image sub-folder)
+CAPTURES = {"fern8": ("llff_fern", "images_8"), "fern4": ("llff_fern", "images_4"), "cup": ("colmap_cup", "images"),
+            "lego": ("lego_200", "images"), "livingroom": ("livingroom_360", "images"),
+            "bird": ("bird_360", "images")}
+
+
+def capture_folder(spec: str, root: Path | None = None) -> tuple[Path, str]:
+    """``(folder, image sub-folder)`` of a capture named by ``spec``: a name of :data:`CAPTURES` (under ``root``,
+    default :func:`data_root`) or ``PATH[:IMAGES]`` (default ``images``); raises ``InputError`` when the folder
+    is missing."""
+    from ssgwarp.errors import InputError
+
+    if spec in CAPTURES:
+        name, images = CAPTURES[spec]
+        folder = Path(root or data_root()) / name
+    else:
+        path, _, images = spec.partition(":")
+        folder, images = Path(path).expanduser(), images or "images"
+    if not folder.is_dir():
+        raise InputError(f"capture {spec!r}: {folder} is not a folder (shared captures: {', '.join(CAPTURES)}; "
+                         "or give PATH[:IMAGES], or --data-root)")
+    return folder, images
