@@ -21,14 +21,19 @@ over), so a long table can be split over several commands. ``--out``/results.md 
 The baseline (``--baseline``, default ``benchmarks/captures_baseline.json``) holds one row per capture and
 setting; ``--write-baseline`` replaces its rows by the table's (merged: captures not run keep theirs).
 Exit status 1 when any row is more than ``--tolerance`` (0.2) dB below its baseline, else 0.
-``--from FILE.jsonl`` tables rows written before (no runs). ``--triangulation`` measures the points
-triangulated from fern ``images_8`` without its ``sparse/`` against COLMAP's points instead (no training).
+``--from FILE.jsonl`` tables rows written before (no runs). ``--backdrop-evidence`` prints the backdrop
+decision's evidence per capture (no training; ``--thin N``: each capture's points also thinned to N).
+``--triangulation`` measures the points
+triangulated from the captures with COLMAP points (default fern ``images_8`` and ``images_4`` and the cup; an LLFF
+capture from a copy without its ``sparse/``) against COLMAP's instead: the median distance to the nearest COLMAP
+point as a percentage of the COLMAP points' spread (their median distance from their centre); no training.
 
     python benchmarks/captures.py --out runs/captures                             # the whole table (GPU)
     python benchmarks/captures.py --captures fern8 cup --settings 7k --out runs/captures
     python benchmarks/captures.py --captures lego --iters 20 --max-images 8 --device cpu --out /tmp/cap
     python benchmarks/captures.py --from runs/captures/results.jsonl --write-baseline
-    python benchmarks/captures.py --triangulation
+    python benchmarks/captures.py --backdrop-evidence --captures fern8 cup lego livingroom bird --thin 2000
+    python benchmarks/captures.py --triangulation --captures fern8
 """
 from __future__ import annotations
 
@@ -192,10 +197,16 @@ def main(argv=None) -> int:
                    help="write the table's rows into the baseline file (other rows kept)")
     p.add_argument("--triangulation", action="store_true",
                    help="measure the triangulated points of fern images_8 against COLMAP's instead (no training)")
+    p.add_argument("--backdrop-evidence", action="store_true",
+                   help="print the backdrop decision's evidence per capture instead (no training)")
+    p.add_argument("--thin", type=int, default=None,
+                   help="with --backdrop-evidence: also each capture with its points thinned to this many")
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
     if a.triangulation:
         return triangulation(a)
+    if a.backdrop_evidence:
+        return backdrop_evidence(a)
     baseline = read_baseline(a.baseline)
     if a.from_file is not None:
         rows = read_rows(a.from_file)
@@ -246,8 +257,100 @@ def main(argv=None) -> int:
     return 0
 
 
+def backdrop_evidence(a) -> int:
+    """The backdrop decision's evidence per capture (no training): camera layout, initial points, their image
+    coverage, the uncovered and textured cells, the cells a plane sweep places beyond twice the points' depth,
+    the old rule (coverage < 90%) and today's decision; ``--thin N``: also each capture with its points thinned to
+    N (seeded: a sparse COLMAP model)."""
+    import torch
+
+    from ssgwarp.capture.datasets import load_dataset
+    from ssgwarp.reconstruction.backdrop import MIN_COVERAGE, far_evidence, plan_backdrop
+
+    lines = ["| capture | layout | initial points | coverage | uncovered cells | textured of those | far cells | "
+             "coverage < 90% (before) | backdrop now | seconds |", "|---|---|---|---:|---:|---:|---:|---|---|---:|"]
+    rows = []
+    for spec in dict.fromkeys(a.captures):
+        folder, images = capture_folder(spec, a.data_root)
+        data = load_dataset(folder, images=images, width=a.width, max_images=a.max_images, progress=False,
+                            num_random_points=a.random_points)
+        for thin in [None] + ([a.thin] if a.thin else []):
+            xyz = data.points[0]
+            if thin and thin < len(xyz):
+                xyz = xyz[torch.randperm(len(xyz), generator=torch.Generator().manual_seed(0))[:thin]]
+            t0 = time.perf_counter()
+            plan = plan_backdrop(data, xyz)
+            ev = plan.evidence or far_evidence(data.cameras, data.images, xyz, data.train_ids,
+                                               background=data.background)
+            sec = time.perf_counter() - t0
+            row = {"capture": spec, "layout": plan.layout, "points": data.points_source, "count": len(xyz),
+                   "coverage": plan.coverage, **{k: ev[k] for k in ("uncovered", "textured", "far")},
+                   "before": plan.coverage < MIN_COVERAGE, "use": plan.use, "why": plan.why, "seconds": sec}
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+            lines.append(f"| {spec} | {plan.layout} | {len(xyz):,} {data.points_source}"
+                         f"{' (thinned)' if thin else ''} | {plan.coverage:.0%} | {ev['uncovered']:.0%} | "
+                         f"{ev['textured']:.0%} | {ev['far']:.1%} | {'yes' if row['before'] else 'no'} | "
+                         f"{'yes' if plan.use else 'no'} ({plan.why}) | {sec:.1f} |")
+    print("\n".join(lines))
+    return 0
+
+
+def triangulation_accuracy(xyz, ref) -> dict:
+    """How far points ``xyz`` lie from reference points ``ref`` (COLMAP's): the median distance from each point to
+    its nearest reference point, and that as a fraction of the reference points' median distance from their
+    centre (the per-axis median)."""
+    import torch
+
+    xyz, ref = xyz.double().cpu(), ref.double().cpu()
+    nearest = torch.cat([torch.cdist(c, ref).min(1).values for c in xyz.split(2048)])
+    spread = float((ref - ref.median(0).values).norm(dim=1).median())
+    med = float(nearest.median())
+    return {"points": len(xyz), "reference_points": len(ref), "median_distance": med, "spread": spread,
+            "relative": med / spread, "p90_relative": float(torch.quantile(nearest, 0.9)) / spread}
+
+
 def triangulation(a) -> int:
-    raise SystemExit("--triangulation: not available yet")
+    """Points triangulated from each capture's images and poses against its own (COLMAP) points: an LLFF
+    capture (``poses_bounds.npy``) is read from a copy without ``sparse/`` (as a user's capture without points),
+    any other with ``--init triangulate``."""
+    import tempfile
+
+    from ssgwarp.capture.datasets import load_dataset
+
+    caps = [c for c in a.captures if c != "lego" and c != "livingroom" and c != "bird"] \
+        if a.captures == list(CAPTURES) else a.captures
+    lines = ["| capture | triangulated points | COLMAP points | median distance to the nearest COLMAP point "
+             "(% of their spread) | 90th percentile (%) | reprojection error (px) | mean track length | "
+             "seconds |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for spec in caps:
+        folder, images = capture_folder(spec, a.data_root)
+        ref = load_dataset(folder, images=images, width=a.width, progress=False)
+        if ref.points_source != "colmap":
+            raise SystemExit(f"--triangulation: {spec} has no COLMAP points to compare with")
+        with tempfile.TemporaryDirectory() as tmp:
+            if (folder / "poses_bounds.npy").is_file():
+                src = Path(tmp) / folder.name
+                src.mkdir()
+                for f in folder.iterdir():
+                    if f.name != "sparse":
+                        (src / f.name).symlink_to(f.resolve())
+                init = "auto"
+            else:
+                src, init = folder, "triangulate"
+            t0 = time.perf_counter()
+            tri = load_dataset(src, images=images, width=a.width, init=init, progress=not a.no_progress)
+            sec = time.perf_counter() - t0
+        r = triangulation_accuracy(tri.points[0], ref.points[0])
+        st = tri.points_stats
+        row = {"capture": spec, **r, "reprojection_px": st.get("median_reprojection_error_px"),
+               "track_length": st.get("mean_track_length"), "seconds": round(sec, 1)}
+        print(json.dumps(row), flush=True)
+        lines.append(f"| {spec} | {r['points']:,} | {r['reference_points']:,} | {100 * r['relative']:.2f} % | "
+                     f"{100 * r['p90_relative']:.1f} % | {_f(row['reprojection_px'])} | {_f(row['track_length'])} | "
+                     f"{sec:.0f} |")
+    print("\n".join(lines))
+    return 0
 
 
 if __name__ == "__main__":
