@@ -13,7 +13,8 @@ capture and setting:
   instead (a CPU smoke run; such rows are compared only with a baseline row of the same step count).
 
 A row: held-out PSNR / SSIM (LPIPS where its weights are found: ``ssgwarp weights``), Gaussians, training
-time and the whole run's wall time (loading, triangulation, evaluation), the steps run, the initial points
+time and the whole run's wall time (loading and triangulation, once per capture and counted in each of its
+rows; evaluation), the steps run, the initial points
 and the backdrop decision. Rows are appended to ``--out``/results.jsonl as each run ends; rows already
 there are kept and not run again (rerun the same command to finish an interrupted table; ``--fresh`` starts
 over), so a long table can be split over several commands. ``--out``/results.md gets the markdown table.
@@ -33,7 +34,7 @@ point as a percentage of the COLMAP points' spread (their median distance from t
     python benchmarks/captures.py --captures lego --iters 20 --max-images 8 --device cpu --out /tmp/cap
     python benchmarks/captures.py --from runs/captures/results.jsonl --write-baseline
     python benchmarks/captures.py --backdrop-evidence --captures fern8 cup lego livingroom bird --thin 2000
-    python benchmarks/captures.py --triangulation --captures fern8
+    python benchmarks/captures.py --triangulation --captures fern8 --min-angle 1 2 3
 """
 from __future__ import annotations
 
@@ -69,13 +70,33 @@ def key(row: dict) -> str:
     return f"{row['capture']}/{row['setting']}"
 
 
+_LOADED: dict = {}
+
+
+def load(spec: str, a) -> tuple:
+    """``(SceneData, seconds)`` of a capture, loaded once (triangulation included) for all its settings, with the
+    arguments ``reconstruct()`` loads it with."""
+    from ssgwarp.capture.datasets import load_dataset
+
+    if spec not in _LOADED:
+        _LOADED.clear()
+        folder, images = capture_folder(spec, a.data_root)
+        t0 = time.perf_counter()
+        data = load_dataset(folder, images=images, max_images=a.max_images, width=a.width,
+                            num_random_points=a.random_points, seed=a.seed, progress=not a.no_progress)
+        _LOADED[spec] = (data, time.perf_counter() - t0)
+    return _LOADED[spec]
+
+
 def run_one(spec: str, setting: str, iters, a, device) -> dict:
-    """Reconstruct one capture at one setting (the command's code path) and return its table row."""
+    """Reconstruct one capture at one setting (the command's code path: ``reconstruct()`` on the capture loaded
+    as it loads it) and return its table row."""
     import torch
 
     from ssgwarp.reconstruction.reconstruct import reconstruct
 
     folder, images = capture_folder(spec, a.data_root)
+    data, load_seconds = load(spec, a)
     label = spec if spec in CAPTURES else spec.replace("/", "_").replace(":", "_").strip("_")
     run_dir = a.out / "runs" / f"{label}-{setting}"
     if device.type == "cuda":
@@ -83,15 +104,15 @@ def run_one(spec: str, setting: str, iters, a, device) -> dict:
     t0 = time.perf_counter()
     m = reconstruct(folder, run_dir, iters=iters, images=images, force=True, device=device, seed=a.seed,
                     max_images=a.max_images, width=a.width, progress=not a.no_progress, checkpoint_every=10**9,
-                    num_random_points=a.random_points)
-    wall = time.perf_counter() - t0
+                    num_random_points=a.random_points, data=data)
+    wall = time.perf_counter() - t0 + load_seconds
     data_json = json.loads((run_dir / "data.json").read_text())
     bd = m.get("backdrop") or {}
     row = {"capture": spec, "setting": setting, "folder": str(folder), "images": images,
            "resolution": "x".join(str(v) for v in m["resolution"]), "iters": m["iters"],
            "stopped": m["schedule"].get("stopped"), "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"],
            "test_views": m["test_views"], "gaussians": m["num_gaussians"], "train_seconds": m["train_seconds"],
-           "wall_seconds": round(wall, 2), "points": data_json.get("points_source"),
+           "wall_seconds": round(wall, 2), "load_seconds": round(load_seconds, 2), "points": data_json.get("points_source"),
            "points_count": data_json.get("points_count"),
            "backdrop": {k: bd.get(k) for k in ("used", "why", "layout", "coverage", "points")},
            "peak_gpu_memory_mb": m.get("peak_gpu_memory_mb"), "device": str(device),
@@ -201,6 +222,9 @@ def main(argv=None) -> int:
                    help="print the backdrop decision's evidence per capture instead (no training)")
     p.add_argument("--thin", type=int, default=None,
                    help="with --backdrop-evidence: also each capture with its points thinned to this many")
+    p.add_argument("--min-angle", type=float, nargs="+", default=None,
+                   help="with --triangulation: the smallest triangulation angles (degrees) to compare (default: "
+                        "triangulate()'s)")
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
     if a.triangulation:
@@ -320,10 +344,14 @@ def triangulation(a) -> int:
 
     caps = [c for c in a.captures if c != "lego" and c != "livingroom" and c != "bird"] \
         if a.captures == list(CAPTURES) else a.captures
-    lines = ["| capture | triangulated points | COLMAP points | median distance to the nearest COLMAP point "
+    lines = ["| capture | smallest triangulation angle | triangulated points | COLMAP points | median distance to the nearest COLMAP point "
              "(% of their spread) | 90th percentile (%) | reprojection error (px) | mean track length | "
-             "seconds |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
-    for spec in caps:
+             "seconds |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    from ssgwarp.capture.triangulate import triangulate
+
+    default_angle = triangulate.__kwdefaults__["min_angle_deg"]
+    for spec, angle in [(c, x) for c in caps for x in (a.min_angle or [default_angle])]:
+        triangulate.__kwdefaults__["min_angle_deg"] = angle  # what load_dataset triangulates with
         folder, images = capture_folder(spec, a.data_root)
         ref = load_dataset(folder, images=images, width=a.width, progress=False)
         if ref.points_source != "colmap":
@@ -339,14 +367,17 @@ def triangulation(a) -> int:
             else:
                 src, init = folder, "triangulate"
             t0 = time.perf_counter()
-            tri = load_dataset(src, images=images, width=a.width, init=init, progress=not a.no_progress)
+            try:
+                tri = load_dataset(src, images=images, width=a.width, init=init, progress=not a.no_progress)
+            finally:
+                triangulate.__kwdefaults__["min_angle_deg"] = default_angle
             sec = time.perf_counter() - t0
         r = triangulation_accuracy(tri.points[0], ref.points[0])
         st = tri.points_stats
-        row = {"capture": spec, **r, "reprojection_px": st.get("median_reprojection_error_px"),
+        row = {"capture": spec, "min_angle_deg": angle, **r, "reprojection_px": st.get("median_reprojection_error_px"),
                "track_length": st.get("mean_track_length"), "seconds": round(sec, 1)}
         print(json.dumps(row), flush=True)
-        lines.append(f"| {spec} | {r['points']:,} | {r['reference_points']:,} | {100 * r['relative']:.2f} % | "
+        lines.append(f"| {spec} | {angle:g} deg | {r['points']:,} | {r['reference_points']:,} | {100 * r['relative']:.2f} % | "
                      f"{100 * r['p90_relative']:.1f} % | {_f(row['reprojection_px'])} | {_f(row['track_length'])} | "
                      f"{sec:.0f} |")
     print("\n".join(lines))
