@@ -242,8 +242,10 @@ def test_cli_reconstruct_writes_the_run_contract_and_refuses_to_overwrite(tmp_pa
     m = json.loads((out / "metrics.json").read_text())
     assert m["test_views"] == 2 and m["psnr"] > 0 and 0 < m["ssim"] <= 1 and m["iters"] == 6
     assert m["lpips"] is None and "skipped" in m["lpips_note"]
-    # 60 points cover few image cells: a backdrop is added (recorded in metrics.json and data.json)
-    assert m["backdrop"]["used"] and m["backdrop"]["mode"] == "auto" and m["backdrop"]["points"] > 0
+    # 60 points cover few image cells, but the views show no far content there: the plane sweep's evidence and
+    # the decision (no backdrop) are recorded in metrics.json and data.json
+    assert m["backdrop"]["mode"] == "auto" and m["backdrop"]["coverage"] < 0.9
+    assert not m["backdrop"]["used"] and m["backdrop"]["far_cells"] < 0.05 and m["backdrop"]["points"] == 0
     assert json.loads((out / "data.json").read_text())["backdrop"] == m["backdrop"]
     assert m["num_gaussians"] == 60 + m["backdrop"]["points"] and m["sh_degree"] == 0 and m["train_seconds"] >= 0
     meta = json.loads((out / "data.json").read_text())
@@ -398,7 +400,11 @@ def test_backdrop_decision_from_the_camera_layout_and_the_points_coverage():
     base = SceneData(ring, images, [f"v{i}" for i in range(8)], list(range(8)), [], points=(blob, blob),
                      points_source="colmap", format="colmap")
     assert image_coverage(ring, blob, range(8)) < 0.5 and image_coverage(ring, wide, range(8)) == 1.0
-    assert plan_backdrop(base, blob).use and not plan_backdrop(base, wide).use
+    # uncovered cells alone earn no backdrop: these images are noise, no depth places them beyond the points
+    # (tests/test_backdrop.py: far content, a plain ground and a near wall)
+    p = plan_backdrop(base, blob)
+    assert not p.use and p.evidence["far"] < 0.05 and "beyond twice their depth" in p.why
+    assert not plan_backdrop(base, wide).use
     assert plan_backdrop(base, wide, "on").use and not plan_backdrop(base, blob, "off").use
     # a plain (background-coloured) image around the object counts as covered: lego needs no backdrop
     plain = torch.ones_like(images)
@@ -435,7 +441,7 @@ def test_backdrop_points_lie_beyond_the_initial_points_with_their_pixels_colours
     blob = torch.randn(500, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, 0.35])
     data = SceneData(cams, images, [f"v{i}" for i in range(8)], list(range(8)), [], points=(blob, blob),
                      points_source="colmap", format="colmap")
-    plan = plan_backdrop(data, blob)
+    plan = plan_backdrop(data, blob, "on")
     xyz, rgb = backdrop_points(data, blob, 1000, plan, seed=0)
     assert plan.use and len(xyz) == plan.points and 700 <= len(xyz) <= 1000
     c = cams.centers.double().mean(0)

@@ -310,3 +310,43 @@ def test_reconstruct_records_the_initial_points(capture, tmp_path):
     meta = json.loads((tmp_path / "ply" / "data.json").read_text())
     assert meta["points_source"] == "ply" and meta["points_count"] == 300 and meta["points_reprojection_error_px"] is None
     assert meta["load_options"]["init"] == str(tmp_path / "p.ply")
+
+
+def test_refinement_and_the_angle_filter_on_known_truth():
+    """Poses held fixed, noisy observations of known points: Gauss-Newton lowers the error of the linear
+    solution, and the triangulation-angle filter keeps the well-conditioned points (their error is smaller)."""
+    g = torch.Generator().manual_seed(0)
+    C, T_, W = 6, 400, 256
+    eyes = torch.stack([torch.linspace(-0.5, 0.5, C, dtype=torch.float64), torch.zeros(C, dtype=torch.float64),
+                        torch.zeros(C, dtype=torch.float64)], 1)
+    vm = look_at(eyes, eyes + torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64), up=(0.0, -1.0, 0.0))
+    K = intrinsics(200.0, 200.0, W / 2, W / 2, C).double()
+    Pn = vm[:, :3, :].double()
+    P = K @ Pn
+    # points from 2 to 60 units away (uniform in inverse depth), inside every view
+    inv = 1 / 60 + (1 / 2 - 1 / 60) * torch.rand(T_, generator=g, dtype=torch.float64)
+    z = 1 / inv
+    X = torch.stack([(torch.rand(T_, generator=g, dtype=torch.float64) - 0.5) * 0.4 * z,
+                     (torch.rand(T_, generator=g, dtype=torch.float64) - 0.5) * 0.4 * z, z], 1)
+    cam = torch.arange(C)[None].expand(T_, C)
+    x = (P[cam][..., :3] @ X[:, None, :, None])[..., 0] + P[cam][..., 3]
+    uv = x[..., :2] / x[..., 2:] + 0.7 * torch.randn(T_, C, 2, generator=g, dtype=torch.float64)
+    mask = torch.ones(T_, C, dtype=torch.bool)
+    xn = (torch.linalg.inv(K)[cam] @ torch.cat([uv, torch.ones_like(uv[..., :1])], -1)[..., None])[..., :2, 0]
+    lin, ok = tri_mod._dlt(Pn[cam], xn, mask)
+    ref = tri_mod._gauss_newton(P[cam], lin, uv, mask, 5)
+    rms = lambda Y: tri_mod._reproject(P[cam], Y, uv)[0].pow(2).mean(1).sqrt()
+    assert bool(ok.all()) and float(rms(ref).mean()) < float(rms(lin).mean())
+    rel = lambda Y: (Y - X).norm(dim=1) / X.norm(dim=1)
+    assert float(rel(ref).median()) <= float(rel(lin).median())
+    imgs = torch.rand(C, W, W, 3, generator=g)
+    centres = eyes
+    kept = {}
+    for angle in (1.0, 2.0, 4.0):
+        Xk, _, _, _, _ = tri_mod._keep_points(P, centres, imgs, cam, uv, mask, ref, ok, 3.0, angle)
+        idx = torch.cdist(Xk, ref).argmin(1)
+        kept[angle] = (len(Xk), float(rel(ref)[idx].median()))
+    # the 1 m baseline subtends 2 degrees at about 29 units, 4 degrees at about 14
+    assert kept[1.0][0] > kept[2.0][0] > kept[4.0][0] > 0
+    assert kept[1.0][1] > kept[2.0][1] > kept[4.0][1]
+    assert triangulate.__kwdefaults__["min_angle_deg"] == 2.0

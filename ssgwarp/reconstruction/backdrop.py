@@ -19,8 +19,12 @@ look outward (``inside-out``: the optical axes do not meet in front of the camer
 random cube of a transforms.json capture without points and its images are not an object on a plain
 ground (less than 30% background-colour pixels), when a forward-facing capture's points were triangulated
 (they hold the textured foreground, not what lies beyond it), or when the coverage is below
-:data:`MIN_COVERAGE`. A forward-facing capture with COLMAP points or an object capture whose points fill the
-images keeps its points alone.
+:data:`MIN_COVERAGE` and the photos show far content where the points leave the images uncovered
+(:func:`far_evidence`: a plane sweep of the uncovered cells against neighbouring views finds at least
+:data:`MIN_FAR` of the cells beyond twice the depth of the points; uncovered cells alone are no evidence:
+sparse COLMAP points leave walls and tables uncovered). A forward-facing capture with COLMAP points or an
+object capture whose points fill the images or whose uncovered cells are near or textureless keeps its points
+alone.
 
 With a backdrop (and for any inside-out capture) the densification rules measure sizes against the
 distance from the cameras beyond the initial points' radius (:class:`ssgwarp.reconstruction.strategy.DefaultStrategy`: ``scene_radius``), so a
@@ -48,14 +52,26 @@ PLAIN_TOL = 0.02         # a cell whose pixels are all this close to the backgro
 PLAIN_FRACTION = 0.3     # images with at least this fraction of background-colour pixels: an object on a plain ground
 FAR_FACTOR = 50.0        # far radius = this x the larger of the cameras' radius and the points' median distance
 RAY_FRACTION = 0.7       # of the backdrop points: along rays (the rest on the far shell)
+# the far-background evidence (far_evidence: a plane sweep of the cells no point falls in)
+MIN_FAR = 0.05           # mean fraction of image cells showing far content that earns a backdrop
+SWEEP_VIEWS = 16         # views swept (evenly spaced training views)
+SWEEP_SIZE = 160         # their long side (pixels)
+SWEEP_PLANES = 32        # depth planes, uniform in inverse depth from half the nearest points' depth to infinity
+SWEEP_WINDOW = 7         # NCC window (pixels)
+SWEEP_MAX_ANGLE = 30.0   # neighbours look within this angle (degrees) of the view's direction
+SWEEP_BASELINE = 0.1     # neighbours' preferred baseline, as a fraction of the view's median point depth
+TEXTURE_STD = 0.02       # windowed grey standard deviation of a textured pixel
+TEXTURED_CELL = 0.25     # fraction of a cell's pixels that must be textured (and matched) to carry evidence
+FAR_NCC = 0.5            # the far plane's NCC must reach this
+FAR_MARGIN = 0.1         # and beat every plane at or in front of the points by this
 
 
 @dataclass
 class BackdropPlan:
     """What :func:`plan_backdrop` found: ``layout`` ("forward-facing", "object-centred", "inside-out"),
     ``coverage`` (median fraction of image cells hit by the initial points), ``use`` (whether a backdrop is
-    added), ``why`` (one line), and, once made, the backdrop's ``points`` count, ``far_radius`` and the
-    initial points' ``scene_radius`` around ``center``."""
+    added), ``why`` (one line), ``evidence`` (:func:`far_evidence`'s, where it was measured), and, once made,
+    the backdrop's ``points`` count, ``far_radius`` and the initial points' ``scene_radius`` around ``center``."""
 
     layout: str
     coverage: float
@@ -66,13 +82,15 @@ class BackdropPlan:
     far_radius: Optional[float] = None
     scene_radius: Optional[float] = None
     center: Optional[list] = field(default=None)
+    evidence: Optional[dict] = None
 
     def record(self) -> dict:
         """For ``metrics.json`` / ``data.json``."""
         return {"mode": self.mode, "used": self.use, "why": self.why, "layout": self.layout,
                 "coverage": round(self.coverage, 4), "points": self.points,
                 "far_radius": None if self.far_radius is None else round(self.far_radius, 6),
-                "scene_radius": None if self.scene_radius is None else round(self.scene_radius, 6)}
+                "scene_radius": None if self.scene_radius is None else round(self.scene_radius, 6),
+                "far_cells": None if self.evidence is None else round(self.evidence["far"], 4)}
 
 
 def camera_layout(cameras) -> str:
@@ -122,6 +140,161 @@ def image_coverage(cameras, xyz: torch.Tensor, ids, grid: int = GRID, max_points
     return float(torch.tensor(fr).median())
 
 
+def _grey(images: torch.Tensor, size: int) -> torch.Tensor:
+    """``[C, h, w]`` grey images area-averaged so that the long side is at most ``size``."""
+    g = (images.float() @ torch.tensor([0.299, 0.587, 0.114]))[:, None]
+    H, W = g.shape[-2:]
+    f = max(1, math.ceil(max(H, W) / size))
+    return torch.nn.functional.avg_pool2d(g, f, ceil_mode=True)[:, 0] if f > 1 else g[:, 0]
+
+
+def _box(x: torch.Tensor, r: int) -> torch.Tensor:
+    """Sums over ``(2r+1) x (2r+1)`` windows of ``x [..., H, W]`` (zeros beyond the edges), same shape."""
+    k = 2 * r + 1
+    c = torch.nn.functional.pad(x, (r + 1, r, r + 1, r)).cumsum(-1).cumsum(-2)
+    return c[..., k:, k:] - c[..., :-k, k:] - c[..., k:, :-k] + c[..., :-k, :-k]
+
+
+def _ncc(a: torch.Tensor, b: torch.Tensor, valid: torch.Tensor, r: int) -> torch.Tensor:
+    """Windowed normalised cross-correlation of ``a`` and ``b`` (``[..., H, W]``) over the pixels where
+    ``valid``; NaN where a window has an invalid pixel."""
+    m = valid.to(a.dtype)
+    a, b = a * m, b * m
+    n = _box(m, r).clamp(min=1)
+    ma, mb = _box(a, r) / n, _box(b, r) / n
+    va = (_box(a * a, r) / n - ma * ma).clamp(min=0)
+    vb = (_box(b * b, r) / n - mb * mb).clamp(min=0)
+    ncc = (_box(a * b, r) / n - ma * mb) / (va * vb + 1e-8).sqrt()
+    return ncc.masked_fill(_box(1 - m, r) > 0.5, float("nan"))
+
+
+def _sweep_neighbours(cams, i: int, candidates, depth: float, count: int = 2) -> list[int]:
+    """The ``count`` views of ``candidates`` best placed for a plane sweep from view ``i``: looking within
+    :data:`SWEEP_MAX_ANGLE` degrees of its direction, baseline nearest :data:`SWEEP_BASELINE` x ``depth``."""
+    fwd = torch.nn.functional.normalize(cams.forwards.double().cpu(), dim=1)
+    c = cams.centers.double().cpu()
+    score = []
+    for j in candidates:
+        if j == i or float(fwd[i] @ fwd[j]) < math.cos(math.radians(SWEEP_MAX_ANGLE)):
+            continue
+        b = float((c[j] - c[i]).norm()) / max(depth, 1e-12)
+        if b > 1e-3:
+            score.append((abs(math.log(b / SWEEP_BASELINE)), j))
+    return [j for _, j in sorted(score)[:count]]
+
+
+@torch.no_grad()
+def far_evidence(cameras, images: torch.Tensor, xyz: torch.Tensor, ids, candidates=None, grid: int = GRID,
+                 views: int = SWEEP_VIEWS, size: int = SWEEP_SIZE, planes: int = SWEEP_PLANES,
+                 background=None) -> dict:
+    """How much of the views ``ids`` shows a far background: textured image cells no point of ``xyz`` falls in
+    whose content two neighbouring views (among ``candidates``, default ``ids``) place beyond twice the depth of
+    the farthest points (95th percentile) that view sees, and not at or in front of it.
+
+    A plane sweep per view (at most ``views`` of them, images at most ``size`` pixels on their long side):
+    the neighbours' grey images are warped onto fronto-parallel planes at ``planes`` depths uniform in inverse
+    depth from half the nearest points' depth to infinity, and compared with the view by windowed normalised
+    cross-correlation (NCC). A cell is **far** when the best plane of its textured pixels' mean NCC lies beyond
+    twice that depth, scores at least :data:`FAR_NCC`, and beats every plane at or in front of the points by
+    :data:`FAR_MARGIN` (the points cannot explain it). Textureless cells (a wall, a plain sky, the background
+    colour) carry no evidence either way.
+
+    Returns ``far`` (mean over the swept views of their fraction of far cells), ``uncovered`` (mean fraction of
+    cells no point falls in), ``textured`` (mean fraction of uncovered cells with texture) and ``views``.
+    """
+    ids = list(ids)
+    candidates = ids if candidates is None else list(candidates)
+    if xyz is None or len(xyz) < 8 or len(candidates) < 2:
+        return {"far": 0.0, "uncovered": 1.0, "textured": 0.0, "views": 0}
+    pick = [ids[int(k)] for k in torch.linspace(0, len(ids) - 1, min(views, len(ids))).round().long().unique()]
+    xyz = xyz.double().cpu()
+    if len(xyz) > 50_000:
+        xyz = xyz[torch.randperm(len(xyz), generator=torch.Generator().manual_seed(0))[:50_000]]
+    H, W = cameras.height, cameras.width
+    plain = None if background is None else _plain_cells(images[pick].cpu(), background, grid)
+    far_fr, unc_fr, tex_fr, n = [], [], [], 0
+    for k, i in enumerate(pick):
+        V = cameras.viewmats[i].double().cpu()
+        K = cameras.Ks[i].double().cpu()
+        uv, z = project(xyz, V, K)
+        front = z > 1e-9
+        u, v = uv[front].unbind(-1)
+        ok = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        if int(ok.sum()) < 8:
+            continue
+        zs = z[front][ok]
+        d_lo, d_hi = float(torch.quantile(zs, 0.05)), float(torch.quantile(zs, 0.95))
+        cells = torch.zeros(grid * grid, dtype=torch.bool)
+        cells[(v[ok] / H * grid).long().clamp(0, grid - 1) * grid + (u[ok] / W * grid).long().clamp(0, grid - 1)] = True
+        if plain is not None:
+            cells |= plain[k].reshape(-1)
+        nb = _sweep_neighbours(cameras, i, candidates, float(zs.median()))
+        if not nb:
+            continue
+        grey = _grey(images[[i] + nb].cpu(), size).double()
+        h, w = grey.shape[-2:]
+        sx, sy = w / W, h / H
+        r = SWEEP_WINDOW // 2
+        std = (_box(grey[0] ** 2, r) / _box(torch.ones_like(grey[0]), r)
+               - (_box(grey[0], r) / _box(torch.ones_like(grey[0]), r)) ** 2).clamp(min=0).sqrt()
+        # the cells no point falls in whose pixels are textured; each as a block of ch x cw pixels plus a
+        # margin of half a window (so its windows see their whole neighbourhood)
+        ch, cw = -(-h // grid), -(-w // grid)
+        cy = (torch.arange(h) * grid // h).clamp(max=grid - 1)
+        cx = (torch.arange(w) * grid // w).clamp(max=grid - 1)
+        tex_frac = torch.zeros(grid * grid, dtype=torch.float64).index_add_(
+            0, (cy[:, None] * grid + cx[None, :]).reshape(-1), (std > TEXTURE_STD).double().reshape(-1))
+        tex_frac /= torch.bincount((cy[:, None] * grid + cx[None, :]).reshape(-1), minlength=grid * grid)
+        todo = ((~cells) & (tex_frac >= TEXTURED_CELL)).nonzero()[:, 0]
+        far = torch.zeros(grid * grid, dtype=torch.bool)
+        if len(todo):
+            y0 = (todo // grid) * h // grid - r
+            x0 = (todo % grid) * w // grid - r
+            by = y0[:, None] + torch.arange(ch + 2 * r)                                    # [N, bh]
+            bx = x0[:, None] + torch.arange(cw + 2 * r)                                    # [N, bw]
+            inside = ((by >= 0) & (by < h))[:, :, None] & ((bx >= 0) & (bx < w))[:, None, :]
+            Y = by.clamp(0, h - 1)[:, :, None].expand(-1, -1, bx.shape[1])
+            X = bx.clamp(0, w - 1)[:, None, :].expand(-1, by.shape[1], -1)
+            ref = grey[0][Y, X]                                                            # [N, bh, bw]
+            tex = std[Y, X] > TEXTURE_STD
+            rays = torch.stack([((X + 0.5) / sx - K[0, 2]) / K[0, 0], ((Y + 0.5) / sy - K[1, 2]) / K[1, 1],
+                                torch.ones(X.shape, dtype=torch.float64)], -1)            # [N, bh, bw, 3], z = 1
+            inv = torch.linspace(2.0 / d_lo, 0.0, planes, dtype=torch.float64)            # inverse depths
+            c2w = torch.linalg.inv(V)
+            score = torch.zeros(planes, len(todo), dtype=torch.float64)
+            count = torch.zeros(planes, len(todo), dtype=torch.float64)
+            core = (slice(None), slice(None), slice(r, r + ch), slice(r, r + cw))
+            for m, j in enumerate(nb):
+                rel = cameras.viewmats[j].double().cpu() @ c2w                          # view i -> view j
+                Kj = cameras.Ks[j].double().cpu()
+                p = (rays @ rel[:3, :3].T)[None] + inv[:, None, None, None, None] * rel[:3, 3]  # [P, N, bh, bw, 3]
+                zj = p[..., 2]
+                uj = (Kj[0, 0] * p[..., 0] / zj.clamp(min=1e-12) + Kj[0, 2]) * sx
+                vj = (Kj[1, 1] * p[..., 1] / zj.clamp(min=1e-12) + Kj[1, 2]) * sy
+                gxy = torch.stack([uj / w * 2 - 1, vj / h * 2 - 1], -1)
+                warped = torch.nn.functional.grid_sample(
+                    grey[1 + m][None, None].expand(planes, 1, h, w), gxy.reshape(planes, -1, gxy.shape[-2], 2),
+                    mode="bilinear", padding_mode="zeros", align_corners=False)[:, 0].reshape(zj.shape)
+                valid = (zj > 0) & (gxy.abs() <= 1).all(-1) & inside[None]
+                ncc = _ncc(ref[None].expand_as(warped), warped, valid, r)[core]
+                good = torch.isfinite(ncc) & tex[None][core]
+                score += torch.where(good, ncc, torch.zeros_like(ncc)).sum((2, 3))
+                count += good.double().sum((2, 3))
+            curve = (score / count.clamp(min=1)).masked_fill(count < TEXTURED_CELL * ch * cw, -1.0)   # [P, N]
+            best, arg = curve.max(0)
+            near = curve[inv >= 1.0 / d_hi].amax(0)
+            far[todo] = (inv[arg] <= 0.5 / d_hi) & (best >= FAR_NCC) & (best - near >= FAR_MARGIN)
+        textured_cells = len(todo)
+        far_fr.append(float(far.double().mean()))
+        unc_fr.append(float((~cells).double().mean()))
+        tex_fr.append(textured_cells / max(1, int((~cells).sum())))
+        n += 1
+    if not n:
+        return {"far": 0.0, "uncovered": 1.0, "textured": 0.0, "views": 0}
+    mean = lambda x: sum(x) / len(x)
+    return {"far": mean(far_fr), "uncovered": mean(unc_fr), "textured": mean(tex_fr), "views": n}
+
+
 def plan_backdrop(data, xyz: Optional[torch.Tensor], mode: str = "auto") -> BackdropPlan:
     """Whether the capture ``data`` (:class:`~ssgwarp.capture.datasets.SceneData`) starting from the points
     ``xyz`` needs a backdrop (``mode`` "auto"), or is given one regardless ("on") or not ("off")."""
@@ -148,8 +321,16 @@ def plan_backdrop(data, xyz: Optional[torch.Tensor], mode: str = "auto") -> Back
         return BackdropPlan(layout, cov, True, "a forward-facing capture's triangulated points hold its textured "
                             "foreground, not what lies beyond it", mode)
     if cov < MIN_COVERAGE:
-        return BackdropPlan(layout, cov, True, f"the initial points cover {cov:.0%} of the image cells "
-                            f"(< {MIN_COVERAGE:.0%})", mode)
+        # cells the points leave uncovered are not enough (a phone capture's 4.4k COLMAP points covered 78% of
+        # an object-centred capture and the backdrop cost 1.9 dB): the views must show far content there
+        ev = far_evidence(data.cameras, data.images, xyz, ids, background=data.background)
+        if ev["far"] >= MIN_FAR:
+            return BackdropPlan(layout, cov, True, f"the initial points cover {cov:.0%} of the image cells and "
+                                f"{ev['far']:.0%} of the cells show content beyond twice their depth "
+                                f"(>= {MIN_FAR:.0%})", mode, evidence=ev)
+        return BackdropPlan(layout, cov, False, f"the initial points cover {cov:.0%} of the image cells; "
+                            f"{ev['far']:.0%} of the cells show content beyond twice their depth "
+                            f"(< {MIN_FAR:.0%})", mode, evidence=ev)
     return BackdropPlan(layout, cov, False, f"the initial points cover {cov:.0%} of the image cells", mode)
 
 

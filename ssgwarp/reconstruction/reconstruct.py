@@ -287,8 +287,9 @@ def add_arguments(parser) -> None:
                              "has points), random, or a .ply point cloud")
     parser.add_argument("--backdrop", choices=("auto", "on", "off"), default="auto",
                         help="far points along the training rays and a far shell (sky) added to the initial "
-                             "points: auto (default: when the cameras look outward or the points leave image "
-                             "regions uncovered; docs/reconstruction.md), on or off")
+                             "points: auto (default: when the cameras look outward, or the photos show far "
+                             "content where the points leave the images uncovered; docs/reconstruction.md), on "
+                             "or off")
     parser.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints (default 500)")
     parser.add_argument("--batch-size", type=int, default=None,
                         help="training views per step, over all processes (default: one per process; on "
