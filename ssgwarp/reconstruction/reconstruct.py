@@ -95,6 +95,8 @@ def _run_metrics(trainer: Trainer, data, scene, device: torch.device, group, see
                                 "refine_start": r.refine_start, "refine_stop": r.refine_stop,
                                 "refine_every": r.refine_every, "reset_every": r.reset_every}
     metrics["backdrop"] = None if trainer.backdrop is None else trainer.backdrop.record()
+    metrics["appearance"] = _appearance_record(trainer)
+    metrics["eval_protocol"] = trainer.eval_protocol
     metrics["schedule"] = trainer.schedules.record(trainer.step)
     if ev["views"] == 0:
         metrics["note"] = "no held-out views (split_every=0 or a single image): PSNR/SSIM not measured"
@@ -107,6 +109,18 @@ def _run_metrics(trainer: Trainer, data, scene, device: torch.device, group, see
     return metrics
 
 
+def _appearance_record(trainer: Trainer) -> dict:
+    """The appearance decision, its evidence and (when on) the fitted transforms in numbers."""
+    rec = trainer.appearance_record
+    if rec is None:  # auto, and the run ended before its probe
+        rec = {"mode": "auto", "use": False, "start_step": trainer.appearance_start,
+               "why": f"the run ended before the probe at step {trainer.appearance_start}: off"}
+    rec = dict(rec)
+    if trainer.appearance is not None:
+        rec["fitted"] = trainer.appearance.summary()
+    return rec
+
+
 def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = "auto", images: str = "images",
                 sh_degree: int = 3, max_gaussians: int = 1_000_000, resume: bool = False, force: bool = False,
                 device=None, seed: int = 0, hooks: Sequence = (), identity_dim: Optional[int] = None,
@@ -115,7 +129,7 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = "au
                 checkpoint_every: int = 500, num_random_points: int = 100_000,
                 rasterize: Optional[Callable] = None, raster_kwargs: Optional[dict] = None,
                 progress: bool = True, data=None, strategy="default", batch_size: Optional[int] = None,
-                group=None, init="auto", backdrop: str = "auto", attach=None) -> dict:
+                group=None, init="auto", backdrop: str = "auto", attach=None, appearance: str = "auto") -> dict:
     """Reconstruct the capture in ``data_dir`` into the run folder ``out`` (what the CLI runs).
 
     Writes ``out/scene.ply``, ``cameras.json``, ``data.json``, ``metrics.json`` (and keeps
@@ -133,6 +147,9 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = "au
     ``iters``: steps, or ``"auto"`` (the default): the 30,000-step schedule until the training views' PSNR stops
     improving (:mod:`ssgwarp.reconstruction.schedules`); ``metrics.json`` and ``data.json`` record the steps run and why
     the run stopped (``schedule``).
+    ``appearance``: ``"auto"`` / ``"on"`` / ``"off"``, per-image exposure and white balance
+    (:mod:`ssgwarp.reconstruction.appearance`); the decision and its evidence go to ``metrics.json`` and ``data.json``
+    (``appearance``), and how held-out views were scored to ``metrics.json`` (``eval_protocol``).
     ``attach``: hooks made during the run (:class:`~ssgwarp.reconstruction.trainer.Trainer`'s ``attach``;
     ``reconstruct --groups``); its ``finish(out, metrics, scene) -> dict`` runs once the run files are written
     and what it returns joins ``metrics.json``.
@@ -157,7 +174,7 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = "au
                       hooks=hooks, identity_dim=identity_dim, checkpoint_path=ckpt,
                       checkpoint_every=checkpoint_every, rasterize=rasterize, raster_kwargs=raster_kwargs,
                       device=device, seed=seed, progress=progress, strategy=strategy, batch_size=batch_size,
-                      group=group, backdrop=backdrop, attach=attach)
+                      group=group, backdrop=backdrop, attach=attach, appearance=appearance)
     if state is not None:
         trainer.load_checkpoint(ckpt, state=state)
         del state
@@ -188,6 +205,7 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = "au
     write_ply(out / "scene.ply", scene)
     data.cameras.to("cpu").save(out / "cameras.json")
     write_json(out / "data.json", data_json(data, seed=seed, backdrop=metrics["backdrop"],
+                                            appearance=metrics["appearance"],
                                             schedule={k: v for k, v in metrics["schedule"].items() if k != "stop_rule"}))
     if attach is not None:
         metrics.update(attach.finish(out, metrics, scene) or {})
@@ -269,6 +287,11 @@ def add_arguments(parser) -> None:
                         help="far points along the training rays and a far shell (sky) added to the initial "
                              "points: auto (default: when the cameras look outward or the points leave image "
                              "regions uncovered; docs/reconstruction.md), on or off")
+    parser.add_argument("--appearance", choices=("auto", "on", "off"), default="auto",
+                        help="per-image exposure and white balance (an affine colour transform per training image, "
+                             "not part of the scene): auto (default: on when a probe finds the photos' exposures "
+                             "differ; docs/reconstruction.md), on or off. When on, held-out views are scored on "
+                             "their right half after a colour transform fitted on their left half")
     parser.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints (default 500)")
     parser.add_argument("--batch-size", type=int, default=None,
                         help="training views per step, over all processes (default: one per process; on "
@@ -305,6 +328,7 @@ def run(args, **extra) -> int:
                         background=args.background, checkpoint_every=args.checkpoint_every,
                         num_random_points=args.random_points, progress=not args.quiet,
                         strategy=args.strategy, batch_size=args.batch_size, backdrop=args.backdrop,
+                        appearance=args.appearance,
                         recipe=Recipe(batch_scaling=args.batch_scaling, res_start=args.coarse_to_fine),
                         group=group, init=init, **extra)
     finally:

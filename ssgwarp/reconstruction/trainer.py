@@ -29,6 +29,7 @@ from ..services.losses import photometric, psnr, ssim
 from .recipe import Recipe, batch_factors
 from ..raster.rendering import render
 from ..raster.scene import GaussianScene
+from . import appearance as appearance_mod
 from .attach import attach_hooks, restore_attached, takes_scene
 from .backdrop import with_backdrop
 from .schedules import AUTO, AUTO_MAX_ITERS, Schedules, sh_degree_at
@@ -72,6 +73,8 @@ class Trainer:
         backdrop: ``"auto"`` / ``"on"`` / ``"off"``: far points for the initial scene (:mod:`.backdrop`;
             :attr:`backdrop`: the decision, None when ``scene`` is given).
         attach: hooks made during the run (``reconstruct --groups``): :mod:`ssgwarp.reconstruction.attach`.
+        appearance: ``"auto"`` / ``"on"`` / ``"off"``: per-image exposure and white balance
+            (:mod:`.appearance`; :attr:`appearance_record`: the decision and its evidence).
         device, seed, progress: as usual.
     """
 
@@ -81,7 +84,7 @@ class Trainer:
                  checkpoint_every: int = 500, rasterize: Optional[Callable] = None,
                  raster_kwargs: Optional[dict] = None, device=None, seed: int = 0, progress: bool = True,
                  strategy="default", batch_size: Optional[int] = None, group=None, backdrop: str = "auto",
-                 attach=None):
+                 attach=None, appearance: str = "auto"):
         self.auto, iters = iters == AUTO, AUTO_MAX_ITERS if iters == AUTO else iters
         if not isinstance(iters, (int, np.integer)) or iters < 1:
             raise InputError(f"iters must be >= 1 or {AUTO!r}, got {iters!r}")
@@ -133,6 +136,7 @@ class Trainer:
         self.check_every = check_every() if self.group.active else 0
         self.history: list[dict] = []
         self.backdrop_mode, self.backdrop = backdrop, None
+        self._init_appearance(appearance_mod.check_mode(appearance))
 
         self.view_gen = torch.Generator().manual_seed(self.seed)
         self._queue: list[int] = []
@@ -158,6 +162,46 @@ class Trainer:
         self.attach, self._attached = attach, False
         if attach is not None:
             attach.prepare(self)
+
+    # -- per-image appearance (ssgwarp.reconstruction.appearance) ---------------------------------
+    def _init_appearance(self, mode: str) -> None:
+        self.appearance_mode = mode
+        self.appearance_start = appearance_mod.start_step(self.iters)
+        self.appearance: Optional[appearance_mod.Appearance] = None
+        self.appearance_record: Optional[dict] = None   # (auto: None until the probe)
+        if mode != "auto":
+            self._set_appearance({"mode": mode, "use": mode == "on", "why": f"--appearance {mode}"})
+
+    def _set_appearance(self, record: dict) -> None:
+        self.appearance_record = {**record, "start_step": self.appearance_start}
+        if record["use"] and self.appearance is None:
+            self.appearance = appearance_mod.Appearance(len(self.data.names), self.data.train_ids, self.device)
+
+    def _render_premultiplied(self, i: int, sh_degree: Optional[int] = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(colour [H, W, 3] on a zero background, alpha [H, W, 1])`` of view ``i`` (no gradient)."""
+        with torch.no_grad():
+            img, alpha, _ = render(self.scene.detach(), self.data.cameras[i],
+                                   sh_degree=self.sh_degree if sh_degree is None else sh_degree,
+                                   backgrounds=torch.zeros(1, 3, device=self.device), rasterize=self.rasterize,
+                                   **self.raster_kwargs)
+        return img[0, ..., :3], alpha[0]
+
+    def _appearance_step(self):
+        """The transforms this step trains with (None: off, or not started); ``auto`` probes at its start step."""
+        if self.step < self.appearance_start:
+            return None
+        if self.appearance_record is None:   # auto, at the start step: decide from the probe
+            rec = appearance_mod.probe(lambda i: self._render_premultiplied(i, self.active_sh_degree), self.data,
+                                       self.data.train_ids)
+            rec = self.group.broadcast(rec)
+            self._set_appearance(rec)
+            log.info("appearance auto (step %d): %s", self.step, rec["why"])
+        return self.appearance
+
+    @property
+    def eval_protocol(self) -> str:
+        """How held-out views are scored: the whole image, or (appearance on) the half protocol."""
+        return appearance_mod.HALF_PROTOCOL if self.appearance is not None else appearance_mod.FULL_PROTOCOL
 
     # -- state --------------------------------------------------------------------------------
     def _initial_scene(self) -> GaussianScene:
@@ -288,12 +332,16 @@ class Trainer:
         cam, gt, bg = self._views(views, 3 + (scene.identities.shape[1] if with_ids else 0), level,
                                   self.schedules.factor(self.step))
         masks = None if level[2] is None else level[2][views]
+        app = self._appearance_step()
         out, alphas, meta = render(scene, cam, sh_degree=self.active_sh_degree, identities=with_ids,
-                                   backgrounds=bg, rasterize=self.rasterize, from_parameters=True, **self.raster_kwargs)
+                                   backgrounds=bg if app is None else torch.zeros_like(bg), rasterize=self.rasterize,
+                                   from_parameters=True, **self.raster_kwargs)
         means2d = meta["means2d"]
         if self.strategy.uses_means2d_grad and means2d.requires_grad:
             means2d.retain_grad()
         img = out if out.shape[-1] == 3 else out[..., :3]  # (a slice's backward would copy the whole gradient)
+        if app is not None:  # each photo's exposure and white balance on the render, then the background
+            img = app(views, img, alphas, gt, bg, masks)
         if masks is not None:  # masked pixels are zero in both: no error, no gradient, no SSIM content
             img, gt = _masked(img, gt, masks)
         loss = photometric(img, gt, r.lambda_dssim, r.dssim_scale)  # (the mean over the views)
@@ -472,6 +520,8 @@ class Trainer:
             "history": self.history[-1000:],
             "stop_monitor": self.schedules.state_dict(),
             "attached": self.attach.state() if self._attached else None,
+            "appearance": {"record": self.appearance_record,
+                           "state": None if self.appearance is None else self.appearance.state_dict()},
         }
 
     def save_checkpoint(self, path: Optional[str | Path] = None) -> Path:
@@ -534,6 +584,12 @@ class Trainer:
         self.view_gen.set_state(rng["view"])
         self.strategy.set_generator_state(rng["split"])
         self.history = list(st.get("history", []))
+        app = st.get("appearance")
+        if app is not None and app.get("record") is not None:
+            self.appearance = None
+            self._set_appearance(app["record"])
+            if self.appearance is not None and app.get("state") is not None:
+                self.appearance.load_state_dict(app["state"])
         self.schedules.load_state_dict(st.get("stop_monitor"))
         self.last_checkpoint_step = self.step
 
@@ -566,10 +622,17 @@ class Trainer:
         """PSNR / SSIM (and LPIPS when a model is given) over the views ``ids`` (default: test views)."""
         ids = list(self.data.test_ids if ids is None else ids)
         per = []
+        half = self.appearance is not None  # appearance on: the half protocol (:func:`appearance.score_half`)
         for i in ids:
-            pred = self.render([i])
             gt = self.data.images[i][None]
             mask = None if self.data.masks is None else self.data.masks[i][None]
+            if half:
+                c, a = self._render_premultiplied(i)
+                pred, gt, m = appearance_mod.score_half(c, a, gt[0], self.data.background_tensor(3),
+                                                        None if mask is None else mask[0])
+                pred, gt, mask = pred[None], gt[None], None if m is None else m[None]
+            else:
+                pred = self.render([i])
             if mask is not None:  # the scene's pixels: PSNR of their mean error, the rest 0 in both (for SSIM)
                 pred, gt = _masked(pred, gt, mask)
             row = {"name": self.data.names[i], "psnr": float(psnr(pred, gt, mask)), "ssim": float(ssim(pred, gt))}
