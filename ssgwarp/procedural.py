@@ -36,7 +36,7 @@ Public API:
     rig_cameras(n, width, height, ...)          -> Cameras of an outward-looking rig (inside-out capture)
     vary_exposures(src, dst, seed, ...)         -> a copy of a capture whose photos differ in exposure and tint
 
-The inside-out scene (:func:`build_inside_out`, ids: 0 ground, 1 backdrop, 2 sky) is what a hand-held walk
+The inside-out scene (:func:`build_inside_out`, ids: 0 ground, 1 backdrop, 2 sky, 3 railing) is what a hand-held walk
 on a rooftop sees: a textured ground disc of radius 6 around the rig, a ring of "buildings" (a cylinder
 of radius 8 and height 3.5 with facades and windows) and a sky dome of radius 40 (a gradient with clouds).
 :func:`rig_cameras` looks outward from a small circle at its centre, so nothing the views show lies near
@@ -349,15 +349,17 @@ def smooth_views(K: int, H: int, W: int, seed: int = 0) -> tuple[torch.Tensor, t
 
 
 # ----------------------------------------------------------------------------- inside-out scene
-INSIDE_OUT_NAMES = ("ground", "backdrop", "sky")
+INSIDE_OUT_NAMES = ("ground", "backdrop", "sky", "railing")
 
 
 def _ring_normals_up(n: int) -> np.ndarray:
     return np.tile([0.0, 0.0, 1.0], (n, 1))
 
 
-def build_inside_out(density: float = 1.0, seed: int = 0) -> ProceduralScene:
-    """The inside-out ground truth (see the module docstring); about 24,000 Gaussians at ``density`` 1."""
+def build_inside_out(density: float = 1.0, seed: int = 0, railing: bool = False) -> ProceduralScene:
+    """The inside-out ground truth (see the module docstring); about 24,000 Gaussians at ``density`` 1.
+    ``railing``: add near structure (id 3), a railing around the rig at radius 2.5 (posts every 15 degrees,
+    a top rail at 1.1 m and a middle one at 0.55 m, dark green metal): what a rooftop walk sees close by."""
     if not density > 0:
         raise InputError(f"procedural scene: density must be > 0, got {density}")
     rng = np.random.default_rng(seed)
@@ -409,6 +411,21 @@ def build_inside_out(density: float = 1.0, seed: int = 0) -> ProceduralScene:
     rgb[cloud] = [0.97, 0.97, 0.98]
     spacing = R * math.sqrt(2 * math.pi * (1 - math.sin(math.radians(-5.0))) / n)
     parts.append((R * dirs, -dirs, rgb, spacing, spacing * 0.2, 2))
+
+    if railing:
+        rr, thick = 2.5, 0.03
+        metal = np.array([0.20, 0.32, 0.26])
+        for zr in (1.1, 0.55):   # rails: rings of small round Gaussians
+            a = np.arange(0.0, 2 * math.pi, (0.02 / d) / rr)
+            xyz = np.stack([rr * np.cos(a), rr * np.sin(a), np.full_like(a, zr)], 1)
+            nrm = -np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], 1)
+            shade = np.clip(0.8 + 0.2 * np.sin(3 * a)[:, None], 0, 1)
+            parts.append((xyz, nrm, metal * shade * 1.15, 0.02 / d, thick, 3))
+        for a0 in np.arange(0.0, 2 * math.pi, math.radians(15.0)):   # posts
+            z = np.arange(0.0, 1.1, 0.02 / d)
+            xyz = np.stack([np.full_like(z, rr * math.cos(a0)), np.full_like(z, rr * math.sin(a0)), z], 1)
+            nrm = np.tile([-math.cos(a0), -math.sin(a0), 0.0], (len(z), 1))
+            parts.append((xyz, nrm, np.tile(metal, (len(z), 1)), 0.02 / d, thick, 3))
 
     means, quats, scales, rgbs, ids = [], [], [], [], []
     for xyz, nrm, col, sp, thick, oid in parts:

@@ -18,6 +18,7 @@ from ..core.cameras import Cameras
 from ..errors import InputError
 from ..core.fileio import claim_output_dir
 from ..core.geometry import quat_to_rotmat, rotmat_to_quat
+from ..raster.environment import Environment
 from ..raster.rendering import render_to_files
 from ..services.runs import Run
 
@@ -178,6 +179,9 @@ def run(args) -> int:
         cams = smooth_path(cams, args.path, closed=not args.open)
         cams.to("cpu").save(args.out / "path_cameras.json")
     # (a stylized run: on its recorded, recoloured background)
-    paths = render_to_files(scene, cams, args.out, background=run_.background(data.background), progress=not args.quiet)
+    env_path = Path(args.scene_dir) / "environment.json"   # the run's sky (reconstruct --sky), behind the splats
+    env = Environment.load(env_path, device=args.device) if env_path.is_file() else None
+    paths = render_to_files(scene, cams, args.out, background=run_.background(data.background), progress=not args.quiet,
+                            environment=env)
     print(f"{args.out}: {len(paths)} images")
     return 0

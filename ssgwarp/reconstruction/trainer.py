@@ -30,6 +30,7 @@ from .recipe import Recipe, batch_factors
 from ..raster.rendering import render
 from ..raster.scene import GaussianScene
 from . import appearance as appearance_mod
+from . import sky as sky_mod
 from .attach import attach_hooks, restore_attached, takes_scene
 from .backdrop import with_backdrop
 from .schedules import AUTO, AUTO_MAX_ITERS, Schedules, sh_degree_at
@@ -75,6 +76,8 @@ class Trainer:
         attach: hooks made during the run (``reconstruct --groups``): :mod:`ssgwarp.reconstruction.attach`.
         appearance: ``"auto"`` / ``"on"`` / ``"off"``: per-image exposure and white balance
             (:mod:`.appearance`; :attr:`appearance_record`: the decision and its evidence).
+        sky: ``"auto"`` / ``"on"`` / ``"off"``: an environment colour field behind the splats (:mod:`.sky`;
+            :attr:`environment`, :attr:`sky_record`).
         device, seed, progress: as usual.
     """
 
@@ -84,7 +87,7 @@ class Trainer:
                  checkpoint_every: int = 500, rasterize: Optional[Callable] = None,
                  raster_kwargs: Optional[dict] = None, device=None, seed: int = 0, progress: bool = True,
                  strategy="default", batch_size: Optional[int] = None, group=None, backdrop: str = "auto",
-                 attach=None, appearance: str = "auto"):
+                 attach=None, appearance: str = "auto", sky: str = "auto"):
         self.auto, iters = iters == AUTO, AUTO_MAX_ITERS if iters == AUTO else iters
         if not isinstance(iters, (int, np.integer)) or iters < 1:
             raise InputError(f"iters must be >= 1 or {AUTO!r}, got {iters!r}")
@@ -137,6 +140,8 @@ class Trainer:
         self.history: list[dict] = []
         self.backdrop_mode, self.backdrop = backdrop, None
         self._init_appearance(appearance_mod.check_mode(appearance))
+        self.sky_mode, self.sky_record, self.environment = sky_mod.check_mode(sky), None, None
+        self.env_opt = None
 
         self.view_gen = torch.Generator().manual_seed(self.seed)
         self._queue: list[int] = []
@@ -151,6 +156,7 @@ class Trainer:
             ids = torch.randn(len(scene), int(identity_dim), generator=g) * self.recipe.identity_init_std
             scene = scene.replace(identities=ids.to(scene.device, scene.dtype))
         scene = scene.to(self.device, torch.float32)
+        self._init_sky()
         if self.strategy.budgeted and len(scene) > self.max_gaussians:
             raise InputError(f"the initial scene has {len(scene)} Gaussians, more than the budget of "
                              f"{self.max_gaussians} (--max-gaussians) of the {self.strategy.name} strategy")
@@ -184,6 +190,9 @@ class Trainer:
                                    sh_degree=self.sh_degree if sh_degree is None else sh_degree,
                                    backgrounds=torch.zeros(1, 3, device=self.device), rasterize=self.rasterize,
                                    **self.raster_kwargs)
+            if self.environment is not None:  # the sky: part of the picture, opaque
+                img = self.environment.composite(img[..., :3], alpha, self.data.cameras[i])
+                alpha = torch.ones_like(alpha)
         return img[0, ..., :3], alpha[0]
 
     def _appearance_step(self):
@@ -197,6 +206,22 @@ class Trainer:
             self._set_appearance(rec)
             log.info("appearance auto (step %d): %s", self.step, rec["why"])
         return self.appearance
+
+    # -- the sky behind the splats (ssgwarp.reconstruction.sky) -------------------------------------
+    def _init_sky(self) -> None:
+        layout = None if self.backdrop is None else self.backdrop.layout
+        self.sky_record = sky_mod.decide(self.data, self.sky_mode, layout)
+        if self.sky_record["use"]:
+            self.environment = sky_mod.initial(self.data, self.device)
+            self.env_opt = adam([{"params": [self.environment.grid], "lr": sky_mod.LR * self.lr_factor,
+                                  "name": "environment"}], betas=self.betas)
+
+    def _composite(self, color: torch.Tensor, alpha: torch.Tensor, cameras, bg: torch.Tensor):
+        """The render on its background: the sky where there is one (then fully opaque), else ``bg``.
+        Returns ``(colour, alpha)`` (alpha: what the appearance transform's offset scales)."""
+        if self.environment is None:
+            return color + (1.0 - alpha) * bg[:, None, None, :3], alpha
+        return self.environment.composite(color, alpha, cameras), torch.ones_like(alpha)
 
     @property
     def eval_protocol(self) -> str:
@@ -266,6 +291,9 @@ class Trainer:
                 g["lr"] *= self.lr_factor
         self._hook_takes_scene = [takes_scene(h) for h in self.hooks]
 
+    def _env_params(self) -> list[torch.Tensor]:
+        return [] if self.environment is None else [self.environment.grid]
+
     def _hook_params(self) -> list[torch.Tensor]:
         if self.hook_opt is None:
             return []
@@ -333,15 +361,20 @@ class Trainer:
                                   self.schedules.factor(self.step))
         masks = None if level[2] is None else level[2][views]
         app = self._appearance_step()
+        own_bg = app is not None or self.environment is not None  # composited here, not by the rasterizer
         out, alphas, meta = render(scene, cam, sh_degree=self.active_sh_degree, identities=with_ids,
-                                   backgrounds=bg if app is None else torch.zeros_like(bg), rasterize=self.rasterize,
+                                   backgrounds=torch.zeros_like(bg) if own_bg else bg, rasterize=self.rasterize,
                                    from_parameters=True, **self.raster_kwargs)
         means2d = meta["means2d"]
         if self.strategy.uses_means2d_grad and means2d.requires_grad:
             means2d.retain_grad()
         img = out if out.shape[-1] == 3 else out[..., :3]  # (a slice's backward would copy the whole gradient)
         if app is not None:  # each photo's exposure and white balance on the render, then the background
+            if self.environment is not None:
+                img, alphas = self._composite(img, alphas, cam, bg)
             img = app(views, img, alphas, gt, bg, masks)
+        elif self.environment is not None:
+            img, _ = self._composite(img, alphas, cam, bg)
         if masks is not None:  # masked pixels are zero in both: no error, no gradient, no SSIM content
             img, gt = _masked(img, gt, masks)
         loss = photometric(img, gt, r.lambda_dssim, r.dssim_scale)  # (the mean over the views)
@@ -369,7 +402,7 @@ class Trainer:
             if not finite and not self.group.active:
                 self._diverged("the loss is NaN/inf")
         # every process steps with the batch's mean gradient; NaN and Ctrl-C anywhere are seen everywhere
-        bad, stop = self.group.average_grads(list(self.params.values()) + self._hook_params(),
+        bad, stop = self.group.average_grads(list(self.params.values()) + self._hook_params() + self._env_params(),
                                              [0.0 if finite else 1.0, 1.0 if self._stop_requested else 0.0])
         self._agreed_stop = stop > 0
         if bad > 0:
@@ -415,7 +448,7 @@ class Trainer:
         return self._loop is not None and self._loop.stop_requested
 
     def _optimisers(self) -> list:
-        return [o for o in (self.opt, self.hook_opt) if o is not None]
+        return [o for o in (self.opt, self.hook_opt, self.env_opt) if o is not None]
 
     def _watch_loss(self, finite: torch.Tensor) -> bool:
         """Check this step's loss without a device synchronisation (one process, fused optimisers):
@@ -520,6 +553,9 @@ class Trainer:
             "history": self.history[-1000:],
             "stop_monitor": self.schedules.state_dict(),
             "attached": self.attach.state() if self._attached else None,
+            "sky": {"record": self.sky_record,
+                    "grid": None if self.environment is None else self.environment.grid.detach().cpu(),
+                    "optimizer": None if self.env_opt is None else to_cpu(self.env_opt.state_dict())},
             "appearance": {"record": self.appearance_record,
                            "state": None if self.appearance is None else self.appearance.state_dict()},
         }
@@ -584,6 +620,15 @@ class Trainer:
         self.view_gen.set_state(rng["view"])
         self.strategy.set_generator_state(rng["split"])
         self.history = list(st.get("history", []))
+        sky = st.get("sky")
+        if (sky is not None and sky.get("grid") is not None) != (self.environment is not None):
+            raise InputError(f"the checkpoint was trained {'with' if self.environment is None else 'without'} "
+                             f"a sky (--sky); pass --sky {'on' if self.environment is None else 'off'} to resume it")
+        if self.environment is not None:
+            with torch.no_grad():
+                self.environment.grid.copy_(sky["grid"].to(self.device))
+            if sky.get("optimizer") is not None:
+                self.env_opt.load_state_dict(sky["optimizer"])
         app = st.get("appearance")
         if app is not None and app.get("record") is not None:
             self.appearance = None
@@ -612,8 +657,11 @@ class Trainer:
         out = []
         bg = self.data.background_tensor(3)[None]
         for i in ids:
-            img, _, _ = render(scene, self.data.cameras[i], sh_degree=self.sh_degree, backgrounds=bg,
-                               rasterize=self.rasterize, **self.raster_kwargs)
+            if self.environment is not None:
+                img = self._render_premultiplied(i)[0][None]
+            else:
+                img, _, _ = render(scene, self.data.cameras[i], sh_degree=self.sh_degree, backgrounds=bg,
+                                   rasterize=self.rasterize, **self.raster_kwargs)
             out.append(img[0, ..., :3].clamp(0.0, 1.0))
         return torch.stack(out) if out else torch.zeros(0, self.data.height, self.data.width, 3)
 
