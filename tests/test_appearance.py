@@ -48,39 +48,6 @@ def test_the_half_protocol_fits_on_the_left_and_scores_the_right_half():
     assert float(psnr(raw, right)) < 20.0
 
 
-class _Capture(SimpleNamespace):
-    def background_tensor(self, channels=3):
-        return torch.zeros(channels)
-
-
-def _probe_case(gains, noise=0.02, views=12, seed=0):
-    """Renders of views of a scene (a slightly wrong render: ``noise`` per region) and photos that are
-    the true scene under ``gains[i]`` (per channel)."""
-    g = torch.Generator().manual_seed(seed)
-    truth = [_photo(seed=10 + i) for i in range(views)]
-    renders = [t * (1 + noise * torch.randn(6, 8, 3, generator=g).repeat_interleave(4, 0).repeat_interleave(4, 1))
-               for t in truth]
-    images = torch.stack([t * gains[i] for i, t in enumerate(truth)])
-    data = _Capture(images=images, masks=None)
-    alpha = torch.ones(24, 32, 1)
-    return ap.probe(lambda i: (renders[i], alpha), data, list(range(views)))
-
-
-def test_auto_turns_on_for_photos_whose_exposures_differ_and_stays_off_otherwise():
-    rng = np.random.default_rng(0)
-    varied = torch.tensor(rng.uniform(0.6, 1.4, (12, 1)) * (1 + rng.uniform(-0.1, 0.1, (12, 3))), dtype=torch.float32)
-    on = _probe_case(varied)
-    assert on["use"] and on["exposure_spread"] > 0.15 and on["probe_views"] == 12, on
-    off = _probe_case(torch.ones(12, 3))
-    assert not off["use"] and off["exposure_spread"] < ap.MIN_SPREAD, off
-    # a render whose error is large, but not the same in both halves of a view: still off
-    noisy = _probe_case(torch.ones(12, 3), noise=0.15)
-    assert not noisy["use"], noisy
-    slight = _probe_case(torch.tensor(rng.uniform(0.99, 1.01, (12, 1)), dtype=torch.float32).repeat(1, 3))
-    assert not slight["use"], slight
-    assert "why" in on and "exposures differ" in on["why"] and "agree" in off["why"]
-
-
 def test_the_transforms_keep_their_mean_at_the_identity():
     """Three photos at gains 0.5, 1, 2 (mean 7/6) of a render that is twice too dark: the loss's transforms are fitted per view and composed with the inverse of their mean, so the render
     is pulled toward the photos' mean exposure, not toward any one photo."""
@@ -138,3 +105,36 @@ def test_check_mode_and_start_step():
         ap.check_mode("maybe")
     assert ap.start_step(600) == 100 and ap.start_step(60) == 50 and ap.start_step(30000) == 500
     assert math.isclose(ap.MIN_SPREAD, 0.03)
+
+
+def _points_capture(gains, n_points=600, size=64, seed=0):
+    """Points on a sphere seen by a ring of cameras; each image shows every point's colour (times the
+    image's ``gains[i]``) at its pixel, on grey."""
+    from ssgwarp.core.geometry import project
+    from ssgwarp.procedural import ring_cameras
+
+    g = torch.Generator().manual_seed(seed)
+    xyz = torch.nn.functional.normalize(torch.randn(n_points, 3, generator=g), dim=1) * 0.8
+    rgb = 0.15 + 0.7 * torch.rand(n_points, 3, generator=g)
+    cams = ring_cameras(len(gains), size, size)
+    images = torch.full((len(gains), size, size, 3), 0.5)
+    for i in range(len(gains)):
+        uv, z = project(xyz, cams.viewmats[i], cams.Ks[i])
+        u, v = uv[:, 0].round().long(), uv[:, 1].round().long()
+        ok = (z > 0) & (u >= 0) & (u < size) & (v >= 0) & (v < size)
+        images[i, v[ok], u[ok]] = (rgb[ok] * gains[i]).clamp(0, 1)
+    return SimpleNamespace(cameras=cams, images=images, train_ids=list(range(len(gains)))), xyz
+
+
+def test_the_points_probe_finds_differing_exposures_before_training():
+    """The capture's points seen in several photos: their colours differ by the photos' gains (on) or not (off),
+    with occlusions (a point behind the sphere shows another point's colour) as outliers."""
+    rng = np.random.default_rng(1)
+    varied = torch.tensor(rng.uniform(0.6, 1.4, (10, 1)) * (1 + rng.uniform(-0.1, 0.1, (10, 3))), dtype=torch.float32)
+    data, xyz = _points_capture(varied)
+    on = ap.points_probe(data, xyz)
+    assert on["use"] and on["probe"] == "points" and on["exposure_spread"] > 0.15, on
+    data, xyz = _points_capture(torch.ones(10, 3))
+    off = ap.points_probe(data, xyz)
+    assert not off["use"] and off["exposure_spread"] < 0.01, off
+    assert ap.points_probe(data, xyz[:50]) is None   # too few points: the render probe decides

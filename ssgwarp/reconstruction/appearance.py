@@ -18,13 +18,17 @@ inverse of the mean of all views' latest fits (:meth:`Appearance.gauge`): the sc
 mean exposure of the photos, so the transforms cannot drift together with the scene's colours (mean
 pinned to the identity). They start late (:func:`start_step`: after the scene has its coarse colours).
 
-``auto`` decides from evidence (:func:`probe`): at :func:`start_step`, a per-channel gain is fitted on the
-left and on the right half of each of up to 16 training views. A gain that belongs to the photo (its
-exposure) shows in both halves; one that comes from the scene's error in a region does not. Across
-views, the covariance of the left and right log-gains is the photos' exposure variance, half the
-variance of their difference the noise. On when the exposures spread by at least
-:data:`MIN_SPREAD` (3 %: about 0.25 dB at mid-grey) and the signal is at least :data:`MIN_RATIO` times
-the noise.
+``auto`` decides from evidence, before training, from the capture's own points (:func:`points_probe`): each
+of its points (COLMAP's or triangulated) is seen in several training photos (hidden ones left out: the points
+as a depth buffer); its log colour there is fitted as the point's log albedo plus the photo's log gain per
+channel (alternating medians; observations far from the fit left out), and each photo's gain is measured
+twice, from the points in the left and in the right half of the image. An exposure changes the whole photo,
+so it shows in both; occlusions, edges, highlights and noise change parts of it. Across photos, the
+covariance of the two measurements is the photos' exposure variance, half the variance of their difference
+the noise (:func:`_split_half`). On when the exposures spread by at least :data:`MIN_SPREAD` (3 %: about 0.25 dB at
+mid-grey) and the signal is at least :data:`MIN_RATIO` times the noise. A capture without points of its
+own (random initial points: triangulation found too few) has no such evidence: ``auto`` is off there
+(``--appearance on`` turns it on).
 
 Held-out views (:func:`score_half`, the protocol of the field for per-image appearance, e.g. NeRF-W's and
 the "in the wild" benchmarks'): a held-out photo has no trained transform, so one is fitted on the left
@@ -43,7 +47,8 @@ from ..errors import InputError
 MODES = ("auto", "on", "off")
 MIN_SPREAD = 0.03   # auto: the photos' exposures must differ by at least this (std of log-gain)
 MIN_RATIO = 2.0     # auto: ... and their variance be this many times the split-half noise
-PROBE_VIEWS = 16
+VISIBLE_DEPTH = 0.05  # points probe: a point farther than this fraction behind the nearest one of its cell is hidden
+OUTLIER = 0.15      # points probe: log-colour residual beyond which an observation is an outlier (occlusion)
 FULL_PROTOCOL = "full image"
 HALF_PROTOCOL = ("per-view affine colour transform (3x3 + offset) fitted by least squares on the left half of "
                  "each held-out image, PSNR/SSIM on the right half")
@@ -151,58 +156,88 @@ class Appearance:
                 "offset_abs_max": round(float(W[:, :, 3].abs().max()), 4)}
 
 
-def _channel_gains(color: torch.Tensor, target: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
-    """``[3]`` least-squares gains ``g_c = sum(w c y) / sum(w c c)`` (no offset)."""
-    num = (weight * color * target).sum(dim=(0, 1))
-    den = (weight * color * color).sum(dim=(0, 1)).clamp_min(1e-8)
-    return num / den
-
-
-@torch.no_grad()
-def probe(render: Callable[[int], tuple], data, ids: Sequence[int]) -> dict:
-    """The ``auto`` decision's evidence on the training views ``ids`` (up to :data:`PROBE_VIEWS`, evenly
-    spaced): ``render(i) -> (color [H, W, 3] premultiplied, alpha [H, W, 1])`` of the current scene.
-    Returns the record (``use``, ``why`` and the numbers) that goes to data.json and metrics.json."""
-    ids = list(ids)
-    if len(ids) > PROBE_VIEWS:
-        ids = [ids[round(k * (len(ids) - 1) / (PROBE_VIEWS - 1))] for k in range(PROBE_VIEWS)]
-    L, R, explained = [], [], []
-    bg = data.background_tensor(3)
-    for i in ids:
-        c, a = render(i)
-        y = data.images[i].to(c) - (1.0 - a) * bg
-        w = torch.ones_like(a) if data.masks is None else data.masks[i][..., None].to(a)
-        w = w * (a > 0.5)
-        half = c.shape[1] // 2
-        gl = _channel_gains(c[:, :half], y[:, :half], w[:, :half])
-        gr = _channel_gains(c[:, half:], y[:, half:], w[:, half:])
-        if not (bool(torch.isfinite(gl).all()) and bool(torch.isfinite(gr).all())) or float(w.sum()) < 16:
-            continue
-        L.append(gl.clamp_min(1e-3).log())
-        R.append(gr.clamp_min(1e-3).log())
-        W = fit_affine(_features(c, a), y, 1e-3, w[..., 0])
-        raw = float((w * (c - y) ** 2).sum())
-        fit = float((w * (apply_affine(W, c, a) - y) ** 2).sum())
-        explained.append(1.0 - fit / raw if raw > 0 else 0.0)
-    rec = {"mode": "auto", "probe_views": len(L), "min_spread": MIN_SPREAD, "min_ratio": MIN_RATIO}
-    if len(L) < 4:
-        return {**rec, "use": False, "why": f"only {len(L)} training views could be probed (4 needed): off"}
-    L, R = torch.stack(L).double(), torch.stack(R).double()
-    Lc, Rc = L - L.mean(0), R - R.mean(0)
+def _split_half(L: torch.Tensor, R: torch.Tensor, rec: dict, what: str) -> dict:
+    """The decision from per-view log-gains measured twice independently (``L``, ``R`` ``[V, 3]``): their
+    covariance across views is the photos' exposure variance, half their difference's variance the noise."""
+    L, R = L.double(), R.double()
     n = len(L)
+    Lc, Rc = L - L.mean(0), R - R.mean(0)
     signal = float((Lc * Rc).sum(0).mean() / (n - 1))
     noise = float(((L - R) - (L - R).mean(0)).pow(2).sum(0).mean() / (n - 1) / 2)
     spread = math.sqrt(max(signal, 0.0))
     use = spread >= MIN_SPREAD and signal >= MIN_RATIO * noise
     rec.update({"exposure_spread": round(spread, 4), "signal_variance": round(signal, 6),
-                "noise_variance": round(noise, 6), "residual_explained": round(sum(explained) / len(explained), 4),
-                "use": bool(use)})
+                "noise_variance": round(noise, 6), "use": bool(use)})
     rec["why"] = (f"the photos' exposures differ: per-image gains spread {100 * spread:.1f} % (>= {100 * MIN_SPREAD:.0f} %), "
-                  f"left/right halves agree ({signal:.2e} vs noise {noise:.2e})" if use else
+                  f"{what} agree ({signal:.2e} vs noise {noise:.2e})" if use else
                   f"the photos' exposures agree: per-image gain spread {100 * spread:.1f} % "
                   f"(signal {signal:.2e}, noise {noise:.2e}; on needs >= {100 * MIN_SPREAD:.0f} % and "
                   f">= {MIN_RATIO:g}x the noise)")
     return rec
+
+
+@torch.no_grad()
+def points_probe(data, xyz: torch.Tensor, max_points: int = 20_000, seed: int = 0) -> Optional[dict]:
+    """The ``auto`` decision before training, from the capture's own points (COLMAP's or triangulated): each
+    point's colour in every training view it projects into. ``log colour = log albedo(point) + log gain(view)``
+    is fitted robustly (alternating medians, observations far from the fit left out: highlights); a point
+    more than :data:`VISIBLE_DEPTH` behind the nearest point of its image cell is hidden (not observed). The view gains are fitted
+    twice, from the points seen in the left and in the right half of each image (an exposure changes the
+    whole photo; occlusion, edges and highlights change parts of it), and :func:`_split_half` decides. Observations near black or
+    white (clipped) are left out. None when fewer than 200 points are seen by 3 views or more (no evidence)."""
+    from ..core.geometry import project
+
+    ids = list(data.train_ids)
+    if xyz is None or len(xyz) == 0 or len(ids) < 4:
+        return None
+    g = torch.Generator().manual_seed(seed)
+    xyz = xyz.double().cpu()
+    if len(xyz) > max_points:
+        xyz = xyz[torch.randperm(len(xyz), generator=g)[:max_points]]
+    cams = data.cameras
+    obs = torch.full((len(xyz), len(ids), 3), float("nan"), dtype=torch.float64)
+    left = torch.zeros(len(xyz), len(ids), dtype=torch.bool)   # seen in the left half of the image
+    # visibility: the points themselves as a depth buffer of cells holding about 2 points each when all are seen
+    cell = max(4.0, math.sqrt(2.0 * cams.width * cams.height / len(xyz)))
+    gw, gh = int(math.ceil(cams.width / cell)), int(math.ceil(cams.height / cell))
+    for j, i in enumerate(ids):
+        uv, z = project(xyz, cams.viewmats[i].double().cpu(), cams.Ks[i].double().cpu())
+        u, v = uv[:, 0].round().long(), uv[:, 1].round().long()
+        ok = (z > 1e-9) & (u >= 1) & (u < cams.width - 1) & (v >= 1) & (v < cams.height - 1)
+        key = (v.clamp(0, cams.height - 1) / cell).long() * gw + (u.clamp(0, cams.width - 1) / cell).long()
+        key = torch.where(ok, key, torch.zeros_like(key))
+        front = torch.full((gw * gh,), float("inf"), dtype=torch.float64)
+        front = front.scatter_reduce(0, key[ok], z[ok], reduce="amin")
+        ok &= z <= front[key] * (1.0 + VISIBLE_DEPTH)
+        pix = data.images[i].cpu().double()[v[ok], u[ok]]
+        good = (pix > 0.03).all(1) & (pix < 0.97).all(1)
+        rows = ok.nonzero()[:, 0][good]
+        obs[rows, j] = pix[good].log()
+        left[:, j] = u < cams.width / 2
+    seen = (~obs[..., 0].isnan()).sum(1) >= 3
+    obs, left = obs[seen], left[seen]
+    rec = {"mode": "auto", "probe": "points", "probe_points": int(len(obs)), "probe_views": len(ids),
+           "min_spread": MIN_SPREAD, "min_ratio": MIN_RATIO}
+    if len(obs) < 200:
+        return None
+
+    def gains(o: torch.Tensor, albedo: torch.Tensor) -> torch.Tensor:
+        gv = torch.nanmedian(o - albedo[:, None], dim=0).values             # [V, 3]
+        return torch.nan_to_num(gv - torch.nanmean(gv, dim=0), nan=0.0)
+
+    n0 = int((~obs[..., 0].isnan()).sum())
+    gv = torch.zeros(len(ids), 3, dtype=torch.float64)
+    for k in range(8):
+        albedo = torch.nanmedian(obs - gv[None], dim=1).values             # [P, 3]
+        gv = gains(obs, albedo)
+        if k >= 3:  # observations far from the fit (occluded: another surface's colour) are left out
+            far = (obs - albedo[:, None] - gv[None]).abs().amax(-1) > OUTLIER
+            obs = torch.where(far[..., None], torch.full_like(obs, float("nan")), obs)
+    rec["inlier_share"] = round(int((~obs[..., 0].isnan()).sum()) / max(n0, 1), 4)
+    nan = torch.full_like(obs, float("nan"))
+    return _split_half(gains(torch.where(left[..., None], obs, nan), albedo),
+                       gains(torch.where(left[..., None], nan, obs), albedo), rec,
+                       "the gains of the images' left and right halves")
 
 
 @torch.no_grad()

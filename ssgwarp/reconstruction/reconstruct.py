@@ -112,11 +112,7 @@ def _run_metrics(trainer: Trainer, data, scene, device: torch.device, group, see
 
 def _appearance_record(trainer: Trainer) -> dict:
     """The appearance decision, its evidence and (when on) the fitted transforms in numbers."""
-    rec = trainer.appearance_record
-    if rec is None:  # auto, and the run ended before its probe
-        rec = {"mode": "auto", "use": False, "start_step": trainer.appearance_start,
-               "why": f"the run ended before the probe at step {trainer.appearance_start}: off"}
-    rec = dict(rec)
+    rec = dict(trainer.appearance_record or {"mode": "auto", "use": False, "why": "not decided"})
     if trainer.appearance is not None:
         rec["fitted"] = trainer.appearance.summary()
     return rec

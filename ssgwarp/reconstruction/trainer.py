@@ -157,6 +157,9 @@ class Trainer:
             scene = scene.replace(identities=ids.to(scene.device, scene.dtype))
         scene = scene.to(self.device, torch.float32)
         self._init_sky()
+        if self.appearance_mode == "auto":
+            self._set_appearance(self._appearance_probe())
+            log.info("appearance auto: %s", self.appearance_record["why"])
         if self.strategy.budgeted and len(scene) > self.max_gaussians:
             raise InputError(f"the initial scene has {len(scene)} Gaussians, more than the budget of "
                              f"{self.max_gaussians} (--max-gaussians) of the {self.strategy.name} strategy")
@@ -174,7 +177,7 @@ class Trainer:
         self.appearance_mode = mode
         self.appearance_start = appearance_mod.start_step(self.iters)
         self.appearance: Optional[appearance_mod.Appearance] = None
-        self.appearance_record: Optional[dict] = None   # (auto: None until the probe)
+        self.appearance_record: Optional[dict] = None   # (auto: set once the initial scene is made)
         if mode != "auto":
             self._set_appearance({"mode": mode, "use": mode == "on", "why": f"--appearance {mode}"})
 
@@ -195,17 +198,19 @@ class Trainer:
                 alpha = torch.ones_like(alpha)
         return img[0, ..., :3], alpha[0]
 
+    def _appearance_probe(self) -> dict:
+        """``auto``: the decision from the capture's own points (:func:`appearance.points_probe`)."""
+        none = {"mode": "auto", "use": False, "probe": None}
+        if self.data.points is None or self.data.points_source == "random":
+            return {**none, "why": "no points of the capture's own (random initial points): no evidence, off "
+                                   "(--appearance on turns it on)"}
+        rec = appearance_mod.points_probe(self.data, self.data.points[0], seed=self.seed)
+        return rec if rec is not None else {**none, "why": "fewer than 200 of the capture's points are seen by "
+                                                           "3 training views: no evidence, off"}
+
     def _appearance_step(self):
-        """The transforms this step trains with (None: off, or not started); ``auto`` probes at its start step."""
-        if self.step < self.appearance_start:
-            return None
-        if self.appearance_record is None:   # auto, at the start step: decide from the probe
-            rec = appearance_mod.probe(lambda i: self._render_premultiplied(i, self.active_sh_degree), self.data,
-                                       self.data.train_ids)
-            rec = self.group.broadcast(rec)
-            self._set_appearance(rec)
-            log.info("appearance auto (step %d): %s", self.step, rec["why"])
-        return self.appearance
+        """The transforms this step trains with (None: off, or before their start step)."""
+        return self.appearance if self.step >= self.appearance_start else None
 
     # -- the sky behind the splats (ssgwarp.reconstruction.sky) -------------------------------------
     def _init_sky(self) -> None:
