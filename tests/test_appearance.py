@@ -138,3 +138,31 @@ def test_the_points_probe_finds_differing_exposures_before_training():
     off = ap.points_probe(data, xyz)
     assert not off["use"] and off["exposure_spread"] < 0.01, off
     assert ap.points_probe(data, xyz[:50]) is None   # too few points: the render probe decides
+
+
+def test_a_run_with_appearance_fits_each_photo_resumes_and_scores_held_out_halves(tmp_path):
+    """auto on a capture whose photos differ (decided before training from its points); the transforms start at
+    their step, are fitted for the views visited, go through a checkpoint, and held-out views are scored on
+    their right half (``eval_protocol``); ``off`` scores whole images."""
+    from ssgwarp.capture.datasets import SceneData
+    from ssgwarp.reconstruction.trainer import Trainer
+
+    rng = np.random.default_rng(2)
+    gains = torch.tensor(rng.uniform(0.6, 1.4, (10, 1)).repeat(3, 1), dtype=torch.float32)
+    cap, xyz = _points_capture(gains, size=32)
+    rgb = torch.full((len(xyz), 3), 0.5)
+    data = SceneData(cap.cameras, cap.images, [f"v{i}" for i in range(10)], list(range(1, 10)), [0],
+                     points=(xyz, rgb), points_source="colmap", background=(0.5, 0.5, 0.5))
+    kw = dict(iters=60, sh_degree=0, progress=False, device="cpu", checkpoint_path=tmp_path / "c.pt", backdrop="off")
+    t = Trainer(data, **kw)
+    assert t.appearance_record["use"] and t.appearance_record["probe"] == "points" and t.appearance_start == 50
+    t.train()
+    assert int(t.appearance.fitted.sum()) >= 5 and not bool(t.appearance.fitted[0])
+    assert t.eval_protocol == ap.HALF_PROTOCOL and t.evaluate()["views"] == 1
+    t.save_checkpoint()
+    u = Trainer(data, **kw)
+    u.load_checkpoint()
+    assert torch.equal(u.appearance.table, t.appearance.table) and u.appearance_record == t.appearance_record
+    off = Trainer(data, **{**kw, "appearance": "off", "iters": 2, "checkpoint_path": None})
+    assert off.appearance is None and off.eval_protocol == ap.FULL_PROTOCOL
+    assert off.appearance_record == {"mode": "off", "use": False, "why": "--appearance off", "start_step": 50}
