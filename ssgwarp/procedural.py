@@ -34,8 +34,9 @@ Public API:
     smooth_views(K, H, W, seed)                 -> smooth synthetic key views (rgb [K,H,W,3], depth [K,H,W])
     build_inside_out(density, seed)             -> ProceduralScene of an unbounded outdoor scene (below)
     rig_cameras(n, width, height, ...)          -> Cameras of an outward-looking rig (inside-out capture)
+    vary_exposures(src, dst, seed, ...)         -> a copy of a capture whose photos differ in exposure and tint
 
-The inside-out scene (:func:`build_inside_out`, ids: 0 ground, 1 backdrop, 2 sky) is what a hand-held walk
+The inside-out scene (:func:`build_inside_out`, ids: 0 ground, 1 backdrop, 2 sky, 3 railing) is what a hand-held walk
 on a rooftop sees: a textured ground disc of radius 6 around the rig, a ring of "buildings" (a cylinder
 of radius 8 and height 3.5 with facades and windows) and a sky dome of radius 40 (a gradient with clouds).
 :func:`rig_cameras` looks outward from a small circle at its centre, so nothing the views show lies near
@@ -332,7 +333,7 @@ def style_image(width: int = 192, height: int = 192, seed: int = 0) -> np.ndarra
 
 __all__ = ["SIZES", "DemoSize", "OBJECT_NAMES", "BACKGROUND", "ProceduralScene", "build_scene", "ring_cameras",
            "render_views", "write_transforms_dataset", "style_image", "INSIDE_OUT_NAMES", "build_inside_out",
-           "rig_cameras"]
+           "rig_cameras", "vary_exposures"]
 
 
 def smooth_views(K: int, H: int, W: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -348,15 +349,17 @@ def smooth_views(K: int, H: int, W: int, seed: int = 0) -> tuple[torch.Tensor, t
 
 
 # ----------------------------------------------------------------------------- inside-out scene
-INSIDE_OUT_NAMES = ("ground", "backdrop", "sky")
+INSIDE_OUT_NAMES = ("ground", "backdrop", "sky", "railing")
 
 
 def _ring_normals_up(n: int) -> np.ndarray:
     return np.tile([0.0, 0.0, 1.0], (n, 1))
 
 
-def build_inside_out(density: float = 1.0, seed: int = 0) -> ProceduralScene:
-    """The inside-out ground truth (see the module docstring); about 24,000 Gaussians at ``density`` 1."""
+def build_inside_out(density: float = 1.0, seed: int = 0, railing: bool = False) -> ProceduralScene:
+    """The inside-out ground truth (see the module docstring); about 24,000 Gaussians at ``density`` 1.
+    ``railing``: add near structure (id 3), a railing around the rig at radius 2.5 (posts every 15 degrees,
+    a top rail at 1.1 m and a middle one at 0.55 m, dark green metal): what a rooftop walk sees close by."""
     if not density > 0:
         raise InputError(f"procedural scene: density must be > 0, got {density}")
     rng = np.random.default_rng(seed)
@@ -409,6 +412,21 @@ def build_inside_out(density: float = 1.0, seed: int = 0) -> ProceduralScene:
     spacing = R * math.sqrt(2 * math.pi * (1 - math.sin(math.radians(-5.0))) / n)
     parts.append((R * dirs, -dirs, rgb, spacing, spacing * 0.2, 2))
 
+    if railing:
+        rr, thick = 2.5, 0.03
+        metal = np.array([0.20, 0.32, 0.26])
+        for zr in (1.1, 0.55):   # rails: rings of small round Gaussians
+            a = np.arange(0.0, 2 * math.pi, (0.02 / d) / rr)
+            xyz = np.stack([rr * np.cos(a), rr * np.sin(a), np.full_like(a, zr)], 1)
+            nrm = -np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], 1)
+            shade = np.clip(0.8 + 0.2 * np.sin(3 * a)[:, None], 0, 1)
+            parts.append((xyz, nrm, metal * shade * 1.15, 0.02 / d, thick, 3))
+        for a0 in np.arange(0.0, 2 * math.pi, math.radians(15.0)):   # posts
+            z = np.arange(0.0, 1.1, 0.02 / d)
+            xyz = np.stack([np.full_like(z, rr * math.cos(a0)), np.full_like(z, rr * math.sin(a0)), z], 1)
+            nrm = np.tile([-math.cos(a0), -math.sin(a0), 0.0], (len(z), 1))
+            parts.append((xyz, nrm, np.tile(metal, (len(z), 1)), 0.02 / d, thick, 3))
+
     means, quats, scales, rgbs, ids = [], [], [], [], []
     for xyz, nrm, col, sp, thick, oid in parts:
         m = len(xyz)
@@ -439,3 +457,44 @@ def rig_cameras(n: int, width: int, height: int, *, radius: float = 0.3, eye_hei
     f = 0.5 * width / math.tan(math.radians(fov_x_deg) / 2)
     K = intrinsics(f, f, width / 2.0, height / 2.0, n)
     return Cameras(vm.float(), K, width, height, list(names) if names else [f"o_{i:03d}" for i in range(n)])
+
+
+# ----------------------------------------------------------------------------- photos that differ in exposure
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+def vary_exposures(src: str | Path, dst: str | Path, *, seed: int = 0, gain: tuple[float, float] = (0.6, 1.4),
+                   tint: float = 0.1, names: Optional[Sequence[str]] = None) -> dict[str, list[float]]:
+    """Copy the capture folder ``src`` to ``dst`` (which must not exist) with each photo's exposure and white
+    balance changed, as a camera's auto-exposure would: its RGB times a gain drawn uniformly in ``gain``,
+    times a tint of ``1 +- tint`` per channel (uniform), 8-bit, clipped; alpha (RGBA) unchanged. Photos are
+    the PNG/JPEG files under ``src`` (in sorted path order, one seeded draw each); ``names`` (paths relative to
+    ``src``) limits the change to those. Everything else is copied as is. Returns ``{relative path: [r, g, b]
+    factors}`` of the changed photos. The test capture of ``reconstruct --appearance`` (docs/reconstruction.md)."""
+    import shutil
+
+    from .core.fileio import read_image
+
+    src, dst = Path(src), Path(dst)
+    if not src.is_dir():
+        raise InputError(f"{src}: not a capture folder")
+    if dst.exists():
+        raise InputError(f"{dst}: exists; vary_exposures writes a new folder")
+    lo, hi = float(gain[0]), float(gain[1])
+    if not 0 < lo <= hi or not 0 <= tint < 1:
+        raise InputError(f"vary_exposures: need 0 < gain[0] <= gain[1] and 0 <= tint < 1, got {gain}, {tint}")
+    shutil.copytree(src, dst)
+    rng = np.random.default_rng(seed)
+    wanted = None if names is None else {Path(n).as_posix() for n in names}
+    factors: dict[str, list[float]] = {}
+    for path in sorted(p for p in dst.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()):
+        rel = path.relative_to(dst).as_posix()
+        g = rng.uniform(lo, hi) * (1.0 + rng.uniform(-tint, tint, 3))
+        if wanted is not None and rel not in wanted:
+            continue
+        img = read_image(path)
+        img[..., :3] = img[..., :3] * g.astype(np.float32)
+        path.unlink()
+        write_image(path, img)
+        factors[rel] = [round(float(v), 6) for v in g]
+    return factors

@@ -480,7 +480,7 @@ def test_inside_out_capture_fails_from_the_cube_and_reconstructs_with_the_backdr
     assert data.points_source == "random" and len(data.test_ids) == 2
     out = {}
     for mode in ("off", "auto"):
-        t = Trainer(data, iters=100, sh_degree=0, progress=False, device="cpu", backdrop=mode)
+        t = Trainer(data, iters=100, sh_degree=0, progress=False, device="cpu", backdrop=mode, sky="off")
         t.train()
         out[mode] = (t.evaluate()["psnr"], t.backdrop)
     assert not out["off"][1].use and out["auto"][1].use and out["auto"][1].layout == "inside-out"

@@ -27,6 +27,7 @@ from ..core.fileio import read_image, write_json
 from ..core.imaging import VIDEO_FPS, VIDEO_SUFFIXES, mp4_writer_missing, write_video
 from ..errors import InputError
 from ..core.geometry import quat_to_rotmat, rotmat_to_quat
+from ..raster.environment import Environment
 from ..raster.rendering import render_to_files
 from ..services.runs import Run, claim_folder
 
@@ -221,7 +222,7 @@ def run(args) -> int:
     video = _video_path(args.out, args.video)
     if Path(args.scene_dir).expanduser().is_file():
         scene, cams, orbit = _file_cameras(args)
-        background = [1.0, 1.0, 1.0]
+        background, env = [1.0, 1.0, 1.0], None
     else:
         run_ = Run.open(args.scene_dir)
         scene, data = run_.load(args.device, load_images=False)
@@ -233,6 +234,8 @@ def run(args) -> int:
             cams = smooth_path(cams, args.path, closed=not args.open)
         # (a stylized run: on its recorded, recoloured background)
         background = run_.background(data.background)
+        env_path = Path(args.scene_dir) / "environment.json"   # the run's sky (reconstruct --sky), behind the splats
+        env = Environment.load(env_path, device=args.device) if env_path.is_file() else None
     claim_folder(args.out, args.force)
     if args.path is not None:
         cams.to("cpu").save(args.out / "path_cameras.json")
@@ -240,7 +243,8 @@ def run(args) -> int:
         cams.to("cpu").save(args.out / "cameras.json")
     if orbit is not None:
         write_json(args.out / "orbit.json", orbit)
-    paths = render_to_files(scene, cams, args.out, background=background, progress=not args.quiet)
+    paths = render_to_files(scene, cams, args.out, background=background, progress=not args.quiet,
+                            environment=env)
     said = f"{args.out}: {len(paths)} images"
     if orbit is not None:
         c = orbit["cameras"]

@@ -140,16 +140,24 @@ def render_views(scene, cameras, background: Optional[Sequence[float]] = None, *
 
 
 def render_to_files(scene, cameras, out_dir: str | Path, *, background=(1.0, 1.0, 1.0),
-                    names: Optional[list[str]] = None, progress: bool = True) -> list[Path]:
+                    names: Optional[list[str]] = None, progress: bool = True, environment=None) -> list[Path]:
     """Render ``scene`` from each camera to ``out_dir/<name>.png`` (names default to the cameras'
-    image names). Returns the written paths."""
+    image names). ``environment``: an :class:`ssgwarp.raster.environment.Environment` composited behind the
+    splats instead of ``background`` (a run's sky). Returns the written paths."""
     from ..core.progress import tqdm
 
     out_dir = Path(out_dir)
     names = names or list(cameras.names)
     paths = []
     for i in tqdm(range(len(cameras)), desc="render", unit="view", disable=not progress):
-        v = render_views(scene, cameras[i], background, depth=False)
+        if environment is None:
+            v = render_views(scene, cameras[i], background, depth=False)
+            rgb = v.rgb[0]
+        else:
+            v = render_views(scene, cameras[i], None, depth=False)
+            cam = cameras[i].to(environment.grid.device)
+            rgb = environment.composite(v.rgb.to(environment.grid.device), v.alpha[..., None].to(environment.grid.device),
+                                        cam)[0].clamp(0.0, 1.0)
         stem = Path(names[i]).with_suffix("").as_posix().replace("/", "_")
-        paths.append(write_image(out_dir / f"{stem}.png", v.rgb[0]))
+        paths.append(write_image(out_dir / f"{stem}.png", rgb))
     return paths

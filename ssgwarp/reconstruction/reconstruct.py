@@ -52,7 +52,7 @@ from ..services.loop import read_checkpoint
 
 log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
 
-OUTPUTS = ("scene.ply", "cameras.json", "data.json", "metrics.json")
+OUTPUTS = ("scene.ply", "cameras.json", "data.json", "metrics.json", "environment.json")
 
 __all__ = ["OUTPUTS", "reconstruct"]
 
@@ -96,6 +96,9 @@ def _run_metrics(trainer: Trainer, data, scene, device: torch.device, group, see
                                 "refine_start": r.refine_start, "refine_stop": r.refine_stop,
                                 "refine_every": r.refine_every, "reset_every": r.reset_every}
     metrics["backdrop"] = None if trainer.backdrop is None else trainer.backdrop.record()
+    metrics["appearance"] = _appearance_record(trainer)
+    metrics["eval_protocol"] = trainer.eval_protocol
+    metrics["sky"] = trainer.sky_record
     metrics["schedule"] = trainer.schedules.record(trainer.step)
     if ev["views"] == 0:
         metrics["note"] = "no held-out views (split_every=0 or a single image): PSNR/SSIM not measured"
@@ -108,6 +111,14 @@ def _run_metrics(trainer: Trainer, data, scene, device: torch.device, group, see
     return metrics
 
 
+def _appearance_record(trainer: Trainer) -> dict:
+    """The appearance decision, its evidence and (when on) the fitted transforms in numbers."""
+    rec = dict(trainer.appearance_record or {"mode": "auto", "use": False, "why": "not decided"})
+    if trainer.appearance is not None:
+        rec["fitted"] = trainer.appearance.summary()
+    return rec
+
+
 def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = "auto", images: str = "images",
                 sh_degree: int = 3, max_gaussians: int = 1_000_000, resume: bool = False, force: bool = False,
                 device=None, seed: int = 0, hooks: Sequence = (), identity_dim: Optional[int] = None,
@@ -116,7 +127,8 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = "au
                 checkpoint_every: int = 500, num_random_points: int = 100_000,
                 rasterize: Optional[Callable] = None, raster_kwargs: Optional[dict] = None,
                 progress: bool = True, data=None, strategy="default", batch_size: Optional[int] = None,
-                group=None, init="auto", backdrop: str = "auto", attach=None) -> dict:
+                group=None, init="auto", backdrop: str = "auto", attach=None, appearance: str = "auto",
+                sky: str = "auto") -> dict:
     """Reconstruct the capture in ``data_dir`` into the run folder ``out`` (what the CLI runs).
 
     Writes ``out/scene.ply``, ``cameras.json``, ``data.json``, ``metrics.json`` (and keeps
@@ -134,6 +146,12 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = "au
     ``iters``: steps, or ``"auto"`` (the default): the 30,000-step schedule until the training views' PSNR stops
     improving (:mod:`ssgwarp.reconstruction.schedules`); ``metrics.json`` and ``data.json`` record the steps run and why
     the run stopped (``schedule``).
+    ``appearance``: ``"auto"`` / ``"on"`` / ``"off"``, per-image exposure and white balance
+    (:mod:`ssgwarp.reconstruction.appearance`); the decision and its evidence go to ``metrics.json`` and ``data.json``
+    (``appearance``), and how held-out views were scored to ``metrics.json`` (``eval_protocol``).
+    ``sky``: ``"auto"`` / ``"on"`` / ``"off"``, an environment colour field behind the splats
+    (:mod:`ssgwarp.reconstruction.sky`), written to ``out/environment.json`` when on; the decision goes to
+    ``metrics.json`` and ``data.json`` (``sky``).
     ``attach``: hooks made during the run (:class:`~ssgwarp.reconstruction.trainer.Trainer`'s ``attach``;
     ``reconstruct --groups``); its ``finish(out, metrics, scene) -> dict`` runs once the run files are written
     and what it returns joins ``metrics.json``.
@@ -161,7 +179,7 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = "au
         "--sh-degree": sh_degree, "--max-gaussians": max_gaussians,
         "--strategy": strategy if isinstance(strategy, str) else getattr(strategy, "name", str(strategy)),
         "--background": list(data.background) if data.background is not None else None,
-        "--init": str(init), "--backdrop": backdrop,      # (--batch-size: the trainer checks it, naming the fix)
+        "--init": str(init), "--backdrop": backdrop, "--appearance": appearance, "--sky": sky,      # (--batch-size: the trainer checks it, naming the fix)
         **_recipe_record(recipe)})      # (--groups: attach.py checks it, naming the fix)
     if state is not None:
         check_resume(state.get("options"), record, ckpt, "the checkpoint")
@@ -170,7 +188,7 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = "au
                       hooks=hooks, identity_dim=identity_dim, checkpoint_path=ckpt,
                       checkpoint_every=checkpoint_every, rasterize=rasterize, raster_kwargs=raster_kwargs,
                       device=device, seed=seed, progress=progress, strategy=strategy, batch_size=batch_size,
-                      group=group, backdrop=backdrop, attach=attach)
+                      group=group, backdrop=backdrop, attach=attach, appearance=appearance, sky=sky)
     trainer.resume_options = record
     if state is not None:
         trainer.load_checkpoint(ckpt, state=state)
@@ -200,8 +218,11 @@ def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = "au
     metrics = _run_metrics(trainer, data, scene, device, group, seed, peaks)
 
     write_ply(out / "scene.ply", scene)
+    if trainer.environment is not None:
+        trainer.environment.save(out / "environment.json")
     data.cameras.to("cpu").save(out / "cameras.json")
     write_json(out / "data.json", data_json(data, seed=seed, backdrop=metrics["backdrop"],
+                                            appearance=metrics["appearance"], sky=metrics["sky"],
                                             schedule={k: v for k, v in metrics["schedule"].items() if k != "stop_rule"}))
     if attach is not None:
         metrics.update(attach.finish(out, metrics, scene) or {})
@@ -290,6 +311,15 @@ def add_arguments(parser) -> None:
                              "points: auto (default: when the cameras look outward, or the photos show far "
                              "content where the points leave the images uncovered; docs/reconstruction.md), on "
                              "or off")
+    parser.add_argument("--appearance", choices=("auto", "on", "off"), default="auto",
+                        help="per-image exposure and white balance (an affine colour transform per training image, "
+                             "not part of the scene): auto (default: on when a probe finds the photos' exposures "
+                             "differ; docs/reconstruction.md), on or off. When on, held-out views are scored on "
+                             "their right half after a colour transform fitted on their left half")
+    parser.add_argument("--sky", choices=("auto", "on", "off"), default="auto",
+                        help="an environment colour field (a colour per direction, OUT/environment.json) behind the "
+                             "splats instead of the constant background: auto (default: on when the cameras look "
+                             "outward, an inside-out capture), on or off")
     parser.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints (default 500)")
     parser.add_argument("--batch-size", type=int, default=None,
                         help="training views per step, over all processes (default: one per process; on "
@@ -326,6 +356,7 @@ def run(args, **extra) -> int:
                         background=args.background, checkpoint_every=args.checkpoint_every,
                         num_random_points=args.random_points, progress=not args.quiet,
                         strategy=args.strategy, batch_size=args.batch_size, backdrop=args.backdrop,
+                        appearance=args.appearance, sky=args.sky,
                         recipe=Recipe(batch_scaling=args.batch_scaling, res_start=args.coarse_to_fine),
                         group=group, init=init, **extra)
     finally:
