@@ -421,7 +421,7 @@ def styles_main(argv=None) -> int:
                    help="pair error (x the starting scene's, squared) left free by the view-pair term")
     g.add_argument("--style-scale", type=float, default=None, help="style image size against the views (1: fit)")
     from ssgwarp.core.presets import add_preset
-    from ssgwarp.stylization.stylize_cli import PAINT
+    from ssgwarp.commands.stylize import PAINT
     add_preset(p, "--paint", PAINT, "ssgwarp stylize's painting preset: {values} (options given explicitly win)")
     args = p.parse_args(argv)
 

@@ -1,7 +1,7 @@
 """The ``ssgwarp`` command: one entry point, one subcommand per pipeline stage.
 
-Each stage module provides ``add_arguments(parser)`` and ``run(args) -> int``;
-this file only wires them up and turns user errors into one line + exit code 2
+Each command is a module of :mod:`ssgwarp.commands` providing ``add_arguments(parser)`` and ``run(args) -> int``
+(parse, call the library, print); this file only wires them up and turns user errors into one line + exit code 2
 (``--debug`` shows the traceback).
 """
 from __future__ import annotations
@@ -22,30 +22,30 @@ from .errors import SsgwarpError
 
 # name -> (module, one-line help, examples)
 COMMANDS: dict[str, tuple[str, str, str]] = {
-    "demo": ("ssgwarp.demo", "run the whole pipeline on an embedded procedural scene",
+    "demo": ("ssgwarp.commands.demo", "run the whole pipeline on an embedded procedural scene",
              "ssgwarp demo --out ssgwarp-demo"),
-    "reconstruct": ("ssgwarp.grouping.joint", "3DGS reconstruction of a capture (COLMAP, LLFF, transforms.json); "
+    "reconstruct": ("ssgwarp.commands.reconstruct", "3DGS reconstruction of a capture (COLMAP, LLFF, transforms.json); "
                     "--groups also trains Gaussian Grouping in the same loop",
                     "ssgwarp reconstruct data/fern --images images_8 --out runs/fern --iters 7000"),
-    "import": ("ssgwarp.reconstruction.importer", "splats trained by graphdeco 3DGS, gsplat, nerfstudio or any 3DGS PLY as a run",
+    "import": ("ssgwarp.commands.import_", "splats trained by graphdeco 3DGS, gsplat, nerfstudio or any 3DGS PLY as a run",
                "ssgwarp import output/garden --out runs/garden"),
-    "masks": ("ssgwarp.grouping.segment", "instance masks of every training view (Segment Anything), associated across views",
+    "masks": ("ssgwarp.commands.masks", "instance masks of every training view (Segment Anything), associated across views",
               "ssgwarp masks runs/fern [--sam PATH]"),
-    "group": ("ssgwarp.grouping.stage", "Gaussian Grouping: identity encodings and groups (from masks or mask-free)",
+    "group": ("ssgwarp.commands.group", "Gaussian Grouping: identity encodings and groups (from masks or mask-free)",
               "ssgwarp group runs/fern [--masks runs/fern/object_mask] [--groups 8]"),
-    "keyviews": ("ssgwarp.stylization.keyviews", "choose key views and render their RGB, depth and group maps",
+    "keyviews": ("ssgwarp.commands.keyviews", "choose key views and render their RGB, depth and group maps",
                  "ssgwarp keyviews runs/fern --keyviews 4 --out runs/fern/keyviews"),
-    "stylize": ("ssgwarp.from_splats", "key views, Stage 1 (diffusion + CVSA) and Stage 2 (instance-level style transfer)",
+    "stylize": ("ssgwarp.commands.stylize", "key views, Stage 1 (diffusion + CVSA) and Stage 2 (instance-level style transfer)",
                 "ssgwarp stylize runs/fern --style style.jpg --out runs/fern-styled"),
-    "evaluate": ("ssgwarp.evaluation.evaluate", "consistency and style/content metrics of one or more runs",
+    "evaluate": ("ssgwarp.commands.evaluate", "consistency and style/content metrics of one or more runs",
                  "ssgwarp evaluate runs/fern-styled runs/fern-global"),
-    "view": ("ssgwarp.viewer.app", "pyvista viewer of a Gaussian cloud, its groups and cameras",
+    "view": ("ssgwarp.commands.view", "pyvista viewer of a Gaussian cloud, its groups and cameras",
              "ssgwarp view runs/fern/scene.ply --color group --screenshot shot.png"),
-    "render": ("ssgwarp.evaluation.render", "render a scene along its cameras or a smooth path",
+    "render": ("ssgwarp.commands.render", "render a scene along its cameras or a smooth path",
                "ssgwarp render runs/fern --out runs/fern/renders [--path]"),
-    "export": ("ssgwarp.evaluation.export", "write a run's scene (or convert a splat file) as PLY, compressed PLY, SPZ, .splat, SOG or GLB",
+    "export": ("ssgwarp.commands.export", "write a run's scene (or convert a splat file) as PLY, compressed PLY, SPZ, .splat, SOG or GLB",
                "ssgwarp export runs/fern --format spz --out fern.spz [--sh-degree 1]"),
-    "weights": ("ssgwarp.services.weights_command", "pretrained models: where each is found (or missing), size, licence; "
+    "weights": ("ssgwarp.commands.weights", "pretrained models: where each is found (or missing), size, licence; "
                 "--download fetches them into the Hugging Face / torch hub caches",
                 "ssgwarp weights --download stage1 vgg16"),
 }

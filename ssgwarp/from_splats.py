@@ -1,5 +1,5 @@
-"""``ssgwarp stylize``: the stylization stage's command (:mod:`ssgwarp.stylization.stylize_cli`), and for a splat
-file without its capture, the run that command takes made first (grouping, then stylization: so this module sits
+"""``ssgwarp stylize FILE`` (:mod:`ssgwarp.commands.stylize`): for a splat file without its capture, the run that
+command takes made first (grouping, then stylization: so this module sits
 above the stages, as the demo does).
 
 :func:`prepare_source` writes ``OUT/source/``: the file's splats as a reconstruction run with cameras made
@@ -21,7 +21,7 @@ from .formats.registry import read_splat_file
 from .core.fileio import read_image, read_json, write_json
 from .errors import InputError
 
-__all__ = ["SOURCE", "prepare_source", "add_record", "add_arguments", "run"]
+__all__ = ["SOURCE", "prepare_source", "add_record"]
 
 SOURCE = "source"      # the folder in OUT that holds the splat file's run
 
@@ -89,47 +89,3 @@ def add_record(out: str | Path, src: Path) -> None:
     m["splat_file"] = orbit.get("source")
     m["orbit"] = {k: v for k, v in orbit.items() if k != "options"}
     write_json(out / "metrics.json", m)
-
-
-def add_arguments(p) -> None:
-    from .stylization.stylize_cli import add_arguments as stage_arguments
-
-    stage_arguments(p)
-
-
-def run(args) -> int:
-    """``ssgwarp stylize RUN_OR_FILE``: a file is made into ``OUT/source`` first (:func:`prepare_source`)."""
-    from .stylization import stylize_cli
-
-    scene_dir = args.scene_dir
-    if Path(scene_dir).expanduser().is_file():
-        scene_dir = _splat_file_source(args)
-    rc = stylize_cli.run(args, scene_dir=scene_dir)
-    if scene_dir != args.scene_dir and _is_main():
-        add_record(args.out, scene_dir)
-    return rc
-
-
-def _is_main() -> bool:
-    import os
-
-    return int(os.environ.get("RANK", "0") or 0) == 0
-
-
-def _splat_file_source(args) -> Path:
-    """``stylize FILE``: ``OUT/source``, the splat file's run with cameras made around it, grouped mask-free."""
-    import os
-
-    from .stylization import stylize as stylize_stage
-    from .stylization.stylize_cli import GROUP_QUICK_ITERS, QUICK_MAX_WIDTH, QUICK_VIEWS
-
-    if int(os.environ.get("WORLD_SIZE", "1") or 1) > 1:
-        raise InputError(f"{args.scene_dir}: a splat file is stylized by one process; run `ssgwarp stylize` once "
-                         f"without torchrun (it writes {args.out / SOURCE}), then give that folder")
-    quick = bool(getattr(args, "quick", False))
-    views = QUICK_VIEWS if quick and args.views == VIEWS else args.views
-    group_iters = args.group_iters if args.group_iters is not None else (GROUP_QUICK_ITERS if quick else None)
-    return prepare_source(
-        args.scene_dir, args.style, args.out, stylize_stage.OUTPUTS, views=views, width=args.width,
-        max_width=QUICK_MAX_WIDTH if quick else MAX_WIDTH, up=args.up, group_iters=group_iters,
-        force=args.force, resume=args.resume, device=args.device, seed=args.seed, progress=not args.quiet)

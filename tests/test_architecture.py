@@ -266,9 +266,36 @@ def _layer(name: str):
     return LAYERS.index(parts[1]) if len(parts) > 1 and parts[1] in LAYERS else None
 
 
+COMMANDS = "ssgwarp.commands"   # the commands at the top: they import every layer; nothing imports them
+
+
+def test_commands_sit_at_the_top():
+    """Each command of ``ssgwarp.cli.COMMANDS`` is a module of ssgwarp/commands/ (one place to find a command), and
+    no module of the package imports ssgwarp/commands/ but ssgwarp.cli, ssgwarp.__main__ and the commands
+    themselves."""
+    from ssgwarp.cli import COMMANDS as TABLE
+
+    mods = _modules()
+    assert all(mod.startswith(COMMANDS + ".") and mod in mods for mod, _, _ in TABLE.values())
+    wrong = sorted(f"{name} -> {dep}" for name, path in mods.items()
+                   if not name.startswith(COMMANDS) and name not in ("ssgwarp.cli", "ssgwarp.__main__")
+                   for dep in _imports(name, path, set(mods)) if dep == COMMANDS or dep.startswith(COMMANDS + "."))
+    assert wrong == [], "a library module imports a command: move the shared part into the library"
+
+
+def test_commands_hold_no_library_code():
+    """A command module defines its options, its presets and ``run`` (and small option parsers), nothing a library
+    caller would need: no class, and at most 250 lines."""
+    for name, path in _modules().items():
+        if name.startswith(COMMANDS + "."):
+            tree = ast.parse(path.read_text())
+            assert not [n.name for n in tree.body if isinstance(n, ast.ClassDef)], name
+            assert len(path.read_text().splitlines()) <= 250, name
+
+
 def test_layers_import_only_from_layers_above():
     """A module of a layer imports only modules of its own layer or of the layers above it, errors and
-    the kernels: never a later layer, the commands at the top (cli, demo) or the viewer."""
+    the kernels: never a later layer, the commands at the top (cli, ssgwarp/commands/, demo) or the viewer."""
     mods = _modules()
     assert all((ROOT / "ssgwarp" / layer / "__init__.py").exists() for layer in LAYERS)
     wrong = []
@@ -286,9 +313,9 @@ def test_layers_import_only_from_layers_above():
 # -- homes: stages, services, private APIs, re-exports (issue 65) ---------------------------------------
 
 STAGES = ["reconstruction", "grouping", "stylization"]   # the pipeline's stages, one package each
-# Imports between sibling stages still there: the reconstruct command with --groups (grouping.joint) and the
-# mask-free group command (grouping.stage) run a reconstruction; they move with the commands (issue 65, item 4).
-# The list only shrinks: an entry no longer imported fails the test too.
+# Imports between sibling stages still there: reconstruct --groups (grouping.joint) and the mask-free group
+# (grouping.stage) run a reconstruction; the commands that wire them moved to ssgwarp/commands/, the stage-level
+# calls remain (issue 65, item 5: one hook protocol). The list only shrinks: an entry no longer imported fails too.
 SIBLING_IMPORTS = {f"ssgwarp.grouping.{m} -> ssgwarp.reconstruction{r}" for m in ("joint", "stage")
                    for r in ("", ".reconstruct")}
 
@@ -314,7 +341,7 @@ def test_no_stage_imports_a_sibling_stage():
 
 
 # services/ modules that are not shared by two packages: the `ssgwarp weights` command (moves with the commands)
-SERVICE_EXCEPTIONS = {"ssgwarp.services.weights_command"}
+SERVICE_EXCEPTIONS = {"ssgwarp.services.weights_command"}   # (the table behind ssgwarp/commands/weights.py)
 
 
 def test_services_hold_shared_plumbing_only():

@@ -693,9 +693,7 @@ def test_quick_presets_are_cpu_sized_and_explicit_options_win(command, positiona
     module.add_arguments(subs[command])
     parse = lambda *a: subs[command].parse_args([*positional, *a])  # noqa: E731
     plain, quick = parse(), parse("--quick")
-    # (stylize's command module is ssgwarp.from_splats, a splat file's step before the stage; its preset is the stage's)
-    owner = importlib.import_module({"stylize": "ssgwarp.stylization.stylize_cli"}.get(command, COMMANDS[command][0]))
-    for dest, value in owner.QUICK.items():
+    for dest, value in module.QUICK.items():
         assert getattr(quick, dest) == value and getattr(plain, dest) != value, dest
     assert parse("--iters", "77", "--quick").iters == 77 and parse("--quick", "--iters", "77").iters == 77
 
@@ -704,7 +702,7 @@ def test_stylize_paint_preset_sets_the_painting_configuration_and_explicit_optio
     from test_stylize import _write_run
 
     from ssgwarp.cli import build_parser
-    from ssgwarp.stylization import stylize_cli
+    from ssgwarp.commands import stylize as stylize_cli
 
     with pytest.raises(SystemExit):
         main(["stylize", "--help"])

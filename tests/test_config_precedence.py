@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-import ssgwarp.evaluation.render
+import ssgwarp.commands.render
 from ssgwarp.cli import main
 
 
@@ -18,7 +18,7 @@ def parsed(monkeypatch):
         seen.update(vars(args))
         return 0
 
-    monkeypatch.setattr(ssgwarp.evaluation.render, "run", fake_run)
+    monkeypatch.setattr(ssgwarp.commands.render, "run", fake_run)
     return seen
 
 

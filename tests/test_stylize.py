@@ -677,7 +677,7 @@ def test_tv_default_resolves_by_extractor_and_smooths_the_weight_free_renders():
     assert st.tv_weight_for(st.Stage2Config(), ext) == fd.TV_WEIGHT_FREE == 0.5
     assert st.tv_weight_for(st.Stage2Config(), _Vgg()) == fd.TV_WEIGHT_VGG == 0.02
     assert st.tv_weight_for(st.Stage2Config(tv_weight=0.0), ext) == 0.0
-    from ssgwarp.stylization.stylize_cli import add_arguments
+    from ssgwarp.commands.stylize import add_arguments
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)

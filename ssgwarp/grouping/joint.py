@@ -20,7 +20,7 @@ Public API:
     GroupsDuringReconstruction(out, ...)      -> the trainer's ``attach``
     reconstruct_with_groups(data_dir, out, ...) -> metrics dict (groups.json's summary under "groups")
     parse_groups(text)                        -> K or None ("auto")
-    add_arguments(parser), run(args)          -> ``ssgwarp reconstruct`` with the ``--groups`` options
+    (the ``--groups`` options of ``ssgwarp reconstruct``: :mod:`ssgwarp.commands.reconstruct`)
 """
 from __future__ import annotations
 
@@ -31,12 +31,12 @@ from typing import Optional
 
 import torch
 
-from ..core.fileio import read_json, write_json
+from ..core.fileio import write_json
 from ..errors import InputError
 from ..reconstruction import reconstruct as rec
 from ..services.runs import Run, claim
 from .mask_files import load_masks, resolve_masks
-from .model import DEFAULT_DIM, FORMAT, GroupConfig
+from .model import FORMAT, GroupConfig
 from .pseudomasks import IGNORE, ClusterConfig, pseudo_masks
 from .segment import read_record
 from .stage import clusters_info, finish_groups, masks_info
@@ -223,48 +223,3 @@ def reconstruct_with_groups(data_dir, out, *, num_groups: Optional[int] = None, 
                                         seed=seed, force=force, resume=resume, progress=progress)
     return rec.reconstruct(data_dir, out, seed=seed, force=force, resume=resume, progress=progress, attach=attach,
                            **kwargs)
-
-
-# ----------------------------------------------------------------------------- CLI
-QUICK, QUICK_MEASURED = rec.QUICK, rec.QUICK_MEASURED   # (the command's --quick preset: reconstruct's)
-
-
-def add_arguments(parser) -> None:
-    rec.add_arguments(parser)
-    g = parser.add_argument_group("groups in the same training (Gaussian Grouping; docs/grouping.md)")
-    g.add_argument("--groups", nargs="?", const="auto", default=None, metavar="K|auto",
-                   help="also train identity encodings and K groups in this training (auto, or --groups alone: "
-                        "the masks' ids, or chosen per scene when mask-free); writes RUN/groups as `ssgwarp group` "
-                        "does")
-    g.add_argument("--masks", default="auto",
-                   help="with --groups: folder of instance masks <image stem>.png (ids consistent across views; "
-                        "`ssgwarp masks` writes them), 'auto' (default: <data_dir>/object_mask when it exists, "
-                        "else mask-free) or 'none'")
-    g.add_argument("--max-groups", type=int, default=8, metavar="CAP",
-                   help="with --groups, mask-free: the largest K considered (default 8)")
-    g.add_argument("--group-start", type=float, default=None, metavar="F",
-                   help="with --groups: start grouping after this share of the run (default: at once with masks; "
-                        f"mask-free the last {GroupConfig.iters} steps, not before densification stops)")
-    g.add_argument("--group-dim", type=int, default=DEFAULT_DIM, metavar="E",
-                   help="with --groups: identity length (default 16)")
-
-
-def run(args) -> int:
-    if args.groups is None:
-        given = [f for f, v in (("--masks", args.masks != "auto"), ("--max-groups", args.max_groups != 8),
-                                ("--group-start", args.group_start is not None),
-                                ("--group-dim", args.group_dim != DEFAULT_DIM)) if v]
-        if given:
-            raise InputError(f"{', '.join(given)}: only with --groups (train groups in this reconstruction)")
-        return rec.run(args)
-    attach = GroupsDuringReconstruction(args.out, num_groups=parse_groups(args.groups), masks=args.masks,
-                                        max_groups=args.max_groups, start=args.group_start,
-                                        config=GroupConfig(dim=args.group_dim), seed=args.seed, force=args.force,
-                                        resume=args.resume, progress=not args.quiet)
-    code = rec.run(args, attach=attach)
-    if code == 0 and attach.hook is not None and (Path(args.out) / "groups" / "groups.json").is_file():
-        info = read_json(Path(args.out) / "groups" / "groups.json")
-        ra = info.get("reprojection_agreement", {}).get("mean")
-        print(f"grouped in the same training from step {info['start_step']}: K={info['num_groups']} {info['kind']}; "
-              f"cross-view agreement {ra if ra is None else f'{ra:.3f}'}; wrote {Path(args.out) / 'groups'}")
-    return code

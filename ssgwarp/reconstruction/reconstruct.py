@@ -1,4 +1,4 @@
-"""3DGS reconstruction of a capture: ``ssgwarp reconstruct``.
+"""3DGS reconstruction of a capture (the ``ssgwarp reconstruct`` command: :mod:`ssgwarp.commands.reconstruct`).
 
 The 3D Gaussian Splatting recipe (Kerbl et al. 2023), one view per step:
 
@@ -24,11 +24,11 @@ every ``checkpoint_every`` steps and on Ctrl-C, and resume bit-exactly
 checkpoint is kept.
 
 The recipe lives in :mod:`ssgwarp.reconstruction.recipe`, the loop in :mod:`ssgwarp.reconstruction.trainer`; this module is
-the command (``reconstruct``: load, claim the run folder, train, evaluate, write the run files).
+the stage (load, claim the run folder, train, evaluate, write the run files); its command is
+:mod:`ssgwarp.commands.reconstruct`.
 """
 from __future__ import annotations
 
-import argparse
 import logging
 from dataclasses import asdict
 from pathlib import Path
@@ -36,17 +36,14 @@ from typing import Callable, Optional, Sequence
 
 import torch
 
-from ..services import distributed
-from ..capture.datasets import check_init, data_json, load_dataset
+from ..capture.datasets import data_json, load_dataset
 from ..services.distributed import SINGLE
-from ..errors import InputError, SsgwarpError, WeightsNotFound
+from ..errors import SsgwarpError, WeightsNotFound
 from ..core.fileio import write_json
 from ..evaluation.networks import load_lpips
 from ..formats.ply import write_ply
 from .recipe import Recipe
 from ..services.runs import check_resume, claim, resume_record
-from .schedules import AUTO
-from ..core.presets import AtMost
 from .trainer import Trainer
 from ..services.loop import read_checkpoint
 
@@ -236,135 +233,3 @@ def _recipe_record(recipe: Optional[Recipe]) -> dict:
     """The recipe's part of the resume record: its command-line options by name, the rest as ``recipe``."""
     r = asdict(recipe if recipe is not None else Recipe())
     return {"--coarse-to-fine": r.pop("res_start", None), "--batch-scaling": r.pop("batch_scaling", None), "recipe": r}
-
-
-# ----------------------------------------------------------------------------- CLI
-def _background(s: str) -> tuple[float, float, float]:
-    named = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
-    if s in named:
-        return named[s]
-    try:
-        v = tuple(float(x) for x in s.split(","))
-    except ValueError:
-        v = ()
-    if len(v) != 3:
-        raise InputError(f"--background {s!r}: expected white, black or R,G,B in [0, 1]")
-    return v  # type: ignore[return-value]
-
-
-def _iters(s: str) -> int | str:
-    if s == AUTO:
-        return AUTO
-    try:
-        n = int(s)
-    except ValueError:
-        n = 0
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"{s!r}: expected a number of steps >= 1 or 'auto'")
-    return n
-
-
-def _factor(s: str) -> float:
-    try:
-        f = float(s)
-    except ValueError:
-        f = 0.0
-    if not f >= 1.0:
-        raise argparse.ArgumentTypeError(f"{s!r}: expected a downsampling factor >= 1 (1: off), e.g. 4")
-    return f
-
-
-def add_arguments(parser) -> None:
-    parser.add_argument("data_dir", type=Path, help="the capture: COLMAP (sparse/0), LLFF (poses_bounds.npy) "
-                        "or NeRF/instant-ngp (transforms*.json) folder")
-    parser.add_argument("--out", type=Path, required=True, help="run folder to write")
-    parser.add_argument("--iters", type=_iters, default="auto", metavar="N|auto",
-                        help="training steps, or auto (default): the 3DGS 30000-step schedule, ended once the PSNR "
-                             "of a few training views stops improving (docs/reconstruction.md; hours on a CPU: 7000 "
-                             "steps take about 30-50 min for fern images_8 on 2 CPU cores; see --quick)")
-    parser.add_argument("--coarse-to-fine", type=_factor, default=1.0, metavar="F",
-                        help="train on the images downsampled by F at first, raised to full resolution by the end "
-                             "of densification (default 1: off; e.g. 4)")
-    parser.add_argument("--images", default="images", help="image sub-folder, e.g. images_4 or images_8 (default images)")
-    parser.add_argument("--width", type=int, default=None, help="resize images to this width (default: as loaded)")
-    parser.add_argument("--sh-degree", type=int, default=3, help="final SH degree 0..3 (default 3)")
-    parser.add_argument("--strategy", choices=("default", "mcmc"), default="default",
-                        help="densification: default (3DGS: clone/split/prune, opacity reset) or mcmc "
-                             "(3DGS-MCMC: relocation, a fixed budget of --max-gaussians, position noise)")
-    parser.add_argument("--max-gaussians", type=int, default=1_000_000,
-                        help="cap on the number of Gaussians; with --strategy mcmc the budget it grows to "
-                             "(default 1000000)")
-    parser.add_argument("--split-every", type=int, default=8,
-                        help="hold out every N-th image for testing (default 8, the LLFF convention; 0: none)")
-    parser.add_argument("--max-images", type=int, default=None, help="use at most this many images (evenly spaced)")
-    parser.add_argument("--background", type=_background, default=None,
-                        help="white, black or R,G,B: what RGBA images are composited on (default white)")
-    parser.add_argument("--random-points", type=int, default=100_000,
-                        help="number of random initial points (--init random, or when triangulation fails; "
-                             "default 100000)")
-    parser.add_argument("--init", default="auto", metavar="auto|triangulate|random|PATH.ply",
-                        help="initial points: auto (default: the capture's COLMAP points, else points "
-                             "triangulated from the images and their poses), triangulate (even when the capture "
-                             "has points), random, or a .ply point cloud")
-    parser.add_argument("--backdrop", choices=("auto", "on", "off"), default="auto",
-                        help="far points along the training rays and a far shell (sky) added to the initial "
-                             "points: auto (default: when the cameras look outward, or the photos show far "
-                             "content where the points leave the images uncovered; docs/reconstruction.md), on "
-                             "or off")
-    parser.add_argument("--appearance", choices=("auto", "on", "off"), default="auto",
-                        help="per-image exposure and white balance (an affine colour transform per training image, "
-                             "not part of the scene): auto (default: on when a probe finds the photos' exposures "
-                             "differ; docs/reconstruction.md), on or off. When on, held-out views are scored on "
-                             "their right half after a colour transform fitted on their left half")
-    parser.add_argument("--sky", choices=("auto", "on", "off"), default="auto",
-                        help="an environment colour field (a colour per direction, OUT/environment.json) behind the "
-                             "splats instead of the constant background: auto (default: on when the cameras look "
-                             "outward, an inside-out capture), on or off")
-    parser.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints (default 500)")
-    parser.add_argument("--batch-size", type=int, default=None,
-                        help="training views per step, over all processes (default: one per process; on "
-                             "--resume the checkpoint's); the default schedule counts images, so --iters N "
-                             "--batch-size B trains on N x B images (docs/scaling.md)")
-    parser.add_argument("--batch-scaling", choices=("sqrt", "linear", "none"), default="sqrt",
-                        help="Adam for batches: learning rates x sqrt(B) (default) or x B with betas ** B, "
-                             "or none (one view's settings)")
-    parser.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
-    parser.add_argument("--force", action="store_true", help="overwrite an existing run in OUT")
-    parser.add_argument("--quiet", "--no-progress", dest="quiet", action="store_true",
-                        help="no progress bar (as the other commands' --quiet)")
-    from ..core.presets import add_quick
-    add_quick(parser, QUICK, QUICK_MEASURED)
-
-
-# the CPU-sized preset (`--quick`) and what it cost, measured (README, docs)
-QUICK = {"iters": 1500, "width": AtMost(252), "max_gaussians": 60_000}   # (252 px wide at most: never wider)
-QUICK_MEASURED = ("fern images_8 (17 training views, resized to 252x188): 20 min on 2 CPU cores shared with other "
-                  "work (6.5 min of CPU time), held-out PSNR 26.6 dB, 2026-11-28")
-
-
-def run(args, **extra) -> int:
-    """The command; ``extra`` goes to :func:`reconstruct` (``attach``: ``reconstruct --groups``)."""
-    if args.batch_size is not None and args.batch_size < 1:
-        raise InputError(f"--batch-size must be >= 1, got {args.batch_size}")
-    init = check_init(args.init)
-    group, device = distributed.from_env(args.device)  # under torchrun: join the others
-    logging.basicConfig(level=logging.INFO if group.is_main else logging.WARNING, format="ssgwarp: %(message)s")
-    try:
-        m = reconstruct(args.data_dir, args.out, iters=args.iters, images=args.images, sh_degree=args.sh_degree,
-                        max_gaussians=args.max_gaussians, resume=args.resume, force=args.force, device=device,
-                        seed=args.seed, split_every=args.split_every, width=args.width, max_images=args.max_images,
-                        background=args.background, checkpoint_every=args.checkpoint_every,
-                        num_random_points=args.random_points, progress=not args.quiet,
-                        strategy=args.strategy, batch_size=args.batch_size, backdrop=args.backdrop,
-                        appearance=args.appearance, sky=args.sky,
-                        recipe=Recipe(batch_scaling=args.batch_scaling, res_start=args.coarse_to_fine),
-                        group=group, init=init, **extra)
-    finally:
-        distributed.shutdown(group)
-    if not group.is_main:
-        return 0
-    ps = "n/a" if m["psnr"] is None else f"{m['psnr']:.2f} dB"
-    ss = "n/a" if m["ssim"] is None else f"{m['ssim']:.4f}"
-    print(f"{args.out}: {m['num_gaussians']} Gaussians, held-out PSNR {ps}, SSIM {ss}, "
-          f"{m['train_seconds']:.0f} s, {m['iters']} steps")
-    return 0

@@ -4,18 +4,14 @@ are :mod:`ssgwarp.services.weights`; this is the command and its table.
 """
 from __future__ import annotations
 
-import argparse
 import os
-import sys
 from pathlib import Path
 from typing import Iterable, Mapping, Optional
 
-from ..errors import SsgwarpError
-from .weight_specs import GROUPS, SPECS, WeightSpec, _git_blob_sha1, _sha256, _spec
-from .weights import (DownloadFailed, _human, _inside, fetch, find, hub_cache, locate, offline_reason,
-                      torch_checkpoints, verbose)
+from .weight_specs import SPECS, WeightSpec, _git_blob_sha1, _sha256, _spec
+from .weights import _human, _inside, hub_cache, locate, offline_reason, torch_checkpoints
 
-__all__ = ["status", "verify", "table", "add_arguments", "run"]
+__all__ = ["status", "verify", "table"]
 
 
 def _snapshot_of(spec: WeightSpec, path: Path) -> Optional[Path]:
@@ -117,58 +113,3 @@ def table(keys: Optional[Iterable[str]] = None, config: Optional[Mapping[str, st
     lines.append(f"Hugging Face cache: {hub_cache()}; torch hub checkpoints: {torch_checkpoints()}; "
                  f"downloads {'off (' + off + ')' if off else 'on first use'}")
     return "\n".join(lines)
-
-
-def _expand(names: Iterable[str]) -> list[str]:
-    out: list[str] = []
-    for n in names:
-        for k in GROUPS.get(n, (n,)):
-            _spec(k)
-            if k not in out:
-                out.append(k)
-    return out
-
-
-_GROUPS_HELP = ", ".join(g + " = " + " + ".join(v) for g, v in GROUPS.items())
-
-
-# -- `ssgwarp weights` ----------------------------------------------------------------------------------
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--download", nargs="*", metavar="NAME", default=None,
-                   help=f"fetch these models into the Hugging Face / torch hub caches (all when no NAME): "
-                        f"{', '.join(SPECS)}, or a group: {_GROUPS_HELP}")
-    p.add_argument("--force", action="store_true", help="with --download: fetch again even when cached")
-    p.add_argument("--verify", action="store_true",
-                   help="check the found files against their published hashes (reads every file)")
-
-
-def run(args) -> int:
-    with verbose():            # this command is where the long forms belong
-        return _run(args)
-
-
-def _run(args) -> int:
-    cfg = getattr(args, "weights", None)
-    cfg = cfg if isinstance(cfg, Mapping) else None
-    if args.download is not None:
-        keys = _expand(args.download) if args.download else list(SPECS)
-        off = offline_reason()
-        if off:
-            raise SsgwarpError(f"--download: downloads are off ({off}); run it on a machine with network "
-                               f"without --offline / SSGWARP_OFFLINE / HF_HUB_OFFLINE")
-        failed = []
-        for key in keys:
-            if not args.force and locate(key, config=cfg) is not None:
-                print(f"ssgwarp weights: {key} already here ({find(key, config=cfg)})")
-                continue
-            try:
-                fetch(key, force=args.force)
-            except DownloadFailed as e:
-                failed.append(key)
-                print(f"ssgwarp weights: {e}", file=sys.stderr)
-        print(table(config=cfg, check=args.verify))
-        if failed:
-            raise SsgwarpError(f"could not download {', '.join(failed)} (see the messages above)")
-        return 0
-    print(table(config=cfg, check=args.verify))
-    return 0

@@ -7,7 +7,7 @@ through ``run.json``): load the run, the style and the feature extractor
 the training cameras and a smooth path (:func:`_renders`); metrics, the contact sheet and
 ``metrics.json`` (:func:`_metrics`). The steps read one frozen :class:`Inputs`, add to the run's
 :class:`Record` and hand their results on (:class:`Stage2Output`, :class:`ssgwarp.stylization.targets.Targets`). The
-command line (options, ``--quick``, the CPU hint) is :mod:`ssgwarp.stylization.stylize_cli`.
+command line (options, ``--quick``, the CPU hint) is :mod:`ssgwarp.commands.stylize`.
 """
 from __future__ import annotations
 

@@ -10,14 +10,16 @@ from typing import Optional
 import torch
 
 from ..evaluation.features import EXTRACTOR_KINDS
-from .feature_defaults import CONTENT_WEIGHT, CONTENT_WEIGHT_PATCHES
-from .stage2 import BACKGROUNDS, COLOR_DETAIL, COLOR_TRANSFER, MODES, SH_REST, STYLE_LOSSES, Stage2Config
-from .feature_defaults import BLEND_WEIGHT_EDGES, COLOR_GAIN_EDGES, COLOR_GAIN_OTHER, TV_WEIGHT_FREE, TV_WEIGHT_VGG
-from ..capture.orbit import MAX_WIDTH as ORBIT_MAX_WIDTH, VIEWS as ORBIT_VIEWS
-from . import stylize as _stylize      # (stylize_run looked up at call time: tests replace it)
-from .stylize import StylizeOptions, _say
+from ..stylization.feature_defaults import CONTENT_WEIGHT, CONTENT_WEIGHT_PATCHES
+from ..stylization.stage2 import BACKGROUNDS, COLOR_DETAIL, COLOR_TRANSFER, MODES, SH_REST, STYLE_LOSSES, Stage2Config
+from ..stylization.feature_defaults import BLEND_WEIGHT_EDGES, COLOR_GAIN_EDGES, COLOR_GAIN_OTHER, TV_WEIGHT_FREE, TV_WEIGHT_VGG
+from ..capture.orbit import MAX_WIDTH, MAX_WIDTH as ORBIT_MAX_WIDTH, VIEWS, VIEWS as ORBIT_VIEWS
+from ..errors import InputError
+from ..from_splats import SOURCE, add_record, prepare_source
+from ..stylization import stylize as _stylize      # (stylize_run looked up at call time: tests replace it)
+from ..stylization.stylize import StylizeOptions, _say
 
-__all__ = ["add_arguments", "run", "QUICK", "PAINT", "cpu_hint"]
+__all__ = ["add_arguments", "run", "run_stage", "QUICK", "PAINT", "cpu_hint"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -38,7 +40,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--keyviews", type=int, default=4, metavar="K", help="number of key views (default 4)")
     g.add_argument("--ids", default=None, help="comma-separated camera indices of the key views (default: chosen)")
     g.add_argument("--max-side", type=int, default=512, help="key-view (diffusion) longer side (default 512)")
-    from .diffusion import add_stage1_arguments
+    from ..stylization.diffusion import add_stage1_arguments
     add_stage1_arguments(p)
     d = Stage2Config()
     g = p.add_argument_group("Stage 2 (instance-level style transfer)")
@@ -159,11 +161,11 @@ def cpu_hint(args) -> Optional[str]:
             f"{CPU_DEFAULT_MEASURED}); --quick ({quick_text(QUICK)}) took 9 min there in all")
 
 
-def run(args, scene_dir=None) -> int:
+def run_stage(args, scene_dir=None) -> int:
     """Stylize the run ``scene_dir`` (default ``args.scene_dir``; a splat file is made into a run by
-    :mod:`ssgwarp.from_splats`, the ``stylize`` command, first)."""
-    from .diffusion import config_from_args
-    from .keyviews import parse_ids
+    :func:`run` first)."""
+    from ..stylization.diffusion import config_from_args
+    from ..stylization.keyviews import parse_ids
 
     weights = getattr(args, "weights", None)
     weights = weights if isinstance(weights, dict) else None
@@ -188,3 +190,37 @@ def run(args, scene_dir=None) -> int:
     finally:
         distributed.shutdown(group)
     return 0
+
+
+def run(args) -> int:
+    """``ssgwarp stylize RUN_OR_FILE``: a file is made into ``OUT/source`` first (:func:`prepare_source`)."""
+    scene_dir = args.scene_dir
+    if Path(scene_dir).expanduser().is_file():
+        scene_dir = _splat_file_source(args)
+    rc = run_stage(args, scene_dir=scene_dir)
+    if scene_dir != args.scene_dir and _is_main():
+        add_record(args.out, scene_dir)
+    return rc
+
+
+def _is_main() -> bool:
+    import os
+
+    return int(os.environ.get("RANK", "0") or 0) == 0
+
+
+def _splat_file_source(args) -> Path:
+    """``stylize FILE``: ``OUT/source``, the splat file's run with cameras made around it, grouped mask-free."""
+    import os
+
+
+    if int(os.environ.get("WORLD_SIZE", "1") or 1) > 1:
+        raise InputError(f"{args.scene_dir}: a splat file is stylized by one process; run `ssgwarp stylize` once "
+                         f"without torchrun (it writes {args.out / SOURCE}), then give that folder")
+    quick = bool(getattr(args, "quick", False))
+    views = QUICK_VIEWS if quick and args.views == VIEWS else args.views
+    group_iters = args.group_iters if args.group_iters is not None else (GROUP_QUICK_ITERS if quick else None)
+    return prepare_source(
+        args.scene_dir, args.style, args.out, _stylize.OUTPUTS, views=views, width=args.width,
+        max_width=QUICK_MAX_WIDTH if quick else MAX_WIDTH, up=args.up, group_iters=group_iters,
+        force=args.force, resume=args.resume, device=args.device, seed=args.seed, progress=not args.quiet)
