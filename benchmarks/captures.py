@@ -90,7 +90,7 @@ def run_one(spec: str, setting: str, iters, a, device) -> dict:
     as it loads it) and return its table row."""
     import torch
 
-    from ssgwarp.reconstruction.reconstruct import reconstruct
+    from ssgwarp.reconstruction.reconstruct import ReconstructConfig, reconstruct
 
     folder, images = capture_folder(spec, a.data_root)
     data, load_seconds = load(spec, a)
@@ -99,9 +99,9 @@ def run_one(spec: str, setting: str, iters, a, device) -> dict:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
     t0 = time.perf_counter()
-    m = reconstruct(folder, run_dir, iters=iters, images=images, force=True, device=device, seed=a.seed,
-                    max_images=a.max_images, width=a.width, progress=not a.no_progress, checkpoint_every=10**9,
-                    num_random_points=a.random_points, data=data)
+    cfg = ReconstructConfig(iters=iters, images=images, seed=a.seed, max_images=a.max_images, width=a.width,
+                            checkpoint_every=10**9, num_random_points=a.random_points)
+    m = reconstruct(folder, run_dir, cfg, force=True, device=device, progress=not a.no_progress, data=data)
     wall = time.perf_counter() - t0 + load_seconds
     data_json = json.loads((run_dir / "data.json").read_text())
     bd = m.get("backdrop") or {}

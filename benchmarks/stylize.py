@@ -113,11 +113,11 @@ def prepare_scene(scene: str, out: Path, device, fern_iters: int, progress: bool
             run_demo(demo, demo_size, device=device, force=True, progress=progress)
         return demo / "scene"
     from ssgwarp.grouping.stage import group_scene
-    from ssgwarp.reconstruction.reconstruct import reconstruct
+    from ssgwarp.reconstruction.reconstruct import ReconstructConfig, reconstruct
 
     run = out / "fern_images_8"
     if not (run / "scene.ply").is_file():
-        reconstruct(fern, run, images="images_8", iters=fern_iters, device=device,
+        reconstruct(fern, run, ReconstructConfig(images="images_8", iters=fern_iters), device=device,
                     progress=progress, force=True)
     if not (run / "groups" / "classifier.pt").is_file():
         group_scene(run, masks=None, device=device, progress=progress, force=True)     # mask-free: no SAM weights

@@ -50,7 +50,7 @@ from .grouping.segment import make_masks
 from .core.palette import colorize_labels
 from .formats.ply import read_ply
 from .procedural import SIZES
-from .reconstruction.reconstruct import reconstruct
+from .reconstruction.reconstruct import ReconstructConfig, reconstruct
 from .reconstruction.recipe import Recipe
 from .services.runs import Run, check_resume, claim, resume_record
 from .stylization.stylize import StylizeOptions, stylize_run
@@ -228,14 +228,14 @@ def _stage_reconstruct(d: _Demo, joint: bool) -> dict:
         recipe = Recipe(refine_start=every, refine_every=every, refine_stop=it // 2, reset_every=0,
                         lr_means=3 * Recipe.lr_means, lr_means_final=3 * Recipe.lr_means_final)
         resume_rec = (d.scene_dir / "checkpoint.pt").is_file()
-        kw = dict(iters=it, sh_degree=0, max_gaussians=sz.max_gaussians, device=d.device, seed=d.seed, recipe=recipe,
-                  checkpoint_every=max(50, it // 5), progress=d.progress, data=data, resume=resume_rec,
-                  force=not resume_rec, init="random")
+        cfg = ReconstructConfig(iters=it, sh_degree=0, max_gaussians=sz.max_gaussians, seed=d.seed, recipe=recipe,
+                                checkpoint_every=max(50, it // 5), init="random")
+        kw = dict(device=d.device, progress=d.progress, data=data, resume=resume_rec, force=not resume_rec)
         if joint:
-            m = reconstruct_with_groups(d.data_dir, d.scene_dir, masks=None, max_groups=8, group_start=GROUP_START,
+            m = reconstruct_with_groups(d.data_dir, d.scene_dir, cfg, masks=None, max_groups=8, group_start=GROUP_START,
                                         config=GroupConfig(dim=sz.group_dim), **kw)
         else:
-            m = reconstruct(d.data_dir, d.scene_dir, **kw)
+            m = reconstruct(d.data_dir, d.scene_dir, cfg, **kw)
         d.done("reconstruct", seconds=time.perf_counter() - t0, gaussians=m["num_gaussians"], psnr=m["psnr"],
                ssim=m["ssim"], iters=m["iters"], test_views=m["test_views"], groups=m.get("groups"))
     rec = d.stages["reconstruct"]

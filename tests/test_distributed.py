@@ -192,16 +192,16 @@ class _Rank1(Group):
 
 
 def test_only_the_main_process_writes(capture, tmp_path, monkeypatch):
-    from ssgwarp.reconstruction.reconstruct import reconstruct
+    from ssgwarp.reconstruction.reconstruct import ReconstructConfig, reconstruct
 
     monkeypatch.setenv("SSGWARP_OFFLINE", "1")
     out = tmp_path / "run"
-    m = reconstruct(capture, out, iters=3, sh_degree=0, device="cpu", progress=False, checkpoint_every=1,
-                    group=_Rank1(rank=1, world_size=2))
+    m = reconstruct(capture, out, ReconstructConfig(iters=3, sh_degree=0, checkpoint_every=1), device="cpu",
+                    progress=False, group=_Rank1(rank=1, world_size=2))
     assert m == {}
     assert not out.exists()  # no folder, outputs, checkpoints or temporary files from rank 1
     with pytest.raises(InputError, match="multiple of 2"):
-        reconstruct(capture, out, iters=3, device="cpu", progress=False, batch_size=3,
+        reconstruct(capture, out, ReconstructConfig(iters=3, batch_size=3), device="cpu", progress=False,
                     group=_Rank1(rank=1, world_size=2))
 
 

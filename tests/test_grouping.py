@@ -433,8 +433,8 @@ def test_joint_grouping_of_a_run(tmp_path, synth):
         frames.append({"file_path": f"images/{name}", "transform_matrix": c2w[i].tolist()})
     write_json(tmp_path / "data" / "transforms.json", {"camera_angle_x": 2 * math.atan(0.5), "frames": frames})
     recipe = rec.Recipe(init_max_points=300)
-    rec.reconstruct(tmp_path / "data", tmp_path / "run", iters=8, sh_degree=0, recipe=recipe, device="cpu",
-                    progress=False)
+    rec.reconstruct(tmp_path / "data", tmp_path / "run", rec.ReconstructConfig(iters=8, sh_degree=0, recipe=recipe),
+                    device="cpu", progress=False)
     info = group_scene(tmp_path / "run", joint=True, config=GroupConfig(dim=8),
                        reconstruct_kwargs={"iters": 8, "recipe": recipe}, progress=False)
     assert info["joint"] and info["joint_reconstruction"]["iters"] == 8

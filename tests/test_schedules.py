@@ -224,15 +224,15 @@ def test_sh_start_delays_the_first_degree_and_the_default_keeps_the_old_schedule
 
 def test_reconstruct_auto_records_the_steps_and_why_it_stopped(toy, tmp_path, monkeypatch, capsys):
     from ssgwarp import cli
-    from ssgwarp.reconstruction.reconstruct import reconstruct
+    from ssgwarp.reconstruction.reconstruct import ReconstructConfig, reconstruct
 
     for var in ("SSGWARP_LPIPS", "SSGWARP_VGG16", "SSGWARP_WEIGHTS"):
         monkeypatch.delenv(var, raising=False)
     data_dir = tmp_path / "cap"
     write_transforms_dataset(data_dir, toy.images, toy.cameras)
-    m = reconstruct(data_dir, tmp_path / "run", iters="auto", sh_degree=0, device="cpu", progress=False,
-                    recipe=_auto_recipe(res_start=2.0), backdrop="off", split_every=4, init="random",
-                    num_random_points=300)
+    m = reconstruct(data_dir, tmp_path / "run", ReconstructConfig(
+        iters="auto", sh_degree=0, recipe=_auto_recipe(res_start=2.0), backdrop="off", split_every=4, init="random",
+        num_random_points=300), device="cpu", progress=False)
     assert m["iters"] == 50 and m["schedule"]["iters"] == "auto" and m["schedule"]["steps"] == 50
     assert m["schedule"]["coarse_to_fine"] == {"start": 2.0, "until": 20}
     written = json.loads((tmp_path / "run" / "metrics.json").read_text())

@@ -13,7 +13,7 @@ from ..errors import InputError
 from ..grouping.joint import GroupsDuringReconstruction, parse_groups
 from ..grouping.model import DEFAULT_DIM, GroupConfig
 from ..reconstruction.recipe import Recipe
-from ..reconstruction.reconstruct import reconstruct
+from ..reconstruction.reconstruct import ReconstructConfig, reconstruct
 from ..reconstruction.schedules import AUTO
 from ..services import distributed
 
@@ -120,6 +120,17 @@ QUICK_MEASURED = ("fern images_8 (17 training views, resized to 252x188): 20 min
                   "work (6.5 min of CPU time), held-out PSNR 26.6 dB, 2026-11-28")
 
 
+def config_from_args(args, init=None) -> ReconstructConfig:
+    """The :class:`ReconstructConfig` of the command's options."""
+    return ReconstructConfig(
+        iters=args.iters, images=args.images, sh_degree=args.sh_degree, max_gaussians=args.max_gaussians,
+        seed=args.seed, split_every=args.split_every, width=args.width, max_images=args.max_images,
+        background=args.background, checkpoint_every=args.checkpoint_every, num_random_points=args.random_points,
+        strategy=args.strategy, batch_size=args.batch_size, backdrop=args.backdrop, appearance=args.appearance,
+        sky=args.sky, recipe=Recipe(batch_scaling=args.batch_scaling, res_start=args.coarse_to_fine),
+        init=args.init if init is None else init)
+
+
 def _run(args, **extra) -> int:
     """The command; ``extra`` goes to :func:`reconstruct` (``attach``: ``reconstruct --groups``)."""
     if args.batch_size is not None and args.batch_size < 1:
@@ -128,15 +139,8 @@ def _run(args, **extra) -> int:
     group, device = distributed.from_env(args.device)  # under torchrun: join the others
     logging.basicConfig(level=logging.INFO if group.is_main else logging.WARNING, format="ssgwarp: %(message)s")
     try:
-        m = reconstruct(args.data_dir, args.out, iters=args.iters, images=args.images, sh_degree=args.sh_degree,
-                        max_gaussians=args.max_gaussians, resume=args.resume, force=args.force, device=device,
-                        seed=args.seed, split_every=args.split_every, width=args.width, max_images=args.max_images,
-                        background=args.background, checkpoint_every=args.checkpoint_every,
-                        num_random_points=args.random_points, progress=not args.quiet,
-                        strategy=args.strategy, batch_size=args.batch_size, backdrop=args.backdrop,
-                        appearance=args.appearance, sky=args.sky,
-                        recipe=Recipe(batch_scaling=args.batch_scaling, res_start=args.coarse_to_fine),
-                        group=group, init=init, **extra)
+        m = reconstruct(args.data_dir, args.out, config_from_args(args, init), resume=args.resume, force=args.force,
+                        device=device, progress=not args.quiet, group=group, **extra)
     finally:
         distributed.shutdown(group)
     if not group.is_main:

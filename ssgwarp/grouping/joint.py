@@ -208,18 +208,20 @@ class GroupsDuringReconstruction:
                            "seconds": info["seconds"]}}
 
 
-def reconstruct_with_groups(data_dir, out, *, num_groups: Optional[int] = None, masks="auto", max_groups: int = 8,
+def reconstruct_with_groups(data_dir, out, reconstruction: rec.ReconstructConfig = rec.ReconstructConfig(), *,
+                            num_groups: Optional[int] = None, masks="auto", max_groups: int = 8,
                             group_start: Optional[float] = None, config: GroupConfig = GroupConfig(),
                             cluster: Optional[ClusterConfig] = None, ignore_id: Optional[int] = None,
-                            seed: int = 0, force: bool = False, resume: bool = False, progress: bool = True,
-                            **kwargs) -> dict:
-    """Reconstruct ``data_dir`` into ``out`` with the groups trained in the same loop (``reconstruct --groups``).
+                            force: bool = False, resume: bool = False, progress: bool = True, **run) -> dict:
+    """Reconstruct ``data_dir`` into ``out`` as ``reconstruction`` says, with the groups trained in the same loop
+    (``reconstruct --groups``; ``config``: the grouping's knobs, its seed ``reconstruction.seed``).
 
-    ``kwargs`` go to :func:`ssgwarp.reconstruction.reconstruct.reconstruct`. Returns its metrics, with
-    ``"groups"``: K, the kind of groups, the step grouping started at, mask accuracy, cross-view agreement.
+    ``run`` (``device``, ``data``, ``group``...) goes to :func:`ssgwarp.reconstruction.reconstruct.reconstruct`.
+    Returns its metrics, with ``"groups"``: K, the kind of groups, the step grouping started at, mask accuracy,
+    cross-view agreement.
     """
     attach = GroupsDuringReconstruction(out, num_groups=num_groups, masks=masks, max_groups=max_groups,
                                         start=group_start, config=config, cluster=cluster, ignore_id=ignore_id,
-                                        seed=seed, force=force, resume=resume, progress=progress)
-    return rec.reconstruct(data_dir, out, seed=seed, force=force, resume=resume, progress=progress, attach=attach,
-                           **kwargs)
+                                        seed=reconstruction.seed, force=force, resume=resume, progress=progress)
+    return rec.reconstruct(data_dir, out, reconstruction, force=force, resume=resume, progress=progress,
+                           attach=attach, **run)

@@ -268,7 +268,7 @@ def _joint(scene_dir: Path, run: RunInfo, targets: Tensor, k: int, config: Group
 
     The capture is reloaded through :meth:`ssgwarp.services.runs.Run.load`, so the
     Trainer's view indices are the rows of ``cameras.json`` (and of ``targets``).
-    ``kwargs`` go to :func:`ssgwarp.reconstruction.reconstruct.reconstruct` (``iters``,
+    ``kwargs``: fields of its :class:`~ssgwarp.reconstruction.reconstruct.ReconstructConfig` (``iters``,
     ``sh_degree``, ``max_gaussians``, ``recipe``...); by default the original
     run's iteration count and SH degree are reused.
     """
@@ -279,8 +279,9 @@ def _joint(scene_dir: Path, run: RunInfo, targets: Tensor, k: int, config: Group
     kw = {"iters": int(metrics.get("iters", 30000)), "sh_degree": int(metrics.get("sh_degree", 3))}
     kw.update({k_: v for k_, v in kwargs.items() if v is not None})
     hook = GroupingHook(targets, k, config=config, seed=seed, device=device)
-    metrics = rec.reconstruct(data.data_dir, scene_dir, hooks=[hook], identity_dim=config.dim, seed=seed,
-                              device=device, progress=progress, data=data, force=not resume, resume=resume, **kw)
+    cfg = rec.ReconstructConfig(**kw, identity_dim=config.dim, seed=seed)
+    metrics = rec.reconstruct(data.data_dir, scene_dir, cfg, hooks=[hook], device=device, progress=progress, data=data,
+                              force=not resume, resume=resume)
     scene = read_ply(scene_dir / "scene.ply", device=device)
     if scene.identities is None or scene.identities.shape[1] != config.dim:
         raise SsgwarpError("the joint reconstruction wrote no identity encodings of the expected length")

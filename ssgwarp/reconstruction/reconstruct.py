@@ -30,9 +30,9 @@ the stage (load, claim the run folder, train, evaluate, write the run files); it
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable, Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 import torch
 
@@ -51,7 +51,7 @@ log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
 
 OUTPUTS = ("scene.ply", "cameras.json", "data.json", "metrics.json", "environment.json")
 
-__all__ = ["OUTPUTS", "reconstruct"]
+__all__ = ["OUTPUTS", "ReconstructConfig", "reconstruct"]
 
 
 # ----------------------------------------------------------------------------- the stage
@@ -116,44 +116,69 @@ def _appearance_record(trainer: Trainer) -> dict:
     return rec
 
 
-def reconstruct(data_dir: str | Path, out: str | Path, *, iters: int | str = "auto", images: str = "images",
-                sh_degree: int = 3, max_gaussians: int = 1_000_000, resume: bool = False, force: bool = False,
-                device=None, seed: int = 0, hooks: Sequence = (), identity_dim: Optional[int] = None,
-                split_every: int = 8, width: Optional[int] = None, max_images: Optional[int] = None,
-                background: Optional[Sequence[float]] = None, recipe: Optional[Recipe] = None,
-                checkpoint_every: int = 500, num_random_points: int = 100_000,
-                rasterize: Optional[Callable] = None, raster_kwargs: Optional[dict] = None,
-                progress: bool = True, data=None, strategy="default", batch_size: Optional[int] = None,
-                group=None, init="auto", backdrop: str = "auto", attach=None, appearance: str = "auto",
-                sky: str = "auto") -> dict:
-    """Reconstruct the capture in ``data_dir`` into the run folder ``out`` (what the CLI runs).
+@dataclass(frozen=True)
+class ReconstructConfig:
+    """What a reconstruction trains: the options of ``ssgwarp reconstruct`` by name (their defaults are its).
 
-    Writes ``out/scene.ply``, ``cameras.json``, ``data.json``, ``metrics.json`` (and keeps
-    ``out/checkpoint.pt``). Existing outputs are never overwritten unless ``force``
-    (which starts over) or ``resume`` (which continues from the checkpoint).
+    ``iters``: steps, or ``"auto"``: the 30,000-step schedule until the training views' PSNR stops improving
+    (:mod:`ssgwarp.reconstruction.schedules`). ``strategy``: ``"default"`` / ``"mcmc"`` or a
+    :class:`~ssgwarp.reconstruction.strategy.Strategy`; ``max_gaussians``: its cap (mcmc: its budget).
+    ``recipe``: the training knobs (:class:`~ssgwarp.reconstruction.recipe.Recipe`; default: the 3DGS paper's).
+    ``images``, ``split_every``, ``width``, ``max_images``, ``background``, ``num_random_points``, ``init``: how
+    the capture is loaded (:func:`~ssgwarp.capture.datasets.load_dataset`; ``init``: ``auto``, ``triangulate``,
+    ``random`` or a ``.ply`` path). ``backdrop``, ``appearance``, ``sky``: ``"auto"`` / ``"on"`` / ``"off"``
+    (:mod:`~ssgwarp.reconstruction.backdrop`, :mod:`~ssgwarp.reconstruction.appearance`,
+    :mod:`~ssgwarp.reconstruction.sky`). ``batch_size``: views per step over all processes (default: one per
+    process; on resume, the checkpoint's). ``identity_dim``: identity encodings trained with the scene (grouping
+    through ``hooks``)."""
+
+    iters: int | str = "auto"
+    sh_degree: int = 3
+    max_gaussians: int = 1_000_000
+    strategy: Any = "default"
+    recipe: Optional[Recipe] = None
+    images: str = "images"
+    split_every: int = 8
+    width: Optional[int] = None
+    max_images: Optional[int] = None
+    background: Optional[Sequence[float]] = None
+    num_random_points: int = 100_000
+    init: Any = "auto"
+    backdrop: str = "auto"
+    appearance: str = "auto"
+    sky: str = "auto"
+    batch_size: Optional[int] = None
+    checkpoint_every: int = 500
+    seed: int = 0
+    identity_dim: Optional[int] = None
+
+
+def reconstruct(data_dir: str | Path, out: str | Path, config: ReconstructConfig = ReconstructConfig(), *,
+                resume: bool = False, force: bool = False, device=None, progress: bool = True, data=None,
+                group=None, hooks: Sequence = (), attach=None, rasterize: Optional[Callable] = None,
+                raster_kwargs: Optional[dict] = None) -> dict:
+    """Reconstruct the capture in ``data_dir`` into the run folder ``out`` as ``config`` says (what the
+    ``reconstruct`` command runs).
+
+    Writes ``out/scene.ply``, ``cameras.json``, ``data.json``, ``metrics.json`` (and ``environment.json`` with a sky;
+    keeps ``out/checkpoint.pt``, written every ``config.checkpoint_every`` steps). Existing outputs are never
+    overwritten unless ``force`` (which starts over) or ``resume`` (which continues from the checkpoint; a
+    checkpoint made with other options that change what it means is refused, naming them).
     ``data`` may be a preloaded :class:`~ssgwarp.capture.datasets.SceneData` of ``data_dir``.
-    ``batch_size``: views per step over all processes (default: one per process; on
-    ``resume``, the checkpoint's). ``group``: the :class:`ssgwarp.services.distributed.Group` of a
-    data-parallel run (default: alone); only its main process writes files and evaluates. ``init``: the
-    initial points (:func:`~ssgwarp.capture.datasets.load_dataset`'s: ``auto``, ``triangulate``, ``random`` or a
-    ``.ply`` path).
-    ``backdrop``: ``"auto"`` / ``"on"`` / ``"off"``, far points and a far shell for what lies beyond the
-    initial points (:mod:`ssgwarp.reconstruction.backdrop`); the decision goes to ``metrics.json`` and
-    ``data.json`` (``backdrop``).
-    ``iters``: steps, or ``"auto"`` (the default): the 30,000-step schedule until the training views' PSNR stops
-    improving (:mod:`ssgwarp.reconstruction.schedules`); ``metrics.json`` and ``data.json`` record the steps run and why
-    the run stopped (``schedule``).
-    ``appearance``: ``"auto"`` / ``"on"`` / ``"off"``, per-image exposure and white balance
-    (:mod:`ssgwarp.reconstruction.appearance`); the decision and its evidence go to ``metrics.json`` and ``data.json``
-    (``appearance``), and how held-out views were scored to ``metrics.json`` (``eval_protocol``).
-    ``sky``: ``"auto"`` / ``"on"`` / ``"off"``, an environment colour field behind the splats
-    (:mod:`ssgwarp.reconstruction.sky`), written to ``out/environment.json`` when on; the decision goes to
-    ``metrics.json`` and ``data.json`` (``sky``).
-    ``attach``: hooks made during the run (:class:`~ssgwarp.reconstruction.trainer.Trainer`'s ``attach``;
-    ``reconstruct --groups``); its ``finish(out, metrics, scene) -> dict`` runs once the run files are written
-    and what it returns joins ``metrics.json``.
+    ``group``: the :class:`ssgwarp.services.distributed.Group` of a data-parallel run (default: alone); only its main
+    process writes files and evaluates. ``metrics.json`` and ``data.json`` record the steps run and why the run
+    stopped (``schedule``), and the backdrop, appearance and sky decisions with their evidence.
+    ``hooks``: :class:`~ssgwarp.reconstruction.trainer.Trainer` hooks; ``attach``: hooks made during the run
+    (``reconstruct --groups``); its ``finish(out, metrics, scene) -> dict`` runs once the run files are written
+    and what it returns joins ``metrics.json``. ``rasterize``, ``raster_kwargs``: the trainer's renderer.
     Returns the metrics dict (on the other processes: ``{}``).
     """
+    c = config
+    iters, images, sh_degree, max_gaussians, seed = c.iters, c.images, c.sh_degree, c.max_gaussians, c.seed
+    split_every, width, max_images, background, init = c.split_every, c.width, c.max_images, c.background, c.init
+    strategy, recipe, batch_size, backdrop, appearance, sky = (c.strategy, c.recipe, c.batch_size, c.backdrop,
+                                                                c.appearance, c.sky)
+    identity_dim, checkpoint_every, num_random_points = c.identity_dim, c.checkpoint_every, c.num_random_points
     group = group if group is not None else SINGLE
     out = Path(out).expanduser()
     device = torch.device(device) if device is not None else torch.device("cuda" if torch.cuda.is_available() else "cpu")
