@@ -27,7 +27,7 @@ from ssgwarp.errors import InputError
 from ssgwarp.raster.rendering import render_views
 from ssgwarp.raster.scene import GaussianScene
 from ssgwarp.core.sh import spherical_harmonics
-from ssgwarp.reconstruction.importer import import_splats
+from ssgwarp.reconstruction.importer import ImportConfig, import_splats
 from ssgwarp.services.runs import Run
 
 FAST = ["--device", "cpu", "--seed", "0", "--quiet"]
@@ -225,10 +225,10 @@ def test_graphdeco_output_folder(world, tmp_path):
     assert data["background"] == [0.0, 0.0, 0.0] and data["split"]["test"] == ["view_00.png"]
     # --iteration picks another one (which here renders nothing like the capture: refused)
     with pytest.raises(InputError, match="do not match"):
-        import_splats(src, tmp_path / "run7", iteration=7000, device="cpu", progress=False)
+        import_splats(src, tmp_path / "run7", ImportConfig(iteration=7000), device="cpu", progress=False)
     assert not (tmp_path / "run7").exists()
     with pytest.raises(InputError, match="no iteration 5"):
-        import_splats(src, tmp_path / "run5", iteration=5, device="cpu", progress=False)
+        import_splats(src, tmp_path / "run5", ImportConfig(iteration=5), device="cpu", progress=False)
 
 
 def test_graphdeco_without_its_capture_keeps_the_cameras(world, tmp_path, caplog):
@@ -253,7 +253,7 @@ def test_graphdeco_cameras_of_several_sizes(world, tmp_path):
     with pytest.raises(InputError, match="several sizes"):
         import_splats(src, tmp_path / "run", device="cpu", progress=False)
     cap = _colmap_capture(tmp_path / "cap", world, background="black")
-    import_splats(src, tmp_path / "run", data=cap, device="cpu", progress=False)
+    import_splats(src, tmp_path / "run", ImportConfig(data=cap), device="cpu", progress=False)
     _assert_renders(tmp_path / "run", world, "black")
 
 
@@ -263,7 +263,7 @@ def test_graphdeco_cameras_in_another_frame_are_aligned(world, tmp_path):
     sim = Similarity(1.7, _rotation(11), np.array([0.5, 0.2, -3.0]))
     src = tmp_path / "out"
     _graphdeco_output(src, transform_scene(world["scene"], sim), sim.cameras(world["cams"]), "/nowhere")
-    m = import_splats(src, tmp_path / "run", data=cap, device="cpu", progress=False)
+    m = import_splats(src, tmp_path / "run", ImportConfig(data=cap), device="cpu", progress=False)
     assert m["imported"]["frame"].startswith("aligned by cameras.json")
     _assert_renders(tmp_path / "run", world, "black")
 
@@ -292,7 +292,7 @@ def test_gsplat_checkpoint_in_its_normalised_world(world, tmp_path, frame):
     # its PLY export (no normals) with --data: the same
     ply = tmp_path / "point_cloud_29999.ply"
     _inria_ply(ply, s, normals=False)
-    import_splats(ply, tmp_path / "run2", data=cap, tool="gsplat", device="cpu", progress=False)
+    import_splats(ply, tmp_path / "run2", ImportConfig(data=cap, tool="gsplat"), device="cpu", progress=False)
     _assert_renders(tmp_path / "run2", world)
 
 
@@ -305,7 +305,7 @@ def test_gsplat_checkpoint_needs_its_capture(world, tmp_path):
         import_splats(p, tmp_path / "run", device="cpu", progress=False)
     torch.save({"step": 10, "splats": {"means": s.means}}, p)
     with pytest.raises(InputError, match="lack quats"):
-        import_splats(p, tmp_path / "run", data=tmp_path, device="cpu", progress=False)
+        import_splats(p, tmp_path / "run", ImportConfig(data=tmp_path), device="cpu", progress=False)
 
 
 @pytest.mark.parametrize("applied", [False, True])
@@ -327,13 +327,13 @@ def test_nerfstudio_export_with_dataparser_transforms(world, tmp_path, applied):
     (out / "dataparser_transforms.json").write_text(json.dumps(saved, indent=4))
     ply = tmp_path / "exports" / "splat.ply"
     _inria_ply(ply, transform_scene(world["scene"], dp))
-    m = import_splats(ply, tmp_path / "run", data=cap, dataparser_transforms=out / "dataparser_transforms.json",
-                      device="cpu", progress=False)
+    cfg = ImportConfig(data=cap, dataparser_transforms=out / "dataparser_transforms.json")
+    m = import_splats(ply, tmp_path / "run", cfg, device="cpu", progress=False)
     assert m["imported"]["tool"] == "nerfstudio"
     _assert_renders(tmp_path / "run", world)
     # beside the PLY, it is found
     (ply.parent / "dataparser_transforms.json").write_text((out / "dataparser_transforms.json").read_text())
-    import_splats(ply, tmp_path / "run2", data=cap, device="cpu", progress=False)
+    import_splats(ply, tmp_path / "run2", ImportConfig(data=cap), device="cpu", progress=False)
     _assert_renders(tmp_path / "run2", world)
 
 
@@ -346,7 +346,7 @@ def test_nerfstudio_export_of_a_colmap_dataset(world, tmp_path):
                                                                      "scale": scale}))
     ply = tmp_path / "splat.ply"
     _inria_ply(ply, transform_scene(world["scene"], Similarity(scale) @ T @ A))
-    m = import_splats(ply, tmp_path / "run", data=cap, device="cpu", progress=False)
+    m = import_splats(ply, tmp_path / "run", ImportConfig(data=cap), device="cpu", progress=False)
     assert m["imported"]["frame"] == "nerfstudio's dataparser frame (COLMAP data)"
     _assert_renders(tmp_path / "run", world)
 

@@ -1,4 +1,5 @@
-"""``ssgwarp evaluate``: consistency and style / content metrics of runs (:func:`ssgwarp.evaluation.evaluate.evaluate_run`)."""
+"""``ssgwarp evaluate``: consistency and style / content metrics of runs
+(:func:`ssgwarp.evaluation.evaluate.evaluate_run`)."""
 from __future__ import annotations
 
 import argparse
@@ -6,7 +7,8 @@ from pathlib import Path
 
 from ..core.fileio import atomic_path
 from ..errors import SsgwarpError
-from ..evaluation.evaluate import EvalOptions, VIEW_SETS, WARPS, claim_evaluation, evaluate_run, inspect_run, load_models, style_line
+from ..evaluation.evaluate import (VIEW_SETS, WARPS, EvalOptions, claim_evaluation, evaluate_run, inspect_run,
+                                   load_models, style_line)
 from ..evaluation.table import comparison_table, default_table_path
 
 

@@ -5,7 +5,7 @@ import logging
 from pathlib import Path
 
 from ..errors import InputError
-from ..reconstruction.importer import TOOLS, import_splats
+from ..reconstruction.importer import TOOLS, ImportConfig, import_splats
 
 
 def add_arguments(parser) -> None:
@@ -44,11 +44,11 @@ def run(args) -> int:
     logging.basicConfig(level=logging.INFO, format="ssgwarp: %(message)s")
     if args.split_every is not None and args.split_every < 0:
         raise InputError(f"--split-every must be >= 0, got {args.split_every}")
-    m = import_splats(args.source, args.out, data=args.data, tool=args.tool, iteration=args.iteration,
-                      images=args.images, width=args.width, split_every=args.split_every,
-                      background=args.background, dataparser_transforms=args.dataparser_transforms,
-                      force=args.force, device=args.device, progress=not args.quiet, up=args.up, views=args.views,
-                      seed=args.seed)
+    config = ImportConfig(data=args.data, tool=args.tool, iteration=args.iteration, images=args.images,
+                          width=args.width, split_every=args.split_every, background=args.background,
+                          dataparser_transforms=args.dataparser_transforms, up=args.up, views=args.views,
+                          seed=args.seed)
+    m = import_splats(args.source, args.out, config, force=args.force, device=args.device, progress=not args.quiet)
     fmt = lambda v: "n/a" if v is None else f"{v:.2f} dB"  # noqa: E731
     print(f"{args.out}: {m['num_gaussians']} Gaussians imported from {m['imported']['tool']} "
           f"({m['imported']['frame']}), held-out PSNR {fmt(m['psnr'])}, train PSNR {fmt(m['train_psnr'])}")

@@ -1,4 +1,5 @@
-"""``ssgwarp weights``: where each pretrained model is found, its size and licence; ``--download`` fetches them (:mod:`ssgwarp.services.weights_command`)."""
+"""``ssgwarp weights``: where each pretrained model is found, its size and licence; ``--download`` fetches them
+(the table: :mod:`ssgwarp.services.weights_command`)."""
 from __future__ import annotations
 
 import argparse

@@ -340,20 +340,39 @@ def _cameras_only(cams: Cameras, split: int, bg) -> SceneData:
 
 
 # ----------------------------------------------------------------------------- the stage
-def import_splats(source: str | Path, out: str | Path, *, data: Optional[str | Path] = None, tool: Optional[str] = None,
-                  iteration: Optional[int] = None, images: Optional[str] = None, width: Optional[int] = None,
-                  split_every: Optional[int] = None, background: Optional[Sequence[float]] = None,
-                  dataparser_transforms: Optional[str | Path] = None, force: bool = False, device=None,
-                  progress: bool = True, up: Optional[str] = None, views: int = 24, seed: int = 0) -> dict:
-    """Import ``source`` into the run folder ``out`` (see the module docs); returns the metrics dict.
+@dataclass(frozen=True)
+class ImportConfig:
+    """How ``ssgwarp import`` reads splats trained elsewhere: its options by name.
 
-    ``data``: the capture (default: the one the source records, where it records one);
-    ``images`` / ``width``: its image folder and training width (default: the source tool's);
-    ``split_every``: hold out every N-th view (default: the tool's split: graphdeco's ``eval`` every
-    8th or none, gsplat's ``test_every``, otherwise 8); ``background``: default the tool's
-    (graphdeco: black unless ``white_background``; others white). A splat file without ``data``: a run with
-    ``views`` cameras made around its splats (:func:`ssgwarp.capture.orbit.write_orbit_run`; ``up``: its
-    ``--up``, ``width`` its width), no PSNR."""
+    ``data``: the capture (default: the one the source records, where it records one); ``tool``: graphdeco,
+    gsplat, nerfstudio or ply (default: detected); ``iteration``: the source's checkpoint (default: its last);
+    ``images`` / ``width``: the capture's image folder and training width (default: the source tool's);
+    ``split_every``: hold out every N-th view (default: the tool's split: graphdeco's ``eval`` every 8th or none,
+    gsplat's ``test_every``, otherwise 8); ``background``: default the tool's (graphdeco: black unless
+    ``white_background``; others white); ``dataparser_transforms``: nerfstudio's file (default: found next to the
+    source). A splat file without ``data``: a run with ``views`` cameras made around its splats
+    (:func:`ssgwarp.capture.orbit.write_orbit_run`; ``up``: its ``--up``, ``width`` its width, ``seed``), no PSNR."""
+
+    data: Optional[str | Path] = None
+    tool: Optional[str] = None
+    iteration: Optional[int] = None
+    images: Optional[str] = None
+    width: Optional[int] = None
+    split_every: Optional[int] = None
+    background: Optional[Sequence[float]] = None
+    dataparser_transforms: Optional[str | Path] = None
+    up: Optional[str] = None
+    views: int = 24
+    seed: int = 0
+
+
+def import_splats(source: str | Path, out: str | Path, config: ImportConfig = ImportConfig(), *, force: bool = False,
+                  device=None, progress: bool = True) -> dict:
+    """Import ``source`` into the run folder ``out`` as ``config`` says (see the module docs and
+    :class:`ImportConfig`); returns the metrics dict. ``force``: replace an existing run."""
+    c = config
+    data, tool, iteration, images, width, split_every = c.data, c.tool, c.iteration, c.images, c.width, c.split_every
+    background, dataparser_transforms, up, views, seed = c.background, c.dataparser_transforms, c.up, c.views, c.seed
     source = Path(source).expanduser()
     out = Path(out).expanduser()
     device = torch.device(device) if device is not None else torch.device("cpu")
