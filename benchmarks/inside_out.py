@@ -28,7 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from ssgwarp.capture.datasets import load_dataset  # noqa: E402
-from ssgwarp.procedural import (INSIDE_OUT_NAMES, build_inside_out, render_views, rig_cameras,  # noqa: E402
+from ssgwarp.procedural import (build_inside_out, render_views, rig_cameras,  # noqa: E402
                                 write_transforms_dataset)
 from ssgwarp.raster.rendering import render_views as render_depth  # noqa: E402
 from ssgwarp.reconstruction.trainer import Trainer  # noqa: E402

@@ -2,7 +2,6 @@
 (ssgwarp.procedural.vary_exposures)."""
 from __future__ import annotations
 
-import math
 from types import SimpleNamespace
 
 import numpy as np
@@ -49,12 +48,12 @@ def test_the_half_protocol_fits_on_the_left_and_scores_the_right_half():
 
 
 def test_the_transforms_keep_their_mean_at_the_identity():
-    """Three photos at gains 0.5, 1, 2 (mean 7/6) of a render that is twice too dark: the loss's transforms are fitted per view and composed with the inverse of their mean, so the render
+    """Three photos at gains 0.5, 1, 1.2 of a render that is twice too dark: the loss's transforms are fitted per view and composed with the inverse of their mean, so the render
     is pulled toward the photos' mean exposure, not toward any one photo."""
     c = _photo(seed=3)
     a = torch.ones(*c.shape[:2], 1)
     app = ap.Appearance(3, [0, 1, 2], "cpu", ridge=0.0)
-    gains = [0.5, 1.0, 2.0]
+    gains = [0.5, 1.0, 1.2]
     render = 0.5 * c
     gt = torch.stack([g * c for g in gains])
     args = (render.expand(3, -1, -1, -1), a.expand(3, -1, -1, -1), gt, torch.zeros(3, 3))
@@ -66,7 +65,7 @@ def test_the_transforms_keep_their_mean_at_the_identity():
     for j, g in enumerate(gains):
         assert torch.allclose(out[j], render * (g / 0.5) / mean_gain, atol=1e-4)
     s = app.summary()
-    assert s["fitted_views"] == 3 and abs(s["gain_max"] - 4.0) < 1e-3
+    assert s["fitted_views"] == 3 and abs(s["gain_max"] - 2.4) < 1e-3
 
 
 def test_vary_exposures_writes_a_seeded_copy(tmp_path):

@@ -71,6 +71,7 @@ def test_sky_auto_follows_the_camera_layout():
     inward = SimpleNamespace(cameras=ring_cameras(12, 8, 6), train_ids=list(range(12)))
     assert sky.decide(out, "auto")["use"] and sky.decide(out, "auto")["layout"] == "inside-out"
     assert not sky.decide(inward, "auto")["use"]
+    assert not sky.decide(out, "auto", backdrop=True)["use"]   # the backdrop's far shell stands for the sky
     assert sky.decide(inward, "on")["use"] and not sky.decide(out, "off")["use"]
     with pytest.raises(InputError, match="--sky"):
         sky.check_mode("maybe")

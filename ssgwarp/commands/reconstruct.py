@@ -97,7 +97,7 @@ def _reconstruction_arguments(parser) -> None:
     parser.add_argument("--sky", choices=("auto", "on", "off"), default="auto",
                         help="an environment colour field (a colour per direction, OUT/environment.json) behind the "
                              "splats instead of the constant background: auto (default: on when the cameras look "
-                             "outward, an inside-out capture), on or off")
+                             "outward and no backdrop stands for the sky), on or off")
     parser.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints (default 500)")
     parser.add_argument("--batch-size", type=int, default=None,
                         help="training views per step, over all processes (default: one per process; on "

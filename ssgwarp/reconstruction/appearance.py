@@ -39,7 +39,7 @@ half of the image (least squares, the same affine model) and PSNR / SSIM are mea
 from __future__ import annotations
 
 import math
-from typing import Callable, Optional, Sequence
+from typing import Optional, Sequence
 
 import torch
 
@@ -112,6 +112,14 @@ class Appearance:
         self.table = torch.eye(3, 4, device=device).repeat(n_images, 1, 1)
         self.fitted = torch.zeros(n_images, dtype=torch.bool, device=device)
 
+    def start_from(self, log_gains: dict) -> None:
+        """Each training photo's transform from the points probe's per-channel log gains (a diagonal), before
+        any is fitted: the scene trains against them from the first step."""
+        for i, g in log_gains.items():
+            self.table[i] = torch.eye(3, 4, device=self.table.device)
+            self.table[i, :, :3] = torch.diag(g.exp().to(self.table.device))
+            self.fitted[i] = True
+
     def gauge(self) -> torch.Tensor:
         """``[4, 4]``: the mean of the fitted training views' transforms (augmented; the identity before any)."""
         f = self.fitted[self.train_ids]
@@ -120,22 +128,27 @@ class Appearance:
         return _augment(self.table[self.train_ids][f].mean(0))
 
     def __call__(self, views: Sequence[int], color: torch.Tensor, alpha: torch.Tensor, gt: torch.Tensor,
-                 background: torch.Tensor, masks: Optional[torch.Tensor] = None) -> torch.Tensor:
+                 background: torch.Tensor, masks: Optional[torch.Tensor] = None, fit: bool = True) -> torch.Tensor:
         """The training image: each view's fitted transform (gauge-fixed) on ``color [B, H, W, 3]``
-        (premultiplied, background 0) and ``alpha [B, H, W, 1]``, composited on ``background [B, 3]``."""
+        (premultiplied, background 0) and ``alpha [B, H, W, 1]``, composited on ``background [B, 3]``
+        (``fit`` False: the stored transforms, not refitted)."""
         inv = torch.linalg.inv(self.gauge())
         out = []
         for j, v in enumerate(views):
             c, a = color[j], alpha[j]
             bg = background[j, :3]
-            y = gt[j] - (1.0 - a.detach()) * bg
-            W = fit_affine(_features(c.detach(), a.detach()), y, self.ridge,
-                           None if masks is None else masks[j])
-            self.table[v] = W
-            self.fitted[v] = True
+            if fit:
+                y = gt[j] - (1.0 - a.detach()) * bg
+                W = fit_affine(_features(c.detach(), a.detach()), y, self.ridge,
+                               None if masks is None else masks[j])
+                self.table[v] = W
+                self.fitted[v] = True
+            W = self.table[v]
             W_eff = (_augment(W) @ inv)[:3]
             out.append(apply_affine(W_eff, c, a) + (1.0 - a) * bg)
-        return torch.stack(out)
+        # a photo clips what its exposure pushes beyond white (or black): so does the transformed render (no
+        # gradient there: a clipped pixel does not pull the scene darker)
+        return torch.stack(out).clamp(0.0, 1.0)
 
     def state_dict(self) -> dict:
         return {"table": self.table.detach().cpu(), "fitted": self.fitted.detach().cpu()}
@@ -237,6 +250,7 @@ def points_probe(data, xyz: torch.Tensor, max_points: int = 20_000, seed: int = 
             obs = torch.where(far[..., None], torch.full_like(obs, float("nan")), obs)
     rec["inlier_share"] = round(int((~obs[..., 0].isnan()).sum()) / max(n0, 1), 4)
     nan = torch.full_like(obs, float("nan"))
+    rec["_gains"] = {int(i): gv[j].float() for j, i in enumerate(ids)}   # (the per-photo log gains: not recorded)
     return _split_half(gains(torch.where(left[..., None], obs, nan), albedo),
                        gains(torch.where(left[..., None], nan, obs), albedo), rec,
                        "the gains of the images' left and right halves")

@@ -3,8 +3,9 @@
 scene and composited where the splats leave light through, in place of the constant background.
 
 ``auto`` turns it on for captures whose cameras look outward (the backdrop's ``inside-out`` layout,
-:func:`ssgwarp.reconstruction.backdrop.camera_layout`): they see the sky or whatever lies at infinity all around;
-an object or forward-facing capture keeps its background. The grid starts at the training images' mean colour
+:func:`ssgwarp.reconstruction.backdrop.camera_layout`: they see the sky all around) and that have no backdrop
+(``--backdrop off``, or a scene given): with one, its far shell stands for the sky, and the field measured no gain
+(``benchmarks/inside_out.py``); an object or forward-facing capture keeps its background. The grid starts at the training images' mean colour
 and has its own Adam learning rate (:data:`LR`). ``metrics.json`` and ``data.json`` record the decision
 (``sky``); the run folder gets ``environment.json`` beside ``scene.ply`` (``ssgwarp render`` composites it).
 """
@@ -29,13 +30,15 @@ def check_mode(mode: str) -> str:
     return mode
 
 
-def decide(data, mode: str, layout: Optional[str] = None) -> dict:
-    """The decision record (``use``, ``why``, ``layout``)."""
+def decide(data, mode: str, layout: Optional[str] = None, backdrop: bool = False) -> dict:
+    """The decision record (``use``, ``why``, ``layout``); ``backdrop``: whether the run has a backdrop (its far
+    shell already stands for the sky: measured, the field then adds nothing)."""
     if mode != "auto":
         return {"mode": mode, "use": mode == "on", "why": f"--sky {mode}"}
     layout = layout or camera_layout(data.cameras[list(data.train_ids)])
-    use = layout == "inside-out"
-    why = ("the cameras look outward (inside-out): they see the sky all around" if use else
+    use = layout == "inside-out" and not backdrop
+    why = ("the cameras look outward (inside-out) and no backdrop stands for the sky" if use else
+           "inside-out, but the backdrop's far shell stands for the sky" if layout == "inside-out" else
            f"the cameras' layout is {layout}: the constant background")
     return {"mode": mode, "use": use, "why": why, "layout": layout}
 

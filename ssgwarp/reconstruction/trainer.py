@@ -25,13 +25,12 @@ from ..core.fileio import atomic_path
 from ..core.geometry import knn_mean_distance
 from ..core.optim import adam
 from ..services.loop import Diverged, Loop, diverged_message, read_checkpoint, to_cpu
-from ..services.losses import photometric, psnr, ssim
+from ..services.losses import photometric
 from ..core.optim import batch_factors
 from .recipe import Recipe
 from ..raster.rendering import render
 from ..raster.scene import GaussianScene
-from . import appearance as appearance_mod
-from . import sky as sky_mod
+from .image_model import ImageModel, _masked  # noqa: F401  (_masked: the tests' too)
 from .attach import attach_hooks, restore_attached, takes_scene
 from .backdrop import with_backdrop
 from .schedules import AUTO, AUTO_MAX_ITERS, Schedules, sh_degree_at
@@ -43,7 +42,7 @@ log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
 CHECKPOINT_FORMAT = "ssgwarp-reconstruct-checkpoint/1"
 
 
-class Trainer:
+class Trainer(ImageModel):
     """The 3DGS training loop on one :class:`~ssgwarp.capture.datasets.SceneData`.
 
     Args:
@@ -140,9 +139,7 @@ class Trainer:
         self.check_every = check_every() if self.group.active else 0
         self.history: list[dict] = []
         self.backdrop_mode, self.backdrop = backdrop, None
-        self._init_appearance(appearance_mod.check_mode(appearance))
-        self.sky_mode, self.sky_record, self.environment = sky_mod.check_mode(sky), None, None
-        self.env_opt = None
+        self._init_image_model(appearance, sky)
 
         self.view_gen = torch.Generator().manual_seed(self.seed)
         self._queue: list[int] = []
@@ -157,10 +154,7 @@ class Trainer:
             ids = torch.randn(len(scene), int(identity_dim), generator=g) * self.recipe.identity_init_std
             scene = scene.replace(identities=ids.to(scene.device, scene.dtype))
         scene = scene.to(self.device, torch.float32)
-        self._init_sky()
-        if self.appearance_mode == "auto":
-            self._set_appearance(self._appearance_probe())
-            log.info("appearance auto: %s", self.appearance_record["why"])
+        self._decide_image_model()  # (the sky from the layout, appearance auto from the points)
         if self.strategy.budgeted and len(scene) > self.max_gaussians:
             raise InputError(f"the initial scene has {len(scene)} Gaussians, more than the budget of "
                              f"{self.max_gaussians} (--max-gaussians) of the {self.strategy.name} strategy")
@@ -172,67 +166,6 @@ class Trainer:
         self.attach, self._attached = attach, False
         if attach is not None:
             attach.prepare(self)
-
-    # -- per-image appearance (ssgwarp.reconstruction.appearance) ---------------------------------
-    def _init_appearance(self, mode: str) -> None:
-        self.appearance_mode = mode
-        self.appearance_start = appearance_mod.start_step(self.iters)
-        self.appearance: Optional[appearance_mod.Appearance] = None
-        self.appearance_record: Optional[dict] = None   # (auto: set once the initial scene is made)
-        if mode != "auto":
-            self._set_appearance({"mode": mode, "use": mode == "on", "why": f"--appearance {mode}"})
-
-    def _set_appearance(self, record: dict) -> None:
-        self.appearance_record = {**record, "start_step": self.appearance_start}
-        if record["use"] and self.appearance is None:
-            self.appearance = appearance_mod.Appearance(len(self.data.names), self.data.train_ids, self.device)
-
-    def _render_premultiplied(self, i: int, sh_degree: Optional[int] = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(colour [H, W, 3] on a zero background, alpha [H, W, 1])`` of view ``i`` (no gradient)."""
-        with torch.no_grad():
-            img, alpha, _ = render(self.scene.detach(), self.data.cameras[i],
-                                   sh_degree=self.sh_degree if sh_degree is None else sh_degree,
-                                   backgrounds=torch.zeros(1, 3, device=self.device), rasterize=self.rasterize,
-                                   **self.raster_kwargs)
-            if self.environment is not None:  # the sky: part of the picture, opaque
-                img = self.environment.composite(img[..., :3], alpha, self.data.cameras[i])
-                alpha = torch.ones_like(alpha)
-        return img[0, ..., :3], alpha[0]
-
-    def _appearance_probe(self) -> dict:
-        """``auto``: the decision from the capture's own points (:func:`appearance.points_probe`)."""
-        none = {"mode": "auto", "use": False, "probe": None}
-        if self.data.points is None or self.data.points_source == "random":
-            return {**none, "why": "no points of the capture's own (random initial points): no evidence, off "
-                                   "(--appearance on turns it on)"}
-        rec = appearance_mod.points_probe(self.data, self.data.points[0], seed=self.seed)
-        return rec if rec is not None else {**none, "why": "fewer than 200 of the capture's points are seen by "
-                                                           "3 training views: no evidence, off"}
-
-    def _appearance_step(self):
-        """The transforms this step trains with (None: off, or before their start step)."""
-        return self.appearance if self.step >= self.appearance_start else None
-
-    # -- the sky behind the splats (ssgwarp.reconstruction.sky) -------------------------------------
-    def _init_sky(self) -> None:
-        layout = None if self.backdrop is None else self.backdrop.layout
-        self.sky_record = sky_mod.decide(self.data, self.sky_mode, layout)
-        if self.sky_record["use"]:
-            self.environment = sky_mod.initial(self.data, self.device)
-            self.env_opt = adam([{"params": [self.environment.grid], "lr": sky_mod.LR * self.lr_factor,
-                                  "name": "environment"}], betas=self.betas)
-
-    def _composite(self, color: torch.Tensor, alpha: torch.Tensor, cameras, bg: torch.Tensor):
-        """The render on its background: the sky where there is one (then fully opaque), else ``bg``.
-        Returns ``(colour, alpha)`` (alpha: what the appearance transform's offset scales)."""
-        if self.environment is None:
-            return color + (1.0 - alpha) * bg[:, None, None, :3], alpha
-        return self.environment.composite(color, alpha, cameras), torch.ones_like(alpha)
-
-    @property
-    def eval_protocol(self) -> str:
-        """How held-out views are scored: the whole image, or (appearance on) the half protocol."""
-        return appearance_mod.HALF_PROTOCOL if self.appearance is not None else appearance_mod.FULL_PROTOCOL
 
     # -- state --------------------------------------------------------------------------------
     def _initial_scene(self) -> GaussianScene:
@@ -296,9 +229,6 @@ class Trainer:
             for g in self.hook_opt.param_groups:
                 g["lr"] *= self.lr_factor
         self._hook_takes_scene = [takes_scene(h) for h in self.hooks]
-
-    def _env_params(self) -> list[torch.Tensor]:
-        return [] if self.environment is None else [self.environment.grid]
 
     def _hook_params(self) -> list[torch.Tensor]:
         if self.hook_opt is None:
@@ -375,12 +305,8 @@ class Trainer:
         if self.strategy.uses_means2d_grad and means2d.requires_grad:
             means2d.retain_grad()
         img = out if out.shape[-1] == 3 else out[..., :3]  # (a slice's backward would copy the whole gradient)
-        if app is not None:  # each photo's exposure and white balance on the render, then the background
-            if self.environment is not None:
-                img, alphas = self._composite(img, alphas, cam, bg)
-            img = app(views, img, alphas, gt, bg, masks)
-        elif self.environment is not None:
-            img, _ = self._composite(img, alphas, cam, bg)
+        if own_bg:  # the sky behind the splats, each photo's exposure and white balance (ImageModel)
+            img = self._picture(app, views, img, alphas, cam, gt, bg, masks)
         if masks is not None:  # masked pixels are zero in both: no error, no gradient, no SSIM content
             img, gt = _masked(img, gt, masks)
         loss = photometric(img, gt, r.lambda_dssim, r.dssim_scale)  # (the mean over the views)
@@ -561,11 +487,7 @@ class Trainer:
             "attached": self.attach.state() if self._attached else None,
             # the resume record of the command that runs this trainer (ssgwarp.services.runs.resume_record)
             "options": getattr(self, "resume_options", None),
-            "sky": {"record": self.sky_record,
-                    "grid": None if self.environment is None else self.environment.grid.detach().cpu(),
-                    "optimizer": None if self.env_opt is None else to_cpu(self.env_opt.state_dict())},
-            "appearance": {"record": self.appearance_record,
-                           "state": None if self.appearance is None else self.appearance.state_dict()},
+            **self._image_model_state(),
         }
 
     def save_checkpoint(self, path: Optional[str | Path] = None) -> Path:
@@ -628,21 +550,7 @@ class Trainer:
         self.view_gen.set_state(rng["view"])
         self.strategy.set_generator_state(rng["split"])
         self.history = list(st.get("history", []))
-        sky = st.get("sky")
-        if (sky is not None and sky.get("grid") is not None) != (self.environment is not None):
-            raise InputError(f"the checkpoint was trained {'with' if self.environment is None else 'without'} "
-                             f"a sky (--sky); pass --sky {'on' if self.environment is None else 'off'} to resume it")
-        if self.environment is not None:
-            with torch.no_grad():
-                self.environment.grid.copy_(sky["grid"].to(self.device))
-            if sky.get("optimizer") is not None:
-                self.env_opt.load_state_dict(sky["optimizer"])
-        app = st.get("appearance")
-        if app is not None and app.get("record") is not None:
-            self.appearance = None
-            self._set_appearance(app["record"])
-            if self.appearance is not None and app.get("state") is not None:
-                self.appearance.load_state_dict(app["state"])
+        self._load_image_model(st)
         self.schedules.load_state_dict(st.get("stop_monitor"))
         self.last_checkpoint_step = self.step
 
@@ -656,52 +564,3 @@ class Trainer:
         except KeyError as e:
             raise InputError(f"{path}: checkpoint lacks {e}; use --force to start over") from None
         log.info("resumed from %s at step %d", path, self.step)
-
-    # -- evaluation -----------------------------------------------------------------------------
-    @torch.no_grad()
-    def render(self, ids: Sequence[int]) -> torch.Tensor:
-        """``[len(ids), H, W, 3]`` renders of the data's views ``ids`` at the final SH degree."""
-        scene = self.scene.detach()
-        out = []
-        bg = self.data.background_tensor(3)[None]
-        for i in ids:
-            if self.environment is not None:
-                img = self._render_premultiplied(i)[0][None]
-            else:
-                img, _, _ = render(scene, self.data.cameras[i], sh_degree=self.sh_degree, backgrounds=bg,
-                                   rasterize=self.rasterize, **self.raster_kwargs)
-            out.append(img[0, ..., :3].clamp(0.0, 1.0))
-        return torch.stack(out) if out else torch.zeros(0, self.data.height, self.data.width, 3)
-
-    @torch.no_grad()
-    def evaluate(self, ids: Optional[Sequence[int]] = None, lpips=None) -> dict:
-        """PSNR / SSIM (and LPIPS when a model is given) over the views ``ids`` (default: test views)."""
-        ids = list(self.data.test_ids if ids is None else ids)
-        per = []
-        half = self.appearance is not None  # appearance on: the half protocol (:func:`appearance.score_half`)
-        for i in ids:
-            gt = self.data.images[i][None]
-            mask = None if self.data.masks is None else self.data.masks[i][None]
-            if half:
-                c, a = self._render_premultiplied(i)
-                pred, gt, m = appearance_mod.score_half(c, a, gt[0], self.data.background_tensor(3),
-                                                        None if mask is None else mask[0])
-                pred, gt, mask = pred[None], gt[None], None if m is None else m[None]
-            else:
-                pred = self.render([i])
-            if mask is not None:  # the scene's pixels: PSNR of their mean error, the rest 0 in both (for SSIM)
-                pred, gt = _masked(pred, gt, mask)
-            row = {"name": self.data.names[i], "psnr": float(psnr(pred, gt, mask)), "ssim": float(ssim(pred, gt))}
-            if lpips is not None:
-                row["lpips"] = float(lpips(pred.permute(0, 3, 1, 2), gt.permute(0, 3, 1, 2)).mean())
-            per.append(row)
-        out = {"views": len(per), "per_view": per}
-        for k in ("psnr", "ssim", "lpips"):
-            vals = [r[k] for r in per if k in r]
-            out[k] = float(np.mean(vals)) if vals else None
-        return out
-
-
-def _masked(img: torch.Tensor, gt: torch.Tensor, masks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``img``, ``gt`` with the pixels where ``masks [B, H, W]`` is 0 set to 0 in both (out of losses, metrics)."""
-    return img * masks[..., None].to(img.dtype), gt * masks[..., None].to(gt.dtype)
