@@ -1,33 +1,16 @@
 """Data-parallel reconstruction: 1 GPU against N GPUs (torchrun), time to equal held-out quality.
 
-Configurations, each in its own process(es) so memory peaks are clean, all on the same capture,
-seed and number of images (``--iters`` one-view steps; a batch of B trains ``--iters / B`` steps):
+Each configuration in its own process(es), same capture, seed and number of images (``--iters`` one-view steps; a
+batch of B trains ``--iters / B`` steps): ``1gpu-b1`` (the plain ``ssgwarp reconstruct``, the reference), ``1gpu-bN``
+(N views per step: what batching gives) and ``Ngpu-bN`` (``torchrun``, one view per GPU per step, NCCL). Held-out
+PSNR every ``--eval-every`` images (not timed); per configuration the training time at which it first reached the
+reference's final PSNR - 0.1 dB, the time from which it stayed there, the speed-up, final PSNR, Gaussians and peak
+memory per GPU. ``--batch-scaling`` repeats the batch configurations per Adam scaling (docs/scaling.md).
 
-* ``1gpu-b1``: one process, one view per step (the plain ``ssgwarp reconstruct``; the reference);
-* ``1gpu-bN``: one process, N views per step through the rasterizer's camera batch (separates
-  what batching gives from what the second GPU gives);
-* ``Ngpu-bN``: ``torchrun --nproc_per_node N``, one view per GPU per step (gradients all-reduced
-  over NCCL).
-
-Held-out PSNR is measured every ``--eval-every`` images (evaluation time is not counted). The
-target is the reference's final PSNR minus 0.1 dB; for each configuration the table gives the
-training time at which its PSNR first reached it, the time from which it stayed there to the end of the
-run (curves dip after every opacity reset), the speed-up over the reference at the latter,
-final PSNR, Gaussians and peak memory per GPU.
-Prints a markdown table and writes the rows and PSNR curves to ``--out``.
-
-    # the GPU run (2 GPUs; about 2 minutes on 2 H200s at 7k, fresh kernel cache included):
-    python benchmarks/ddp.py --data /root/data/llff_fern --images images_4 --iters 7000 --gpus 2 \
-        --out ddp_fern4.json
-    # colmap_cup at 30k images, only some configurations (--only), the table again from earlier runs (read back):
-    python benchmarks/ddp.py --data /root/data/colmap_cup --images images --iters 30000 --only 1gpu-b1 1gpu-bN --out c.json
+    python benchmarks/ddp.py --data /root/data/llff_fern --images images_4 --iters 7000 --gpus 2 --out ddp_fern4.json
     python benchmarks/ddp.py --data /root/data/colmap_cup --images images --iters 30000 --only 1gpu-bN \
-        --no-single-batch --out c.json
-    # CPU smoke test (gloo, 2 processes):
+        --no-single-batch --out c.json                 # some configurations, the others read back from --out
     python benchmarks/ddp.py --images images_8 --width 64 --iters 40 --eval-every 20 --device cpu --out /tmp/ddp.json
-
-``--batch-scaling`` (several allowed) repeats the batch configurations with each Adam scaling
-(docs/scaling.md), which is how the default (sqrt) was chosen.
 """
 from __future__ import annotations
 

@@ -11,6 +11,7 @@ import json
 import os
 import platform
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -21,6 +22,12 @@ ROOT = Path(__file__).resolve().parents[1]
 # repository, the shared copy of a worktree
 CANDIDATES = (ROOT.parent / "shared" / "data", Path("/root/data"), ROOT / "shared" / "data", Path("/work/shared/data"))
 STYLE_SUFFIXES = (".jpg", ".jpeg", ".png")
+
+
+def dispatch(modes: dict, default, argv=None) -> int:
+    """``modes[argv[0]](argv[1:])`` when the first argument names a mode, else ``default(argv)``."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    return modes[argv[0]](argv[1:]) if argv and argv[0] in modes else default(argv)
 
 
 def data_root() -> Path:

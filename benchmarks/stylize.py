@@ -1,46 +1,22 @@
 """Stylization across styles, and the probes behind docs/stylize.md's tables (no Stage 1 weights needed).
 
-``python benchmarks/stylize.py [options]``: weight-free stylization over many styles (``--help`` for the options).
+For a scene (``--scene``: fern ``images_8``, the demo scene, or a grouped run folder) and every style image in
+``--styles``, runs ``ssgwarp stylize`` (Stage 2 matches the style image) and ``ssgwarp evaluate`` (30 path views) and
+prints one row per style: colour / texture distances to the style (``StyleDistance``) before and after, the same
+for half of the style image against the whole (``StyleDistance.halves``), the Gram loss, short/long-range
+consistency RMSE as ratios to the unstylized scene's, and floaters. ``--ablation``: Stage 2's ablations on a few
+styles. Finished styles are kept (``OUT/<scene>/<style>/result.json``) and skipped on the next run, so shards and
+interrupted runs add up; ``--report`` tables what is finished. Writes ``table.md``, ``results.json`` and
+``styles_sheet.jpg`` under ``OUT/<scene>``.
 
-For a scene (fern ``images_8`` reconstruction, the demo scene, or any grouped run) and every style
-image in a folder (default ``../shared/data/styles``, 25 images), runs ``ssgwarp stylize`` (no
-Stage 1 weights needed: Stage 2 matches the style image) and ``ssgwarp evaluate`` (default
-protocol: 30 novel views on a smooth path through the training cameras), and prints one row per
-style: colour and texture distances (sliced Wasserstein in Lab / of a derivative-of-Gaussian
-filter bank, ``ssgwarp.evaluation.metrics.StyleDistance``) of the original and the stylized renders, the Gram
-loss of the extractor Stage 2 used, short/long-range consistency RMSE as ratios to the
-unstylized scene's, and floaters over the regions the unstylized scene leaves empty (the worst
-style). For reference, each row also scores half of the style image against the whole with the same
-distances (about as close as a render can be expected to get; ``StyleDistance.halves``). ``--ablation`` runs the Stage 2
-ablations (colour transfer, content/TV weights, SH bands, colour gain cap) on a few styles instead.
-
-    python benchmarks/stylize.py --scene demo                  # the demo scene (built first)
-    python benchmarks/stylize.py --scene fern                  # fern images_8 (reconstructed + grouped first)
     python benchmarks/stylize.py --scene fern --shard 0/3      # a third of the styles (10-minute slots)
     python benchmarks/stylize.py --scene demo --demo-size small --styles-subset candy,udnie \
         --iters 10 --path-frames 6 --out /tmp/ss                       # CPU check (~2 min on 2 cores)
-    python benchmarks/stylize.py --scene fern --ablation       # Stage 2 ablation table
-    python benchmarks/stylize.py --scene fern --ablation --styles-subset mondrian,asheville \
-        --ablation-rows "default;SH rest: keep;paper objective (content 0, TV 0)"   # some rows, some styles
-    python benchmarks/stylize.py --scene fern --report         # table of what is finished, no new runs
-    python benchmarks/stylize.py --scene fern --paint --tag paint   # stylize's --paint preset
-    python benchmarks/stylize.py --scene fern --configs FILE --timeout 420  # several configurations at once
-                                                                      # on one GPU, FILE lines 'TAG: FLAGS'
+    python benchmarks/stylize.py --scene fern --ablation --ablation-rows "default;SH rest: keep"
+    python benchmarks/stylize.py --scene fern --configs FILE --timeout 420  # 'TAG: FLAGS' lines, all at once
 
-Every finished style is kept (``OUT/<scene>/<style>/result.json``) and skipped when the script
-runs again, so shards and interrupted runs add up; ``--report`` prints the table of everything
-finished. Writes ``OUT/<scene>/table.md``, ``OUT/<scene>/results.json`` and a contact sheet of a
-few styles, ``OUT/<scene>/styles_sheet.jpg``.
-
-Modes, each with its own ``--help``:
-
-``python benchmarks/stylize.py stage2 [options]``: seconds per stage of ``ssgwarp stylize`` on fern ``images_4``.
-
-``python benchmarks/stylize.py probe --run RUN [--style STYLE] [--truth]``: the consistency error that texture
-fixed in 3-D costs, per period and contrast.
-
-``python benchmarks/stylize.py bound --run RUN [--styles candy,mosaic] [--steps 50,200]``: the texture distance
-Stage 2's style loss alone reaches on freely optimised pixels.
+Modes, each with its own ``--help``: ``stage2`` (seconds per stage of ``ssgwarp stylize``), ``probe`` (the
+consistency error that texture fixed in 3-D costs), ``bound`` (the texture distance the style loss alone reaches).
 """
 from __future__ import annotations
 
@@ -54,41 +30,34 @@ from typing import Optional
 
 import torch
 
-from harness import ROOT, data_root, machine, style_paths
+from harness import ROOT, data_root, dispatch, machine, style_paths
 
 from ssgwarp.evaluation.features import EXTRACTOR_KINDS
 
 DATA = data_root()
-STAGE2_DOC = """Seconds per stage of `ssgwarp stylize` on fern images_4 (1008x756), in total and per Stage 2 mode.
+STAGE2_DOC = """Seconds per stage of `ssgwarp stylize` on fern images_4, per Stage 2 mode (table and OUT/benchmark.json).
 
-Stage 2 defaults unless flags say otherwise; 4 key views; Stage 1 runs when its weights are configured
-(docs/stylize.md), else it is skipped and said so. ``--synthetic N``: a stand-in scene of N Gaussians sampled around
-fern's COLMAP points (8 groups by k-means), no reconstruction needed. ``--random-stage1 sd15``: Stage 1 on random
-SD1.5-sized models (tests/fakeweights.py; real compute, noise images). Results: a markdown table and OUT/benchmark.json.
+Stage 1 runs when its weights are configured. ``--synthetic N``: a stand-in scene of N Gaussians around fern's COLMAP
+points (8 k-means groups); ``--random-stage1 sd15``: Stage 1 on random SD1.5-sized models (real compute).
 
-    python benchmarks/stylize.py stage2                       # reconstruct + group fern, then stylize
     python benchmarks/stylize.py stage2 --run runs/fern4 --modes ist,global --iters 600
     python benchmarks/stylize.py stage2 --synthetic 300000 --random-stage1 sd15
 """
 PROBE_DOC = """What texture costs in the consistency metric when the texture is consistent by construction.
 
-Paints the scene's Gaussians with a grey probe colour that is a fixed function of 3-D position (six seeded
-sinusoids, ``period`` pixels at the median depth, standard deviation ``amplitude``; SH bands above 0 zeroed), renders
-``ssgwarp evaluate``'s path views and scores them as ``evaluate`` does: short/long-range reprojection RMSE as a ratio
-to the unpainted scene's, the share of squared error in the worst 10 % / 25 % of pixels, and with ``--style`` the
-texture distance per filter scale. No optimisation: what the ratio shows is what the geometry makes of painted
-contrast. ``--truth`` (a run of ``ssgwarp demo``: OUT/scene) also scores the procedural scene that made the capture.
+Paints the Gaussians with a grey colour that is a fixed function of 3-D position (six seeded sinusoids of
+``period`` pixels at the median depth, std ``amplitude``) and scores ``ssgwarp evaluate``'s path views as it does
+(reprojection RMSE against the unpainted scene's, error share of the worst 10 / 25 % of pixels; ``--style``: texture
+distance per scale). ``--truth`` (an ``ssgwarp demo`` run, OUT/scene): also the procedural scene behind it.
 
     python benchmarks/stylize.py probe --run RUN --style ../shared/data/styles/candy.jpg
     python benchmarks/stylize.py probe --run ssgwarp-demo/scene --truth --periods 2,8,32
 """
 BOUND_DOC = """How far Stage 2's weight-free style loss takes the texture distance with nothing holding it back.
 
-Per style: the colours go through Stage 2's colour transfer, ``ssgwarp evaluate``'s path views are rendered, and each
-view's scene pixels (alpha >= 0.5) are optimised freely with the style loss alone (Adam on the pixels' logits; no 3-D
-scene, consistency, content or smoothing terms unless asked), then scored with the texture distance after each of
-``--steps`` steps per view; beside them the colour distance's change and half of the style image against the whole.
-A texture target beyond this is beyond the loss, whatever the 3-D side does.
+Per style: Stage 2's colour transfer, then each path view's scene pixels (alpha >= 0.5) optimised freely with the
+style loss alone (Adam on the logits), scored after each of ``--steps`` steps per view. A texture target beyond
+this is beyond the loss, whatever the 3-D side does.
 
     python benchmarks/stylize.py bound --run RUN --styles candy,mosaic --steps 10,100
 """
@@ -925,10 +894,7 @@ MODES = {"stage2": stage2_main, "probe": probe_main, "bound": bound_main}
 
 
 def main(argv=None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
-    if argv and argv[0] in MODES:
-        return MODES[argv[0]](argv[1:])
-    return styles_main(argv)
+    return dispatch(MODES, styles_main, argv)
 
 
 if __name__ == "__main__":

@@ -1,46 +1,20 @@
-"""The measured speed/accuracy trade: each knob of the renderer and of stylization, time vs error.
+"""The measured speed/accuracy trade: each knob of the renderer and of stylization, time against error.
 
-Rasterizer knobs (one changed at a time from the defaults: float32, gsplat's
-rules ``RasterSettings()``, tile 16, the scene's full SH degree, all Gaussians):
-
-    precision        float32 | float64
-    alpha_min        1/255 | 0            (skip faint contributions)
-    t_min            1e-4 | 0             (transmittance cut-off)
-    alpha_max        0.999 | 1            (alpha clamp)
-    fast_math        on | off             (CUDA float32: approximate exp/log/division/sqrt)
-    covariance       gsplat | factor      (2D covariance as gsplat forms it, or cancellation-free)
-    extent           opacity-aware | fixed 3.33 sigma
-    tile_size        8 | 16 | 32
-    sh_degree        0 | 1 | 2 | 3        (SH bands evaluated)
-    gaussians        25 | 50 | 100 %      (kept by opacity, the most opaque first)
-    exact            RasterSettings.exact() in float32 (all three gates off)
-
-Each case is timed (median of ``--repeats``, CUDA-synchronised; forward, and
-forward + backward of a fixed random weighting of the image) and compared with
-the *reference*: the same scene rendered in float64 with
-``RasterSettings.exact()`` (no threshold, cut-off or clamp; fixed 3.33-sigma
-extent), all Gaussians, full SH degree. Errors: image RMSE and max abs error
-(colours in [0, 1]) and the relative L2 error of the positional gradient
-``dL/dmeans`` (what densification reads) on the Gaussians the case keeps.
-
-Stylization knobs (``--stylize``; Stage 2 through :func:`ssgwarp.stylization.stylize.stylize_run`):
-key views 2 | 4 | 8 and feature resolution (``feature_scale`` 0.25 | 0.5 | 1),
-each reporting the Stage 2 time and the resulting Gram style loss and content
-loss (:mod:`ssgwarp.evaluation.metrics`). Without Stage 1 weights the key views fall back
-to global matching and the table says so.
-
-Outputs in ``--out``: ``tradeoffs.md`` (tables, device names, date),
-``tradeoffs.json`` (raw numbers; ``--append`` keeps other devices' results)
-and ``tradeoffs_pareto.png`` (time vs error, one panel per device, the Pareto
-front drawn).
+Rasterizer knobs, one changed at a time from the defaults (float32, ``RasterSettings()``, tile 16, the scene's SH
+degree, all Gaussians): precision, alpha_min, t_min, alpha_max, fast_math, covariance, extent, tile_size (8 / 16 /
+32), sh_degree (0-3), gaussians (25 / 50 / 100 %, the most opaque kept), exact (``RasterSettings.exact()``). Each is
+timed (median of ``--repeats``; forward, and forward + backward of a fixed random weighting of the image) and
+compared with the float64 ``RasterSettings.exact()`` render of all Gaussians: image RMSE and max error, relative L2
+error of ``dL/dmeans``. ``--stylize``: Stage 2's key views (2 / 4 / 8) and ``feature_scale`` (0.25 / 0.5 / 1),
+with Stage 2's time and Gram / content losses. Writes ``tradeoffs.md``, ``tradeoffs.json`` (``--append`` keeps other
+devices' results) and ``tradeoffs_pareto.png`` (time against error, the Pareto front) to ``--out``.
 
     python benchmarks/tradeoffs.py --quick --out /tmp/tradeoffs          # < 1 min CPU smoke run
-    python benchmarks/tradeoffs.py --devices cpu --n 20000 --size 256 --out bench/tradeoffs
     python benchmarks/tradeoffs.py --devices cuda --n 500000 --size 1024 --stylize --append --out bench/tradeoffs
     python benchmarks/tradeoffs.py --scene runs/fern --size 504 --out bench/fern   # a real reconstruction
 
-``python benchmarks/tradeoffs.py budget RESULTS.json ... --scene fern8`` plots held-out PSNR against Gaussians and
-peak memory from ``benchmarks/train_step.py runs`` results (the MCMC budget sweep beside the other strategies).
+Mode ``budget RESULTS.json ... --scene fern8``: held-out PSNR against Gaussians and peak memory from
+``benchmarks/train_step.py runs`` results (the MCMC budget sweep beside the other strategies).
 """
 from __future__ import annotations
 
@@ -60,7 +34,7 @@ import ssgwarp
 from ssgwarp import RasterSettings
 from ssgwarp.core.cameras import Cameras, look_at
 from ssgwarp.raster.scene import GaussianScene
-from harness import ROOT, machine, sync, timed, write_text
+from harness import ROOT, dispatch, machine, sync, timed, write_text
 
 
 # ----------------------------------------------------------------------------- scene and cameras
@@ -470,13 +444,9 @@ def main(argv=None) -> int:
 
 
 # ----------------------------------------------------------------------------- budget: PSNR against size
-BUDGET_DOC = """Plot quality against size from ``benchmarks/train_step.py runs`` results: the MCMC budget sweep beside the
-other strategies of the same scene.
+BUDGET_DOC = """Held-out PSNR against Gaussians and peak GPU memory from ``train_step.py runs`` results (a PNG).
 
-Reads one or more ``results.json`` files (their ``rows``), keeps the rows of ``--scene`` at ``--iters``, and
-draws held-out PSNR against the final Gaussian count and against peak GPU memory: one line for the MCMC
-budget sweep (each point labelled with its budget and train time), one marker per other run (strategy,
-backend, D-SSIM scale). Writes a PNG (default ``docs/tradeoffs_budget.png``).
+The rows of ``--scene`` at ``--iters`` of every file: a line for the MCMC budget sweep, a marker per other run.
 
     python benchmarks/tradeoffs.py budget sweep/results.json f8ours/results.json f8gs/results.json \\
         dssim/results.json --scene fern8 --iters 7000 --out docs/tradeoffs_budget.png
@@ -571,12 +541,6 @@ def budget_main(argv=None) -> int:
     return 0
 
 
-def dispatch(argv=None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
-    if argv and argv[0] == "budget":
-        return budget_main(argv[1:])
-    return main(argv)
-
 
 if __name__ == "__main__":
-    sys.exit(dispatch())
+    sys.exit(dispatch({"budget": budget_main}, main))

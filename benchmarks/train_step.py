@@ -1,32 +1,19 @@
 """A training step's cost, and whole training runs, with ssgwarp's rasterizer or gsplat's (and its strategies).
 
-``python benchmarks/train_step.py [options]``: one step of our training loop per backend: milliseconds per step, the
-device synchronisations a step makes (and where) and, with ``--profile``, torch.profiler's top host ops. One
-:class:`ssgwarp.reconstruction.trainer.Trainer` per backend on the same capture, seed and recipe: ``--warm`` steps
-first (past the first refinements, so the Gaussian count is a trained scene's), then ``--steps`` timed steps
-between two refinements. On CUDA the synchronisations come from torch's sync debug mode (each synchronising call
-and the ssgwarp / kornia / gsplat / torch.optim frames that made it). ``--ops`` adds the step's op table: every
-torch op a step calls from Python (top-level ``aten::`` ops, forward and backward) and every Warp launch
-(``warp::<kernel>``), one row per op and source line (the innermost ssgwarp line; a backward op names the
-autograd node and the line of its forward op), with calls per step, host microseconds per step (under the
-profiler, so inflated alike for all rows) and the launches queued on the GPU.
+One :class:`~ssgwarp.reconstruction.trainer.Trainer` per ``--backend`` on the same capture, seed and recipe:
+``--warm`` steps (past the first refinements), then ``--steps`` timed steps: ms per step and, on CUDA, each
+synchronising call and the frames that made it (torch's sync debug mode). ``--profile``: torch.profiler's top host
+ops; ``--ops``: every torch op and Warp launch a step makes, per source line (a backward op names the line of its
+forward op), calls, host µs (under the profiler) and GPU launches per step.
 
-    python benchmarks/train_step.py                              # fern images_8, ssgwarp and gsplat
     python benchmarks/train_step.py --scene fern4 --backend ssgwarp --profile
     OMP_NUM_THREADS=2 python benchmarks/train_step.py --device cpu --backend ssgwarp --warm 20 --steps 5 --ops
 
-``python benchmarks/train_step.py runs [options]``: whole runs (held-out PSNR / SSIM, Gaussians, time, memory)
-per scene x backend x strategy x budget (``runs --help``).
+Modes, each with its own ``--help``: ``runs`` (whole runs per scene x backend x strategy x budget: held-out PSNR /
+SSIM, Gaussians, time, memory), ``loss`` (the photometric loss, 0.8 L1 + 0.2 (1 - SSIM): the torch reference against
+the fused Warp kernels per image size; on CUDA also host time with 20 calls queued and the kernels' GPU time).
 
-    python benchmarks/train_step.py runs --scenes fern8 fern4 --backend ssgwarp gsplat   # training time vs gsplat
-    python benchmarks/train_step.py runs --scenes fern8 --strategy mcmc --max-gaussians 50000 100000 300000 1000000
-
-``python benchmarks/train_step.py loss [options]``: the photometric loss every step computes (0.8 L1 + 0.2
-(1 - SSIM)): the torch reference against the fused Warp kernels per image size, forward and forward+backward,
-median ms of synchronised calls taken in turns; on CUDA also the host time with 20 calls queued and the kernels'
-GPU time (``loss --help``).
-
-    python benchmarks/train_step.py loss --device cuda
+    python benchmarks/train_step.py runs --scenes fern8 fern4 --backend ssgwarp gsplat
     OMP_NUM_THREADS=1 python benchmarks/train_step.py loss --device cpu --clock cpu
 """
 from __future__ import annotations
@@ -47,8 +34,8 @@ from pathlib import Path
 
 import torch
 
-from harness import (CAPTURES, ROOT, append_jsonl, capture_folder, cuda_kernel_ms, header, interleaved, per_call_us,
-                     write_text)
+from harness import (CAPTURES, ROOT, append_jsonl, capture_folder, cuda_kernel_ms, dispatch, header, interleaved,
+                     per_call_us, write_text)
 
 from ssgwarp.capture.datasets import load_dataset
 from ssgwarp.errors import InputError
@@ -60,18 +47,12 @@ from ssgwarp.reconstruction.strategy import DefaultStrategy, MCMCStrategy, Strat
 
 RUNS_DOC = """Whole training runs: our 3DGS loop with either rasterizer and each densification strategy.
 
-One Trainer loop (same data, seed, recipe, schedule) per scene x ``--backend`` (``ssgwarp``; ``gsplat``:
-gsplat.rasterization, non-packed) x ``--strategy`` (ours: ``default`` / ``mcmc``; gsplat 1.5's ``gsplat-default`` /
-``gsplat-mcmc`` editing our tensors and Adam state through GsplatStrategy, given our schedule and thresholds; MCMC's
-regulariser is ours for both, its noise learning rate divided by extent^2) x ``--iters`` x ``--max-gaussians``
-(with mcmc: the budget sweep of docs/tradeoffs.md). ``--scenes``: fern8 / fern4 (LLFF fern images_8 / images_4),
-cup (colmap_cup), lego (lego_200, white background) or PATH[:IMAGES]. Distorted captures are undistorted into a
-pinhole crop, where PSNR / SSIM are measured. ``--match-default`` also runs mcmc at the default run's final count;
-``--dssim-scale 0.5`` trains with the halved D-SSIM term of before. Prints tables (runs; rasterizer pairs; strategy
-pairs; budget sweep) and writes them with the raw rows to ``--out``. Targets (issues 3, 14): ssgwarp vs gsplat's
-rasterizer within 0.2 dB and 1.5x time; our default within 0.2 dB of gsplat's; MCMC at an equal count >= default.
+One Trainer loop per scene x ``--backend`` (``gsplat``: gsplat.rasterization, non-packed) x ``--strategy`` (ours, or
+gsplat 1.5's ``gsplat-default`` / ``gsplat-mcmc`` on our tensors and schedule) x ``--iters`` x ``--max-gaussians``
+(with mcmc: docs/tradeoffs.md's budget sweep). Distorted captures are undistorted into a pinhole crop.
+``--match-default``: also mcmc at the default run's final count. Tables (runs; rasterizer, strategy pairs; budget
+sweep) and raw rows go to ``--out``. Targets (issues 3, 14): within 0.2 dB of gsplat's rasterizer at <= 1.5x time.
 
-    python benchmarks/train_step.py runs --scenes fern8 --backend ssgwarp gsplat --strategy default
     python benchmarks/train_step.py runs --scenes fern8 cup lego --strategy default gsplat-default --match-default
     python benchmarks/train_step.py runs --scenes PATH --iters 120 --device cpu --strategy default mcmc
 """
@@ -703,10 +684,7 @@ MODES = {"runs": runs_main, "loss": loss_main}
 
 
 def main(argv=None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
-    if argv and argv[0] in MODES:
-        return MODES[argv[0]](argv[1:])
-    return step_main(argv)
+    return dispatch(MODES, step_main, argv)
 
 
 if __name__ == "__main__":
