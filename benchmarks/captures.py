@@ -24,10 +24,10 @@ import sys
 import time
 from pathlib import Path
 
-from harness import CAPTURES, append_jsonl, capture_folder, data_root, dispatch, machine  # noqa: E402
-from harness import table as md_table  # noqa: E402
+from harness import CAPTURES, append_jsonl, capture_folder, data_root, dispatch, machine, write_text  # noqa: E402
+from harness import cell as _f, table as md_table  # noqa: E402
 
-from ssgwarp.core.fileio import atomic_path, write_json  # noqa: E402
+from ssgwarp.core.fileio import write_json  # noqa: E402
 
 SETTINGS = {"7k": 7000, "auto": "auto"}
 BASELINE = Path(__file__).resolve().parent / "captures_baseline.json"
@@ -146,10 +146,6 @@ def compare(rows: list[dict], baseline: dict, tolerance: float = TOLERANCE) -> l
     return out
 
 
-def _f(v, spec=".2f"):
-    return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, spec)
-
-
 def table(rows: list[dict], tolerance: float = TOLERANCE) -> str:
     lines = [f"| capture | setting | resolution | steps | held-out PSNR (dB) | baseline | change (REGRESSION: < "
              f"-{tolerance:g} dB) | SSIM | LPIPS | Gaussians | train (s) | run (s) | initial points | backdrop |",
@@ -170,39 +166,30 @@ def table(rows: list[dict], tolerance: float = TOLERANCE) -> str:
 # ----------------------------------------------------------------------------- main
 def table_main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--captures", nargs="+", default=list(CAPTURES),
-                   help=f"{', '.join(CAPTURES)} or PATH[:IMAGES] (default: every shared capture)")
-    p.add_argument("--settings", nargs="+", default=list(SETTINGS),
-                   help="7k (7,000 steps), auto (--iters auto) or a step count (default: 7k auto)")
-    p.add_argument("--iters", type=int, default=None, help="run every setting at this many steps (smoke runs)")
-    p.add_argument("--max-images", type=int, default=None, help="use at most this many images (smoke runs)")
-    p.add_argument("--width", type=int, default=None, help="resize the images to this width (smoke runs)")
-    p.add_argument("--random-points", type=int, default=100_000,
-                   help="initial points of captures without points where triangulation does not apply (default "
-                        "100000, as the command; fewer for smoke runs)")
-    p.add_argument("--data-root", type=Path, default=None, help=f"folder of the shared captures (default {data_root()})")
-    p.add_argument("--device", default=None, help="cuda when available, else cpu")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", type=Path, default=Path("benchmark-captures"),
-                   help="folder for results.jsonl, results.md and the run folders")
-    p.add_argument("--fresh", action="store_true", help="drop the rows already in --out/results.jsonl")
-    p.add_argument("--keep-runs", action="store_true", help="keep each run's scene.ply")
-    p.add_argument("--from", dest="from_file", type=Path, default=None,
-                   help="table the rows of this results.jsonl against the baseline (no runs)")
-    p.add_argument("--baseline", type=Path, default=BASELINE, help=f"baseline file (default {BASELINE.name})")
-    p.add_argument("--tolerance", type=float, default=TOLERANCE, help="dB lost that counts as a regression (0.2)")
-    p.add_argument("--write-baseline", action="store_true",
-                   help="write the table's rows into the baseline file (other rows kept)")
-    p.add_argument("--triangulation", action="store_true",
-                   help="measure the triangulated points of fern images_8 against COLMAP's instead (no training)")
-    p.add_argument("--backdrop-evidence", action="store_true",
-                   help="print the backdrop decision's evidence per capture instead (no training)")
-    p.add_argument("--thin", type=int, default=None,
-                   help="with --backdrop-evidence: also each capture with its points thinned to this many")
-    p.add_argument("--min-angle", type=float, nargs="+", default=None,
-                   help="with --triangulation: the smallest triangulation angles (degrees) to compare (default: "
-                        "triangulate()'s)")
-    p.add_argument("--no-progress", action="store_true")
+    add = p.add_argument
+    add("--captures", nargs="+", default=list(CAPTURES), help=f"{', '.join(CAPTURES)} or PATH[:IMAGES] (default: all)")
+    add("--settings", nargs="+", default=list(SETTINGS), help="7k, auto (--iters auto) or a step count (default: both)")
+    add("--iters", type=int, default=None, help="run every setting at this many steps (smoke runs)")
+    add("--max-images", type=int, default=None, help="use at most this many images (smoke runs)")
+    add("--width", type=int, default=None, help="resize the images to this width (smoke runs)")
+    add("--random-points", type=int, default=100_000, help="initial points where there are none to triangulate "
+        "(default 100000, as the command)")
+    add("--data-root", type=Path, default=None, help=f"folder of the shared captures (default {data_root()})")
+    add("--device", default=None, help="cuda when available, else cpu")
+    add("--seed", type=int, default=0)
+    add("--out", type=Path, default=Path("benchmark-captures"), help="folder for results.jsonl / .md and the runs")
+    add("--fresh", action="store_true", help="drop the rows already in --out/results.jsonl")
+    add("--keep-runs", action="store_true", help="keep each run's scene.ply")
+    add("--from", dest="from_file", type=Path, default=None, help="table this results.jsonl's rows (no runs)")
+    add("--baseline", type=Path, default=BASELINE, help=f"baseline file (default {BASELINE.name})")
+    add("--tolerance", type=float, default=TOLERANCE, help="dB lost that counts as a regression (0.2)")
+    add("--write-baseline", action="store_true", help="write the table's rows into the baseline (others kept)")
+    add("--triangulation", action="store_true", help="triangulated points against COLMAP's instead (no training)")
+    add("--backdrop-evidence", action="store_true", help="the backdrop decision's evidence instead (no training)")
+    add("--thin", type=int, default=None, help="with --backdrop-evidence: also the points thinned to this many")
+    add("--min-angle", type=float, nargs="+", default=None, help="with --triangulation: smallest triangulation "
+        "angles (degrees; default: triangulate()'s)")
+    add("--no-progress", action="store_true")
     a = p.parse_args(argv)
     if a.triangulation:
         return triangulation(a)
@@ -239,15 +226,13 @@ def table_main(argv=None) -> int:
                 print(json.dumps(r), flush=True)
                 rows.append(r)
                 done[k] = r
-                with atomic_path(results) as tmp:
-                    tmp.write_text("".join(json.dumps(x) + "\n" for x in done.values()))
+                write_text(results, "".join(json.dumps(x) + "\n" for x in done.values()))
     rows = compare(rows, baseline, a.tolerance)
     md = table(rows, a.tolerance)
     bad = [key(r) for r in rows if r["status"] == "REGRESSION"]
     print(f"\n{time.strftime('%Y-%m-%d')}, baseline {a.baseline.name}\n\n{md}")
     if a.from_file is None:
-        with atomic_path(a.out / "results.md") as tmp:
-            tmp.write_text(md + "\n")
+        write_text(a.out / "results.md", md + "\n")
     if a.write_baseline:
         write_baseline(a.baseline, rows, baseline)
         print(f"wrote {a.baseline} ({len(rows)} rows)")
@@ -268,8 +253,6 @@ def backdrop_evidence(a) -> int:
     from ssgwarp.capture.datasets import load_dataset
     from ssgwarp.reconstruction.backdrop import MIN_COVERAGE, far_evidence, plan_backdrop
 
-    lines = ["| capture | layout | initial points | coverage | uncovered cells | textured of those | far cells | "
-             "coverage < 90% (before) | backdrop now | seconds |", "|---|---|---|---:|---:|---:|---:|---|---|---:|"]
     rows = []
     for spec in dict.fromkeys(a.captures):
         folder, images = capture_folder(spec, a.data_root)
@@ -287,13 +270,14 @@ def backdrop_evidence(a) -> int:
             row = {"capture": spec, "layout": plan.layout, "points": data.points_source, "count": len(xyz),
                    "coverage": plan.coverage, **{k: ev[k] for k in ("uncovered", "textured", "far")},
                    "before": plan.coverage < MIN_COVERAGE, "use": plan.use, "why": plan.why, "seconds": sec}
-            rows.append(row)
             print(json.dumps(row), flush=True)
-            lines.append(f"| {spec} | {plan.layout} | {len(xyz):,} {data.points_source}"
-                         f"{' (thinned)' if thin else ''} | {plan.coverage:.0%} | {ev['uncovered']:.0%} | "
-                         f"{ev['textured']:.0%} | {ev['far']:.1%} | {'yes' if row['before'] else 'no'} | "
-                         f"{'yes' if plan.use else 'no'} ({plan.why}) | {sec:.1f} |")
-    print("\n".join(lines))
+            rows.append(dict(row, points=f"{len(xyz):,} {data.points_source}{' (thinned)' if thin else ''}",
+                             before="yes" if row["before"] else "no", use=f"{'yes' if plan.use else 'no'} ({plan.why})",
+                             **{k: f"{row[k]:.{0 if k != 'far' else 1}%}" for k in ("coverage", "uncovered", "textured", "far")}))
+    print(md_table(rows, [("capture", "capture"), ("layout", "layout"), ("points", "initial points"),
+                          ("coverage", "coverage"), ("uncovered", "uncovered cells"), ("textured", "textured of those"),
+                          ("far", "far cells"), ("before", "coverage < 90% (before)"), ("use", "backdrop now"),
+                          ("seconds", "seconds", 1)]))
     return 0
 
 
@@ -321,9 +305,7 @@ def triangulation(a) -> int:
 
     caps = [c for c in a.captures if c != "lego" and c != "livingroom" and c != "bird"] \
         if a.captures == list(CAPTURES) else a.captures
-    lines = ["| capture | smallest triangulation angle | triangulated points | COLMAP points | median distance to the nearest COLMAP point "
-             "(% of their spread) | 90th percentile (%) | reprojection error (px) | mean track length | "
-             "seconds |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    rows = []
     from ssgwarp.capture.triangulate import triangulate
 
     default_angle = triangulate.__kwdefaults__["min_angle_deg"]
@@ -354,10 +336,12 @@ def triangulation(a) -> int:
         row = {"capture": spec, "min_angle_deg": angle, **r, "reprojection_px": st.get("median_reprojection_error_px"),
                "track_length": st.get("mean_track_length"), "seconds": round(sec, 1)}
         print(json.dumps(row), flush=True)
-        lines.append(f"| {spec} | {angle:g} deg | {r['points']:,} | {r['reference_points']:,} | {100 * r['relative']:.2f} % | "
-                     f"{100 * r['p90_relative']:.1f} % | {_f(row['reprojection_px'])} | {_f(row['track_length'])} | "
-                     f"{sec:.0f} |")
-    print("\n".join(lines))
+        rows.append(dict(row, relative=100 * r["relative"], p90_relative=100 * r["p90_relative"]))
+    print(md_table(rows, [("capture", "capture"), ("min_angle_deg", "smallest triangulation angle (deg)"),
+                          ("points", "triangulated points"), ("reference_points", "COLMAP points"),
+                          ("relative", "median distance to the nearest COLMAP point (% of their spread)"),
+                          ("p90_relative", "90th percentile (%)", 1), ("reprojection_px", "reprojection error (px)"),
+                          ("track_length", "mean track length"), ("seconds", "seconds", 0)]))
     return 0
 
 

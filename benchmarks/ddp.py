@@ -22,7 +22,7 @@ import sys
 import time
 from pathlib import Path
 
-from harness import data_root, machine
+from harness import data_root, machine, table
 
 
 # ----------------------------------------------------------------------------- one configuration
@@ -169,23 +169,20 @@ def main() -> int:
     t_ref = time_to(ref["curve"], target)
     print(f"\n{a.data.name} {a.images} {ref['resolution'][0]}x{ref['resolution'][1]}, {a.iters} images per run, "
           f"target {target:.2f} dB (1 GPU final - 0.1), {ref['device']}\n")
-    print("| GPUs | batch | Adam scaling | steps | train time (s) | first at target (s) | at target to the end (s) "
-          "| speed-up at target | speed-up (whole run) | held-out PSNR (dB) | Gaussians | peak MiB per GPU |")
-    print("|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---|")
+    shown = []
     for r in rows:
-        tt = time_to(r["curve"], target)
-        r["time_to_target"] = tt
-        first = time_to(r["curve"], target, hold=False)
-        r["first_at_target"] = first
-        r["speedup_at_target"] = round(t_ref / tt, 3) if (tt and t_ref) else None
-        r["speedup_whole_run"] = round(ref["train_seconds"] / r["train_seconds"], 3)
-        reached = "not reached" if tt is None else f"{tt:.1f}"
-        speed = "-" if r["speedup_at_target"] is None else f"{r['speedup_at_target']:.2f}x"
-        scaling = r["batch_scaling"] if r["batch_size"] > 1 else "-"
-        peaks = ", ".join(f"{p:.0f}" for p in r["peak_mb_per_gpu"])
-        first = "not reached" if first is None else f"{first:.1f}"
-        print(f"| {r['gpus']} | {r['batch_size']} | {scaling} | {r['steps']} | {r['train_seconds']:.1f} | {first} | {reached} | "
-              f"{speed} | {r['speedup_whole_run']:.2f}x | {r['psnr']:.2f} | {r['gaussians']:,} | {peaks} |")
+        tt, first = time_to(r["curve"], target), time_to(r["curve"], target, hold=False)
+        r.update(time_to_target=tt, first_at_target=first, speedup_at_target=round(t_ref / tt, 3) if tt and t_ref else None,
+                 speedup_whole_run=round(ref["train_seconds"] / r["train_seconds"], 3))
+        shown.append({**r, "reached": "not reached" if tt is None else f"{tt:.1f}",
+                      "first": "not reached" if first is None else f"{first:.1f}",
+                      "scaling": r["batch_scaling"] if r["batch_size"] > 1 else "-",
+                      "peaks": ", ".join(f"{p:.0f}" for p in r["peak_mb_per_gpu"])})
+    print(table(shown, [
+        ("gpus", "GPUs"), ("batch_size", "batch"), ("scaling", "Adam scaling"), ("steps", "steps"),
+        ("train_seconds", "train time (s)", 1), ("first", "first at target (s)"), ("reached", "at target to the end (s)"),
+        ("speedup_at_target", "speed-up at target (x)"), ("speedup_whole_run", "speed-up (whole run, x)"),
+        ("psnr", "held-out PSNR (dB)"), ("gaussians", "Gaussians"), ("peaks", "peak MiB per GPU")]))
     from ssgwarp.core.fileio import write_json
 
     write_json(a.out, {"target_psnr": target, "iters": a.iters, "images": a.images, "rows": rows})

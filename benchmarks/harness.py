@@ -234,11 +234,17 @@ def fmt(v, digits: int = 2) -> str:
     return f"{v:.2e}" if v != 0 and abs(v) < 1e-2 else f"{v:.{digits}f}"
 
 
+def cell(v, spec: str = ".2f") -> str:
+    """``format(v, spec)``, or 'n/a' for None / NaN."""
+    return "n/a" if v is None or (isinstance(v, float) and v != v) else format(v, spec)
+
+
 def table(rows: list[dict], cols) -> str:
-    """A markdown table of ``rows``: ``cols`` is a list of ``(key, title)`` (columns no row has are left out)."""
-    cols = [c for c in cols if any(c[0] in r for r in rows)]
-    lines = ["| " + " | ".join(t for _, t in cols) + " |", "|" + "---|" * len(cols)]
-    lines += ["| " + " | ".join(fmt(r.get(k)) for k, _ in cols) + " |" for r in rows]
+    """A markdown table of ``rows``: ``cols`` is a list of ``(key, title)`` or ``(key, title, digits)`` (columns no
+    row has are left out)."""
+    cols = [(*c, 2)[:3] for c in cols if any(c[0] in r for r in rows)]
+    lines = ["| " + " | ".join(c[1] for c in cols) + " |", "|" + "---|" * len(cols)]
+    lines += ["| " + " | ".join(fmt(r.get(k), d) for k, _, d in cols) + " |" for r in rows]
     return "\n".join(lines)
 
 
@@ -250,3 +256,22 @@ def write_text(path: Path | str, text: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         tmp.write_text(text)
+
+
+def pyplot():
+    """matplotlib's pyplot on the Agg backend (no display needed)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def save_figure(fig, path: Path | str, **savefig) -> Path:
+    """Write a matplotlib figure atomically (``savefig``'s keywords: format, dpi, ...) and close it."""
+    from ssgwarp.core.fileio import atomic_path
+
+    with atomic_path(Path(path)) as tmp:
+        fig.savefig(tmp, **savefig)
+    pyplot().close(fig)
+    return Path(path)

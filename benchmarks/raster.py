@@ -25,7 +25,7 @@ import time
 import torch
 
 import ssgwarp
-from harness import append_jsonl, header, interleaved, measure, optional_gsplat, table, warm_gpu, write_text
+from harness import append_jsonl, header, interleaved, measure, optional_gsplat, table, warm_gpu
 
 C0 = 0.28209479177387814
 # (N, width, height, SH degree or None for colours, cameras)
@@ -186,8 +186,8 @@ def cuda_row(row, case, args, gsplat) -> None:
             libs.append(("gsplat", fns["gs_f"], fns["gs_fb"]))
         for lib, f, fb in libs:
             print(f"\n=== {lib}: N={n:,} {w}x{h}")
-            profile_pass(f"{lib} forward", f, args.repeats, args.host_rows)
-            profile_pass(f"{lib} forward+backward", fb, args.repeats, args.host_rows)
+            profile_pass(f"{lib} forward", f, args.repeats, 15)
+            profile_pass(f"{lib} forward+backward", fb, args.repeats, 15)
 
 
 def cpu_rows(case, args) -> list[dict]:
@@ -234,12 +234,10 @@ def main(argv=None) -> int:
     ap.add_argument("--cpu-max", type=int, default=10_000, help="largest N x cameras also timed on the CPU")
     ap.add_argument("--agreement", action="store_true", help="CUDA: bit-identical shares of projected Gaussians")
     ap.add_argument("--profile", action="store_true", help="CUDA: per-kernel GPU time and host functions")
-    ap.add_argument("--host-rows", type=int, default=15, help="with --profile: cProfile rows")
     ap.add_argument("--tile", nargs="+", type=int, default=None, help="CPU: tile sizes to time")
     ap.add_argument("--threads", nargs="+", type=int, default=None, help="CPU: blending threads to time")
     ap.add_argument("--clock", choices=("wall", "cpu"), default="wall", help="CPU: wall or process CPU time")
     ap.add_argument("--out", default=None, help="append the rows as JSON lines")
-    ap.add_argument("--markdown", default=None, help="also write the table")
     args = ap.parse_args(argv)
 
     cases = parse_cases(args.cases)
@@ -272,8 +270,6 @@ def main(argv=None) -> int:
     gv = getattr(gsplat, "__version__", "n/a")
     text = f"{header(dev, f'gsplat {gv}')}\n\n{table(rows, COLS)}"
     print(text)
-    if args.markdown:
-        write_text(args.markdown, text + "\n")
     return 0
 
 

@@ -34,7 +34,7 @@ import ssgwarp
 from ssgwarp import RasterSettings
 from ssgwarp.core.cameras import Cameras, look_at
 from ssgwarp.raster.scene import GaussianScene
-from harness import ROOT, dispatch, machine, sync, timed, write_text
+from harness import ROOT, dispatch, machine, pyplot, save_figure, sync, timed, write_text
 
 
 # ----------------------------------------------------------------------------- scene and cameras
@@ -114,15 +114,12 @@ def _inputs(scene: GaussianScene, cams: Cameras, device, dtype, degree: int, kee
     return [s.means, s.quats, s.scales, s.opacities, coeffs], cams.viewmats.to(device, dtype), cams.Ks.to(device, dtype)
 
 
-BACKEND = "warp"   # the Warp kernels; "torch" = the dense reference (slow, for comparison only)
-
-
 def render_case(scene: GaussianScene, cams: Cameras, device: torch.device, case: Case, weight: torch.Tensor,
                 keep_idx: Optional[torch.Tensor], repeats: int, time_it: bool = True) -> dict:
     """Time one case and return its image, alpha and positional gradient."""
     degree = scene.sh_degree if case.sh_degree is None else case.sh_degree
     params, vm, K = _inputs(scene, cams, device, case.dtype, degree, keep_idx)
-    kw = dict(sh_degree=degree, tile_size=case.tile_size, settings=case.settings, backend=BACKEND)
+    kw = dict(sh_degree=degree, tile_size=case.tile_size, settings=case.settings)
     W, H = cams.width, cams.height
     w = weight.to(device, case.dtype)
 
@@ -169,13 +166,10 @@ def raster_study(scene: GaussianScene, cams: Cameras, device: torch.device, repe
         d = r["image"] - ref["image"]
         gref = ref["grad_means"] if keep_idx is None else ref["grad_means"][keep_idx.to(device)]
         gerr = float((r["grad_means"] - gref).norm() / gref.norm().clamp_min(1e-300))
-        rows.append({
-            "knob": case.knob, "value": case.value, "default": case.default,
-            "fwd_ms": r["fwd_ms"], "fwd_bwd_ms": r["fwd_bwd_ms"],
-            "rmse": float(d.pow(2).mean().sqrt()), "max_abs": float(d.abs().max()),
-            "alpha_max_abs": float((r["alpha"] - ref["alpha"]).abs().max()),
-            "grad_rel": gerr, "gaussians": len(scene) if keep_idx is None else len(keep_idx),
-        })
+        rows.append({"knob": case.knob, "value": case.value, "default": case.default, "fwd_ms": r["fwd_ms"],
+                     "fwd_bwd_ms": r["fwd_bwd_ms"], "rmse": float(d.pow(2).mean().sqrt()), "max_abs": float(d.abs().max()),
+                     "alpha_max_abs": float((r["alpha"] - ref["alpha"]).abs().max()), "grad_rel": gerr,
+                     "gaussians": len(scene) if keep_idx is None else len(keep_idx)})
     return rows
 
 
@@ -206,11 +200,9 @@ def _procedural_style(path: Path, size: int = 64) -> Path:
 
 def stylize_study(run_dir: Path, style: Path, out: Path, device: torch.device, iters: int,
                   keyviews=(2, 4, 8), scales=(0.25, 0.5, 1.0), max_side: int = 256) -> list[dict]:
-    try:
-        from ssgwarp.stylization.stage2 import Stage2Config
-        from ssgwarp.stylization.stylize import StylizeOptions, stylize_run
-    except ImportError as e:
-        return [{"knob": "stylize", "value": "-", "skipped": f"ssgwarp.stylization.stylize not available ({e})"}]
+    from ssgwarp.stylization.stage2 import Stage2Config
+    from ssgwarp.stylization.stylize import StylizeOptions, stylize_run
+
     rows = []
     jobs = [("key views", str(k), Stage2Config(mode="ist", iters=iters), StylizeOptions(
         keyviews=k, path_frames=0, max_side=max_side)) for k in keyviews]
@@ -233,14 +225,10 @@ def stylize_study(run_dir: Path, style: Path, out: Path, device: torch.device, i
             rows.append({"knob": knob, "value": value, "skipped": f"{type(e).__name__}: {e}"})
             continue
         secs = m.get("seconds", {})
-        rows.append({
-            "knob": knob, "value": value, "mode": s2.mode, "iters": iters,
-            "stage2_s": secs.get("stage2", total), "total_s": total,
-            "gram_style_loss": m.get("gram_style_loss"), "content_loss": m.get("content_loss"),
-            "gram_style_loss_original": m.get("gram_style_loss_original"),
-            "extractor": m.get("extractor"), "stage1_ran": bool((m.get("stage1") or {}).get("ran")),
-            "matching": m.get("matching"),
-        })
+        rows.append({"knob": knob, "value": value, "mode": s2.mode, "iters": iters, "stage2_s": secs.get("stage2", total),
+                     "total_s": total, "stage1_ran": bool((m.get("stage1") or {}).get("ran")),
+                     **{k: m.get(k) for k in ("gram_style_loss", "content_loss", "gram_style_loss_original",
+                                              "extractor", "matching")}})
     return rows
 
 
@@ -248,13 +236,9 @@ def stylize_study(run_dir: Path, style: Path, out: Path, device: torch.device, i
 
 
 def _f(x: Any, digits: int = 3) -> str:
-    if x is None:
-        return "-"
-    if isinstance(x, float):
-        if x == 0.0:
-            return "0"
-        return f"{x:.{digits}g}" if 1e-3 <= abs(x) < 1e5 else f"{x:.2e}"
-    return str(x)
+    if not isinstance(x, float):
+        return "-" if x is None else str(x)
+    return "0" if x == 0.0 else f"{x:.{digits}g}" if 1e-3 <= abs(x) < 1e5 else f"{x:.2e}"
 
 
 def markdown(results: dict) -> str:
@@ -263,8 +247,7 @@ def markdown(results: dict) -> str:
         meta = res["meta"]
         lines += [f"## {key}: {meta['device_name']}", "",
                   f"{meta['date']}; torch {meta['torch']}, warp {meta['warp']}; scene: {meta['scene']}; "
-                  f"{meta['views']} view(s) {meta['width']}x{meta['height']}; median of {meta['repeats']} runs; "
-                  f"backend {meta.get('backend', 'warp')}.",
+                  f"{meta['views']} view(s) {meta['width']}x{meta['height']}; median of {meta['repeats']} runs.",
                   "Reference: float64, `RasterSettings.exact()`, all Gaussians, full SH degree. "
                   "Errors on colours in [0, 1]; grad = relative L2 error of dL/dmeans.", "",
                   "| knob | value | fwd ms | fwd+bwd ms | speed-up (fwd) | image RMSE | max abs err | grad rel err |",
@@ -314,10 +297,7 @@ def pareto_front(points: list[tuple[float, float]]) -> list[int]:
 
 
 def pareto_plot(results: dict, path: Path) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     keys = list(results["devices"])
     fig, axes = plt.subplots(1, len(keys), figsize=(6.5 * len(keys), 5), squeeze=False)
@@ -345,11 +325,7 @@ def pareto_plot(results: dict, path: Path) -> Path:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7, loc="best")
     fig.tight_layout()
-    from ssgwarp.core.fileio import atomic_path
-
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=120)
-    plt.close(fig)
+    save_figure(fig, path, format="png", dpi=120)
     return path
 
 
@@ -370,16 +346,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--style", type=Path, default=None, help="style image of the stylization knobs")
     p.add_argument("--stylize-iters", type=int, default=100, help="Stage 2 iterations per stylization run")
     p.add_argument("--append", action="store_true", help="keep other devices' results already in --out")
-    p.add_argument("--backend", choices=("warp", "torch"), default="warp",
-                   help="rasterizer backend (torch: the dense reference, for comparison)")
     p.add_argument("--seed", type=int, default=0)
     return p.parse_args(argv)
 
 
 def main(argv=None) -> int:
-    global BACKEND
     args = parse_args(argv)
-    BACKEND = args.backend
     if args.quick:
         args.n, args.size, args.repeats, args.views = min(args.n, 400), min(args.size, 48), min(args.repeats, 2), 1
         args.stylize, args.stylize_iters = True, min(args.stylize_iters, 2)
@@ -418,8 +390,7 @@ def main(argv=None) -> int:
         rows = raster_study(scene, cams, device, args.repeats)
         meta = {"device_name": machine(device), "date": datetime.datetime.now().isoformat(timespec="seconds"),
                 "torch": torch.__version__, "warp": warp.__version__, "scene": scene_desc, "views": len(cams),
-                "width": cams.width, "height": cams.height, "repeats": args.repeats, "quick": args.quick,
-                "backend": BACKEND}
+                "width": cams.width, "height": cams.height, "repeats": args.repeats, "quick": args.quick}
         entry = {"meta": meta, "raster": rows}
         if args.stylize:
             style = args.style or _procedural_style(args.out / "style_stripes.png")
@@ -485,10 +456,7 @@ def _by_point(rows: list[dict], key: str) -> dict:
 
 
 def plot(rows: list[dict], out: Path, title: str) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     sweep = sorted((r for r in rows if r["strategy"] == "mcmc" and not r.get("matched")),
                    key=lambda r: r["max_gaussians"])
@@ -519,11 +487,7 @@ def plot(rows: list[dict], out: Path, title: str) -> Path:
     fig.legend(handles, labels, fontsize=8, loc="lower center", ncol=4, frameon=False)
     fig.suptitle(title, fontsize=9)
     fig.tight_layout(rect=(0, 0.1, 1, 1))
-    from ssgwarp.core.fileio import atomic_path
-
-    with atomic_path(out) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, out, format="png", dpi=110)
     return out
 
 
@@ -532,11 +496,10 @@ def budget_main(argv=None) -> int:
     ap.add_argument("results", nargs="+", type=Path, help="results.json files of benchmarks/train_step.py runs")
     ap.add_argument("--scene", default="fern8")
     ap.add_argument("--iters", type=int, default=7000)
-    ap.add_argument("--title", default=None)
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "tradeoffs_budget.png")
     a = ap.parse_args(argv)
     rows = load_rows(a.results, a.scene, a.iters)
-    title = a.title or f"{a.scene}, {a.iters} steps: held-out PSNR against size (times in the labels)"
+    title = f"{a.scene}, {a.iters} steps: held-out PSNR against size (times in the labels)"
     print(plot(rows, a.out, title))
     return 0
 

@@ -35,7 +35,8 @@ from pathlib import Path
 import torch
 
 from harness import (CAPTURES, ROOT, append_jsonl, capture_folder, cuda_kernel_ms, dispatch, header, interleaved,
-                     per_call_us, write_text)
+                     per_call_us, table, write_text)
+from harness import cell as _f
 
 from ssgwarp.capture.datasets import load_dataset
 from ssgwarp.errors import InputError
@@ -202,17 +203,11 @@ def train_and_measure(data, *, backend: str = "ssgwarp", strategy="default", ite
     return out
 
 
-def _f(v, spec=".2f"):
-    return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, spec)
-
-
 def tables(rows: list[dict]) -> str:
-    lines = ["| scene | resolution | iters | backend | strategy | budget | held-out PSNR (dB) | SSIM | Gaussians | "
-             "train time (s) | peak GPU mem (MiB) |", "|---|---|---:|---|---|---:|---:|---:|---:|---:|---:|"]
-    for r in rows:
-        lines.append(f"| {r['scene']} | {r['resolution']} | {r['iters']} | {r['backend']} | {r['strategy']} | "
-                     f"{r['max_gaussians']:,} | {_f(r['psnr'])} | {_f(r['ssim'], '.4f')} | {r['gaussians']:,} | "
-                     f"{r['seconds']:.1f} | {_f(r['peak_mib'], '.0f')} |")
+    lines = [table(rows, [("scene", "scene"), ("resolution", "resolution"), ("iters", "iters"), ("backend", "backend"),
+                          ("strategy", "strategy"), ("max_gaussians", "budget"), ("psnr", "held-out PSNR (dB)"),
+                          ("ssim", "SSIM", 4), ("gaussians", "Gaussians"), ("seconds", "train time (s)", 1),
+                          ("peak_mib", "peak GPU mem (MiB)", 0)])]
     key = lambda r, **kw: tuple({**r, **kw}[k] for k in ("scene", "iters", "backend", "strategy", "max_gaussians"))
     by = {key(r): r for r in rows}
     pairs = []
@@ -242,19 +237,6 @@ def tables(rows: list[dict]) -> str:
     if strat:
         lines += ["", "| scene | iters | backend | pair | PSNR difference (targets: ours - gsplat's >= -0.2 dB; "
                       "mcmc - default >= 0) | Gaussians | time ratio |", "|---|---:|---|---|---:|---:|---:|"] + strat
-    sweep = [r for r in rows if r["strategy"] in ("mcmc", "gsplat-mcmc") and not r.get("matched")]
-    groups = {}
-    for r in sweep:
-        groups.setdefault((r["scene"], r["iters"], r["backend"], r["strategy"]), []).append(r)
-    budget = [g for g in groups.values() if len(g) > 1]
-    if budget:
-        lines += ["", "| scene | iters | backend | strategy | budget | Gaussians | held-out PSNR (dB) | SSIM | "
-                      "train time (s) |", "|---|---:|---|---|---:|---:|---:|---:|---:|"]
-        for g in budget:
-            for r in sorted(g, key=lambda r: r["max_gaussians"]):
-                lines.append(f"| {r['scene']} | {r['iters']} | {r['backend']} | {r['strategy']} | "
-                             f"{r['max_gaussians']:,} | {r['gaussians']:,} | {_f(r['psnr'])} | "
-                             f"{_f(r['ssim'], '.4f')} | {r['seconds']:.1f} |")
     return "\n".join(lines)
 
 
@@ -561,24 +543,18 @@ def measure(data, backend: str, args, device: torch.device) -> dict:
         for (msg, where), n in sorted(sync_sites(t.train_step).items(), key=lambda kv: kv[0][1]):
             if "prototype" not in msg:
                 row["syncs"].append(f"{n // 3} per step: {where or '(no ssgwarp frame)'}")
-    if args.profile:
+    for what in [w for w in ("profile", "ops") if getattr(args, w)]:
         from torch.profiler import ProfilerActivity, profile
 
         acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
-        with profile(activities=acts) as p:
-            for _ in range(5):
-                t.train_step()
-            sync()
-        row["profile"] = p.key_averages().table(sort_by="cpu_time_total", row_limit=60)
-    if args.ops:
-        from torch.profiler import ProfilerActivity, profile
-
-        acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
-        with ops_attributed(), profile(activities=acts) as p:
+        with ops_attributed() if what == "ops" else contextlib.nullcontext(), profile(activities=acts) as p:
             for _ in range(OPS_STEPS):
                 t.train_step()
             sync()
-        row["ops"] = op_rows(p.events(), OPS_STEPS, device.type == "cpu")
+        if what == "profile":
+            row["profile"] = p.key_averages().table(sort_by="cpu_time_total", row_limit=60)
+        else:
+            row["ops"] = op_rows(p.events(), OPS_STEPS, device.type == "cpu")
     return row
 
 
