@@ -147,20 +147,18 @@ def compare(rows: list[dict], baseline: dict, tolerance: float = TOLERANCE) -> l
 
 
 def table(rows: list[dict], tolerance: float = TOLERANCE) -> str:
-    lines = [f"| capture | setting | resolution | steps | held-out PSNR (dB) | baseline | change (REGRESSION: < "
-             f"-{tolerance:g} dB) | SSIM | LPIPS | Gaussians | train (s) | run (s) | initial points | backdrop |",
-             "|---|---|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---|---|"]
+    shown = []
     for r in rows:
-        d = r["delta_db"]
-        change = (f"**{d:+.2f} REGRESSION**" if r["status"] == "REGRESSION" else
-                  f"{d:+.2f}" if r["status"] == "ok" else r["status"])
-        bd = r.get("backdrop") or {}
-        back = "n/a" if bd.get("used") is None else (f"{bd.get('points', 0):,} far points" if bd["used"] else "none")
-        lines.append(f"| {r['capture']} | {r['setting']} | {r.get('resolution', '')} | {r.get('iters')} | "
-                     f"{_f(r.get('psnr'))} | {_f(r['base_psnr'])} | {change} | {_f(r.get('ssim'), '.4f')} | "
-                     f"{_f(r.get('lpips'), '.3f')} | {r.get('gaussians', 0):,} | {_f(r.get('train_seconds'), '.0f')} | "
-                     f"{_f(r.get('wall_seconds'), '.0f')} | {r.get('points') or ''} | {back} |")
-    return "\n".join(lines)
+        d, bd = r["delta_db"], r.get("backdrop") or {}
+        shown.append(dict(r, change=f"**{d:+.2f} REGRESSION**" if r["status"] == "REGRESSION" else
+                          f"{d:+.2f}" if r["status"] == "ok" else r["status"],
+                          back="n/a" if bd.get("used") is None else
+                          f"{bd.get('points', 0):,} far points" if bd["used"] else "none"))
+    return md_table(shown, [("capture", "capture"), ("setting", "setting"), ("resolution", "resolution"),
+                            ("iters", "steps"), ("psnr", "held-out PSNR (dB)"), ("base_psnr", "baseline"),
+                            ("change", f"change (REGRESSION: < -{tolerance:g} dB)"), ("ssim", "SSIM", 4),
+                            ("lpips", "LPIPS", 3), ("gaussians", "Gaussians"), ("train_seconds", "train (s)", 0),
+                            ("wall_seconds", "run (s)", 0), ("points", "initial points"), ("back", "backdrop")])
 
 
 # ----------------------------------------------------------------------------- main
@@ -244,10 +242,8 @@ def table_main(argv=None) -> int:
 
 
 def backdrop_evidence(a) -> int:
-    """The backdrop decision's evidence per capture (no training): camera layout, initial points, their image
-    coverage, the uncovered and textured cells, the cells a plane sweep places beyond twice the points' depth,
-    the old rule (coverage < 90%) and today's decision; ``--thin N``: also each capture with its points thinned to
-    N (seeded: a sparse COLMAP model)."""
+    """The backdrop decision's evidence per capture (layout, points, coverage, uncovered / textured / far cells, the
+    old rule and today's decision), no training; ``--thin N``: also the points thinned to N (seeded)."""
     import torch
 
     from ssgwarp.capture.datasets import load_dataset

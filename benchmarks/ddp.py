@@ -22,7 +22,7 @@ import sys
 import time
 from pathlib import Path
 
-from harness import data_root, machine, table
+from harness import data_root, machine, sync, table
 
 
 # ----------------------------------------------------------------------------- one configuration
@@ -43,19 +43,14 @@ def worker(a) -> int:
         t = Trainer(data, iters=steps, sh_degree=3, device=device, seed=a.seed, progress=False, batch_size=b,
                     group=group, recipe=Recipe(batch_scaling=a.batch_scaling))
         every = max(1, a.eval_every // b)
-
-        def sync():
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
         curve, train_s = [], 0.0
         while t.step < steps:
-            sync()
+            sync(device)
             t0 = time.perf_counter()
             t.train(until=min(steps, t.step + every))
-            sync()
+            sync(device)
             train_s += time.perf_counter() - t0
             if group.is_main:  # (the others wait at the barrier; not counted)
                 ev = t.evaluate()
@@ -68,8 +63,7 @@ def worker(a) -> int:
             ev = t.evaluate()
             row = {"gpus": group.world_size, "batch_size": b, "batch_scaling": a.batch_scaling, "seed": a.seed, "steps": steps,
                    "images": steps * b, "train_seconds": round(train_s, 2), "psnr": ev["psnr"], "ssim": ev["ssim"],
-                   "gaussians": t.num_gaussians, "peak_mb_per_gpu": [round(p, 1) for p in peaks],
-                   "device": machine(device),
+                   "gaussians": t.num_gaussians, "peak_mb_per_gpu": [round(p, 1) for p in peaks], "device": machine(device),
                    "resolution": [data.width, data.height], "curve": curve}
             Path(a.result).write_text(json.dumps(row))
     finally:
@@ -84,10 +78,8 @@ def launch(a, gpus: int, batch: int, scaling: str, result: Path) -> dict:
             "--batch-scaling", scaling, "--device", a.device, "--result", str(result), "--seed", str(a.seed)]
     if a.width:
         args += ["--width", str(a.width)]
-    if gpus > 1:
-        cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(gpus)] + args
-    else:
-        cmd = [sys.executable] + args
+    cmd = [sys.executable] + (["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(gpus)]
+                              if gpus > 1 else []) + args
     env = dict(os.environ, SSGWARP_OFFLINE="1")
     t0 = time.time()
     r = subprocess.run(cmd, env=env)
@@ -99,9 +91,8 @@ def launch(a, gpus: int, batch: int, scaling: str, result: Path) -> dict:
 
 
 def time_to(curve: list, target: float, hold: bool = True):
-    """Training seconds at which the held-out PSNR reached ``target``; with ``hold``, the first point from
-    which it stays at or above it to the end of the run (3DGS curves dip after every opacity reset, so a
-    run can touch a target early and fall back below it)."""
+    """Training seconds at which the held-out PSNR reached ``target``; with ``hold``, the first point from which it
+    stays there to the end (3DGS curves dip after every opacity reset)."""
     hit = None
     for pt in curve:
         ok = pt["psnr"] is not None and pt["psnr"] >= target

@@ -25,7 +25,7 @@ import time
 import torch
 
 import ssgwarp
-from harness import append_jsonl, header, interleaved, measure, optional_gsplat, table, warm_gpu
+from harness import append_jsonl, header, interleaved, measure, optional_gsplat, passes, table, warm_gpu
 
 C0 = 0.28209479177387814
 # (N, width, height, SH degree or None for colours, cameras)
@@ -99,19 +99,7 @@ def closures(raster, n, w, h, device, sh_degree=None, cameras=1, kind="", **kw):
         vm, K = camera(w, h, device, cameras=cameras)
     if sh_degree is not None:
         kw["sh_degree"] = sh_degree
-    leaves = [p.clone().requires_grad_(True) for p in params]
-
-    def fwd():
-        with torch.no_grad():
-            return raster(*params, vm, K, w, h, **kw)
-
-    def fwd_bwd():
-        for p in leaves:
-            p.grad = None
-        img, alpha, _ = raster(*leaves, vm, K, w, h, **kw)
-        (img.sum() + alpha.sum()).backward()
-
-    return fwd, fwd_bwd
+    return passes(raster, params, (vm, K, w, h), **kw)[:2]
 
 
 def profile_pass(name: str, fn, iters: int, host_rows: int, kernel_rows: int = 14) -> None:

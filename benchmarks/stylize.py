@@ -31,6 +31,7 @@ from typing import Optional
 import torch
 
 from harness import ROOT, data_root, dispatch, machine, pyplot, save_figure, style_paths, write_text
+from harness import table as md_table
 
 from ssgwarp.evaluation.features import EXTRACTOR_KINDS
 
@@ -563,15 +564,13 @@ def stage2_main(argv=None) -> int:
     print(f"\n`ssgwarp stylize` on {args.data.name} {args.images}, {dev}, {time.strftime('%Y-%m-%d')}")
     if prep:
         print("preparation: " + ", ".join(f"{k} {v:.1f}s" for k, v in prep.items()))
-    print("\n| seconds | " + " | ".join(results) + " |")
-    print("|---|" + "---|" * len(results))
-    for r in rows:
-        print(f"| {r} | " + " | ".join(f"{m['seconds'].get(r, float('nan')):.1f}" for m in results.values()) + " |")
-    for key in ("gaussians", "views", "resolution", "extractor", "matching", "gram_style_loss_original",
-                "gram_style_loss", "content_loss", "peak_gpu_memory_gib"):
-        print(f"| {key} | " + " | ".join(str(m.get(key)) for m in results.values()) + " |")
-    print("| iters | " + " | ".join(str(m["config"]["iters"]) for m in results.values()) + " |")
-    print("| stage 1 ran | " + " | ".join(str(m["stage1"]["ran"]) for m in results.values()) + " |")
+    keys = ("gaussians", "views", "resolution", "extractor", "matching", "gram_style_loss_original", "gram_style_loss",
+            "content_loss", "peak_gpu_memory_gib")
+    cells = [{"what": r, **{k: f"{m['seconds'].get(r, float('nan')):.1f}" for k, m in results.items()}} for r in rows]
+    cells += [{"what": key, **{k: str(m.get(key)) for k, m in results.items()}} for key in keys]
+    cells += [{"what": "iters", **{k: m["config"]["iters"] for k, m in results.items()}},
+              {"what": "stage 1 ran", **{k: str(m["stage1"]["ran"]) for k, m in results.items()}}]
+    print("\n" + md_table(cells, [("what", "seconds"), *((k, k) for k in results)]))
     (args.out / "benchmark.json").write_text(json.dumps({"device": dev, "prep_seconds": prep, "runs": results},
                                                         indent=2, default=str))
     return 0
@@ -685,14 +684,7 @@ def probe_main(argv=None) -> int:
     p.add_argument("--truth", action="store_true",
                    help="a demo's run (OUT/scene): also score the procedural scene that made its capture")
     p.add_argument("--json", type=Path, default=None, help="also write the rows here")
-    args = p.parse_args(argv)
-    from ssgwarp.errors import InputError
-
-    try:
-        return probe(args)
-    except InputError as e:     # a bad run folder, style image or --truth on a run that is not a demo's: one line
-        print(f"stylize.py probe: {e}", file=sys.stderr)
-        return 2
+    return probe(p.parse_args(argv))   # (an InputError: one line, exit status 2, harness.dispatch)
 
 
 def probe(args) -> int:
@@ -766,13 +758,8 @@ def bound_main(argv=None) -> int:
     except ValueError:
         counts = [-1]
     if counts[0] < 0:
-        print(f"stylize.py bound: --steps takes step counts >= 0 such as 10,100, got {args.steps!r}", file=sys.stderr)
-        return 2
-    try:
-        return bound(args, counts, style_paths(args.styles, args.style_dir))
-    except InputError as e:     # a style not found, a bad run folder or style image: one line
-        print(f"stylize.py bound: {e}", file=sys.stderr)
-        return 2
+        raise InputError(f"--steps takes step counts >= 0 such as 10,100, got {args.steps!r}")
+    return bound(args, counts, style_paths(args.styles, args.style_dir))
 
 
 def bound(args, counts: list[int], styles: list[Path]) -> int:

@@ -34,7 +34,7 @@ import ssgwarp
 from ssgwarp import RasterSettings
 from ssgwarp.core.cameras import Cameras, look_at
 from ssgwarp.raster.scene import GaussianScene
-from harness import ROOT, dispatch, machine, pyplot, save_figure, sync, timed, write_text
+from harness import ROOT, dispatch, machine, measure, passes, pyplot, save_figure, sync, write_text
 
 
 # ----------------------------------------------------------------------------- scene and cameras
@@ -99,8 +99,7 @@ def raster_cases(scene_degree: int) -> list[Case]:
              Case("fast_math", "off (IEEE exp/log/division/sqrt)", settings=replace(d, fast_math=False)),
              Case("covariance", "factor (cancellation-free)", settings=replace(d, covariance="factor")),
              Case("extent", "fixed 3.33 sigma", settings=replace(d, extent="fixed")),
-             Case("tile_size", "8", tile_size=8),
-             Case("tile_size", "32", tile_size=32)]
+             *(Case("tile_size", str(t), tile_size=t) for t in (8, 32))]
     cases += [Case("sh_degree", str(k), sh_degree=k) for k in range(scene_degree)]
     cases += [Case("gaussians", f"{int(p * 100)}%", keep=p) for p in (0.25, 0.5)]
     cases.append(Case("exact", "RasterSettings.exact(), float32", settings=RasterSettings.exact()))
@@ -120,25 +119,12 @@ def render_case(scene: GaussianScene, cams: Cameras, device: torch.device, case:
     degree = scene.sh_degree if case.sh_degree is None else case.sh_degree
     params, vm, K = _inputs(scene, cams, device, case.dtype, degree, keep_idx)
     kw = dict(sh_degree=degree, tile_size=case.tile_size, settings=case.settings)
-    W, H = cams.width, cams.height
-    w = weight.to(device, case.dtype)
-
-    def fwd():
-        with torch.no_grad():
-            return ssgwarp.rasterization(*params, vm, K, W, H, **kw)
-
-    leaves = [p.detach().clone().requires_grad_(True) for p in params]
-
-    def fwd_bwd():
-        for p in leaves:
-            p.grad = None
-        img, alpha, _ = ssgwarp.rasterization(*leaves, vm, K, W, H, **kw)
-        ((img * w).sum() + alpha.sum()).backward()
+    fwd, fwd_bwd, leaves = passes(ssgwarp.rasterization, params, (vm, K, cams.width, cams.height),
+                                  weight.to(device, case.dtype), **kw)
 
     out: dict[str, Any] = {}
     if time_it:
-        out["fwd_ms"] = timed(fwd, device, repeats)
-        out["fwd_bwd_ms"] = timed(fwd_bwd, device, repeats)
+        out["fwd_ms"], out["fwd_bwd_ms"] = (measure(f, device, repeats)["median"] for f in (fwd, fwd_bwd))
     else:
         fwd_bwd()
     img, alpha, _ = fwd()

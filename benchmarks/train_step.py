@@ -75,8 +75,7 @@ def rasterizer(backend: str):
 
 
 class _OneGroup:
-    """What gsplat's strategy ops expect of an optimizer (``param_groups`` of one group, ``state``),
-    as a view of one named group of the Trainer's Adam."""
+    """One named group of the Trainer's Adam as gsplat's strategy ops expect an optimizer."""
 
     def __init__(self, opt: torch.optim.Optimizer, group: dict):
         self.state = opt.state
@@ -84,13 +83,8 @@ class _OneGroup:
 
 
 class GsplatStrategy(Strategy):
-    """gsplat's ``DefaultStrategy`` or ``MCMCStrategy`` driving the Trainer's Gaussians (a reference for ours).
-
-    Our tensors go to gsplat under its names (``scales``, ``opacities``, ``sh0``, ``shN``; the rest as
-    they are) with one-group optimizer views; what gsplat puts back (new parameters, moved Adam
-    state) is written back under our names. gsplat's schedule is given as ours: it refines when its
-    step (our completed-step count) is past ``refine_start_iter``, hence ``refine_start - 1``.
-    """
+    """gsplat's ``DefaultStrategy`` or ``MCMCStrategy`` driving the Trainer's Gaussians under gsplat's names, with
+    one-group optimizer views; gsplat refines once its step is past ``refine_start_iter``: ``refine_start - 1``."""
 
     to_gsplat = {"log_scales": "scales", "logit_opacities": "opacities", "sh_dc": "sh0", "sh_rest": "shN"}
 
@@ -373,10 +367,8 @@ def call_site() -> str:
 
 @contextlib.contextmanager
 def ops_attributed():
-    """While inside, every torch call from Python runs in a profiler range ``@path:line function``
-    (:func:`call_site`), and every Warp launch of :mod:`ssgwarp.raster.launch` (kernels, sorts, cleared
-    buffers) is a range ``warp::<kernel>`` inside one too; the extra launches of the CPU blending's
-    worker threads are left out (one row per launch the step asks for)."""
+    """While inside, every torch call runs in a profiler range ``@path:line function`` and every Warp launch of
+    :mod:`ssgwarp.raster.launch` in a range ``warp::<kernel>`` too (the CPU blending's worker threads left out)."""
     from torch.overrides import TorchFunctionMode
     from torch.profiler import record_function
 
@@ -441,8 +433,7 @@ def _is_op(name: str) -> bool:
 
 def op_rows(events, steps: int, cpu: bool) -> tuple[list[dict], dict]:
     """The op table of a profile of ``steps`` steps (inside :func:`ops_attributed`): rows ``{op, site, calls,
-    host_us, launches}`` per step, costliest first, and the totals. ``cpu``: a CPU run (the Warp
-    launches are the launches)."""
+    host_us, launches}`` per step, costliest first, and the totals (``cpu``: the Warp launches are the launches)."""
     # (thread, sequence number, op) of the forward op that made an autograd node -> its line (ops
     # recorded before a node is made carry its number too: the node's name says which op made it)
     forward_site = {}
