@@ -103,16 +103,12 @@ def run_one(spec: str, setting: str, iters, a, device) -> dict:
 
 # ----------------------------------------------------------------------------- baseline and table
 def read_rows(path: Path) -> list[dict]:
-    if not path.is_file():
-        return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    return [json.loads(x) for x in path.read_text().splitlines() if x.strip()] if path.is_file() else []
 
 
 def read_baseline(path: Path) -> dict:
     """``{"capture/setting": row}`` of the baseline file (empty when there is none)."""
-    if not path.is_file():
-        return {}
-    return dict(json.loads(path.read_text()).get("rows", {}))
+    return dict(json.loads(path.read_text()).get("rows", {})) if path.is_file() else {}
 
 
 def write_baseline(path: Path, rows: list[dict], old: dict) -> None:

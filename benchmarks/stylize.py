@@ -170,9 +170,7 @@ def source_consistency(run: Path, out: Path, device, eval_opts, progress: bool =
 
 
 def _pct(before: Optional[float], after: Optional[float]) -> str:
-    if before is None or after is None or before == 0:
-        return "-"
-    return f"{100 * (after - before) / before:+.0f}%"
+    return "-" if before is None or after is None or before == 0 else f"{100 * (after - before) / before:+.0f}%"
 
 
 def table(rows: list[dict], src: dict, title: str) -> str:

@@ -62,16 +62,14 @@ STRATEGIES = ("default", "mcmc", "gsplat-default", "gsplat-mcmc")
 
 
 def rasterizer(backend: str):
-    """``(rasterize function or None, extra kwargs)`` for a backend name."""
+    """``(rasterize function, extra kwargs)`` for a backend name (None: the Trainer's default, ssgwarp's)."""
     if backend == "ssgwarp":
-        return None, {}  # the Trainer's default: ssgwarp.rasterization (Warp kernels on CUDA)
-    if backend == "gsplat":
-        try:
-            from gsplat import rasterization
-        except ImportError as e:
-            raise SystemExit(f"--backend gsplat needs the gsplat package ({e}); pip install gsplat") from None
-        return rasterization, {"packed": False}  # [C, N] layout, as the densification statistics read it
-    raise SystemExit(f"unknown backend {backend!r}")
+        return None, {}
+    try:
+        from gsplat import rasterization
+    except ImportError as e:
+        raise SystemExit(f"--backend gsplat needs the gsplat package ({e}); pip install gsplat") from None
+    return rasterization, {"packed": False}  # [C, N] layout, as the densification statistics read it
 
 
 class _OneGroup:
