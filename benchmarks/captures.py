@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 from harness import CAPTURES, append_jsonl, capture_folder, data_root, dispatch, machine, write_text  # noqa: E402
-from harness import cell as _f, table as md_table  # noqa: E402
+from harness import table as md_table  # noqa: E402
 
 from ssgwarp.core.fileio import write_json  # noqa: E402
 

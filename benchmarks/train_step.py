@@ -23,7 +23,6 @@ import collections
 import contextlib
 import gc
 import json
-import math
 import sys
 import threading
 import time
