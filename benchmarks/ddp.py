@@ -1,33 +1,16 @@
 """Data-parallel reconstruction: 1 GPU against N GPUs (torchrun), time to equal held-out quality.
 
-Configurations, each in its own process(es) so memory peaks are clean, all on the same capture,
-seed and number of images (``--iters`` one-view steps; a batch of B trains ``--iters / B`` steps):
+Each configuration in its own process(es), same capture, seed and number of images (``--iters`` one-view steps; a
+batch of B trains ``--iters / B`` steps): ``1gpu-b1`` (the plain ``ssgwarp reconstruct``, the reference), ``1gpu-bN``
+(N views per step: what batching gives) and ``Ngpu-bN`` (``torchrun``, one view per GPU per step, NCCL). Held-out
+PSNR every ``--eval-every`` images (not timed); per configuration the training time at which it first reached the
+reference's final PSNR - 0.1 dB, the time from which it stayed there, the speed-up, final PSNR, Gaussians and peak
+memory per GPU. ``--batch-scaling`` repeats the batch configurations per Adam scaling (docs/scaling.md).
 
-* ``1gpu-b1``: one process, one view per step (the plain ``ssgwarp reconstruct``; the reference);
-* ``1gpu-bN``: one process, N views per step through the rasterizer's camera batch (separates
-  what batching gives from what the second GPU gives);
-* ``Ngpu-bN``: ``torchrun --nproc_per_node N``, one view per GPU per step (gradients all-reduced
-  over NCCL).
-
-Held-out PSNR is measured every ``--eval-every`` images (evaluation time is not counted). The
-target is the reference's final PSNR minus 0.1 dB; for each configuration the table gives the
-training time at which its PSNR first reached it, the time from which it stayed there to the end of the
-run (curves dip after every opacity reset), the speed-up over the reference at the latter,
-final PSNR, Gaussians and peak memory per GPU.
-Prints a markdown table and writes the rows and PSNR curves to ``--out``.
-
-    # the GPU run (2 GPUs; about 2 minutes on 2 H200s at 7k, fresh kernel cache included):
-    python benchmarks/ddp.py --data /root/data/llff_fern --images images_4 --iters 7000 --gpus 2 \
-        --out ddp_fern4.json
-    # colmap_cup at 30k images, only some configurations (--only), the table again from earlier runs (read back):
-    python benchmarks/ddp.py --data /root/data/colmap_cup --images images --iters 30000 --only 1gpu-b1 1gpu-bN --out c.json
+    python benchmarks/ddp.py --data /root/data/llff_fern --images images_4 --iters 7000 --gpus 2 --out ddp_fern4.json
     python benchmarks/ddp.py --data /root/data/colmap_cup --images images --iters 30000 --only 1gpu-bN \
-        --no-single-batch --out c.json
-    # CPU smoke test (gloo, 2 processes):
+        --no-single-batch --out c.json                 # some configurations, the others read back from --out
     python benchmarks/ddp.py --images images_8 --width 64 --iters 40 --eval-every 20 --device cpu --out /tmp/ddp.json
-
-``--batch-scaling`` (several allowed) repeats the batch configurations with each Adam scaling
-(docs/scaling.md), which is how the default (sqrt) was chosen.
 """
 from __future__ import annotations
 
@@ -39,7 +22,7 @@ import sys
 import time
 from pathlib import Path
 
-from harness import data_root, machine
+from harness import data_root, machine, sync, table
 
 
 # ----------------------------------------------------------------------------- one configuration
@@ -60,19 +43,14 @@ def worker(a) -> int:
         t = Trainer(data, iters=steps, sh_degree=3, device=device, seed=a.seed, progress=False, batch_size=b,
                     group=group, recipe=Recipe(batch_scaling=a.batch_scaling))
         every = max(1, a.eval_every // b)
-
-        def sync():
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
         curve, train_s = [], 0.0
         while t.step < steps:
-            sync()
+            sync(device)
             t0 = time.perf_counter()
             t.train(until=min(steps, t.step + every))
-            sync()
+            sync(device)
             train_s += time.perf_counter() - t0
             if group.is_main:  # (the others wait at the barrier; not counted)
                 ev = t.evaluate()
@@ -85,8 +63,7 @@ def worker(a) -> int:
             ev = t.evaluate()
             row = {"gpus": group.world_size, "batch_size": b, "batch_scaling": a.batch_scaling, "seed": a.seed, "steps": steps,
                    "images": steps * b, "train_seconds": round(train_s, 2), "psnr": ev["psnr"], "ssim": ev["ssim"],
-                   "gaussians": t.num_gaussians, "peak_mb_per_gpu": [round(p, 1) for p in peaks],
-                   "device": machine(device),
+                   "gaussians": t.num_gaussians, "peak_mb_per_gpu": [round(p, 1) for p in peaks], "device": machine(device),
                    "resolution": [data.width, data.height], "curve": curve}
             Path(a.result).write_text(json.dumps(row))
     finally:
@@ -101,10 +78,8 @@ def launch(a, gpus: int, batch: int, scaling: str, result: Path) -> dict:
             "--batch-scaling", scaling, "--device", a.device, "--result", str(result), "--seed", str(a.seed)]
     if a.width:
         args += ["--width", str(a.width)]
-    if gpus > 1:
-        cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(gpus)] + args
-    else:
-        cmd = [sys.executable] + args
+    cmd = [sys.executable] + (["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(gpus)]
+                              if gpus > 1 else []) + args
     env = dict(os.environ, SSGWARP_OFFLINE="1")
     t0 = time.time()
     r = subprocess.run(cmd, env=env)
@@ -116,9 +91,8 @@ def launch(a, gpus: int, batch: int, scaling: str, result: Path) -> dict:
 
 
 def time_to(curve: list, target: float, hold: bool = True):
-    """Training seconds at which the held-out PSNR reached ``target``; with ``hold``, the first point from
-    which it stays at or above it to the end of the run (3DGS curves dip after every opacity reset, so a
-    run can touch a target early and fall back below it)."""
+    """Training seconds at which the held-out PSNR reached ``target``; with ``hold``, the first point from which it
+    stays there to the end (3DGS curves dip after every opacity reset)."""
     hit = None
     for pt in curve:
         ok = pt["psnr"] is not None and pt["psnr"] >= target
@@ -186,23 +160,20 @@ def main() -> int:
     t_ref = time_to(ref["curve"], target)
     print(f"\n{a.data.name} {a.images} {ref['resolution'][0]}x{ref['resolution'][1]}, {a.iters} images per run, "
           f"target {target:.2f} dB (1 GPU final - 0.1), {ref['device']}\n")
-    print("| GPUs | batch | Adam scaling | steps | train time (s) | first at target (s) | at target to the end (s) "
-          "| speed-up at target | speed-up (whole run) | held-out PSNR (dB) | Gaussians | peak MiB per GPU |")
-    print("|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---|")
+    shown = []
     for r in rows:
-        tt = time_to(r["curve"], target)
-        r["time_to_target"] = tt
-        first = time_to(r["curve"], target, hold=False)
-        r["first_at_target"] = first
-        r["speedup_at_target"] = round(t_ref / tt, 3) if (tt and t_ref) else None
-        r["speedup_whole_run"] = round(ref["train_seconds"] / r["train_seconds"], 3)
-        reached = "not reached" if tt is None else f"{tt:.1f}"
-        speed = "-" if r["speedup_at_target"] is None else f"{r['speedup_at_target']:.2f}x"
-        scaling = r["batch_scaling"] if r["batch_size"] > 1 else "-"
-        peaks = ", ".join(f"{p:.0f}" for p in r["peak_mb_per_gpu"])
-        first = "not reached" if first is None else f"{first:.1f}"
-        print(f"| {r['gpus']} | {r['batch_size']} | {scaling} | {r['steps']} | {r['train_seconds']:.1f} | {first} | {reached} | "
-              f"{speed} | {r['speedup_whole_run']:.2f}x | {r['psnr']:.2f} | {r['gaussians']:,} | {peaks} |")
+        tt, first = time_to(r["curve"], target), time_to(r["curve"], target, hold=False)
+        r.update(time_to_target=tt, first_at_target=first, speedup_at_target=round(t_ref / tt, 3) if tt and t_ref else None,
+                 speedup_whole_run=round(ref["train_seconds"] / r["train_seconds"], 3))
+        shown.append({**r, "reached": "not reached" if tt is None else f"{tt:.1f}",
+                      "first": "not reached" if first is None else f"{first:.1f}",
+                      "scaling": r["batch_scaling"] if r["batch_size"] > 1 else "-",
+                      "peaks": ", ".join(f"{p:.0f}" for p in r["peak_mb_per_gpu"])})
+    print(table(shown, [
+        ("gpus", "GPUs"), ("batch_size", "batch"), ("scaling", "Adam scaling"), ("steps", "steps"),
+        ("train_seconds", "train time (s)", 1), ("first", "first at target (s)"), ("reached", "at target to the end (s)"),
+        ("speedup_at_target", "speed-up at target (x)"), ("speedup_whole_run", "speed-up (whole run, x)"),
+        ("psnr", "held-out PSNR (dB)"), ("gaussians", "Gaussians"), ("peaks", "peak MiB per GPU")]))
     from ssgwarp.core.fileio import write_json
 
     write_json(a.out, {"target_psnr": target, "iters": a.iters, "images": a.images, "rows": rows})

@@ -1,9 +1,5 @@
-"""The benchmark tools' shared harness: where the shared data is, the machine's name, timing (warm-up, repeats,
-median / min / max), JSON lines and markdown tables.
-
-The tools run as ``python benchmarks/<tool>.py`` (which puts this folder on ``sys.path``) and import ``ssgwarp``
-from the installed package (``pip install -e .``): ``from harness import data_root, measure, table``.
-"""
+"""The benchmark tools' shared harness: data location, machine name, timing (warm-up, repeats, median / min / max),
+modes, JSON lines, markdown tables and figures. ``python benchmarks/<tool>.py`` puts this folder on ``sys.path``."""
 from __future__ import annotations
 
 import datetime
@@ -11,6 +7,7 @@ import json
 import os
 import platform
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -21,6 +18,21 @@ ROOT = Path(__file__).resolve().parents[1]
 # repository, the shared copy of a worktree
 CANDIDATES = (ROOT.parent / "shared" / "data", Path("/root/data"), ROOT / "shared" / "data", Path("/work/shared/data"))
 STYLE_SUFFIXES = (".jpg", ".jpeg", ".png")
+
+
+def dispatch(modes: dict, default, argv=None) -> int:
+    """``modes[argv[0]](argv[1:])`` when the first argument names a mode (an ``InputError`` it raises: one line,
+    exit status 2), else ``default(argv)``."""
+    from ssgwarp.errors import InputError
+
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if not (argv and argv[0] in modes):
+        return default(argv)
+    try:
+        return modes[argv[0]](argv[1:])
+    except InputError as e:
+        print(f"{Path(modes[argv[0]].__code__.co_filename).name} {argv[0]}: {e}", file=sys.stderr)
+        return 2
 
 
 def data_root() -> Path:
@@ -125,11 +137,6 @@ def measure(fn, device, repeats: int = 10, warmup: int = 1, clock=time.perf_coun
     return stats(ms)
 
 
-def timed(fn, device, repeats: int = 10) -> float:
-    """The median of :func:`measure` (milliseconds)."""
-    return measure(fn, device, repeats)["median"]
-
-
 def interleaved(fns: dict, device, repeats: int, rounds: int = 4, warmup: int = 1, clock=time.perf_counter) -> dict:
     """:func:`stats` of each function, timed in turns (``rounds`` rounds of ``repeats / rounds`` synchronised
     calls each), so that a drifting GPU clock or host load affects all of them alike."""
@@ -146,6 +153,23 @@ def interleaved(fns: dict, device, repeats: int, rounds: int = 4, warmup: int = 
                 sync(device)
                 out[k].append((clock() - t0) * 1e3)
     return {k: stats(v) for k, v in out.items()}
+
+
+def passes(raster, params: list, args: tuple, weight=None, **kw):
+    """``(fwd, fwd_bwd, leaves)``: a call of ``raster(*params, *args, **kw)`` without gradients, and one with the
+    backward of ``(image * weight).sum() + alpha.sum()`` into ``leaves`` (copies of ``params``, made once)."""
+    leaves = [p.detach().clone().requires_grad_(True) for p in params]
+
+    def fwd():
+        with torch.no_grad():
+            return raster(*params, *args, **kw)
+
+    def fwd_bwd():
+        for p in leaves:
+            p.grad = None
+        img, alpha, _ = raster(*leaves, *args, **kw)
+        ((img if weight is None else img * weight).sum() + alpha.sum()).backward()
+    return fwd, fwd_bwd, leaves
 
 
 def per_call_us(fn, device, calls: int, blocks: int, clock=time.perf_counter) -> float:
@@ -227,11 +251,17 @@ def fmt(v, digits: int = 2) -> str:
     return f"{v:.2e}" if v != 0 and abs(v) < 1e-2 else f"{v:.{digits}f}"
 
 
+def cell(v, spec: str = ".2f") -> str:
+    """``format(v, spec)``, or 'n/a' for None / NaN."""
+    return "n/a" if v is None or (isinstance(v, float) and v != v) else format(v, spec)
+
+
 def table(rows: list[dict], cols) -> str:
-    """A markdown table of ``rows``: ``cols`` is a list of ``(key, title)`` (columns no row has are left out)."""
-    cols = [c for c in cols if any(c[0] in r for r in rows)]
-    lines = ["| " + " | ".join(t for _, t in cols) + " |", "|" + "---|" * len(cols)]
-    lines += ["| " + " | ".join(fmt(r.get(k)) for k, _ in cols) + " |" for r in rows]
+    """A markdown table of ``rows``: ``cols`` is a list of ``(key, title)`` or ``(key, title, digits)`` (columns no
+    row has are left out)."""
+    cols = [(*c, 2)[:3] for c in cols if any(c[0] in r for r in rows)]
+    lines = ["| " + " | ".join(c[1] for c in cols) + " |", "|" + "---|" * len(cols)]
+    lines += ["| " + " | ".join(fmt(r.get(k), d) for k, _, d in cols) + " |" for r in rows]
     return "\n".join(lines)
 
 
@@ -243,3 +273,22 @@ def write_text(path: Path | str, text: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         tmp.write_text(text)
+
+
+def pyplot():
+    """matplotlib's pyplot on the Agg backend (no display needed)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def save_figure(fig, path: Path | str, **savefig) -> Path:
+    """Write a matplotlib figure atomically (``savefig``'s keywords: format, dpi, ...) and close it."""
+    from ssgwarp.core.fileio import atomic_path
+
+    with atomic_path(Path(path)) as tmp:
+        fig.savefig(tmp, **savefig)
+    pyplot().close(fig)
+    return Path(path)

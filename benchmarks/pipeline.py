@@ -1,37 +1,17 @@
 """Wall time of the whole pipeline a user runs (``ssgwarp`` commands one after the other, each in its own
 process, as from a shell), stage by stage, with the reconstruction's held-out PSNR and Gaussian count.
 
-Each ``--pipeline`` is a label and the commands it runs, ``;``-separated, with ``{data}`` (the capture),
-``{run}`` (a fresh run folder) and ``{style}`` (a style image) filled in. The Warp kernel cache is warmed first
-(``--warm``: one tiny reconstruction by default, so no pipeline pays for compiling kernels a user compiles only once).
+Each ``--pipeline`` is ``LABEL: COMMAND; COMMAND ...`` with ``{data}`` (the capture), ``{run}`` (a fresh run folder),
+``{style}`` and ``{sam}`` filled in; the Warp kernel cache is warmed first (``--warm``). ``--data``: a capture
+folder, a folder of the shared data (``llff_fern``, ...) or a procedural capture written once into ``--work``
+(``demo:WIDTH``, ``insideout:WIDTH``). ``--random-sam vit-b``: a Segment Anything model with random weights for
+``{sam}`` (timed as trained ones; pass ``--pred-iou-thresh 0 --stability-thresh 0`` to ``masks``).
 
-    python benchmarks/pipeline.py --data ../shared/data/llff_fern --style ../shared/data/styles/candy.jpg \\
-        --pipeline "30k: reconstruct {data} --images images_4 --out {run}/rec; group {run}/rec; \\
-                    stylize {run}/rec --style {style} --out {run}/sty" \\
-        --pipeline "default: reconstruct {data} --images images_4 --out {run}/rec --groups auto; \\
+    python benchmarks/pipeline.py --data ../shared/data/llff_fern --style ../shared/data/styles/candy.jpg \
+        --pipeline "default: reconstruct {data} --images images_4 --out {run}/rec --groups; \
                     stylize {run}/rec --style {style} --out {run}/sty"
-
-``--data`` is a capture folder, a folder of the shared data (``llff_fern``, ``livingroom_360``, ...) or a procedural
-capture written once into ``--work``: ``demo:WIDTH`` (the demo's scene seen by 24 ring cameras) or ``insideout:WIDTH``
-(a room seen from inside by 40 rig cameras; docs/reconstruction.md "Backdrops"). The schedules and backdrops of
-docs/reconstruction.md are pipelines of one ``reconstruct`` each:
-
-    python benchmarks/pipeline.py --data livingroom_360 --pipeline "auto: reconstruct {data} --out {run}/rec" \
-        --pipeline "30k: reconstruct {data} --iters 30000 --out {run}/rec" \
-        --pipeline "c2f: reconstruct {data} --coarse-to-fine 4 --out {run}/rec"
     python benchmarks/pipeline.py --data insideout:256 --pipeline "auto: reconstruct {data} --iters 7000 --out {run}/rec" \
         --pipeline "off: reconstruct {data} --iters 7000 --backdrop off --out {run}/rec"
-
-``--random-sam vit-b`` saves a Segment Anything model with random weights (``facebook/sam-vit-base``'s sizes; they
-time as trained ones do) and fills in ``{sam}``, so ``ssgwarp masks`` is timed without downloading weights (the
-paper's filters drop every random candidate: ``--pred-iou-thresh 0 --stability-thresh 0`` keeps them all):
-
-    python benchmarks/pipeline.py --data llff_fern --random-sam vit-b --pipeline "masks: reconstruct {data} \
-        --images images_4 --iters 3000 --out {run}/rec; masks {run}/rec --sam {sam} --pred-iou-thresh 0 \
-        --stability-thresh 0; masks {run}/rec --sam {sam} --pred-iou-thresh 0 --stability-thresh 0 --force"
-
-Prints a markdown table: one row per pipeline, the seconds of each stage, the total, and the held-out PSNR and
-Gaussians of ``{run}/rec/metrics.json``.
 """
 from __future__ import annotations
 

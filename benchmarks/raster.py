@@ -1,32 +1,17 @@
 """The rasterizer against gsplat 1.5.3: speed and agreement, ssgwarp (CUDA, CPU) side by side in one run.
 
-Scene (issue 16's): N Gaussians with means ~ N(0, 2) around z = 8 in front of the cameras (60 deg horizontal
-field of view), scales ~ U(0, 0.02), random quaternions and opacities; colours U(0, 1), or SH coefficients
-(degree 3: DC term U(0, 1) / C0, higher bands N(0, 0.1)); one camera at the origin or four (translated by
-+-0.5 in x and y). For each case: forward and forward+backward (``img.sum() + alpha.sum()``) milliseconds,
-median / min / max of ``--repeats`` synchronised calls (on CUDA ssgwarp and gsplat in turns, after a warm-up
-that brings the GPU's clocks up, so that drift affects both alike), the ratio to gsplat, the image difference
-against gsplat, and how far each float32 image is from the same scene rendered by ssgwarp in float64 (the
-float32 rounding both share).
+Scene (issue 16's): N Gaussians, means ~ N(0, 2) around z = 8, scales ~ U(0, 0.02), random rotations and opacities;
+colours, or SH degree 3; one camera (60 deg field of view) or four. Per case: forward and forward+backward
+(``img.sum() + alpha.sum()``) ms, median / min / max of ``--repeats`` synchronised calls (ssgwarp and gsplat in turns
+after a GPU warm-up), the ratio to gsplat, the image difference, and each float32 image's distance to ssgwarp's
+float64 render. ``--cases``: a set name or ``[ball:|ball2:]NxWxH[:SH[:CAMERAS]]`` (``ball``: tradeoffs.py's scene of
+larger Gaussians). ``--clock cpu``: the process's CPU time (a shared machine).
 
-    python benchmarks/raster.py                    # the issue's five cases, CUDA if present (and the CPU)
-    python benchmarks/raster.py --cases grid       # 10k/100k/1M Gaussians x 256^2/1080p, colours
     python benchmarks/raster.py --cases quick --no-gsplat --device cpu          # CPU smoke run
-    python benchmarks/raster.py --agreement        # + share of bit-identical projected Gaussians (radii, means2d,
-                                                   #   conics, opacities, depths) against gsplat's
-    python benchmarks/raster.py --profile --cases 10000x256x256 1000000x1920x1080   # per-kernel GPU time and
-                                                   #   the host's Python functions (cProfile), beside gsplat
-    python benchmarks/raster.py --device cpu --tile 4 8 16 --threads 1 2   # tile size / CPU threads (CPU rows)
-    python benchmarks/raster.py --out raster.jsonl --markdown raster.md
-
-``--cases`` takes a set name or ``[ball:|ball2:]NxWxH[:SH[:CAMERAS]]`` cases: ``ball`` is tradeoffs.py's scene (Gaussians
-of a few to ~15 pixels in a ball seen from 4 units, SH degree 3; ``ball2``: twice the scales) instead of the issue's
-(about a pixel each), e.g. the CPU tile sizes of docs/tradeoffs.md:
-
-    python benchmarks/raster.py --device cpu --clock cpu --repeats 15 --tile 4 6 8 12 16 \
+    python benchmarks/raster.py --agreement        # + share of bit-identical projected Gaussians against gsplat's
+    python benchmarks/raster.py --profile --cases 1000000x1920x1080     # per-kernel GPU time, host Python functions
+    python benchmarks/raster.py --device cpu --clock cpu --repeats 15 --tile 4 6 8 12 16 --threads 1 2 \
         --cases ball:20000x256x192 ball:100000x200x200 10000x256x256 ball2:20000x256x192
- On the CPU the time is the process's CPU time
-(``--clock cpu``: what the work costs on a shared machine) or wall time (default).
 """
 from __future__ import annotations
 
@@ -40,7 +25,7 @@ import time
 import torch
 
 import ssgwarp
-from harness import append_jsonl, header, interleaved, measure, optional_gsplat, table, warm_gpu, write_text
+from harness import append_jsonl, header, interleaved, measure, optional_gsplat, passes, table, warm_gpu
 
 C0 = 0.28209479177387814
 # (N, width, height, SH degree or None for colours, cameras)
@@ -114,19 +99,7 @@ def closures(raster, n, w, h, device, sh_degree=None, cameras=1, kind="", **kw):
         vm, K = camera(w, h, device, cameras=cameras)
     if sh_degree is not None:
         kw["sh_degree"] = sh_degree
-    leaves = [p.clone().requires_grad_(True) for p in params]
-
-    def fwd():
-        with torch.no_grad():
-            return raster(*params, vm, K, w, h, **kw)
-
-    def fwd_bwd():
-        for p in leaves:
-            p.grad = None
-        img, alpha, _ = raster(*leaves, vm, K, w, h, **kw)
-        (img.sum() + alpha.sum()).backward()
-
-    return fwd, fwd_bwd
+    return passes(raster, params, (vm, K, w, h), **kw)[:2]
 
 
 def profile_pass(name: str, fn, iters: int, host_rows: int, kernel_rows: int = 14) -> None:
@@ -201,8 +174,8 @@ def cuda_row(row, case, args, gsplat) -> None:
             libs.append(("gsplat", fns["gs_f"], fns["gs_fb"]))
         for lib, f, fb in libs:
             print(f"\n=== {lib}: N={n:,} {w}x{h}")
-            profile_pass(f"{lib} forward", f, args.repeats, args.host_rows)
-            profile_pass(f"{lib} forward+backward", fb, args.repeats, args.host_rows)
+            profile_pass(f"{lib} forward", f, args.repeats, 15)
+            profile_pass(f"{lib} forward+backward", fb, args.repeats, 15)
 
 
 def cpu_rows(case, args) -> list[dict]:
@@ -249,12 +222,10 @@ def main(argv=None) -> int:
     ap.add_argument("--cpu-max", type=int, default=10_000, help="largest N x cameras also timed on the CPU")
     ap.add_argument("--agreement", action="store_true", help="CUDA: bit-identical shares of projected Gaussians")
     ap.add_argument("--profile", action="store_true", help="CUDA: per-kernel GPU time and host functions")
-    ap.add_argument("--host-rows", type=int, default=15, help="with --profile: cProfile rows")
     ap.add_argument("--tile", nargs="+", type=int, default=None, help="CPU: tile sizes to time")
     ap.add_argument("--threads", nargs="+", type=int, default=None, help="CPU: blending threads to time")
     ap.add_argument("--clock", choices=("wall", "cpu"), default="wall", help="CPU: wall or process CPU time")
     ap.add_argument("--out", default=None, help="append the rows as JSON lines")
-    ap.add_argument("--markdown", default=None, help="also write the table")
     args = ap.parse_args(argv)
 
     cases = parse_cases(args.cases)
@@ -287,8 +258,6 @@ def main(argv=None) -> int:
     gv = getattr(gsplat, "__version__", "n/a")
     text = f"{header(dev, f'gsplat {gv}')}\n\n{table(rows, COLS)}"
     print(text)
-    if args.markdown:
-        write_text(args.markdown, text + "\n")
     return 0
 
 

@@ -1,46 +1,22 @@
 """Stylization across styles, and the probes behind docs/stylize.md's tables (no Stage 1 weights needed).
 
-``python benchmarks/stylize.py [options]``: weight-free stylization over many styles (``--help`` for the options).
+For a scene (``--scene``: fern ``images_8``, the demo scene, or a grouped run folder) and every style image in
+``--styles``, runs ``ssgwarp stylize`` (Stage 2 matches the style image) and ``ssgwarp evaluate`` (30 path views) and
+prints one row per style: colour / texture distances to the style (``StyleDistance``) before and after, the same
+for half of the style image against the whole (``StyleDistance.halves``), the Gram loss, short/long-range
+consistency RMSE as ratios to the unstylized scene's, and floaters. ``--ablation``: Stage 2's ablations on a few
+styles. Finished styles are kept (``OUT/<scene>/<style>/result.json``) and skipped on the next run, so shards and
+interrupted runs add up; ``--report`` tables what is finished. Writes ``table.md``, ``results.json`` and
+``styles_sheet.jpg`` under ``OUT/<scene>``.
 
-For a scene (fern ``images_8`` reconstruction, the demo scene, or any grouped run) and every style
-image in a folder (default ``../shared/data/styles``, 25 images), runs ``ssgwarp stylize`` (no
-Stage 1 weights needed: Stage 2 matches the style image) and ``ssgwarp evaluate`` (default
-protocol: 30 novel views on a smooth path through the training cameras), and prints one row per
-style: colour and texture distances (sliced Wasserstein in Lab / of a derivative-of-Gaussian
-filter bank, ``ssgwarp.evaluation.metrics.StyleDistance``) of the original and the stylized renders, the Gram
-loss of the extractor Stage 2 used, short/long-range consistency RMSE as ratios to the
-unstylized scene's, and floaters over the regions the unstylized scene leaves empty (the worst
-style). For reference, each row also scores half of the style image against the whole with the same
-distances (about as close as a render can be expected to get; ``StyleDistance.halves``). ``--ablation`` runs the Stage 2
-ablations (colour transfer, content/TV weights, SH bands, colour gain cap) on a few styles instead.
-
-    python benchmarks/stylize.py --scene demo                  # the demo scene (built first)
-    python benchmarks/stylize.py --scene fern                  # fern images_8 (reconstructed + grouped first)
     python benchmarks/stylize.py --scene fern --shard 0/3      # a third of the styles (10-minute slots)
     python benchmarks/stylize.py --scene demo --demo-size small --styles-subset candy,udnie \
         --iters 10 --path-frames 6 --out /tmp/ss                       # CPU check (~2 min on 2 cores)
-    python benchmarks/stylize.py --scene fern --ablation       # Stage 2 ablation table
-    python benchmarks/stylize.py --scene fern --ablation --styles-subset mondrian,asheville \
-        --ablation-rows "default;SH rest: keep;paper objective (content 0, TV 0)"   # some rows, some styles
-    python benchmarks/stylize.py --scene fern --report         # table of what is finished, no new runs
-    python benchmarks/stylize.py --scene fern --paint --tag paint   # stylize's --paint preset
-    python benchmarks/stylize.py --scene fern --configs FILE --timeout 420  # several configurations at once
-                                                                      # on one GPU, FILE lines 'TAG: FLAGS'
+    python benchmarks/stylize.py --scene fern --ablation --ablation-rows "default;SH rest: keep"
+    python benchmarks/stylize.py --scene fern --configs FILE --timeout 420  # 'TAG: FLAGS' lines, all at once
 
-Every finished style is kept (``OUT/<scene>/<style>/result.json``) and skipped when the script
-runs again, so shards and interrupted runs add up; ``--report`` prints the table of everything
-finished. Writes ``OUT/<scene>/table.md``, ``OUT/<scene>/results.json`` and a contact sheet of a
-few styles, ``OUT/<scene>/styles_sheet.jpg``.
-
-Modes, each with its own ``--help``:
-
-``python benchmarks/stylize.py stage2 [options]``: seconds per stage of ``ssgwarp stylize`` on fern ``images_4``.
-
-``python benchmarks/stylize.py probe --run RUN [--style STYLE] [--truth]``: the consistency error that texture
-fixed in 3-D costs, per period and contrast.
-
-``python benchmarks/stylize.py bound --run RUN [--styles candy,mosaic] [--steps 50,200]``: the texture distance
-Stage 2's style loss alone reaches on freely optimised pixels.
+Modes, each with its own ``--help``: ``stage2`` (seconds per stage of ``ssgwarp stylize``), ``probe`` (the
+consistency error that texture fixed in 3-D costs), ``bound`` (the texture distance the style loss alone reaches).
 """
 from __future__ import annotations
 
@@ -54,41 +30,35 @@ from typing import Optional
 
 import torch
 
-from harness import ROOT, data_root, machine, style_paths
+from harness import ROOT, data_root, dispatch, machine, pyplot, save_figure, style_paths, write_text
+from harness import table as md_table
 
 from ssgwarp.evaluation.features import EXTRACTOR_KINDS
 
 DATA = data_root()
-STAGE2_DOC = """Seconds per stage of `ssgwarp stylize` on fern images_4 (1008x756), in total and per Stage 2 mode.
+STAGE2_DOC = """Seconds per stage of `ssgwarp stylize` on fern images_4, per Stage 2 mode (table and OUT/benchmark.json).
 
-Stage 2 defaults unless flags say otherwise; 4 key views; Stage 1 runs when its weights are configured
-(docs/stylize.md), else it is skipped and said so. ``--synthetic N``: a stand-in scene of N Gaussians sampled around
-fern's COLMAP points (8 groups by k-means), no reconstruction needed. ``--random-stage1 sd15``: Stage 1 on random
-SD1.5-sized models (tests/fakeweights.py; real compute, noise images). Results: a markdown table and OUT/benchmark.json.
+Stage 1 runs when its weights are configured. ``--synthetic N``: a stand-in scene of N Gaussians around fern's COLMAP
+points (8 k-means groups); ``--random-stage1 sd15``: Stage 1 on random SD1.5-sized models (real compute).
 
-    python benchmarks/stylize.py stage2                       # reconstruct + group fern, then stylize
     python benchmarks/stylize.py stage2 --run runs/fern4 --modes ist,global --iters 600
     python benchmarks/stylize.py stage2 --synthetic 300000 --random-stage1 sd15
 """
 PROBE_DOC = """What texture costs in the consistency metric when the texture is consistent by construction.
 
-Paints the scene's Gaussians with a grey probe colour that is a fixed function of 3-D position (six seeded
-sinusoids, ``period`` pixels at the median depth, standard deviation ``amplitude``; SH bands above 0 zeroed), renders
-``ssgwarp evaluate``'s path views and scores them as ``evaluate`` does: short/long-range reprojection RMSE as a ratio
-to the unpainted scene's, the share of squared error in the worst 10 % / 25 % of pixels, and with ``--style`` the
-texture distance per filter scale. No optimisation: what the ratio shows is what the geometry makes of painted
-contrast. ``--truth`` (a run of ``ssgwarp demo``: OUT/scene) also scores the procedural scene that made the capture.
+Paints the Gaussians with a grey colour that is a fixed function of 3-D position (six seeded sinusoids of
+``period`` pixels at the median depth, std ``amplitude``) and scores ``ssgwarp evaluate``'s path views as it does
+(reprojection RMSE against the unpainted scene's, error share of the worst 10 / 25 % of pixels; ``--style``: texture
+distance per scale). ``--truth`` (an ``ssgwarp demo`` run, OUT/scene): also the procedural scene behind it.
 
     python benchmarks/stylize.py probe --run RUN --style ../shared/data/styles/candy.jpg
     python benchmarks/stylize.py probe --run ssgwarp-demo/scene --truth --periods 2,8,32
 """
 BOUND_DOC = """How far Stage 2's weight-free style loss takes the texture distance with nothing holding it back.
 
-Per style: the colours go through Stage 2's colour transfer, ``ssgwarp evaluate``'s path views are rendered, and each
-view's scene pixels (alpha >= 0.5) are optimised freely with the style loss alone (Adam on the pixels' logits; no 3-D
-scene, consistency, content or smoothing terms unless asked), then scored with the texture distance after each of
-``--steps`` steps per view; beside them the colour distance's change and half of the style image against the whole.
-A texture target beyond this is beyond the loss, whatever the 3-D side does.
+Per style: Stage 2's colour transfer, then each path view's scene pixels (alpha >= 0.5) optimised freely with the
+style loss alone (Adam on the logits), scored after each of ``--steps`` steps per view. A texture target beyond
+this is beyond the loss, whatever the 3-D side does.
 
     python benchmarks/stylize.py bound --run RUN --styles candy,mosaic --steps 10,100
 """
@@ -200,9 +170,7 @@ def source_consistency(run: Path, out: Path, device, eval_opts, progress: bool =
 
 
 def _pct(before: Optional[float], after: Optional[float]) -> str:
-    if before is None or after is None or before == 0:
-        return "-"
-    return f"{100 * (after - before) / before:+.0f}%"
+    return "-" if before is None or after is None or before == 0 else f"{100 * (after - before) / before:+.0f}%"
 
 
 def table(rows: list[dict], src: dict, title: str) -> str:
@@ -250,13 +218,10 @@ def table(rows: list[dict], src: dict, title: str) -> str:
 
 def sheet(path: Path, run: Path, results_dir: Path, styles: list[Path], device) -> Optional[Path]:
     """Rows: style image | original | stylized (one view), for the styles that finished; a small JPEG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     from ssgwarp.capture.datasets import load_run
-    from ssgwarp.core.fileio import atomic_path, read_image
+    from ssgwarp.core.fileio import read_image
     from ssgwarp.formats.ply import read_ply
     from ssgwarp.services.runs import Run
     from ssgwarp.stylization.stage2 import render_rgb
@@ -281,31 +246,18 @@ def sheet(path: Path, run: Path, results_dir: Path, styles: list[Path], device) 
             axes[i, j].set_title(label, fontsize=7)
             axes[i, j].axis("off")
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="jpg", pil_kwargs={"quality": 82})
-    plt.close(fig)
+    save_figure(fig, path, format="jpg", pil_kwargs={"quality": 82})
     return path
 
 
-ABLATIONS = {
-    "default": {},
-    "color transfer off": {"color_transfer": "off"},
-    "color transfer pre": {"color_transfer": "pre"},
-    "color transfer post": {"color_transfer": "post"},
-    "colour transfer only (0 steps)": {"iters": 0},
-    "paper objective (content 0, TV 0)": {"content_weight": 0.0, "tv_weight": 0.0},
-    "content 0": {"content_weight": 0.0},
-    "TV 0": {"tv_weight": 0.0},
-    "SH rest: keep": {"sh_rest": "keep"},
-    "SH rest: zero": {"sh_rest": "zero"},
-    "SH rest: optimise": {"sh_rest": "optimise"},
-    "TV 0.02 (previous default)": {"tv_weight": 0.02},
-    "TV 0.1": {"tv_weight": 0.1},
-    "TV 0.5": {"tv_weight": 0.5},
-    "colour gain 1.0": {"color_max_gain": 1.0},
-    "background: keep": {"background": "keep"},
-    "free opacity": {"free_opacity": True},
-}
+ABLATIONS = {  # label: Stage 2 options changed from the defaults
+    "default": {}, "color transfer off": {"color_transfer": "off"}, "color transfer pre": {"color_transfer": "pre"},
+    "color transfer post": {"color_transfer": "post"}, "colour transfer only (0 steps)": {"iters": 0},
+    "paper objective (content 0, TV 0)": {"content_weight": 0.0, "tv_weight": 0.0}, "content 0": {"content_weight": 0.0},
+    "TV 0": {"tv_weight": 0.0}, "SH rest: keep": {"sh_rest": "keep"}, "SH rest: zero": {"sh_rest": "zero"},
+    "SH rest: optimise": {"sh_rest": "optimise"}, "TV 0.02 (previous default)": {"tv_weight": 0.02},
+    "TV 0.1": {"tv_weight": 0.1}, "TV 0.5": {"tv_weight": 0.5}, "colour gain 1.0": {"color_max_gain": 1.0},
+    "background: keep": {"background": "keep"}, "free opacity": {"free_opacity": True}}
 
 
 def scene_name(scene: str) -> str:
@@ -371,55 +323,35 @@ def run_configs(args, styles, device, progress: bool) -> int:
 
 def styles_main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--scene", default="demo", help="fern, demo, or a (grouped) reconstruction run folder")
-    p.add_argument("--styles", type=Path, default=DATA / "styles", help="folder of style images")
-    p.add_argument("--styles-subset", default=None, help="comma-separated style names (file stems)")
-    p.add_argument("--shard", default=None, help="i/n: run the i-th of n interleaved slices of the styles")
-    p.add_argument("--out", type=Path, default=ROOT / "out" / "stylize")
-    p.add_argument("--device", default="auto")
-    p.add_argument("--fern-iters", type=int, default=7000, help="reconstruction steps of fern images_8")
-    p.add_argument("--fern", type=Path, default=DATA / "llff_fern", help="the LLFF fern capture (--scene fern)")
-    p.add_argument("--demo-size", default="default", choices=("small", "default"),
-                   help="demo scene size (--scene demo; small: the tests' scene, for a CPU check)")
-    p.add_argument("--extractor", default="auto", choices=EXTRACTOR_KINDS)
-    p.add_argument("--path-frames", type=int, default=30, help="novel path views scored by evaluate")
-    p.add_argument("--ablation", action="store_true", help="the Stage 2 ablation table on a few styles")
-    p.add_argument("--ablation-rows", default=None,
-                   help="ablation row labels to run, separated by ; (default: all rows of ABLATIONS)")
-    p.add_argument("--report", action="store_true", help="print the table of finished styles only")
-    p.add_argument("--configs", type=Path, default=None,
-                   help="a file of configurations, one per line 'TAG: FLAGS' (# comments): the scene is built once, "
-                        "then each runs as its own process, all at once on the one device (--tag TAG and the line's "
-                        "FLAGS; --scene, --out, --device, --styles, --styles-subset, --fern*, --demo-size and "
-                        "--path-frames shared); logs in OUT/<scene>_<TAG>.log")
-    p.add_argument("--timeout", type=float, default=None,
-                   help="with --configs: stop every configuration this many seconds after the command started, "
-                        "building the scene included (finished styles are kept; run again to continue)")
-    p.add_argument("--tag", default="", help="results in OUT/<scene>_<tag> (one folder per configuration; the "
-                   "scene is built once in OUT and shared)")
-    p.add_argument("--quiet", action="store_true")
-    g = p.add_argument_group("Stage 2 (default: the CLI defaults)")
-    g.add_argument("--iters", type=int, default=None)
-    g.add_argument("--lr", type=float, default=None)
-    g.add_argument("--content-weight", type=float, default=None)
-    g.add_argument("--tv-weight", type=float, default=None)
-    g.add_argument("--blend-weight", type=float, default=None)
-    g.add_argument("--color-transfer", default=None)
-    g.add_argument("--color-max-gain", type=float, default=None)
-    g.add_argument("--color-detail", default=None, choices=("keep", "off"))
-    g.add_argument("--sh-rest", default=None)
-    g.add_argument("--background", default=None, choices=("transfer", "keep"))
-    g.add_argument("--mode", default=None, choices=("ist", "global"),
-                   help="ist (the CLI default: per group against the style image's regions on a grouped scene) "
-                        "or global (one match against the whole style image, the behaviour before issue 39)")
-    g.add_argument("--densify", type=float, default=None, help="split budget (fraction of the Gaussians; 0: off)")
-    g.add_argument("--densify-views", type=int, default=None)
-    g.add_argument("--hold-empty", type=float, default=None, help="weight of the empty-region term (0: off)")
-    g.add_argument("--consistency-weight", type=float, default=None, help="weight of the view-pair term (0: off)")
-    g.add_argument("--consistency-neighbours", type=int, default=None)
-    g.add_argument("--consistency-budget", type=float, default=None,
-                   help="pair error (x the starting scene's, squared) left free by the view-pair term")
-    g.add_argument("--style-scale", type=float, default=None, help="style image size against the views (1: fit)")
+    add = p.add_argument
+    add("--scene", default="demo", help="fern, demo, or a (grouped) reconstruction run folder")
+    add("--styles", type=Path, default=DATA / "styles", help="folder of style images")
+    add("--styles-subset", default=None, help="comma-separated style names (file stems)")
+    add("--shard", default=None, help="i/n: run the i-th of n interleaved slices of the styles")
+    add("--out", type=Path, default=ROOT / "out" / "stylize")
+    add("--device", default="auto")
+    add("--fern-iters", type=int, default=7000, help="reconstruction steps of fern images_8")
+    add("--fern", type=Path, default=DATA / "llff_fern", help="the LLFF fern capture (--scene fern)")
+    add("--demo-size", default="default", choices=("small", "default"), help="--scene demo's size (small: a CPU check)")
+    add("--extractor", default="auto", choices=EXTRACTOR_KINDS)
+    add("--path-frames", type=int, default=30, help="novel path views scored by evaluate")
+    add("--ablation", action="store_true", help="the Stage 2 ablation table on a few styles")
+    add("--ablation-rows", default=None, help="ablation rows to run, separated by ; (default: all of ABLATIONS)")
+    add("--report", action="store_true", help="print the table of finished styles only")
+    add("--configs", type=Path, default=None, help="a file of 'TAG: FLAGS' lines (# comments): the scene is built "
+        "once, then each runs as its own process (--tag TAG FLAGS), all at once; logs in OUT/<scene>_<TAG>.log")
+    add("--timeout", type=float, default=None, help="with --configs: stop every configuration this many seconds "
+        "after the command started (finished styles are kept)")
+    add("--tag", default="", help="results in OUT/<scene>_<tag> (the scene is built once in OUT and shared)")
+    add("--quiet", action="store_true")
+    g = p.add_argument_group("Stage 2 (default: the CLI defaults; docs/stylize.md)")
+    for name, kind in (("iters", int), ("lr", float), ("content-weight", float), ("tv-weight", float),
+                       ("blend-weight", float), ("color-transfer", str), ("color-max-gain", float),
+                       ("color-detail", ("keep", "off")), ("sh-rest", str), ("background", ("transfer", "keep")),
+                       ("mode", ("ist", "global")), ("densify", float), ("densify-views", int),
+                       ("hold-empty", float), ("consistency-weight", float), ("consistency-neighbours", int),
+                       ("consistency-budget", float), ("style-scale", float)):
+        g.add_argument(f"--{name}", default=None, **({"choices": kind} if isinstance(kind, tuple) else {"type": kind}))
     from ssgwarp.core.presets import add_preset
     from ssgwarp.commands.stylize import PAINT
     add_preset(p, "--paint", PAINT, "ssgwarp stylize's painting preset: {values} (options given explicitly win)")
@@ -427,7 +359,7 @@ def styles_main(argv=None) -> int:
 
     from ssgwarp.cli import resolve_device
     from ssgwarp.evaluation.evaluate import EvalOptions
-    from ssgwarp.core.fileio import atomic_path, write_json
+    from ssgwarp.core.fileio import write_json
     from ssgwarp.errors import InputError
 
     device = resolve_device(args.device)
@@ -445,7 +377,7 @@ def styles_main(argv=None) -> int:
     run = prepare_scene(args.scene, args.out, device, args.fern_iters, progress, args.demo_size, args.fern)
     eval_opts = EvalOptions(path_frames=args.path_frames, max_pairs=16, save_pairs=0)
     src = source_consistency(run, out, device, eval_opts, progress)
-    dev = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
+    dev = machine(device)
 
     if args.ablation:
         abl = [s for s in styles if s.stem in ABLATION_STYLES] or styles[:4]
@@ -477,8 +409,7 @@ def styles_main(argv=None) -> int:
                          f"{mean(lambda r: r['short'] / src['short']):.2f} | {mean(lambda r: r['long'] / src['long']):.2f} | "
                          f"{mean(lambda r: r['stage2_seconds']):.1f} |")
         text = "\n".join(lines) + "\n"
-        with atomic_path(out / "ablation.md") as tmp:
-            tmp.write_text(text)
+        write_text(out / "ablation.md", text)
         write_json(out / "ablation.json", {"device": dev, "source": src, "runs": raw})
         print(text)
         return 0
@@ -500,8 +431,7 @@ def styles_main(argv=None) -> int:
              f"Distances: sliced Wasserstein to the style (colour in Lab, texture of a derivative-of-Gaussian "
              f"filter bank), on the scene's pixels; lower is closer.")
     text = table(rows, src, title)
-    with atomic_path(out / "table.md") as tmp:
-        tmp.write_text(text)
+    write_text(out / "table.md", text)
     write_json(out / "results.json", {"device": dev, "source": src, "rows": rows})
     sheet(out / "styles_sheet.jpg", run, out / "styles", [s for s in styles if s.stem in SHEET_STYLES], device)
     print(text)
@@ -554,24 +484,23 @@ def synthetic_run(run: Path, data_dir: Path, images: str, n: int, groups: int = 
 
 def stage2_main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="stylize.py stage2", description=STAGE2_DOC, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--run", type=Path, default=None, help="existing grouped reconstruction of the capture")
-    p.add_argument("--data", type=Path, default=DATA / "llff_fern")
-    p.add_argument("--images", default="images_4")
-    p.add_argument("--recon-iters", type=int, default=7000)
-    p.add_argument("--synthetic", type=int, default=0, metavar="N", help="stand-in scene of N Gaussians")
-    p.add_argument("--style", type=Path, default=DATA / "styles" / "la_muse.jpg")
-    p.add_argument("--modes", default="ist", help="comma-separated Stage 2 modes (ist,global,finetune)")
-    p.add_argument("--iters", type=int, default=None, help="Stage 2 steps (default: the CLI default)")
-    p.add_argument("--keyviews", type=int, default=4)
-    p.add_argument("--stage2", default=None, metavar="K=V,...",
-                   help="other Stage 2 options, e.g. blend_weight=0.65,color_max_gain=1.0 (default: the CLI's)")
-    p.add_argument("--extractor", default="auto", choices=EXTRACTOR_KINDS)
-    p.add_argument("--path-frames", type=int, default=30)
-    p.add_argument("--random-stage1", choices=("tiny", "sd15"), default=None,
-                   help="run Stage 1 on randomly initialised models of this size (timing only)")
-    p.add_argument("--stage1-steps", type=int, default=50)
-    p.add_argument("--out", type=Path, default=ROOT / "out" / "bench_stylize")
-    p.add_argument("--device", default="auto")
+    add = p.add_argument
+    add("--run", type=Path, default=None, help="existing grouped reconstruction of the capture")
+    add("--data", type=Path, default=DATA / "llff_fern")
+    add("--images", default="images_4")
+    add("--recon-iters", type=int, default=7000)
+    add("--synthetic", type=int, default=0, metavar="N", help="stand-in scene of N Gaussians")
+    add("--style", type=Path, default=DATA / "styles" / "la_muse.jpg")
+    add("--modes", default="ist", help="comma-separated Stage 2 modes (ist,global,finetune)")
+    add("--iters", type=int, default=None, help="Stage 2 steps (default: the CLI default)")
+    add("--keyviews", type=int, default=4)
+    add("--stage2", default=None, metavar="K=V,...", help="other Stage 2 options, e.g. blend_weight=0.65")
+    add("--extractor", default="auto", choices=EXTRACTOR_KINDS)
+    add("--path-frames", type=int, default=30)
+    add("--random-stage1", choices=("tiny", "sd15"), default=None, help="Stage 1 on random models of this size")
+    add("--stage1-steps", type=int, default=50)
+    add("--out", type=Path, default=ROOT / "out" / "bench_stylize")
+    add("--device", default="auto")
     args = p.parse_args(argv)
 
     from ssgwarp.cli import main as cli, resolve_device
@@ -633,15 +562,13 @@ def stage2_main(argv=None) -> int:
     print(f"\n`ssgwarp stylize` on {args.data.name} {args.images}, {dev}, {time.strftime('%Y-%m-%d')}")
     if prep:
         print("preparation: " + ", ".join(f"{k} {v:.1f}s" for k, v in prep.items()))
-    print("\n| seconds | " + " | ".join(results) + " |")
-    print("|---|" + "---|" * len(results))
-    for r in rows:
-        print(f"| {r} | " + " | ".join(f"{m['seconds'].get(r, float('nan')):.1f}" for m in results.values()) + " |")
-    for key in ("gaussians", "views", "resolution", "extractor", "matching", "gram_style_loss_original",
-                "gram_style_loss", "content_loss", "peak_gpu_memory_gib"):
-        print(f"| {key} | " + " | ".join(str(m.get(key)) for m in results.values()) + " |")
-    print("| iters | " + " | ".join(str(m["config"]["iters"]) for m in results.values()) + " |")
-    print("| stage 1 ran | " + " | ".join(str(m["stage1"]["ran"]) for m in results.values()) + " |")
+    keys = ("gaussians", "views", "resolution", "extractor", "matching", "gram_style_loss_original", "gram_style_loss",
+            "content_loss", "peak_gpu_memory_gib")
+    cells = [{"what": r, **{k: f"{m['seconds'].get(r, float('nan')):.1f}" for k, m in results.items()}} for r in rows]
+    cells += [{"what": key, **{k: str(m.get(key)) for k, m in results.items()}} for key in keys]
+    cells += [{"what": "iters", **{k: m["config"]["iters"] for k, m in results.items()}},
+              {"what": "stage 1 ran", **{k: str(m["stage1"]["ran"]) for k, m in results.items()}}]
+    print("\n" + md_table(cells, [("what", "seconds"), *((k, k) for k in results)]))
     (args.out / "benchmark.json").write_text(json.dumps({"device": dev, "prep_seconds": prep, "runs": results},
                                                         indent=2, default=str))
     return 0
@@ -755,14 +682,7 @@ def probe_main(argv=None) -> int:
     p.add_argument("--truth", action="store_true",
                    help="a demo's run (OUT/scene): also score the procedural scene that made its capture")
     p.add_argument("--json", type=Path, default=None, help="also write the rows here")
-    args = p.parse_args(argv)
-    from ssgwarp.errors import InputError
-
-    try:
-        return probe(args)
-    except InputError as e:     # a bad run folder, style image or --truth on a run that is not a demo's: one line
-        print(f"stylize.py probe: {e}", file=sys.stderr)
-        return 2
+    return probe(p.parse_args(argv))   # (an InputError: one line, exit status 2, harness.dispatch)
 
 
 def probe(args) -> int:
@@ -815,18 +735,18 @@ def free_pixels(start: torch.Tensor, alphas: torch.Tensor, loss, counts: list[in
 
 def bound_main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="stylize.py bound", description=BOUND_DOC, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--run", type=Path, required=True, help="a reconstruction run folder")
-    p.add_argument("--styles", default="", help="comma-separated style names (in --style-dir) or paths; default: all")
-    p.add_argument("--style-dir", type=Path, default=data_root() / "styles", help="folder of style images (default ../shared/data/styles)")
-    p.add_argument("--steps", default="10,100", help="steps per view at which the views are scored (ascending)")
-    p.add_argument("--lr", type=float, default=0.05, help="Adam learning rate on the pixels' logits")
-    p.add_argument("--extractor", default="patches", choices=EXTRACTOR_KINDS,
-                   help="Stage 2's features (default patches, as --paint)")
-    p.add_argument("--tv-weight", type=float, default=0.0, help="add Stage 2's total variation term (default 0)")
-    p.add_argument("--frames", type=int, default=30, help="path views (ssgwarp evaluate's default 30)")
-    p.add_argument("--device", default="auto")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--json", type=Path, default=None, help="also write the rows here (after every style)")
+    add = p.add_argument
+    add("--run", type=Path, required=True, help="a reconstruction run folder")
+    add("--styles", default="", help="comma-separated style names (in --style-dir) or paths; default: all")
+    add("--style-dir", type=Path, default=data_root() / "styles", help="folder of style images")
+    add("--steps", default="10,100", help="steps per view at which the views are scored (ascending)")
+    add("--lr", type=float, default=0.05, help="Adam learning rate on the pixels' logits")
+    add("--extractor", default="patches", choices=EXTRACTOR_KINDS, help="Stage 2's features (default patches)")
+    add("--tv-weight", type=float, default=0.0, help="add Stage 2's total variation term (default 0)")
+    add("--frames", type=int, default=30, help="path views (ssgwarp evaluate's default 30)")
+    add("--device", default="auto")
+    add("--seed", type=int, default=0)
+    add("--json", type=Path, default=None, help="also write the rows here (after every style)")
     args = p.parse_args(argv)
 
     from ssgwarp.errors import InputError
@@ -836,13 +756,8 @@ def bound_main(argv=None) -> int:
     except ValueError:
         counts = [-1]
     if counts[0] < 0:
-        print(f"stylize.py bound: --steps takes step counts >= 0 such as 10,100, got {args.steps!r}", file=sys.stderr)
-        return 2
-    try:
-        return bound(args, counts, style_paths(args.styles, args.style_dir))
-    except InputError as e:     # a style not found, a bad run folder or style image: one line
-        print(f"stylize.py bound: {e}", file=sys.stderr)
-        return 2
+        raise InputError(f"--steps takes step counts >= 0 such as 10,100, got {args.steps!r}")
+    return bound(args, counts, style_paths(args.styles, args.style_dir))
 
 
 def bound(args, counts: list[int], styles: list[Path]) -> int:
@@ -925,10 +840,7 @@ MODES = {"stage2": stage2_main, "probe": probe_main, "bound": bound_main}
 
 
 def main(argv=None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
-    if argv and argv[0] in MODES:
-        return MODES[argv[0]](argv[1:])
-    return styles_main(argv)
+    return dispatch(MODES, styles_main, argv)
 
 
 if __name__ == "__main__":

@@ -1,46 +1,20 @@
-"""The measured speed/accuracy trade: each knob of the renderer and of stylization, time vs error.
+"""The measured speed/accuracy trade: each knob of the renderer and of stylization, time against error.
 
-Rasterizer knobs (one changed at a time from the defaults: float32, gsplat's
-rules ``RasterSettings()``, tile 16, the scene's full SH degree, all Gaussians):
-
-    precision        float32 | float64
-    alpha_min        1/255 | 0            (skip faint contributions)
-    t_min            1e-4 | 0             (transmittance cut-off)
-    alpha_max        0.999 | 1            (alpha clamp)
-    fast_math        on | off             (CUDA float32: approximate exp/log/division/sqrt)
-    covariance       gsplat | factor      (2D covariance as gsplat forms it, or cancellation-free)
-    extent           opacity-aware | fixed 3.33 sigma
-    tile_size        8 | 16 | 32
-    sh_degree        0 | 1 | 2 | 3        (SH bands evaluated)
-    gaussians        25 | 50 | 100 %      (kept by opacity, the most opaque first)
-    exact            RasterSettings.exact() in float32 (all three gates off)
-
-Each case is timed (median of ``--repeats``, CUDA-synchronised; forward, and
-forward + backward of a fixed random weighting of the image) and compared with
-the *reference*: the same scene rendered in float64 with
-``RasterSettings.exact()`` (no threshold, cut-off or clamp; fixed 3.33-sigma
-extent), all Gaussians, full SH degree. Errors: image RMSE and max abs error
-(colours in [0, 1]) and the relative L2 error of the positional gradient
-``dL/dmeans`` (what densification reads) on the Gaussians the case keeps.
-
-Stylization knobs (``--stylize``; Stage 2 through :func:`ssgwarp.stylization.stylize.stylize_run`):
-key views 2 | 4 | 8 and feature resolution (``feature_scale`` 0.25 | 0.5 | 1),
-each reporting the Stage 2 time and the resulting Gram style loss and content
-loss (:mod:`ssgwarp.evaluation.metrics`). Without Stage 1 weights the key views fall back
-to global matching and the table says so.
-
-Outputs in ``--out``: ``tradeoffs.md`` (tables, device names, date),
-``tradeoffs.json`` (raw numbers; ``--append`` keeps other devices' results)
-and ``tradeoffs_pareto.png`` (time vs error, one panel per device, the Pareto
-front drawn).
+Rasterizer knobs, one changed at a time from the defaults (float32, ``RasterSettings()``, tile 16, the scene's SH
+degree, all Gaussians): precision, alpha_min, t_min, alpha_max, fast_math, covariance, extent, tile_size (8 / 16 /
+32), sh_degree (0-3), gaussians (25 / 50 / 100 %, the most opaque kept), exact (``RasterSettings.exact()``). Each is
+timed (median of ``--repeats``; forward, and forward + backward of a fixed random weighting of the image) and
+compared with the float64 ``RasterSettings.exact()`` render of all Gaussians: image RMSE and max error, relative L2
+error of ``dL/dmeans``. ``--stylize``: Stage 2's key views (2 / 4 / 8) and ``feature_scale`` (0.25 / 0.5 / 1),
+with Stage 2's time and Gram / content losses. Writes ``tradeoffs.md``, ``tradeoffs.json`` (``--append`` keeps other
+devices' results) and ``tradeoffs_pareto.png`` (time against error, the Pareto front) to ``--out``.
 
     python benchmarks/tradeoffs.py --quick --out /tmp/tradeoffs          # < 1 min CPU smoke run
-    python benchmarks/tradeoffs.py --devices cpu --n 20000 --size 256 --out bench/tradeoffs
     python benchmarks/tradeoffs.py --devices cuda --n 500000 --size 1024 --stylize --append --out bench/tradeoffs
     python benchmarks/tradeoffs.py --scene runs/fern --size 504 --out bench/fern   # a real reconstruction
 
-``python benchmarks/tradeoffs.py budget RESULTS.json ... --scene fern8`` plots held-out PSNR against Gaussians and
-peak memory from ``benchmarks/train_step.py runs`` results (the MCMC budget sweep beside the other strategies).
+Mode ``budget RESULTS.json ... --scene fern8``: held-out PSNR against Gaussians and peak memory from
+``benchmarks/train_step.py runs`` results (the MCMC budget sweep beside the other strategies).
 """
 from __future__ import annotations
 
@@ -60,7 +34,7 @@ import ssgwarp
 from ssgwarp import RasterSettings
 from ssgwarp.core.cameras import Cameras, look_at
 from ssgwarp.raster.scene import GaussianScene
-from harness import ROOT, machine, sync, timed, write_text
+from harness import ROOT, dispatch, machine, measure, passes, pyplot, save_figure, sync, write_text
 
 
 # ----------------------------------------------------------------------------- scene and cameras
@@ -125,8 +99,7 @@ def raster_cases(scene_degree: int) -> list[Case]:
              Case("fast_math", "off (IEEE exp/log/division/sqrt)", settings=replace(d, fast_math=False)),
              Case("covariance", "factor (cancellation-free)", settings=replace(d, covariance="factor")),
              Case("extent", "fixed 3.33 sigma", settings=replace(d, extent="fixed")),
-             Case("tile_size", "8", tile_size=8),
-             Case("tile_size", "32", tile_size=32)]
+             *(Case("tile_size", str(t), tile_size=t) for t in (8, 32))]
     cases += [Case("sh_degree", str(k), sh_degree=k) for k in range(scene_degree)]
     cases += [Case("gaussians", f"{int(p * 100)}%", keep=p) for p in (0.25, 0.5)]
     cases.append(Case("exact", "RasterSettings.exact(), float32", settings=RasterSettings.exact()))
@@ -140,34 +113,18 @@ def _inputs(scene: GaussianScene, cams: Cameras, device, dtype, degree: int, kee
     return [s.means, s.quats, s.scales, s.opacities, coeffs], cams.viewmats.to(device, dtype), cams.Ks.to(device, dtype)
 
 
-BACKEND = "warp"   # the Warp kernels; "torch" = the dense reference (slow, for comparison only)
-
-
 def render_case(scene: GaussianScene, cams: Cameras, device: torch.device, case: Case, weight: torch.Tensor,
                 keep_idx: Optional[torch.Tensor], repeats: int, time_it: bool = True) -> dict:
     """Time one case and return its image, alpha and positional gradient."""
     degree = scene.sh_degree if case.sh_degree is None else case.sh_degree
     params, vm, K = _inputs(scene, cams, device, case.dtype, degree, keep_idx)
-    kw = dict(sh_degree=degree, tile_size=case.tile_size, settings=case.settings, backend=BACKEND)
-    W, H = cams.width, cams.height
-    w = weight.to(device, case.dtype)
-
-    def fwd():
-        with torch.no_grad():
-            return ssgwarp.rasterization(*params, vm, K, W, H, **kw)
-
-    leaves = [p.detach().clone().requires_grad_(True) for p in params]
-
-    def fwd_bwd():
-        for p in leaves:
-            p.grad = None
-        img, alpha, _ = ssgwarp.rasterization(*leaves, vm, K, W, H, **kw)
-        ((img * w).sum() + alpha.sum()).backward()
+    kw = dict(sh_degree=degree, tile_size=case.tile_size, settings=case.settings)
+    fwd, fwd_bwd, leaves = passes(ssgwarp.rasterization, params, (vm, K, cams.width, cams.height),
+                                  weight.to(device, case.dtype), **kw)
 
     out: dict[str, Any] = {}
     if time_it:
-        out["fwd_ms"] = timed(fwd, device, repeats)
-        out["fwd_bwd_ms"] = timed(fwd_bwd, device, repeats)
+        out["fwd_ms"], out["fwd_bwd_ms"] = (measure(f, device, repeats)["median"] for f in (fwd, fwd_bwd))
     else:
         fwd_bwd()
     img, alpha, _ = fwd()
@@ -195,13 +152,10 @@ def raster_study(scene: GaussianScene, cams: Cameras, device: torch.device, repe
         d = r["image"] - ref["image"]
         gref = ref["grad_means"] if keep_idx is None else ref["grad_means"][keep_idx.to(device)]
         gerr = float((r["grad_means"] - gref).norm() / gref.norm().clamp_min(1e-300))
-        rows.append({
-            "knob": case.knob, "value": case.value, "default": case.default,
-            "fwd_ms": r["fwd_ms"], "fwd_bwd_ms": r["fwd_bwd_ms"],
-            "rmse": float(d.pow(2).mean().sqrt()), "max_abs": float(d.abs().max()),
-            "alpha_max_abs": float((r["alpha"] - ref["alpha"]).abs().max()),
-            "grad_rel": gerr, "gaussians": len(scene) if keep_idx is None else len(keep_idx),
-        })
+        rows.append({"knob": case.knob, "value": case.value, "default": case.default, "fwd_ms": r["fwd_ms"],
+                     "fwd_bwd_ms": r["fwd_bwd_ms"], "rmse": float(d.pow(2).mean().sqrt()), "max_abs": float(d.abs().max()),
+                     "alpha_max_abs": float((r["alpha"] - ref["alpha"]).abs().max()), "grad_rel": gerr,
+                     "gaussians": len(scene) if keep_idx is None else len(keep_idx)})
     return rows
 
 
@@ -232,11 +186,9 @@ def _procedural_style(path: Path, size: int = 64) -> Path:
 
 def stylize_study(run_dir: Path, style: Path, out: Path, device: torch.device, iters: int,
                   keyviews=(2, 4, 8), scales=(0.25, 0.5, 1.0), max_side: int = 256) -> list[dict]:
-    try:
-        from ssgwarp.stylization.stage2 import Stage2Config
-        from ssgwarp.stylization.stylize import StylizeOptions, stylize_run
-    except ImportError as e:
-        return [{"knob": "stylize", "value": "-", "skipped": f"ssgwarp.stylization.stylize not available ({e})"}]
+    from ssgwarp.stylization.stage2 import Stage2Config
+    from ssgwarp.stylization.stylize import StylizeOptions, stylize_run
+
     rows = []
     jobs = [("key views", str(k), Stage2Config(mode="ist", iters=iters), StylizeOptions(
         keyviews=k, path_frames=0, max_side=max_side)) for k in keyviews]
@@ -259,14 +211,10 @@ def stylize_study(run_dir: Path, style: Path, out: Path, device: torch.device, i
             rows.append({"knob": knob, "value": value, "skipped": f"{type(e).__name__}: {e}"})
             continue
         secs = m.get("seconds", {})
-        rows.append({
-            "knob": knob, "value": value, "mode": s2.mode, "iters": iters,
-            "stage2_s": secs.get("stage2", total), "total_s": total,
-            "gram_style_loss": m.get("gram_style_loss"), "content_loss": m.get("content_loss"),
-            "gram_style_loss_original": m.get("gram_style_loss_original"),
-            "extractor": m.get("extractor"), "stage1_ran": bool((m.get("stage1") or {}).get("ran")),
-            "matching": m.get("matching"),
-        })
+        rows.append({"knob": knob, "value": value, "mode": s2.mode, "iters": iters, "stage2_s": secs.get("stage2", total),
+                     "total_s": total, "stage1_ran": bool((m.get("stage1") or {}).get("ran")),
+                     **{k: m.get(k) for k in ("gram_style_loss", "content_loss", "gram_style_loss_original",
+                                              "extractor", "matching")}})
     return rows
 
 
@@ -274,13 +222,9 @@ def stylize_study(run_dir: Path, style: Path, out: Path, device: torch.device, i
 
 
 def _f(x: Any, digits: int = 3) -> str:
-    if x is None:
-        return "-"
-    if isinstance(x, float):
-        if x == 0.0:
-            return "0"
-        return f"{x:.{digits}g}" if 1e-3 <= abs(x) < 1e5 else f"{x:.2e}"
-    return str(x)
+    if not isinstance(x, float):
+        return "-" if x is None else str(x)
+    return "0" if x == 0.0 else f"{x:.{digits}g}" if 1e-3 <= abs(x) < 1e5 else f"{x:.2e}"
 
 
 def markdown(results: dict) -> str:
@@ -289,8 +233,7 @@ def markdown(results: dict) -> str:
         meta = res["meta"]
         lines += [f"## {key}: {meta['device_name']}", "",
                   f"{meta['date']}; torch {meta['torch']}, warp {meta['warp']}; scene: {meta['scene']}; "
-                  f"{meta['views']} view(s) {meta['width']}x{meta['height']}; median of {meta['repeats']} runs; "
-                  f"backend {meta.get('backend', 'warp')}.",
+                  f"{meta['views']} view(s) {meta['width']}x{meta['height']}; median of {meta['repeats']} runs.",
                   "Reference: float64, `RasterSettings.exact()`, all Gaussians, full SH degree. "
                   "Errors on colours in [0, 1]; grad = relative L2 error of dL/dmeans.", "",
                   "| knob | value | fwd ms | fwd+bwd ms | speed-up (fwd) | image RMSE | max abs err | grad rel err |",
@@ -340,10 +283,7 @@ def pareto_front(points: list[tuple[float, float]]) -> list[int]:
 
 
 def pareto_plot(results: dict, path: Path) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     keys = list(results["devices"])
     fig, axes = plt.subplots(1, len(keys), figsize=(6.5 * len(keys), 5), squeeze=False)
@@ -371,11 +311,7 @@ def pareto_plot(results: dict, path: Path) -> Path:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7, loc="best")
     fig.tight_layout()
-    from ssgwarp.core.fileio import atomic_path
-
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=120)
-    plt.close(fig)
+    save_figure(fig, path, format="png", dpi=120)
     return path
 
 
@@ -396,16 +332,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--style", type=Path, default=None, help="style image of the stylization knobs")
     p.add_argument("--stylize-iters", type=int, default=100, help="Stage 2 iterations per stylization run")
     p.add_argument("--append", action="store_true", help="keep other devices' results already in --out")
-    p.add_argument("--backend", choices=("warp", "torch"), default="warp",
-                   help="rasterizer backend (torch: the dense reference, for comparison)")
     p.add_argument("--seed", type=int, default=0)
     return p.parse_args(argv)
 
 
 def main(argv=None) -> int:
-    global BACKEND
     args = parse_args(argv)
-    BACKEND = args.backend
     if args.quick:
         args.n, args.size, args.repeats, args.views = min(args.n, 400), min(args.size, 48), min(args.repeats, 2), 1
         args.stylize, args.stylize_iters = True, min(args.stylize_iters, 2)
@@ -444,8 +376,7 @@ def main(argv=None) -> int:
         rows = raster_study(scene, cams, device, args.repeats)
         meta = {"device_name": machine(device), "date": datetime.datetime.now().isoformat(timespec="seconds"),
                 "torch": torch.__version__, "warp": warp.__version__, "scene": scene_desc, "views": len(cams),
-                "width": cams.width, "height": cams.height, "repeats": args.repeats, "quick": args.quick,
-                "backend": BACKEND}
+                "width": cams.width, "height": cams.height, "repeats": args.repeats, "quick": args.quick}
         entry = {"meta": meta, "raster": rows}
         if args.stylize:
             style = args.style or _procedural_style(args.out / "style_stripes.png")
@@ -470,13 +401,9 @@ def main(argv=None) -> int:
 
 
 # ----------------------------------------------------------------------------- budget: PSNR against size
-BUDGET_DOC = """Plot quality against size from ``benchmarks/train_step.py runs`` results: the MCMC budget sweep beside the
-other strategies of the same scene.
+BUDGET_DOC = """Held-out PSNR against Gaussians and peak GPU memory from ``train_step.py runs`` results (a PNG).
 
-Reads one or more ``results.json`` files (their ``rows``), keeps the rows of ``--scene`` at ``--iters``, and
-draws held-out PSNR against the final Gaussian count and against peak GPU memory: one line for the MCMC
-budget sweep (each point labelled with its budget and train time), one marker per other run (strategy,
-backend, D-SSIM scale). Writes a PNG (default ``docs/tradeoffs_budget.png``).
+The rows of ``--scene`` at ``--iters`` of every file: a line for the MCMC budget sweep, a marker per other run.
 
     python benchmarks/tradeoffs.py budget sweep/results.json f8ours/results.json f8gs/results.json \\
         dssim/results.json --scene fern8 --iters 7000 --out docs/tradeoffs_budget.png
@@ -515,10 +442,7 @@ def _by_point(rows: list[dict], key: str) -> dict:
 
 
 def plot(rows: list[dict], out: Path, title: str) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     sweep = sorted((r for r in rows if r["strategy"] == "mcmc" and not r.get("matched")),
                    key=lambda r: r["max_gaussians"])
@@ -549,11 +473,7 @@ def plot(rows: list[dict], out: Path, title: str) -> Path:
     fig.legend(handles, labels, fontsize=8, loc="lower center", ncol=4, frameon=False)
     fig.suptitle(title, fontsize=9)
     fig.tight_layout(rect=(0, 0.1, 1, 1))
-    from ssgwarp.core.fileio import atomic_path
-
-    with atomic_path(out) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, out, format="png", dpi=110)
     return out
 
 
@@ -562,21 +482,14 @@ def budget_main(argv=None) -> int:
     ap.add_argument("results", nargs="+", type=Path, help="results.json files of benchmarks/train_step.py runs")
     ap.add_argument("--scene", default="fern8")
     ap.add_argument("--iters", type=int, default=7000)
-    ap.add_argument("--title", default=None)
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "tradeoffs_budget.png")
     a = ap.parse_args(argv)
     rows = load_rows(a.results, a.scene, a.iters)
-    title = a.title or f"{a.scene}, {a.iters} steps: held-out PSNR against size (times in the labels)"
+    title = f"{a.scene}, {a.iters} steps: held-out PSNR against size (times in the labels)"
     print(plot(rows, a.out, title))
     return 0
 
 
-def dispatch(argv=None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
-    if argv and argv[0] == "budget":
-        return budget_main(argv[1:])
-    return main(argv)
-
 
 if __name__ == "__main__":
-    sys.exit(dispatch())
+    sys.exit(dispatch({"budget": budget_main}, main))

@@ -1,32 +1,19 @@
 """A training step's cost, and whole training runs, with ssgwarp's rasterizer or gsplat's (and its strategies).
 
-``python benchmarks/train_step.py [options]``: one step of our training loop per backend: milliseconds per step, the
-device synchronisations a step makes (and where) and, with ``--profile``, torch.profiler's top host ops. One
-:class:`ssgwarp.reconstruction.trainer.Trainer` per backend on the same capture, seed and recipe: ``--warm`` steps
-first (past the first refinements, so the Gaussian count is a trained scene's), then ``--steps`` timed steps
-between two refinements. On CUDA the synchronisations come from torch's sync debug mode (each synchronising call
-and the ssgwarp / kornia / gsplat / torch.optim frames that made it). ``--ops`` adds the step's op table: every
-torch op a step calls from Python (top-level ``aten::`` ops, forward and backward) and every Warp launch
-(``warp::<kernel>``), one row per op and source line (the innermost ssgwarp line; a backward op names the
-autograd node and the line of its forward op), with calls per step, host microseconds per step (under the
-profiler, so inflated alike for all rows) and the launches queued on the GPU.
+One :class:`~ssgwarp.reconstruction.trainer.Trainer` per ``--backend`` on the same capture, seed and recipe:
+``--warm`` steps (past the first refinements), then ``--steps`` timed steps: ms per step and, on CUDA, each
+synchronising call and the frames that made it (torch's sync debug mode). ``--profile``: torch.profiler's top host
+ops; ``--ops``: every torch op and Warp launch a step makes, per source line (a backward op names the line of its
+forward op), calls, host µs (under the profiler) and GPU launches per step.
 
-    python benchmarks/train_step.py                              # fern images_8, ssgwarp and gsplat
     python benchmarks/train_step.py --scene fern4 --backend ssgwarp --profile
     OMP_NUM_THREADS=2 python benchmarks/train_step.py --device cpu --backend ssgwarp --warm 20 --steps 5 --ops
 
-``python benchmarks/train_step.py runs [options]``: whole runs (held-out PSNR / SSIM, Gaussians, time, memory)
-per scene x backend x strategy x budget (``runs --help``).
+Modes, each with its own ``--help``: ``runs`` (whole runs per scene x backend x strategy x budget: held-out PSNR /
+SSIM, Gaussians, time, memory), ``loss`` (the photometric loss, 0.8 L1 + 0.2 (1 - SSIM): the torch reference against
+the fused Warp kernels per image size; on CUDA also host time with 20 calls queued and the kernels' GPU time).
 
-    python benchmarks/train_step.py runs --scenes fern8 fern4 --backend ssgwarp gsplat   # training time vs gsplat
-    python benchmarks/train_step.py runs --scenes fern8 --strategy mcmc --max-gaussians 50000 100000 300000 1000000
-
-``python benchmarks/train_step.py loss [options]``: the photometric loss every step computes (0.8 L1 + 0.2
-(1 - SSIM)): the torch reference against the fused Warp kernels per image size, forward and forward+backward,
-median ms of synchronised calls taken in turns; on CUDA also the host time with 20 calls queued and the kernels'
-GPU time (``loss --help``).
-
-    python benchmarks/train_step.py loss --device cuda
+    python benchmarks/train_step.py runs --scenes fern8 fern4 --backend ssgwarp gsplat
     OMP_NUM_THREADS=1 python benchmarks/train_step.py loss --device cpu --clock cpu
 """
 from __future__ import annotations
@@ -36,7 +23,6 @@ import collections
 import contextlib
 import gc
 import json
-import math
 import sys
 import threading
 import time
@@ -47,8 +33,9 @@ from pathlib import Path
 
 import torch
 
-from harness import (CAPTURES, ROOT, append_jsonl, capture_folder, cuda_kernel_ms, header, interleaved, per_call_us,
-                     write_text)
+from harness import (CAPTURES, ROOT, append_jsonl, capture_folder, cuda_kernel_ms, dispatch, header, interleaved,
+                     per_call_us, table, write_text)
+from harness import cell as _f
 
 from ssgwarp.capture.datasets import load_dataset
 from ssgwarp.errors import InputError
@@ -60,18 +47,12 @@ from ssgwarp.reconstruction.strategy import DefaultStrategy, MCMCStrategy, Strat
 
 RUNS_DOC = """Whole training runs: our 3DGS loop with either rasterizer and each densification strategy.
 
-One Trainer loop (same data, seed, recipe, schedule) per scene x ``--backend`` (``ssgwarp``; ``gsplat``:
-gsplat.rasterization, non-packed) x ``--strategy`` (ours: ``default`` / ``mcmc``; gsplat 1.5's ``gsplat-default`` /
-``gsplat-mcmc`` editing our tensors and Adam state through GsplatStrategy, given our schedule and thresholds; MCMC's
-regulariser is ours for both, its noise learning rate divided by extent^2) x ``--iters`` x ``--max-gaussians``
-(with mcmc: the budget sweep of docs/tradeoffs.md). ``--scenes``: fern8 / fern4 (LLFF fern images_8 / images_4),
-cup (colmap_cup), lego (lego_200, white background) or PATH[:IMAGES]. Distorted captures are undistorted into a
-pinhole crop, where PSNR / SSIM are measured. ``--match-default`` also runs mcmc at the default run's final count;
-``--dssim-scale 0.5`` trains with the halved D-SSIM term of before. Prints tables (runs; rasterizer pairs; strategy
-pairs; budget sweep) and writes them with the raw rows to ``--out``. Targets (issues 3, 14): ssgwarp vs gsplat's
-rasterizer within 0.2 dB and 1.5x time; our default within 0.2 dB of gsplat's; MCMC at an equal count >= default.
+One Trainer loop per scene x ``--backend`` (``gsplat``: gsplat.rasterization, non-packed) x ``--strategy`` (ours, or
+gsplat 1.5's ``gsplat-default`` / ``gsplat-mcmc`` on our tensors and schedule) x ``--iters`` x ``--max-gaussians``
+(with mcmc: docs/tradeoffs.md's budget sweep). Distorted captures are undistorted into a pinhole crop.
+``--match-default``: also mcmc at the default run's final count. Tables (runs; rasterizer, strategy pairs; budget
+sweep) and raw rows go to ``--out``. Targets (issues 3, 14): within 0.2 dB of gsplat's rasterizer at <= 1.5x time.
 
-    python benchmarks/train_step.py runs --scenes fern8 --backend ssgwarp gsplat --strategy default
     python benchmarks/train_step.py runs --scenes fern8 cup lego --strategy default gsplat-default --match-default
     python benchmarks/train_step.py runs --scenes PATH --iters 120 --device cpu --strategy default mcmc
 """
@@ -80,21 +61,18 @@ STRATEGIES = ("default", "mcmc", "gsplat-default", "gsplat-mcmc")
 
 
 def rasterizer(backend: str):
-    """``(rasterize function or None, extra kwargs)`` for a backend name."""
+    """``(rasterize function, extra kwargs)`` for a backend name (None: the Trainer's default, ssgwarp's)."""
     if backend == "ssgwarp":
-        return None, {}  # the Trainer's default: ssgwarp.rasterization (Warp kernels on CUDA)
-    if backend == "gsplat":
-        try:
-            from gsplat import rasterization
-        except ImportError as e:
-            raise SystemExit(f"--backend gsplat needs the gsplat package ({e}); pip install gsplat") from None
-        return rasterization, {"packed": False}  # [C, N] layout, as the densification statistics read it
-    raise SystemExit(f"unknown backend {backend!r}")
+        return None, {}
+    try:
+        from gsplat import rasterization
+    except ImportError as e:
+        raise SystemExit(f"--backend gsplat needs the gsplat package ({e}); pip install gsplat") from None
+    return rasterization, {"packed": False}  # [C, N] layout, as the densification statistics read it
 
 
 class _OneGroup:
-    """What gsplat's strategy ops expect of an optimizer (``param_groups`` of one group, ``state``),
-    as a view of one named group of the Trainer's Adam."""
+    """One named group of the Trainer's Adam as gsplat's strategy ops expect an optimizer."""
 
     def __init__(self, opt: torch.optim.Optimizer, group: dict):
         self.state = opt.state
@@ -102,13 +80,8 @@ class _OneGroup:
 
 
 class GsplatStrategy(Strategy):
-    """gsplat's ``DefaultStrategy`` or ``MCMCStrategy`` driving the Trainer's Gaussians (a reference for ours).
-
-    Our tensors go to gsplat under its names (``scales``, ``opacities``, ``sh0``, ``shN``; the rest as
-    they are) with one-group optimizer views; what gsplat puts back (new parameters, moved Adam
-    state) is written back under our names. gsplat's schedule is given as ours: it refines when its
-    step (our completed-step count) is past ``refine_start_iter``, hence ``refine_start - 1``.
-    """
+    """gsplat's ``DefaultStrategy`` or ``MCMCStrategy`` driving the Trainer's Gaussians under gsplat's names, with
+    one-group optimizer views; gsplat refines once its step is past ``refine_start_iter``: ``refine_start - 1``."""
 
     to_gsplat = {"log_scales": "scales", "logit_opacities": "opacities", "sh_dc": "sh0", "sh_rest": "shN"}
 
@@ -221,17 +194,11 @@ def train_and_measure(data, *, backend: str = "ssgwarp", strategy="default", ite
     return out
 
 
-def _f(v, spec=".2f"):
-    return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, spec)
-
-
 def tables(rows: list[dict]) -> str:
-    lines = ["| scene | resolution | iters | backend | strategy | budget | held-out PSNR (dB) | SSIM | Gaussians | "
-             "train time (s) | peak GPU mem (MiB) |", "|---|---|---:|---|---|---:|---:|---:|---:|---:|---:|"]
-    for r in rows:
-        lines.append(f"| {r['scene']} | {r['resolution']} | {r['iters']} | {r['backend']} | {r['strategy']} | "
-                     f"{r['max_gaussians']:,} | {_f(r['psnr'])} | {_f(r['ssim'], '.4f')} | {r['gaussians']:,} | "
-                     f"{r['seconds']:.1f} | {_f(r['peak_mib'], '.0f')} |")
+    lines = [table(rows, [("scene", "scene"), ("resolution", "resolution"), ("iters", "iters"), ("backend", "backend"),
+                          ("strategy", "strategy"), ("max_gaussians", "budget"), ("psnr", "held-out PSNR (dB)"),
+                          ("ssim", "SSIM", 4), ("gaussians", "Gaussians"), ("seconds", "train time (s)", 1),
+                          ("peak_mib", "peak GPU mem (MiB)", 0)])]
     key = lambda r, **kw: tuple({**r, **kw}[k] for k in ("scene", "iters", "backend", "strategy", "max_gaussians"))
     by = {key(r): r for r in rows}
     pairs = []
@@ -261,19 +228,6 @@ def tables(rows: list[dict]) -> str:
     if strat:
         lines += ["", "| scene | iters | backend | pair | PSNR difference (targets: ours - gsplat's >= -0.2 dB; "
                       "mcmc - default >= 0) | Gaussians | time ratio |", "|---|---:|---|---|---:|---:|---:|"] + strat
-    sweep = [r for r in rows if r["strategy"] in ("mcmc", "gsplat-mcmc") and not r.get("matched")]
-    groups = {}
-    for r in sweep:
-        groups.setdefault((r["scene"], r["iters"], r["backend"], r["strategy"]), []).append(r)
-    budget = [g for g in groups.values() if len(g) > 1]
-    if budget:
-        lines += ["", "| scene | iters | backend | strategy | budget | Gaussians | held-out PSNR (dB) | SSIM | "
-                      "train time (s) |", "|---|---:|---|---|---:|---:|---:|---:|---:|"]
-        for g in budget:
-            for r in sorted(g, key=lambda r: r["max_gaussians"]):
-                lines.append(f"| {r['scene']} | {r['iters']} | {r['backend']} | {r['strategy']} | "
-                             f"{r['max_gaussians']:,} | {r['gaussians']:,} | {_f(r['psnr'])} | "
-                             f"{_f(r['ssim'], '.4f')} | {r['seconds']:.1f} |")
     return "\n".join(lines)
 
 
@@ -410,10 +364,8 @@ def call_site() -> str:
 
 @contextlib.contextmanager
 def ops_attributed():
-    """While inside, every torch call from Python runs in a profiler range ``@path:line function``
-    (:func:`call_site`), and every Warp launch of :mod:`ssgwarp.raster.launch` (kernels, sorts, cleared
-    buffers) is a range ``warp::<kernel>`` inside one too; the extra launches of the CPU blending's
-    worker threads are left out (one row per launch the step asks for)."""
+    """While inside, every torch call runs in a profiler range ``@path:line function`` and every Warp launch of
+    :mod:`ssgwarp.raster.launch` in a range ``warp::<kernel>`` too (the CPU blending's worker threads left out)."""
     from torch.overrides import TorchFunctionMode
     from torch.profiler import record_function
 
@@ -478,8 +430,7 @@ def _is_op(name: str) -> bool:
 
 def op_rows(events, steps: int, cpu: bool) -> tuple[list[dict], dict]:
     """The op table of a profile of ``steps`` steps (inside :func:`ops_attributed`): rows ``{op, site, calls,
-    host_us, launches}`` per step, costliest first, and the totals. ``cpu``: a CPU run (the Warp
-    launches are the launches)."""
+    host_us, launches}`` per step, costliest first, and the totals (``cpu``: the Warp launches are the launches)."""
     # (thread, sequence number, op) of the forward op that made an autograd node -> its line (ops
     # recorded before a node is made carry its number too: the node's name says which op made it)
     forward_site = {}
@@ -580,24 +531,18 @@ def measure(data, backend: str, args, device: torch.device) -> dict:
         for (msg, where), n in sorted(sync_sites(t.train_step).items(), key=lambda kv: kv[0][1]):
             if "prototype" not in msg:
                 row["syncs"].append(f"{n // 3} per step: {where or '(no ssgwarp frame)'}")
-    if args.profile:
+    for what in [w for w in ("profile", "ops") if getattr(args, w)]:
         from torch.profiler import ProfilerActivity, profile
 
         acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
-        with profile(activities=acts) as p:
-            for _ in range(5):
-                t.train_step()
-            sync()
-        row["profile"] = p.key_averages().table(sort_by="cpu_time_total", row_limit=60)
-    if args.ops:
-        from torch.profiler import ProfilerActivity, profile
-
-        acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
-        with ops_attributed(), profile(activities=acts) as p:
+        with ops_attributed() if what == "ops" else contextlib.nullcontext(), profile(activities=acts) as p:
             for _ in range(OPS_STEPS):
                 t.train_step()
             sync()
-        row["ops"] = op_rows(p.events(), OPS_STEPS, device.type == "cpu")
+        if what == "profile":
+            row["profile"] = p.key_averages().table(sort_by="cpu_time_total", row_limit=60)
+        else:
+            row["ops"] = op_rows(p.events(), OPS_STEPS, device.type == "cpu")
     return row
 
 
@@ -703,10 +648,7 @@ MODES = {"runs": runs_main, "loss": loss_main}
 
 
 def main(argv=None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
-    if argv and argv[0] in MODES:
-        return MODES[argv[0]](argv[1:])
-    return step_main(argv)
+    return dispatch(MODES, step_main, argv)
 
 
 if __name__ == "__main__":

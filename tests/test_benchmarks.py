@@ -1,4 +1,4 @@
-"""benchmarks/: at most ten scripts, each one's ``--help`` (and each mode's) exits 0 on the CPU, and the shared
+"""benchmarks/: at most ten scripts and 3,500 lines, each one's ``--help`` (and each mode's) exits 0 on the CPU, and the shared
 harness (data location, timing statistics, tables, JSON lines) does what the tools rely on."""
 import json
 import runpy
@@ -12,12 +12,15 @@ BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
 sys.path.insert(0, str(BENCH))
 import harness  # noqa: E402
 
-MODES = {"train_step.py": ["runs", "loss"], "stylize.py": ["stage2", "probe", "bound"], "tradeoffs.py": ["budget"]}
+MODES = {"train_step.py": ["runs", "loss"], "stylize.py": ["stage2", "probe", "bound"], "tradeoffs.py": ["budget"],
+         "captures.py": ["appearance", "inside-out"]}
 
 
 def test_at_most_ten_scripts_and_every_help_exits_0(monkeypatch, capsys):
     scripts = sorted(p.name for p in BENCH.glob("*.py"))
     assert len(scripts) <= 10, scripts
+    lines = {p.name: len(p.read_text().splitlines()) for p in BENCH.iterdir() if p.is_file()}
+    assert sum(lines.values()) <= 3500, lines          # everything in the folder, the baseline file included
     calls = [[s, "--help"] for s in scripts] + [[s, m, "--help"] for s, ms in MODES.items() for m in ms]
     # in this process (torch and ssgwarp are imported once): each script run as __main__ with its argv, as
     # `python benchmarks/X.py ...` runs it, on the CPU
