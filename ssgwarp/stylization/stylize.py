@@ -181,7 +181,7 @@ def _open(scene_dir: Path, style_path: Path, out: Path, stage2: Stage2Config, st
           device: torch.device, resume: bool, force: bool, progress: bool, stage1_models, group) -> tuple:
     """Read the inputs and the weights (a missing or corrupt one fails before anything is written to OUT),
     then claim OUT: ``(Inputs, Record)``."""
-    from ..capture.datasets import load_run
+    from ..services.runs import load_run
     from ..evaluation.features import load_extractor
     from ..core.fileio import read_image, write_json
 
