@@ -8,12 +8,14 @@ The protocol of ``obj``:
 * ``start_at(end) -> step``: the step before which ``obj(trainer) -> hooks`` is called (:func:`attach_hooks`) in a
   run that ends at ``end`` (asked each step until then: ``--iters auto`` may move the end); the scene then
   gets identity encodings of length ``obj.dim`` if it has none (learnt at ``obj.identity_lr`` when it has one,
-  else at the recipe's), and the hooks' parameters an optimiser;
+  else at the recipe's), and the hooks' parameters an optimiser (the Trainer's public
+  :meth:`~ssgwarp.reconstruction.trainer.Trainer.add_hooks`: an ``attach`` object is a way of adding hooks while
+  the loop runs, the one hook protocol of the Trainer; it reads only the Trainer's public members);
 * ``state() -> dict``: what a checkpoint holds of them; ``restore(state) -> hooks``: the hooks back from it
   (:func:`restore_attached`; a checkpoint with attached hooks resumes only with an ``attach``);
 * ``finish(out, metrics, scene) -> dict`` (for :func:`ssgwarp.reconstruction.reconstruct.reconstruct`): called
   once the run files are written, with the final scene as written to ``scene.ply`` (on the training device);
-  what it returns joins ``metrics.json``.
+  what it returns joins ``metrics.json`` (:func:`ssgwarp.services.runs.write_run`'s ``finish``).
 """
 from __future__ import annotations
 
