@@ -148,3 +148,28 @@ def test_a_commands_own_out_folder_is_claimed_by_the_one_policy(tmp_path):
     with pytest.raises(InputError, match="not a folder; pass --force"):
         claim_folder(f, force=False)
     assert claim_folder(f, force=True).is_dir()
+
+
+def test_a_stage_record_resumes_its_finished_stages_with_the_same_options_only(tmp_path):
+    """resumed_stages (stylize's run.json, the demo's demo.json): the finished stages on --resume with the same
+    record; other options refused naming them; a file that is not the record refused; none: {} or, required,
+    'nothing to resume'."""
+    from ssgwarp.services.runs import claim, resume_record, resumed_stages
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "scene.ply").write_bytes(b"x")
+    rec = resume_record(**{"--seed": 1})
+    c = claim(out, ["scene.ply", "run.json"], resume=True)
+    assert resumed_stages(c, "run.json", "signature", rec, "the earlier run", kind="a stylize record") == {}
+    with pytest.raises(InputError, match="nothing to resume"):
+        resumed_stages(c, "run.json", "signature", rec, "the earlier run", kind="x", required=True)
+    write_json(out / "run.json", {"signature": rec, "stages": {"stage2": True}})
+    c = claim(out, ["scene.ply", "run.json"], resume=True)
+    assert resumed_stages(c, "run.json", "signature", rec, "the earlier run", kind="x") == {"stage2": True}
+    with pytest.raises(InputError, match=r"--seed 1 -> 2"):
+        resumed_stages(c, "run.json", "signature", resume_record(**{"--seed": 2}), "the earlier run", kind="x")
+    with pytest.raises(InputError, match="not a demo record"):
+        resumed_stages(c, "run.json", "signature", rec, "the earlier run", kind="a demo record", fmt="demo/1")
+    fresh = claim(out, ["scene.ply"], force=True)
+    assert resumed_stages(fresh, "run.json", "signature", resume_record(**{"--seed": 2}), "x", kind="x") == {}

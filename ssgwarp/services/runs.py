@@ -22,7 +22,9 @@
   decides what its checkpoint means (images, resolution, seed, SH degree, strategy, ...). Every command
   that resumes (reconstruct, group, stylize, demo) stores one and checks it: ``--resume`` with another value
   of any of them is refused in one line naming each option and both values; options that only change
-  the future (more steps, the checkpoint interval, progress output) are left out of the record.
+  the future (more steps, the checkpoint interval, progress output) are left out of the record;
+  :func:`resumed_stages` -- the check for a command that records its finished stages in a JSON file
+  (stylize's ``run.json``, the demo's ``demo.json``).
 
 The layout of the files is docs/architecture.md's "Run directories".
 """
@@ -46,7 +48,7 @@ from ..formats.ply import read_ply, write_ply
 from ..raster.scene import GaussianScene
 
 __all__ = ["Run", "RUN_FILES", "data_json", "load_run", "write_run", "write_orbit_run", "update_metrics",
-           "Claim", "claim", "claim_folder", "resume_record", "check_resume"]
+           "Claim", "claim", "claim_folder", "resume_record", "check_resume", "resumed_stages"]
 
 RUN_FILES = ("scene.ply", "cameras.json", "data.json", "metrics.json")   # a reconstruction run's files
 
@@ -460,6 +462,28 @@ def resume_changes(old: dict, new: dict) -> list[str]:
 
 
 _MISSING = object()
+
+
+def resumed_stages(claimed: Claim, record_file: str, key: str, new: dict, what: str, *, kind: str,
+                   fmt: Optional[str] = None, required: bool = False) -> dict:
+    """The finished stages of a command that records its stages in ``claimed.path / record_file`` (JSON:
+    ``key``: its resume record, ``stages``; ``fmt``: its ``format`` when it has one): on a ``--resume`` of a
+    folder that holds outputs, the record's ``stages`` once :func:`check_resume` has compared ``key`` with
+    ``new`` (``what``: the earlier run, as the refusal names it); else ``{}``. No record: ``{}``, or with
+    ``required`` "nothing to resume"; a file that is not one (``kind``, e.g. "a demo record"): refused."""
+    path = claimed.path / record_file
+    if not (claimed.existing and claimed.resume):
+        return {}
+    if not path.is_file():
+        if required:
+            raise InputError(f"{claimed.path}: nothing to resume (no {record_file}); pass --force to start over")
+        return {}
+    old = read_json(path)
+    if not isinstance(old, dict) or (fmt is not None and old.get("format") != fmt):
+        raise InputError(f"{path}: not {kind}; pass --force to start over")
+    rec = old.get(key)
+    check_resume(rec if isinstance(rec, dict) else {key: rec}, new, claimed.path, what)
+    return dict(old.get("stages", {}))
 
 
 def check_resume(old: Optional[dict], new: dict, where: str | Path, what: str = "the run") -> None:
