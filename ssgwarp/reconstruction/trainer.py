@@ -3,7 +3,7 @@ densification :class:`~ssgwarp.reconstruction.strategy.Strategy`, hooks such as 
 views split over processes by :mod:`ssgwarp.services.distributed`). Its state and checkpoint file are
 :class:`~ssgwarp.reconstruction.checkpoint.TrainState`'s; the scores of the held-out views
 :func:`ssgwarp.evaluation.held_out.score_views`'s (:meth:`Trainer.evaluate` renders them); the NaN check
-:class:`~ssgwarp.reconstruction.step.LossWatch`'s. Extensions: hooks (``hooks=``, or added while it runs with
+:class:`~ssgwarp.reconstruction.step.LossWatch`'s; the initial scene :mod:`ssgwarp.reconstruction.initial`'s. Extensions: hooks (``hooks=``, or added while it runs with
 :meth:`Trainer.add_hooks`, which ``attach=`` objects use, :mod:`ssgwarp.reconstruction.attach`).
 
 Runs are seeded and repeatable (views, split samples and initial identities come from the run's
@@ -24,7 +24,6 @@ import torch
 
 from ..services.distributed import SINGLE, check_every
 from ..errors import InputError
-from ..core.geometry import knn_mean_distance
 from ..core.optim import adam
 from ..services.loop import Diverged, Loop, diverged_message
 from ..services.losses import photometric
@@ -37,7 +36,7 @@ from . import appearance as appearance_mod
 from . import sky as sky_mod
 from .attach import attach_hooks, takes_scene
 from .checkpoint import TrainState
-from .backdrop import with_backdrop
+from .initial import initial_count, initial_scene
 from .schedules import AUTO, AUTO_MAX_ITERS, Schedules, sh_degree_at
 from .step import LossWatch, StepInfo, ViewCache, adam_step, zero_unrendered_grads
 from .strategy import GaussianParams, make_strategy
@@ -116,7 +115,7 @@ class Trainer:
         recipe = recipe or Recipe()
         random_init = None
         if scene is None and getattr(data, "points_source", "") == "random" and data.points is not None:
-            random_init = self._initial_count(len(data.points[0]), recipe)
+            random_init = initial_count(len(data.points[0]), recipe, self.max_gaussians, self.strategy.budgeted)
         self.recipe = recipe.resolved(self.iters, self.sh_degree, self.strategy, random_init, self.batch_size,
                                       views=len(data.train_ids))
         self.lr_factor, self.beta_power = batch_factors(self.batch_size, self.recipe.batch_scaling)
@@ -149,7 +148,9 @@ class Trainer:
         self._views = ViewCache(self.data)
 
         if scene is None:
-            scene = self._initial_scene()
+            scene, self.backdrop = initial_scene(self.data, self.recipe, max_gaussians=self.max_gaussians,
+                                                 budgeted=self.strategy.budgeted, backdrop_mode=self.backdrop_mode,
+                                                 seed=self.seed, device=self.device)
         if scene.sh_degree != self.sh_degree:
             scene = scene.with_sh_degree(self.sh_degree)
         if identity_dim and scene.identities is None:
@@ -235,25 +236,6 @@ class Trainer:
         return appearance_mod.HALF_PROTOCOL if self.appearance is not None else appearance_mod.FULL_PROTOCOL
 
     # -- state --------------------------------------------------------------------------------
-    def _initial_scene(self) -> GaussianScene:
-        if self.data.points is None:
-            raise InputError("the capture has no initial points (and none were generated); pass a scene")
-        xyz, rgb = self.data.points
-        xyz, rgb = xyz.float().cpu(), rgb.float().cpu()
-        m = self._initial_count(len(xyz), self.recipe)
-        if len(xyz) > m:
-            g = torch.Generator().manual_seed(self.seed + 3)
-            idx = torch.randperm(len(xyz), generator=g)[:m].sort().values
-            xyz, rgb = xyz[idx], rgb[idx]
-        if len(xyz) == 0:
-            raise InputError("the capture has an empty point cloud")
-        budget = self.max_gaussians if self.strategy.budgeted else None
-        xyz, rgb, self.backdrop = with_backdrop(self.data, xyz, rgb, self.backdrop_mode, budget, self.seed)
-        xyz = xyz.to(self.device)
-        scale = knn_mean_distance(xyz, k=3).clamp_min(1e-7) * self.recipe.init_scale
-        return GaussianScene.from_points(xyz, rgb.to(self.device), sh_degree=0,
-                                         opacity=self.recipe.init_opacity, scale=scale)
-
     def _setup_strategy(self) -> None:
         self.strategy.setup(self.gaussians, recipe=self.recipe, extent=self.extent, max_gaussians=self.max_gaussians,
                             seed=self.seed)
@@ -264,12 +246,6 @@ class Trainer:
     def finished(self) -> bool:
         """Whether the run reached its end: ``iters``, or where the stop rule ended it (``--iters auto``)."""
         return self.step >= self.schedules.end
-
-    def _initial_count(self, n: int, recipe: Recipe) -> int:
-        """How many of ``n`` capture points start the scene (``init_max_points``; the budget of a budgeted strategy)."""
-        if recipe.init_max_points is not None:
-            n = min(n, recipe.init_max_points)
-        return min(n, self.max_gaussians) if self.strategy.budgeted else n
 
     def learning_rate(self, name: str) -> float:
         """Learning rate of scene tensor ``name`` for this run's batch size (at step 0)."""
