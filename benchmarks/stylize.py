@@ -220,7 +220,7 @@ def sheet(path: Path, run: Path, results_dir: Path, styles: list[Path], device) 
     """Rows: style image | original | stylized (one view), for the styles that finished; a small JPEG."""
     plt = pyplot()
 
-    from ssgwarp.capture.datasets import load_run
+    from ssgwarp.services.runs import load_run
     from ssgwarp.core.fileio import read_image
     from ssgwarp.formats.ply import read_ply
     from ssgwarp.services.runs import Run
@@ -442,7 +442,8 @@ def styles_main(argv=None) -> int:
 # ----------------------------------------------------------------------------- stage2: seconds per stage
 def synthetic_run(run: Path, data_dir: Path, images: str, n: int, groups: int = 8, seed: int = 0) -> Path:
     """A grouped run folder whose scene is N Gaussians around the capture's sparse points."""
-    from ssgwarp.capture.datasets import data_json, load_dataset
+    from ssgwarp.capture.datasets import load_dataset
+    from ssgwarp.services.runs import data_json
     from ssgwarp.core.fileio import write_json
     from ssgwarp.formats.ply import write_ply
     from ssgwarp.raster.scene import GaussianScene

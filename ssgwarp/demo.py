@@ -40,7 +40,7 @@ from .stylization.diffusion_models import WEIGHT_KEYS
 from .errors import InputError
 from .evaluation.evaluate import EvalOptions, evaluate_run, load_models
 from .evaluation.table import comparison_table
-from .core.fileio import atomic_path, read_image, read_json, write_image, write_json
+from .core.fileio import atomic_path, read_image, write_image, write_json
 from .grouping.joint import reconstruct_with_groups
 from .grouping.stage import group_scene
 from .grouping.model import GroupConfig
@@ -52,7 +52,7 @@ from .formats.ply import read_ply
 from .procedural import SIZES
 from .reconstruction.reconstruct import ReconstructConfig, reconstruct
 from .reconstruction.recipe import Recipe
-from .services.runs import Run, check_resume, claim, resume_record
+from .services.runs import Run, claim, resume_record, resumed_stages
 from .stylization.stylize import StylizeOptions, stylize_run
 from .stylization.stage2 import Stage2Config
 
@@ -87,15 +87,8 @@ def _prepare_out(out: Path, force: bool, resume: bool, record: dict) -> dict:
     stage record to continue (``resume``: the finished stages of the same options)."""
     claimed = claim(out, OUTPUTS, force=force, resume=resume, what="a demo run")
     if claimed.existing and resume:
-        if not (out / "demo.json").is_file():
-            raise InputError(f"{out}: nothing to resume (no demo.json); pass --force to start over")
-        old = read_json(out / "demo.json")
-        if not isinstance(old, dict) or old.get("format") != FORMAT:
-            raise InputError(f"{out / 'demo.json'}: not a demo record; pass --force to start over")
-        opts = old.get("options")
-        check_resume(opts if isinstance(opts, dict) else {"options": opts}, resume_record(**record["options"]), out,
-                     "the earlier demo")
-        record["stages"] = dict(old.get("stages", {}))
+        record["stages"] = resumed_stages(claimed, "demo.json", "options", resume_record(**record["options"]),
+                                          "the earlier demo", kind="a demo record", fmt=FORMAT, required=True)
         return record
     claimed.clear()   # --force: remove only what the demo writes
     return record

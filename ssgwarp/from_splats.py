@@ -3,7 +3,7 @@ command takes made first (grouping, then stylization: so this module sits
 above the stages, as the demo does).
 
 :func:`prepare_source` writes ``OUT/source/``: the file's splats as a reconstruction run with cameras made
-around them (:func:`ssgwarp.capture.orbit.write_orbit_run`: an orbit fitted to the splats, the record in
+around them (:func:`ssgwarp.services.runs.write_orbit_run`: an orbit fitted to the splats, the record in
 ``OUT/source/data.json`` under ``orbit``), grouped mask-free (:func:`ssgwarp.grouping.stage.group_scene`: there
 are no images and no masks, the clusters come from the splats themselves). Key views, Stage 1 (skipped
 without its weights, as for any run) and Stage 2 then run on those views as on a reconstruction's, and
@@ -16,7 +16,7 @@ import shutil
 from pathlib import Path
 from typing import Optional
 
-from .capture.orbit import MAX_WIDTH, VIEWS, parse_up, write_orbit_run
+from .capture.orbit import MAX_WIDTH, VIEWS, parse_up
 from .formats.registry import read_splat_file
 from .core.fileio import read_image, read_json, write_json
 from .errors import InputError
@@ -45,7 +45,7 @@ def prepare_source(file: str | Path, style: str | Path, out: str | Path, outputs
     ``resume``, before anything is written)."""
     from .grouping.model import GroupConfig
     from .grouping.stage import group_scene
-    from .services.runs import claim
+    from .services.runs import claim, write_orbit_run
 
     file, out = Path(file).expanduser(), Path(out).expanduser()
     if views < 2:
@@ -81,11 +81,10 @@ def prepare_source(file: str | Path, style: str | Path, out: str | Path, outputs
 
 def add_record(out: str | Path, src: Path) -> None:
     """Name the splat file and the made cameras in ``out/metrics.json`` (``splat_file``, ``orbit``)."""
+    from .services.runs import update_metrics
+
     out = Path(out)
     if not (out / "metrics.json").is_file():
         return
-    m = read_json(out / "metrics.json")
     orbit = read_json(src / "data.json").get("orbit") or {}
-    m["splat_file"] = orbit.get("source")
-    m["orbit"] = {k: v for k, v in orbit.items() if k != "options"}
-    write_json(out / "metrics.json", m)
+    update_metrics(out, {"splat_file": orbit.get("source"), "orbit": {k: v for k, v in orbit.items() if k != "options"}})

@@ -529,7 +529,7 @@ def test_nerfstudio_layout_loads_to_the_colmap_capture_it_came_from(tmp_path):
     pc = torch.cat([d.points[0].double(), torch.ones(len(xyz), 1, dtype=torch.float64)], 1)
     pr = torch.cat([ref.points[0].double(), torch.ones(len(xyz), 1, dtype=torch.float64)], 1)
     assert torch.allclose(pc @ d.cameras.viewmats[0].double().T, pr @ ref.cameras.viewmats[0].double().T, atol=1e-5)
-    from ssgwarp.capture.datasets import data_json
+    from ssgwarp.services.runs import data_json
     assert data_json(d)["applied_transform"] == A[:3].tolist() and data_json(d)["points_source"] == "ply"
 
 
@@ -594,7 +594,7 @@ def test_nerfstudio_masks_are_loaded_undistorted_and_resized_with_their_images(t
     assert d.masks.shape == (9, 12, 16) and d.images.shape == (9, 12, 16, 3)
     assert bool((d.masks[:, :, :8] == 1).all()) and bool((d.masks[:, :, 8:] == 0).all())
     assert d.to("cpu").masks is not None
-    from ssgwarp.capture.datasets import data_json
+    from ssgwarp.services.runs import data_json
     assert data_json(d)["masks"] is True
     write_image(tmp_path / "masks" / f"{Path(images[1].name).stem}.png", np.ones((5, 5, 1), np.float32))
     with pytest.raises(InputError, match=r"mask size 5x5 differs from its image's \(32x24\)$"):

@@ -120,7 +120,8 @@ def test_demo_runs_every_stage_and_prints_a_summary(demo):
 
 @pytest.mark.slow  # the demo fixture runs the default demo once per session
 def test_demo_outputs_follow_the_run_contract(demo):
-    from ssgwarp.capture.datasets import load_dataset, load_run
+    from ssgwarp.capture.datasets import load_dataset
+    from ssgwarp.services.runs import load_run
     from ssgwarp.raster.groups import load_groups
     from ssgwarp.formats.ply import read_ply
 

@@ -41,7 +41,8 @@ def _cameras(n: int = 6) -> Cameras:
 @pytest.fixture
 def runs(tmp_path, monkeypatch):
     """(reconstruction dir, stylized dir, style image) built with the project's own writers."""
-    from ssgwarp.capture.datasets import data_json, load_dataset
+    from ssgwarp.capture.datasets import load_dataset
+    from ssgwarp.services.runs import data_json
     from ssgwarp.core.fileio import write_image, write_json
     from ssgwarp.formats.ply import write_ply
 
@@ -141,7 +142,7 @@ def test_evaluate_scores_novel_path_views_by_default(runs, tmp_path):
     # no path frame coincides with a training camera
     train = Cameras.load(recon / "cameras.json")
     from ssgwarp.evaluation.evaluate import scored_cameras
-    from ssgwarp.capture.datasets import load_run
+    from ssgwarp.services.runs import load_run
 
     _, data = load_run(recon, load_images=False)
     path, ids, _ = scored_cameras(data.cameras, data.train_ids, data.test_ids, EvalOptions(path_frames=12))

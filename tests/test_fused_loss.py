@@ -152,7 +152,7 @@ def test_strided_inputs_read_in_place():
 
 
 def test_masked_pixels_as_the_trainer_zeroes_them():
-    from ssgwarp.reconstruction.trainer import _masked
+    from ssgwarp.evaluation.held_out import masked as _masked
 
     a, b = _pair((2, 16, 18, 3), torch.float64)
     mask = torch.ones(2, 16, 18)

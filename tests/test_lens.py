@@ -32,7 +32,8 @@ import pytest
 import torch
 
 from ssgwarp.formats.colmap import MODEL_IDS, ColmapCamera, ColmapImage, ColmapPoints, rotmat_to_qvec, write_model_text
-from ssgwarp.capture.datasets import data_json, load_dataset, load_run
+from ssgwarp.capture.datasets import load_dataset
+from ssgwarp.services.runs import data_json, load_run
 from ssgwarp.errors import InputError
 from ssgwarp.core.fileio import write_image
 

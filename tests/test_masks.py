@@ -34,7 +34,8 @@ def _main(argv):
 
 def write_run(root: Path, scene, cams, images) -> Path:
     """A run folder (scene.ply, cameras.json, data.json) whose capture is ``images`` (transforms.json)."""
-    from ssgwarp.capture.datasets import data_json, load_dataset
+    from ssgwarp.capture.datasets import load_dataset
+    from ssgwarp.services.runs import data_json
     from ssgwarp.core.fileio import write_json
     from ssgwarp.formats.ply import write_ply
 

@@ -100,3 +100,76 @@ def test_a_command_that_needs_a_reconstruction_names_a_stylized_runs_source(tmp_
     with pytest.raises(InputError, match=f"a stylize output, not a reconstruction run; .* source reconstruction {rec}"):
         Run.reconstruction(sty)
     assert Run.reconstruction(rec).kind == "reconstruction"
+
+
+def test_one_write_sequence_makes_a_run_the_readers_take(tmp_path):
+    """write_run (reconstruct's and import's) and write_orbit_run write a folder Run and load_run read back;
+    update_metrics adds entries and keeps the others; metrics.json is written last, only when given."""
+    from ssgwarp.core.fileio import read_json
+    from ssgwarp.services.runs import RUN_FILES, load_run, update_metrics, write_orbit_run, write_run
+
+    rec = Run.open(_recon_run(tmp_path / "rec"))
+    _, data = rec.load(load_images=False)
+    seen = []
+    write_run(tmp_path / "out", _scene(seed=2), data, {"psnr": 20.0}, record={"seed": 3},
+              finish=lambda: seen.append(sorted(p.name for p in (tmp_path / "out").iterdir())) or {"extra": 1})
+    assert seen == [["cameras.json", "data.json", "scene.ply"]]        # finish: before metrics.json
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == sorted(RUN_FILES)
+    assert read_json(tmp_path / "out" / "metrics.json") == {"psnr": 20.0, "extra": 1}
+    assert read_json(tmp_path / "out" / "data.json")["seed"] == 3
+    scene, back = load_run(tmp_path / "out", load_images=False)
+    assert len(scene) == 30 and back.train_ids == [0, 2] and back.test_ids == [1]
+    orbit = write_orbit_run(_scene(n=200), tmp_path / "orbit", source=tmp_path / "x.ply", views=4, width=24)
+    r = Run.reconstruction(tmp_path / "orbit")
+    assert not (tmp_path / "orbit" / "metrics.json").exists()
+    assert len(r.cameras) == 4 and r.train_ids == [0, 1, 2, 3] and r.test_ids == []
+    assert r.data["orbit"]["cameras"] == orbit["cameras"]
+    assert update_metrics(tmp_path / "out", {"psnr": 21.0})["extra"] == 1
+    assert read_json(tmp_path / "out" / "metrics.json") == {"psnr": 21.0, "extra": 1}
+
+
+def test_a_commands_own_out_folder_is_claimed_by_the_one_policy(tmp_path):
+    """claim_folder: an empty or absent folder is taken; a non-empty one is refused in one line naming its first
+    files unless force, which empties it; a file there is refused unless force."""
+    from ssgwarp.errors import SsgwarpError
+    from ssgwarp.services.runs import claim_folder
+
+    out = tmp_path / "frames"
+    assert claim_folder(out, force=False).is_dir()
+    for i in range(5):
+        (out / f"{i:03d}.png").write_bytes(b"x")
+    with pytest.raises(SsgwarpError, match=r"already holds files \(000.png, 001.png, 002.png, ...\); pass --force"):
+        claim_folder(out, force=False)
+    assert len(list(out.iterdir())) == 5
+    claim_folder(out, force=True)
+    assert out.is_dir() and not any(out.iterdir())
+    f = tmp_path / "file"
+    f.write_bytes(b"x")
+    with pytest.raises(InputError, match="not a folder; pass --force"):
+        claim_folder(f, force=False)
+    assert claim_folder(f, force=True).is_dir()
+
+
+def test_a_stage_record_resumes_its_finished_stages_with_the_same_options_only(tmp_path):
+    """resumed_stages (stylize's run.json, the demo's demo.json): the finished stages on --resume with the same
+    record; other options refused naming them; a file that is not the record refused; none: {} or, required,
+    'nothing to resume'."""
+    from ssgwarp.services.runs import claim, resume_record, resumed_stages
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "scene.ply").write_bytes(b"x")
+    rec = resume_record(**{"--seed": 1})
+    c = claim(out, ["scene.ply", "run.json"], resume=True)
+    assert resumed_stages(c, "run.json", "signature", rec, "the earlier run", kind="a stylize record") == {}
+    with pytest.raises(InputError, match="nothing to resume"):
+        resumed_stages(c, "run.json", "signature", rec, "the earlier run", kind="x", required=True)
+    write_json(out / "run.json", {"signature": rec, "stages": {"stage2": True}})
+    c = claim(out, ["scene.ply", "run.json"], resume=True)
+    assert resumed_stages(c, "run.json", "signature", rec, "the earlier run", kind="x") == {"stage2": True}
+    with pytest.raises(InputError, match=r"--seed 1 -> 2"):
+        resumed_stages(c, "run.json", "signature", resume_record(**{"--seed": 2}), "the earlier run", kind="x")
+    with pytest.raises(InputError, match="not a demo record"):
+        resumed_stages(c, "run.json", "signature", rec, "the earlier run", kind="a demo record", fmt="demo/1")
+    fresh = claim(out, ["scene.ply"], force=True)
+    assert resumed_stages(fresh, "run.json", "signature", resume_record(**{"--seed": 2}), "x", kind="x") == {}

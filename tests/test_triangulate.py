@@ -14,7 +14,8 @@ import pytest
 import torch
 
 import ssgwarp.capture.triangulate as tri_mod
-from ssgwarp.capture.datasets import check_init, data_json, load_dataset
+from ssgwarp.capture.datasets import check_init, load_dataset
+from ssgwarp.services.runs import data_json
 from ssgwarp.capture.triangulate import select_pairs, triangulate
 from ssgwarp.core.cameras import Cameras, intrinsics, look_at
 from ssgwarp.errors import InputError

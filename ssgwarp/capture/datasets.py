@@ -3,9 +3,8 @@
 :func:`load_dataset` auto-detects the layout of a data folder and returns a
 :class:`SceneData`: cameras in our convention (OpenCV axes, world-to-camera,
 intrinsics at the loaded resolution), the images as one float32 tensor, a
-train/test split, and initial points for the Gaussians. :func:`load_run` reads
-a reconstruction run directory back (scene + the data it was trained on; the run folder as a
-whole is :class:`ssgwarp.services.runs.Run`). The readers of the layouts are in :mod:`ssgwarp.capture.loaders`.
+train/test split, and initial points for the Gaussians. Run folders (reading one back, writing
+``data.json``) are :mod:`ssgwarp.services.runs`'s. The readers of the layouts are in :mod:`ssgwarp.capture.loaders`.
 
 Layouts, checked in this order:
 
@@ -62,8 +61,7 @@ from .loaders import _depth_range
 from .triangulate import scene_depth_range, triangulate
 from ..formats.colmap import find_model
 from ..errors import InputError
-from ..core.fileio import read_json
-from ..formats.ply import read_ply, read_points
+from ..formats.ply import read_points
 
 log = logging.getLogger("ssgwarp.capture.datasets")
 
@@ -325,101 +323,3 @@ def load_dataset(path: str | Path, images: str = "images", split_every: int = 8,
              data.width, data.height, len(train), len(test),
              "no" if data.points is None else f"{len(data.points[0])} {data.points_source}")
     return data.to(device) if device is not None else data
-
-
-# ----------------------------------------------------------------------------- runs
-def data_json(data: SceneData, **extra) -> dict:
-    """The ``data.json`` record of a run trained on ``data``."""
-    return {
-        "data_dir": str(data.data_dir) if data.data_dir is not None else None,
-        "format": data.format,
-        "images": data.options.get("images", data.image_dir),
-        "width": data.width,
-        "height": data.height,
-        "split": {"train": [data.names[i] for i in data.train_ids], "test": [data.names[i] for i in data.test_ids]},
-        "background": list(data.background),
-        "undistorted": data.undistorted,
-        "undistortion": data.undistortion,
-        "near": data.near,
-        "far": data.far,
-        "points_source": data.points_source,
-        "points_count": None if data.points is None else int(len(data.points[0])),
-        "points_reprojection_error_px": data.points_stats.get("median_reprojection_error_px"),
-        "points_stats": data.points_stats,
-        "masks": data.masks is not None,
-        "applied_transform": data.applied_transform,
-        "load_options": data.options,
-        **extra,
-    }
-
-
-def load_run(scene_dir: str | Path, device=None, *, data_dir: Optional[str | Path] = None,
-             load_images: bool = True, progress: bool = True):
-    """Read a reconstruction run: ``(GaussianScene, SceneData)``.
-
-    The scene comes from ``scene.ply``, the cameras from ``cameras.json`` (training
-    resolution) and the split and data options from ``data.json``; the images are
-    reloaded from the capture (``data_dir`` overrides the recorded folder, e.g. after
-    moving it). With ``load_images=False`` the images are left black (cameras only); ``progress``: the
-    loading bar of many images.
-    """
-    scene_dir = _as_path(scene_dir)
-    if not scene_dir.is_dir():
-        raise InputError(f"{scene_dir}: run folder not found")
-    for f in ("scene.ply", "cameras.json", "data.json"):
-        if not (scene_dir / f).is_file():
-            raise InputError(f"{scene_dir}: not a reconstruction run (no {f}); run `ssgwarp reconstruct` first")
-    scene = read_ply(scene_dir / "scene.ply")
-    cams = Cameras.load(scene_dir / "cameras.json")
-    meta = read_json(scene_dir / "data.json")
-    if not isinstance(meta, dict) or "split" not in meta:
-        raise InputError(f"{scene_dir / 'data.json'}: unexpected layout (no 'split')")
-    split = meta["split"]
-    index = {n: i for i, n in enumerate(cams.names)}
-    unknown = [n for n in list(split.get("train", [])) + list(split.get("test", [])) if n not in index]
-    if unknown:
-        raise InputError(f"{scene_dir / 'data.json'}: split names not in cameras.json: {', '.join(unknown[:5])}")
-    train = [index[n] for n in split.get("train", [])]
-    test = [index[n] for n in split.get("test", [])]
-    bg = tuple(float(v) for v in meta.get("background", (1.0, 1.0, 1.0)))
-    src = data_dir or meta.get("data_dir")
-    points = masks = None
-    images = torch.zeros(len(cams), cams.height, cams.width, 3)
-    data_root = _as_path(src) if src else None
-    undistortion = meta.get("undistortion")
-    if load_images:
-        if data_root is None or not data_root.is_dir():
-            raise InputError(f"{scene_dir / 'data.json'}: capture folder {src} not found "
-                             f"(pass data_dir= / --data-dir to say where it is now)")
-        opts = dict(meta.get("load_options", {}))
-        opts.pop("split_every", None)
-        opts["width"] = cams.width
-        # the capture's own points at most: a run's initial points are not made again
-        data = load_dataset(data_root, init="capture", **{k: opts[k] for k in ("images", "background", "width",
-                                                                               "max_images", "num_random_points",
-                                                                               "seed", "format") if k in opts},
-                            progress=progress)
-        pos = {n: i for i, n in enumerate(data.names)}
-        missing = [n for n in cams.names if n not in pos]
-        if missing:
-            raise missing_images_error(missing, data_root, f"{scene_dir / 'cameras.json'}")
-        sel = [pos[n] for n in cams.names]
-        images = data.images[sel]
-        if (data.width, data.height) != (cams.width, cams.height) or not torch.allclose(
-                data.cameras.Ks[sel].double(), cams.Ks.double(), rtol=0.0, atol=1e-2):
-            raise InputError(f"{data_root} now loads as {data.width}x{data.height} images with other intrinsics "
-                             f"than the run's {scene_dir / 'cameras.json'} ({cams.width}x{cams.height}): the run was "
-                             f"made from other data or by an ssgwarp that did not crop undistorted images; run "
-                             f"`ssgwarp reconstruct` again")
-        points, undistortion = data.points, data.undistortion
-        if data.points_source != meta.get("points_source"):
-            points = None  # triangulated or given points are not remade
-        masks = None if data.masks is None else data.masks[sel]
-    out = SceneData(cameras=cams, images=images, names=list(cams.names), train_ids=train, test_ids=test,
-                    points=points, points_source=meta.get("points_source", "none"), near=meta.get("near"),
-                    far=meta.get("far"), background=bg, data_dir=data_root, image_dir=meta.get("images"),
-                    format=meta.get("format", ""), undistortion=undistortion, options=meta.get("load_options", {}),
-                    masks=masks, applied_transform=meta.get("applied_transform"))
-    if device is not None:
-        scene, out = scene.to(device), out.to(device)
-    return scene, out

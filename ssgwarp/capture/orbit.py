@@ -10,8 +10,10 @@
   99.5 % of the inliers fall inside ``fill`` of the frame in every view; the aspect follows the splats'
   extent seen from the side (3:4 to 16:9), the width is at most ``max_width`` and at most the width at which
   the median splat is one pixel across (finer would show the gaps between splats);
-* :func:`write_orbit_run` -- a reconstruction-run folder (``scene.ply``, ``cameras.json``, ``data.json``
-  with the fit's record under ``orbit``) that every later stage takes as it takes a reconstruction.
+* :func:`orbit_run` -- those cameras as a capture without images, and the fit's record: what
+  :func:`ssgwarp.services.runs.write_orbit_run` writes as a reconstruction-run folder (``scene.ply``,
+  ``cameras.json``, ``data.json`` with the record under ``orbit``) that every later stage takes as it takes a
+  reconstruction.
 
 Up: the normal of the ground (or table) when the splats have one: of 256 planes through random triples of
 kept centres, the one holding the largest opacity-weighted share of them within :data:`PLANE_TOL` x their largest
@@ -36,7 +38,7 @@ from ..core.cameras import Cameras, intrinsics, look_at
 from ..errors import InputError
 from ..raster.scene import GaussianScene
 
-__all__ = ["SplatFit", "fit_splats", "orbit_cameras", "parse_up", "write_orbit_run", "FLAT_RATIO"]
+__all__ = ["SplatFit", "fit_splats", "orbit_cameras", "parse_up", "orbit_run", "FLAT_RATIO"]
 
 PLANE_TOL = 0.02        # a splat lies on a plane within this x the splats' largest principal deviation
 PLANE_SHARE = 0.12      # a plane holding this opacity-weighted share of the splats is the ground (or a table)
@@ -295,16 +297,14 @@ def orbit_cameras(fit: SplatFit, n: int, *, max_width: int = 512, width: Optiona
     return cams, record
 
 
-def write_orbit_run(scene: GaussianScene, out: str | Path, *, source: str | Path, views: int = 24,
-                    max_width: int = 512, width: Optional[int] = None, up: Optional[np.ndarray] = None,
-                    background: Sequence[float] = (1.0, 1.0, 1.0), seed: int = 0) -> dict:
-    """Write ``out`` as a reconstruction run of ``scene`` with ``views`` orbit cameras (all of them training
-    views: there are no images to hold out); returns the ``orbit`` record written to ``data.json``."""
-    from ..core.fileio import write_json
-    from .datasets import SceneData, data_json
-    from ..formats.ply import write_ply
+def orbit_run(scene: GaussianScene, *, source: str | Path, views: int = 24, max_width: int = 512,
+              width: Optional[int] = None, up: Optional[np.ndarray] = None,
+              background: Sequence[float] = (1.0, 1.0, 1.0), seed: int = 0):
+    """``(SceneData, record)``: ``views`` cameras made around ``scene`` as a capture without images (all of
+    them training views: there are no images to hold out) and the ``orbit`` record of how they were made
+    (:func:`ssgwarp.services.runs.write_orbit_run` writes them as a run folder)."""
+    from .datasets import SceneData
 
-    out = Path(out).expanduser()
     fit = fit_splats(scene, up=up, seed=seed)
     cams, rec = orbit_cameras(fit, views, max_width=max_width, width=width)
     record = {"source": str(Path(source).expanduser().resolve()), "fit": fit.record(), "cameras": rec}
@@ -313,8 +313,4 @@ def write_orbit_run(scene: GaussianScene, out: str | Path, *, source: str | Path
                                                                                 cams.width, 3),
                      names=list(cams.names), train_ids=list(range(len(cams))), test_ids=[], background=bg,
                      data_dir=None, format="orbit", options=dict(split_every=0, background=list(bg)))
-    out.mkdir(parents=True, exist_ok=True)
-    write_ply(out / "scene.ply", scene.detach().to("cpu"))
-    cams.save(out / "cameras.json")
-    write_json(out / "data.json", data_json(data, orbit=record))
-    return record
+    return data, record

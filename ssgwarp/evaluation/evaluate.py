@@ -37,11 +37,11 @@ from ..capture.datasets import resize_images
 from ..errors import InputError, SsgwarpError, WeightsNotFound
 from .table import PAIR_KINDS
 from .features import load_extractor
-from ..core.fileio import read_image, read_json, write_image, write_json
+from ..core.fileio import read_image, write_image
 from .metrics import extractor_from_name, reconstruction_quality, style_scores
 from .render import smooth_path
 from ..raster.rendering import render_views
-from ..services.runs import Run
+from ..services.runs import Run, update_metrics
 
 RunInfo = Run                # (the run folder: ssgwarp.services.runs.Run)
 inspect_run = Run.open
@@ -341,11 +341,7 @@ def evaluate_run(run_dir: str | Path, opts: EvalOptions, device: torch.device | 
     result["time_s"] = round(time.time() - t0, 3)
 
     if write:
-        merged = read_json(info.path / "metrics.json") if (info.path / "metrics.json").is_file() else {}
-        if not isinstance(merged, dict):
-            merged = {}
-        merged["evaluation"] = _clean(result)
-        write_json(info.path / "metrics.json", merged)
+        update_metrics(info.path, {"evaluation": _clean(result)})
     return _clean(result)
 
 

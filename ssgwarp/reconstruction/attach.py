@@ -8,19 +8,19 @@ The protocol of ``obj``:
 * ``start_at(end) -> step``: the step before which ``obj(trainer) -> hooks`` is called (:func:`attach_hooks`) in a
   run that ends at ``end`` (asked each step until then: ``--iters auto`` may move the end); the scene then
   gets identity encodings of length ``obj.dim`` if it has none (learnt at ``obj.identity_lr`` when it has one,
-  else at the recipe's), and the hooks' parameters an optimiser;
+  else at the recipe's), and the hooks' parameters an optimiser (the Trainer's public
+  :meth:`~ssgwarp.reconstruction.trainer.Trainer.add_hooks`: an ``attach`` object is a way of adding hooks while
+  the loop runs, the one hook protocol of the Trainer; it reads only the Trainer's public members);
 * ``state() -> dict``: what a checkpoint holds of them; ``restore(state) -> hooks``: the hooks back from it
   (:func:`restore_attached`; a checkpoint with attached hooks resumes only with an ``attach``);
 * ``finish(out, metrics, scene) -> dict`` (for :func:`ssgwarp.reconstruction.reconstruct.reconstruct`): called
   once the run files are written, with the final scene as written to ``scene.ply`` (on the training device);
-  what it returns joins ``metrics.json``.
+  what it returns joins ``metrics.json`` (:func:`ssgwarp.services.runs.write_run`'s ``finish``).
 """
 from __future__ import annotations
 
 import inspect
 from typing import Optional
-
-import torch
 
 from ..errors import InputError
 
@@ -34,20 +34,13 @@ def takes_scene(hook) -> bool:
 
 
 def attach_hooks(trainer, state: Optional[dict] = None) -> None:
-    """Make ``trainer.attach``'s hooks (from the current scene, or from a checkpoint's ``state``) and give the
-    scene identity encodings (``attach.dim``, random as ``identity_dim``'s) when it has none."""
+    """Make ``trainer.attach``'s hooks (from the current scene, or from a checkpoint's ``state``) and add them
+    with :meth:`~ssgwarp.reconstruction.trainer.Trainer.add_hooks` (the scene gets identity encodings of
+    length ``attach.dim`` when it has none)."""
     obj = trainer.attach
-    trainer.hooks.extend(obj(trainer) if state is None else obj.restore(state))
-    trainer._attached = True
-    if state is None and "identities" not in trainer.params:
-        g = torch.Generator().manual_seed(trainer.seed + 2)
-        ids = torch.randn(trainer.num_gaussians, int(obj.dim), generator=g) * trainer.recipe.identity_init_std
-        p = torch.nn.Parameter(ids.to(trainer.device, torch.float32))
-        trainer.params["identities"] = p
-        lr = getattr(obj, "identity_lr", None)
-        lr = trainer._lr("identities") if lr is None else trainer.lr_factor * float(lr)
-        trainer.opt.add_param_group({"params": [p], "lr": lr, "name": "identities"})
-    trainer._build_hook_optimizer()
+    hooks = obj(trainer) if state is None else obj.restore(state)
+    trainer.add_hooks(hooks, identity_dim=int(obj.dim) if state is None else None,
+                      identity_lr=getattr(obj, "identity_lr", None), attached=True)
 
 
 def restore_attached(trainer, state: Optional[dict]) -> set:
@@ -58,6 +51,6 @@ def restore_attached(trainer, state: Optional[dict]) -> set:
     if trainer.attach is None:
         raise InputError("the checkpoint was trained with hooks attached during the run (reconstruct --groups); "
                          "pass the same options to resume it, or --force to start over")
-    if not trainer._attached:
+    if not trainer.attached:
         attach_hooks(trainer, state)
     return {"identities"}

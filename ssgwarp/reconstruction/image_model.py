@@ -7,13 +7,12 @@ from __future__ import annotations
 import logging
 from typing import Optional, Sequence
 
-import numpy as np
 import torch
 
 from ..core.optim import adam
 from ..errors import InputError
 from ..raster.rendering import render
-from ..services.losses import psnr, ssim
+from ..evaluation.held_out import score_views
 from ..services.loop import to_cpu
 from . import appearance as appearance_mod
 from . import sky as sky_mod
@@ -129,14 +128,17 @@ class ImageModel:
                                                 None if mask is None else mask[0])
         return pred[None], gt[None], None if m is None else m[None]
 
-    def _image_model_state(self) -> dict:
+    def image_model_state(self) -> dict:
+        """The sky's and the appearance's part of the checkpoint (:class:`~ssgwarp.reconstruction.checkpoint.TrainState`)."""
         return {"sky": {"record": self.sky_record,
                         "grid": None if self.environment is None else self.environment.grid.detach().cpu(),
                         "optimizer": None if self.env_opt is None else to_cpu(self.env_opt.state_dict())},
                 "appearance": {"record": self.appearance_record,
                                "state": None if self.appearance is None else self.appearance.state_dict()}}
 
-    def _load_image_model(self, st: dict) -> None:
+    def load_image_model(self, st: dict) -> None:
+        """Restore :meth:`image_model_state`'s part of a checkpoint ``st``; a sky where the run has none (or none
+        where it has one) is one line naming the flag."""
         sky = st.get("sky")
         if (sky is not None and sky.get("grid") is not None) != (self.environment is not None):
             raise InputError(f"the checkpoint was trained {'with' if self.environment is None else 'without'} "
@@ -171,30 +173,17 @@ class ImageModel:
 
     @torch.no_grad()
     def evaluate(self, ids: Optional[Sequence[int]] = None, lpips=None) -> dict:
-        """PSNR / SSIM (and LPIPS when a model is given) over the views ``ids`` (default: test views)."""
+        """PSNR / SSIM (and LPIPS when a model is given) over the views ``ids`` (default: test views), scored by
+        :func:`ssgwarp.evaluation.held_out.score_views` (appearance on: the half protocol, :meth:`_half_view`)."""
         ids = list(self.data.test_ids if ids is None else ids)
-        per = []
-        half = self.appearance is not None  # appearance on: the half protocol (ImageModel._half_view)
-        for i in ids:
-            gt = self.data.images[i][None]
-            mask = None if self.data.masks is None else self.data.masks[i][None]
-            if half:
-                pred, gt, mask = self._half_view(i, gt, mask)
-            else:
-                pred = self.render([i])
-            if mask is not None:  # the scene's pixels: PSNR of their mean error, the rest 0 in both (for SSIM)
-                pred, gt = _masked(pred, gt, mask)
-            row = {"name": self.data.names[i], "psnr": float(psnr(pred, gt, mask)), "ssim": float(ssim(pred, gt))}
-            if lpips is not None:
-                row["lpips"] = float(lpips(pred.permute(0, 3, 1, 2), gt.permute(0, 3, 1, 2)).mean())
-            per.append(row)
-        out = {"views": len(per), "per_view": per}
-        for k in ("psnr", "ssim", "lpips"):
-            vals = [r[k] for r in per if k in r]
-            out[k] = float(np.mean(vals)) if vals else None
-        return out
+        return score_views((self._scored_view(i) for i in ids), lpips=lpips)
 
-
-def _masked(img: torch.Tensor, gt: torch.Tensor, masks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``img``, ``gt`` with the pixels where ``masks [B, H, W]`` is 0 set to 0 in both (out of losses, metrics)."""
-    return img * masks[..., None].to(img.dtype), gt * masks[..., None].to(gt.dtype)
+    @torch.no_grad()
+    def _scored_view(self, i: int):
+        """``(name, prediction, target, mask)`` of view ``i`` as it is scored."""
+        gt = self.data.images[i][None]
+        mask = None if self.data.masks is None else self.data.masks[i][None]
+        if self.appearance is not None:
+            pred, gt, mask = self._half_view(i, gt, mask)
+            return self.data.names[i], pred, gt, mask
+        return self.data.names[i], self.render([i]), gt, mask

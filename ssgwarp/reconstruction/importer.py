@@ -43,10 +43,10 @@ import torch
 from ..core.progress import tqdm
 
 from ..formats.colmap import find_model, read_model
-from ..capture.datasets import SceneData, data_json, load_dataset
+from ..capture.datasets import SceneData, load_dataset
 from ..capture.loaders import IMAGE_EXTS
-from ..capture.orbit import parse_up, write_orbit_run
-from ..formats.ply import read_ply, write_ply
+from ..capture.orbit import parse_up
+from ..formats.ply import read_ply
 from ..formats.registry import is_splat_file, read_splat_file
 from ..formats.layouts import (graphdeco_cameras, graphdeco_folder, gsplat_checkpoints, gsplat_normalization,
                                match_names, nerfstudio_to_capture, read_gsplat_checkpoint, transform_scene)
@@ -58,11 +58,11 @@ from ..errors import InputError
 from ..evaluation.metrics import reconstruction_quality
 from ..raster.rendering import render_views
 from ..raster.scene import GaussianScene
-from ..services.runs import claim
+from ..services.runs import RUN_FILES, claim, write_orbit_run, write_run
 
 log = logging.getLogger("ssgwarp.reconstruction.importer")
 
-OUTPUTS = ("scene.ply", "cameras.json", "data.json", "metrics.json")
+OUTPUTS = RUN_FILES
 TOOLS = ("graphdeco", "gsplat", "nerfstudio", "ply")
 PROBE_VIEWS = 6          # training views each candidate frame renders
 MIN_GAIN_DB = 1.0        # how much better than the images' flat mean colour the splats must render
@@ -351,7 +351,7 @@ class ImportConfig:
     gsplat's ``test_every``, otherwise 8); ``background``: default the tool's (graphdeco: black unless
     ``white_background``; others white); ``dataparser_transforms``: nerfstudio's file (default: found next to the
     source). A splat file without ``data``: a run with ``views`` cameras made around its splats
-    (:func:`ssgwarp.capture.orbit.write_orbit_run`; ``up``: its ``--up``, ``width`` its width, ``seed``), no PSNR."""
+    (:func:`ssgwarp.services.runs.write_orbit_run`; ``up``: its ``--up``, ``width`` its width, ``seed``), no PSNR."""
 
     data: Optional[str | Path] = None
     tool: Optional[str] = None
@@ -417,11 +417,7 @@ def import_splats(source: str | Path, out: str | Path, config: ImportConfig = Im
     metrics = _evaluate(scene, capture, bg, device, progress, has_images=has_images)
     metrics["imported"] = info
     claimed.clear()
-    out.mkdir(parents=True, exist_ok=True)
-    write_ply(out / "scene.ply", scene)
-    capture.cameras.to("cpu").save(out / "cameras.json")
-    write_json(out / "data.json", data_json(capture, imported=tool))
-    write_json(out / "metrics.json", metrics)
+    write_run(out, scene, capture, metrics, record=dict(imported=tool))
     log.info("wrote %s: %d Gaussians from %s (%s), held-out PSNR %s", out, len(scene), tool, frame,
              "n/a" if metrics["psnr"] is None else f"{metrics['psnr']:.2f} dB")
     return metrics

@@ -36,20 +36,18 @@ from typing import Any, Callable, Optional, Sequence
 
 import torch
 
-from ..capture.datasets import data_json, load_dataset
+from ..capture.datasets import load_dataset
 from ..services.distributed import SINGLE
 from ..errors import SsgwarpError, WeightsNotFound
-from ..core.fileio import write_json
 from ..evaluation.networks import load_lpips
-from ..formats.ply import write_ply
 from .recipe import Recipe
-from ..services.runs import check_resume, claim, resume_record
+from ..services.runs import RUN_FILES, check_resume, claim, resume_record, write_run
 from .trainer import Trainer
 from ..services.loop import read_checkpoint
 
 log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
 
-OUTPUTS = ("scene.ply", "cameras.json", "data.json", "metrics.json", "environment.json")
+OUTPUTS = (*RUN_FILES, "environment.json")
 
 __all__ = ["OUTPUTS", "ReconstructConfig", "reconstruct"]
 
@@ -239,16 +237,12 @@ def reconstruct(data_dir: str | Path, out: str | Path, config: ReconstructConfig
 
     metrics = _run_metrics(trainer, data, scene, device, group, seed, peaks)
 
-    write_ply(out / "scene.ply", scene)
     if trainer.environment is not None:
         trainer.environment.save(out / "environment.json")
-    data.cameras.to("cpu").save(out / "cameras.json")
-    write_json(out / "data.json", data_json(data, seed=seed, backdrop=metrics["backdrop"],
-                                            appearance=metrics["appearance"], sky=metrics["sky"],
-                                            schedule={k: v for k, v in metrics["schedule"].items() if k != "stop_rule"}))
-    if attach is not None:
-        metrics.update(attach.finish(out, metrics, scene) or {})
-    write_json(out / "metrics.json", metrics)
+    write_run(out, scene, data, metrics,
+              record=dict(seed=seed, backdrop=metrics["backdrop"], appearance=metrics["appearance"], sky=metrics["sky"],
+                          schedule={k: v for k, v in metrics["schedule"].items() if k != "stop_rule"}),
+              finish=None if attach is None else lambda: attach.finish(out, metrics, scene))
     log.info("wrote %s: %d Gaussians, held-out PSNR %s", out, len(scene),
              "n/a" if metrics["psnr"] is None else f"{metrics['psnr']:.2f} dB")
     return metrics

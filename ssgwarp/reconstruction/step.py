@@ -1,6 +1,7 @@
 """What a training step of :class:`~ssgwarp.reconstruction.trainer.Trainer` hands around, made at the
 least host cost (issue 40): its views (:class:`ViewCache`), the zero gradient of the SH bands it did not
-render (:func:`zero_unrendered_grads`) and its result (:class:`StepInfo`, whose MSE is made when read).
+render (:func:`zero_unrendered_grads`), its result (:class:`StepInfo`, whose MSE is made when read) and the
+check of its loss (:class:`LossWatch`).
 """
 from __future__ import annotations
 
@@ -94,3 +95,45 @@ def adam_step(opt: torch.optim.Optimizer) -> None:
     for group in opt.param_groups:
         for p in group["params"]:
             p.grad = None
+
+
+class LossWatch:
+    """The NaN check of a step's loss without a device synchronisation (one process, fused optimisers): the
+    optimisers skip their update on the device when the loss is not finite (fused Adam's ``found_inf``, as
+    torch's gradient scaler uses it: parameters, moments and step count unchanged), and the flag goes to the
+    host with the step, read at the next step, checkpoint or end (:meth:`settle`)."""
+
+    def __init__(self):
+        # the loss flag of a step not read yet: (step, flag on the host or being copied there, CUDA event)
+        self.pending = None
+        self.host = None
+
+    def watch(self, finite: torch.Tensor, opts: list, step: int, several: bool) -> bool:
+        """Defer the check of step ``step``'s flag ``finite``. False: not possible here (``several``
+        processes, whose flags travel with the gradients; an optimiser that is not fused); the caller reads
+        the flag now."""
+        if several or not all(o.defaults.get("fused") for o in opts):
+            return False
+        skip = (~finite).to(torch.float32)
+        for o in opts:
+            o.found_inf = skip
+        event = None
+        if finite.is_cuda:  # copied into pinned host memory behind the loss, an event marking it
+            if self.host is None:
+                self.host = torch.empty((), dtype=torch.bool, pin_memory=True)
+            self.host.copy_(finite, non_blocking=True)
+            event = torch.cuda.Event()
+            event.record()
+            finite = self.host
+        self.pending = (step, finite, event)
+        return True
+
+    def settle(self) -> Optional[int]:
+        """The step whose pending flag says its loss was NaN/inf (its updates were skipped), else None."""
+        if self.pending is None:
+            return None
+        step, flag, event = self.pending
+        self.pending = None
+        if event is not None:
+            event.synchronize()  # (the loss of that step: computed long before the next step reads it)
+        return None if bool(flag) else step

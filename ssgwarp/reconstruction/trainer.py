@@ -1,6 +1,10 @@
 """The 3DGS training loop: :class:`Trainer` (one capture, a :class:`~ssgwarp.reconstruction.recipe.Recipe`, a
 densification :class:`~ssgwarp.reconstruction.strategy.Strategy`, hooks such as Gaussian Grouping's, batches of
-views split over processes by :mod:`ssgwarp.services.distributed`), its checkpoints and evaluation.
+views split over processes by :mod:`ssgwarp.services.distributed`). Its state and checkpoint file are
+:class:`~ssgwarp.reconstruction.checkpoint.TrainState`'s; the scores of the held-out views
+:func:`ssgwarp.evaluation.held_out.score_views`'s (:meth:`Trainer.evaluate` renders them); the NaN check
+:class:`~ssgwarp.reconstruction.step.LossWatch`'s; the initial scene :mod:`ssgwarp.reconstruction.initial`'s. Extensions: hooks (``hooks=``, or added while it runs with
+:meth:`Trainer.add_hooks`, which ``attach=`` objects use, :mod:`ssgwarp.reconstruction.attach`).
 
 Runs are seeded and repeatable (views, split samples and initial identities come from the run's
 own generators), checkpoint atomically every ``checkpoint_every`` steps and on Ctrl-C, and resume
@@ -12,7 +16,6 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import asdict
 from pathlib import Path
 from typing import Callable, Optional, Sequence
 
@@ -21,25 +24,23 @@ import torch
 
 from ..services.distributed import SINGLE, check_every
 from ..errors import InputError
-from ..core.fileio import atomic_path
-from ..core.geometry import knn_mean_distance
 from ..core.optim import adam
-from ..services.loop import Diverged, Loop, diverged_message, read_checkpoint, to_cpu
+from ..services.loop import Diverged, Loop, diverged_message
 from ..services.losses import photometric
 from ..core.optim import batch_factors
 from .recipe import Recipe
 from ..raster.rendering import render
 from ..raster.scene import GaussianScene
-from .image_model import ImageModel, _masked  # noqa: F401  (_masked: the tests' too)
-from .attach import attach_hooks, restore_attached, takes_scene
-from .backdrop import with_backdrop
+from ..evaluation.held_out import masked
+from .image_model import ImageModel
+from .attach import attach_hooks, takes_scene
+from .checkpoint import TrainState
+from .initial import initial_count, initial_scene
 from .schedules import AUTO, AUTO_MAX_ITERS, Schedules, sh_degree_at
-from .step import StepInfo, ViewCache, adam_step, zero_unrendered_grads
+from .step import LossWatch, StepInfo, ViewCache, adam_step, zero_unrendered_grads
 from .strategy import GaussianParams, make_strategy
 
 log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
-
-CHECKPOINT_FORMAT = "ssgwarp-reconstruct-checkpoint/1"
 
 
 class Trainer(ImageModel):
@@ -113,7 +114,7 @@ class Trainer(ImageModel):
         recipe = recipe or Recipe()
         random_init = None
         if scene is None and getattr(data, "points_source", "") == "random" and data.points is not None:
-            random_init = self._initial_count(len(data.points[0]), recipe)
+            random_init = initial_count(len(data.points[0]), recipe, self.max_gaussians, self.strategy.budgeted)
         self.recipe = recipe.resolved(self.iters, self.sh_degree, self.strategy, random_init, self.batch_size,
                                       views=len(data.train_ids))
         self.lr_factor, self.beta_power = batch_factors(self.batch_size, self.recipe.batch_scaling)
@@ -133,9 +134,7 @@ class Trainer(ImageModel):
         self.last_checkpoint_step: Optional[int] = None
         self._loop: Optional[Loop] = None
         self._agreed_stop = False  # the stop request as all processes agreed on it (in the gradient all-reduce)
-        # the loss flag of a step not read yet: (step, flag on the host or being copied there, CUDA event)
-        self._loss_pending = None
-        self._loss_host = None
+        self._losses = LossWatch()   # the NaN check without a device synchronisation
         self.check_every = check_every() if self.group.active else 0
         self.history: list[dict] = []
         self.backdrop_mode, self.backdrop = backdrop, None
@@ -146,7 +145,9 @@ class Trainer(ImageModel):
         self._views = ViewCache(self.data)
 
         if scene is None:
-            scene = self._initial_scene()
+            scene, self.backdrop = initial_scene(self.data, self.recipe, max_gaussians=self.max_gaussians,
+                                                 budgeted=self.strategy.budgeted, backdrop_mode=self.backdrop_mode,
+                                                 seed=self.seed, device=self.device)
         if scene.sh_degree != self.sh_degree:
             scene = scene.with_sh_degree(self.sh_degree)
         if identity_dim and scene.identities is None:
@@ -168,25 +169,6 @@ class Trainer(ImageModel):
             attach.prepare(self)
 
     # -- state --------------------------------------------------------------------------------
-    def _initial_scene(self) -> GaussianScene:
-        if self.data.points is None:
-            raise InputError("the capture has no initial points (and none were generated); pass a scene")
-        xyz, rgb = self.data.points
-        xyz, rgb = xyz.float().cpu(), rgb.float().cpu()
-        m = self._initial_count(len(xyz), self.recipe)
-        if len(xyz) > m:
-            g = torch.Generator().manual_seed(self.seed + 3)
-            idx = torch.randperm(len(xyz), generator=g)[:m].sort().values
-            xyz, rgb = xyz[idx], rgb[idx]
-        if len(xyz) == 0:
-            raise InputError("the capture has an empty point cloud")
-        budget = self.max_gaussians if self.strategy.budgeted else None
-        xyz, rgb, self.backdrop = with_backdrop(self.data, xyz, rgb, self.backdrop_mode, budget, self.seed)
-        xyz = xyz.to(self.device)
-        scale = knn_mean_distance(xyz, k=3).clamp_min(1e-7) * self.recipe.init_scale
-        return GaussianScene.from_points(xyz, rgb.to(self.device), sh_degree=0,
-                                         opacity=self.recipe.init_opacity, scale=scale)
-
     def _setup_strategy(self) -> None:
         self.strategy.setup(self.gaussians, recipe=self.recipe, extent=self.extent, max_gaussians=self.max_gaussians,
                             seed=self.seed)
@@ -198,13 +180,7 @@ class Trainer(ImageModel):
         """Whether the run reached its end: ``iters``, or where the stop rule ended it (``--iters auto``)."""
         return self.step >= self.schedules.end
 
-    def _initial_count(self, n: int, recipe: Recipe) -> int:
-        """How many of ``n`` capture points start the scene (``init_max_points``; the budget of a budgeted strategy)."""
-        if recipe.init_max_points is not None:
-            n = min(n, recipe.init_max_points)
-        return min(n, self.max_gaussians) if self.strategy.budgeted else n
-
-    def _lr(self, name: str) -> float:
+    def learning_rate(self, name: str) -> float:
         """Learning rate of scene tensor ``name`` for this run's batch size (at step 0)."""
         r = self.recipe
         return self.lr_factor * {"means": r.lr_means * self.extent, "log_scales": r.lr_scales,
@@ -218,8 +194,33 @@ class Trainer(ImageModel):
 
     def _build_optimizer(self, scene: GaussianScene) -> None:
         params = {k: torch.nn.Parameter(v.detach().clone().contiguous()) for k, v in scene.tensors().items()}
-        groups = [{"params": [p], "lr": self._lr(k), "name": k} for k, p in params.items()]
+        groups = [{"params": [p], "lr": self.learning_rate(k), "name": k} for k, p in params.items()]
         self.gaussians = GaussianParams(params, adam(groups, eps=self.recipe.adam_eps, betas=self.betas))
+        self._build_hook_optimizer()
+
+    # -- hooks (the public protocol; ssgwarp.reconstruction.attach makes them during the run) ------------
+    @property
+    def attached(self) -> bool:
+        """Whether the ``attach`` object's hooks have been added (:meth:`add_hooks` with ``attached=True``)."""
+        return self._attached
+
+    def add_hooks(self, hooks: Sequence, *, identity_dim: Optional[int] = None, identity_lr: Optional[float] = None,
+                  attached: bool = False) -> None:
+        """Add ``hooks`` (the protocol of the class docs) to a running trainer: their parameters get an
+        optimiser; with ``identity_dim``, a scene without identity encodings gets them (random,
+        ``recipe.identity_init_std``, seeded by the run's seed), learnt at ``identity_lr`` (scaled for the
+        batch size) or the recipe's. ``attached``: they are the ``attach`` object's (their state goes into
+        checkpoints)."""
+        self.hooks.extend(hooks)
+        if attached:
+            self._attached = True
+        if identity_dim and "identities" not in self.params:
+            g = torch.Generator().manual_seed(self.seed + 2)
+            ids = torch.randn(self.num_gaussians, int(identity_dim), generator=g) * self.recipe.identity_init_std
+            p = torch.nn.Parameter(ids.to(self.device, torch.float32))
+            self.params["identities"] = p
+            lr = self.learning_rate("identities") if identity_lr is None else self.lr_factor * float(identity_lr)
+            self.opt.add_param_group({"params": [p], "lr": lr, "name": "identities"})
         self._build_hook_optimizer()
 
     def _build_hook_optimizer(self) -> None:
@@ -308,7 +309,7 @@ class Trainer(ImageModel):
         if own_bg:  # the sky behind the splats, each photo's exposure and white balance (ImageModel)
             img = self._picture(app, views, img, alphas, cam, gt, bg, masks)
         if masks is not None:  # masked pixels are zero in both: no error, no gradient, no SSIM content
-            img, gt = _masked(img, gt, masks)
+            img, gt = masked(img, gt, masks)
         loss = photometric(img, gt, r.lambda_dssim, r.dssim_scale)  # (the mean over the views)
         reg = self.strategy.regularizer(self.gaussians)
         if reg is not None:
@@ -383,41 +384,15 @@ class Trainer(ImageModel):
         return [o for o in (self.opt, self.hook_opt, self.env_opt) if o is not None]
 
     def _watch_loss(self, finite: torch.Tensor) -> bool:
-        """Check this step's loss without a device synchronisation (one process, fused optimisers):
-        the optimisers skip their update on the device when ``finite`` is false (fused Adam's
-        ``found_inf``, as torch's gradient scaler uses it: parameters, moments and step count
-        unchanged), and the flag goes to the host with the step, read at the next step, checkpoint,
-        or end (:meth:`_settle_loss`, which raises :class:`Diverged` naming this step). False: not
-        possible here (several processes, whose flags travel with the gradients; an optimiser that is
-        not fused); the caller reads the flag now."""
-        opts = self._optimisers()
-        if self.group.active or not all(o.defaults.get("fused") for o in opts):
-            return False
-        skip = (~finite).to(torch.float32)
-        for o in opts:
-            o.found_inf = skip
-        event = None
-        if finite.is_cuda:  # copied into pinned host memory behind the loss, an event marking it
-            if self._loss_host is None:
-                self._loss_host = torch.empty((), dtype=torch.bool, pin_memory=True)
-            self._loss_host.copy_(finite, non_blocking=True)
-            event = torch.cuda.Event()
-            event.record()
-            finite = self._loss_host
-        self._loss_pending = (self.step + 1, finite, event)
-        return True
+        """:meth:`LossWatch.watch` of this step's loss flag (False: the caller reads it now)."""
+        return self._losses.watch(finite, self._optimisers(), self.step + 1, self.group.active)
 
     def _settle_loss(self) -> None:
         """Raise :class:`Diverged` if the step whose loss flag is pending had a NaN/inf loss (its
         updates were skipped; the last good checkpoint is kept)."""
-        if self._loss_pending is None:
-            return
-        step, flag, event = self._loss_pending
-        self._loss_pending = None
-        if event is not None:
-            event.synchronize()  # (the loss of that step: computed long before the next step reads it)
-        if not bool(flag):
-            self._diverged("the loss is NaN/inf", step)
+        bad = self._losses.settle()
+        if bad is not None:
+            self._diverged("the loss is NaN/inf", bad)
 
     def _diverged(self, why: str, step: Optional[int] = None) -> None:
         where = (f"the last good checkpoint (step {self.last_checkpoint_step}) is kept at {self.checkpoint_path}"
@@ -458,37 +433,14 @@ class Trainer(ImageModel):
             self._agreed_stop = False
         return self.final_scene()
 
-    # -- checkpoints ----------------------------------------------------------------------------
+    # -- checkpoints (the state and its file: ssgwarp.reconstruction.checkpoint.TrainState) --------------
     def state_dict(self) -> dict:
-        # the run's own generators only (the process-wide RNGs are the caller's: never saved or restored)
-        rng = {"view": self.view_gen.get_state(), "split": self.strategy.generator_state()}
-        return {
-            "format": CHECKPOINT_FORMAT,
-            "step": self.step,
-            "iters": self.iters,
-            "sh_degree": self.sh_degree,
-            "max_gaussians": self.max_gaussians,
-            "seed": self.seed,
-            "elapsed": self.elapsed,
-            "recipe": asdict(self.recipe),
-            "strategy": self.strategy.name,
-            "batch_size": self.batch_size,
-            "world_size": self.group.world_size,  # (informational: any number of processes resumes it)
-            "names": list(self.data.names),
-            "params": {k: v.detach().cpu() for k, v in self.params.items()},
-            "optimizer": to_cpu(self.opt.state_dict()),
-            "hook_params": [p.detach().cpu() for p in self._hook_params()],
-            "hook_optimizer": to_cpu(self.hook_opt.state_dict()) if self.hook_opt is not None else None,
-            "stats": {k: v.detach().cpu() for k, v in self.gaussians.stats.items()},
-            "queue": list(self._queue),
-            "rng": rng,
-            "history": self.history[-1000:],
-            "stop_monitor": self.schedules.state_dict(),
-            "attached": self.attach.state() if self._attached else None,
-            # the resume record of the command that runs this trainer (ssgwarp.services.runs.resume_record)
-            "options": getattr(self, "resume_options", None),
-            **self._image_model_state(),
-        }
+        """The checkpoint's contents (:meth:`TrainState.of`)."""
+        return TrainState.of(self).state
+
+    def load_state_dict(self, st: dict) -> None:
+        """Continue from a checkpoint's contents (:meth:`TrainState.restore`)."""
+        TrainState(st).restore(self)
 
     def save_checkpoint(self, path: Optional[str | Path] = None) -> Path:
         """Write the checkpoint (with several processes: the main one writes, the others only note the step).
@@ -498,69 +450,14 @@ class Trainer(ImageModel):
         if path is None:
             raise ValueError("no checkpoint path")
         if self.group.is_main:
-            state = self.state_dict()
-            with atomic_path(path) as tmp:
-                torch.save(state, tmp)
+            TrainState.of(self).save(path)
         self.last_checkpoint_step = self.step
         return path
 
-    def load_state_dict(self, st: dict) -> None:
-        if st.get("format") != CHECKPOINT_FORMAT:
-            raise InputError(f"not a reconstruction checkpoint (format {st.get('format')!r})")
-        if list(st["names"]) != list(self.data.names):
-            raise InputError("the checkpoint was trained on other images than this capture's "
-                             "(different --images/--max-images?); use --force to start over")
-        if int(st["sh_degree"]) != self.sh_degree:
-            raise InputError(f"the checkpoint has SH degree {st['sh_degree']}, not {self.sh_degree}; "
-                             f"pass --sh-degree {st['sh_degree']} to resume it")
-        kind = st.get("strategy", "default")
-        if kind != self.strategy.name:
-            raise InputError(f"the checkpoint was trained with --strategy {kind}, not {self.strategy.name}; "
-                             f"pass --strategy {kind} to resume it")
-        b = int(st.get("batch_size", 1))
-        if b != self.batch_size:
-            raise InputError(f"the checkpoint was trained with --batch-size {b}, not {self.batch_size}; "
-                             f"pass --batch-size {b} to resume it (with any number of processes dividing it)")
-        saved = set(st["params"])
-        if saved != set(self.params) | restore_attached(self, st.get("attached")):
-            raise InputError(f"the checkpoint holds {sorted(saved)}, this run {sorted(self.params)}")
-        scene = GaussianScene(**{k: v for k, v in st["params"].items()}, sh_degree=self.sh_degree)
-        self._build_optimizer(scene.to(self.device))
-        self.opt.load_state_dict(st["optimizer"])  # (new group dicts: GaussianParams looks them up by name)
-        self._setup_strategy()
-        # statistics this run keeps (a checkpoint may hold more, e.g. screen radii of a run that pruned by them)
-        stats = {k: v.to(self.device) for k, v in st["stats"].items() if k in self.gaussians.stats}
-        if set(stats) != set(self.gaussians.stats):
-            raise InputError(f"the checkpoint's densification statistics ({sorted(stats)}) do not match this "
-                             f"run's ({sorted(self.gaussians.stats)}): it was written with other densification "
-                             f"settings; use --force to start over")
-        self.gaussians.stats = stats
-        hp = self._hook_params()
-        if len(hp) != len(st["hook_params"]):
-            raise InputError("the checkpoint's hook parameters do not match this run's hooks")
-        with torch.no_grad():
-            for p, v in zip(hp, st["hook_params"]):
-                p.copy_(v.to(p.device))
-        if self.hook_opt is not None and st["hook_optimizer"] is not None:
-            self.hook_opt.load_state_dict(st["hook_optimizer"])
-        self.step = int(st["step"])
-        self.elapsed = float(st.get("elapsed", 0.0))
-        self._queue = list(st["queue"])
-        rng = st["rng"]
-        self.view_gen.set_state(rng["view"])
-        self.strategy.set_generator_state(rng["split"])
-        self.history = list(st.get("history", []))
-        self._load_image_model(st)
-        self.schedules.load_state_dict(st.get("stop_monitor"))
-        self.last_checkpoint_step = self.step
-
     def load_checkpoint(self, path: Optional[str | Path] = None, state: Optional[dict] = None) -> None:
         """Continue from the checkpoint at ``path`` (default: this run's), or from its already
-        read ``state`` (:func:`read_checkpoint`)."""
+        read ``state`` (:meth:`TrainState.read`)."""
         path = Path(path) if path is not None else self.checkpoint_path
-        st = state if state is not None else read_checkpoint(path)
-        try:
-            self.load_state_dict(st)
-        except KeyError as e:
-            raise InputError(f"{path}: checkpoint lacks {e}; use --force to start over") from None
+        (TrainState(state) if state is not None else TrainState.read(path)).restore(self, where=path)
         log.info("resumed from %s at step %d", path, self.step)
+

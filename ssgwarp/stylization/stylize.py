@@ -76,17 +76,14 @@ def _prepare_out(out: Path, scene_dir: Path, signature: dict, resume: bool, forc
     """Claim ``out`` (:func:`ssgwarp.services.runs.claim`: the policy every stage shares) and return the run's
     record: on ``--resume`` the finished stages of the earlier run, which must have had the same options.
     Every process checks; only the main one changes ``out``, after all have looked."""
-    from ..core.fileio import read_json
-    from ..services.runs import check_resume, claim
+    from ..services.runs import claim, resumed_stages
 
     if out.resolve() == scene_dir.resolve():
         raise InputError(f"--out {out}: must differ from the scene folder (it would overwrite its scene.ply)")
     claimed = claim(out, OUTPUTS, force=force, resume=resume, what="a stylize output")
-    state: dict = {"signature": signature, "stages": {}}
-    if claimed.existing and resume and (out / "run.json").is_file():
-        old = read_json(out / "run.json")
-        check_resume(old.get("signature") or {}, signature, out, "the earlier run")
-        state["stages"] = dict(old.get("stages", {}))
+    state: dict = {"signature": signature,
+                   "stages": resumed_stages(claimed, "run.json", "signature", signature, "the earlier run",
+                                            kind="a stylize record")}
     group.barrier()
     if group.is_main:
         claimed.clear()
@@ -181,7 +178,7 @@ def _open(scene_dir: Path, style_path: Path, out: Path, stage2: Stage2Config, st
           device: torch.device, resume: bool, force: bool, progress: bool, stage1_models, group) -> tuple:
     """Read the inputs and the weights (a missing or corrupt one fails before anything is written to OUT),
     then claim OUT: ``(Inputs, Record)``."""
-    from ..capture.datasets import load_run
+    from ..services.runs import load_run
     from ..evaluation.features import load_extractor
     from ..core.fileio import read_image, write_json
 
