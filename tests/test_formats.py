@@ -17,12 +17,12 @@ import torch
 
 from ssgwarp.cli import main
 from ssgwarp.errors import InputError
-from ssgwarp.formats.gltf import read_glb, write_glb
+from ssgwarp.formats.gltf import write_glb
 from ssgwarp.formats.ksplat import read_ksplat
 from ssgwarp.formats.registry import detect_format, format_for_path, read_scene, write_scene
-from ssgwarp.formats.sog import codebook, palette, read_sog, write_sog
+from ssgwarp.formats.sog import codebook, palette, write_sog
 from ssgwarp.formats.spz import encode_spz, read_spz, read_spz_with_header, sh_flip_signs, write_spz
-from ssgwarp.procedural import build_scene, ring_cameras
+from ssgwarp.procedural import ring_cameras
 from ssgwarp.raster.rendering import render_views
 from ssgwarp.raster.scene import SH_C0, GaussianScene
 from ssgwarp.core.sh import spherical_harmonics
@@ -30,13 +30,9 @@ from ssgwarp.services.losses import psnr
 
 
 def _scene(degree: int = 2, density: float = 0.3) -> GaussianScene:
-    s = build_scene(density).scene
-    if degree == 0:
-        return s
-    g = torch.Generator().manual_seed(1)
-    k = (degree + 1) ** 2 - 1
-    band = torch.tensor([0.06] * 3 + [0.03] * 5 + [0.015] * 7)[:k]
-    return s.with_sh_degree(degree).replace(sh_rest=torch.randn(len(s), k, 3, generator=g) * band[None, :, None])
+    from test_export import _scene as export_scene   # (the demo's scene with a trained scene's SH bands)
+
+    return export_scene(degree, density)
 
 
 def _tiny(means, quats=None, degree=0, sh_rest=None) -> GaussianScene:
@@ -190,7 +186,7 @@ def _ksplat(means, log_scales, quats, rgba, rest, mode: int, bucket_cap: int = 2
     sec = bytearray(1024)
     block, qr = 4.0, 32767
     if mode == 0:
-        buckets, full, partial, sizes, centres = 0, 0, 0, [], np.zeros((0, 3))
+        buckets, full, partial, centres = 0, 0, 0, np.zeros((0, 3))
         meta = b""
         centre_b = [np.asarray(means, "<f4").tobytes()[i * 12:(i + 1) * 12] for i in range(n)]
     else:

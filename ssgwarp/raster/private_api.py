@@ -87,13 +87,27 @@ def warp_args(kernel, flat: list, device) -> list:
     """The ``wp.launch`` arguments of a flat argument list (each array as the 12 values of a Warp array
     descriptor, ``(data, grad, shape[4], strides[4], ndim, flags)``, spliced in; a ``wp.struct`` as its fields in
     order): ``wp.array`` views of the same memory (None for a null descriptor), struct instances, scalars."""
+    def view(a, d, nd):
+        return None if d[0] == 0 else wp.array(ptr=d[0], dtype=a.type.dtype, shape=tuple(d[2:2 + nd]),
+                                               strides=tuple(d[6:6 + nd]), device=device)
+
+    return _unflatten(kernel, flat, view)
+
+
+def _descriptor_args(kernel, flat: list) -> list:
+    """As :func:`warp_args`, with arrays as Warp's own descriptors (what a recorded launch packs)."""
+    return _unflatten(kernel, flat, lambda a, v, nd: array_t(v[0], v[1], nd, v[2:2 + nd], v[6:6 + nd], v[11]))
+
+
+def _unflatten(kernel, flat: list, array) -> list:
+    """``kernel``'s arguments from a flat list: each array's 12 descriptor values through ``array(param, values,
+    ndim)``, a ``wp.struct`` from its fields in order, scalars as they are; a list of another length than the
+    parameters take is a TypeError."""
     out, i = [], 0
     for a in kernel_params(kernel):
         if wp.types.is_array(a.type):
             d = flat[i:i + 12]
-            nd = d[10]
-            out.append(None if d[0] == 0 else wp.array(ptr=d[0], dtype=a.type.dtype, shape=tuple(d[2:2 + nd]),
-                                                       strides=tuple(d[6:6 + nd]), device=device))
+            out.append(array(a, d, d[10]))
             i += 12
         elif _is_struct_type(a.type):
             inst = a.type()
@@ -106,27 +120,6 @@ def warp_args(kernel, flat: list, device) -> list:
             i += 1
     if i != len(flat):
         raise TypeError(f"internal: {len(flat)} values for the arguments of kernel '{kernel.key}'")
-    return out
-
-
-def _descriptor_args(kernel, flat: list) -> list:
-    """As :func:`warp_args`, with arrays as Warp's own descriptors (what a recorded launch packs)."""
-    out, i = [], 0
-    for a in kernel_params(kernel):
-        if wp.types.is_array(a.type):
-            v = flat[i:i + 12]
-            nd = v[10]
-            out.append(array_t(v[0], v[1], nd, v[2:2 + nd], v[6:6 + nd], v[11]))
-            i += 12
-        elif _is_struct_type(a.type):
-            inst = a.type()
-            for name in a.type.vars:
-                setattr(inst, name, flat[i])
-                i += 1
-            out.append(inst)
-        else:
-            out.append(flat[i])
-            i += 1
     return out
 
 
