@@ -146,20 +146,11 @@ def is_splat_file(path: str | Path) -> bool:
 
 
 def read_splat_file(path: str | Path, device=None) -> GaussianScene:
-    """A splat file a user gives a command (``import``, ``render``, ``stylize``, ``view``), any format
-    :func:`read_scene` reads, on ``device`` (None: the CPU); a missing, empty, damaged or foreign file is one
-    :class:`~ssgwarp.errors.InputError` line naming it."""
+    """A splat file a user gives a command (``import``, ``render``, ``stylize``, ``view``): :func:`read_scene`
+    (whose detection and readers already refuse a missing, foreign or damaged file in one line), and a file
+    that holds no Gaussians refused too."""
     path = Path(path).expanduser()
-    if not path.exists():
-        raise InputError(f"{path}: file not found")
-    if path.is_dir() and not (path / "meta.json").is_file():
-        raise InputError(f"{path}: is a folder, not a splat file")
-    try:
-        scene = read_scene(path)
-    except SsgwarpError:
-        raise
-    except (ValueError, KeyError, IndexError, TypeError, EOFError, OSError, RuntimeError) as e:
-        raise InputError(f"{path}: cannot read as a splat file ({type(e).__name__}: {e})") from None
+    scene = read_scene(path)
     if len(scene) == 0:
         raise InputError(f"{path}: holds no Gaussians")
     return scene if device is None else scene.to(device)
