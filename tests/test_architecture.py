@@ -432,13 +432,7 @@ def test_private_warp_and_torch_names_are_used_in_one_module():
     assert {"warp._src", "warp._src.types", "torch._C", "torch._fused_adam_"} <= found[PRIVATE_API_MODULE]
 
 
-# Imports through a module that only re-exports the name, left for the formats' and run folders' moves
-# (capture/datasets.py re-exports capture/formats.py's helpers; issue 65, items 2 and 3). The list only shrinks.
-CHAINS = {"ssgwarp.evaluation.evaluate: resize_images from ssgwarp.capture.datasets",
-          "ssgwarp.reconstruction.backdrop: focus_point from ssgwarp.capture.datasets",
-          "ssgwarp.reconstruction.backdrop: random_points_in_frusta from ssgwarp.capture.datasets",
-          "tests/test_datasets.py: resize_images from ssgwarp.capture.datasets",
-          "tests/test_datasets.py: random_points_in_frusta from ssgwarp.capture.datasets"}
+CHAINS: set[str] = set()   # imports through a module that only re-exports the name: none left
 FACADES = {"ssgwarp", "ssgwarp.viewer"}   # the public API (ssgwarp/__init__.py) and the viewer package's
 
 

@@ -291,7 +291,7 @@ def test_evenly_spaced_subsets_and_the_split():
 
 
 def test_resize_images_by_hand():
-    from ssgwarp.capture.datasets import resize_images
+    from ssgwarp.capture.loaders import resize_images
 
     # shrinking 4 -> 2 is antialiased (PIL-style triangle filter twice as wide): output 0 sits between inputs
     # 0 and 1 (weights 3/4 each) and reaches input 2 (1/4; input -1 is outside): (0 + 0 + 1/4) / (7/4) = 1/7
@@ -359,7 +359,7 @@ def test_random_points_lie_in_their_pixels_frustum_with_the_pixels_colour():
     """Each camera's image encodes (camera, column, row) in its colour, so a point's colour says which pixel
     it was drawn from: the point must project into that pixel at a depth within that view's near/far."""
     from ssgwarp.core.cameras import Cameras, intrinsics
-    from ssgwarp.capture.datasets import random_points_in_frusta
+    from ssgwarp.capture.loaders import random_points_in_frusta
 
     W, H = 8, 6
     V = np.stack([_look([0.5 * i, 0.2, -3.0], [0.0, 0.0, 0.0]) for i in range(3)])

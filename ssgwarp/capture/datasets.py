@@ -55,9 +55,7 @@ import numpy as np
 import torch
 
 from ..core.cameras import Cameras
-from .loaders import (  # noqa: F401 (re-exported: part of this module's API)
-    IMAGE_EXTS, LOADERS, focus_point, missing_images_error, random_points_in_frusta, resize_images)
-from .loaders import _depth_range
+from .loaders import LOADERS, _depth_range, random_points_in_frusta
 from .triangulate import scene_depth_range, triangulate
 from ..formats.colmap import find_model
 from ..errors import InputError

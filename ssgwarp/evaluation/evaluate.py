@@ -33,7 +33,7 @@ from ..core.progress import tqdm
 from . import metrics as M
 from . import networks as N
 from ..core.cameras import Cameras
-from ..capture.datasets import resize_images
+from ..capture.loaders import resize_images
 from ..errors import InputError, SsgwarpError, WeightsNotFound
 from .table import PAIR_KINDS
 from .features import load_extractor

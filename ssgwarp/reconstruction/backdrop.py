@@ -39,7 +39,7 @@ from typing import Optional
 
 import torch
 
-from ..capture.datasets import focus_point, random_points_in_frusta
+from ..capture.loaders import focus_point, random_points_in_frusta
 from ..core.geometry import project
 from ..errors import InputError
 
