@@ -94,7 +94,6 @@ def _prepare_out(out: Path, scene_dir: Path, signature: dict, resume: bool, forc
 def _check_explicit_stage1_paths(stage1) -> None:
     """A Stage 1 weight path the user gave explicitly must exist (absent defaults just skip Stage 1)."""
     from ..services import weights as W
-    from ..services.weight_specs import SPECS
     from .diffusion_models import WEIGHT_KEYS
 
     for key in WEIGHT_KEYS:
@@ -232,7 +231,6 @@ def _missing_models(stage1) -> list[str]:
 
 def _stage1_skipped(names: list[str]) -> str:
     """The one line saying that Stage 1 is skipped: which models are missing and what fetching them costs."""
-    from ..services import weights as W
     from ..services.weight_specs import SPECS
 
     if not names:
