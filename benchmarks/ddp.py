@@ -40,8 +40,8 @@ def worker(a) -> int:
         data = load_dataset(a.data, images=a.images, width=a.width, seed=0)  # (the same split for every seed)
         b = a.batch_size
         steps = max(1, a.iters // b)
-        t = Trainer(data, iters=steps, sh_degree=3, device=device, seed=a.seed, progress=False, batch_size=b,
-                    group=group, recipe=Recipe(batch_scaling=a.batch_scaling))
+        t = Trainer(data, iters=steps, device=device, seed=a.seed, progress=False, batch_size=b, group=group,
+                    recipe=Recipe(sh_degree=3, batch_scaling=a.batch_scaling))
         every = max(1, a.eval_every // b)
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)

@@ -28,8 +28,9 @@ import threading
 import time
 import traceback
 import warnings
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import ClassVar, Optional
 
 import torch
 
@@ -79,39 +80,45 @@ class _OneGroup:
         self.param_groups = [group]
 
 
+@dataclass
 class GsplatStrategy(Strategy):
     """gsplat's ``DefaultStrategy`` or ``MCMCStrategy`` driving the Trainer's Gaussians under gsplat's names, with
-    one-group optimizer views; gsplat refines once its step is past ``refine_start_iter``: ``refine_start - 1``."""
+    one-group optimizer views and our strategy's thresholds; gsplat refines once its step is past
+    ``refine_start_iter``: ``refine_start - 1``."""
 
-    to_gsplat = {"log_scales": "scales", "logit_opacities": "opacities", "sh_dc": "sh0", "sh_rest": "shN"}
+    kind: str = "default"
+    reset_every: Optional[int] = None
 
-    def __init__(self, kind: str):
-        super().__init__()
-        if kind not in ("default", "mcmc"):
-            raise ValueError(kind)
-        self.kind = kind
-        self.name = f"gsplat-{kind}"
-        ours = DefaultStrategy if kind == "default" else MCMCStrategy
-        self.reference, self.recipe_defaults = ours.reference, ours.recipe_defaults
-        self.budgeted = kind == "mcmc"
-        self.uses_means2d_grad = kind == "default"
+    to_gsplat: ClassVar[dict] = {"log_scales": "scales", "logit_opacities": "opacities", "sh_dc": "sh0",
+                                 "sh_rest": "shN"}
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.kind not in ("default", "mcmc"):
+            raise ValueError(self.kind)
+        self.name = f"gsplat-{self.kind}"
+        self.ours = DefaultStrategy() if self.kind == "default" else MCMCStrategy()   # (its thresholds)
+        self.reference, self.recipe_defaults = self.ours.reference, self.ours.recipe_defaults
+        self.budgeted = self.kind == "mcmc"
+        self.uses_means2d_grad = self.kind == "default"
         self._meta = None
 
-    def setup(self, gaussians, *, recipe, extent, max_gaussians, seed) -> None:
-        super().setup(gaussians, recipe=recipe, extent=extent, max_gaussians=max_gaussians, seed=seed)
+    def setup(self, gaussians, *, recipe, extent, seed) -> None:
+        super().setup(gaussians, recipe=recipe, extent=extent, seed=seed)
         import gsplat.strategy as gs
 
-        sch = self.schedule
+        sch, ours = self.schedule, self.ours
+        ours.extent = self.extent
         common = dict(refine_start_iter=sch.refine_start - 1, refine_stop_iter=sch.refine_stop,
                       refine_every=sch.refine_every)
         if self.kind == "default":
-            self.impl = gs.DefaultStrategy(prune_opa=recipe.prune_opacity, grow_grad2d=recipe.grad_threshold,
-                                           grow_scale3d=recipe.percent_dense, prune_scale3d=recipe.prune_world,
+            self.impl = gs.DefaultStrategy(prune_opa=ours.prune_opacity, grow_grad2d=ours.grad_threshold,
+                                           grow_scale3d=ours.percent_dense, prune_scale3d=ours.prune_world,
                                            reset_every=sch.reset_every or 10**12, **common)
             self.state = self.impl.initialize_state(scene_scale=extent)
         else:
-            self.impl = gs.MCMCStrategy(cap_max=max_gaussians, noise_lr=recipe.noise_lr,
-                                        min_opacity=recipe.prune_opacity, **common)
+            self.impl = gs.MCMCStrategy(cap_max=self.max_gaussians, noise_lr=ours.noise_lr,
+                                        min_opacity=ours.prune_opacity, **common)
             self.state = self.impl.initialize_state()
         self.impl.check_sanity(*self._views(gaussians))
 
@@ -121,7 +128,7 @@ class GsplatStrategy(Strategy):
         return params, {self.to_gsplat.get(k, k): _OneGroup(g.opt, groups[k]) for k in g.params}
 
     def regularizer(self, g):
-        return MCMCStrategy.regularizer(self, g) if self.kind == "mcmc" else None
+        return self.ours.regularizer(g)
 
     def observe(self, g, meta: dict) -> None:
         meta.setdefault("gaussian_ids", None)  # gsplat reads it (None in the non-packed layout)
@@ -142,8 +149,11 @@ class GsplatStrategy(Strategy):
         return {"refine": {"gaussians": len(g) - n0}} if len(g) != n0 else {}
 
 
-def make(strategy: str):
-    return GsplatStrategy(strategy.split("-", 1)[1]) if strategy.startswith("gsplat-") else strategy
+def make(strategy: str, max_gaussians: int) -> Strategy:
+    """Our strategy ``strategy`` or gsplat's (``gsplat-default``, ``gsplat-mcmc``) with this cap / budget."""
+    if strategy.startswith("gsplat-"):
+        return GsplatStrategy(max_gaussians=max_gaussians, kind=strategy.split("-", 1)[1])
+    return {"default": DefaultStrategy, "mcmc": MCMCStrategy}[strategy](max_gaussians=max_gaussians)
 
 
 def warm_up(trainer: Trainer) -> None:
@@ -166,10 +176,10 @@ def train_and_measure(data, *, backend: str = "ssgwarp", strategy="default", ite
     """Train one run on ``data`` (warm-up outside the timing) and return its held-out metrics and cost."""
     fn, kw = rasterizer(backend)
     torch.manual_seed(seed)
-    recipe = replace(recipe or Recipe(), dssim_scale=dssim_scale)
-    trainer = Trainer(data, iters=iters, sh_degree=sh_degree, max_gaussians=max_gaussians, recipe=recipe,
-                      rasterize=fn, raster_kwargs=kw, device=device, seed=seed, progress=progress,
-                      strategy=make(strategy) if isinstance(strategy, str) else strategy)
+    recipe = replace(recipe or Recipe(), dssim_scale=dssim_scale, sh_degree=sh_degree)
+    trainer = Trainer(data, iters=iters, recipe=recipe, rasterize=fn, raster_kwargs=kw, device=device, seed=seed,
+                      progress=progress, strategy=make(strategy, max_gaussians) if isinstance(strategy, str) else
+                      replace(strategy, max_gaussians=max_gaussians))
     warm_up(trainer)
     if device.type == "cuda":
         torch.cuda.synchronize(device)
@@ -181,11 +191,11 @@ def train_and_measure(data, *, backend: str = "ssgwarp", strategy="default", ite
     seconds = time.perf_counter() - t0
     peak = torch.cuda.max_memory_allocated(device) / 2**20 if device.type == "cuda" else float("nan")
     ev = trainer.evaluate()
-    r = trainer.recipe
+    r = trainer.strategy
     out = {"backend": backend, "strategy": trainer.strategy.name, "resolution": f"{data.width}x{data.height}",
            "iters": iters, "max_gaussians": max_gaussians, "psnr": ev["psnr"], "ssim": ev["ssim"],
            "gaussians": trainer.num_gaussians, "seconds": seconds, "peak_mib": peak, "test_views": ev["views"],
-           "schedule": [r.refine_start, r.refine_stop, r.refine_every, r.reset_every], "dssim_scale": dssim_scale,
+           "schedule": [r.refine_start, r.refine_stop, r.refine_every, getattr(r, "reset_every", 0)], "dssim_scale": dssim_scale,
            **data.metric_frame}
     del trainer
     gc.collect()
@@ -514,8 +524,8 @@ def op_table(rows: list[dict], totals: dict) -> str:
 def measure(data, backend: str, args, device: torch.device) -> dict:
     fn, kw = rasterizer(backend)
     torch.manual_seed(args.seed)
-    t = Trainer(data, iters=args.iters, sh_degree=3, rasterize=fn, raster_kwargs=kw, device=device, seed=args.seed,
-                progress=False)
+    t = Trainer(data, iters=args.iters, recipe=Recipe(sh_degree=3), rasterize=fn, raster_kwargs=kw, device=device,
+                seed=args.seed, progress=False)
     warm_up(t)
     for _ in range(args.warm):
         t.train_step()

@@ -52,6 +52,7 @@ from .formats.ply import read_ply
 from .procedural import SIZES
 from .reconstruction.reconstruct import ReconstructConfig, reconstruct
 from .reconstruction.recipe import Recipe
+from .reconstruction.strategy import DefaultStrategy
 from .services.runs import Run, claim, resume_record, resumed_stages
 from .stylization.stylize import StylizeOptions, stylize_run
 from .stylization.stage2 import Stage2Config
@@ -218,10 +219,11 @@ def _stage_reconstruct(d: _Demo, joint: bool) -> dict:
         every = max(10, it // 25)
         # a short run: densify every 1/25 of it until half-way, no opacity reset, positions at 3x the 3DGS
         # rate (measured on this scene at 500 steps: +1.8 dB held out over the 3DGS rate)
-        recipe = Recipe(refine_start=every, refine_every=every, refine_stop=it // 2, reset_every=0,
-                        lr_means=3 * Recipe.lr_means, lr_means_final=3 * Recipe.lr_means_final)
+        recipe = Recipe(sh_degree=0, lr_means=3 * Recipe.lr_means, lr_means_final=3 * Recipe.lr_means_final)
+        strategy = DefaultStrategy(max_gaussians=sz.max_gaussians, refine_start=every, refine_every=every,
+                                   refine_stop=it // 2, reset_every=0)
         resume_rec = (d.scene_dir / "checkpoint.pt").is_file()
-        cfg = ReconstructConfig(iters=it, sh_degree=0, max_gaussians=sz.max_gaussians, seed=d.seed, recipe=recipe,
+        cfg = ReconstructConfig(iters=it, strategy=strategy, recipe=recipe, seed=d.seed,
                                 checkpoint_every=max(50, it // 5), init="random")
         kw = dict(device=d.device, progress=d.progress, data=data, resume=resume_rec, force=not resume_rec)
         if joint:

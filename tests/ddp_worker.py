@@ -39,12 +39,14 @@ def make_trainer(data_dir, *, batch_size: int = 2, group=None, steps: int = 12, 
     identity encodings trained by a :class:`HeadHook`."""
     from ssgwarp.capture.datasets import load_dataset
     from ssgwarp.reconstruction.recipe import Recipe
+    from ssgwarp.reconstruction.strategy import DefaultStrategy
     from ssgwarp.reconstruction.trainer import Trainer
 
     data = load_dataset(data_dir, split_every=0)
-    rec = Recipe(refine_start=4, refine_every=4, reset_every=8, sh_interval=4, grad_threshold=2e-5,
-                 prune_opacity=0.02, prune_screen=0.4)
-    return Trainer(data, iters=steps, sh_degree=1, max_gaussians=400, recipe=rec, progress=False, device="cpu",
+    strategy = DefaultStrategy(max_gaussians=400, refine_start=4, refine_every=4, reset_every=8, grad_threshold=2e-5,
+                               prune_opacity=0.02, prune_screen=0.4)
+    return Trainer(data, iters=steps, recipe=Recipe(sh_degree=1, sh_interval=4), strategy=strategy, progress=False,
+                   device="cpu",
                    seed=7, identity_dim=4 if hook else None, hooks=[HeadHook(4)] if hook else (),
                    batch_size=batch_size, group=group, backdrop="off")   # (the tiny cloud would get one)
 

@@ -144,6 +144,7 @@ def test_a_run_with_appearance_fits_each_photo_resumes_and_scores_held_out_halve
     their step, are fitted for the views visited, go through a checkpoint, and held-out views are scored on
     their right half (``eval_protocol``); ``off`` scores whole images."""
     from ssgwarp.capture.datasets import SceneData
+    from ssgwarp.reconstruction.recipe import Recipe
     from ssgwarp.reconstruction.trainer import Trainer
 
     rng = np.random.default_rng(2)
@@ -152,7 +153,8 @@ def test_a_run_with_appearance_fits_each_photo_resumes_and_scores_held_out_halve
     rgb = torch.full((len(xyz), 3), 0.5)
     data = SceneData(cap.cameras, cap.images, [f"v{i}" for i in range(10)], list(range(1, 10)), [0],
                      points=(xyz, rgb), points_source="colmap", background=(0.5, 0.5, 0.5))
-    kw = dict(iters=60, sh_degree=0, progress=False, device="cpu", checkpoint_path=tmp_path / "c.pt", backdrop="off")
+    kw = dict(iters=60, recipe=Recipe(sh_degree=0), progress=False, device="cpu", checkpoint_path=tmp_path / "c.pt",
+              backdrop="off")
     t = Trainer(data, **kw)
     assert t.appearance_record["use"] and t.appearance_record["probe"] == "points" and t.appearance_start == 50
     t.train()

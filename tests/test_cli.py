@@ -472,6 +472,42 @@ def test_resume_with_more_steps_continues(world, checkpointed, tmp_path):
     assert json.loads((out / "metrics.json").read_text())["iters"] == 6
 
 
+# the flat ``recipe`` of a reconstruction's resume record as versions before the strategies' own dataclasses wrote
+# it (every knob of both strategies in one dict; the default Recipe(): what `ssgwarp reconstruct` records)
+FLAT_RECIPE_RECORD = {
+    "lr_means": 0.00016, "lr_means_final": 1.6e-06, "lr_sh_dc": 0.0025, "lr_sh_rest": 0.000125, "lr_opacity": 0.05,
+    "lr_scales": 0.005, "lr_quats": 0.001, "lr_identities": 0.0025, "adam_eps": 1e-15, "lambda_dssim": 0.2,
+    "dssim_scale": 1.0, "sh_interval": None, "refine_start": None, "refine_stop": None, "refine_every": None,
+    "reset_every": None, "grad_threshold": 0.0002, "percent_dense": 0.01, "split_factor": 1.6, "prune_opacity": 0.005,
+    "reset_opacity": 0.01, "prune_world": 0.1, "prune_screen": 0.0, "mcmc_growth": 0.05, "noise_lr": 500000.0,
+    "opacity_reg": None, "scale_reg": None, "init_opacity": None, "init_scale": None, "init_max_points": None,
+    "identity_init_std": 0.1, "sh_start": None, "res_until": None, "stop_every": None, "stop_patience": 3,
+    "stop_tol": 0.1, "stop_views": 4, "stop_tail": 0.2}
+
+
+def test_a_checkpoint_with_the_flat_recipe_record_of_earlier_versions_resumes(world, checkpointed, tmp_path, capsys):
+    """A run folder whose checkpoint holds the resume record of earlier versions (one flat ``recipe``, no
+    ``strategy``) resumes with the same options, and is refused with another strategy or budget, naming the
+    option as before."""
+    out = copy(checkpointed, tmp_path / "run")
+    st = torch.load(out / "checkpoint.pt", weights_only=False)
+    opts = dict(st["options"])
+    assert set(opts["strategy"]) == {"refine_start", "refine_stop", "refine_every", "reset_every", "grad_threshold",
+                                     "percent_dense", "split_factor", "prune_opacity", "reset_opacity",
+                                     "prune_world", "prune_screen"}        # (today's: the strategy's own knobs)
+    del opts["strategy"]
+    opts["recipe"] = dict(FLAT_RECIPE_RECORD)
+    st["options"] = opts
+    torch.save(st, out / "checkpoint.pt")
+    base = [str(a).replace("CAP", str(world.cap)) for a in _resume_base(out)] + ["--width", "24", "--seed", "3"]
+    fails(capsys, base + ["--iters", "6", "--resume", "--strategy", "mcmc"], "--strategy default -> mcmc")
+    msg = fails(capsys, base + ["--iters", "6", "--resume", "--max-gaussians", "999"],
+                "--max-gaussians 1000000 -> 999")
+    assert "recipe." not in msg and "strategy." not in msg       # (only the option that changed)
+    assert main(base + ["--iters", "6", "--resume"]) == 0
+    assert json.loads((out / "metrics.json").read_text())["iters"] == 6
+
+
 def test_quick_never_raises_a_captures_resolution(world, tmp_path):
     """(issue 60: --quick set --width 252 always, so a 200x200 capture trained and scored at 252x252.) A capture
     narrower than the preset's 252 px keeps its size; an explicit --width is taken as given."""

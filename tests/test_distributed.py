@@ -24,7 +24,8 @@ import torch
 
 from ssgwarp.services.distributed import Group
 from ssgwarp.errors import InputError
-from ssgwarp.reconstruction.recipe import Recipe
+from ssgwarp.reconstruction.recipe import Recipe, resolve
+from ssgwarp.reconstruction.strategy import DefaultStrategy
 from ssgwarp.reconstruction.trainer import Trainer
 from ssgwarp.core.optim import batch_factors
 from ssgwarp.services.loop import read_checkpoint
@@ -119,8 +120,8 @@ def test_batch_draws_views_in_the_one_view_order_and_adapts_adam():
     data = _toy_data(n_cams=5)
     g = torch.Generator().manual_seed(2)
     data.points = (torch.randn(30, 3, generator=g) * 0.4, torch.rand(30, 3, generator=g))
-    one = Trainer(data, iters=10, sh_degree=0, progress=False, device="cpu", seed=4)
-    two = Trainer(data, iters=10, sh_degree=0, progress=False, device="cpu", seed=4, batch_size=2)
+    one = Trainer(data, iters=10, recipe=Recipe(sh_degree=0), progress=False, device="cpu", seed=4)
+    two = Trainer(data, iters=10, recipe=Recipe(sh_degree=0), progress=False, device="cpu", seed=4, batch_size=2)
     order = [one.next_batch()[0] for _ in range(8)]
     assert [v for _ in range(4) for v in two.next_batch()] == order
     # Adam for 2 views per step: learning rates x sqrt(2), betas squared (moments forget per image)
@@ -129,24 +130,24 @@ def test_batch_draws_views_in_the_one_view_order_and_adapts_adam():
         assert g["lr"] == pytest.approx(one.gaussians.groups[k]["lr"] * 2 ** 0.5), k
     assert two.opt.param_groups[0]["betas"] == pytest.approx((0.81, 0.998001))
     assert batch_factors(4, "linear") == (4.0, 4.0) and batch_factors(4, "none") == (1.0, 1.0)
-    plain = Trainer(data, iters=10, sh_degree=0, progress=False, device="cpu", batch_size=3,
-                    recipe=Recipe(batch_scaling="none"))
+    plain = Trainer(data, iters=10, progress=False, device="cpu", batch_size=3,
+                    recipe=Recipe(sh_degree=0, batch_scaling="none"))
     assert plain.betas == (0.9, 0.999) and plain.lr_factor == 1.0
     with pytest.raises(InputError, match="batch_scaling"):
-        Recipe(batch_scaling="cube").resolved(10, 0)
+        resolve(Recipe(sh_degree=0, batch_scaling="cube"), "default", 10)
     with pytest.raises(InputError, match="batch_size"):
         Trainer(data, iters=10, progress=False, device="cpu", batch_size=0)
 
 
 def test_default_schedule_counts_images():
     """3000 steps of 4 views refine, reset and raise the SH degree after the images 12000 one-view steps do."""
-    one = Recipe().resolved(12000, 3, "default")
-    four = Recipe().resolved(3000, 3, "default", batch_size=4)
-    for k in ("refine_start", "refine_stop", "refine_every", "reset_every", "sh_interval"):
-        assert getattr(four, k) == round(getattr(one, k) / 4), k
-    assert (four.refine_every, four.refine_stop, four.sh_interval) == (25, 1500, 250)
+    one = resolve(Recipe(), "default", 12000)
+    four = resolve(Recipe(), "default", 3000, batch_size=4)
+    for i, k in ((1, "refine_start"), (1, "refine_stop"), (1, "refine_every"), (1, "reset_every"), (0, "sh_interval")):
+        assert getattr(four[i], k) == round(getattr(one[i], k) / 4), k
+    assert (four[1].refine_every, four[1].refine_stop, four[0].sh_interval) == (25, 1500, 250)
     # values given are steps, kept as given
-    assert Recipe(refine_every=7).resolved(3000, 3, batch_size=4).refine_every == 7
+    assert resolve(Recipe(), DefaultStrategy(refine_every=7), 3000, batch_size=4)[1].refine_every == 7
 
 
 def test_a_batch_step_renders_every_view_once_and_keeps_statistics_per_view():
@@ -160,8 +161,8 @@ def test_a_batch_step_renders_every_view_once_and_keeps_statistics_per_view():
                                       sh_degree=0, opacity=0.5, scale=torch.full((40,), 0.05))
 
     def stats_after_step(batch_size, views):
-        t = Trainer(data, scene=scene, iters=100, sh_degree=0, progress=False, device="cpu", seed=1,
-                    batch_size=batch_size, recipe=Recipe(batch_scaling="none"))
+        t = Trainer(data, scene=scene, iters=100, progress=False, device="cpu", seed=1,
+                    batch_size=batch_size, recipe=Recipe(sh_degree=0, batch_scaling="none"))
         t.next_batch = lambda: list(views)  # these views, this step
         t.train_step()
         return {k: v.clone() for k, v in t.gaussians.stats.items()}
@@ -196,8 +197,8 @@ def test_only_the_main_process_writes(capture, tmp_path, monkeypatch):
 
     monkeypatch.setenv("SSGWARP_OFFLINE", "1")
     out = tmp_path / "run"
-    m = reconstruct(capture, out, ReconstructConfig(iters=3, sh_degree=0, checkpoint_every=1), device="cpu",
-                    progress=False, group=_Rank1(rank=1, world_size=2))
+    m = reconstruct(capture, out, ReconstructConfig(iters=3, recipe=Recipe(sh_degree=0), checkpoint_every=1),
+                    device="cpu", progress=False, group=_Rank1(rank=1, world_size=2))
     assert m == {}
     assert not out.exists()  # no folder, outputs, checkpoints or temporary files from rank 1
     with pytest.raises(InputError, match="multiple of 2"):
@@ -248,7 +249,7 @@ def test_torchrun_resumes_a_one_process_checkpoint_and_records_the_world(capture
     # the first half as the CLI would run it, stopped at step 4
     torch.manual_seed(0)
     data = load_dataset(capture, seed=0)
-    t = Trainer(data, iters=8, sh_degree=1, progress=False, device="cpu", seed=0, batch_size=2,
+    t = Trainer(data, iters=8, recipe=Recipe(sh_degree=1), progress=False, device="cpu", seed=0, batch_size=2,
                 checkpoint_path=split / "checkpoint.pt")
     t.train(until=4)
     assert read_checkpoint(split / "checkpoint.pt")["step"] == 4

@@ -240,6 +240,6 @@ def test_the_trainer_trains_with_the_fused_loss(monkeypatch):
     data = SceneData(cams, torch.rand(1, 20, 24, 3, generator=g), ["a"], [0], [], points=None)
     scene = GaussianScene.from_points(torch.randn(40, 3, generator=g) * 0.4, torch.rand(40, 3, generator=g),
                                       sh_degree=0, opacity=0.6)
-    t = Trainer(data, scene=scene, iters=2, sh_degree=0, recipe=Recipe(), progress=False, device="cpu")
+    t = Trainer(data, scene=scene, iters=2, recipe=Recipe(sh_degree=0), progress=False, device="cpu")
     info = t.train_step()
     assert calls == [(1, 20, 24, 3)] and np.isfinite(float(info["loss"]))

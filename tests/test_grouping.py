@@ -389,6 +389,7 @@ def test_deterministic_for_a_seed_and_resume_after_interrupt(tmp_path, synth, mo
 
 def test_grouping_hook_trains_with_reconstruction(synth):
     rec = pytest.importorskip("ssgwarp.reconstruction.reconstruct")
+    from ssgwarp.reconstruction.strategy import DefaultStrategy
     from ssgwarp.capture.datasets import SceneData
     from ssgwarp.grouping.model import GroupConfig
     from ssgwarp.grouping.train import GroupingHook
@@ -402,8 +403,9 @@ def test_grouping_hook_trains_with_reconstruction(synth):
     w0 = hook.classifier.weight.detach().clone()
     groups = hook.parameters()
     assert groups[0]["params"][0] is hook.classifier.weight
-    trainer = rec.Trainer(data, scene=scene, iters=16, sh_degree=0, hooks=[hook], identity_dim=16,
-                          recipe=rec.Recipe(lr_identities=0.05, refine_start=10_000), progress=False, seed=0)
+    trainer = rec.Trainer(data, scene=scene, iters=16, hooks=[hook], identity_dim=16,
+                          recipe=rec.Recipe(sh_degree=0, lr_identities=0.05), progress=False, seed=0,
+                          strategy=DefaultStrategy(refine_start=10_000))
     ces = []
     for _ in range(16):
         trainer.train_step()
@@ -433,7 +435,8 @@ def test_joint_grouping_of_a_run(tmp_path, synth):
         frames.append({"file_path": f"images/{name}", "transform_matrix": c2w[i].tolist()})
     write_json(tmp_path / "data" / "transforms.json", {"camera_angle_x": 2 * math.atan(0.5), "frames": frames})
     recipe = rec.Recipe(init_max_points=300)
-    rec.reconstruct(tmp_path / "data", tmp_path / "run", rec.ReconstructConfig(iters=8, sh_degree=0, recipe=recipe),
+    rec.reconstruct(tmp_path / "data", tmp_path / "run",
+                    rec.ReconstructConfig(iters=8, recipe=rec.Recipe(sh_degree=0, init_max_points=300)),
                     device="cpu", progress=False)
     info = group_scene(tmp_path / "run", joint=True, config=GroupConfig(dim=8),
                        reconstruct_kwargs={"iters": 8, "recipe": recipe}, progress=False)

@@ -195,13 +195,14 @@ def test_with_iters_auto_mask_free_grouping_starts_when_the_stop_rule_moves_the_
     from ssgwarp.grouping.joint import reconstruct_with_groups
     from ssgwarp.reconstruction.reconstruct import ReconstructConfig
     from ssgwarp.reconstruction.recipe import Recipe
+    from ssgwarp.reconstruction.strategy import DefaultStrategy
 
     # checks every 10 steps from 20 (densification's end), a plateau at the third check (40), a 10-step tail:
     # the planned 30,000-step run would group from step 29,000, which it never reaches; it groups from 40 to 50
-    recipe = Recipe(refine_start=10, refine_stop=20, refine_every=10, reset_every=0, sh_interval=5, stop_every=10,
-                    stop_patience=2, stop_tol=100.0)
-    cfg = ReconstructConfig(iters="auto", recipe=recipe, sh_degree=0, init="random", num_random_points=600,
-                            max_gaussians=2500, backdrop="off")
+    recipe = Recipe(sh_degree=0, sh_interval=5, stop_every=10, stop_patience=2, stop_tol=100.0)
+    strategy = DefaultStrategy(max_gaussians=2500, refine_start=10, refine_stop=20, refine_every=10, reset_every=0)
+    cfg = ReconstructConfig(iters="auto", recipe=recipe, strategy=strategy, init="random", num_random_points=600,
+                            backdrop="off")
     m = reconstruct_with_groups(capture[0], tmp_path / "run", cfg, device="cpu", progress=False)
     info = json.loads((tmp_path / "run" / "groups" / "groups.json").read_text())
     assert m["iters"] == 50 and info["start_step"] == 40 and m["groups"]["start_step"] == 40

@@ -433,21 +433,22 @@ def test_run_files_carry_the_crop_and_load_run_reproduces_it(tmp_path):
 
 
 def test_reconstruct_metrics_say_which_frame(tmp_path, monkeypatch):
+    from ssgwarp.reconstruction.recipe import Recipe
     from ssgwarp.reconstruction.reconstruct import ReconstructConfig, reconstruct
 
     for var in ("SSGWARP_LPIPS", "SSGWARP_VGG16", "SSGWARP_WEIGHTS"):
         monkeypatch.delenv(var, raising=False)
     _colmap_capture(tmp_path / "cap", {1: ("SIMPLE_RADIAL", LENSES["SIMPLE_RADIAL"])}, n=4)
-    m = reconstruct(tmp_path / "cap", tmp_path / "run", ReconstructConfig(iters=2, sh_degree=0, split_every=2,
-                    checkpoint_every=0), device="cpu", progress=False)
+    m = reconstruct(tmp_path / "cap", tmp_path / "run", ReconstructConfig(iters=2, recipe=Recipe(sh_degree=0),
+                    split_every=2, checkpoint_every=0), device="cpu", progress=False)
     meta = json.loads((tmp_path / "run" / "data.json").read_text())
     on_disk = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert m["metric_frame"] == on_disk["metric_frame"] == "undistorted-crop"
     assert on_disk["metric_size"] == [meta["width"], meta["height"]] == on_disk["resolution"]
     assert on_disk["metric_crop"]["crops"] == [meta["undistortion"]["cameras"][0]["crop"]]
     _colmap_capture(tmp_path / "pin", {1: ("PINHOLE", ())}, n=4)
-    m = reconstruct(tmp_path / "pin", tmp_path / "run2", ReconstructConfig(iters=1, sh_degree=0, split_every=2,
-                    checkpoint_every=0), device="cpu", progress=False)
+    m = reconstruct(tmp_path / "pin", tmp_path / "run2", ReconstructConfig(iters=1, recipe=Recipe(sh_degree=0),
+                    split_every=2, checkpoint_every=0), device="cpu", progress=False)
     assert m["metric_frame"] == "as-captured" and "metric_crop" not in m
 
 

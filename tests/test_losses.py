@@ -91,7 +91,7 @@ def test_the_trainer_optimises_the_3dgs_loss(dssim_scale):
     data = SceneData(cams, torch.rand(2, 20, 24, 3, generator=g), ["a", "b"], [0], [1], points=None)
     scene = GaussianScene.from_points(torch.randn(40, 3, generator=g) * 0.4, torch.rand(40, 3, generator=g),
                                       sh_degree=0, opacity=0.6)
-    t = Trainer(data, scene=scene, iters=3, sh_degree=0, recipe=Recipe(dssim_scale=dssim_scale), progress=False,
+    t = Trainer(data, scene=scene, iters=3, recipe=Recipe(sh_degree=0, dssim_scale=dssim_scale), progress=False,
                 device="cpu")
     img, _, _ = render_views(t.scene.detach(), cams[0], sh_degree=0, backgrounds=data.background_tensor(3)[None])
     img = img[..., :3]

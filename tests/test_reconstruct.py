@@ -17,6 +17,7 @@ from ssgwarp.capture.datasets import SceneData, load_dataset
 from ssgwarp.services.runs import load_run
 from ssgwarp.errors import InputError, SsgwarpError
 from ssgwarp.reconstruction.recipe import Recipe
+from ssgwarp.reconstruction.strategy import STRATEGIES, DefaultStrategy, MCMCStrategy
 from ssgwarp.reconstruction.trainer import Trainer
 from ssgwarp.raster.scene import GaussianScene
 
@@ -34,8 +35,9 @@ def fern():
 @needs_fern
 def test_training_raises_heldout_psnr(fern):
     """fern at 32x24, 200 COLMAP points, 60 steps: held-out PSNR up by >= 5 dB (seen: ~11.5 -> ~19.7)."""
-    rec = Recipe(init_max_points=200, refine_start=20, refine_every=20, reset_every=10**6)
-    t = Trainer(fern, iters=60, sh_degree=1, max_gaussians=300, recipe=rec, progress=False, device="cpu",
+    rec = Recipe(sh_degree=1, init_max_points=200)
+    strategy = DefaultStrategy(max_gaussians=300, refine_start=20, refine_every=20, reset_every=10**6)
+    t = Trainer(fern, iters=60, recipe=rec, strategy=strategy, progress=False, device="cpu",
                 backdrop="off")  # (200 of the 10k points cover few image cells: a backdrop would be added)
     before = t.evaluate()
     t.train()
@@ -76,9 +78,11 @@ class IdentityHook:
 
 
 def _resume_kwargs(fern, tmp_path, name, strategy="default"):
-    rec = Recipe(init_max_points=120, refine_start=8, refine_every=8, reset_every=20, sh_interval=10,
-                 prune_screen=0.5)
-    return dict(iters=30, sh_degree=1, max_gaussians=400, recipe=rec, progress=False, device="cpu", seed=3,
+    rec = Recipe(sh_degree=1, init_max_points=120, sh_interval=10)
+    knobs = dict(max_gaussians=400, refine_start=8, refine_every=8)
+    strategy = (DefaultStrategy(**knobs, reset_every=20, prune_screen=0.5) if strategy == "default" else
+                MCMCStrategy(**knobs))
+    return dict(iters=30, recipe=rec, progress=False, device="cpu", seed=3,
                 identity_dim=4, checkpoint_path=tmp_path / name, checkpoint_every=100, strategy=strategy,
                 backdrop="off")  # (the densification of a known cloud of 120 points)
 
@@ -149,10 +153,10 @@ def test_a_short_run_densifies_on_the_scaled_schedule(strategy):
     data = _toy_data()
     s0 = _toy_scene()
     hook = IdentityHook(5)
-    t = Trainer(data, scene=s0, iters=300, sh_degree=1, max_gaussians=13, hooks=[hook], progress=False,
-                device="cpu", strategy=strategy)
-    assert (t.recipe.refine_start, t.recipe.refine_every) == (100, 100)
-    assert t.recipe.refine_stop == {"default": 150, "mcmc": 250}[strategy]
+    t = Trainer(data, scene=s0, iters=300, recipe=Recipe(sh_degree=1), hooks=[hook], progress=False,
+                device="cpu", strategy=STRATEGIES[strategy](max_gaussians=13))
+    assert (t.strategy.refine_start, t.strategy.refine_every) == (100, 100)
+    assert t.strategy.refine_stop == {"default": 150, "mcmc": 250}[strategy]
     refines = []
     for _ in range(300):
         info = t.train_step()
@@ -167,7 +171,7 @@ def test_a_short_run_densifies_on_the_scaled_schedule(strategy):
     if strategy == "mcmc":
         assert len(sc) == 13  # 12 -> 13 (ceil 5%), then at the budget
         with pytest.raises(InputError, match="budget"):  # a given scene must fit in the budget
-            Trainer(data, scene=s0, iters=40, max_gaussians=11, progress=False, device="cpu", strategy="mcmc")
+            Trainer(data, scene=s0, iters=40, progress=False, device="cpu", strategy=MCMCStrategy(max_gaussians=11))
     else:
         assert did["prune"] == 1 and len(sc) == len(s0) + did["clone"] + did["split"] - 1  # the transparent one
 
@@ -175,7 +179,7 @@ def test_a_short_run_densifies_on_the_scaled_schedule(strategy):
 def test_nan_stops_with_the_step_and_keeps_the_last_checkpoint(tmp_path):
     data = _toy_data()
     hook = IdentityHook(3, nan_at=12)
-    t = Trainer(data, scene=_toy_scene().replace(identities=None), iters=50, sh_degree=1, hooks=[hook],
+    t = Trainer(data, scene=_toy_scene().replace(identities=None), iters=50, recipe=Recipe(sh_degree=1), hooks=[hook],
                 identity_dim=3, checkpoint_path=tmp_path / "ck.pt", checkpoint_every=5, progress=False, device="cpu")
     with pytest.raises(SsgwarpError, match=r"diverged at step 13 .*last good checkpoint \(step 10\)"):
         t.train()
@@ -184,8 +188,9 @@ def test_nan_stops_with_the_step_and_keeps_the_last_checkpoint(tmp_path):
     assert t.step == 13
     assert all(bool(torch.isfinite(p).all()) for p in [*t.params.values(), *t._hook_params()])
     assert max(int(st["step"]) for st in t.opt.state.values()) == 12            # Adam's count not advanced
-    t2 = Trainer(data, scene=_toy_scene().replace(identities=None), iters=50, sh_degree=1, hooks=[IdentityHook(3)],
-                 identity_dim=3, checkpoint_path=tmp_path / "ck.pt", progress=False, device="cpu")
+    t2 = Trainer(data, scene=_toy_scene().replace(identities=None), iters=50, recipe=Recipe(sh_degree=1),
+                 hooks=[IdentityHook(3)], identity_dim=3, checkpoint_path=tmp_path / "ck.pt", progress=False,
+                 device="cpu")
     t2.load_checkpoint()
     assert t2.step == 10 and all(bool(torch.isfinite(p).all()) for p in t2.params.values())
 
@@ -196,7 +201,7 @@ def test_a_nan_step_is_never_checkpointed_nor_returned(tmp_path, nan_at, kept, s
     # the last step's loss (step 10 of 10, then the final checkpoint) and a checkpoint step's (step 5,
     # checkpoints every 5) are read before the checkpoint is written and before train() returns
     data = _toy_data()
-    t = Trainer(data, scene=_toy_scene().replace(identities=None), iters=10, sh_degree=1,
+    t = Trainer(data, scene=_toy_scene().replace(identities=None), iters=10, recipe=Recipe(sh_degree=1),
                 hooks=[IdentityHook(3, nan_at=nan_at)], identity_dim=3, checkpoint_path=tmp_path / "ck.pt",
                 checkpoint_every=5, progress=False, device="cpu")
     with pytest.raises(SsgwarpError, match=rf"diverged at step {nan_at + 1} .*{kept}"):
@@ -353,7 +358,8 @@ def test_initial_gaussians_from_a_dense_random_cloud_are_narrower():
     for source, scale in (("random", 0.5 ** (1 / 6)), ("colmap", 1.0)):
         data = replace(_toy_data(), points=(xyz, rgb), points_source=source)
         # backdrop off: random points on textured images would get one, whose points start with other scales
-        s = Trainer(data, iters=10, sh_degree=0, progress=False, device="cpu", backdrop="off").final_scene()
+        s = Trainer(data, iters=10, recipe=Recipe(sh_degree=0), progress=False, device="cpu",
+                    backdrop="off").final_scene()
         assert torch.allclose(s.scales, (d * scale)[:, None].expand(-1, 3), rtol=1e-5), source
         assert torch.allclose(s.opacities, torch.full((4000,), 0.1), atol=1e-6), source
 
@@ -371,7 +377,7 @@ def test_masked_pixels_are_out_of_the_loss_and_the_metrics():
     grads, psnrs = [], []
     for images in (data.images, noisy):
         d = replace(data, images=images, masks=masks, train_ids=[0], test_ids=[1])
-        t = Trainer(d, scene=_toy_scene(), iters=5, sh_degree=0, progress=False, device="cpu")
+        t = Trainer(d, scene=_toy_scene(), iters=5, recipe=Recipe(sh_degree=0), progress=False, device="cpu")
         info = t.train_step()
         grads.append((float(info["loss"]), t.params["sh_dc"].detach().clone()))
         psnrs.append(t.evaluate()["psnr"])
@@ -379,8 +385,8 @@ def test_masked_pixels_are_out_of_the_loss_and_the_metrics():
     assert torch.allclose(grads[0][1], grads[1][1], atol=1e-6)
     assert psnrs[0] == pytest.approx(psnrs[1], abs=1e-4)
     # without the masks those pixels count
-    t = Trainer(replace(data, images=noisy, train_ids=[0], test_ids=[1]), scene=_toy_scene(), iters=5, sh_degree=0,
-                progress=False, device="cpu")
+    t = Trainer(replace(data, images=noisy, train_ids=[0], test_ids=[1]), scene=_toy_scene(), iters=5,
+                recipe=Recipe(sh_degree=0), progress=False, device="cpu")
     assert abs(t.evaluate()["psnr"] - psnrs[1]) > 0.1
 
 
@@ -481,7 +487,7 @@ def test_inside_out_capture_fails_from_the_cube_and_reconstructs_with_the_backdr
     assert data.points_source == "random" and len(data.test_ids) == 2
     out = {}
     for mode in ("off", "auto"):
-        t = Trainer(data, iters=100, sh_degree=0, progress=False, device="cpu", backdrop=mode, sky="off")
+        t = Trainer(data, iters=100, recipe=Recipe(sh_degree=0), progress=False, device="cpu", backdrop=mode, sky="off")
         t.train()
         out[mode] = (t.evaluate()["psnr"], t.backdrop)
     assert not out["off"][1].use and out["auto"][1].use and out["auto"][1].layout == "inside-out"
@@ -496,8 +502,8 @@ def test_a_backdrop_fits_in_the_budget_of_a_budgeted_strategy():
     g = torch.Generator().manual_seed(0)
     xyz = torch.randn(300, 3, generator=g) * 0.2
     data = replace(_toy_data(), points=(xyz, torch.rand(300, 3, generator=g)), points_source="colmap")
-    t = Trainer(data, iters=10, sh_degree=0, progress=False, device="cpu", strategy="mcmc", max_gaussians=240,
-                backdrop="on")
+    t = Trainer(data, iters=10, recipe=Recipe(sh_degree=0), progress=False, device="cpu",
+                strategy=MCMCStrategy(max_gaussians=240), backdrop="on")
     assert t.backdrop.use and 0 < t.backdrop.points <= 80 and t.num_gaussians == 240 - 80 + t.backdrop.points
 
 
@@ -507,7 +513,8 @@ def test_a_resumed_run_keeps_its_backdrop_and_far_field(tmp_path):
     g = torch.Generator().manual_seed(0)
     xyz = torch.randn(300, 3, generator=g) * 0.2
     data = replace(_toy_data(), points=(xyz, torch.rand(300, 3, generator=g)), points_source="colmap")
-    kw = dict(iters=10, sh_degree=0, progress=False, device="cpu", backdrop="on", checkpoint_path=tmp_path / "c.pt")
+    kw = dict(iters=10, recipe=Recipe(sh_degree=0), progress=False, device="cpu", backdrop="on",
+              checkpoint_path=tmp_path / "c.pt")
     a = Trainer(data, **kw)
     a.train(until=4)
     a.save_checkpoint()
@@ -540,7 +547,7 @@ def test_the_trained_state_owns_its_checkpoint(tmp_path):
     g = torch.Generator().manual_seed(0)
     xyz = torch.randn(200, 3, generator=g) * 0.2
     data = replace(_toy_data(), points=(xyz, torch.rand(200, 3, generator=g)), points_source="colmap")
-    kw = dict(iters=6, sh_degree=0, progress=False, device="cpu")
+    kw = dict(iters=6, recipe=Recipe(sh_degree=0), progress=False, device="cpu")
     a = Trainer(data, **kw)
     a.train(until=3)
     path = TrainState.of(a).save(tmp_path / "c.pt")
@@ -553,7 +560,7 @@ def test_the_trained_state_owns_its_checkpoint(tmp_path):
     b.train()
     assert torch.equal(b.scene.means, a.scene.means)     # (the run's generators came back too)
     with pytest.raises(InputError, match="pass --sh-degree 0 to resume it"):
-        TrainState.read(path).restore(Trainer(data, **{**kw, "sh_degree": 1}))
+        TrainState.read(path).restore(Trainer(data, **{**kw, "recipe": Recipe(sh_degree=1)}))
     torch.save({"step": 1}, tmp_path / "other.pt")
     with pytest.raises(InputError, match="not a reconstruction checkpoint"):
         TrainState.read(tmp_path / "other.pt").restore(Trainer(data, **kw))

@@ -13,6 +13,7 @@ from ssgwarp.capture.datasets import SceneData
 from ssgwarp.procedural import build_scene, render_views, ring_cameras, write_transforms_dataset
 from ssgwarp.raster.rendering import render
 from ssgwarp.reconstruction.recipe import Recipe
+from ssgwarp.reconstruction.strategy import DefaultStrategy
 from ssgwarp.reconstruction.schedules import (AUTO_MAX_ITERS, Pyramid, StopMonitor, check_views,
                                               level_size, plateaued, resolution_factor, resolution_levels, tail_lr)
 from ssgwarp.reconstruction.statistics import accumulate_grad2d
@@ -133,12 +134,15 @@ def test_the_stop_rule_on_synthetic_curves():
 
 
 def _auto_recipe(**kw):
-    return Recipe(refine_start=10, refine_stop=20, refine_every=10, reset_every=0, sh_interval=5, stop_every=10,
-                  stop_patience=2, stop_tol=100.0, **kw)
+    return Recipe(**{"sh_degree": 1, **kw}, sh_interval=5, stop_every=10, stop_patience=2, stop_tol=100.0)
+
+
+AUTO_STRATEGY = DefaultStrategy(refine_start=10, refine_stop=20, refine_every=10, reset_every=0)
 
 
 def test_auto_trains_until_the_plateau_and_a_tail_with_the_learning_rate_annealed(toy):
-    t = Trainer(toy, iters="auto", sh_degree=1, recipe=_auto_recipe(), progress=False, device="cpu", backdrop="off")
+    t = Trainer(toy, iters="auto", recipe=_auto_recipe(), strategy=AUTO_STRATEGY, progress=False, device="cpu",
+                backdrop="off")
     assert t.iters == AUTO_MAX_ITERS and t.schedules.end == AUTO_MAX_ITERS and t.schedules.check_ids == [0, 2, 4, 6]
     lrs = []
     while not t.finished:
@@ -157,7 +161,8 @@ def test_auto_trains_until_the_plateau_and_a_tail_with_the_learning_rate_anneale
                                                                              rel_tol=1e-9)
     assert lrs[39] / lrs[40] < 1.001                                               # continuous into the tail
     # train() stops there too (the loop's end follows the stop rule)
-    t2 = Trainer(toy, iters="auto", sh_degree=1, recipe=_auto_recipe(), progress=False, device="cpu", backdrop="off")
+    t2 = Trainer(toy, iters="auto", recipe=_auto_recipe(), strategy=AUTO_STRATEGY, progress=False, device="cpu",
+                backdrop="off")
     t2.train()
     assert t2.step == 50 and torch.equal(t2.final_scene().means, t.final_scene().means)
     with pytest.raises(Exception, match="iters"):
@@ -172,7 +177,8 @@ def test_auto_decides_on_the_main_processs_psnr(toy):
         def broadcast(self, obj):
             return 99.0 if isinstance(obj, float) else obj
 
-    t = Trainer(toy, iters="auto", sh_degree=1, recipe=_auto_recipe(), progress=False, device="cpu", backdrop="off",
+    t = Trainer(toy, iters="auto", recipe=_auto_recipe(), strategy=AUTO_STRATEGY, progress=False, device="cpu",
+                backdrop="off",
                 group=Rank0Says())
     t.train()
     checks = t.schedules.record(t.step)["stop_rule"]["checks"]
@@ -184,7 +190,8 @@ def test_resume_mid_schedule_is_bit_exact(toy, tmp_path, stop_at):
     """Coarse-to-fine from 4x until step 30, SH from step 25, --iters auto: interrupted at 15 (mid
     resolution schedule) or 35 (between two checks of the stop rule) and resumed = uninterrupted."""
     def trainer(name):
-        return Trainer(toy, iters="auto", sh_degree=1, recipe=_auto_recipe(res_start=4.0, res_until=30, sh_start=25),
+        return Trainer(toy, iters="auto", recipe=_auto_recipe(res_start=4.0, res_until=30, sh_start=25),
+                       strategy=AUTO_STRATEGY,
                        progress=False, device="cpu", backdrop="off", checkpoint_path=tmp_path / name,
                        checkpoint_every=1000, seed=2)
     a = trainer("a.pt")
@@ -206,15 +213,15 @@ def test_resume_mid_schedule_is_bit_exact(toy, tmp_path, stop_at):
 
 
 def test_sh_start_delays_the_first_degree_and_the_default_keeps_the_old_schedule(toy):
-    t = Trainer(toy, iters=100, sh_degree=3, recipe=Recipe(sh_interval=10), progress=False, device="cpu",
+    t = Trainer(toy, iters=100, recipe=Recipe(sh_degree=3, sh_interval=10), progress=False, device="cpu",
                 backdrop="off")
     degrees = []
     for s in (0, 9, 10, 19, 20, 30, 99):
         t.step = s
         degrees.append(t.active_sh_degree)
     assert degrees == [min(3, s // 10) for s in (0, 9, 10, 19, 20, 30, 99)]
-    t = Trainer(toy, iters=100, sh_degree=3, recipe=Recipe(sh_interval=10, sh_start=50), progress=False,
-                device="cpu", backdrop="off")
+    t = Trainer(toy, iters=100, recipe=Recipe(sh_degree=3, sh_interval=10, sh_start=50), progress=False, device="cpu",
+                backdrop="off")
     degrees = []
     for s in (0, 49, 50, 59, 60, 70, 99):
         t.step = s
@@ -231,7 +238,8 @@ def test_reconstruct_auto_records_the_steps_and_why_it_stopped(toy, tmp_path, mo
     data_dir = tmp_path / "cap"
     write_transforms_dataset(data_dir, toy.images, toy.cameras)
     m = reconstruct(data_dir, tmp_path / "run", ReconstructConfig(
-        iters="auto", sh_degree=0, recipe=_auto_recipe(res_start=2.0), backdrop="off", split_every=4, init="random",
+        iters="auto", recipe=_auto_recipe(sh_degree=0, res_start=2.0), strategy=AUTO_STRATEGY, backdrop="off",
+        split_every=4, init="random",
         num_random_points=300), device="cpu", progress=False)
     assert m["iters"] == 50 and m["schedule"]["iters"] == "auto" and m["schedule"]["steps"] == 50
     assert m["schedule"]["coarse_to_fine"] == {"start": 2.0, "until": 20}

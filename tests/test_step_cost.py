@@ -111,7 +111,7 @@ def _step_ops(trainer: Trainer) -> tuple[list[str], StepInfo]:
 def test_a_one_view_step_copies_and_joins_nothing_and_makes_no_mse(monkeypatch):
     # (the loss's own ops are another matter: an L1 loss here, so that those below are the step's)
     monkeypatch.setattr(trainer_module, "photometric", lambda a, b, *_: (a - b).abs().mean())
-    t = Trainer(_data(), scene=_scene(3), iters=100, sh_degree=3, recipe=Recipe(sh_interval=1000), progress=False,
+    t = Trainer(_data(), scene=_scene(3), iters=100, recipe=Recipe(sh_degree=3, sh_interval=1000), progress=False,
                 device="cpu", seed=2)
     t.train_step()  # (Adam's state made)
     t._queue = [0, 0]  # (views queued: the step draws no new epoch, whose shuffle indexes a host tensor)
@@ -133,7 +133,7 @@ def test_a_one_view_step_copies_and_joins_nothing_and_makes_no_mse(monkeypatch):
 
 def test_the_mse_is_the_clamped_render_against_its_view():
     """One training view: the step's MSE is that of the render the loss saw (the scene before the step)."""
-    t = Trainer(_data(), scene=_scene(0), iters=10, sh_degree=0, progress=False, device="cpu")
+    t = Trainer(_data(), scene=_scene(0), iters=10, recipe=Recipe(sh_degree=0), progress=False, device="cpu")
     before = t.render([0])
     info = t.train_step()
     want = ((before - t.data.images[:1]) ** 2).mean()
@@ -151,8 +151,7 @@ def test_lower_sh_degrees_render_a_view_of_the_dc_term_and_adam_still_steps_ever
     assert torch.equal(c1, scene.sh_coeffs[:, :4]) and torch.equal(_coefficients(scene, 2), scene.sh_coeffs)
     # two steps at degree 0, then one at degree 1: every group stepped three times, the higher bands
     # unchanged while their gradient was zero
-    t = Trainer(_data(), scene=scene, iters=30, sh_degree=2, recipe=Recipe(sh_interval=2), progress=False,
-                device="cpu")
+    t = Trainer(_data(), scene=scene, iters=30, recipe=Recipe(sh_degree=2, sh_interval=2), progress=False, device="cpu")
     rest0 = t.params["sh_rest"].detach().clone()
     t.train_step()
     t.train_step()

@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from ssgwarp.core.cameras import Cameras, intrinsics, look_at
-from ssgwarp.reconstruction.recipe import Recipe
+from ssgwarp.reconstruction.recipe import Recipe, resolve
 from ssgwarp.raster.scene import GaussianScene
-from ssgwarp.reconstruction.strategy import REFERENCE_ITERS, REFINE_EPOCHS, DefaultStrategy, GaussianParams, MCMCStrategy, Schedule, make_strategy, relocation, scaled_schedule
+from ssgwarp.reconstruction.strategy import REFERENCE_ITERS, REFINE_EPOCHS, STRATEGIES, DefaultStrategy, GaussianParams, MCMCStrategy, Schedule, make_strategy, relocation, scaled_schedule
 from ssgwarp.reconstruction.statistics import accumulate_grad2d
 from ssgwarp.errors import InputError
 
@@ -117,12 +117,18 @@ def test_row_surgery_moves_every_tensor_and_its_adam_state():
     _check_consistent(g)
 
 
-def _setup(strategy, scene, *, iters=1000, max_gaussians=1000, extent=1.0, stepped=True, **recipe):
+def _setup(strategy, scene, *, iters=1000, max_gaussians=1000, extent=1.0, stepped=True, **knobs):
     g = _gaussians(scene, stepped=stepped)
-    s = make_strategy(strategy)
-    r = Recipe(**recipe).resolved(iters, 1, s)
-    s.setup(g, recipe=r, extent=extent, max_gaussians=max_gaussians, seed=0)
+    r, s = resolve(Recipe(sh_degree=1), STRATEGIES[strategy](max_gaussians=max_gaussians, **knobs), iters)
+    s.setup(g, recipe=r, extent=extent, seed=0)
     return g, s
+
+
+def _resolved(iters, strategy="default", recipe=None, **kw):
+    """The resolved strategy of a run (its recipe as ``.recipe``)."""
+    r, s = resolve(recipe or Recipe(), strategy, iters, **kw)
+    s.recipe = r
+    return s
 
 
 def _refine_scene() -> GaussianScene:
@@ -168,7 +174,7 @@ def test_default_refine_clones_splits_and_prunes_every_tensor_with_its_state():
 
     # opacity reset: capped at 0.01, the opacities' moments cleared, other moments kept
     mom = _snapshot(g)[1]
-    s.reset_opacity(g)
+    s.reset_opacities(g)
     assert float(torch.sigmoid(g.params["logit_opacities"].detach()).max()) <= 0.01 + 1e-6
     assert float(_moments(g, "logit_opacities")["exp_avg"].abs().sum()) == 0.0
     assert torch.equal(_moments(g, "means")["exp_avg"], mom["means"]["exp_avg"])
@@ -344,27 +350,31 @@ def test_schedule_scales_with_the_run_length():
     assert ref == {"refine_start": 500, "refine_stop": 15000, "refine_every": 100, "reset_every": 3000}
     assert scaled_schedule(7000, **DefaultStrategy.reference) == {
         "refine_start": 117, "refine_stop": 3500, "refine_every": 100, "reset_every": 700}
-    short = Recipe().resolved(500, 3, "default")
+    short = _resolved(500, "default")
     assert (short.refine_start, short.refine_stop, short.refine_every, short.reset_every) == (100, 250, 100, 300)
     sched = Schedule(short.refine_start, short.refine_stop, short.refine_every, short.reset_every)
     assert [t for t in range(501) if sched.refines_at(t)] == [100, 200]
     assert not any(sched.resets_at(t) for t in range(501))  # a reset needs 300 steps to recover: none here
-    mc = Recipe().resolved(500, 3, "mcmc")
-    assert (mc.refine_start, mc.refine_stop, mc.refine_every, mc.reset_every) == (100, 417, 100, 0)
-    assert (mc.init_opacity, mc.init_scale, mc.opacity_reg, mc.scale_reg) == (0.5, 0.1, 0.01, 0.01)
-    # the default strategy starts as 3DGS does; a dense random cloud with narrower Gaussians
-    assert (short.init_opacity, short.init_scale, short.opacity_reg) == (0.1, 1.0, 0.0)
-    rnd = Recipe().resolved(500, 3, "default", random_init=100_000)
-    assert rnd.init_opacity == 0.1 and math.isclose(rnd.init_scale, 0.02 ** (1 / 6)) and rnd.opacity_reg == 0.0
-    assert Recipe().resolved(500, 3, "default", random_init=2000).init_scale == 1.0   # sparse: the 3DGS start
-    assert Recipe(init_scale=2.0).resolved(500, 3, "default", random_init=100_000).init_scale == 2.0
-    assert Recipe().resolved(500, 3, "mcmc", random_init=100_000).init_scale == 0.1
-    long = Recipe().resolved(60000, 3)  # longer runs stretch every interval
+    mc = _resolved(500, "mcmc")
+    assert (mc.refine_start, mc.refine_stop, mc.refine_every) == (100, 417, 100) and "reset_every" not in mc.knobs()
+    assert (mc.recipe.init_opacity, mc.recipe.init_scale, mc.opacity_reg, mc.scale_reg) == (0.5, 0.1, 0.01, 0.01)
+    # the default strategy starts as 3DGS does (no regulariser); a dense random cloud with narrower Gaussians
+    assert (short.recipe.init_opacity, short.recipe.init_scale) == (0.1, 1.0)
+    assert "opacity_reg" not in DefaultStrategy.knobs() and "grad_threshold" not in MCMCStrategy.knobs()
+    rnd = _resolved(500, "default", random_init=100_000).recipe
+    assert rnd.init_opacity == 0.1 and math.isclose(rnd.init_scale, 0.02 ** (1 / 6))
+    assert _resolved(500, "default", random_init=2000).recipe.init_scale == 1.0   # sparse: the 3DGS start
+    assert _resolved(500, "default", Recipe(init_scale=2.0), random_init=100_000).recipe.init_scale == 2.0
+    assert _resolved(500, "mcmc", random_init=100_000).recipe.init_scale == 0.1
+    long = _resolved(60000)  # longer runs stretch every interval
     assert (long.refine_start, long.refine_stop, long.refine_every, long.reset_every) == (1000, 30000, 200, 6000)
-    kept = Recipe(refine_start=3, refine_every=7).resolved(500, 3)  # given values are kept
-    assert (kept.refine_start, kept.refine_every, kept.refine_stop) == (3, 7, 250)
+    given = DefaultStrategy(refine_start=3, refine_every=7)
+    kept = _resolved(500, given)  # given values are kept (the given strategy is left as it is)
+    assert (kept.refine_start, kept.refine_every, kept.refine_stop) == (3, 7, 250) and given.refine_stop is None
     with pytest.raises(InputError, match="refine_every"):
-        Recipe(refine_every=0).resolved(100, 3)
+        _resolved(100, DefaultStrategy(refine_every=0))
+    with pytest.raises(InputError, match="sh_degree must be 0..3"):
+        _resolved(100, recipe=Recipe(sh_degree=4))
     with pytest.raises(InputError, match="unknown strategy 'nope'"):
         make_strategy("nope")
 
@@ -374,14 +384,14 @@ def test_sparse_captures_stop_densifying_after_200_passes_over_their_views():
     fern's 17 views at 30k steps refine until 3,400 (not 15,000); 88 views keep the scaled 15,000; a given
     refine_stop is kept; batches count images."""
     assert REFINE_EPOCHS == 200
-    assert Recipe().resolved(30000, 3, views=17).refine_stop == 3400
-    assert Recipe().resolved(30000, 3, views=88).refine_stop == 15000
-    assert Recipe().resolved(7000, 3, views=17).refine_stop == 3400        # (3,500 scaled)
-    assert Recipe().resolved(30000, 3).refine_stop == 15000                 # views unknown: the scaled schedule
-    assert Recipe(refine_stop=9000).resolved(30000, 3, views=17).refine_stop == 9000
-    assert Recipe().resolved(30000, 3, "mcmc", views=17).refine_stop == 3400
-    assert Recipe().resolved(15000, 3, views=17, batch_size=2).refine_stop == 1700   # 3,400 images in steps of 2
-    tiny = Recipe().resolved(30000, 3, views=1)            # never before one refinement
+    assert _resolved(30000, views=17).refine_stop == 3400
+    assert _resolved(30000, views=88).refine_stop == 15000
+    assert _resolved(7000, views=17).refine_stop == 3400        # (3,500 scaled)
+    assert _resolved(30000).refine_stop == 15000                 # views unknown: the scaled schedule
+    assert _resolved(30000, DefaultStrategy(refine_stop=9000), views=17).refine_stop == 9000
+    assert _resolved(30000, "mcmc", views=17).refine_stop == 3400
+    assert _resolved(15000, views=17, batch_size=2).refine_stop == 1700   # 3,400 images in steps of 2
+    tiny = _resolved(30000, views=1)            # never before one refinement
     assert tiny.refine_stop == tiny.refine_start + tiny.refine_every + 1
 
 
@@ -415,3 +425,27 @@ def test_far_field_measures_sizes_against_the_distance_beyond_the_scene_radius()
         if far:
             s.far_field(torch.zeros(3), 2.0)
         assert s.refine(g, step=3100)["prune"] == pruned
+
+
+def test_a_resume_record_with_the_flat_recipe_of_earlier_versions_reads_as_todays():
+    """upgrade_record: the flat ``recipe`` of earlier resume records (both strategies' knobs in it) becomes
+    today's ``recipe`` + ``strategy``: the record's strategy's knobs (mcmc_growth is growth; a None the run
+    resolved to the strategy's value is that value), the other strategy's dropped; today's records as they are."""
+    from dataclasses import asdict
+
+    from ssgwarp.reconstruction.recipe import options_record, upgrade_record
+
+    flat = {**{k: v for k, v in asdict(Recipe()).items() if k not in ("sh_degree", "res_start", "batch_scaling")},
+            "refine_start": None, "refine_stop": None, "refine_every": 50, "reset_every": None,
+            "grad_threshold": 0.0003, "percent_dense": 0.01, "split_factor": 1.6, "prune_opacity": 0.005,
+            "reset_opacity": 0.01, "prune_world": 0.1, "prune_screen": 0.0, "mcmc_growth": 0.1, "noise_lr": 5e5,
+            "opacity_reg": None, "scale_reg": None}
+    old = {"--sh-degree": 3, "--max-gaussians": 1_000_000, "--coarse-to-fine": 1.0, "--batch-scaling": "sqrt",
+           "--seed": 0, "recipe": flat}
+    for name, strategy in (("default", DefaultStrategy(refine_every=50, grad_threshold=0.0003)),
+                           ("mcmc", MCMCStrategy(refine_every=50, growth=0.1))):
+        now = options_record(Recipe(), strategy)
+        up = upgrade_record({**old, "--strategy": name})
+        assert up == {**now, "--seed": 0}, name
+        assert upgrade_record(up) == up and upgrade_record(None) is None
+    assert upgrade_record({**old, "--strategy": "mcmc"})["strategy"]["opacity_reg"] == 0.01

@@ -15,6 +15,7 @@ from ..grouping.model import DEFAULT_DIM, GroupConfig
 from ..reconstruction.recipe import Recipe
 from ..reconstruction.reconstruct import ReconstructConfig, reconstruct
 from ..reconstruction.schedules import AUTO
+from ..reconstruction.strategy import STRATEGIES
 from ..services import distributed
 
 def parse_background(s: str) -> tuple[float, float, float]:
@@ -123,12 +124,12 @@ QUICK_MEASURED = ("fern images_8 (17 training views, resized to 252x188): 20 min
 def config_from_args(args, init=None) -> ReconstructConfig:
     """The :class:`ReconstructConfig` of the command's options."""
     return ReconstructConfig(
-        iters=args.iters, images=args.images, sh_degree=args.sh_degree, max_gaussians=args.max_gaussians,
-        seed=args.seed, split_every=args.split_every, width=args.width, max_images=args.max_images,
-        background=args.background, checkpoint_every=args.checkpoint_every, num_random_points=args.random_points,
-        strategy=args.strategy, batch_size=args.batch_size, backdrop=args.backdrop, appearance=args.appearance,
-        sky=args.sky, recipe=Recipe(batch_scaling=args.batch_scaling, res_start=args.coarse_to_fine),
-        init=args.init if init is None else init)
+        iters=args.iters, images=args.images, seed=args.seed, split_every=args.split_every, width=args.width,
+        max_images=args.max_images, background=args.background, checkpoint_every=args.checkpoint_every,
+        num_random_points=args.random_points, batch_size=args.batch_size, backdrop=args.backdrop,
+        appearance=args.appearance, sky=args.sky, init=args.init if init is None else init,
+        strategy=STRATEGIES[args.strategy](max_gaussians=args.max_gaussians),
+        recipe=Recipe(sh_degree=args.sh_degree, batch_scaling=args.batch_scaling, res_start=args.coarse_to_fine))
 
 
 def _run(args, **extra) -> int:

@@ -129,7 +129,7 @@ class GroupsDuringReconstruction:
             self.info = masks_info(mask_dir, ms, made)
             self.info["test_masks"] = True
             self.seconds += time.perf_counter() - t0
-        self.refine_stop = int(trainer.recipe.refine_stop or 0)
+        self.refine_stop = int(trainer.strategy.refine_stop or 0)
         self.with_masks = mask_dir is not None
         self.start = self.start_at(trainer.iters)
 

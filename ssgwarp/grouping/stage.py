@@ -43,7 +43,7 @@ Public API:
 from __future__ import annotations
 
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -269,15 +269,18 @@ def _joint(scene_dir: Path, run: RunInfo, targets: Tensor, k: int, config: Group
     The capture is reloaded through :meth:`ssgwarp.services.runs.Run.load`, so the
     Trainer's view indices are the rows of ``cameras.json`` (and of ``targets``).
     ``kwargs``: fields of its :class:`~ssgwarp.reconstruction.reconstruct.ReconstructConfig` (``iters``,
-    ``sh_degree``, ``max_gaussians``, ``recipe``...); by default the original
-    run's iteration count and SH degree are reused.
+    ``recipe``, ``strategy``...); by default the original run's iteration count and SH degree are reused (the
+    SH degree also with a ``recipe`` given; ``sh_degree``: another).
     """
     _, data = run.load()
     if data.cameras.names != run.cameras.names:
         raise SsgwarpError(f"{scene_dir}: the reloaded capture's views do not match cameras.json")
     metrics = read_json(scene_dir / "metrics.json") if (scene_dir / "metrics.json").is_file() else {}
-    kw = {"iters": int(metrics.get("iters", 30000)), "sh_degree": int(metrics.get("sh_degree", 3))}
+    kw = {"iters": int(metrics.get("iters", 30000))}
     kw.update({k_: v for k_, v in kwargs.items() if v is not None})
+    sh = kw.pop("sh_degree", None)
+    kw["recipe"] = replace(kw.get("recipe") or rec.Recipe(),
+                           sh_degree=int(sh if sh is not None else metrics.get("sh_degree", 3)))
     hook = GroupingHook(targets, k, config=config, seed=seed, device=device)
     cfg = rec.ReconstructConfig(**kw, identity_dim=config.dim, seed=seed)
     metrics = rec.reconstruct(data.data_dir, scene_dir, cfg, hooks=[hook], device=device, progress=progress, data=data,

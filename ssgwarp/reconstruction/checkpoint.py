@@ -54,6 +54,7 @@ class TrainState:
             "elapsed": t.elapsed,
             "recipe": asdict(t.recipe),
             "strategy": t.strategy.name,
+            "strategy_config": asdict(t.strategy),   # (informational, as "recipe": the resolved knobs)
             "batch_size": t.batch_size,
             "world_size": t.group.world_size,  # (informational: any number of processes resumes it)
             "names": list(t.data.names),

@@ -14,19 +14,13 @@ from ..core.geometry import knn_mean_distance
 from ..errors import InputError
 from ..raster.scene import GaussianScene
 from .backdrop import with_backdrop
-from .recipe import Recipe
+from .recipe import Recipe, initial_count
+from .strategy import Strategy
 
-__all__ = ["initial_count", "initial_scene"]
-
-
-def initial_count(n: int, recipe: Recipe, max_gaussians: int, budgeted: bool) -> int:
-    """How many of ``n`` capture points start the scene (``init_max_points``; the budget of a budgeted strategy)."""
-    if recipe.init_max_points is not None:
-        n = min(n, recipe.init_max_points)
-    return min(n, max_gaussians) if budgeted else n
+__all__ = ["initial_scene"]
 
 
-def initial_scene(data, recipe: Recipe, *, max_gaussians: int, budgeted: bool, backdrop_mode: str, seed: int,
+def initial_scene(data, recipe: Recipe, strategy: Strategy, *, backdrop_mode: str, seed: int,
                   device) -> tuple[GaussianScene, Optional[object]]:
     """``(scene, backdrop)``: the initial scene of ``data`` (see the module docs) and the backdrop decision
     (:func:`ssgwarp.reconstruction.backdrop.with_backdrop`'s)."""
@@ -34,14 +28,15 @@ def initial_scene(data, recipe: Recipe, *, max_gaussians: int, budgeted: bool, b
         raise InputError("the capture has no initial points (and none were generated); pass a scene")
     xyz, rgb = data.points
     xyz, rgb = xyz.float().cpu(), rgb.float().cpu()
-    m = initial_count(len(xyz), recipe, max_gaussians, budgeted)
+    m = initial_count(len(xyz), recipe, strategy)
     if len(xyz) > m:
         g = torch.Generator().manual_seed(seed + 3)
         idx = torch.randperm(len(xyz), generator=g)[:m].sort().values
         xyz, rgb = xyz[idx], rgb[idx]
     if len(xyz) == 0:
         raise InputError("the capture has an empty point cloud")
-    xyz, rgb, backdrop = with_backdrop(data, xyz, rgb, backdrop_mode, max_gaussians if budgeted else None, seed)
+    xyz, rgb, backdrop = with_backdrop(data, xyz, rgb, backdrop_mode,
+                                      strategy.max_gaussians if strategy.budgeted else None, seed)
     xyz = xyz.to(device)
     scale = knn_mean_distance(xyz, k=3).clamp_min(1e-7) * recipe.init_scale
     return GaussianScene.from_points(xyz, rgb.to(device), sh_degree=0, opacity=recipe.init_opacity,

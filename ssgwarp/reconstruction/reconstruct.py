@@ -30,7 +30,7 @@ the stage (load, claim the run folder, train, evaluate, write the run files); it
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
@@ -40,7 +40,8 @@ from ..capture.datasets import load_dataset
 from ..services.distributed import SINGLE
 from ..errors import SsgwarpError, WeightsNotFound
 from ..evaluation.networks import load_lpips
-from .recipe import Recipe
+from .recipe import Recipe, options_record, upgrade_record
+from .strategy import DefaultStrategy, Strategy
 from ..services.runs import RUN_FILES, check_resume, claim, resume_record, write_run
 from .trainer import Trainer
 from ..services.loop import read_checkpoint
@@ -86,10 +87,10 @@ def _run_metrics(trainer: Trainer, data, scene, device: torch.device, group, see
         **data.metric_frame,
         "per_view": ev["per_view"],
     }
-    r = trainer.recipe
-    metrics["densification"] = {"strategy": trainer.strategy.name, "max_gaussians": trainer.max_gaussians,
-                                "refine_start": r.refine_start, "refine_stop": r.refine_stop,
-                                "refine_every": r.refine_every, "reset_every": r.reset_every}
+    s = trainer.strategy
+    metrics["densification"] = {"strategy": s.name, "max_gaussians": s.max_gaussians,
+                                "refine_start": s.refine_start, "refine_stop": s.refine_stop,
+                                "refine_every": s.refine_every, "reset_every": getattr(s, "reset_every", 0)}
     metrics["backdrop"] = None if trainer.backdrop is None else trainer.backdrop.record()
     metrics["appearance"] = _appearance_record(trainer)
     metrics["eval_protocol"] = trainer.eval_protocol
@@ -119,9 +120,11 @@ class ReconstructConfig:
     """What a reconstruction trains: the options of ``ssgwarp reconstruct`` by name (their defaults are its).
 
     ``iters``: steps, or ``"auto"``: the 30,000-step schedule until the training views' PSNR stops improving
-    (:mod:`ssgwarp.reconstruction.schedules`). ``strategy``: ``"default"`` / ``"mcmc"`` or a
-    :class:`~ssgwarp.reconstruction.strategy.Strategy`; ``max_gaussians``: its cap (mcmc: its budget).
-    ``recipe``: the training knobs (:class:`~ssgwarp.reconstruction.recipe.Recipe`; default: the 3DGS paper's).
+    (:mod:`ssgwarp.reconstruction.schedules`). ``strategy``: the densification and its knobs, a
+    :class:`~ssgwarp.reconstruction.strategy.DefaultStrategy` (``--strategy default``) or
+    :class:`~ssgwarp.reconstruction.strategy.MCMCStrategy` (``mcmc``), or its name; its ``max_gaussians`` is
+    ``--max-gaussians`` (the cap; mcmc: the budget). ``recipe``: the training knobs every strategy shares
+    (:class:`~ssgwarp.reconstruction.recipe.Recipe`, ``sh_degree`` included; default: the 3DGS paper's).
     ``images``, ``split_every``, ``width``, ``max_images``, ``background``, ``num_random_points``, ``init``: how
     the capture is loaded (:func:`~ssgwarp.capture.datasets.load_dataset`; ``init``: ``auto``, ``triangulate``,
     ``random`` or a ``.ply`` path). ``backdrop``, ``appearance``, ``sky``: ``"auto"`` / ``"on"`` / ``"off"``
@@ -131,10 +134,8 @@ class ReconstructConfig:
     through ``hooks``)."""
 
     iters: int | str = "auto"
-    sh_degree: int = 3
-    max_gaussians: int = 1_000_000
-    strategy: Any = "default"
-    recipe: Optional[Recipe] = None
+    strategy: Strategy | str = field(default_factory=DefaultStrategy)
+    recipe: Recipe = field(default_factory=Recipe)
     images: str = "images"
     split_every: int = 8
     width: Optional[int] = None
@@ -172,7 +173,7 @@ def reconstruct(data_dir: str | Path, out: str | Path, config: ReconstructConfig
     Returns the metrics dict (on the other processes: ``{}``).
     """
     c = config
-    iters, images, sh_degree, max_gaussians, seed = c.iters, c.images, c.sh_degree, c.max_gaussians, c.seed
+    iters, images, seed = c.iters, c.images, c.seed
     split_every, width, max_images, background, init = c.split_every, c.width, c.max_images, c.background, c.init
     strategy, recipe, batch_size, backdrop, appearance, sky = (c.strategy, c.recipe, c.batch_size, c.backdrop,
                                                                 c.appearance, c.sky)
@@ -196,16 +197,13 @@ def reconstruct(data_dir: str | Path, out: str | Path, config: ReconstructConfig
         "data": str(Path(data_dir).expanduser().resolve()) if data_dir is not None else None,
         "--images": data.image_dir, "images": list(data.names), "resolution": [data.cameras.width, data.cameras.height],
         "--width": width, "--max-images": max_images, "--split-every": split_every, "--seed": seed,
-        "--sh-degree": sh_degree, "--max-gaussians": max_gaussians,
-        "--strategy": strategy if isinstance(strategy, str) else getattr(strategy, "name", str(strategy)),
         "--background": list(data.background) if data.background is not None else None,
         "--init": str(init), "--backdrop": backdrop, "--appearance": appearance, "--sky": sky,      # (--batch-size: the trainer checks it, naming the fix)
-        **_recipe_record(recipe)})      # (--groups: attach.py checks it, naming the fix)
-    if state is not None:
-        check_resume(state.get("options"), record, ckpt, "the checkpoint")
+        **options_record(recipe, strategy)})      # (--groups: attach.py checks it, naming the fix)
+    if state is not None:   # (a record of the flat recipe of earlier versions: upgraded)
+        check_resume(upgrade_record(state.get("options")), record, ckpt, "the checkpoint")
     group.barrier()  # everyone has looked at OUT before the main process changes it
-    trainer = Trainer(data, iters=iters, sh_degree=sh_degree, max_gaussians=max_gaussians, recipe=recipe,
-                      hooks=hooks, identity_dim=identity_dim, checkpoint_path=ckpt,
+    trainer = Trainer(data, iters=iters, recipe=recipe, hooks=hooks, identity_dim=identity_dim, checkpoint_path=ckpt,
                       checkpoint_every=checkpoint_every, rasterize=rasterize, raster_kwargs=raster_kwargs,
                       device=device, seed=seed, progress=progress, strategy=strategy, batch_size=batch_size,
                       group=group, backdrop=backdrop, attach=attach, appearance=appearance, sky=sky)
@@ -247,8 +245,3 @@ def reconstruct(data_dir: str | Path, out: str | Path, config: ReconstructConfig
              "n/a" if metrics["psnr"] is None else f"{metrics['psnr']:.2f} dB")
     return metrics
 
-
-def _recipe_record(recipe: Optional[Recipe]) -> dict:
-    """The recipe's part of the resume record: its command-line options by name, the rest as ``recipe``."""
-    r = asdict(recipe if recipe is not None else Recipe())
-    return {"--coarse-to-fine": r.pop("res_start", None), "--batch-scaling": r.pop("batch_scaling", None), "recipe": r}

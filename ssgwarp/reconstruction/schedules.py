@@ -174,10 +174,10 @@ def check_views(train_ids: Sequence[int], n: int) -> list[int]:
 # ----------------------------------------------------------------------------- a run's schedules
 class Schedules:
     """The schedules of one run (a resolved :class:`~ssgwarp.reconstruction.recipe.Recipe` on a capture ``data``
-    of ``iters`` steps, ``auto``: the stop rule on): the images of each step, the position learning rate of
-    the tail, the stop rule's checks and the record of it all."""
+    of ``iters`` steps, ``auto``: the stop rule on, not before densification stops at ``refine_stop``): the
+    images of each step, the position learning rate of the tail, the stop rule's checks and the record of it all."""
 
-    def __init__(self, recipe, data, *, iters: int, auto: bool):
+    def __init__(self, recipe, data, *, iters: int, auto: bool, refine_stop: int = 0):
         r = self.recipe = recipe
         self.iters, self.auto, self.names = int(iters), bool(auto), list(data.names)
         self.data = data
@@ -185,7 +185,7 @@ class Schedules:
         self.monitor = None
         self.check_ids: list[int] = []
         if auto:
-            self.monitor = StopMonitor(first=max(r.refine_stop, r.res_until if self.pyramid else 0),
+            self.monitor = StopMonitor(first=max(int(refine_stop or 0), r.res_until if self.pyramid else 0),
                                        every=r.stop_every, patience=r.stop_patience, tol=r.stop_tol,
                                        tail=r.stop_tail, horizon=self.iters)
             self.check_ids = check_views(data.train_ids, r.stop_views)

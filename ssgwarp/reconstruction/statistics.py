@@ -2,13 +2,32 @@
 observes after each backward): per Gaussian, the sum of its screen-space positional gradient norms in NDC
 units, the number of views it was visible in, its largest screen radius. One Warp kernel for the layout
 the Trainer renders (``kernels/stats.py``: one launch, no host synchronisation), torch ops for the others
-(gsplat's packed layout).
+(gsplat's packed layout). :func:`observe_across`: a strategy's statistics of a step whose views are rendered
+by several processes (:mod:`ssgwarp.services.distributed`).
 """
 from __future__ import annotations
 
 import functools
 
 import torch
+
+
+def observe_across(strategy, gaussians, meta: dict, group) -> None:
+    """``strategy.observe(gaussians, meta)`` of a step whose views ``group``'s processes share: each process
+    observes its own views into zeroed statistics, which are combined across processes (the strategy's
+    ``stat_ops``: ``"sum"`` or ``"max"``, :meth:`ssgwarp.services.distributed.Group.reduce_stats`) and added
+    to the running ones (or their maximum taken), so every process refines identically. Alone (or without
+    statistics): ``strategy.observe`` itself."""
+    if not group.active or not gaussians.stats:
+        strategy.observe(gaussians, meta)
+        return
+    kept = gaussians.stats
+    gaussians.stats = {k: torch.zeros_like(v) for k, v in kept.items()}
+    strategy.observe(gaussians, meta)
+    ops = strategy.stat_ops
+    group.reduce_stats(gaussians.stats, ops)
+    gaussians.stats = {k: (torch.maximum(kept[k], v) if ops.get(k, "sum") == "max" else kept[k] + v)
+                       for k, v in gaussians.stats.items()}
 
 
 @torch.no_grad()

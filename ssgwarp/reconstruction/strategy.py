@@ -21,8 +21,14 @@ statistics, which are then combined across processes by :attr:`Strategy.stat_ops
 the running ones, so every process refines identically.
 
 Plus :meth:`Strategy.setup` (before the first step), :meth:`Strategy.defaults`
-(the recipe values it resolves, schedule included) and the state of its random
+(the values it resolves: its schedule, the recipe's initialisation) and the state of its random
 generator for checkpoints.
+
+Each strategy is a dataclass of its knobs (as gsplat's strategies): ``max_gaussians`` and the refine
+schedule for all, thresholds, opacity reset, relocation and regularisers per strategy; the knobs every
+strategy shares (learning rates, loss weights, the SH schedule...) are the
+:class:`~ssgwarp.reconstruction.recipe.Recipe`'s. :func:`ssgwarp.reconstruction.recipe.resolve` sets the
+fields left None for a run.
 
 Strategies:
 
@@ -39,8 +45,8 @@ The refine schedule scales with the run's length (:func:`scaled_schedule`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Callable, Optional
+from dataclasses import dataclass, fields
+from typing import Callable, ClassVar, Optional
 
 import torch
 
@@ -206,25 +212,41 @@ class GaussianParams:
 
 
 # ----------------------------------------------------------------------------- strategies
+@dataclass
 class Strategy:
-    """Base class: no densification (the set of Gaussians stays as it is)."""
+    """Base class: no densification (the set of Gaussians stays as it is).
 
-    name = "none"
-    uses_means2d_grad = False   # the Trainer keeps meta["means2d"].grad for observe()
-    budgeted = False            # max_gaussians is a budget the initial scene must fit in
-    stat_ops: dict = {}         # how each statistic combines over views rendered by several processes:
-                                # "sum" (default) or "max" (ssgwarp.services.distributed.Group.reduce_stats)
-    reference = {"refine_start": REFERENCE_ITERS, "refine_stop": 0, "refine_every": REFERENCE_ITERS}
-    recipe_defaults = {"init_opacity": 0.1, "init_scale": 1.0, "opacity_reg": 0.0, "scale_reg": 0.0}
+    A strategy is a dataclass of its knobs (as gsplat's strategies): the ones here are every strategy's,
+    subclasses add their own. Schedule fields left None are resolved for the run
+    (:func:`ssgwarp.reconstruction.recipe.resolve`: the strategy's :attr:`reference` schedule at 30,000 steps
+    scaled to the run, :func:`scaled_schedule`); the run's state (the bound Gaussians' extent, the schedule,
+    the random generator) is set by :meth:`setup` and is not a field."""
 
-    def __init__(self):
+    max_gaussians: int = 1_000_000          # cap on the number of Gaussians (mcmc: the budget it grows to)
+    refine_start: Optional[int] = None      # first refinement (30k reference: 500)
+    refine_stop: Optional[int] = None       # no refinement from this step on (default 15000, mcmc 25000 at 30k)
+    refine_every: Optional[int] = None      # steps between refinements (30k reference: 100; at least 10)
+
+    name: ClassVar[str] = "none"
+    uses_means2d_grad: ClassVar[bool] = False   # the Trainer keeps meta["means2d"].grad for observe()
+    budgeted: ClassVar[bool] = False            # max_gaussians is a budget the initial scene must fit in
+    stat_ops: ClassVar[dict] = {}   # how each statistic combines over views rendered by several processes:
+                                    # "sum" (default) or "max" (ssgwarp.services.distributed.Group.reduce_stats)
+    reference: ClassVar[dict] = {"refine_start": REFERENCE_ITERS, "refine_stop": 0, "refine_every": REFERENCE_ITERS}
+    recipe_defaults: ClassVar[dict] = {"init_opacity": 0.1, "init_scale": 1.0}   # Recipe fields it resolves
+
+    def __post_init__(self):
         self.recipe = None
         self.extent = 1.0
-        self.max_gaussians = 1_000_000
         self.schedule = Schedule(0, 0, 1)
         self.generator: Optional[torch.Generator] = None
         self.center: Optional[torch.Tensor] = None   # far field (far_field): sizes beyond scene_radius of
         self.scene_radius: Optional[float] = None    # center are measured against the distance from it
+
+    @classmethod
+    def knobs(cls) -> tuple[str, ...]:
+        """The names of this strategy's fields."""
+        return tuple(f.name for f in fields(cls))
 
     def far_field(self, center: torch.Tensor, scene_radius: float) -> None:
         """Measure the size rules of Gaussians farther than ``scene_radius`` from ``center`` (the cameras'
@@ -241,19 +263,18 @@ class Strategy:
         return self.extent * (d / self.scene_radius).clamp_min(1.0)
 
     def defaults(self, iters: int, random_init: Optional[int] = None) -> dict:
-        """Recipe values this strategy resolves when the recipe leaves them None: the schedule
-        scaled to ``iters`` (:func:`scaled_schedule`) and its initialisation / regulariser weights.
+        """Values this strategy resolves when they are left None: its schedule scaled to ``iters``
+        (:func:`scaled_schedule`; its own fields) and the recipe's initialisation (:attr:`recipe_defaults`).
         ``random_init``: the number of initial points when they are random (no point cloud)."""
         return {**scaled_schedule(iters, **self.reference), **self.recipe_defaults}
 
-
-    def setup(self, gaussians: GaussianParams, *, recipe, extent: float, max_gaussians: int, seed: int) -> None:
-        """Bind to a run (``recipe`` already resolved); register per-Gaussian statistics in ``gaussians.stats``."""
+    def setup(self, gaussians: GaussianParams, *, recipe, extent: float, seed: int) -> None:
+        """Bind to a run (this strategy and ``recipe`` already resolved); register per-Gaussian statistics in
+        ``gaussians.stats``."""
         self.recipe = recipe
         self.extent = float(extent)
-        self.max_gaussians = int(max_gaussians)
-        self.schedule = Schedule(recipe.refine_start, recipe.refine_stop, recipe.refine_every,
-                                 recipe.reset_every or 0)
+        self.schedule = Schedule(self.refine_start, self.refine_stop, self.refine_every,
+                                 getattr(self, "reset_every", 0) or 0)
         self.generator = self._make_generator(gaussians.device, seed)
 
     def _make_generator(self, device: torch.device, seed: int) -> torch.Generator:
@@ -278,8 +299,9 @@ class Strategy:
             self.generator.set_state(state)
 
 
+@dataclass
 class DefaultStrategy(Strategy):
-    """The 3DGS rules (Kerbl et al. 2023), with the recipe's thresholds.
+    """The 3DGS rules (Kerbl et al. 2023), with these thresholds (defaults: the paper's).
 
     Statistics (per Gaussian, since the last refinement): ``grad2d``, the sum over the
     views in which it was visible of the norm of its view-space positional gradient in
@@ -300,10 +322,20 @@ class DefaultStrategy(Strategy):
     moments zeroed.
     """
 
-    name = "default"
-    uses_means2d_grad = True
-    stat_ops = {"grad2d": "sum", "count": "sum", "max_radii": "max"}
-    reference = {"refine_start": 500, "refine_stop": 15_000, "refine_every": 100, "reset_every": 3000}
+    reset_every: Optional[int] = None   # opacity reset interval (30k: 3000; at least 300); 0: none
+    grad_threshold: float = 2e-4        # mean view-space positional gradient, NDC units (gsplat / INRIA)
+    percent_dense: float = 0.01         # clone if max scale <= this x extent, else split
+    split_factor: float = 1.6           # children scales = parent / split_factor
+    prune_opacity: float = 0.005        # pruned below it
+    reset_opacity: float = 0.01         # opacities capped at it by a reset
+    prune_world: float = 0.1            # prune when max scale > this x extent (after the first reset)
+    prune_screen: float = 0.0           # prune when the screen radius exceeded this fraction of max(W, H)
+                                        # (after the first reset); 0: off
+
+    name: ClassVar[str] = "default"
+    uses_means2d_grad: ClassVar[bool] = True
+    stat_ops: ClassVar[dict] = {"grad2d": "sum", "count": "sum", "max_radii": "max"}
+    reference: ClassVar[dict] = {"refine_start": 500, "refine_stop": 15_000, "refine_every": 100, "reset_every": 3000}
 
     def defaults(self, iters: int, random_init: Optional[int] = None) -> dict:
         out = super().defaults(iters, random_init)
@@ -311,12 +343,12 @@ class DefaultStrategy(Strategy):
             out["init_scale"] = random_init_scale(random_init)
         return out
 
-    def setup(self, gaussians, *, recipe, extent, max_gaussians, seed) -> None:
-        super().setup(gaussians, recipe=recipe, extent=extent, max_gaussians=max_gaussians, seed=seed)
+    def setup(self, gaussians, *, recipe, extent, seed) -> None:
+        super().setup(gaussians, recipe=recipe, extent=extent, seed=seed)
         n = len(gaussians)
         gaussians.stats = {"grad2d": torch.zeros(n, device=gaussians.device),
                            "count": torch.zeros(n, device=gaussians.device)}
-        if self.recipe.prune_screen > 0:
+        if self.prune_screen > 0:
             gaussians.stats["max_radii"] = torch.zeros(n, device=gaussians.device)
 
     @torch.no_grad()
@@ -328,13 +360,13 @@ class DefaultStrategy(Strategy):
         if self.schedule.refines_at(step):
             info["refine"] = self.refine(gaussians, step)
         if self.schedule.resets_at(step):
-            self.reset_opacity(gaussians)
+            self.reset_opacities(gaussians)
             info["reset"] = True
         return info
 
     @torch.no_grad()
     def refine(self, g: GaussianParams, step: int) -> dict:
-        r = self.recipe
+        r = self
         n0 = len(g)
         count = g.stats["count"]
         avg = g.stats["grad2d"] / count.clamp_min(1.0)
@@ -374,8 +406,8 @@ class DefaultStrategy(Strategy):
         return {"clone": n_clone, "split": n_split, "prune": n_prune}
 
     @torch.no_grad()
-    def reset_opacity(self, g: GaussianParams) -> None:
-        cap = math.log(self.recipe.reset_opacity / (1.0 - self.recipe.reset_opacity))
+    def reset_opacities(self, g: GaussianParams) -> None:
+        cap = math.log(self.reset_opacity / (1.0 - self.reset_opacity))
         g.params["logit_opacities"].data.clamp_(max=cap)
         g.zero_moments("logit_opacities")
 
@@ -438,6 +470,7 @@ def relocation(opacities: torch.Tensor, scales: torch.Tensor, n: torch.Tensor) -
     return o_new.to(opacities.dtype), scales * coeff.to(scales.dtype)[:, None]
 
 
+@dataclass
 class MCMCStrategy(Strategy):
     """3DGS as Markov chain Monte Carlo (Kheradmand et al. 2024), with ``max_gaussians`` as the budget.
 
@@ -446,7 +479,7 @@ class MCMCStrategy(Strategy):
     (with replacement). A live Gaussian chosen ``n - 1`` times becomes ``n`` Gaussians
     (itself and its copies, every tensor copied) whose opacity and scales follow
     :func:`relocation`, so that together they render as it did. Then
-    ``ceil(mcmc_growth * N)`` new Gaussians (at most up to the budget) are added the
+    ``ceil(growth * N)`` new Gaussians (at most up to the budget) are added the
     same way, sampled from all Gaussians. Rows that were rewritten or added start with
     zero Adam moments.
 
@@ -461,19 +494,25 @@ class MCMCStrategy(Strategy):
     L1 norms of the paper; scales in units of the extent).
     """
 
-    name = "mcmc"
-    budgeted = True
-    reference = {"refine_start": 500, "refine_stop": 25_000, "refine_every": 100}
-    recipe_defaults = {"init_opacity": 0.5, "init_scale": 0.1, "opacity_reg": 0.01, "scale_reg": 0.01}
-    noise_k = 100.0
-    noise_t = 0.005
+    prune_opacity: float = 0.005   # dead (relocated) at or below it
+    growth: float = 0.05           # Gaussians added per refinement, fraction of the count
+    noise_lr: float = 5e5          # position noise scale (times the position learning rate)
+    opacity_reg: float = 0.01      # weight of mean(opacity) in the loss
+    scale_reg: float = 0.01        # weight of mean(scale / extent) in the loss
+
+    name: ClassVar[str] = "mcmc"
+    budgeted: ClassVar[bool] = True
+    reference: ClassVar[dict] = {"refine_start": 500, "refine_stop": 25_000, "refine_every": 100}
+    recipe_defaults: ClassVar[dict] = {"init_opacity": 0.5, "init_scale": 0.1}
+    noise_k: ClassVar[float] = 100.0
+    noise_t: ClassVar[float] = 0.005
 
     def _make_generator(self, device: torch.device, seed: int) -> torch.Generator:
         # relocation sampling and the per-step noise draw on the Gaussians' device
         return torch.Generator(device=device).manual_seed(seed + 1)
 
     def regularizer(self, g: GaussianParams) -> Optional[torch.Tensor]:
-        r = self.recipe
+        r = self
         terms = []
         if r.opacity_reg:
             terms.append(r.opacity_reg * torch.sigmoid(g.params["logit_opacities"]).mean())
@@ -499,14 +538,14 @@ class MCMCStrategy(Strategy):
         n = torch.bincount(src, minlength=len(g))[src] + 1
         o_new, s_new = relocation(opac, torch.exp(g.params["log_scales"].data[src]), n)
         eps = torch.finfo(o_new.dtype).eps
-        o_new = o_new.clamp(self.recipe.prune_opacity, 1.0 - eps)
+        o_new = o_new.clamp(self.prune_opacity, 1.0 - eps)
         g.assign(src, {"logit_opacities": torch.logit(o_new), "log_scales": torch.log(s_new)})
         return {k: v.data[src].clone() for k, v in g.params.items()}
 
     @torch.no_grad()
     def relocate(self, g: GaussianParams) -> int:
         opac = torch.sigmoid(g.params["logit_opacities"].data)
-        dead = opac <= self.recipe.prune_opacity
+        dead = opac <= self.prune_opacity
         n_dead = int(dead.sum())
         if n_dead == 0 or n_dead == len(g):
             return 0
@@ -519,7 +558,7 @@ class MCMCStrategy(Strategy):
     @torch.no_grad()
     def add(self, g: GaussianParams) -> int:
         n = len(g)
-        k = min(self.max_gaussians - n, math.ceil(self.recipe.mcmc_growth * n))
+        k = min(self.max_gaussians - n, math.ceil(self.growth * n))
         if k <= 0:
             return 0
         opac = torch.sigmoid(g.params["logit_opacities"].data)
@@ -538,7 +577,7 @@ class MCMCStrategy(Strategy):
         z = torch.randn(p["means"].shape, generator=self.generator, device=g.device, dtype=p["means"].dtype)
         local = torch.einsum("nji,nj->ni", R, z) * var                          # S^2 R^T z
         noise = torch.einsum("nij,nj->ni", R, local)                            # R S^2 R^T z
-        p["means"].data += (self.recipe.noise_lr * lr_means) * gate[:, None] * noise
+        p["means"].data += (self.noise_lr * lr_means) * gate[:, None] * noise
 
 
 STRATEGIES = {"default": DefaultStrategy, "mcmc": MCMCStrategy}

@@ -1,6 +1,8 @@
 """The 3DGS training loop: :class:`Trainer` (one capture, a :class:`~ssgwarp.reconstruction.recipe.Recipe`, a
-densification :class:`~ssgwarp.reconstruction.strategy.Strategy`, hooks such as Gaussian Grouping's, batches of
-views split over processes by :mod:`ssgwarp.services.distributed`). Its state and checkpoint file are
+densification :class:`~ssgwarp.reconstruction.strategy.Strategy`, both set for the run by
+:func:`~ssgwarp.reconstruction.recipe.resolve_run`, hooks such as Gaussian Grouping's, batches of views split over
+processes by :mod:`ssgwarp.services.distributed`, their densification statistics combined by
+:func:`~ssgwarp.reconstruction.statistics.observe_across`). Its state and checkpoint file are
 :class:`~ssgwarp.reconstruction.checkpoint.TrainState`'s; the scores of the held-out views
 :func:`ssgwarp.evaluation.held_out.score_views`'s (:meth:`Trainer.evaluate` renders them); the NaN check
 :class:`~ssgwarp.reconstruction.step.LossWatch`'s; the initial scene :mod:`ssgwarp.reconstruction.initial`'s. Extensions: hooks (``hooks=``, or added while it runs with
@@ -28,17 +30,18 @@ from ..core.optim import adam
 from ..services.loop import Diverged, Loop, diverged_message
 from ..services.losses import photometric
 from ..core.optim import batch_factors
-from .recipe import Recipe
+from .recipe import Recipe, resolve_run
 from ..raster.rendering import render
 from ..raster.scene import GaussianScene
 from ..evaluation.held_out import masked
 from .image_model import ImageModel
 from .attach import attach_hooks, takes_scene
 from .checkpoint import TrainState
-from .initial import initial_count, initial_scene
-from .schedules import AUTO, AUTO_MAX_ITERS, Schedules, sh_degree_at
+from .initial import initial_scene
+from .schedules import Schedules, sh_degree_at
+from .statistics import observe_across
 from .step import LossWatch, StepInfo, ViewCache, adam_step, zero_unrendered_grads
-from .strategy import GaussianParams, make_strategy
+from .strategy import GaussianParams, Strategy
 
 log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
 
@@ -50,10 +53,11 @@ class Trainer(ImageModel):
         data: the capture (its ``train_ids`` are trained on, ``test_ids`` evaluated).
         scene: initial scene (default: from ``data.points``).
         iters: total number of steps, or ``"auto"`` (:mod:`.schedules`: until the training views' PSNR plateaus).
-        sh_degree: final SH degree (0..3).
-        max_gaussians: cap on the number of Gaussians (the budget of the mcmc strategy).
-        recipe: :class:`Recipe`.
-        strategy: ``"default"`` or ``"mcmc"`` (or a :class:`ssgwarp.reconstruction.strategy.Strategy`).
+        recipe: :class:`Recipe` (the final SH degree included).
+        strategy: a :class:`ssgwarp.reconstruction.strategy.Strategy` (its knobs: the cap ``max_gaussians``,
+            the refine schedule, thresholds), or its name, ``"default"`` or ``"mcmc"``. The recipe and the
+            strategy are resolved for the run by :func:`ssgwarp.reconstruction.recipe.resolve_run`
+            (:attr:`recipe`, :attr:`strategy`: the resolved ones; the given ones are left as they are).
         hooks: objects with ``parameters() -> list[param-group dicts]`` and
             ``loss(step, view_index, identity_render [H,W,E]) -> Tensor``. When a hook
             is present and the scene has identities, identities are rendered in the
@@ -69,7 +73,7 @@ class Trainer(ImageModel):
         raster_kwargs: extra keyword arguments for it.
         batch_size: training views per step, over all processes (default: one per process). The
             loss is their mean; Adam is adapted by ``recipe.batch_scaling`` (:func:`batch_factors`)
-            and the default schedule counts images (:meth:`Recipe.resolved`).
+            and the default schedule counts images (:func:`ssgwarp.reconstruction.recipe.resolve`).
         group: a :class:`ssgwarp.services.distributed.Group` when several processes train together (each
             renders its share of every batch); default: alone.
         backdrop: ``"auto"`` / ``"on"`` / ``"off"``: far points for the initial scene (:mod:`.backdrop`;
@@ -82,20 +86,13 @@ class Trainer(ImageModel):
         device, seed, progress: as usual.
     """
 
-    def __init__(self, data, *, scene: Optional[GaussianScene] = None, iters: int = 30000, sh_degree: int = 3,
-                 max_gaussians: int = 1_000_000, recipe: Optional[Recipe] = None, hooks: Sequence = (),
+    def __init__(self, data, *, scene: Optional[GaussianScene] = None, iters: int | str = 30000,
+                 recipe: Optional[Recipe] = None, strategy: str | Strategy = "default", hooks: Sequence = (),
                  identity_dim: Optional[int] = None, checkpoint_path: Optional[str | Path] = None,
                  checkpoint_every: int = 500, rasterize: Optional[Callable] = None,
                  raster_kwargs: Optional[dict] = None, device=None, seed: int = 0, progress: bool = True,
-                 strategy="default", batch_size: Optional[int] = None, group=None, backdrop: str = "auto",
+                 batch_size: Optional[int] = None, group=None, backdrop: str = "auto",
                  attach=None, appearance: str = "auto", sky: str = "auto"):
-        self.auto, iters = iters == AUTO, AUTO_MAX_ITERS if iters == AUTO else iters
-        if not isinstance(iters, (int, np.integer)) or iters < 1:
-            raise InputError(f"iters must be >= 1 or {AUTO!r}, got {iters!r}")
-        if not 0 <= sh_degree <= 3:
-            raise InputError(f"sh_degree must be 0..3, got {sh_degree}")
-        if max_gaussians < 1:
-            raise InputError(f"max_gaussians must be >= 1, got {max_gaussians}")
         if not data.train_ids:
             raise InputError("no training views")
         self.group = group if group is not None else SINGLE
@@ -105,20 +102,13 @@ class Trainer(ImageModel):
         if self.batch_size % self.group.world_size:
             raise InputError(f"--batch-size {self.batch_size} cannot be split evenly between "
                              f"{self.group.world_size} processes; use a multiple of {self.group.world_size}")
+        plan = resolve_run(data, recipe, strategy, iters, scene_given=scene is not None, batch_size=self.batch_size)
+        self.iters, self.auto, self.recipe, self.strategy = plan.iters, plan.auto, plan.recipe, plan.strategy
         self.device = torch.device(device) if device is not None else data.device
         self.data = data.to(self.device)
-        self.iters = int(iters)
-        self.sh_degree = int(sh_degree)
-        self.max_gaussians = int(max_gaussians)
-        self.strategy = make_strategy(strategy)
-        recipe = recipe or Recipe()
-        random_init = None
-        if scene is None and getattr(data, "points_source", "") == "random" and data.points is not None:
-            random_init = initial_count(len(data.points[0]), recipe, self.max_gaussians, self.strategy.budgeted)
-        self.recipe = recipe.resolved(self.iters, self.sh_degree, self.strategy, random_init, self.batch_size,
-                                      views=len(data.train_ids))
         self.lr_factor, self.beta_power = batch_factors(self.batch_size, self.recipe.batch_scaling)
-        self.schedules = Schedules(self.recipe, self.data, iters=self.iters, auto=self.auto)
+        self.schedules = Schedules(self.recipe, self.data, iters=self.iters, auto=self.auto,
+                                   refine_stop=self.strategy.refine_stop)
         self.hooks = list(hooks)
         self.checkpoint_path = Path(checkpoint_path) if checkpoint_path is not None else None
         self.checkpoint_every = int(checkpoint_every)
@@ -145,9 +135,8 @@ class Trainer(ImageModel):
         self._views = ViewCache(self.data)
 
         if scene is None:
-            scene, self.backdrop = initial_scene(self.data, self.recipe, max_gaussians=self.max_gaussians,
-                                                 budgeted=self.strategy.budgeted, backdrop_mode=self.backdrop_mode,
-                                                 seed=self.seed, device=self.device)
+            scene, self.backdrop = initial_scene(self.data, self.recipe, self.strategy,
+                                                 backdrop_mode=self.backdrop_mode, seed=self.seed, device=self.device)
         if scene.sh_degree != self.sh_degree:
             scene = scene.with_sh_degree(self.sh_degree)
         if identity_dim and scene.identities is None:
@@ -170,10 +159,19 @@ class Trainer(ImageModel):
 
     # -- state --------------------------------------------------------------------------------
     def _setup_strategy(self) -> None:
-        self.strategy.setup(self.gaussians, recipe=self.recipe, extent=self.extent, max_gaussians=self.max_gaussians,
-                            seed=self.seed)
+        self.strategy.setup(self.gaussians, recipe=self.recipe, extent=self.extent, seed=self.seed)
         if self.backdrop is not None and self.backdrop.scene_radius:  # sizes beyond it measured by distance
             self.strategy.far_field(torch.tensor(self.backdrop.center, device=self.device), self.backdrop.scene_radius)
+
+    @property
+    def sh_degree(self) -> int:
+        """The final SH degree (the recipe's)."""
+        return self.recipe.sh_degree
+
+    @property
+    def max_gaussians(self) -> int:
+        """The cap on the number of Gaussians (the strategy's)."""
+        return self.strategy.max_gaussians
 
     @property
     def finished(self) -> bool:
@@ -341,7 +339,7 @@ class Trainer(ImageModel):
         if bad > 0:
             self._diverged("the loss is NaN/inf" + ("" if not self.group.active else
                                                     f" on {int(bad)} of {self.group.world_size} processes"))
-        self._observe(meta)
+        observe_across(self.strategy, self.gaussians, meta, self.group)   # (several processes: all their views)
         for o in self._optimisers():
             adam_step(o)  # (step, gradients set to None; the fused update without Adam.step's Python)
         self.step += 1
@@ -352,20 +350,6 @@ class Trainer(ImageModel):
         # (--iters auto: every process decides on rank 0's PSNR; theirs differ by float roundoff)
         self.schedules.check(self.step, lambda ids: self.group.broadcast(self.evaluate(ids)["psnr"]), self._loop)
         return info
-
-    def _observe(self, meta: dict) -> None:
-        """The strategy's statistics of this step's views, from every process's share."""
-        g = self.gaussians
-        if not self.group.active or not g.stats:
-            self.strategy.observe(g, meta)
-            return
-        kept = g.stats
-        g.stats = {k: torch.zeros_like(v) for k, v in kept.items()}
-        self.strategy.observe(g, meta)
-        ops = self.strategy.stat_ops
-        self.group.reduce_stats(g.stats, ops)
-        g.stats = {k: (torch.maximum(kept[k], v) if ops.get(k, "sum") == "max" else kept[k] + v)
-                   for k, v in g.stats.items()}
 
     def _synced_tensors(self) -> dict[str, torch.Tensor]:
         """What every process must hold identically: parameters, Adam moments, statistics."""
