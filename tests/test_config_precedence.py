@@ -67,3 +67,29 @@ def test_config_not_utf8_is_one_line(tmp_path, parsed, capsys):
     assert main(["render", str(tmp_path / "run"), "--out", str(tmp_path / "o"), "--config", str(path)]) == 2
     err = capsys.readouterr().err.strip()
     assert "not UTF-8" in err and "--config" in err and len(err.splitlines()) == 1, err
+
+
+def test_reconstruct_options_and_config_keys_build_the_strategy_and_the_recipe(tmp_path, monkeypatch):
+    """`reconstruct`'s --strategy / --max-gaussians / --sh-degree / --coarse-to-fine / --batch-scaling, from the
+    command line or a --config file as before, land on the strategy dataclass and the Recipe of the config."""
+    import ssgwarp.commands.reconstruct as command
+    from ssgwarp.reconstruction.recipe import Recipe
+    from ssgwarp.reconstruction.strategy import DefaultStrategy, MCMCStrategy
+
+    seen = []
+
+    def fake_reconstruct(data_dir, out, config, **kw):
+        seen.append(config)
+        return {"psnr": None, "ssim": None, "num_gaussians": 0, "train_seconds": 0.0, "iters": 1}
+
+    monkeypatch.setattr(command, "reconstruct", fake_reconstruct)
+    cfg = tmp_path / "cfg.json"
+    cfg.write_text(json.dumps({"strategy": "mcmc", "max-gaussians": 500, "sh_degree": 1, "coarse-to-fine": 2,
+                               "batch-scaling": "linear"}))
+    base = ["reconstruct", str(tmp_path / "cap"), "--out", str(tmp_path / "run"), "--device", "cpu"]
+    assert main(base + ["--config", str(cfg), "--sh-degree", "2"]) == 0
+    assert main(base) == 0
+    with_config, plain = seen
+    assert with_config.strategy == MCMCStrategy(max_gaussians=500)
+    assert with_config.recipe == Recipe(sh_degree=2, res_start=2.0, batch_scaling="linear")   # (the flag wins)
+    assert plain.strategy == DefaultStrategy() and plain.recipe == Recipe()
