@@ -22,7 +22,7 @@ def test_every_image_lands_whole_with_its_own_pixels_in_queue_order(tmp_path):
         for i in range(12):
             buf.copy_(_img(i))
             w.image(tmp_path / "sub" / f"f{i:02d}.png", buf)   # (the buffer is overwritten right after: copied)
-    assert w.paths == [tmp_path / "sub" / f"f{i:02d}.png" for i in range(12)]
+    assert w.paths == [tmp_path / "sub" / f"f{i:02d}.png" for i in range(12)] and w.cpu > 0
     for i in range(12):
         got = read_image(tmp_path / "sub" / f"f{i:02d}.png")
         assert np.abs(got - _img(i).numpy()).max() <= 0.5 / 255 + 1e-6, i

@@ -415,7 +415,11 @@ def _renders(r: Inputs, rec: Record, styled: GaussianScene, bg: torch.Tensor) ->
                 writer.image(r.out / "renders" / "path" / f"frame_{s:04d}.png", frame)
                 frames.append((frame.float().cpu().numpy() * 255 + 0.5).astype("uint8"))
             writer.call(write_video, r.out / "path.gif", frames)
+        t_wait = time.perf_counter()
+    # (the phase; the wait for the last writes after the last render; the CPU time of the writes, off this thread)
     rec.times["renders"] = time.perf_counter() - t0
+    rec.times["renders_write_wait"] = time.perf_counter() - t_wait
+    rec.times["renders_write_cpu"] = writer.cpu
     return renders
 
 
