@@ -411,9 +411,9 @@ def _renders(r: Inputs, rec: Record, styled: GaussianScene, bg: torch.Tensor) ->
             frames = []
             for s in tqdm(range(len(path)), desc="path renders", disable=not r.progress, leave=False):
                 with torch.no_grad():
-                    frame = render_rgb(styled, path[[s]], bg)[0].clamp(0, 1)
+                    frame = render_rgb(styled, path[[s]], bg)[0].clamp(0, 1).float().cpu()   # (read back once)
                 writer.image(r.out / "renders" / "path" / f"frame_{s:04d}.png", frame)
-                frames.append((frame.float().cpu().numpy() * 255 + 0.5).astype("uint8"))
+                frames.append((frame.numpy() * 255 + 0.5).astype("uint8"))
             writer.call(write_video, r.out / "path.gif", frames)
         t_wait = time.perf_counter()
     # (the phase; the wait for the last writes after the last render; the CPU time of the writes, off this thread)
