@@ -3,6 +3,7 @@ rasterizer's torch backend free of Warp, the settings module a leaf."""
 from __future__ import annotations
 
 import ast
+import functools
 import subprocess
 import sys
 from pathlib import Path
@@ -37,13 +38,24 @@ def _modules() -> dict[str, Path]:
     return out
 
 
+@functools.lru_cache(maxsize=None)
+def _tree(path: Path) -> ast.Module:
+    """A module's syntax tree, parsed once for all the tests here (they only read it)."""
+    return ast.parse(path.read_text())
+
+
+@functools.lru_cache(maxsize=None)
+def _lines(path: Path) -> int:
+    return len(path.read_text().splitlines())
+
+
 def _imports(name: str, path: Path, known: set[str]) -> set[str]:
     """The package modules ``name`` imports, wherever the import statement stands (at the top, or
     inside a function: an import deferred to the call still makes the two modules depend on each
     other), resolved to modules."""
     pkg = name if path.stem == "__init__" else name.rsplit(".", 1)[0]
     out: set[str] = set()
-    for n in ast.walk(ast.parse(path.read_text())):
+    for n in ast.walk(_tree(path)):
         if isinstance(n, ast.Import):
             out.update(a.name for a in n.names if a.name in known)
         elif isinstance(n, ast.ImportFrom):
@@ -144,7 +156,7 @@ def test_each_module_imports_alone_in_a_fresh_interpreter():
 
 
 def _function_sizes(path: Path):
-    for node in ast.walk(ast.parse(path.read_text())):
+    for node in ast.walk(_tree(path)):
         if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
             yield node.name, node.end_lineno - node.lineno + 1
 
@@ -155,7 +167,7 @@ def test_modules_and_functions_stay_readable():
     long_modules, long_functions = set(), set()
     for f in _modules().values():
         rel = f.relative_to(ROOT).as_posix()
-        if len(f.read_text().splitlines()) > MAX_MODULE_LINES:
+        if _lines(f) > MAX_MODULE_LINES:
             long_modules.add(rel)
         long_functions.update(f"{rel}:{n}" for n, size in _function_sizes(f) if size > MAX_FUNCTION_LINES)
     assert long_modules - OVERSIZED_MODULES == set(), f"modules over {MAX_MODULE_LINES} lines: split them"
@@ -288,9 +300,9 @@ def test_commands_hold_no_library_code():
     caller would need: no class, and at most 250 lines."""
     for name, path in _modules().items():
         if name.startswith(COMMANDS + "."):
-            tree = ast.parse(path.read_text())
+            tree = _tree(path)
             assert not [n.name for n in tree.body if isinstance(n, ast.ClassDef)], name
-            assert len(path.read_text().splitlines()) <= 250, name
+            assert _lines(path) <= 250, name
 
 
 def test_layers_import_only_from_layers_above():
@@ -381,7 +393,7 @@ def test_the_library_edits_neither_sys_path_nor_the_environment_on_import():
     environment variable set by a module's top-level code (the ``ssgwarp`` command sets its own in ``main``)."""
     wrong = []
     for name, path in _modules().items():
-        tree = ast.parse(path.read_text())
+        tree = _tree(path)
         al = _aliases(tree)
         for n in ast.walk(tree):
             if isinstance(n, ast.Call) and _call_chain(n.func, al).startswith("sys.path."):
@@ -411,7 +423,7 @@ def test_private_warp_and_torch_names_are_used_in_one_module():
     and self-tests guard them)."""
     found = {}
     for name, path in _modules().items():
-        tree = ast.parse(path.read_text())
+        tree = _tree(path)
         al = _aliases(tree)
         for n in ast.walk(tree):
             hit = None
@@ -439,7 +451,7 @@ FACADES = {"ssgwarp", "ssgwarp.viewer"}   # the public API (ssgwarp/__init__.py)
 def _defined(path: Path) -> set[str]:
     """The names a module's own top-level code defines (functions, classes, assignments, also under if / try)."""
     out = set()
-    tree = ast.parse(path.read_text())
+    tree = _tree(path)
     for top in tree.body:
         nodes = [top] if not isinstance(top, (ast.If, ast.Try)) else list(ast.walk(top))
         for n in nodes:
@@ -460,7 +472,7 @@ def test_names_are_imported_from_the_module_that_defines_them():
     files.update({f.relative_to(ROOT).as_posix(): f for d in ("tests", "benchmarks") for f in (ROOT / d).glob("*.py")})
     chains, lists = set(), []
     for who, path in files.items():
-        tree = ast.parse(path.read_text())
+        tree = _tree(path)
         pkg = None
         if who in mods:
             pkg = who if path.stem == "__init__" else who.rsplit(".", 1)[0]

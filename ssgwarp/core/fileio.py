@@ -13,6 +13,8 @@ import contextlib
 import json
 import os
 import tempfile
+import threading
+import time
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -201,3 +203,104 @@ def write_image(path: str | os.PathLike, img: Any) -> Path:
         out.write_image(np.ascontiguousarray(data))
         out.close()
     return path
+
+
+def image_bytes(img: Any) -> np.ndarray:
+    """``img`` (``[H, W]`` or ``[H, W, C]``, numpy or torch on any device) as a float32 numpy array of its own
+    (a copy: the caller may change or free ``img`` right after; a torch tensor is read back here)."""
+    if hasattr(img, "detach"):
+        img = img.detach().cpu().numpy()
+    return np.array(img, dtype=np.float32, copy=True)
+
+
+class ImageWriter:
+    """Writes files on background threads while the caller goes on (renders the next view): PNG encoding
+    and the disk are off the caller's path.
+
+    ``image(path, img)`` copies ``img`` to the CPU at once and queues :func:`write_image` (atomic: a file is
+    either whole or absent); ``call(fn, *args)`` queues any other writer (e.g. the path video). Used as a
+    context manager: leaving the block waits for every queued write and raises the first error of any
+    (also a write's error is raised by the next ``image``/``call``, so a failing disk stops the work
+    early). When the block ends by an exception (Ctrl-C included), writes not yet started are dropped,
+    the running ones finish (each atomic, so nothing half-written is left), and the exception goes on.
+    ``workers``: threads (default: 2, or 1 on a single core); at most ``4 * workers`` writes wait in the
+    queue (their images held in memory): a further one waits for the oldest to finish. ``paths``: the
+    queued files, in the order they were queued; ``cpu``: the CPU seconds the threads spent writing.
+    """
+
+    def __init__(self, workers: int | None = None):
+        import concurrent.futures as cf
+
+        n = max(1, int(workers if workers is not None else min(2, os.cpu_count() or 1)))
+        self._pool = cf.ThreadPoolExecutor(n, thread_name_prefix="ssgwarp-write")
+        self._max_pending = 4 * n
+        self._futures: list = []   # (the writes not known to have succeeded, oldest first)
+        self.paths: list[Path] = []
+        self.cpu = 0.0
+        self._lock = threading.Lock()
+
+    def image(self, path: str | os.PathLike, img: Any) -> Path:
+        """Queue ``img`` to be written to ``path`` (:func:`write_image`); returns ``path``."""
+        return self.call(write_image, Path(path), image_bytes(img))
+
+    def call(self, fn, path: str | os.PathLike, *args, **kwargs) -> Path:
+        """Queue ``fn(path, *args, **kwargs)`` (a writer of ``path``, atomic itself); returns ``path``."""
+        import concurrent.futures as cf
+
+        self._raise_done()
+        while len(self._futures) >= self._max_pending:   # (bounded memory: wait for the oldest)
+            cf.wait(self._futures[:1])
+            self._raise_done()
+        self._futures.append(self._pool.submit(self._timed, fn, Path(path), *args, **kwargs))
+        self.paths.append(Path(path))
+        return Path(path)
+
+    def _timed(self, fn, *args, **kwargs):
+        t0 = time.thread_time()
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            with self._lock:
+                self.cpu += time.thread_time() - t0
+
+    def _raise_done(self) -> None:
+        """Forget the writes that succeeded; on the first that failed, stop the others and raise its error."""
+        for f in self._futures:
+            if f.done() and not f.cancelled() and f.exception() is not None:
+                self.close(cancel=True)
+        self._futures = [f for f in self._futures if not f.done()]
+
+    def close(self, cancel: bool = False) -> None:
+        """Wait for the queued writes (``cancel``: drop those not started) and raise the first error."""
+        import concurrent.futures as cf
+
+        if cancel:
+            for f in self._futures:
+                f.cancel()
+        err: BaseException | None = None
+        while True:
+            try:
+                cf.wait(self._futures)
+                break
+            except KeyboardInterrupt as e:   # a second Ctrl-C: drop what has not started, still wait for the rest
+                err = err or e
+                for f in self._futures:
+                    f.cancel()
+        self._pool.shutdown(wait=True)
+        if err is not None:
+            raise err
+        for f in self._futures:
+            if not f.cancelled() and f.exception() is not None:
+                raise f.exception()
+
+    def __enter__(self) -> "ImageWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+            return
+        try:
+            self.close(cancel=True)
+        except BaseException:   # (the block's own exception goes on; a write's error behind it is dropped)
+            pass

@@ -393,27 +393,33 @@ def _stage2(r: Inputs, rec: Record, kv, stylized) -> Optional[Stage2Output]:
 
 
 def _renders(r: Inputs, rec: Record, styled: GaussianScene, bg: torch.Tensor) -> torch.Tensor:
-    """``renders/train/*.png`` and ``renders/path/frame_*.png``; returns the training renders."""
+    """``renders/train/*.png``, ``renders/path/frame_*.png`` and ``path.gif``; returns the training renders.
+    The files are encoded and written on background threads (:class:`ssgwarp.core.fileio.ImageWriter`) while
+    the next views render; all are on disk (or the first error raised) when this returns."""
+    from ..core.fileio import ImageWriter
     from ..core.progress import tqdm
 
-    from ..core.fileio import write_image
-
     t0, train_cams = time.perf_counter(), r.train_cams
-    renders = render_batched(styled, train_cams, bg, desc="train renders" if r.progress else None)
-    for i, img in enumerate(renders):
-        write_image(r.out / "renders" / "train" / f"{Path(train_cams.names[i]).stem}.png", img.clamp(0, 1))
-    if r.opts.path_frames > 0:
-        from ..evaluation.render import smooth_path
+    with ImageWriter() as writer:
+        renders = render_batched(styled, train_cams, bg, desc="train renders" if r.progress else None)
+        for i, img in enumerate(renders):
+            writer.image(r.out / "renders" / "train" / f"{Path(train_cams.names[i]).stem}.png", img.clamp(0, 1))
+        if r.opts.path_frames > 0:
+            from ..evaluation.render import smooth_path
 
-        path = smooth_path(train_cams, r.opts.path_frames).to(r.device)
-        frames = []
-        for s in tqdm(range(len(path)), desc="path renders", disable=not r.progress, leave=False):
-            with torch.no_grad():
-                frame = render_rgb(styled, path[[s]], bg)[0].clamp(0, 1)
-            write_image(r.out / "renders" / "path" / f"frame_{s:04d}.png", frame)
-            frames.append((frame.float().cpu().numpy() * 255 + 0.5).astype("uint8"))
-        write_video(r.out / "path.gif", frames)
+            path = smooth_path(train_cams, r.opts.path_frames).to(r.device)
+            frames = []
+            for s in tqdm(range(len(path)), desc="path renders", disable=not r.progress, leave=False):
+                with torch.no_grad():
+                    frame = render_rgb(styled, path[[s]], bg)[0].clamp(0, 1).float().cpu()   # (read back once)
+                writer.image(r.out / "renders" / "path" / f"frame_{s:04d}.png", frame)
+                frames.append((frame.numpy() * 255 + 0.5).astype("uint8"))
+            writer.call(write_video, r.out / "path.gif", frames)
+        t_wait = time.perf_counter()
+    # (the phase; the wait for the last writes after the last render; the CPU time of the writes, off this thread)
     rec.times["renders"] = time.perf_counter() - t0
+    rec.times["renders_write_wait"] = time.perf_counter() - t_wait
+    rec.times["renders_write_cpu"] = writer.cpu
     return renders
 
 
