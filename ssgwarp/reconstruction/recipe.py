@@ -10,6 +10,7 @@ from ..errors import InputError
 from .strategy import REFINE_EPOCHS, make_strategy
 
 BATCH_SCALINGS = ("sqrt", "linear", "none")
+OPTIMIZERS = ("torch", "warp")
 _STEP_FIELDS = ("sh_interval", "refine_start", "refine_stop", "refine_every", "reset_every")
 
 
@@ -38,6 +39,8 @@ class Recipe:
     lr_quats: float = 1e-3
     lr_identities: float = 2.5e-3
     adam_eps: float = 1e-15
+    optimizer: str = "torch"           # the scene's Adam: "torch" (torch's fused Adam, one launch per tensor) or
+                                       # "warp" (ssgwarp.raster.adam_ops.WarpAdam: one launch for all of them)
     lambda_dssim: float = 0.2
     dssim_scale: float = 1.0           # multiplies the D-SSIM term; 0.5: the halved (1 - SSIM) / 2 of old runs
     sh_interval: Optional[int] = None
@@ -94,6 +97,8 @@ class Recipe:
         (fern's 17 views at 30,000 steps: 880 passes each, 762k Gaussians)."""
         if self.batch_scaling not in BATCH_SCALINGS:
             raise InputError(f"Recipe.batch_scaling {self.batch_scaling!r}: choose one of {', '.join(BATCH_SCALINGS)}")
+        if self.optimizer not in OPTIMIZERS:
+            raise InputError(f"Recipe.optimizer {self.optimizer!r}: choose one of {', '.join(OPTIMIZERS)}")
         b = max(1, int(batch_size))
         images = iters * b
         r = self

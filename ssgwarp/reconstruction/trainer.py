@@ -25,6 +25,7 @@ import torch
 from ..services.distributed import SINGLE, check_every
 from ..errors import InputError
 from ..core.optim import adam
+from ..raster.adam_ops import warp_adam
 from ..services.loop import Diverged, Loop, diverged_message
 from ..services.losses import photometric
 from ..core.optim import batch_factors
@@ -195,7 +196,8 @@ class Trainer(ImageModel):
     def _build_optimizer(self, scene: GaussianScene) -> None:
         params = {k: torch.nn.Parameter(v.detach().clone().contiguous()) for k, v in scene.tensors().items()}
         groups = [{"params": [p], "lr": self.learning_rate(k), "name": k} for k, p in params.items()]
-        self.gaussians = GaussianParams(params, adam(groups, eps=self.recipe.adam_eps, betas=self.betas))
+        make = warp_adam if self.recipe.optimizer == "warp" else adam
+        self.gaussians = GaussianParams(params, make(groups, eps=self.recipe.adam_eps, betas=self.betas))
         self._build_hook_optimizer()
 
     # -- hooks (the public protocol; ssgwarp.reconstruction.attach makes them during the run) ------------
