@@ -57,6 +57,9 @@ class Recipe:
     prune_world: float = 0.1           # prune when max scale > this x extent (after the first reset)
     prune_screen: float = 0.0          # prune when the screen radius exceeded this fraction of max(W, H)
                                        # (after the first reset); 0: off
+    prune_contribution: float = 0.0   # default strategy: prune Gaussians whose blending weight per training view
+                                       # is below this many pixels (ssgwarp.reconstruction.pruning); 0: off
+    prune_budget: int = 0              # ... and keep at most this many, the largest contributions (0: no budget)
     mcmc_growth: float = 0.05          # mcmc: Gaussians added per refinement, fraction of the count
     noise_lr: float = 5e5              # mcmc: position noise scale (times the position learning rate)
     opacity_reg: Optional[float] = None  # weight of mean(opacity) in the loss
@@ -124,6 +127,8 @@ class Recipe:
         for k in ("refine_every", "sh_interval"):
             if getattr(r, k) < 1:
                 raise InputError(f"Recipe.{k} must be >= 1, got {getattr(r, k)}")
+        if r.prune_contribution < 0 or r.prune_budget < 0:
+            raise InputError("Recipe.prune_contribution and Recipe.prune_budget must be >= 0")
         if r.reset_every < 0 or r.refine_start < 0:
             raise InputError("Recipe.reset_every and Recipe.refine_start must be >= 0")
         return r

@@ -40,6 +40,7 @@ from .initial import initial_count, initial_scene
 from .schedules import AUTO, AUTO_MAX_ITERS, Schedules, sh_degree_at
 from .step import LossWatch, StepInfo, ViewCache, adam_step, zero_unrendered_grads
 from .strategy import GaussianParams, make_strategy
+from .pruning import ContributionPruning
 
 log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
 
@@ -165,6 +166,7 @@ class Trainer(ImageModel):
                         "their losses are not used")
         self._build_optimizer(scene)
         self._setup_strategy()
+        self.pruning = ContributionPruning.of(self.recipe, self.strategy.name)   # (None: off)
         self.attach, self._attached = attach, False
         if attach is not None:
             attach.prepare(self)
@@ -349,6 +351,8 @@ class Trainer(ImageModel):
         self.step += 1
         info = StepInfo(total.detach(), img.detach(), gt)
         info.update(self.strategy.step(self.gaussians, self.step, self.gaussians.groups["means"]["lr"]))
+        if self.pruning is not None:
+            info.update(self.pruning.step(self.gaussians, self.step, lambda: self.data.cameras[self.data.train_ids]))
         if self.check_every and self.step % self.check_every == 0:
             self.group.check_identical(self._synced_tensors(), self.step)
         # (--iters auto: every process decides on rank 0's PSNR; theirs differ by float roundoff)
