@@ -8,6 +8,7 @@ forward op), calls, host µs (under the profiler) and GPU launches per step.
 
     python benchmarks/train_step.py --scene fern4 --backend ssgwarp --profile
     OMP_NUM_THREADS=2 python benchmarks/train_step.py --device cpu --backend ssgwarp --warm 20 --steps 5 --ops
+    python benchmarks/train_step.py --scene fern4 --backend ssgwarp --optimizer torch warp   # Adam: torch / WarpAdam
 
 Modes, each with its own ``--help``: ``runs`` (whole runs per scene x backend x strategy x budget: held-out PSNR /
 SSIM, Gaussians, time, memory), ``loss`` (the photometric loss, 0.8 L1 + 0.2 (1 - SSIM): the torch reference against
@@ -34,7 +35,7 @@ from pathlib import Path
 import torch
 
 from harness import (CAPTURES, ROOT, append_jsonl, capture_folder, cuda_kernel_ms, dispatch, header, interleaved,
-                     per_call_us, table, write_text)
+                     per_call_us, sync, table, write_text)
 from harness import cell as _f
 
 from ssgwarp.capture.datasets import load_dataset
@@ -43,6 +44,7 @@ from ssgwarp.core.fileio import write_json
 from ssgwarp.raster.rendering import render as render_views
 from ssgwarp.reconstruction.recipe import Recipe
 from ssgwarp.reconstruction.trainer import Trainer
+from ssgwarp.reconstruction.step import adam_step
 from ssgwarp.reconstruction.strategy import DefaultStrategy, MCMCStrategy, Strategy
 
 RUNS_DOC = """Whole training runs: our 3DGS loop with either rasterizer and each densification strategy.
@@ -171,13 +173,12 @@ def train_and_measure(data, *, backend: str = "ssgwarp", strategy="default", ite
                       rasterize=fn, raster_kwargs=kw, device=device, seed=seed, progress=progress,
                       strategy=make(strategy) if isinstance(strategy, str) else strategy)
     warm_up(trainer)
+    sync(device)
     if device.type == "cuda":
-        torch.cuda.synchronize(device)
         torch.cuda.reset_peak_memory_stats(device)
     t0 = time.perf_counter()
     trainer.train()
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
+    sync(device)
     seconds = time.perf_counter() - t0
     peak = torch.cuda.max_memory_allocated(device) / 2**20 if device.type == "cuda" else float("nan")
     ev = trainer.evaluate()
@@ -511,22 +512,21 @@ def op_table(rows: list[dict], totals: dict) -> str:
     return "\n".join(lines)
 
 
-def measure(data, backend: str, args, device: torch.device) -> dict:
+def measure(data, backend: str, args, device: torch.device, optimizer: str = "torch") -> dict:
     fn, kw = rasterizer(backend)
     torch.manual_seed(args.seed)
     t = Trainer(data, iters=args.iters, sh_degree=3, rasterize=fn, raster_kwargs=kw, device=device, seed=args.seed,
-                progress=False)
+                progress=False, recipe=Recipe(optimizer=optimizer))
     warm_up(t)
     for _ in range(args.warm):
         t.train_step()
-    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-    sync()
+    sync(device)
     t0 = time.perf_counter()
     for _ in range(args.steps):
         t.train_step()
-    sync()
-    row = {"backend": backend, "ms_per_step": (time.perf_counter() - t0) / args.steps * 1e3, "step": t.step,
-           "gaussians": t.num_gaussians, "syncs": []}
+    sync(device)
+    row = {"backend": backend, "optimizer": optimizer, "ms_per_step": (time.perf_counter() - t0) / args.steps * 1e3,
+           "step": t.step, "gaussians": t.num_gaussians, "syncs": []}
     if device.type == "cuda":
         for (msg, where), n in sorted(sync_sites(t.train_step).items(), key=lambda kv: kv[0][1]):
             if "prototype" not in msg:
@@ -538,11 +538,19 @@ def measure(data, backend: str, args, device: torch.device) -> dict:
         with ops_attributed() if what == "ops" else contextlib.nullcontext(), profile(activities=acts) as p:
             for _ in range(OPS_STEPS):
                 t.train_step()
-            sync()
+            sync(device)
         if what == "profile":
             row["profile"] = p.key_averages().table(sort_by="cpu_time_total", row_limit=60)
         else:
             row["ops"] = op_rows(p.events(), OPS_STEPS, device.type == "cpu")
+    grads = {k: torch.randn_like(p) * 1e-3 for k, p in t.params.items()}
+
+    def adam_only():   # the optimiser step alone, every group
+        for k, p in t.params.items():
+            p.grad = grads[k]
+        adam_step(t.opt)
+    row["adam_us"] = per_call_us(adam_only, device, 50, 3)
+    row["adam_gpu_us"] = 1e3 * sum(cuda_kernel_ms(adam_only).values()) if device.type == "cuda" else None
     return row
 
 
@@ -551,6 +559,8 @@ def step_main(argv=None) -> int:
     p.add_argument("--scene", default="fern8", help="fern8, fern4, cup, lego or PATH[:IMAGES]")
     p.add_argument("--data-root", type=Path, default=None)
     p.add_argument("--backend", nargs="+", choices=("ssgwarp", "gsplat"), default=["ssgwarp", "gsplat"])
+    p.add_argument("--optimizer", nargs="+", choices=("torch", "warp"), default=["torch"],
+                   help="the scene's Adam: torch's fused (one launch per tensor) or WarpAdam (one launch)")
     p.add_argument("--warm", type=int, default=700,
                    help="steps before the timing (default 700: past the 7k schedule's refinements at 117..700)")
     p.add_argument("--steps", type=int, default=90, help="timed steps (default 90: up to the next refinement)")
@@ -564,16 +574,19 @@ def step_main(argv=None) -> int:
     args = p.parse_args(argv)
     device = torch.device(args.device)
     data = load_scene(args.scene, args.data_root, device)
-    rows = [measure(data, b, args, device) for b in args.backend]
+    rows = [measure(data, b, args, device, o) for b in args.backend for o in args.optimizer]
     for r in rows:
         append_jsonl(args.out, {k: v for k, v in r.items() if k not in ("profile", "ops")})
     print(f"\n{header(device)}; {args.scene}: steps {args.warm + 1}-{args.warm + args.steps} of a {args.iters}-step run\n")
-    print("| backend | ms per step | Gaussians | synchronisations per step |")
-    print("|---|---:|---:|---|")
+    print("| backend | Adam | ms per step | Adam alone: µs per call (GPU µs) | Gaussians | synchronisations per step |")
+    print("|---|---|---:|---:|---:|---|")
     for r in rows:
-        print(f"| {r['backend']} | {r['ms_per_step']:.2f} | {r['gaussians']:,} | {'; '.join(r['syncs']) or '-'} |")
+        gpu = f" ({r['adam_gpu_us']:.0f})" if r["adam_gpu_us"] is not None else ""
+        print(f"| {r['backend']} | {r['optimizer']} | {r['ms_per_step']:.2f} | {r['adam_us']:.0f}{gpu} | "
+              f"{r['gaussians']:,} | {'; '.join(r['syncs']) or '-'} |")
     if len(rows) == 2:
-        print(f"\nratio {rows[0]['backend']} / {rows[1]['backend']}: {rows[0]['ms_per_step'] / rows[1]['ms_per_step']:.2f}x")
+        print(f"\nratio {rows[0]['backend']}/{rows[0]['optimizer']} / {rows[1]['backend']}/{rows[1]['optimizer']}: "
+              f"{rows[0]['ms_per_step'] / rows[1]['ms_per_step']:.2f}x")
     for r in rows:
         if "profile" in r:
             print(f"\n{r['backend']}: top host ops over 5 steps\n{r['profile']}")

@@ -67,8 +67,10 @@ def _assert_same(a: GaussianParams, b: GaussianParams):
         assert float(sb["step"]) == float(sa["step"]), k
 
 
-@pytest.mark.parametrize("decay", [False, True])
-def test_one_launch_is_torchs_adam_over_many_steps(decay, monkeypatch):
+@pytest.mark.parametrize("decay, chunk", [(False, adam_ops.CPU_CHUNK), (True, 7)])
+def test_one_launch_is_torchs_adam_over_many_steps(decay, chunk, monkeypatch):
+    """(``chunk``: elements per CPU thread; 7 splits every group into chunks, the last one short.)"""
+    monkeypatch.setattr(adam_ops, "CPU_CHUNK", chunk)
     launches = []
     real = adam_ops.L.launch
     monkeypatch.setattr(adam_ops.L, "launch", lambda *a, **k: (launches.append(1), real(*a, **k)))

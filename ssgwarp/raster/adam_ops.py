@@ -23,10 +23,11 @@ import math
 import torch
 
 from ..core.optim import Adam
-from ..kernels.adam import CONSTANTS, END, ROW, adam_kernel
+from ..kernels.adam import CONSTANTS, COUNT, END, ROW, adam_kernel
 from . import launch as L
 
 SLOTS = 4   # pinned host tables in turn: one is written while the copies of the last steps may be pending
+CPU_CHUNK = 4096   # elements per thread on the CPU (one on CUDA)
 
 
 class WarpAdam(Adam):
@@ -99,6 +100,7 @@ class WarpAdam(Adam):
         if total > L.INT32_MAX:
             return super().step()
         device = rows[0][1].device
+        chunk = 1 if device.type == "cuda" else CPU_CHUNK
         slot = self._table(len(rows), device)
         ints, floats = slot[0].numpy(), slot[1]
         end = 0
@@ -112,9 +114,9 @@ class WarpAdam(Adam):
             count += 1
             t = float(count)
             beta1, beta2 = group["betas"]
-            end += p.numel()
-            ints[k, :END + 1] = (p.data_ptr(), p.grad.data_ptr(), st["exp_avg"].data_ptr(),
-                                 st["exp_avg_sq"].data_ptr(), end)
+            end += -(-p.numel() // chunk)
+            ints[k, :COUNT + 1] = (p.data_ptr(), p.grad.data_ptr(), st["exp_avg"].data_ptr(),
+                                   st["exp_avg_sq"].data_ptr(), end, p.numel())
             floats[k, CONSTANTS:CONSTANTS + 7] = (group["lr"] / (1.0 - beta1 ** t), 1.0 / math.sqrt(1.0 - beta2 ** t),
                                                   1.0 - beta1, beta2, 1.0 - beta2, group["eps"], group["weight_decay"])
         table = slot[0]
@@ -125,8 +127,8 @@ class WarpAdam(Adam):
             table = self._device_table
         skip = getattr(self, "found_inf", None)
         tg = L.target(rows[0][1])
-        L.launch(adam_kernel(), total, [*L.arr(table), *L.arr(table.view(torch.float32)), len(rows),
-                                        *(L.arr(skip.reshape(1)) if skip is not None else L.NULL)], tg)
+        L.launch(adam_kernel(), end, [*L.arr(table), *L.arr(table.view(torch.float32)), len(rows), chunk,
+                                      *(L.arr(skip.reshape(1)) if skip is not None else L.NULL)], tg)
         return loss
 
 
