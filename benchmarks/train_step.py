@@ -89,8 +89,6 @@ class GsplatStrategy(Strategy):
 
     def __init__(self, kind: str):
         super().__init__()
-        if kind not in ("default", "mcmc"):
-            raise ValueError(kind)
         self.kind = kind
         self.name = f"gsplat-{kind}"
         ours = DefaultStrategy if kind == "default" else MCMCStrategy
@@ -132,11 +130,8 @@ class GsplatStrategy(Strategy):
     def step(self, g, step: int, lr_means: float) -> dict:
         params, opts = self._views(g)
         n0 = len(g)
-        if self.kind == "default":
-            self.impl.step_post_backward(params, opts, self.state, step, self._meta, packed=False)
-        else:
-            self.impl.step_post_backward(params, opts, self.state, step, self._meta,
-                                         lr=lr_means / self.extent ** 2)
+        extra = {"packed": False} if self.kind == "default" else {"lr": lr_means / self.extent ** 2}
+        self.impl.step_post_backward(params, opts, self.state, step, self._meta, **extra)
         back = {v: k for k, v in self.to_gsplat.items()}
         for k, v in params.items():
             g.params[back.get(k, k)] = v
@@ -150,8 +145,7 @@ def make(strategy: str):
 
 def warm_up(trainer: Trainer) -> None:
     """Compile/JIT the rasterizer's kernels (every SH degree, forward and backward) outside the timed loop."""
-    scene = trainer.scene.detach()
-    scene = scene.map(lambda t: t.requires_grad_(True))
+    scene = trainer.scene.detach().map(lambda t: t.requires_grad_(True))
     cam = trainer.data.cameras[trainer.data.train_ids[0]]
     bg = trainer.data.background_tensor(3)[None]
     for deg in range(trainer.sh_degree + 1):
@@ -197,7 +191,8 @@ def train_and_measure(data, *, backend: str = "ssgwarp", strategy="default", ite
 
 def tables(rows: list[dict]) -> str:
     lines = [table(rows, [("scene", "scene"), ("resolution", "resolution"), ("iters", "iters"), ("backend", "backend"),
-                          ("strategy", "strategy"), ("max_gaussians", "budget"), ("psnr", "held-out PSNR (dB)"),
+                          ("strategy", "strategy"), ("recipe", "recipe"), ("max_gaussians", "budget"),
+                          ("psnr", "held-out PSNR (dB)"),
                           ("ssim", "SSIM", 4), ("gaussians", "Gaussians"), ("seconds", "train time (s)", 1),
                           ("peak_mib", "peak GPU mem (MiB)", 0)])]
     key = lambda r, **kw: tuple({**r, **kw}[k] for k in ("scene", "iters", "backend", "strategy", "max_gaussians"))
@@ -259,6 +254,8 @@ def runs_main(argv=None) -> int:
     p.add_argument("--strategy", nargs="+", choices=STRATEGIES, default=["default"])
     p.add_argument("--iters", nargs="+", type=int, default=[7000])
     p.add_argument("--max-gaussians", nargs="+", type=int, default=[1_000_000])
+    p.add_argument("--recipe", nargs="+", default=[""], help="Recipe variants, each 'field=value,...' (e.g. "
+                   "prune_contribution=0.5,prune_budget=200000 or optimizer=warp); default: the defaults")
     p.add_argument("--match-default", action="store_true",
                    help="also run mcmc with the budget set to the default run's final count")
     p.add_argument("--sh-degree", type=int, default=3)
@@ -266,11 +263,9 @@ def runs_main(argv=None) -> int:
                    help="initial points of captures without a point cloud (lego; default 100000, as the CLI)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--dssim-scale", type=float, default=1.0,
-                   help="multiplier of the D-SSIM term: 1 (default) is the 3DGS loss, 0.5 the halved term ssgwarp "
-                        "used before")
+                   help="multiplier of the D-SSIM term: 1 (default) is the 3DGS loss, 0.5 the halved term of old")
     p.add_argument("--device", default="cuda")
-    p.add_argument("--out", type=Path, default=Path("benchmark-runs"),
-                   help="folder for results.json / results.md")
+    p.add_argument("--out", type=Path, default=Path("benchmark-runs"), help="folder for results.json / results.md")
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
     device = torch.device(a.device)
@@ -290,12 +285,13 @@ def runs_main(argv=None) -> int:
         for iters in a.iters:
             for backend in backends:
                 for strategy in a.strategy:
-                    for budget in a.max_gaussians:
+                    for budget, rs in ((b, rs) for b in a.max_gaussians for rs in a.recipe):
+                        kv = [x.split("=", 1) for x in rs.split(",") if x]
+                        recipe = Recipe(**{k: type(getattr(Recipe(), k) or 0.0)(v) for k, v in kv})
                         r = train_and_measure(data, backend=backend, strategy=strategy, iters=iters,
-                                              sh_degree=a.sh_degree, seed=a.seed, max_gaussians=budget,
-                                              device=device, progress=not a.no_progress,
-                                              dssim_scale=a.dssim_scale)
-                        record({"scene": spec, **r})
+                                              sh_degree=a.sh_degree, seed=a.seed, max_gaussians=budget, recipe=recipe,
+                                              device=device, progress=not a.no_progress, dssim_scale=a.dssim_scale)
+                        record({"scene": spec, **r, **({"recipe": rs} if rs else {})})
                         if a.match_default and strategy == "default":
                             m = train_and_measure(data, backend=backend, strategy="mcmc", iters=iters,
                                                   sh_degree=a.sh_degree, seed=a.seed, max_gaussians=r["gaussians"],
@@ -578,7 +574,7 @@ def step_main(argv=None) -> int:
     for r in rows:
         append_jsonl(args.out, {k: v for k, v in r.items() if k not in ("profile", "ops")})
     print(f"\n{header(device)}; {args.scene}: steps {args.warm + 1}-{args.warm + args.steps} of a {args.iters}-step run\n")
-    print("| backend | Adam | ms per step | Adam alone: µs per call (GPU µs) | Gaussians | synchronisations per step |")
+    print("| backend | Adam | ms per step | Adam alone, µs (GPU µs) | Gaussians | synchronisations per step |")
     print("|---|---|---:|---:|---:|---|")
     for r in rows:
         gpu = f" ({r['adam_gpu_us']:.0f})" if r["adam_gpu_us"] is not None else ""
