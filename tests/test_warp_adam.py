@@ -9,6 +9,7 @@ import copy
 import pytest
 import torch
 
+from conftest import CUDA_ONLY
 from ssgwarp.core.optim import Adam
 from ssgwarp.raster import adam_ops
 from ssgwarp.raster.adam_ops import WarpAdam, warp_adam
@@ -200,3 +201,33 @@ def test_the_trainer_trains_with_it():
     assert isinstance(runs["warp"].opt, WarpAdam) and not isinstance(runs["torch"].opt, WarpAdam)
     for k, p in runs["torch"].params.items():
         torch.testing.assert_close(runs["warp"].params[k].detach(), p.detach(), rtol=1e-6, atol=1e-6, msg=k)
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=CUDA_ONLY)])
+def test_on_each_device_against_torchs_fused_adam(device):
+    """Many steps (more than the pinned tables in turn on CUDA), rows pruned between them, a flagged step."""
+    dev = torch.device(device)
+    pa = {k: torch.nn.Parameter(v.detach().to(dev)) for k, v in _params().items()}
+    pb = {k: torch.nn.Parameter(v.detach().to(dev)) for k, v in _params().items()}
+    a = GaussianParams(pa, torch.optim.Adam(_groups(pa), eps=1e-15, fused=True))
+    b = GaussianParams(pb, warp_adam(_groups(pb), eps=1e-15))
+    assert isinstance(b.opt, WarpAdam)
+    g = torch.Generator().manual_seed(6)
+    for i in range(60):
+        grads = {k: (torch.randn(p.shape, generator=g) * 0.1).to(dev) + 0.5 * p.detach() for k, p in a.params.items()}
+        for k, gr in grads.items():
+            a.params[k].grad, b.params[k].grad = gr.clone(), gr.clone()
+        a.opt.step()
+        b.opt.step()
+        for x in (a, b):
+            x.opt.zero_grad(set_to_none=True)
+        if i == 30:
+            for x in (a, b):
+                x.keep(torch.arange(len(x), device=dev) % 4 != 0)
+    for k in a.params:
+        torch.testing.assert_close(b.params[k].detach().cpu(), a.params[k].detach().cpu(), **TOL, msg=k)
+    before = b.params["means"].detach().clone()
+    b.params["means"].grad = torch.ones_like(before)
+    b.opt.found_inf = torch.ones((), device=dev)
+    b.opt.step()
+    assert torch.equal(b.params["means"].detach(), before)
