@@ -31,6 +31,7 @@ import traceback
 import warnings
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import torch
 
@@ -73,14 +74,6 @@ def rasterizer(backend: str):
     return rasterization, {"packed": False}  # [C, N] layout, as the densification statistics read it
 
 
-class _OneGroup:
-    """One named group of the Trainer's Adam as gsplat's strategy ops expect an optimizer."""
-
-    def __init__(self, opt: torch.optim.Optimizer, group: dict):
-        self.state = opt.state
-        self.param_groups = [group]
-
-
 class GsplatStrategy(Strategy):
     """gsplat's ``DefaultStrategy`` or ``MCMCStrategy`` driving the Trainer's Gaussians under gsplat's names, with
     one-group optimizer views; gsplat refines once its step is past ``refine_start_iter``: ``refine_start - 1``."""
@@ -118,7 +111,9 @@ class GsplatStrategy(Strategy):
     def _views(self, g):
         params = {self.to_gsplat.get(k, k): v for k, v in g.params.items()}
         groups = g.groups
-        return params, {self.to_gsplat.get(k, k): _OneGroup(g.opt, groups[k]) for k in g.params}
+        # (one named group of the Trainer's Adam, as gsplat's strategy ops expect an optimizer)
+        return params, {self.to_gsplat.get(k, k): SimpleNamespace(state=g.opt.state, param_groups=[groups[k]])
+                        for k in g.params}
 
     def regularizer(self, g):
         return MCMCStrategy.regularizer(self, g) if self.kind == "mcmc" else None
@@ -227,13 +222,13 @@ def tables(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def load_scene(spec: str, root: Path | None, device: torch.device, random_points: int = 100_000):
-    """A shared capture by name (harness.CAPTURES) or PATH[:IMAGES], loaded on ``device``."""
+def load_scene(spec: str, root: Path | None, device: torch.device, random_points: int = 100_000, width=None):
+    """A shared capture by name (harness.CAPTURES) or PATH[:IMAGES], loaded on ``device`` (``width``: resized)."""
     try:
         folder, images = capture_folder(spec, root)
     except InputError as e:
         raise SystemExit(str(e)) from None
-    return load_dataset(folder, images=images, device=device, num_random_points=random_points)
+    return load_dataset(folder, images=images, device=device, num_random_points=random_points, width=width)
 
 
 def report(out: Path, setup: str, md: str, rows: list[dict], device: torch.device) -> None:
@@ -259,6 +254,7 @@ def runs_main(argv=None) -> int:
     p.add_argument("--match-default", action="store_true",
                    help="also run mcmc with the budget set to the default run's final count")
     p.add_argument("--sh-degree", type=int, default=3)
+    p.add_argument("--width", type=int, default=None, help="resize the images to this width (default: as stored)")
     p.add_argument("--random-points", type=int, default=100_000,
                    help="initial points of captures without a point cloud (lego; default 100000, as the CLI)")
     p.add_argument("--seed", type=int, default=0)
@@ -281,7 +277,7 @@ def runs_main(argv=None) -> int:
         write_json(a.out / "results.json", {"rows": rows})  # partial results survive an interruption
 
     for spec in a.scenes:
-        data = load_scene(spec, root, device, a.random_points)
+        data = load_scene(spec, root, device, a.random_points, a.width)
         for iters in a.iters:
             for backend in backends:
                 for strategy in a.strategy:
