@@ -430,6 +430,8 @@ def label(r: dict) -> str:
         parts.append(f"{r['backend']} rasterizer")
     if r.get("dssim_scale", 1.0) != 1.0:
         parts.append(f"D-SSIM x{r['dssim_scale']:g}")
+    if r.get("recipe"):   # (train_step.py runs --recipe: e.g. contribution pruning)
+        parts.append(r["recipe"])
     return ", ".join(parts)
 
 
@@ -488,7 +490,6 @@ def budget_main(argv=None) -> int:
     title = f"{a.scene}, {a.iters} steps: held-out PSNR against size (times in the labels)"
     print(plot(rows, a.out, title))
     return 0
-
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ forward op), calls, host µs (under the profiler) and GPU launches per step.
 
     python benchmarks/train_step.py --scene fern4 --backend ssgwarp --profile
     OMP_NUM_THREADS=2 python benchmarks/train_step.py --device cpu --backend ssgwarp --warm 20 --steps 5 --ops
+    python benchmarks/train_step.py --scene fern4 --backend ssgwarp --optimizer torch warp   # Adam: torch / WarpAdam
 
 Modes, each with its own ``--help``: ``runs`` (whole runs per scene x backend x strategy x budget: held-out PSNR /
 SSIM, Gaussians, time, memory), ``loss`` (the photometric loss, 0.8 L1 + 0.2 (1 - SSIM): the torch reference against
@@ -30,12 +31,13 @@ import traceback
 import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
+from types import SimpleNamespace
 from typing import ClassVar, Optional
 
 import torch
 
 from harness import (CAPTURES, ROOT, append_jsonl, capture_folder, cuda_kernel_ms, dispatch, header, interleaved,
-                     per_call_us, table, write_text)
+                     per_call_us, sync, table, write_text)
 from harness import cell as _f
 
 from ssgwarp.capture.datasets import load_dataset
@@ -44,6 +46,7 @@ from ssgwarp.core.fileio import write_json
 from ssgwarp.raster.rendering import render as render_views
 from ssgwarp.reconstruction.recipe import Recipe
 from ssgwarp.reconstruction.trainer import Trainer
+from ssgwarp.reconstruction.step import adam_step
 from ssgwarp.reconstruction.strategy import DefaultStrategy, MCMCStrategy, Strategy
 
 RUNS_DOC = """Whole training runs: our 3DGS loop with either rasterizer and each densification strategy.
@@ -70,14 +73,6 @@ def rasterizer(backend: str):
     except ImportError as e:
         raise SystemExit(f"--backend gsplat needs the gsplat package ({e}); pip install gsplat") from None
     return rasterization, {"packed": False}  # [C, N] layout, as the densification statistics read it
-
-
-class _OneGroup:
-    """One named group of the Trainer's Adam as gsplat's strategy ops expect an optimizer."""
-
-    def __init__(self, opt: torch.optim.Optimizer, group: dict):
-        self.state = opt.state
-        self.param_groups = [group]
 
 
 @dataclass
@@ -125,7 +120,9 @@ class GsplatStrategy(Strategy):
     def _views(self, g):
         params = {self.to_gsplat.get(k, k): v for k, v in g.params.items()}
         groups = g.groups
-        return params, {self.to_gsplat.get(k, k): _OneGroup(g.opt, groups[k]) for k in g.params}
+        # (one named group of the Trainer's Adam, as gsplat's strategy ops expect an optimizer)
+        return params, {self.to_gsplat.get(k, k): SimpleNamespace(state=g.opt.state, param_groups=[groups[k]])
+                        for k in g.params}
 
     def regularizer(self, g):
         return self.ours.regularizer(g)
@@ -137,11 +134,8 @@ class GsplatStrategy(Strategy):
     def step(self, g, step: int, lr_means: float) -> dict:
         params, opts = self._views(g)
         n0 = len(g)
-        if self.kind == "default":
-            self.impl.step_post_backward(params, opts, self.state, step, self._meta, packed=False)
-        else:
-            self.impl.step_post_backward(params, opts, self.state, step, self._meta,
-                                         lr=lr_means / self.extent ** 2)
+        extra = {"packed": False} if self.kind == "default" else {"lr": lr_means / self.extent ** 2}
+        self.impl.step_post_backward(params, opts, self.state, step, self._meta, **extra)
         back = {v: k for k, v in self.to_gsplat.items()}
         for k, v in params.items():
             g.params[back.get(k, k)] = v
@@ -158,8 +152,7 @@ def make(strategy: str, max_gaussians: int) -> Strategy:
 
 def warm_up(trainer: Trainer) -> None:
     """Compile/JIT the rasterizer's kernels (every SH degree, forward and backward) outside the timed loop."""
-    scene = trainer.scene.detach()
-    scene = scene.map(lambda t: t.requires_grad_(True))
+    scene = trainer.scene.detach().map(lambda t: t.requires_grad_(True))
     cam = trainer.data.cameras[trainer.data.train_ids[0]]
     bg = trainer.data.background_tensor(3)[None]
     for deg in range(trainer.sh_degree + 1):
@@ -181,13 +174,12 @@ def train_and_measure(data, *, backend: str = "ssgwarp", strategy="default", ite
                       progress=progress, strategy=make(strategy, max_gaussians) if isinstance(strategy, str) else
                       replace(strategy, max_gaussians=max_gaussians))
     warm_up(trainer)
+    sync(device)
     if device.type == "cuda":
-        torch.cuda.synchronize(device)
         torch.cuda.reset_peak_memory_stats(device)
     t0 = time.perf_counter()
     trainer.train()
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
+    sync(device)
     seconds = time.perf_counter() - t0
     peak = torch.cuda.max_memory_allocated(device) / 2**20 if device.type == "cuda" else float("nan")
     ev = trainer.evaluate()
@@ -206,7 +198,8 @@ def train_and_measure(data, *, backend: str = "ssgwarp", strategy="default", ite
 
 def tables(rows: list[dict]) -> str:
     lines = [table(rows, [("scene", "scene"), ("resolution", "resolution"), ("iters", "iters"), ("backend", "backend"),
-                          ("strategy", "strategy"), ("max_gaussians", "budget"), ("psnr", "held-out PSNR (dB)"),
+                          ("strategy", "strategy"), ("recipe", "recipe"), ("max_gaussians", "budget"),
+                          ("psnr", "held-out PSNR (dB)"),
                           ("ssim", "SSIM", 4), ("gaussians", "Gaussians"), ("seconds", "train time (s)", 1),
                           ("peak_mib", "peak GPU mem (MiB)", 0)])]
     key = lambda r, **kw: tuple({**r, **kw}[k] for k in ("scene", "iters", "backend", "strategy", "max_gaussians"))
@@ -241,13 +234,13 @@ def tables(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def load_scene(spec: str, root: Path | None, device: torch.device, random_points: int = 100_000):
-    """A shared capture by name (harness.CAPTURES) or PATH[:IMAGES], loaded on ``device``."""
+def load_scene(spec: str, root: Path | None, device: torch.device, random_points: int = 100_000, width=None):
+    """A shared capture by name (harness.CAPTURES) or PATH[:IMAGES], loaded on ``device`` (``width``: resized)."""
     try:
         folder, images = capture_folder(spec, root)
     except InputError as e:
         raise SystemExit(str(e)) from None
-    return load_dataset(folder, images=images, device=device, num_random_points=random_points)
+    return load_dataset(folder, images=images, device=device, num_random_points=random_points, width=width)
 
 
 def report(out: Path, setup: str, md: str, rows: list[dict], device: torch.device) -> None:
@@ -268,18 +261,19 @@ def runs_main(argv=None) -> int:
     p.add_argument("--strategy", nargs="+", choices=STRATEGIES, default=["default"])
     p.add_argument("--iters", nargs="+", type=int, default=[7000])
     p.add_argument("--max-gaussians", nargs="+", type=int, default=[1_000_000])
+    p.add_argument("--recipe", nargs="+", default=[""], help="variants, each 'field=value,...' of the Recipe or the strategy (e.g. "
+                   "prune_contribution=0.5,prune_budget=200000 or optimizer=warp); default: the defaults")
     p.add_argument("--match-default", action="store_true",
                    help="also run mcmc with the budget set to the default run's final count")
     p.add_argument("--sh-degree", type=int, default=3)
+    p.add_argument("--width", type=int, default=None, help="resize the images to this width (default: as stored)")
     p.add_argument("--random-points", type=int, default=100_000,
                    help="initial points of captures without a point cloud (lego; default 100000, as the CLI)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--dssim-scale", type=float, default=1.0,
-                   help="multiplier of the D-SSIM term: 1 (default) is the 3DGS loss, 0.5 the halved term ssgwarp "
-                        "used before")
+                   help="multiplier of the D-SSIM term: 1 (default) is the 3DGS loss, 0.5 the halved term of old")
     p.add_argument("--device", default="cuda")
-    p.add_argument("--out", type=Path, default=Path("benchmark-runs"),
-                   help="folder for results.json / results.md")
+    p.add_argument("--out", type=Path, default=Path("benchmark-runs"), help="folder for results.json / results.md")
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
     device = torch.device(a.device)
@@ -295,16 +289,19 @@ def runs_main(argv=None) -> int:
         write_json(a.out / "results.json", {"rows": rows})  # partial results survive an interruption
 
     for spec in a.scenes:
-        data = load_scene(spec, root, device, a.random_points)
+        data = load_scene(spec, root, device, a.random_points, a.width)
         for iters in a.iters:
             for backend in backends:
                 for strategy in a.strategy:
-                    for budget in a.max_gaussians:
-                        r = train_and_measure(data, backend=backend, strategy=strategy, iters=iters,
-                                              sh_degree=a.sh_degree, seed=a.seed, max_gaussians=budget,
-                                              device=device, progress=not a.no_progress,
-                                              dssim_scale=a.dssim_scale)
-                        record({"scene": spec, **r})
+                    for budget, rs in ((b, rs) for b in a.max_gaussians for rs in a.recipe):
+                        kv, st = dict(x.split("=", 1) for x in rs.split(",") if x), make(strategy, budget)
+                        rv, sv = ({k: type(getattr(o, k) or 0.0)(v) for k, v in kv.items() if hasattr(o, k)}
+                                  for o in (Recipe(), st))   # (a Recipe field, else the strategy's knob)
+                        recipe, st = Recipe(**rv), replace(st, **{k: v for k, v in sv.items() if k not in rv})
+                        r = train_and_measure(data, backend=backend, strategy=st, iters=iters,
+                                              sh_degree=a.sh_degree, seed=a.seed, max_gaussians=budget, recipe=recipe,
+                                              device=device, progress=not a.no_progress, dssim_scale=a.dssim_scale)
+                        record({"scene": spec, **r, **({"recipe": rs} if rs else {})})
                         if a.match_default and strategy == "default":
                             m = train_and_measure(data, backend=backend, strategy="mcmc", iters=iters,
                                                   sh_degree=a.sh_degree, seed=a.seed, max_gaussians=r["gaussians"],
@@ -521,22 +518,21 @@ def op_table(rows: list[dict], totals: dict) -> str:
     return "\n".join(lines)
 
 
-def measure(data, backend: str, args, device: torch.device) -> dict:
+def measure(data, backend: str, args, device: torch.device, optimizer: str = "torch") -> dict:
     fn, kw = rasterizer(backend)
     torch.manual_seed(args.seed)
-    t = Trainer(data, iters=args.iters, recipe=Recipe(sh_degree=3), rasterize=fn, raster_kwargs=kw, device=device,
-                seed=args.seed, progress=False)
+    t = Trainer(data, iters=args.iters, recipe=Recipe(sh_degree=3, optimizer=optimizer), rasterize=fn,
+                raster_kwargs=kw, device=device, seed=args.seed, progress=False)
     warm_up(t)
     for _ in range(args.warm):
         t.train_step()
-    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-    sync()
+    sync(device)
     t0 = time.perf_counter()
     for _ in range(args.steps):
         t.train_step()
-    sync()
-    row = {"backend": backend, "ms_per_step": (time.perf_counter() - t0) / args.steps * 1e3, "step": t.step,
-           "gaussians": t.num_gaussians, "syncs": []}
+    sync(device)
+    row = {"backend": backend, "optimizer": optimizer, "ms_per_step": (time.perf_counter() - t0) / args.steps * 1e3,
+           "step": t.step, "gaussians": t.num_gaussians, "syncs": []}
     if device.type == "cuda":
         for (msg, where), n in sorted(sync_sites(t.train_step).items(), key=lambda kv: kv[0][1]):
             if "prototype" not in msg:
@@ -548,11 +544,20 @@ def measure(data, backend: str, args, device: torch.device) -> dict:
         with ops_attributed() if what == "ops" else contextlib.nullcontext(), profile(activities=acts) as p:
             for _ in range(OPS_STEPS):
                 t.train_step()
-            sync()
+            sync(device)
         if what == "profile":
             row["profile"] = p.key_averages().table(sort_by="cpu_time_total", row_limit=60)
         else:
             row["ops"] = op_rows(p.events(), OPS_STEPS, device.type == "cpu")
+    grads = {k: torch.randn_like(p) * 1e-3 for k, p in t.params.items()}
+
+    def adam_only():   # the optimiser step alone, every group
+        for k, p in t.params.items():
+            p.grad = grads[k]
+        adam_step(t.opt)
+    clock = time.process_time if device.type == "cpu" else time.perf_counter   # (CPU: the process's CPU time)
+    row["adam_us"] = per_call_us(adam_only, device, 50, 3, clock=clock)
+    row["adam_gpu_us"] = 1e3 * sum(cuda_kernel_ms(adam_only).values()) if device.type == "cuda" else None
     return row
 
 
@@ -561,6 +566,8 @@ def step_main(argv=None) -> int:
     p.add_argument("--scene", default="fern8", help="fern8, fern4, cup, lego or PATH[:IMAGES]")
     p.add_argument("--data-root", type=Path, default=None)
     p.add_argument("--backend", nargs="+", choices=("ssgwarp", "gsplat"), default=["ssgwarp", "gsplat"])
+    p.add_argument("--optimizer", nargs="+", choices=("torch", "warp"), default=["torch"],
+                   help="the scene's Adam: torch's fused (one launch per tensor) or WarpAdam (one launch)")
     p.add_argument("--warm", type=int, default=700,
                    help="steps before the timing (default 700: past the 7k schedule's refinements at 117..700)")
     p.add_argument("--steps", type=int, default=90, help="timed steps (default 90: up to the next refinement)")
@@ -574,16 +581,19 @@ def step_main(argv=None) -> int:
     args = p.parse_args(argv)
     device = torch.device(args.device)
     data = load_scene(args.scene, args.data_root, device)
-    rows = [measure(data, b, args, device) for b in args.backend]
+    rows = [measure(data, b, args, device, o) for b in args.backend for o in args.optimizer]
     for r in rows:
         append_jsonl(args.out, {k: v for k, v in r.items() if k not in ("profile", "ops")})
     print(f"\n{header(device)}; {args.scene}: steps {args.warm + 1}-{args.warm + args.steps} of a {args.iters}-step run\n")
-    print("| backend | ms per step | Gaussians | synchronisations per step |")
-    print("|---|---:|---:|---|")
+    print("| backend | Adam | ms per step | Adam alone, µs (GPU µs) | Gaussians | synchronisations per step |")
+    print("|---|---|---:|---:|---:|---|")
     for r in rows:
-        print(f"| {r['backend']} | {r['ms_per_step']:.2f} | {r['gaussians']:,} | {'; '.join(r['syncs']) or '-'} |")
+        gpu = f" ({r['adam_gpu_us']:.0f})" if r["adam_gpu_us"] is not None else ""
+        print(f"| {r['backend']} | {r['optimizer']} | {r['ms_per_step']:.2f} | {r['adam_us']:.0f}{gpu} | "
+              f"{r['gaussians']:,} | {'; '.join(r['syncs']) or '-'} |")
     if len(rows) == 2:
-        print(f"\nratio {rows[0]['backend']} / {rows[1]['backend']}: {rows[0]['ms_per_step'] / rows[1]['ms_per_step']:.2f}x")
+        print(f"\nratio {rows[0]['backend']}/{rows[0]['optimizer']} / {rows[1]['backend']}/{rows[1]['optimizer']}: "
+              f"{rows[0]['ms_per_step'] / rows[1]['ms_per_step']:.2f}x")
     for r in rows:
         if "profile" in r:
             print(f"\n{r['backend']}: top host ops over 5 steps\n{r['profile']}")

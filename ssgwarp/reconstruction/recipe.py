@@ -18,6 +18,7 @@ from .schedules import AUTO, AUTO_MAX_ITERS
 from .strategy import REFINE_EPOCHS, STRATEGIES, Strategy, make_strategy
 
 BATCH_SCALINGS = ("sqrt", "linear", "none")
+OPTIMIZERS = ("torch", "warp")
 _STEP_FIELDS = ("sh_interval", "refine_start", "refine_stop", "refine_every", "reset_every")
 
 
@@ -45,6 +46,8 @@ class Recipe:
     lr_quats: float = 1e-3
     lr_identities: float = 2.5e-3
     adam_eps: float = 1e-15
+    optimizer: str = "torch"           # the scene's Adam: "torch" (torch's fused Adam, one launch per tensor) or
+                                       # "warp" (ssgwarp.raster.adam_ops.WarpAdam: one launch for all of them)
     lambda_dssim: float = 0.2
     dssim_scale: float = 1.0           # multiplies the D-SSIM term; 0.5: the halved (1 - SSIM) / 2 of old runs
     sh_interval: Optional[int] = None
@@ -87,6 +90,8 @@ def resolve(recipe: Recipe, strategy: Any = "default", iters: int = 30_000, *, r
     r, s = recipe, make_strategy(strategy)
     if r.batch_scaling not in BATCH_SCALINGS:
         raise InputError(f"Recipe.batch_scaling {r.batch_scaling!r}: choose one of {', '.join(BATCH_SCALINGS)}")
+    if r.optimizer not in OPTIMIZERS:
+        raise InputError(f"Recipe.optimizer {r.optimizer!r}: choose one of {', '.join(OPTIMIZERS)}")
     if not 0 <= r.sh_degree <= 3:
         raise InputError(f"sh_degree must be 0..3, got {r.sh_degree}")
     if s.max_gaussians < 1:

@@ -112,7 +112,7 @@ class LossWatch:
         """Defer the check of step ``step``'s flag ``finite``. False: not possible here (``several``
         processes, whose flags travel with the gradients; an optimiser that is not fused); the caller reads
         the flag now."""
-        if several or not all(o.defaults.get("fused") for o in opts):
+        if several or not all(o.defaults.get("fused") or getattr(o, "skips_found_inf", False) for o in opts):
             return False
         skip = (~finite).to(torch.float32)
         for o in opts:

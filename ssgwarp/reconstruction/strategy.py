@@ -331,6 +331,9 @@ class DefaultStrategy(Strategy):
     prune_world: float = 0.1            # prune when max scale > this x extent (after the first reset)
     prune_screen: float = 0.0           # prune when the screen radius exceeded this fraction of max(W, H)
                                         # (after the first reset); 0: off
+    prune_contribution: float = 0.0     # prune Gaussians whose blending weight per training view is below this
+                                        # many pixels (ssgwarp.reconstruction.pruning; the trainer runs it); 0: off
+    prune_budget: int = 0               # ... and keep at most this many, the largest contributions (0: none)
 
     name: ClassVar[str] = "default"
     uses_means2d_grad: ClassVar[bool] = True

@@ -27,6 +27,7 @@ import torch
 from ..services.distributed import SINGLE, check_every
 from ..errors import InputError
 from ..core.optim import adam
+from ..raster.adam_ops import warp_adam
 from ..services.loop import Diverged, Loop, diverged_message
 from ..services.losses import photometric
 from ..core.optim import batch_factors
@@ -42,6 +43,7 @@ from .schedules import Schedules, sh_degree_at
 from .statistics import observe_across
 from .step import LossWatch, StepInfo, ViewCache, adam_step, zero_unrendered_grads
 from .strategy import GaussianParams, Strategy
+from .pruning import ContributionPruning
 
 log = logging.getLogger("ssgwarp.reconstruction.reconstruct")
 
@@ -153,6 +155,7 @@ class Trainer(ImageModel):
                         "their losses are not used")
         self._build_optimizer(scene)
         self._setup_strategy()
+        self.pruning = ContributionPruning.of(self.strategy)   # (None: off)
         self.attach, self._attached = attach, False
         if attach is not None:
             attach.prepare(self)
@@ -193,7 +196,8 @@ class Trainer(ImageModel):
     def _build_optimizer(self, scene: GaussianScene) -> None:
         params = {k: torch.nn.Parameter(v.detach().clone().contiguous()) for k, v in scene.tensors().items()}
         groups = [{"params": [p], "lr": self.learning_rate(k), "name": k} for k, p in params.items()]
-        self.gaussians = GaussianParams(params, adam(groups, eps=self.recipe.adam_eps, betas=self.betas))
+        make = warp_adam if self.recipe.optimizer == "warp" else adam
+        self.gaussians = GaussianParams(params, make(groups, eps=self.recipe.adam_eps, betas=self.betas))
         self._build_hook_optimizer()
 
     # -- hooks (the public protocol; ssgwarp.reconstruction.attach makes them during the run) ------------
@@ -345,6 +349,8 @@ class Trainer(ImageModel):
         self.step += 1
         info = StepInfo(total.detach(), img.detach(), gt)
         info.update(self.strategy.step(self.gaussians, self.step, self.gaussians.groups["means"]["lr"]))
+        if self.pruning is not None:
+            info.update(self.pruning.step(self.gaussians, self.step, lambda: self.data.cameras[self.data.train_ids]))
         if self.check_every and self.step % self.check_every == 0:
             self.group.check_identical(self._synced_tensors(), self.step)
         # (--iters auto: every process decides on rank 0's PSNR; theirs differ by float roundoff)
