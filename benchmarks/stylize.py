@@ -4,19 +4,19 @@ For a scene (``--scene``: fern ``images_8``, the demo scene, or a grouped run fo
 ``--styles``, runs ``ssgwarp stylize`` (Stage 2 matches the style image) and ``ssgwarp evaluate`` (30 path views) and
 prints one row per style: colour / texture distances to the style (``StyleDistance``) before and after, the same
 for half of the style image against the whole (``StyleDistance.halves``), the Gram loss, short/long-range
-consistency RMSE as ratios to the unstylized scene's, and floaters. ``--ablation``: Stage 2's ablations on a few
-styles. Finished styles are kept (``OUT/<scene>/<style>/result.json``) and skipped on the next run, so shards and
-interrupted runs add up; ``--report`` tables what is finished. Writes ``table.md``, ``results.json`` and
+consistency RMSE as ratios to the unstylized scene's, and floaters (Stage 2's ablations: ``--configs
+docs/notes/stylize-ablation.txt``). Finished styles are kept (``OUT/<scene>/<style>/result.json``) and skipped on the
+next run, so shards and interrupted runs add up; ``--report`` tables what is finished. Writes ``table.md``, ``results.json`` and
 ``styles_sheet.jpg`` under ``OUT/<scene>``.
 
     python benchmarks/stylize.py --scene fern --shard 0/3      # a third of the styles (10-minute slots)
     python benchmarks/stylize.py --scene demo --demo-size small --styles-subset candy,udnie \
         --iters 10 --path-frames 6 --out /tmp/ss                       # CPU check (~2 min on 2 cores)
-    python benchmarks/stylize.py --scene fern --ablation --ablation-rows "default;SH rest: keep"
     python benchmarks/stylize.py --scene fern --configs FILE --timeout 420  # 'TAG: FLAGS' lines, all at once
 
-Modes, each with its own ``--help``: ``stage2`` (seconds per stage of ``ssgwarp stylize``), ``probe`` (the
-consistency error that texture fixed in 3-D costs), ``bound`` (the texture distance the style loss alone reaches).
+Modes, each with its own ``--help``: ``captures`` (this table on the four shared captures, one summary row each),
+``stage2`` (seconds per stage of ``ssgwarp stylize``), ``probe`` (the consistency error that texture fixed in 3-D
+costs), ``bound`` (the texture distance the style loss alone reaches).
 """
 from __future__ import annotations
 
@@ -63,8 +63,17 @@ this is beyond the loss, whatever the 3-D side does.
     python benchmarks/stylize.py bound --run RUN --styles candy,mosaic --steps 10,100
 """
 
+CAPTURES_DOC = """The 25-style table on each shared capture, then one summary row per capture (OUT/captures<_TAG>.md).
+
+Each capture is reconstructed with ``ssgwarp reconstruct --groups auto`` once (OUT/<capture>_w<WIDTH>_i<ITERS>,
+reused), then the main mode runs on it with every other flag given (``--tag``, ``--paint``, Stage 2 options, ...).
+
+    python benchmarks/stylize.py captures --out out/s62 --recon-iters 7000
+    python benchmarks/stylize.py captures --out out/s62 --tag paint --paint
+    python benchmarks/stylize.py captures --width 128 --recon-iters 600 --styles-subset candy,mosaic --iters 60 \
+        --path-frames 8 --out /tmp/s62                                    # CPU-sized
+"""
 SHEET_STYLES = ("brushstrokes", "candy", "la_muse", "mosaic", "the_resevoir_at_poitiers", "sketch", "udnie")
-ABLATION_STYLES = ("candy", "la_muse", "sketch", "udnie")
 
 
 def prepare_scene(scene: str, out: Path, device, fern_iters: int, progress: bool, demo_size: str = "default",
@@ -250,16 +259,6 @@ def sheet(path: Path, run: Path, results_dir: Path, styles: list[Path], device) 
     return path
 
 
-ABLATIONS = {  # label: Stage 2 options changed from the defaults
-    "default": {}, "color transfer off": {"color_transfer": "off"}, "color transfer pre": {"color_transfer": "pre"},
-    "color transfer post": {"color_transfer": "post"}, "colour transfer only (0 steps)": {"iters": 0},
-    "paper objective (content 0, TV 0)": {"content_weight": 0.0, "tv_weight": 0.0}, "content 0": {"content_weight": 0.0},
-    "TV 0": {"tv_weight": 0.0}, "SH rest: keep": {"sh_rest": "keep"}, "SH rest: zero": {"sh_rest": "zero"},
-    "SH rest: optimise": {"sh_rest": "optimise"}, "TV 0.02 (previous default)": {"tv_weight": 0.02},
-    "TV 0.1": {"tv_weight": 0.1}, "TV 0.5": {"tv_weight": 0.5}, "colour gain 1.0": {"color_max_gain": 1.0},
-    "background: keep": {"background": "keep"}, "free opacity": {"free_opacity": True}}
-
-
 def scene_name(scene: str) -> str:
     """The results' folder prefix for ``--scene``: ``fern``, ``demo`` or the run folder's name."""
     return scene if scene in ("fern", "demo") else Path(scene).name
@@ -335,8 +334,6 @@ def styles_main(argv=None) -> int:
     add("--demo-size", default="default", choices=("small", "default"), help="--scene demo's size (small: a CPU check)")
     add("--extractor", default="auto", choices=EXTRACTOR_KINDS)
     add("--path-frames", type=int, default=30, help="novel path views scored by evaluate")
-    add("--ablation", action="store_true", help="the Stage 2 ablation table on a few styles")
-    add("--ablation-rows", default=None, help="ablation rows to run, separated by ; (default: all of ABLATIONS)")
     add("--report", action="store_true", help="print the table of finished styles only")
     add("--configs", type=Path, default=None, help="a file of 'TAG: FLAGS' lines (# comments): the scene is built "
         "once, then each runs as its own process (--tag TAG FLAGS), all at once; logs in OUT/<scene>_<TAG>.log")
@@ -378,41 +375,6 @@ def styles_main(argv=None) -> int:
     eval_opts = EvalOptions(path_frames=args.path_frames, max_pairs=16, save_pairs=0)
     src = source_consistency(run, out, device, eval_opts, progress)
     dev = machine(device)
-
-    if args.ablation:
-        abl = [s for s in styles if s.stem in ABLATION_STYLES] or styles[:4]
-        lines = [f"Stage 2 ablation on {name} ({dev}, {time.strftime('%Y-%m-%d')}), styles "
-                 f"{', '.join(s.stem for s in abl)}; means over the styles", "",
-                 "| configuration | colour Δ | texture Δ | Gram after/before | short RMSE (x src) | long RMSE (x src) | Stage 2 s |",
-                 "|---|---|---|---|---|---|---|"]
-        raw = {}
-        rows_wanted = ABLATIONS
-        if args.ablation_rows:
-            want = [w.strip() for w in args.ablation_rows.split(";") if w.strip()]
-            bad = [w for w in want if w not in ABLATIONS]
-            if bad:
-                raise SystemExit(f"--ablation-rows: unknown {', '.join(bad)}; known: {', '.join(ABLATIONS)}")
-            rows_wanted = {w: ABLATIONS[w] for w in want}
-        for label, over in rows_wanted.items():
-            cfg = stage2_config(args, **over)
-            tag = "abl_" + "".join(c if c.isalnum() else "_" for c in label)
-            rows = [] if args.report else [run_style(run, s, out / tag / s.stem, cfg, device, args.extractor,
-                                                      eval_opts, progress) for s in abl]
-            if not rows:
-                continue
-            raw[label] = rows
-            n = len(rows)
-            mean = lambda f: sum(f(r) for r in rows) / n  # noqa: E731
-            lines.append(f"| {label} | {100 * mean(lambda r: r['color_after'] / r['color_before'] - 1):+.1f}% | "
-                         f"{100 * mean(lambda r: r['texture_after'] / r['texture_before'] - 1):+.1f}% | "
-                         f"{mean(lambda r: r['gram_after'] / r['gram_before']):.2f} | "
-                         f"{mean(lambda r: r['short'] / src['short']):.2f} | {mean(lambda r: r['long'] / src['long']):.2f} | "
-                         f"{mean(lambda r: r['stage2_seconds']):.1f} |")
-        text = "\n".join(lines) + "\n"
-        write_text(out / "ablation.md", text)
-        write_json(out / "ablation.json", {"device": dev, "source": src, "runs": raw})
-        print(text)
-        return 0
 
     todo = styles
     if args.shard:
@@ -837,7 +799,54 @@ def bound(args, counts: list[int], styles: list[Path]) -> int:
     return 0
 
 
-MODES = {"stage2": stage2_main, "probe": probe_main, "bound": bound_main}
+# ----------------------------------------------------------------------------- captures: the table on each capture
+def captures_main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="stylize.py captures", description=CAPTURES_DOC,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--captures", default="fern4,cup,livingroom,bird", help="shared capture names or PATH[:IMAGES]")
+    p.add_argument("--recon-iters", type=int, default=7000, help="reconstruction steps")
+    p.add_argument("--width", type=int, default=0, help="reconstruct at this image width (0: as loaded)")
+    p.add_argument("--recon", default="", help="more reconstruct flags, e.g. '--max-images 24 --max-gaussians 20000'")
+    p.add_argument("--out", type=Path, default=ROOT / "out" / "stylize")
+    p.add_argument("--tag", default="")
+    p.add_argument("--device", default="auto")
+    args, rest = p.parse_known_args(argv)
+    from harness import capture_folder
+    from ssgwarp.cli import main as cli
+
+    rows = []
+    for spec in (c.strip() for c in args.captures.split(",") if c.strip()):
+        folder, images = capture_folder(spec)
+        run = args.out / f"{Path(spec).name}_w{args.width}_i{args.recon_iters}"
+        if not (run / "groups" / "classifier.pt").is_file() and cli(
+                ["reconstruct", str(folder), "--images", images, "--out", str(run), "--iters", str(args.recon_iters),
+                 "--groups", "auto", "--force", "--device", args.device, *__import__("shlex").split(args.recon)]
+                + (["--width", str(args.width)] * (args.width > 0))):
+            return 1
+        styles_main(["--scene", str(run), "--out", str(args.out), "--device", args.device, "--tag", args.tag, *rest])
+        res = json.loads((args.out / (f"{run.name}_{args.tag}" if args.tag else run.name) / "results.json").read_text())
+        rows.append(capture_row(spec, res["rows"], res["source"]))
+    text = f"`benchmarks/stylize.py captures {' '.join(argv or sys.argv[2:])}`\n\n" + md_table(rows, [
+        ("capture", "capture"), ("styles", "styles"), ("colour", "colour Δ (mean)"), ("texture", "texture Δ (mean)"),
+        ("farther", "styles not closer on both (texture after/before)"), ("consistency", "worst short / long (x)")])
+    write_text(args.out / f"captures{'_' + args.tag if args.tag else ''}.md", text)
+    print(text)
+    return 0
+
+
+def capture_row(name: str, rows: list[dict], src: dict) -> dict:
+    """One capture's summary: mean colour / texture change, the styles not closer on both, worst consistency."""
+    n = max(len(rows), 1)
+    far = [f"{r['style']} ({r['texture_after'] / r['texture_before']:.2f})" for r in rows
+           if r["color_after"] >= r["color_before"] or r["texture_after"] >= r["texture_before"]]
+    return {"capture": name, "styles": len(rows),
+            "colour": f"{100 * sum(r['color_after'] / r['color_before'] - 1 for r in rows) / n:+.1f} %",
+            "texture": f"{100 * sum(r['texture_after'] / r['texture_before'] - 1 for r in rows) / n:+.1f} %",
+            "farther": ", ".join(far) or "none", "consistency": f"{max(r['short'] / src['short'] for r in rows):.2f} / "
+            f"{max(r['long'] / src['long'] for r in rows):.2f}" if rows else "-"}
+
+
+MODES = {"captures": captures_main, "stage2": stage2_main, "probe": probe_main, "bound": bound_main}
 
 
 def main(argv=None) -> int:
