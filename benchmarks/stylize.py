@@ -34,6 +34,7 @@ from harness import ROOT, data_root, dispatch, machine, pyplot, save_figure, sty
 from harness import table as md_table
 
 from ssgwarp.evaluation.features import EXTRACTOR_KINDS
+from ssgwarp.stylization.spread import pixel_size, probe_scene   # the probe behind --paint-strength auto
 
 DATA = data_root()
 STAGE2_DOC = """Seconds per stage of `ssgwarp stylize` on fern images_4, per Stage 2 mode (table and OUT/benchmark.json).
@@ -341,16 +342,16 @@ def styles_main(argv=None) -> int:
         "after the command started (finished styles are kept)")
     add("--tag", default="", help="results in OUT/<scene>_<tag> (the scene is built once in OUT and shared)")
     add("--quiet", action="store_true")
+    from ssgwarp.commands.stylize import PAINT, style_scale_arg
     g = p.add_argument_group("Stage 2 (default: the CLI defaults; docs/stylize.md)")
     for name, kind in (("iters", int), ("lr", float), ("content-weight", float), ("tv-weight", float),
                        ("blend-weight", float), ("color-transfer", str), ("color-max-gain", float),
                        ("color-detail", ("keep", "off")), ("sh-rest", str), ("background", ("transfer", "keep")),
                        ("mode", ("ist", "global")), ("densify", float), ("densify-views", int),
                        ("hold-empty", float), ("consistency-weight", float), ("consistency-neighbours", int),
-                       ("consistency-budget", float), ("style-scale", float)):
+                       ("consistency-budget", float), ("style-scale", style_scale_arg), ("paint-strength", style_scale_arg)):
         g.add_argument(f"--{name}", default=None, **({"choices": kind} if isinstance(kind, tuple) else {"type": kind}))
     from ssgwarp.core.presets import add_preset
-    from ssgwarp.commands.stylize import PAINT
     add_preset(p, "--paint", PAINT, "ssgwarp stylize's painting preset: {values} (options given explicitly win)")
     args = p.parse_args(argv)
 
@@ -538,29 +539,6 @@ def stage2_main(argv=None) -> int:
 
 
 # ----------------------------------------------------------------------------- probe: texture fixed in 3-D
-def probe_scene(scene, period_px: float, amplitude: float, pixel: float, seed: int = 0):
-    """``scene`` with ``amplitude`` x a unit-variance sum of six 3-D sinusoids of ``period_px`` pixels added to
-    its base colour (grey) and its SH bands above 0 zeroed."""
-    from ssgwarp.raster.scene import SH_C0
-
-    g = torch.Generator().manual_seed(seed)
-    xyz = scene.means.detach().double().cpu()
-    k = torch.nn.functional.normalize(torch.randn(6, 3, generator=g, dtype=torch.float64), dim=1)
-    k = k * (2 * math.pi / (period_px * pixel))
-    phase = torch.rand(6, generator=g, dtype=torch.float64) * 2 * math.pi
-    pattern = (torch.sin(xyz @ k.T + phase).sum(1) / math.sqrt(3)).to(scene.sh_dc)
-    rest = None if scene.sh_rest is None else torch.zeros_like(scene.sh_rest)
-    return scene.replace(sh_dc=scene.sh_dc + (amplitude * pattern / SH_C0)[:, None], sh_rest=rest)
-
-
-def pixel_size(scene, cams) -> float:
-    """World size of one pixel at the scene's median depth in the first camera."""
-    xyz = scene.means.detach().double().cpu()
-    X = torch.cat([xyz, torch.ones(len(xyz), 1, dtype=xyz.dtype)], 1) @ cams.viewmats[0].double().cpu().T
-    z = X[:, 2][X[:, 2] > 0]
-    return float(z.median() if len(z) else 1.0) / float(cams.Ks[0, 0, 0])
-
-
 def demo_truth(run: Path):
     """The procedural scene that made the capture of the demo whose reconstruction is ``run`` (``OUT/scene``;
     size and seed from ``OUT/summary.json``)."""
