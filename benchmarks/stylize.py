@@ -141,6 +141,7 @@ def run_style(run: Path, style: Path, out: Path, cfg, device, extractor: str, ev
            "short": rep["short"]["rmse"], "long": rep["long"]["rmse"],
            "stylize_seconds": seconds, "stage2_seconds": m["seconds"]["stage2"], "extractor": m["extractor"],
            "config": m["config"], "views_scored": ev["views_scored"], "device": m["device"],
+           "matching": m["matching"], "strength": m.get("strength"),
            "empty_spread": sc.get("empty_spread"), "empty_spread_original": sc.get("empty_spread_original")}
     write_json(res_file, row)
     return row
@@ -790,7 +791,9 @@ def captures_main(argv=None) -> int:
     p.add_argument("--device", default="auto")
     args, rest = p.parse_known_args(argv)
     from harness import capture_folder
-    from ssgwarp.cli import main as cli
+    from ssgwarp.cli import main as cli, resolve_device
+    from ssgwarp.services.runs import load_run
+    from ssgwarp.stylization.spread import consistency_probe, strength_for
 
     rows = []
     for spec in (c.strip() for c in args.captures.split(",") if c.strip()):
@@ -804,9 +807,13 @@ def captures_main(argv=None) -> int:
         styles_main(["--scene", str(run), "--out", str(args.out), "--device", args.device, "--tag", args.tag, *rest])
         res = json.loads((args.out / (f"{run.name}_{args.tag}" if args.tag else run.name) / "results.json").read_text())
         rows.append(capture_row(spec, res["rows"], res["source"]))
+        scene, data = load_run(run, resolve_device(args.device), load_images=False)   # --paint-strength auto's probe
+        rows[-1]["probe"] = consistency_probe(scene, data.cameras[list(data.train_ids)].to(scene.device))
+        rows[-1]["strength"] = strength_for(rows[-1]["probe"])
     text = f"`benchmarks/stylize.py captures {' '.join(argv or sys.argv[2:])}`\n\n" + md_table(rows, [
         ("capture", "capture"), ("styles", "styles"), ("colour", "colour Δ (mean)"), ("texture", "texture Δ (mean)"),
-        ("farther", "styles not closer on both (texture after/before)"), ("consistency", "worst short / long (x)")])
+        ("farther", "styles not closer on both (texture after/before)"), ("consistency", "worst short / long (x)"),
+        ("probe", "3-D probe (x)"), ("strength", "--paint-strength auto")])
     write_text(args.out / f"captures{'_' + args.tag if args.tag else ''}.md", text)
     print(text)
     return 0

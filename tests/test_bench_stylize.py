@@ -218,3 +218,13 @@ def test_probe_bad_run_folder_is_one_line_and_exit_2(tmp_path, monkeypatch, caps
     assert ss.main(["probe", "--run", str(tmp_path), "--truth", "--device", "cpu"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("stylize.py probe: ") and "no scene.ply" in err and "\n" not in err
+
+
+def test_capture_summary_names_the_styles_that_move_away():
+    rows = [{"style": "candy", "color_before": 10.0, "color_after": 5.0, "texture_before": 1.0, "texture_after": 0.5,
+             "short": 0.02, "long": 0.03},
+            {"style": "the_resevoir", "color_before": 10.0, "color_after": 9.0, "texture_before": 1.0,
+             "texture_after": 1.08, "short": 0.03, "long": 0.03}]
+    row = ss.capture_row("livingroom", rows, {"short": 0.02, "long": 0.03})
+    assert row["farther"] == "the_resevoir (1.08)" and row["styles"] == 2
+    assert row["colour"] == "-30.0 %" and row["texture"] == "-21.0 %" and row["consistency"] == "1.50 / 1.00"
