@@ -66,8 +66,8 @@ this is beyond the loss, whatever the 3-D side does.
 
 CAPTURES_DOC = """The 25-style table on each shared capture, then one summary row per capture (OUT/captures<_TAG>.md).
 
-Each capture is reconstructed with ``ssgwarp reconstruct --groups auto`` once (OUT/<capture>_w<WIDTH>_i<ITERS>,
-reused), then the main mode runs on it with every other flag given (``--tag``, ``--paint``, Stage 2 options, ...).
+Each capture is reconstructed with ``ssgwarp reconstruct --groups auto`` once (OUT/recon/<capture>_w<WIDTH>_i<ITERS>,
+reused; its tables in OUT/<capture>_w<WIDTH>_i<ITERS>[_TAG]), then the main mode runs on it with every other flag given (``--tag``, ``--paint``, Stage 2 options, ...).
 
     python benchmarks/stylize.py captures --out out/s62 --recon-iters 7000
     python benchmarks/stylize.py captures --out out/s62 --tag paint --paint
@@ -798,7 +798,7 @@ def captures_main(argv=None) -> int:
     rows = []
     for spec in (c.strip() for c in args.captures.split(",") if c.strip()):
         folder, images = capture_folder(spec)
-        run = args.out / f"{Path(spec).name}_w{args.width}_i{args.recon_iters}"
+        run = args.out / "recon" / f"{Path(spec).name}_w{args.width}_i{args.recon_iters}"   # results: OUT/<its name>
         if not (run / "groups" / "classifier.pt").is_file() and cli(
                 ["reconstruct", str(folder), "--images", images, "--out", str(run), "--iters", str(args.recon_iters),
                  "--groups", "auto", "--force", "--device", args.device, *__import__("shlex").split(args.recon)]
@@ -806,7 +806,7 @@ def captures_main(argv=None) -> int:
             return 1
         styles_main(["--scene", str(run), "--out", str(args.out), "--device", args.device, "--tag", args.tag, *rest])
         res = json.loads((args.out / (f"{run.name}_{args.tag}" if args.tag else run.name) / "results.json").read_text())
-        rows.append(capture_row(spec, res["rows"], res["source"]))
+        rows.append(capture_row(Path(spec).name, res["rows"], res["source"]))
         scene, data = load_run(run, resolve_device(args.device), load_images=False)   # --paint-strength auto's probe
         rows[-1]["probe"] = consistency_probe(scene, data.cameras[list(data.train_ids)].to(scene.device))
         rows[-1]["strength"] = strength_for(rows[-1]["probe"])
