@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -33,7 +32,12 @@ import torch
 from harness import ROOT, data_root, dispatch, machine, pyplot, save_figure, style_paths, write_text
 from harness import table as md_table
 
+from ssgwarp.cli import resolve_device
+from ssgwarp.core.fileio import read_image, read_json, write_json
+from ssgwarp.core.imaging import fit_style
+from ssgwarp.errors import InputError
 from ssgwarp.evaluation.features import EXTRACTOR_KINDS
+from ssgwarp.services.runs import Run, load_run
 from ssgwarp.stylization.spread import pixel_size, probe_scene   # the probe behind --paint-strength auto
 
 DATA = data_root()
@@ -120,7 +124,6 @@ def stage2_config(args, **over):
 def run_style(run: Path, style: Path, out: Path, cfg, device, extractor: str, eval_opts, progress: bool) -> dict:
     """Stylize ``run`` with ``style`` into ``out`` and evaluate it; returns the result row (cached in out)."""
     from ssgwarp.evaluation.evaluate import evaluate_run
-    from ssgwarp.core.fileio import read_json, write_json
     from ssgwarp.stylization.stylize import StylizeOptions, stylize_run
 
     res_file = out / "result.json"
@@ -152,7 +155,6 @@ def add_halves(rows: list[dict], styles: list[Path], run: Path, results: Path) -
     at the scored views' size (:meth:`StyleDistance.halves`), a reference for how close a render can get;
     computed once and kept in the style's ``result.json`` (in ``results``, ``OUT/<scene>/styles``)."""
     from ssgwarp.core.cameras import Cameras
-    from ssgwarp.core.fileio import read_image, write_json
     from ssgwarp.evaluation.style_distance import StyleDistance
 
     cams = Cameras.load(run / "cameras.json")
@@ -168,7 +170,6 @@ def add_halves(rows: list[dict], styles: list[Path], run: Path, results: Path) -
 
 def source_consistency(run: Path, out: Path, device, eval_opts, progress: bool = True) -> dict:
     from ssgwarp.evaluation.evaluate import evaluate_run
-    from ssgwarp.core.fileio import read_json, write_json
 
     f = out / "source_consistency.json"
     if f.is_file():
@@ -231,10 +232,7 @@ def sheet(path: Path, run: Path, results_dir: Path, styles: list[Path], device) 
     """Rows: style image | original | stylized (one view), for the styles that finished; a small JPEG."""
     plt = pyplot()
 
-    from ssgwarp.services.runs import load_run
-    from ssgwarp.core.fileio import read_image
     from ssgwarp.formats.ply import read_ply
-    from ssgwarp.services.runs import Run
     from ssgwarp.stylization.stage2 import render_rgb
 
     done = [s for s in styles if (results_dir / s.stem / "scene.ply").is_file()]
@@ -356,10 +354,7 @@ def styles_main(argv=None) -> int:
     add_preset(p, "--paint", PAINT, "ssgwarp stylize's painting preset: {values} (options given explicitly win)")
     args = p.parse_args(argv)
 
-    from ssgwarp.cli import resolve_device
     from ssgwarp.evaluation.evaluate import EvalOptions
-    from ssgwarp.core.fileio import write_json
-    from ssgwarp.errors import InputError
 
     device = resolve_device(args.device)
     torch.manual_seed(0)
@@ -408,7 +403,6 @@ def synthetic_run(run: Path, data_dir: Path, images: str, n: int, groups: int = 
     """A grouped run folder whose scene is N Gaussians around the capture's sparse points."""
     from ssgwarp.capture.datasets import load_dataset
     from ssgwarp.services.runs import data_json
-    from ssgwarp.core.fileio import write_json
     from ssgwarp.formats.ply import write_ply
     from ssgwarp.raster.scene import GaussianScene
 
@@ -544,8 +538,6 @@ def demo_truth(run: Path):
     """The procedural scene that made the capture of the demo whose reconstruction is ``run`` (``OUT/scene``;
     size and seed from ``OUT/summary.json``)."""
     from ssgwarp import procedural as P
-    from ssgwarp.core.fileio import read_json
-    from ssgwarp.errors import InputError
 
     summary = Path(run).resolve().parent / "summary.json"
     if not summary.is_file():
@@ -629,8 +621,6 @@ def probe_main(argv=None) -> int:
 
 def probe(args) -> int:
     """Every probe on the run's scene (and on the demo's true scene with ``--truth``)."""
-    from ssgwarp.cli import resolve_device
-    from ssgwarp.core.fileio import read_image, write_json
     from ssgwarp.evaluation.evaluate import EvalOptions, inspect_run, scored_cameras
     from ssgwarp.evaluation.style_distance import StyleDistance
 
@@ -691,7 +681,6 @@ def bound_main(argv=None) -> int:
     add("--json", type=Path, default=None, help="also write the rows here (after every style)")
     args = p.parse_args(argv)
 
-    from ssgwarp.errors import InputError
 
     try:
         counts = sorted({int(c) for c in args.steps.split(",")})
@@ -704,9 +693,6 @@ def bound_main(argv=None) -> int:
 
 def bound(args, counts: list[int], styles: list[Path]) -> int:
     """Score every style (main's table and ``--json``)."""
-    from ssgwarp.cli import resolve_device
-    from ssgwarp.core.fileio import read_image, write_json
-    from ssgwarp.core.imaging import fit_style
     from ssgwarp.evaluation.evaluate import EvalOptions, inspect_run, scored_cameras
     from ssgwarp.raster.rendering import render_views
     from ssgwarp.evaluation.style_distance import StyleDistance
@@ -789,9 +775,11 @@ def captures_main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=ROOT / "out" / "stylize")
     p.add_argument("--tag", default="")
     p.add_argument("--device", default="auto")
+    p.add_argument("--regions", action="store_true", help="only the region check of every style (no Stage 2): the "
+                   "groups' shares, their regions, which fall back to the whole style and the predicted distances")
     args, rest = p.parse_known_args(argv)
     from harness import capture_folder
-    from ssgwarp.cli import main as cli, resolve_device
+    from ssgwarp.cli import main as cli
     from ssgwarp.services.runs import load_run
     from ssgwarp.stylization.spread import consistency_probe, strength_for
 
@@ -804,12 +792,18 @@ def captures_main(argv=None) -> int:
                  "--groups", "auto", "--force", "--device", args.device, *__import__("shlex").split(args.recon)]
                 + (["--width", str(args.width)] * (args.width > 0))):
             return 1
+        scene, data = load_run(run, resolve_device(args.device), load_images=False)   # --paint-strength auto's probe
+        probe = consistency_probe(scene, data.cameras[list(data.train_ids)].to(scene.device))
+        print(f"{run.name}: {len(scene)} Gaussians; 3-D probe {probe:.2f}x, --paint-strength auto {strength_for(probe):.2f}")
+        if args.regions:
+            region_check(run, resolve_device(args.device))
+            continue
         styles_main(["--scene", str(run), "--out", str(args.out), "--device", args.device, "--tag", args.tag, *rest])
         res = json.loads((args.out / (f"{run.name}_{args.tag}" if args.tag else run.name) / "results.json").read_text())
-        rows.append(capture_row(Path(spec).name, res["rows"], res["source"]))
-        scene, data = load_run(run, resolve_device(args.device), load_images=False)   # --paint-strength auto's probe
-        rows[-1]["probe"] = consistency_probe(scene, data.cameras[list(data.train_ids)].to(scene.device))
-        rows[-1]["strength"] = strength_for(rows[-1]["probe"])
+        rows.append({**capture_row(Path(spec).name, res["rows"], res["source"]), "probe": probe,
+                     "strength": strength_for(probe)})
+    if args.regions:
+        return 0
     text = f"`benchmarks/stylize.py captures {' '.join(argv or sys.argv[2:])}`\n\n" + md_table(rows, [
         ("capture", "capture"), ("styles", "styles"), ("colour", "colour Δ (mean)"), ("texture", "texture Δ (mean)"),
         ("farther", "styles not closer on both (texture after/before)"), ("consistency", "worst short / long (x)"),
@@ -817,6 +811,29 @@ def captures_main(argv=None) -> int:
     write_text(args.out / f"captures{'_' + args.tag if args.tag else ''}.md", text)
     print(text)
     return 0
+
+
+def region_check(run: Path, device) -> None:
+    """Per style: each group's region (-1: the whole style) as ``ssgwarp stylize``'s default without Stage 1 takes it,
+    and the predicted distances of the view it gives, before / after the fallback, against the style's halves."""
+    from ssgwarp.raster.groups import load_groups
+    from ssgwarp.stylization.regions import style_regions
+    from ssgwarp.stylization.stage2 import render_alphas, render_rgb
+    from ssgwarp.stylization.targets import group_maps
+
+    scene, data = load_run(run, device, load_images=False)
+    cams, gm = data.cameras[list(data.train_ids)].to(device), load_groups(run, device)
+    with torch.no_grad():
+        views = render_rgb(scene, cams, torch.tensor(data.background[:3]).to(scene.sh_dc)).clamp(0, 1).float()
+    labels, alphas = group_maps(scene, cams, gm.classifier, False), render_alphas(scene, cams)
+    print(f"{run.name}: | style | groups' shares | regions | predicted colour / texture, before -> after | halves |")
+    for style in style_paths("", DATA / "styles"):
+        at = fit_style(torch.from_numpy(read_image(style, 3)).float().to(device), cams.height, cams.width)[0]
+        r = style_regions(at.permute(1, 2, 0), views, labels, int(gm.num_groups), alphas=alphas)
+        f, pct = r["fallback"], " ".join(f"{100 * float(m):.0f}%" for m in r["group_mass"])
+        print(f"| {style.stem} | {pct} | {r['region'].tolist()} | {f['predicted_before'][0]:.2f} / "
+              f"{f['predicted_before'][1]:.2f} -> {f['predicted_after'][0]:.2f} / {f['predicted_after'][1]:.2f} | "
+              f"{f['halves'][0]:.2f} / {f['halves'][1]:.2f} |", flush=True)
 
 
 def capture_row(name: str, rows: list[dict], src: dict) -> dict:
