@@ -19,7 +19,8 @@ look like that part of the painting, farther from the style than the unstylized 
 assignment is checked before it is used (:func:`fall_back_poor_matches`): the view it would give is predicted as
 the mixture of the regions' pixels in proportion to their groups' shares of the views, and scored against the whole
 style with the weight-free colour and texture distances (:class:`ssgwarp.evaluation.style_distance.StyleDistance`'s
-measures). While that mixture is farther from the style than half of the style image is from the whole (a render
+measures; a region's colours as the colour transfer gives them: its mean with part of the whole style's spread).
+While that mixture is farther from the style than half of the style image is from the whole (a render
 that were a piece of the painting), the group whose switch to the whole style brings the mixture closest falls
 back to global matching (region ``-1``: Stage 2 and the colour transfer then match it against the whole style).
 """
@@ -33,6 +34,7 @@ import torch.nn.functional as F
 from ..core.imaging import rgb_to_lab
 from ..errors import InputError
 from ..evaluation.style_distance import filter_responses, sliced_wasserstein, texture_levels
+from .color import REGION_SPREAD
 
 MAX_REGIONS = 6        # a style image rarely has more parts than this that read as distinct
 KMEANS_ITERS = 25
@@ -219,7 +221,13 @@ def mixture_distance(cols: list, tex: list, region: list[int], mass: list[float]
     predicted for groups of shares ``mass`` taking the regions ``region`` (:data:`GLOBAL`: the whole style)."""
     pick = [(len(cols) - 1 if r == GLOBAL else r, m) for r, m in zip(region, mass) if m > 0]
     n = _counts([m for _, m in pick], MIXTURE_SAMPLES)
-    c = _distance([(cols[r], k) for (r, _), k in zip(pick, n)], cols[-1], 64, seed)
+    # a region's colours as the colour transfer gives them (region_target): its mean, and a REGION_SPREAD share of
+    # the whole style's spread around it (the whole style's pixels moved to the region's mean)
+    whole = cols[-1]
+    parts = [p for (r, _), k in zip(pick, n) for p in (
+        [(cols[r], k)] if r == len(cols) - 1 else
+        [(cols[r], k - round(k * REGION_SPREAD)), (whole - whole.mean(0) + cols[r].mean(0), round(k * REGION_SPREAD))])]
+    c = _distance(parts, whole, 64, seed)
     per = [_distance([(tex[r][k], c_) for (r, _), c_ in zip(pick, n) if len(tex[r]) > k], tex[-1][k], 32, seed)
            for k in range(len(tex[-1]))]
     return c, (sum(per) / len(per) if per else 0.0)
