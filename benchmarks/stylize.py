@@ -804,7 +804,7 @@ def captures_main(argv=None) -> int:
                      "strength": strength_for(probe)})
     if args.regions:
         return 0
-    text = f"`benchmarks/stylize.py captures {' '.join(argv or sys.argv[2:])}`\n\n" + md_table(rows, [
+    text = f"`benchmarks/stylize.py captures {__import__('shlex').join(argv or sys.argv[2:])}`\n\n" + md_table(rows, [
         ("capture", "capture"), ("styles", "styles"), ("colour", "colour Δ (mean)"), ("texture", "texture Δ (mean)"),
         ("farther", "styles not closer on both (texture after/before)"), ("consistency", "worst short / long (x)"),
         ("probe", "3-D probe (x)"), ("strength", "--paint-strength auto")])
