@@ -4,25 +4,24 @@ For a scene (``--scene``: fern ``images_8``, the demo scene, or a grouped run fo
 ``--styles``, runs ``ssgwarp stylize`` (Stage 2 matches the style image) and ``ssgwarp evaluate`` (30 path views) and
 prints one row per style: colour / texture distances to the style (``StyleDistance``) before and after, the same
 for half of the style image against the whole (``StyleDistance.halves``), the Gram loss, short/long-range
-consistency RMSE as ratios to the unstylized scene's, and floaters. ``--ablation``: Stage 2's ablations on a few
-styles. Finished styles are kept (``OUT/<scene>/<style>/result.json``) and skipped on the next run, so shards and
-interrupted runs add up; ``--report`` tables what is finished. Writes ``table.md``, ``results.json`` and
+consistency RMSE as ratios to the unstylized scene's, and floaters (Stage 2's ablations: ``--configs
+docs/notes/stylize-ablation.txt``). Finished styles are kept (``OUT/<scene>/<style>/result.json``) and skipped on the
+next run, so shards and interrupted runs add up; ``--report`` tables what is finished. Writes ``table.md``, ``results.json`` and
 ``styles_sheet.jpg`` under ``OUT/<scene>``.
 
     python benchmarks/stylize.py --scene fern --shard 0/3      # a third of the styles (10-minute slots)
     python benchmarks/stylize.py --scene demo --demo-size small --styles-subset candy,udnie \
         --iters 10 --path-frames 6 --out /tmp/ss                       # CPU check (~2 min on 2 cores)
-    python benchmarks/stylize.py --scene fern --ablation --ablation-rows "default;SH rest: keep"
     python benchmarks/stylize.py --scene fern --configs FILE --timeout 420  # 'TAG: FLAGS' lines, all at once
 
-Modes, each with its own ``--help``: ``stage2`` (seconds per stage of ``ssgwarp stylize``), ``probe`` (the
-consistency error that texture fixed in 3-D costs), ``bound`` (the texture distance the style loss alone reaches).
+Modes, each with its own ``--help``: ``captures`` (this table on the four shared captures, one summary row each),
+``stage2`` (seconds per stage of ``ssgwarp stylize``), ``probe`` (the consistency error that texture fixed in 3-D
+costs), ``bound`` (the texture distance the style loss alone reaches).
 """
 from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -33,7 +32,13 @@ import torch
 from harness import ROOT, data_root, dispatch, machine, pyplot, save_figure, style_paths, write_text
 from harness import table as md_table
 
+from ssgwarp.cli import resolve_device
+from ssgwarp.core.fileio import read_image, read_json, write_json
+from ssgwarp.core.imaging import fit_style
+from ssgwarp.errors import InputError
 from ssgwarp.evaluation.features import EXTRACTOR_KINDS
+from ssgwarp.services.runs import Run, load_run
+from ssgwarp.stylization.spread import pixel_size, probe_scene   # the probe behind --paint-strength auto
 
 DATA = data_root()
 STAGE2_DOC = """Seconds per stage of `ssgwarp stylize` on fern images_4, per Stage 2 mode (table and OUT/benchmark.json).
@@ -63,8 +68,17 @@ this is beyond the loss, whatever the 3-D side does.
     python benchmarks/stylize.py bound --run RUN --styles candy,mosaic --steps 10,100
 """
 
+CAPTURES_DOC = """The 25-style table on each shared capture, then one summary row per capture (OUT/captures<_TAG>.md).
+
+Each capture is reconstructed with ``ssgwarp reconstruct --groups auto`` once (OUT/recon/<capture>_w<WIDTH>_i<ITERS>,
+reused; its tables in OUT/<capture>_w<WIDTH>_i<ITERS>[_TAG]), then the main mode runs on it with every other flag given (``--tag``, ``--paint``, Stage 2 options, ...).
+
+    python benchmarks/stylize.py captures --out out/s62 --recon-iters 7000
+    python benchmarks/stylize.py captures --out out/s62 --tag paint --paint
+    python benchmarks/stylize.py captures --width 128 --recon-iters 600 --styles-subset candy,mosaic --iters 60 \
+        --path-frames 8 --out /tmp/s62                                    # CPU-sized
+"""
 SHEET_STYLES = ("brushstrokes", "candy", "la_muse", "mosaic", "the_resevoir_at_poitiers", "sketch", "udnie")
-ABLATION_STYLES = ("candy", "la_muse", "sketch", "udnie")
 
 
 def prepare_scene(scene: str, out: Path, device, fern_iters: int, progress: bool, demo_size: str = "default",
@@ -110,7 +124,6 @@ def stage2_config(args, **over):
 def run_style(run: Path, style: Path, out: Path, cfg, device, extractor: str, eval_opts, progress: bool) -> dict:
     """Stylize ``run`` with ``style`` into ``out`` and evaluate it; returns the result row (cached in out)."""
     from ssgwarp.evaluation.evaluate import evaluate_run
-    from ssgwarp.core.fileio import read_json, write_json
     from ssgwarp.stylization.stylize import StylizeOptions, stylize_run
 
     res_file = out / "result.json"
@@ -131,6 +144,7 @@ def run_style(run: Path, style: Path, out: Path, cfg, device, extractor: str, ev
            "short": rep["short"]["rmse"], "long": rep["long"]["rmse"],
            "stylize_seconds": seconds, "stage2_seconds": m["seconds"]["stage2"], "extractor": m["extractor"],
            "config": m["config"], "views_scored": ev["views_scored"], "device": m["device"],
+           "matching": m["matching"], "strength": m.get("strength"),
            "empty_spread": sc.get("empty_spread"), "empty_spread_original": sc.get("empty_spread_original")}
     write_json(res_file, row)
     return row
@@ -141,7 +155,6 @@ def add_halves(rows: list[dict], styles: list[Path], run: Path, results: Path) -
     at the scored views' size (:meth:`StyleDistance.halves`), a reference for how close a render can get;
     computed once and kept in the style's ``result.json`` (in ``results``, ``OUT/<scene>/styles``)."""
     from ssgwarp.core.cameras import Cameras
-    from ssgwarp.core.fileio import read_image, write_json
     from ssgwarp.evaluation.style_distance import StyleDistance
 
     cams = Cameras.load(run / "cameras.json")
@@ -157,7 +170,6 @@ def add_halves(rows: list[dict], styles: list[Path], run: Path, results: Path) -
 
 def source_consistency(run: Path, out: Path, device, eval_opts, progress: bool = True) -> dict:
     from ssgwarp.evaluation.evaluate import evaluate_run
-    from ssgwarp.core.fileio import read_json, write_json
 
     f = out / "source_consistency.json"
     if f.is_file():
@@ -220,10 +232,7 @@ def sheet(path: Path, run: Path, results_dir: Path, styles: list[Path], device) 
     """Rows: style image | original | stylized (one view), for the styles that finished; a small JPEG."""
     plt = pyplot()
 
-    from ssgwarp.services.runs import load_run
-    from ssgwarp.core.fileio import read_image
     from ssgwarp.formats.ply import read_ply
-    from ssgwarp.services.runs import Run
     from ssgwarp.stylization.stage2 import render_rgb
 
     done = [s for s in styles if (results_dir / s.stem / "scene.ply").is_file()]
@@ -248,16 +257,6 @@ def sheet(path: Path, run: Path, results_dir: Path, styles: list[Path], device) 
     fig.tight_layout()
     save_figure(fig, path, format="jpg", pil_kwargs={"quality": 82})
     return path
-
-
-ABLATIONS = {  # label: Stage 2 options changed from the defaults
-    "default": {}, "color transfer off": {"color_transfer": "off"}, "color transfer pre": {"color_transfer": "pre"},
-    "color transfer post": {"color_transfer": "post"}, "colour transfer only (0 steps)": {"iters": 0},
-    "paper objective (content 0, TV 0)": {"content_weight": 0.0, "tv_weight": 0.0}, "content 0": {"content_weight": 0.0},
-    "TV 0": {"tv_weight": 0.0}, "SH rest: keep": {"sh_rest": "keep"}, "SH rest: zero": {"sh_rest": "zero"},
-    "SH rest: optimise": {"sh_rest": "optimise"}, "TV 0.02 (previous default)": {"tv_weight": 0.02},
-    "TV 0.1": {"tv_weight": 0.1}, "TV 0.5": {"tv_weight": 0.5}, "colour gain 1.0": {"color_max_gain": 1.0},
-    "background: keep": {"background": "keep"}, "free opacity": {"free_opacity": True}}
 
 
 def scene_name(scene: str) -> str:
@@ -335,8 +334,6 @@ def styles_main(argv=None) -> int:
     add("--demo-size", default="default", choices=("small", "default"), help="--scene demo's size (small: a CPU check)")
     add("--extractor", default="auto", choices=EXTRACTOR_KINDS)
     add("--path-frames", type=int, default=30, help="novel path views scored by evaluate")
-    add("--ablation", action="store_true", help="the Stage 2 ablation table on a few styles")
-    add("--ablation-rows", default=None, help="ablation rows to run, separated by ; (default: all of ABLATIONS)")
     add("--report", action="store_true", help="print the table of finished styles only")
     add("--configs", type=Path, default=None, help="a file of 'TAG: FLAGS' lines (# comments): the scene is built "
         "once, then each runs as its own process (--tag TAG FLAGS), all at once; logs in OUT/<scene>_<TAG>.log")
@@ -344,23 +341,20 @@ def styles_main(argv=None) -> int:
         "after the command started (finished styles are kept)")
     add("--tag", default="", help="results in OUT/<scene>_<tag> (the scene is built once in OUT and shared)")
     add("--quiet", action="store_true")
+    from ssgwarp.commands.stylize import PAINT, style_scale_arg
     g = p.add_argument_group("Stage 2 (default: the CLI defaults; docs/stylize.md)")
     for name, kind in (("iters", int), ("lr", float), ("content-weight", float), ("tv-weight", float),
                        ("blend-weight", float), ("color-transfer", str), ("color-max-gain", float),
                        ("color-detail", ("keep", "off")), ("sh-rest", str), ("background", ("transfer", "keep")),
                        ("mode", ("ist", "global")), ("densify", float), ("densify-views", int),
                        ("hold-empty", float), ("consistency-weight", float), ("consistency-neighbours", int),
-                       ("consistency-budget", float), ("style-scale", float)):
+                       ("consistency-budget", float), ("style-scale", style_scale_arg), ("paint-strength", style_scale_arg)):
         g.add_argument(f"--{name}", default=None, **({"choices": kind} if isinstance(kind, tuple) else {"type": kind}))
     from ssgwarp.core.presets import add_preset
-    from ssgwarp.commands.stylize import PAINT
     add_preset(p, "--paint", PAINT, "ssgwarp stylize's painting preset: {values} (options given explicitly win)")
     args = p.parse_args(argv)
 
-    from ssgwarp.cli import resolve_device
     from ssgwarp.evaluation.evaluate import EvalOptions
-    from ssgwarp.core.fileio import write_json
-    from ssgwarp.errors import InputError
 
     device = resolve_device(args.device)
     torch.manual_seed(0)
@@ -378,41 +372,6 @@ def styles_main(argv=None) -> int:
     eval_opts = EvalOptions(path_frames=args.path_frames, max_pairs=16, save_pairs=0)
     src = source_consistency(run, out, device, eval_opts, progress)
     dev = machine(device)
-
-    if args.ablation:
-        abl = [s for s in styles if s.stem in ABLATION_STYLES] or styles[:4]
-        lines = [f"Stage 2 ablation on {name} ({dev}, {time.strftime('%Y-%m-%d')}), styles "
-                 f"{', '.join(s.stem for s in abl)}; means over the styles", "",
-                 "| configuration | colour Δ | texture Δ | Gram after/before | short RMSE (x src) | long RMSE (x src) | Stage 2 s |",
-                 "|---|---|---|---|---|---|---|"]
-        raw = {}
-        rows_wanted = ABLATIONS
-        if args.ablation_rows:
-            want = [w.strip() for w in args.ablation_rows.split(";") if w.strip()]
-            bad = [w for w in want if w not in ABLATIONS]
-            if bad:
-                raise SystemExit(f"--ablation-rows: unknown {', '.join(bad)}; known: {', '.join(ABLATIONS)}")
-            rows_wanted = {w: ABLATIONS[w] for w in want}
-        for label, over in rows_wanted.items():
-            cfg = stage2_config(args, **over)
-            tag = "abl_" + "".join(c if c.isalnum() else "_" for c in label)
-            rows = [] if args.report else [run_style(run, s, out / tag / s.stem, cfg, device, args.extractor,
-                                                      eval_opts, progress) for s in abl]
-            if not rows:
-                continue
-            raw[label] = rows
-            n = len(rows)
-            mean = lambda f: sum(f(r) for r in rows) / n  # noqa: E731
-            lines.append(f"| {label} | {100 * mean(lambda r: r['color_after'] / r['color_before'] - 1):+.1f}% | "
-                         f"{100 * mean(lambda r: r['texture_after'] / r['texture_before'] - 1):+.1f}% | "
-                         f"{mean(lambda r: r['gram_after'] / r['gram_before']):.2f} | "
-                         f"{mean(lambda r: r['short'] / src['short']):.2f} | {mean(lambda r: r['long'] / src['long']):.2f} | "
-                         f"{mean(lambda r: r['stage2_seconds']):.1f} |")
-        text = "\n".join(lines) + "\n"
-        write_text(out / "ablation.md", text)
-        write_json(out / "ablation.json", {"device": dev, "source": src, "runs": raw})
-        print(text)
-        return 0
 
     todo = styles
     if args.shard:
@@ -444,7 +403,6 @@ def synthetic_run(run: Path, data_dir: Path, images: str, n: int, groups: int = 
     """A grouped run folder whose scene is N Gaussians around the capture's sparse points."""
     from ssgwarp.capture.datasets import load_dataset
     from ssgwarp.services.runs import data_json
-    from ssgwarp.core.fileio import write_json
     from ssgwarp.formats.ply import write_ply
     from ssgwarp.raster.scene import GaussianScene
 
@@ -576,35 +534,10 @@ def stage2_main(argv=None) -> int:
 
 
 # ----------------------------------------------------------------------------- probe: texture fixed in 3-D
-def probe_scene(scene, period_px: float, amplitude: float, pixel: float, seed: int = 0):
-    """``scene`` with ``amplitude`` x a unit-variance sum of six 3-D sinusoids of ``period_px`` pixels added to
-    its base colour (grey) and its SH bands above 0 zeroed."""
-    from ssgwarp.raster.scene import SH_C0
-
-    g = torch.Generator().manual_seed(seed)
-    xyz = scene.means.detach().double().cpu()
-    k = torch.nn.functional.normalize(torch.randn(6, 3, generator=g, dtype=torch.float64), dim=1)
-    k = k * (2 * math.pi / (period_px * pixel))
-    phase = torch.rand(6, generator=g, dtype=torch.float64) * 2 * math.pi
-    pattern = (torch.sin(xyz @ k.T + phase).sum(1) / math.sqrt(3)).to(scene.sh_dc)
-    rest = None if scene.sh_rest is None else torch.zeros_like(scene.sh_rest)
-    return scene.replace(sh_dc=scene.sh_dc + (amplitude * pattern / SH_C0)[:, None], sh_rest=rest)
-
-
-def pixel_size(scene, cams) -> float:
-    """World size of one pixel at the scene's median depth in the first camera."""
-    xyz = scene.means.detach().double().cpu()
-    X = torch.cat([xyz, torch.ones(len(xyz), 1, dtype=xyz.dtype)], 1) @ cams.viewmats[0].double().cpu().T
-    z = X[:, 2][X[:, 2] > 0]
-    return float(z.median() if len(z) else 1.0) / float(cams.Ks[0, 0, 0])
-
-
 def demo_truth(run: Path):
     """The procedural scene that made the capture of the demo whose reconstruction is ``run`` (``OUT/scene``;
     size and seed from ``OUT/summary.json``)."""
     from ssgwarp import procedural as P
-    from ssgwarp.core.fileio import read_json
-    from ssgwarp.errors import InputError
 
     summary = Path(run).resolve().parent / "summary.json"
     if not summary.is_file():
@@ -688,8 +621,6 @@ def probe_main(argv=None) -> int:
 
 def probe(args) -> int:
     """Every probe on the run's scene (and on the demo's true scene with ``--truth``)."""
-    from ssgwarp.cli import resolve_device
-    from ssgwarp.core.fileio import read_image, write_json
     from ssgwarp.evaluation.evaluate import EvalOptions, inspect_run, scored_cameras
     from ssgwarp.evaluation.style_distance import StyleDistance
 
@@ -750,7 +681,6 @@ def bound_main(argv=None) -> int:
     add("--json", type=Path, default=None, help="also write the rows here (after every style)")
     args = p.parse_args(argv)
 
-    from ssgwarp.errors import InputError
 
     try:
         counts = sorted({int(c) for c in args.steps.split(",")})
@@ -763,9 +693,6 @@ def bound_main(argv=None) -> int:
 
 def bound(args, counts: list[int], styles: list[Path]) -> int:
     """Score every style (main's table and ``--json``)."""
-    from ssgwarp.cli import resolve_device
-    from ssgwarp.core.fileio import read_image, write_json
-    from ssgwarp.core.imaging import fit_style
     from ssgwarp.evaluation.evaluate import EvalOptions, inspect_run, scored_cameras
     from ssgwarp.raster.rendering import render_views
     from ssgwarp.evaluation.style_distance import StyleDistance
@@ -837,7 +764,91 @@ def bound(args, counts: list[int], styles: list[Path]) -> int:
     return 0
 
 
-MODES = {"stage2": stage2_main, "probe": probe_main, "bound": bound_main}
+# ----------------------------------------------------------------------------- captures: the table on each capture
+def captures_main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="stylize.py captures", description=CAPTURES_DOC,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--captures", default="fern4,cup,livingroom,bird", help="shared capture names or PATH[:IMAGES]")
+    p.add_argument("--recon-iters", type=int, default=7000, help="reconstruction steps")
+    p.add_argument("--width", type=int, default=0, help="reconstruct at this image width (0: as loaded)")
+    p.add_argument("--recon", default="", help="more reconstruct flags, e.g. '--max-images 24 --max-gaussians 20000'")
+    p.add_argument("--out", type=Path, default=ROOT / "out" / "stylize")
+    p.add_argument("--tag", default="")
+    p.add_argument("--device", default="auto")
+    p.add_argument("--regions", action="store_true", help="only the region check of every style (no Stage 2): the "
+                   "groups' shares, their regions, which fall back to the whole style and the predicted distances")
+    args, rest = p.parse_known_args(argv)
+    from harness import capture_folder
+    from ssgwarp.cli import main as cli
+    from ssgwarp.services.runs import load_run
+    from ssgwarp.stylization.spread import consistency_probe, strength_for
+
+    rows = []
+    for spec in (c.strip() for c in args.captures.split(",") if c.strip()):
+        folder, images = capture_folder(spec)
+        run = args.out / "recon" / f"{Path(spec).name}_w{args.width}_i{args.recon_iters}"   # results: OUT/<its name>
+        if not (run / "groups" / "classifier.pt").is_file() and cli(
+                ["reconstruct", str(folder), "--images", images, "--out", str(run), "--iters", str(args.recon_iters),
+                 "--groups", "auto", "--force", "--device", args.device, *__import__("shlex").split(args.recon)]
+                + (["--width", str(args.width)] * (args.width > 0))):
+            return 1
+        scene, data = load_run(run, resolve_device(args.device), load_images=False)   # --paint-strength auto's probe
+        probe = consistency_probe(scene, data.cameras[list(data.train_ids)].to(scene.device))
+        print(f"{run.name}: {len(scene)} Gaussians; 3-D probe {probe:.2f}x, --paint-strength auto {strength_for(probe):.2f}")
+        if args.regions:
+            region_check(run, resolve_device(args.device))
+            continue
+        styles_main(["--scene", str(run), "--out", str(args.out), "--device", args.device, "--tag", args.tag, *rest])
+        res = json.loads((args.out / (f"{run.name}_{args.tag}" if args.tag else run.name) / "results.json").read_text())
+        rows.append({**capture_row(Path(spec).name, res["rows"], res["source"]), "probe": probe,
+                     "strength": strength_for(probe)})
+    if args.regions:
+        return 0
+    text = f"`benchmarks/stylize.py captures {__import__('shlex').join(argv or sys.argv[2:])}`\n\n" + md_table(rows, [
+        ("capture", "capture"), ("styles", "styles"), ("colour", "colour Δ (mean)"), ("texture", "texture Δ (mean)"),
+        ("farther", "styles not closer on both (texture after/before)"), ("consistency", "worst short / long (x)"),
+        ("probe", "3-D probe (x)"), ("strength", "--paint-strength auto")])
+    write_text(args.out / f"captures{'_' + args.tag if args.tag else ''}.md", text)
+    print(text)
+    return 0
+
+
+def region_check(run: Path, device) -> None:
+    """Per style: each group's region (-1: the whole style) as ``ssgwarp stylize``'s default without Stage 1 takes it,
+    and the predicted distances of the view it gives, before / after the fallback, against the style's halves."""
+    from ssgwarp.raster.groups import load_groups
+    from ssgwarp.stylization.regions import style_regions
+    from ssgwarp.stylization.stage2 import render_alphas, render_rgb
+    from ssgwarp.stylization.targets import group_maps
+
+    scene, data = load_run(run, device, load_images=False)
+    cams, gm = data.cameras[list(data.train_ids)].to(device), load_groups(run, device)
+    with torch.no_grad():
+        views = render_rgb(scene, cams, torch.tensor(data.background[:3]).to(scene.sh_dc)).clamp(0, 1).float()
+    labels, alphas = group_maps(scene, cams, gm.classifier, False), render_alphas(scene, cams)
+    print(f"{run.name}: | style | groups' shares | regions | predicted colour / texture, before -> after | halves |")
+    for style in style_paths("", DATA / "styles"):
+        at = fit_style(torch.from_numpy(read_image(style, 3)).float().to(device), cams.height, cams.width)[0]
+        r = style_regions(at.permute(1, 2, 0), views, labels, int(gm.num_groups), alphas=alphas)
+        f, pct = r["fallback"], " ".join(f"{100 * float(m):.0f}%" for m in r["group_mass"])
+        print(f"| {style.stem} | {pct} | {r['region'].tolist()} | {f['predicted_before'][0]:.2f} / "
+              f"{f['predicted_before'][1]:.2f} -> {f['predicted_after'][0]:.2f} / {f['predicted_after'][1]:.2f} | "
+              f"{f['halves'][0]:.2f} / {f['halves'][1]:.2f} |", flush=True)
+
+
+def capture_row(name: str, rows: list[dict], src: dict) -> dict:
+    """One capture's summary: mean colour / texture change, the styles not closer on both, worst consistency."""
+    n = max(len(rows), 1)
+    far = [f"{r['style']} ({r['texture_after'] / r['texture_before']:.2f})" for r in rows
+           if r["color_after"] >= r["color_before"] or r["texture_after"] >= r["texture_before"]]
+    return {"capture": name, "styles": len(rows),
+            "colour": f"{100 * sum(r['color_after'] / r['color_before'] - 1 for r in rows) / n:+.1f} %",
+            "texture": f"{100 * sum(r['texture_after'] / r['texture_before'] - 1 for r in rows) / n:+.1f} %",
+            "farther": ", ".join(far) or "none", "consistency": f"{max(r['short'] / src['short'] for r in rows):.2f} / "
+            f"{max(r['long'] / src['long'] for r in rows):.2f}" if rows else "-"}
+
+
+MODES = {"captures": captures_main, "stage2": stage2_main, "probe": probe_main, "bound": bound_main}
 
 
 def main(argv=None) -> int:

@@ -218,3 +218,51 @@ def test_probe_bad_run_folder_is_one_line_and_exit_2(tmp_path, monkeypatch, caps
     assert ss.main(["probe", "--run", str(tmp_path), "--truth", "--device", "cpu"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("stylize.py probe: ") and "no scene.ply" in err and "\n" not in err
+
+
+def test_capture_summary_names_the_styles_that_move_away():
+    rows = [{"style": "candy", "color_before": 10.0, "color_after": 5.0, "texture_before": 1.0, "texture_after": 0.5,
+             "short": 0.02, "long": 0.03},
+            {"style": "the_resevoir", "color_before": 10.0, "color_after": 9.0, "texture_before": 1.0,
+             "texture_after": 1.08, "short": 0.03, "long": 0.03}]
+    row = ss.capture_row("livingroom", rows, {"short": 0.02, "long": 0.03})
+    assert row["farther"] == "the_resevoir (1.08)" and row["styles"] == 2
+    assert row["colour"] == "-30.0 %" and row["texture"] == "-21.0 %" and row["consistency"] == "1.50 / 1.00"
+
+
+def test_captures_reconstructs_once_and_keeps_its_tables_apart_from_the_run(tmp_path, monkeypatch, capsys):
+    import ssgwarp.cli
+    import ssgwarp.services.runs
+    import ssgwarp.stylization.spread as spread
+
+    (tmp_path / "cap").mkdir()
+    built, tabled = [], []
+
+    def fake_cli(argv):
+        run = Path(argv[argv.index("--out") + 1])
+        (run / "groups").mkdir(parents=True)
+        (run / "groups" / "classifier.pt").write_bytes(b"")
+        built.append(argv)
+        return 0
+
+    def fake_styles(argv):
+        scene, out = Path(argv[argv.index("--scene") + 1]), Path(argv[argv.index("--out") + 1])
+        res = out / f"{scene.name}_t"
+        assert res != scene and not str(res).startswith(str(scene) + "/")
+        res.mkdir(parents=True, exist_ok=True)
+        row = {"style": "candy", "color_before": 2.0, "color_after": 1.0, "texture_before": 1.0, "texture_after": 0.5,
+               "short": 0.01, "long": 0.01}
+        (res / "results.json").write_text(json.dumps({"rows": [row], "source": {"short": 0.01, "long": 0.01}}))
+        tabled.append(argv)
+
+    monkeypatch.setattr(ssgwarp.cli, "main", fake_cli)
+    monkeypatch.setattr(ss, "styles_main", fake_styles)
+    monkeypatch.setattr(ssgwarp.services.runs, "load_run", lambda *a, **k: (torch.zeros(1), argparse.Namespace(
+        cameras=torch.zeros(2), train_ids=[0, 1])))
+    monkeypatch.setattr(spread, "consistency_probe", lambda scene, cams: 1.5)
+    argv = ["--captures", str(tmp_path / "cap"), "--out", str(tmp_path / "o"), "--tag", "t", "--device", "cpu",
+            "--iters", "3"]
+    assert ss.captures_main(argv) == 0 and ss.captures_main(argv) == 0
+    assert len(built) == 1 and all("--iters" in a and "3" in a for a in tabled) and len(tabled) == 2
+    text = (tmp_path / "o" / "captures_t.md").read_text()
+    assert "| cap | 1 | -50.0 % | -50.0 % | none | 1.00 / 1.00 | 1.50 |" in text

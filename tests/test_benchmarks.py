@@ -12,7 +12,7 @@ BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
 sys.path.insert(0, str(BENCH))
 import harness  # noqa: E402
 
-MODES = {"train_step.py": ["runs", "loss"], "stylize.py": ["stage2", "probe", "bound"], "tradeoffs.py": ["budget"],
+MODES = {"train_step.py": ["runs", "loss"], "stylize.py": ["captures", "stage2", "probe", "bound"], "tradeoffs.py": ["budget"],
          "captures.py": ["appearance", "inside-out"]}
 
 

@@ -422,6 +422,10 @@ def test_transfer_colors_target_groups_give_each_group_the_region_assigned_to_it
     assert blue(swapped, 0) > 0.5 and blue(swapped, 1) < -0.5           # object 0 -> region 1 (blue), 1 -> red
     assert blue(straight, 0) < -0.5 and blue(straight, 1) > 0.5
     assert blue(shared, 0) > 0.5 and blue(shared, 1) > 0.5               # one region may serve several groups
+    # a group whose region was a poor match (-1, issue 62) maps its own pixels to the whole target: half red, half
+    # blue on average, whatever the other group takes
+    back, info = transfer_colors(scene, cams, target, target_groups=[-1, 1], **kw)
+    assert info["how"] == ["group", "group"] and abs(blue(back, 0)) < 0.25 and blue(back, 1) > 0.5
 
 
 def test_region_target_keeps_half_the_styles_spread_around_the_regions_mean():

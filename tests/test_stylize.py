@@ -528,8 +528,9 @@ def test_weight_free_default_moves_the_scene_toward_its_style(tmp_path):
 
     Measured on this scene and the procedural style, 30 steps (2026-11-23, CPU): colour distance
     x0.77, texture x0.93; the previous default (NNFM on the same features, no colour transfer) x0.84,
-    x0.96 (re-measured with the TV default 0.5: the same). Asserted with about half of those margins, and
-    better than the previous default.
+    x0.96 (re-measured with the TV default 0.5: the same). Since issue 62 the largest group's region is a poor
+    match here and it takes the whole style: colour x0.93, texture x0.86 (2026-12-08; the previous default
+    x0.98 / x1.02). Asserted with about half of those margins, and better than the previous default.
     """
     from ssgwarp.core.fileio import write_image
     from ssgwarp.procedural import style_image
@@ -544,7 +545,7 @@ def test_weight_free_default_moves_the_scene_toward_its_style(tmp_path):
         b, a = m["style_distance_original"], m["style_distance"]
         ratio[name] = {k: a[k] / b[k] for k in ("color", "texture")}
     assert m["extractor"].startswith("random-multiscale") and m["stage1"]["ran"] is False
-    assert ratio["default"]["color"] < 0.88 and ratio["default"]["texture"] < 0.97, ratio
+    assert ratio["default"]["color"] < 0.97 and ratio["default"]["texture"] < 0.93, ratio
     assert ratio["default"]["color"] < ratio["previous"]["color"] - 0.03, ratio
     assert ratio["default"]["texture"] < ratio["previous"]["texture"], ratio
 
@@ -975,6 +976,33 @@ def test_style_regions_segment_the_style_and_assign_groups_by_their_statistics()
         segment_style(style, 0)
 
 
+def test_a_group_whose_region_is_a_poor_match_falls_back_to_the_whole_style():
+    """Issue 62: a style of 85 % smooth blue and a 15 % dark noisy strip. A group holding 90 % of the views given
+    the strip would make the view look like the strip (farther from the style than its halves): it falls back to
+    the whole style (GLOBAL), and Stage 2's targets and colour transfer then match it against everything; the
+    same group given the blue region keeps it, as does the small group given the strip."""
+    from ssgwarp.stylization.matching import SlicedTargets
+    from ssgwarp.stylization.regions import GLOBAL, fall_back_poor_matches
+
+    g = torch.Generator().manual_seed(0)
+    style = torch.tensor([0.2, 0.3, 0.8]) + 0.05 * torch.rand(48, 64, 3, generator=g)
+    style[:, 54:] = 0.1 + 0.3 * torch.rand(48, 10, 3, generator=g)
+    lab = torch.zeros(48, 64, dtype=torch.long)
+    lab[:, 54:] = 1
+    mass = torch.tensor([0.9, 0.1])
+    region, rec = fall_back_poor_matches(style, lab, torch.tensor([1, 0]), mass)
+    assert region.tolist() == [GLOBAL, 0] and rec["fell_back"] == [0]
+    assert rec["predicted_before"][0] > rec["halves"][0] > rec["predicted_after"][0]
+    kept, rec = fall_back_poor_matches(style, lab, torch.tensor([0, 1]), mass)
+    assert kept.tolist() == [0, 1] and rec["fell_back"] == [] and rec["predicted_after"] == rec["predicted_before"]
+    # a fallen-back group matches every key position (the whole style), the other its region's
+    feats = torch.randn(1, 4, 6, 8, generator=g)
+    labels = torch.zeros(1, 6, 8, dtype=torch.long)
+    labels[..., 6:] = 1
+    t = SlicedTargets(feats, labels, projections=8).for_regions(region)
+    assert t.key_index(0) is None and len(t.key_index(1)) == 36
+
+
 def test_sliced_targets_for_regions_match_each_group_against_its_region():
     from ssgwarp.stylization.matching import SlicedTargets
 
@@ -1036,3 +1064,86 @@ def test_path_video_is_a_looping_gif_of_every_frame(tmp_path):
     with pytest.raises(InputError):
         write_video(tmp_path / "none.gif", [])
     assert not (tmp_path / "none.gif").exists()
+
+
+@pytest.mark.parametrize("period", [4, 9, 24])
+def test_a_style_with_a_known_stroke_period_measures_that_period(period):
+    """Issue 62: stripes of period p (oblique, on noise-free grey) measure p to within the 1/4-octave bin; the
+    auto style scale moves a period below the features' reach up into it and leaves one inside alone."""
+    import math
+
+    from ssgwarp.stylization.scale import PERIOD_MAX, PERIOD_MIN, auto_style_scale, stroke_period
+
+    y, x = torch.meshgrid(torch.arange(120.0), torch.arange(160.0), indexing="ij")
+    stripes = (0.5 + 0.3 * torch.sin(2 * math.pi * (0.8 * x + 0.6 * y) / period))[..., None].expand(-1, -1, 3)
+    assert abs(math.log2(stroke_period(stripes) / period)) <= 0.125 + 1e-9
+    # at views of the style's own size the period lands as measured; views half as large halve it
+    scale, at_views = auto_style_scale(stripes, 120, 160)
+    assert at_views == pytest.approx(stroke_period(stripes))
+    if at_views < PERIOD_MIN:
+        assert scale * at_views == pytest.approx(PERIOD_MIN)
+    elif at_views <= PERIOD_MAX:
+        assert scale == 1.0
+    half_scale, half = auto_style_scale(stripes, 60, 80)
+    assert half == pytest.approx(at_views / 2) and half_scale >= scale
+    with pytest.raises(InputError):
+        stroke_period(torch.rand(8, 8, 3))
+
+
+def test_style_scale_takes_auto_or_a_number_in_range():
+    import argparse
+
+    from ssgwarp.commands.stylize import style_scale_arg
+
+    assert style_scale_arg("auto") == "auto" and style_scale_arg(" AUTO ") == "auto" and style_scale_arg("2") == 2.0
+    with pytest.raises(argparse.ArgumentTypeError):
+        style_scale_arg("big")
+    st.Stage2Config(style_scale="auto").validate()
+    for bad in ("big", 5.0, float("nan")):
+        with pytest.raises(InputError, match="--style-scale"):
+            st.Stage2Config(style_scale=bad).validate()
+
+
+def test_the_consistency_probe_picks_a_weaker_strength_for_a_less_consistent_scene():
+    """Issue 62: a textured wall seen by five cameras, and the same wall with its Gaussians scattered in depth
+    (the colours as smooth, so the unpainted views agree about as well). Texture fixed in 3-D costs the scattered
+    scene more consistency, so the probe gives it a lower painting strength; a probe that costs nothing gives
+    the top of the range."""
+    from ssgwarp.raster.scene import GaussianScene
+    from ssgwarp.stylization.spread import STRENGTH_RANGE, consistency_probe, strength_for
+
+    g = torch.Generator().manual_seed(0)
+    n = 1200
+    xy = (torch.rand(n, 2, generator=g) - 0.5) * torch.tensor([2.4, 1.6])
+    rgb = torch.stack([0.5 + 0.3 * torch.sin(2 * xy[:, 0]), 0.5 + 0.3 * torch.cos(3 * xy[:, 1]),
+                       0.5 + 0.2 * xy[:, 0]], 1)
+    ratio = {}
+    for name, depth in (("wall", 0.0), ("scattered", 1.5)):
+        z = (torch.rand(n, 1, generator=g) - 0.5) * depth
+        scene = GaussianScene.from_points(torch.cat([xy, z], 1), rgb, opacity=0.9, scale=torch.full((n,), 0.04))
+        ratio[name] = consistency_probe(scene, ring(W=64, H=48, n=5), torch.ones(3), 2, period_px=8, amplitude=0.05)
+    assert 1.0 < ratio["wall"] < ratio["scattered"]
+    assert STRENGTH_RANGE[0] < strength_for(ratio["scattered"]) < strength_for(ratio["wall"]) <= STRENGTH_RANGE[1]
+    assert strength_for(1.0) == STRENGTH_RANGE[1] and strength_for(100.0) == STRENGTH_RANGE[0]
+
+
+def test_stylize_records_the_auto_style_scale_and_paint_strength(tmp_path, monkeypatch):
+    """``--style-scale auto --paint-strength auto``: the run measures the style's stroke period and probes the
+    scene, divides the smoothing by the strength it found, and says both in metrics.json."""
+    import json
+
+    from ssgwarp.cli import main
+
+    for var in ("SSGWARP_WEIGHTS", "SSGWARP_SD15", "SSGWARP_CONTROLNET_DEPTH", "SSGWARP_IP_ADAPTER",
+                "SSGWARP_IMAGE_ENCODER", "SSGWARP_VGG16"):
+        monkeypatch.delenv(var, raising=False)
+    run, style = _write_run(tmp_path)
+    out = tmp_path / "styled"
+    assert main(["stylize", str(run), "--style", str(style), "--out", str(out), "--iters", "2", "--keyviews", "2",
+                 "--max-side", "48", "--path-frames", "0", "--sheet-views", "1", "--device", "cpu", "--mode", "global",
+                 "--style-scale", "auto", "--paint-strength", "auto", "--tv-weight", "0.2", "--offline"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert "style scale auto:" in m["matching"] and "stroke period" in m["matching"]
+    s = m["strength"]
+    assert s["setting"] == "auto" and s["probe_ratio"] > 0 and 0.5 <= s["strength"] <= 2.0
+    assert s["tv_weight"] == pytest.approx(0.2 / s["strength"])

@@ -22,6 +22,16 @@ from ..stylization.stylize import StylizeOptions, _say
 __all__ = ["add_arguments", "run", "run_stage", "QUICK", "PAINT", "cpu_hint"]
 
 
+def style_scale_arg(text: str) -> float | str:
+    """``--style-scale``, ``--paint-strength``: ``auto`` or a number (its range is checked by :meth:`Stage2Config.validate`)."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in [0.25, 4] or auto, got {text!r}") from None
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene_dir", type=Path, metavar="RUN_OR_FILE",
                    help="a reconstruction run (scene.ply, cameras.json, data.json; groups/ when grouped), or a splat "
@@ -97,9 +107,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="group maps to feature resolution (default majority)")
     g.add_argument("--feature-scale", type=float, default=d.feature_scale,
                    help="resize images by this factor before the feature extractor (default 1)")
-    g.add_argument("--style-scale", type=float, default=d.style_scale, metavar="S",
+    g.add_argument("--style-scale", type=style_scale_arg, default=d.style_scale, metavar="S|auto",
                    help="size of the style's strokes and patterns in the views: the style image is resized so its "
-                        "shorter side is S x the views' (default 1; 2 paints them twice as large). Without Stage 1")
+                        "shorter side is S x the views' (default 1; 2 paints them twice as large; auto: the scale "
+                        "that puts the style's measured stroke period inside the features' reach, 6-24 view pixels). "
+                        "Without Stage 1")
+    g.add_argument("--paint-strength", type=style_scale_arg, default=d.paint_strength, metavar="S|auto",
+                   help="painting strength: the smoothing weights (--tv-weight, --blend-weight) are divided by S "
+                        "(default 1); auto: S from a 3-D consistency probe of the scene at the start of Stage 2, "
+                        "weaker where painted texture costs the scene more consistency (docs/stylize.md)")
     g.add_argument("--direct", action="store_true", help="direct back-propagation instead of deferred")
     g.add_argument("--chunk", type=int, default=d.chunk, help="similarity entries per nearest-neighbour block")
     g.add_argument("--nn-precision", default=d.nn_precision, choices=("auto", "fp32", "bf16", "fp16"),

@@ -382,7 +382,8 @@ def transfer_colors(scene: GaussianScene, cameras: Cameras, target: torch.Tensor
     (rendered without background and divided by alpha, so that the map is exact on them); pixels with
     alpha < 0.5 (background) are left out. ``target_groups [num_groups]``: group ``g`` takes the target
     pixels labelled ``target_groups[g]`` instead of ``g`` (the style image's regions assigned to the groups,
-    :mod:`ssgwarp.stylization.regions`; several groups may share one; :func:`region_target`). ``keep_detail``: stretch the maps'
+    :mod:`ssgwarp.stylization.regions`; several groups may share one; :func:`region_target`; a negative entry: the
+    group's own pixels mapped to the whole target, a region that was a poor match). ``keep_detail``: stretch the maps'
     lightness so that the
     scene's fine texture is not flattened below the style's nor the capture's (:func:`detail_gain`; module
     docs); ``capture``: the unstylized scene whose texture bounds the stretch (default: ``scene`` itself;
@@ -398,8 +399,8 @@ def transfer_colors(scene: GaussianScene, cameras: Cameras, target: torch.Tensor
     src = pixel_stats(renders, alphas, labels if grouped else None)
     tgt = pixel_stats(target.to(scene.device), None, target_labels if grouped else None)
     if grouped and target_groups is not None:
-        tgt = (tgt[0], {g: region_target(tgt[1][int(t)], tgt[0]) for g, t in enumerate(target_groups)
-                        if int(t) in tgt[1]})
+        tgt = (tgt[0], {g: tgt[0] if int(t) < 0 else region_target(tgt[1][int(t)], tgt[0])
+                        for g, t in enumerate(target_groups) if int(t) < 0 or int(t) in tgt[1]})
     glob = fit_transform(src[0], tgt[0], max_gain=max_gain)
     if grouped:
         transforms, how = fit_group_transforms(src, tgt, int(num_groups), min_pixels, max_gain=max_gain)

@@ -13,6 +13,16 @@ spread their mass over the regions in proportion to the regions' sizes, so the s
 all used. Stage 2 then matches group ``g``'s features (and colours) against region ``region[g]``
 only (:meth:`ssgwarp.stylization.matching.SlicedTargets.for_regions`, :func:`ssgwarp.stylization.color.transfer_colors`'s
 ``target_groups``): each instance takes its own part of the style and group boundaries stay crisp.
+
+A region can be a poor match for its group: a large group given a small or atypical region makes the whole view
+look like that part of the painting, farther from the style than the unstylized scene (measured: issue 62). So the
+assignment is checked before it is used (:func:`fall_back_poor_matches`): the view it would give is predicted as
+the mixture of the regions' pixels in proportion to their groups' shares of the views, and scored against the whole
+style with the weight-free colour and texture distances (:class:`ssgwarp.evaluation.style_distance.StyleDistance`'s
+measures; a region's colours as the colour transfer gives them: its mean with part of the whole style's spread).
+While that mixture is farther from the style than half of the style image is from the whole (a render
+that were a piece of the painting), the group whose switch to the whole style brings the mixture closest falls
+back to global matching (region ``-1``: Stage 2 and the colour transfer then match it against the whole style).
 """
 from __future__ import annotations
 
@@ -23,6 +33,8 @@ import torch.nn.functional as F
 
 from ..core.imaging import rgb_to_lab
 from ..errors import InputError
+from ..evaluation.style_distance import filter_responses, sliced_wasserstein, texture_levels
+from .color import REGION_SPREAD
 
 MAX_REGIONS = 6        # a style image rarely has more parts than this that read as distinct
 KMEANS_ITERS = 25
@@ -164,6 +176,118 @@ def assign_groups(group_stats: torch.Tensor, group_mass: torch.Tensor, region_st
     return out
 
 
+MIXTURE_SAMPLES = 4096   # pixels drawn for the predicted view (fall_back_poor_matches)
+GLOBAL = -1              # the region of a group that falls back to the whole style
+
+
+def _region_features(style: torch.Tensor, labels: torch.Tensor, count: int) -> tuple[list, list]:
+    """Per label ``0..count-1`` and last the whole image (index ``count``): Lab colours ``[n, 3]`` and texture
+    responses per pyramid level (as :class:`~ssgwarp.evaluation.style_distance.StyleDistance` takes them)."""
+    lab = rgb_to_lab(style.float().clamp(0, 1)).double()
+    levels = texture_levels(*style.shape[:2])
+    cols, tex = [], []
+    for r in list(range(count)) + [None]:
+        mask = None if r is None else labels == r
+        cols.append(lab.reshape(-1, 3) if mask is None else lab[mask])
+        tex.append(filter_responses(lab[..., 0], levels, mask=mask))
+    return cols, tex
+
+
+def _draw(x: torch.Tensor, n: int, seed: int) -> torch.Tensor:
+    """``n`` rows of ``x`` spread evenly over a seeded permutation (with repeats when ``n`` > rows)."""
+    g = torch.Generator(device="cpu").manual_seed(seed)
+    perm = torch.randperm(len(x), generator=g).to(x.device)
+    return x[perm[(torch.arange(n, device=x.device) * len(x)) // max(n, 1) % len(x)]]
+
+
+def _counts(weights: list[float], n: int) -> list[int]:
+    """``n`` split in proportion to ``weights`` (largest remainders: the counts sum to ``n``)."""
+    raw = [w * n / sum(weights) for w in weights]
+    out = [int(x) for x in raw]
+    for i in sorted(range(len(raw)), key=lambda i: out[i] - raw[i])[: n - sum(out)]:
+        out[i] += 1
+    return out
+
+
+def _distance(parts: list[tuple[torch.Tensor, int]], whole: torch.Tensor, projections: int, seed: int) -> float:
+    """Sliced Wasserstein distance between ``MIXTURE_SAMPLES`` rows drawn from ``parts`` (rows, count) and as many
+    drawn from ``whole`` (equal sizes: the exact sorted-sample comparison)."""
+    mix = torch.cat([_draw(x, n, seed) for x, n in parts if n > 0])
+    return float(sliced_wasserstein(mix, _draw(whole, len(mix), seed + 1), projections))
+
+
+def mixture_distance(cols: list, tex: list, region: list[int], mass: list[float], seed: int = 0) -> tuple[float, float]:
+    """``(colour, texture)`` distance to the whole style (the last entry of ``cols`` / ``tex``) of the view
+    predicted for groups of shares ``mass`` taking the regions ``region`` (:data:`GLOBAL`: the whole style)."""
+    pick = [(len(cols) - 1 if r == GLOBAL else r, m) for r, m in zip(region, mass) if m > 0]
+    n = _counts([m for _, m in pick], MIXTURE_SAMPLES)
+    # a region's colours as the colour transfer gives them (region_target): its mean, and a REGION_SPREAD share of
+    # the whole style's spread around it (the whole style's pixels moved to the region's mean)
+    whole = cols[-1]
+    parts = [p for (r, _), k in zip(pick, n) for p in (
+        [(cols[r], k)] if r == len(cols) - 1 else
+        [(cols[r], k - round(k * REGION_SPREAD)), (whole - whole.mean(0) + cols[r].mean(0), round(k * REGION_SPREAD))])]
+    c = _distance(parts, whole, 64, seed)
+    per = [_distance([(tex[r][k], c_) for (r, _), c_ in zip(pick, n) if len(tex[r]) > k], tex[-1][k], 32, seed)
+           for k in range(len(tex[-1]))]
+    return c, (sum(per) / len(per) if per else 0.0)
+
+
+def halves_distance(cols: list, tex: list, style_shape: tuple, seed: int = 0) -> tuple[float, float]:
+    """``(colour, texture)``: the mean distance of the style's two halves (across its longer side) to the whole,
+    in :func:`mixture_distance`'s terms (as :meth:`StyleDistance.halves`)."""
+    H, W = style_shape[:2]
+    idx = torch.arange(H * W).reshape(H, W)
+    halves = [idx[:, : W // 2], idx[:, W // 2:]] if W >= H else [idx[: H // 2], idx[H // 2:]]
+    c = [_distance([(cols[-1][h.reshape(-1).to(cols[-1].device)], MIXTURE_SAMPLES)], cols[-1], 64, seed)
+         for h in halves]
+    # texture: the halves' responses at each level, the level's grid split the same way
+    t = []
+    for h in (0, 1):
+        per = []
+        for k, resp in enumerate(tex[-1]):
+            hk, wk = (H + 2 ** k - 1) // 2 ** k, (W + 2 ** k - 1) // 2 ** k
+            if hk * wk != len(resp):
+                break
+            grid = resp.reshape(hk, wk, -1)
+            part = (grid[:, : wk // 2] if h == 0 else grid[:, wk // 2:]) if W >= H else \
+                (grid[: hk // 2] if h == 0 else grid[hk // 2:])
+            per.append(_distance([(part.reshape(-1, resp.shape[1]), MIXTURE_SAMPLES)], resp, 32, seed))
+        t.append(sum(per) / len(per) if per else 0.0)
+    return sum(c) / 2, sum(t) / 2
+
+
+def fall_back_poor_matches(style: torch.Tensor, labels: torch.Tensor, region: torch.Tensor,
+                           group_mass: torch.Tensor, seed: int = 0) -> tuple[torch.Tensor, dict]:
+    """``(region with poor matches set to GLOBAL, record)`` (module docs): groups fall back to the whole style,
+    one at a time, the one that brings the predicted view closest first, while the predicted view is farther
+    from the style than its halves (colour or texture). The record holds the predicted distances before and
+    after, the halves' and the groups that fell back."""
+    count = int(labels.max()) + 1
+    cols, tex = _region_features(style, labels, count)
+    ref = halves_distance(cols, tex, tuple(style.shape), seed)
+    mass = [float(m) for m in group_mass]
+    out = [int(r) for r in region]
+
+    def score(d: tuple[float, float]) -> float:
+        return d[0] / max(ref[0], 1e-6) + d[1] / max(ref[1], 1e-6)
+
+    now = mixture_distance(cols, tex, out, mass, seed)
+    record = {"predicted_before": list(now), "halves": list(ref), "fell_back": []}
+    while now[0] > ref[0] or now[1] > ref[1]:
+        tries = {g: mixture_distance(cols, tex, out[:g] + [GLOBAL] + out[g + 1:], mass, seed)
+                 for g, r in enumerate(out) if r != GLOBAL and mass[g] > 0}
+        if not tries:
+            break
+        g = min(tries, key=lambda k: score(tries[k]))
+        if score(tries[g]) >= score(now):
+            break
+        out[g], now = GLOBAL, tries[g]
+        record["fell_back"].append(g)
+    record["predicted_after"] = list(now)
+    return torch.tensor(out, dtype=torch.long), record
+
+
 def style_regions(style: torch.Tensor, renders: torch.Tensor, view_labels: torch.Tensor, num_groups: int,
                   alphas: Optional[torch.Tensor] = None, regions: Optional[int] = None,
                   seed: int = 0) -> dict:
@@ -172,8 +296,9 @@ def style_regions(style: torch.Tensor, renders: torch.Tensor, view_labels: torch
     ``renders [V, H', W', 3]`` / ``view_labels [V, H', W']``: the scene's renders and group maps (training
     views), ``alphas [V, H', W']``: scene pixels (>= 0.5) only. ``regions``: how many (default
     ``min(num_groups, MAX_REGIONS)``, at least 2 when there are 2 groups or more). Returns ``{"labels":
-    [H, W] region ids, "region": [num_groups] region of each group, "regions": count, "group_mass",
-    "region_mass"}``."""
+    [H, W] region ids, "region": [num_groups] region of each group (:data:`GLOBAL` for a group whose region is
+    a poor match, :func:`fall_back_poor_matches`), "regions": count, "group_mass", "region_mass", "fallback":
+    the check's record}``."""
     if num_groups < 1:
         raise InputError("style_regions: no groups")
     k = max(1, min(num_groups, MAX_REGIONS)) if regions is None else int(regions)
@@ -183,4 +308,6 @@ def style_regions(style: torch.Tensor, renders: torch.Tensor, view_labels: torch
     keep = None if alphas is None else alphas >= 0.5
     g_stats, g_mass = label_stats(renders, view_labels, num_groups, keep)
     region = assign_groups(g_stats, g_mass, r_stats, r_mass)
-    return {"labels": labels, "region": region, "regions": count, "group_mass": g_mass, "region_mass": r_mass}
+    region, record = fall_back_poor_matches(style, labels, region, g_mass, seed)
+    return {"labels": labels, "region": region, "regions": count, "group_mass": g_mass, "region_mass": r_mass,
+            "fallback": record}

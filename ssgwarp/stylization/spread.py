@@ -158,3 +158,66 @@ class ViewPairs:
         ref = self.reference.get((view, other_view))
         e = None if ref is None else self.error(image, view, other, other_view)
         return image.new_zeros(()) if e is None else torch.relu(e / ref - self.budget)
+
+
+# ----------------------------------------------------------------------------- the consistency probe (--paint-strength auto)
+PROBE_PERIOD = 4.0        # view pixels at the scene's median depth
+PROBE_AMPLITUDE = 0.3     # standard deviation of the probe's grey pattern (colour 0..1)
+STRENGTH_TARGET = 1.2     # the RMSE ratio to the unpainted scene that painted texture may cost (issue 62's target)
+STRENGTH_RANGE = (0.5, 2.0)
+
+
+def pixel_size(scene, cameras: Cameras) -> float:
+    """World size of one pixel at the scene's median depth in the first camera."""
+    xyz = scene.means.detach().double().cpu()
+    X = torch.cat([xyz, torch.ones(len(xyz), 1, dtype=xyz.dtype)], 1) @ cameras.viewmats[0].double().cpu().T
+    z = X[:, 2][X[:, 2] > 0]
+    return float(z.median() if len(z) else 1.0) / float(cameras.Ks[0, 0, 0])
+
+
+def probe_scene(scene, period_px: float, amplitude: float, pixel: float, seed: int = 0):
+    """``scene`` with ``amplitude`` x a unit-variance sum of six seeded 3-D sinusoids of ``period_px`` pixels (of
+    world size ``pixel`` each) added to its base colour (grey) and its SH bands above 0 zeroed: texture that is
+    consistent between views by construction."""
+    from ..raster.scene import SH_C0
+
+    g = torch.Generator().manual_seed(seed)
+    xyz = scene.means.detach().double().cpu()
+    k = torch.nn.functional.normalize(torch.randn(6, 3, generator=g, dtype=torch.float64), dim=1)
+    k = k * (2 * math.pi / (period_px * pixel))
+    phase = torch.rand(6, generator=g, dtype=torch.float64) * 2 * math.pi
+    pattern = (torch.sin(xyz @ k.T + phase).sum(1) / math.sqrt(3)).to(scene.sh_dc)
+    rest = None if scene.sh_rest is None else torch.zeros_like(scene.sh_rest)
+    return scene.replace(sh_dc=scene.sh_dc + (amplitude * pattern / SH_C0)[:, None], sh_rest=rest)
+
+
+@torch.no_grad()
+def consistency_probe(scene, cameras: Cameras, background: Optional[torch.Tensor] = None, neighbours: int = 4,
+                      period_px: float = PROBE_PERIOD, amplitude: float = PROBE_AMPLITUDE, seed: int = 0) -> float:
+    """The view-pair RMSE ratio that texture fixed in 3-D (:func:`probe_scene`) costs on ``scene``'s geometry:
+    ``sqrt(sum of the pairs' squared errors painted / unpainted)`` over each training view and its ``neighbours``
+    nearest (:class:`ViewPairs`' warp). 1: texture of that contrast and period costs no consistency; a scene whose
+    Gaussians blend several depths pays more."""
+    from ..raster.rendering import render_views
+
+    bg = None if background is None else [float(x) for x in background.reshape(-1)[:3]]
+    plain = scene.replace(sh_rest=None if scene.sh_rest is None else torch.zeros_like(scene.sh_rest))
+    base = render_views(plain, cameras, bg)
+    pairs = ViewPairs(cameras, base.depth, base.alpha, ViewPairs.nearest(cameras, neighbours))
+    painted = render_views(probe_scene(plain, period_px, amplitude, pixel_size(scene, cameras), seed), cameras, bg).rgb
+    e0 = e1 = 0.0
+    for v in range(len(cameras)):
+        for u in pairs.neighbours[v]:
+            a, b = pairs.error(base.rgb[v], v, base.rgb[u], u), pairs.error(painted[v], v, painted[u], u)
+            if a is not None and b is not None:
+                e0, e1 = e0 + float(a), e1 + float(b)
+    return math.sqrt(e1 / e0) if e0 > 0 else 1.0
+
+
+def strength_for(ratio: float, target: float = STRENGTH_TARGET) -> float:
+    """The painting strength for a scene whose probe costs ``ratio``: the share of the probe's contrast that
+    keeps the ratio at ``target`` when painted error adds to the scene's own (``r(s)^2 = 1 + s^2 (ratio^2 - 1)``),
+    ``sqrt((target^2 - 1) / (ratio^2 - 1))``, within :data:`STRENGTH_RANGE` (its top when painting costs nothing)."""
+    if ratio <= 1.0:
+        return STRENGTH_RANGE[1]
+    return min(max(math.sqrt((target ** 2 - 1) / (ratio ** 2 - 1)), STRENGTH_RANGE[0]), STRENGTH_RANGE[1])

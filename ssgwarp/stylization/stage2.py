@@ -129,7 +129,11 @@ class Stage2Config:
             extractor (speed/accuracy knob; 1 = full resolution).
         style_scale: size of the style image against the views (its shorter side = ``style_scale`` x the views'
             shorter side, :func:`ssgwarp.core.imaging.fit_style`): above 1 the style's strokes and patterns are
-            painted larger, below 1 smaller. Without Stage 1 only (the stylized key views are views already).
+            painted larger, below 1 smaller; ``"auto"``: :func:`ssgwarp.stylization.scale.auto_style_scale`.
+            Without Stage 1 only (the stylized key views are views already).
+        paint_strength: painting strength: the smoothing weights (``tv_weight``, ``blend_weight``) are divided by it;
+            ``"auto"``: chosen per scene at the start of Stage 2 from the 3-D consistency probe
+            (:func:`ssgwarp.stylization.spread.consistency_probe`, :func:`~ssgwarp.stylization.spread.strength_for`).
         deferred: deferred back-propagation (False: direct, for comparison).
         chunk: similarity entries per block of the nearest-neighbour search.
         nn_precision: dtype of the nearest-neighbour search (``auto``: bf16 on CUDA, fp32 on CPU).
@@ -163,7 +167,8 @@ class Stage2Config:
     background: str = "transfer"
     label_mode: str = "majority"
     feature_scale: float = 1.0
-    style_scale: float = 1.0
+    style_scale: float | str = 1.0
+    paint_strength: float | str = 1.0
     deferred: bool = True
     chunk: int = DEFAULT_CHUNK
     nn_precision: str = "auto"
@@ -193,8 +198,9 @@ class Stage2Config:
             raise InputError(f"--densify-views {self.densify_views}: must be >= 1")
         if not 0 < self.feature_scale <= 4:
             raise InputError(f"--feature-scale {self.feature_scale}: must be in (0, 4]")
-        if not (math.isfinite(self.style_scale) and 0.25 <= self.style_scale <= 4):
-            raise InputError(f"--style-scale {self.style_scale}: must be in [0.25, 4] (1: the style fits the views)")
+        for k, v in (("style-scale", self.style_scale), ("paint-strength", self.paint_strength)):
+            if v != "auto" and not (isinstance(v, (int, float)) and math.isfinite(v) and 0.25 <= v <= 4):
+                raise InputError(f"--{k} {v}: must be auto or in [0.25, 4] (1: as set)")
         if self.sw_projections < 1:
             raise InputError(f"--sw-projections {self.sw_projections}: must be >= 1")
         if self.color_max_gain is not None and not (math.isfinite(self.color_max_gain) and self.color_max_gain > 0):

@@ -12,6 +12,7 @@ command line (options, ``--quick``, the CPU hint) is :mod:`ssgwarp.commands.styl
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -132,12 +133,22 @@ class Inputs:
     def train_cams(self) -> Cameras:
         return self.cams[list(self.train_ids)]
 
+    @functools.cached_property
+    def style_scale(self) -> tuple[float, Optional[float]]:
+        """``(the style scale used, the style's stroke period in view pixels at scale 1 when measured)``:
+        ``--style-scale``, or with ``auto`` :func:`ssgwarp.stylization.scale.auto_style_scale`."""
+        if self.stage2.style_scale != "auto":
+            return float(self.stage2.style_scale), None
+        from .scale import auto_style_scale
+
+        return auto_style_scale(self.style.float().cpu(), self.cams.height, self.cams.width)
+
     @property
     def style_at_views(self) -> torch.Tensor:
         """The style ``[1, H, W, 3]`` as the style loss and the colour transfer take it (:func:`fit_style`,
         ``--style-scale``)."""
         return fit_style(self.style.to(self.scene.dtype), self.cams.height, self.cams.width,
-                         self.stage2.style_scale).permute(0, 2, 3, 1)
+                         self.style_scale[0]).permute(0, 2, 3, 1)
 
     def say(self, msg: str) -> None:
         _say(msg, self.progress)
@@ -171,6 +182,7 @@ class Stage2Output:
     densify: Optional[dict]
     background: torch.Tensor     # the stylized scene's background (Stage2Config.background)
     sh: dict                     # metrics.json's ``sh``: the SH degree written and why (:func:`_sh_record`)
+    strength: Optional[dict] = None   # metrics.json's ``strength``: the painting strength and its probe (--paint-strength)
 
 
 def _open(scene_dir: Path, style_path: Path, out: Path, stage2: Stage2Config, stage1, opts: StylizeOptions,
@@ -321,7 +333,7 @@ def _stage2_loss(r: Inputs, t: Targets, kv, content_ref: torch.Tensor, alphas: t
         matching = (f"per group ({r.num_groups} groups) against {len(kv)} stylized key views"
                     if r.classifier is not None else f"global against {len(kv)} stylized key views (no groups)")
         if stage2.style_scale != 1:
-            unused = (f"--style-scale {stage2.style_scale:g} not used: the stylized key views are views already "
+            unused = (f"--style-scale {stage2.style_scale} not used: the stylized key views are views already "
                       "(--mode global matches the style image)")
             r.say(unused)
             matching += f" ({unused})"
@@ -329,9 +341,11 @@ def _stage2_loss(r: Inputs, t: Targets, kv, content_ref: torch.Tensor, alphas: t
             None, None, matching
     if t.regions is not None:
         targets = build_targets(r.extractor, r.style_at_views, t.key_labels, stage2).for_regions(t.regions["region"])
-        used = len(set(t.regions["region"].tolist()))
+        used = len(set(t.regions["region"].tolist()) - {-1})
+        back = t.regions.get("fallback", {}).get("fell_back", [])
         matching = (f"per group ({r.num_groups} groups) against {t.regions['regions']} regions of the style image "
-                    f"({used} used; Stage 1 did not run)")
+                    f"({used} used; Stage 1 did not run)" + (f"; groups {', '.join(map(str, sorted(back)))} against "
+                    "the whole style image (their regions were poor matches)" if back else ""))
         r.say(f"Stage 1 did not run: Stage 2 matches each of the {r.num_groups} groups against its own region "
               f"of the style image")
         return ViewLoss(r.extractor, targets, stage2, view_labels=t.view_labels, **ref), \
@@ -349,7 +363,9 @@ def _stage2(r: Inputs, rec: Record, kv, stylized) -> Optional[Stage2Output]:
     """Colour transfer, the optimisation and colour transfer again; writes ``scene.ply`` and ``loss.png``."""
     from ..formats.ply import write_ply
 
-    stage2, t0 = r.stage2, time.perf_counter()
+    t0 = time.perf_counter()
+    r, strength = _strength(r)
+    stage2 = r.stage2
     originals = render_batched(r.scene, r.train_cams, r.bg, desc="original renders" if r.progress else None)
     t = targets_for(r, kv, stylized, originals)
     transfer: dict = {"setting": stage2.color_transfer,
@@ -361,6 +377,9 @@ def _stage2(r: Inputs, rec: Record, kv, stylized) -> Optional[Stage2Output]:
     content_ref = originals if work is r.scene else render_batched(work, r.train_cams, bg)
     alphas = render_alphas(r.scene, r.train_cams)
     loss, ft_images, ft_cams, matching = _stage2_loss(r, t, kv, content_ref, alphas)
+    if stage2.style_scale == "auto" and not t.use_keys:
+        matching += (f"; style scale auto: {r.style_scale[0]:.2f} (the style's stroke period is "
+                     f"{r.style_scale[1]:.1f} view pixels at scale 1)")
     densified = None
     if stage2.densify > 0 and loss is not None:
         work, densified, t = densify_run(r, t, work, loss, bg)
@@ -389,7 +408,31 @@ def _stage2(r: Inputs, rec: Record, kv, stylized) -> Optional[Stage2Output]:
     rec.mark("stage2", seconds=rec.times["stage2"], iters=stage2.iters)
     plot_losses(r.out / "loss.png", res.history, f"Stage 2 ({stage2.mode}, {r.extractor.name})")
     return Stage2Output(styled, res, originals, matching, transfer, densified, bg,
-                        _sh_record(styled, sh_source, stage2.sh_rest))
+                        _sh_record(styled, sh_source, stage2.sh_rest), strength)
+
+
+def _strength(r: Inputs) -> tuple[Inputs, Optional[dict]]:
+    """``--paint-strength``: the inputs with the smoothing weights divided by the painting strength, and its record
+    (with ``auto``: the consistency probe's ratio, :func:`ssgwarp.stylization.spread.consistency_probe`)."""
+    stage2 = r.stage2
+    if stage2.paint_strength == 1 or stage2.mode == "finetune":
+        return r, None
+    rec: dict = {"setting": stage2.paint_strength}
+    if stage2.paint_strength == "auto":
+        from .spread import PROBE_AMPLITUDE, PROBE_PERIOD, STRENGTH_TARGET, consistency_probe, strength_for
+
+        ratio = consistency_probe(r.scene, r.train_cams, r.bg, stage2.consistency_neighbours, seed=stage2.seed)
+        rec.update(probe_ratio=ratio, probe_period_px=PROBE_PERIOD, probe_amplitude=PROBE_AMPLITUDE,
+                   target=STRENGTH_TARGET)
+        s = strength_for(ratio)
+    else:
+        s = float(stage2.paint_strength)
+    tv = tv_weight_for(stage2, r.extractor) / s
+    rec.update(strength=s, tv_weight=tv, blend_weight=stage2.blend_weight / s)
+    r.say(f"painting strength {s:.2f}" + (f" (the consistency probe costs {rec['probe_ratio']:.2f}x on this scene)"
+                                          if "probe_ratio" in rec else "") + f": TV {tv:.3g}, blend spread "
+          f"{rec['blend_weight']:.3g}")
+    return dataclasses.replace(r, stage2=dataclasses.replace(stage2, tv_weight=tv, blend_weight=rec["blend_weight"])), rec
 
 
 def _renders(r: Inputs, rec: Record, styled: GaussianScene, bg: torch.Tensor) -> torch.Tensor:
@@ -492,7 +535,7 @@ def _metrics(r: Inputs, rec: Record, s2: Stage2Output, renders: torch.Tensor, kv
         "background": [float(v) for v in s2.background],
         "groups": r.num_groups, "gaussians": len(styled), "densify": s2.densify, "views": len(train_ids),
         "resolution": [r.cams.width, r.cams.height], "optimised": trainable_names(stage2, r.scene),
-        "sh": s2.sh,
+        "sh": s2.sh, "strength": s2.strength,
         "config": asdict(stage2),
         **batch_record(s2.result),
         "seconds": rec.times,
