@@ -54,6 +54,8 @@ class Recipe:
     prune_world: float = 0.1           # prune when max scale > this x extent (after the first reset)
     prune_screen: float = 0.0          # prune when the screen radius exceeded this fraction of max(W, H)
                                        # (after the first reset); 0: off
+    far_split_px: float = 8.0          # far Gaussians wider than this on screen (pixels) get their gradient
+                                       # statistic scaled by their width / this (far_field.py); 0: off
     mcmc_growth: float = 0.05          # mcmc: Gaussians added per refinement, fraction of the count
     noise_lr: float = 5e5              # mcmc: position noise scale (times the position learning rate)
     opacity_reg: Optional[float] = None  # weight of mean(opacity) in the loss
