@@ -353,14 +353,10 @@ INSIDE_OUT_DOC = """The procedural inside-out capture's held-out error region by
 ``ssgwarp.procedural.build_inside_out(railing=True)``: ground, a ring of buildings, a sky dome, a railing near the
 rig; cameras in the middle looking outward, every 8th view held out. The truth's object ids give each held-out
 pixel its region: PSNR per region (ground, buildings, sky, railing), of the whole image and of the floaters (opaque
-pixels, alpha > 0.5, rendered nearer than half their true depth), their share of the pixels and of the error.
-``--runs``: ``SKY:ITERS[:FAR]``, SKY ``reconstruct --sky``'s auto / on / off (none: the trainer's default), FAR
-``Recipe.far_split_px`` (far-field densification, ``ssgwarp.reconstruction.far_field``; 0: off; default 8);
-``--recipe`` sets other Recipe fields for every run. "far Gaussians": those 5 extents or more from the cameras.
+pixels, alpha > 0.5, rendered nearer than half their true depth), their share of the pixels and of the error. ``--runs``:
+``SKY:ITERS[:FAR]``: SKY ``--sky`` auto / on / off (none: the default), FAR ``Recipe.far_split_px`` (0: off).
 
     python benchmarks/captures.py inside-out --runs off:150 on:150 --width 48 --views 16 --density 0.25 --device cpu
-    python benchmarks/captures.py inside-out --runs off:400:0 off:400:8 --width 48 --views 16 --density 0.25 \
-        --recipe init_max_points=5000 refine_start=50 refine_every=50 refine_stop=300 --device cpu
 """
 REGIONS = {"ground": 0, "buildings": 1, "sky": 2, "railing": 3}
 
@@ -471,7 +467,7 @@ def inside_out_main(argv=None) -> int:
 
     from ssgwarp.capture.datasets import load_dataset
     from ssgwarp.core.fileio import write_image
-    from ssgwarp.procedural import build_inside_out, render_views, rig_cameras, write_transforms_dataset
+    from ssgwarp.procedural import build_inside_out, render_views, rig_cameras, surface_points, write_transforms_dataset
     from ssgwarp.raster.rendering import render_views as render_depth
     from ssgwarp.reconstruction.far_field import FAR_EXTENTS
     from ssgwarp.reconstruction.recipe import Recipe
@@ -480,8 +476,8 @@ def inside_out_main(argv=None) -> int:
     p.add_argument("--views", type=int, default=36, help="views of the rig (every 8th held out)")
     p.add_argument("--density", type=float, default=1.0, help="ground-truth Gaussians (x about 30,000)")
     p.add_argument("--renders", type=Path, default=None, help="one PNG per run: held-out truth above, render below")
-    p.add_argument("--recipe", nargs="+", default=[], metavar="KEY=VALUE",
-                   help="Recipe fields for every run, e.g. init_max_points=5000 refine_every=50 (numbers)")
+    p.add_argument("--points", type=int, default=0, help="N points of the truth (procedural.surface_points)")
+    p.add_argument("--recipe", nargs="+", default=[], metavar="KEY=NUMBER", help="Recipe fields for every run")
     a = p.parse_args(argv)
     width = a.width or 96
     gt = build_inside_out(a.density, railing=True)
@@ -491,25 +487,19 @@ def inside_out_main(argv=None) -> int:
     folder = a.work / f"insideout_railing_{width}_{a.views}"
     if not (folder / "transforms.json").is_file():
         write_transforms_dataset(folder, images, cams)
-    data, rows = load_dataset(folder, progress=False, device=a.device), []
-    fields = {}
-    for kv in a.recipe:
-        k, _, v = kv.partition("=")
-        if k not in Recipe.__dataclass_fields__ or not v:
-            raise SystemExit(f"--recipe {kv!r}: expected FIELD=NUMBER with a Recipe field")
-        fields[k] = float(v) if "." in v or "e" in v else int(v)
+    data = load_dataset(folder, progress=False, device=a.device)
+    if a.points:  # a stand-in for SfM points (default: the loader's)
+        data.points, data.points_source = surface_points(gt, a.points), "colmap"
+    fields, rows = {k: float(v) if "." in v or "e" in v else int(v) for k, _, v in (x.partition("=") for x in a.recipe)}, []
     for spec in a.runs:
-        sky, _, rest = spec.partition(":")
-        iters, _, far = rest.partition(":")
-        recipe = Recipe(**fields, **({} if far == "" else {"far_split_px": float(far)}))
-        _, tr = trained(f"{sky}:{iters}", "SKY:ITERS[:FAR_SPLIT_PX]", lambda _: data, a, recipe=recipe,
+        sky, iters, far = (spec.split(":") + ["", ""])[:3]
+        recipe = Recipe(**fields, **({"far_split_px": float(far)} if far else {}))
+        _, tr = trained(f"{sky}:{iters}", "SKY:ITERS[:FAR]", lambda _: data, a, recipe=recipe,
                         **({} if sky == "none" else {"sky": sky}))
-        rec = tr.sky_record
-        center, means = tr.strategy.center, tr.scene.means.detach()
-        finish({"sky": sky + ("" if rec is None else f" ({'on' if rec['use'] else 'off'})"), "sky_record": rec,
-                "far_split_px": recipe.far_split_px if tr.strategy.far is not None else 0, "recipe": fields,
-                "far_gaussians": None if center is None else int(
-                    ((means - center.to(means)).norm(dim=1) >= FAR_EXTENTS * tr.extent).sum()),
+        finish({"sky": sky + ("" if (rec := tr.sky_record) is None else f" ({'on' if rec['use'] else 'off'})"),
+                "sky_record": rec, "points": a.points or data.points_source, "recipe": fields, "far_split_px": recipe.far_split_px
+                if tr.strategy.far else 0, "far_gaussians": None if tr.strategy.center is None else int(((  # 5 extents out
+                    tr.scene.means.detach() - tr.strategy.center).norm(dim=1) >= FAR_EXTENTS * tr.extent).sum()),
                 "iters": tr.iters, "width": width, "views": a.views, "psnr": tr.evaluate()["psnr"],
                 **region_errors(tr, ids, depth),
                 "backdrop": None if tr.backdrop is None else tr.backdrop.record()}, tr, a, rows)
@@ -521,12 +511,10 @@ def inside_out_main(argv=None) -> int:
             write_image(a.renders / f"{spec.replace(':', '_')}.png", torch.cat([truth, pred], 0))
     for r in rows:
         r["floaters"] = f"{100 * r['floater_share']:.1f} %, {r['psnr_floaters']:.2f} dB"
-    print(md_table(rows, [("sky", "sky"), ("far_split_px", "far split (px)"), ("iters", "steps"),
-                          ("psnr", "PSNR all"), ("psnr_ground", "ground"),
-                          ("psnr_buildings", "buildings"), ("psnr_sky", "sky"), ("psnr_railing", "railing"),
-                          ("floaters", "floaters (share, PSNR)"), ("gaussians", "Gaussians"),
-                          ("far_gaussians", "far Gaussians"),
-                          ("train_seconds", "train (s)"), ("machine", "machine")]))
+    print(md_table(rows, [("sky", "sky"), ("far_split_px", "far split (px)"), ("iters", "steps"), ("psnr", "PSNR all"),
+                          ("psnr_ground", "ground"), ("psnr_buildings", "buildings"), ("psnr_sky", "sky"),
+                          ("psnr_railing", "railing"), ("floaters", "floaters (share, PSNR)"), ("gaussians", "Gaussians"),
+                          ("far_gaussians", "far Gaussians"), ("train_seconds", "train (s)"), ("machine", "machine")]))
     return 0
 
 

@@ -1,6 +1,6 @@
 """Far-field densification (ssgwarp.reconstruction.far_field): the footprint it measures is the rasterizer's, a wide
 far Gaussian whose gradient cancels over its footprint is split, near Gaussians and captures without a far field keep
-the 3DGS rule, and on the procedural inside-out capture the buildings get Gaussians they did not get before."""
+the 3DGS rule, and the rule is on for the procedural inside-out capture and off for an object-centred one."""
 from __future__ import annotations
 
 import math
@@ -101,3 +101,5 @@ def test_the_rule_is_on_for_the_inside_out_capture_and_off_where_there_is_no_far
     t = Trainer(data, iters=10, sh_degree=0, progress=False, device="cpu")
     assert t.backdrop.layout == "object-centred" and not t.backdrop.use
     assert t.strategy.far is None and t.strategy.center is None
+
+

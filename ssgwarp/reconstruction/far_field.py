@@ -4,10 +4,8 @@
 Gaussian of a backdrop (:mod:`ssgwarp.reconstruction.backdrop`) starts as wide as the gaps of a sparse far cloud:
 tens to hundreds of pixels on screen over a textured facade. Each pixel pulls its mean a different way and the
 pulls cancel, so its mean gradient stays below the threshold however much detail it blurs, and it is never split;
-the budget goes to the near Gaussians instead (measured on the procedural inside-out capture,
-``benchmarks/captures.py inside-out``: after 200 steps the 29 Gaussians in the band of the buildings had a median
-screen radius of 43-157 pixels on a 48-pixel-wide image and a median gradient of 0.16-0.29 of the threshold, none
-split, while the near band grew from 1,400 to 7,300 visible Gaussians). Absolute-gradient rules (AbsGS) address the
+the budget goes to the near Gaussians instead (docs/reconstruction.md, "Far-field densification", measured on the
+procedural inside-out capture with ``benchmarks/captures.py inside-out``). Absolute-gradient rules (AbsGS) address the
 cancellation in the rasterizer's backward pass; this rule uses the footprint the forward pass already measures.
 
 The rule (:class:`FarField`): for a far Gaussian, at least :data:`FAR_EXTENTS` extents (the extent: 1.1 x the
