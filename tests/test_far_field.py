@@ -103,3 +103,17 @@ def test_the_rule_is_on_for_the_inside_out_capture_and_off_where_there_is_no_far
     assert t.strategy.far is None and t.strategy.center is None
 
 
+
+
+def test_surface_points_are_centres_of_the_truths_solid_gaussians():
+    """procedural.surface_points (the benchmark's stand-in for SfM points): n seeded centres of the inside-out truth's
+    Gaussians, none of the sky, each with its Gaussian's colour."""
+    from ssgwarp.procedural import build_inside_out, surface_points
+    from ssgwarp.raster.scene import sh_dc_to_rgb
+
+    gt = build_inside_out(0.05, railing=True)
+    xyz, rgb = surface_points(gt, 200, seed=3)
+    assert xyz.shape == rgb.shape == (200, 3) and torch.equal(xyz, surface_points(gt, 200, seed=3)[0])
+    row = torch.cdist(xyz, gt.scene.means).argmin(dim=1)
+    assert torch.allclose(gt.scene.means[row], xyz) and bool((gt.object_ids[row] != 2).all())
+    assert torch.allclose(sh_dc_to_rgb(gt.scene.sh_dc[row]).clamp(0, 1), rgb, atol=1e-6)
