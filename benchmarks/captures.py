@@ -353,8 +353,8 @@ INSIDE_OUT_DOC = """The procedural inside-out capture's held-out error region by
 ``ssgwarp.procedural.build_inside_out(railing=True)``: ground, a ring of buildings, a sky dome, a railing near the
 rig; cameras in the middle looking outward, every 8th view held out. The truth's object ids give each held-out
 pixel its region: PSNR per region (ground, buildings, sky, railing), of the whole image and of the floaters (opaque
-pixels, alpha > 0.5, rendered nearer than half their true depth), their share of the pixels and of the error.
-``--runs``: ``SKY:ITERS``, SKY ``reconstruct --sky``'s auto / on / off (none: the trainer's default).
+pixels, alpha > 0.5, rendered nearer than half their true depth), their share of the pixels and of the error. ``--runs``:
+``SKY:ITERS[:FAR]``: SKY ``--sky`` auto / on / off (none: the default), FAR ``DefaultStrategy.far_split_px`` (0: off, the default).
 
     python benchmarks/captures.py inside-out --runs off:150 on:150 --width 48 --views 16 --density 0.25 --device cpu
 """
@@ -467,13 +467,18 @@ def inside_out_main(argv=None) -> int:
 
     from ssgwarp.capture.datasets import load_dataset
     from ssgwarp.core.fileio import write_image
-    from ssgwarp.procedural import build_inside_out, render_views, rig_cameras, write_transforms_dataset
+    from ssgwarp.procedural import build_inside_out, render_views, rig_cameras, surface_points, write_transforms_dataset
     from ssgwarp.raster.rendering import render_views as render_depth
+    from ssgwarp.reconstruction.far_field import FAR_EXTENTS
+    from ssgwarp.reconstruction.recipe import Recipe
+    from ssgwarp.reconstruction.strategy import DefaultStrategy
 
     p = mode_parser("inside-out", INSIDE_OUT_DOC, "ssgwarp_inside_out", ["off:600", "on:600"])
     p.add_argument("--views", type=int, default=36, help="views of the rig (every 8th held out)")
     p.add_argument("--density", type=float, default=1.0, help="ground-truth Gaussians (x about 30,000)")
     p.add_argument("--renders", type=Path, default=None, help="one PNG per run: held-out truth above, render below")
+    p.add_argument("--points", type=int, default=0, help="N points of the truth (procedural.surface_points)")
+    p.add_argument("--recipe", nargs="+", default=[], metavar="KEY=NUMBER", help="Recipe fields or DefaultStrategy knobs for every run")
     a = p.parse_args(argv)
     width = a.width or 96
     gt = build_inside_out(a.density, railing=True)
@@ -483,12 +488,21 @@ def inside_out_main(argv=None) -> int:
     folder = a.work / f"insideout_railing_{width}_{a.views}"
     if not (folder / "transforms.json").is_file():
         write_transforms_dataset(folder, images, cams)
-    data, rows = load_dataset(folder, progress=False, device=a.device), []
+    data = load_dataset(folder, progress=False, device=a.device)
+    if a.points:  # a stand-in for SfM points (default: the loader's)
+        data.points, data.points_source = surface_points(gt, a.points), "colmap"
+    fields, rows = {k: float(v) if "." in v or "e" in v else int(v) for k, _, v in (x.partition("=") for x in a.recipe)}, []
     for spec in a.runs:
-        sky = spec.partition(":")[0]
-        _, tr = trained(spec, "SKY:ITERS", lambda _: data, a, **({} if sky == "none" else {"sky": sky}))
-        rec = tr.sky_record
-        finish({"sky": sky + ("" if rec is None else f" ({'on' if rec['use'] else 'off'})"), "sky_record": rec,
+        sky, iters, far = (spec.split(":") + ["", ""])[:3]
+        st = {k: v for k, v in fields.items() if k not in Recipe.__dataclass_fields__}   # (the strategy's knobs)
+        st, recipe = DefaultStrategy(**st, **({"far_split_px": float(far)} if far else {})), Recipe(**{
+            k: v for k, v in fields.items() if k not in st})
+        _, tr = trained(f"{sky}:{iters}", "SKY:ITERS[:FAR]", lambda _: data, a, recipe=recipe, strategy=st,
+                        **({} if sky == "none" else {"sky": sky}))
+        finish({"sky": sky + ("" if (rec := tr.sky_record) is None else f" ({'on' if rec['use'] else 'off'})"),
+                "sky_record": rec, "points": a.points or data.points_source, "recipe": fields, "far_split_px": st.far_split_px
+                if tr.strategy.far else 0, "far_gaussians": None if tr.strategy.center is None else int(((  # 5 extents out
+                    tr.scene.means.detach() - tr.strategy.center).norm(dim=1) >= FAR_EXTENTS * tr.extent).sum()),
                 "iters": tr.iters, "width": width, "views": a.views, "psnr": tr.evaluate()["psnr"],
                 **region_errors(tr, ids, depth),
                 "backdrop": None if tr.backdrop is None else tr.backdrop.record()}, tr, a, rows)
@@ -500,10 +514,10 @@ def inside_out_main(argv=None) -> int:
             write_image(a.renders / f"{spec.replace(':', '_')}.png", torch.cat([truth, pred], 0))
     for r in rows:
         r["floaters"] = f"{100 * r['floater_share']:.1f} %, {r['psnr_floaters']:.2f} dB"
-    print(md_table(rows, [("sky", "sky"), ("iters", "steps"), ("psnr", "PSNR all"), ("psnr_ground", "ground"),
-                          ("psnr_buildings", "buildings"), ("psnr_sky", "sky"), ("psnr_railing", "railing"),
-                          ("floaters", "floaters (share, PSNR)"), ("gaussians", "Gaussians"),
-                          ("train_seconds", "train (s)"), ("machine", "machine")]))
+    print(md_table(rows, [("sky", "sky"), ("far_split_px", "far split (px)"), ("iters", "steps"), ("psnr", "PSNR all"),
+                          ("psnr_ground", "ground"), ("psnr_buildings", "buildings"), ("psnr_sky", "sky"),
+                          ("psnr_railing", "railing"), ("floaters", "floaters (share, PSNR)"), ("gaussians", "Gaussians"),
+                          ("far_gaussians", "far Gaussians"), ("train_seconds", "train (s)"), ("machine", "machine")]))
     return 0
 
 

@@ -34,6 +34,7 @@ Public API:
     smooth_views(K, H, W, seed)                 -> smooth synthetic key views (rgb [K,H,W,3], depth [K,H,W])
     build_inside_out(density, seed)             -> ProceduralScene of an unbounded outdoor scene (below)
     rig_cameras(n, width, height, ...)          -> Cameras of an outward-looking rig (inside-out capture)
+    surface_points(truth, n, seed)              -> n points of the truth's solid surfaces (a stand-in for SfM points)
     vary_exposures(src, dst, seed, ...)         -> a copy of a capture whose photos differ in exposure and tint
 
 The inside-out scene (:func:`build_inside_out`, ids: 0 ground, 1 backdrop, 2 sky, 3 railing) is what a hand-held walk
@@ -55,7 +56,7 @@ import torch
 from .core.cameras import Cameras, intrinsics, look_at
 from .errors import InputError
 from .core.fileio import write_image, write_json
-from .raster.scene import GaussianScene, rgb_to_sh_dc
+from .raster.scene import GaussianScene, rgb_to_sh_dc, sh_dc_to_rgb
 
 OBJECT_NAMES = ("ground", "red sphere", "blue box", "green torus", "yellow cone")
 BACKGROUND = (1.0, 1.0, 1.0)
@@ -333,7 +334,7 @@ def style_image(width: int = 192, height: int = 192, seed: int = 0) -> np.ndarra
 
 __all__ = ["SIZES", "DemoSize", "OBJECT_NAMES", "BACKGROUND", "ProceduralScene", "build_scene", "ring_cameras",
            "render_views", "write_transforms_dataset", "style_image", "INSIDE_OUT_NAMES", "build_inside_out",
-           "rig_cameras", "vary_exposures"]
+           "surface_points", "rig_cameras", "vary_exposures"]
 
 
 def smooth_views(K: int, H: int, W: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -440,6 +441,15 @@ def build_inside_out(density: float = 1.0, seed: int = 0, railing: bool = False)
     scene = GaussianScene(cat(means), torch.log(cat(scales)), cat(quats), torch.full((len(rgb),), 4.0),
                           rgb_to_sh_dc(rgb))
     return ProceduralScene(scene, torch.from_numpy(np.concatenate(ids)).long(), INSIDE_OUT_NAMES)
+
+
+def surface_points(truth: ProceduralScene, n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(xyz [n, 3], rgb [n, 3])``: ``n`` centres of ``truth``'s Gaussians (seeded) with their colours, none of the
+    sky: a stand-in for the sparse points structure from motion gives of a real capture (the solid surfaces)."""
+    solid = torch.nonzero(truth.object_ids != truth.names.index("sky"))[:, 0] if "sky" in truth.names \
+        else torch.arange(len(truth))
+    pick = solid[torch.randperm(len(solid), generator=torch.Generator().manual_seed(seed))[:n]]
+    return truth.scene.means[pick].float(), sh_dc_to_rgb(truth.scene.sh_dc[pick]).clamp(0.0, 1.0).float()
 
 
 def rig_cameras(n: int, width: int, height: int, *, radius: float = 0.3, eye_height: float = 1.5,

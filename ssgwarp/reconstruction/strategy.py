@@ -52,6 +52,7 @@ import torch
 
 from ..errors import InputError
 from ..core.geometry import quat_to_rotmat
+from .far_field import FarField
 from .statistics import accumulate_grad2d
 
 # ----------------------------------------------------------------------------- schedule
@@ -242,17 +243,22 @@ class Strategy:
         self.generator: Optional[torch.Generator] = None
         self.center: Optional[torch.Tensor] = None   # far field (far_field): sizes beyond scene_radius of
         self.scene_radius: Optional[float] = None    # center are measured against the distance from it
+        self.far: Optional[FarField] = None          # far-field densification statistic (far_field.py)
 
     @classmethod
     def knobs(cls) -> tuple[str, ...]:
         """The names of this strategy's fields."""
         return tuple(f.name for f in fields(cls))
 
-    def far_field(self, center: torch.Tensor, scene_radius: float) -> None:
+    def far_field(self, center: torch.Tensor, scene_radius: float, focal_px: Optional[float] = None) -> None:
         """Measure the size rules of Gaussians farther than ``scene_radius`` from ``center`` (the cameras'
         centroid) against ``extent x distance / scene_radius`` instead of the extent (a backdrop's far
-        Gaussians are large in world units and small on screen)."""
+        Gaussians are large in world units and small on screen); with ``focal_px`` (the training images'
+        focal length in pixels) the gradient statistic of far Gaussians is scaled by their footprint
+        (:class:`~ssgwarp.reconstruction.far_field.FarField`)."""
         self.center, self.scene_radius = center, float(scene_radius)
+        split_px = getattr(self, "far_split_px", 0.0)
+        self.far = FarField.around(center, self.extent, focal_px, split_px) if focal_px and split_px > 0 else None
 
     def size_reference(self, means: torch.Tensor) -> torch.Tensor | float:
         """``[N]`` (or a number) the length sizes are compared to: the extent, times ``distance / scene_radius``
@@ -334,6 +340,8 @@ class DefaultStrategy(Strategy):
     prune_contribution: float = 0.0     # prune Gaussians whose blending weight per training view is below this
                                         # many pixels (ssgwarp.reconstruction.pruning; the trainer runs it); 0: off
     prune_budget: int = 0               # ... and keep at most this many, the largest contributions (0: none)
+    far_split_px: float = 0.0           # far Gaussians wider than this on screen (pixels) get their gradient
+                                        # statistic scaled by their width / this (far_field.py); 0: off
 
     name: ClassVar[str] = "default"
     uses_means2d_grad: ClassVar[bool] = True
@@ -373,6 +381,8 @@ class DefaultStrategy(Strategy):
         n0 = len(g)
         count = g.stats["count"]
         avg = g.stats["grad2d"] / count.clamp_min(1.0)
+        if self.far is not None:
+            avg = self.far.statistic(avg, g.params["means"].data, g.params["log_scales"].data)
         high = (avg >= r.grad_threshold) & (count > 0)
         size = torch.exp(g.params["log_scales"].data).max(dim=1).values
         small = size <= r.percent_dense * self.size_reference(g.params["means"].data)

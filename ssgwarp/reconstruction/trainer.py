@@ -164,7 +164,9 @@ class Trainer(ImageModel):
     def _setup_strategy(self) -> None:
         self.strategy.setup(self.gaussians, recipe=self.recipe, extent=self.extent, seed=self.seed)
         if self.backdrop is not None and self.backdrop.scene_radius:  # sizes beyond it measured by distance
-            self.strategy.far_field(torch.tensor(self.backdrop.center, device=self.device), self.backdrop.scene_radius)
+            focal = float(self.data.cameras.Ks[list(self.data.train_ids), 0, 0].median())
+            self.strategy.far_field(torch.tensor(self.backdrop.center, device=self.device), self.backdrop.scene_radius,
+                                    focal)
 
     @property
     def sh_degree(self) -> int:
