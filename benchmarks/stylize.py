@@ -350,6 +350,7 @@ def styles_main(argv=None) -> int:
                        ("hold-empty", float), ("consistency-weight", float), ("consistency-neighbours", int),
                        ("consistency-budget", float), ("style-scale", style_scale_arg), ("paint-strength", style_scale_arg)):
         g.add_argument(f"--{name}", default=None, **({"choices": kind} if isinstance(kind, tuple) else {"type": kind}))
+    g.add_argument("--region-check", action="store_const", const=True, default=None, help="ssgwarp stylize's --region-check")
     from ssgwarp.core.presets import add_preset
     add_preset(p, "--paint", PAINT, "ssgwarp stylize's painting preset: {values} (options given explicitly win)")
     args = p.parse_args(argv)
@@ -814,7 +815,7 @@ def captures_main(argv=None) -> int:
 
 
 def region_check(run: Path, device) -> None:
-    """Per style: each group's region (-1: the whole style) as ``ssgwarp stylize``'s default without Stage 1 takes it,
+    """Per style: each group's region (-1: the whole style) as ``ssgwarp stylize --region-check`` takes it without Stage 1,
     and the predicted distances of the view it gives, before / after the fallback, against the style's halves."""
     from ssgwarp.raster.groups import load_groups
     from ssgwarp.stylization.regions import style_regions
@@ -829,7 +830,7 @@ def region_check(run: Path, device) -> None:
     print(f"{run.name}: | style | groups' shares | regions | predicted colour / texture, before -> after | halves |")
     for style in style_paths("", DATA / "styles"):
         at = fit_style(torch.from_numpy(read_image(style, 3)).float().to(device), cams.height, cams.width)[0]
-        r = style_regions(at.permute(1, 2, 0), views, labels, int(gm.num_groups), alphas=alphas)
+        r = style_regions(at.permute(1, 2, 0), views, labels, int(gm.num_groups), alphas=alphas, check=True)
         f, pct = r["fallback"], " ".join(f"{100 * float(m):.0f}%" for m in r["group_mass"])
         print(f"| {style.stem} | {pct} | {r['region'].tolist()} | {f['predicted_before'][0]:.2f} / "
               f"{f['predicted_before'][1]:.2f} -> {f['predicted_after'][0]:.2f} / {f['predicted_after'][1]:.2f} | "

@@ -494,7 +494,8 @@ def test_a_checkpoint_with_the_flat_recipe_record_of_earlier_versions_resumes(wo
     opts = dict(st["options"])
     assert set(opts["strategy"]) == {"refine_start", "refine_stop", "refine_every", "reset_every", "grad_threshold",
                                      "percent_dense", "split_factor", "prune_opacity", "reset_opacity",
-                                     "prune_world", "prune_screen"}        # (today's: the strategy's own knobs)
+                                     "prune_world", "prune_screen", "prune_contribution", "prune_budget",
+                                     "far_split_px"}        # (today's: the strategy's own knobs)
     del opts["strategy"]
     opts["recipe"] = dict(FLAT_RECIPE_RECORD)
     st["options"] = opts

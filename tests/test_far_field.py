@@ -12,7 +12,8 @@ from ssgwarp.raster.rasterize import rasterization
 from ssgwarp.raster.scene import GaussianScene
 from ssgwarp.reconstruction.far_field import SPLIT_RADIUS_PX, FarField
 from ssgwarp.reconstruction.recipe import Recipe, resolve
-from ssgwarp.reconstruction.strategy import REFERENCE_ITERS, DefaultStrategy, GaussianParams
+from ssgwarp.reconstruction.gaussians import GaussianParams
+from ssgwarp.reconstruction.strategy import REFERENCE_ITERS, DefaultStrategy
 
 
 def _params(means: torch.Tensor, scales: torch.Tensor) -> GaussianParams:

@@ -11,7 +11,8 @@ import torch
 from ssgwarp.core.cameras import Cameras, intrinsics, look_at
 from ssgwarp.reconstruction.recipe import Recipe, resolve
 from ssgwarp.raster.scene import GaussianScene
-from ssgwarp.reconstruction.strategy import REFERENCE_ITERS, REFINE_EPOCHS, STRATEGIES, DefaultStrategy, GaussianParams, MCMCStrategy, Schedule, make_strategy, relocation, scaled_schedule
+from ssgwarp.reconstruction.gaussians import GaussianParams
+from ssgwarp.reconstruction.strategy import REFERENCE_ITERS, REFINE_EPOCHS, STRATEGIES, DefaultStrategy, MCMCStrategy, Schedule, make_strategy, relocation, scaled_schedule
 from ssgwarp.reconstruction.statistics import accumulate_grad2d
 from ssgwarp.errors import InputError
 

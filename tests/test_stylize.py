@@ -528,9 +528,8 @@ def test_weight_free_default_moves_the_scene_toward_its_style(tmp_path):
 
     Measured on this scene and the procedural style, 30 steps (2026-11-23, CPU): colour distance
     x0.77, texture x0.93; the previous default (NNFM on the same features, no colour transfer) x0.84,
-    x0.96 (re-measured with the TV default 0.5: the same). Since issue 62 the largest group's region is a poor
-    match here and it takes the whole style: colour x0.93, texture x0.86 (2026-12-08; the previous default
-    x0.98 / x1.02). Asserted with about half of those margins, and better than the previous default.
+    x0.96 (re-measured with the TV default 0.5: the same). Asserted with about half of those margins, and
+    better than the previous default.
     """
     from ssgwarp.core.fileio import write_image
     from ssgwarp.procedural import style_image
@@ -545,7 +544,7 @@ def test_weight_free_default_moves_the_scene_toward_its_style(tmp_path):
         b, a = m["style_distance_original"], m["style_distance"]
         ratio[name] = {k: a[k] / b[k] for k in ("color", "texture")}
     assert m["extractor"].startswith("random-multiscale") and m["stage1"]["ran"] is False
-    assert ratio["default"]["color"] < 0.97 and ratio["default"]["texture"] < 0.93, ratio
+    assert ratio["default"]["color"] < 0.88 and ratio["default"]["texture"] < 0.97, ratio
     assert ratio["default"]["color"] < ratio["previous"]["color"] - 0.03, ratio
     assert ratio["default"]["texture"] < ratio["previous"]["texture"], ratio
 
@@ -961,6 +960,9 @@ def test_style_regions_segment_the_style_and_assign_groups_by_their_statistics()
     res = style_regions(style, renders, vl, 2, regions=2)
     dark_region = int(lab[0, 0])
     assert res["region"].tolist() == [dark_region, 1 - dark_region]
+    assert res["fallback"] is None      # (the region check is --region-check's: off by default)
+    checked = style_regions(style, renders, vl, 2, regions=2, check=True)
+    assert checked["fallback"] is not None and set(checked["fallback"]) >= {"halves", "fell_back", "predicted_after"}
     # Sinkhorn: the plan's marginals are the weights
     a, b = torch.tensor([0.3, 0.7], dtype=torch.float64), torch.tensor([0.5, 0.25, 0.25], dtype=torch.float64)
     plan = sinkhorn(torch.rand(2, 3, generator=g, dtype=torch.float64), a, b)

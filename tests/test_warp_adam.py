@@ -14,7 +14,7 @@ from ssgwarp.core.optim import Adam
 from ssgwarp.raster import adam_ops
 from ssgwarp.raster.adam_ops import WarpAdam, warp_adam
 from ssgwarp.reconstruction.recipe import Recipe, resolve
-from ssgwarp.reconstruction.strategy import GaussianParams
+from ssgwarp.reconstruction.gaussians import GaussianParams
 from ssgwarp.errors import InputError
 from ssgwarp.capture.datasets import SceneData
 from ssgwarp.core.cameras import Cameras, intrinsics, look_at

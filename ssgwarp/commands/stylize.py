@@ -116,6 +116,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="painting strength: the smoothing weights (--tv-weight, --blend-weight) are divided by S "
                         "(default 1); auto: S from a 3-D consistency probe of the scene at the start of Stage 2, "
                         "weaker where painted texture costs the scene more consistency (docs/stylize.md)")
+    g.add_argument("--region-check", action="store_true",
+                   help="without Stage 1: send a group whose style region is a poor match (the view it predicts is "
+                        "farther from the style than the style's halves) to the whole style (default off)")
     g.add_argument("--direct", action="store_true", help="direct back-propagation instead of deferred")
     g.add_argument("--chunk", type=int, default=d.chunk, help="similarity entries per nearest-neighbour block")
     g.add_argument("--nn-precision", default=d.nn_precision, choices=("auto", "fp32", "bf16", "fp16"),

@@ -93,7 +93,7 @@ class ContributionPruning:
         return keep
 
     def step(self, gaussians, step: int, views) -> dict:
-        """Prune ``gaussians`` (a :class:`~ssgwarp.reconstruction.strategy.GaussianParams`) when ``step`` is one of
+        """Prune ``gaussians`` (a :class:`~ssgwarp.reconstruction.gaussians.GaussianParams`) when ``step`` is one of
         :attr:`steps`, scoring them on the cameras ``views()`` gives (the training views). Returns what it did."""
         if step not in self.steps or len(gaussians) == 0:
             return {}

@@ -181,6 +181,7 @@ FLAT_KNOBS = {
 _FLAT_ONLY = {"reset_every", "grad_threshold", "percent_dense", "split_factor", "reset_opacity", "prune_world",
               "prune_screen", "mcmc_growth", "noise_lr", "opacity_reg", "scale_reg", "refine_start", "refine_stop",
               "refine_every", "prune_opacity"}   # every key of the old flat recipe that is no Recipe field now
+_OPTION_FIELDS = {"sh_degree", "res_start", "batch_scaling"}   # (recorded as their options, not in ``recipe``)
 
 
 def options_record(recipe: Optional[Recipe], strategy: Any) -> dict:
@@ -201,17 +202,20 @@ def upgrade_record(old: Optional[dict]) -> Optional[dict]:
     holding every strategy's knobs; ``--sh-degree``, ``--strategy`` and ``--max-gaussians`` as today). The
     knobs of the record's strategy move to ``strategy`` (renamed where their name changed; a None, which the
     run resolved to the strategy's default, becomes the field's default where that is a value), the other
-    strategy's knobs (which had no effect) are dropped. A record of today's layout, or None, is returned as is."""
-    if not isinstance(old, dict) or "strategy" in old or not isinstance(old.get("recipe"), dict):
+    strategy's knobs (which had no effect) are dropped. A field added since the record was written (absent from
+    it) reads as its default, which is what the earlier version ran with. None is returned as is."""
+    if not isinstance(old, dict) or not isinstance(old.get("recipe"), dict):
         return old
     name = old.get("--strategy", "default")
     if name not in FLAT_KNOBS:
         return old
-    flat = dict(old["recipe"])
+    recipe = {**{k: v for k, v in asdict(Recipe()).items() if k not in _OPTION_FIELDS}, **old["recipe"]}
     knobs = {k: v for k, v in asdict(STRATEGIES[name]()).items() if k != "max_gaussians"}
+    if isinstance(old.get("strategy"), dict):
+        return {**old, "recipe": recipe, "strategy": {**knobs, **old["strategy"]}}
     for k_old, k_new in FLAT_KNOBS[name].items():
-        if flat.get(k_old) is not None:
-            knobs[k_new] = flat[k_old]
+        if recipe.get(k_old) is not None:
+            knobs[k_new] = recipe[k_old]
     for k in _FLAT_ONLY:
-        flat.pop(k, None)
-    return {**old, "recipe": flat, "strategy": knobs}
+        recipe.pop(k, None)
+    return {**old, "recipe": recipe, "strategy": knobs}

@@ -42,7 +42,8 @@ from .initial import initial_scene
 from .schedules import Schedules, sh_degree_at
 from .statistics import observe_across
 from .step import LossWatch, StepInfo, ViewCache, adam_step, zero_unrendered_grads
-from .strategy import GaussianParams, Strategy
+from .gaussians import GaussianParams
+from .strategy import Strategy
 from .pruning import ContributionPruning
 
 log = logging.getLogger("ssgwarp.reconstruction.reconstruct")

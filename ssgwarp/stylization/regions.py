@@ -16,7 +16,7 @@ only (:meth:`ssgwarp.stylization.matching.SlicedTargets.for_regions`, :func:`ssg
 
 A region can be a poor match for its group: a large group given a small or atypical region makes the whole view
 look like that part of the painting, farther from the style than the unstylized scene (measured: issue 62). So the
-assignment is checked before it is used (:func:`fall_back_poor_matches`): the view it would give is predicted as
+assignment can be checked before it is used (``--region-check``; :func:`fall_back_poor_matches`): the view it would give is predicted as
 the mixture of the regions' pixels in proportion to their groups' shares of the views, and scored against the whole
 style with the weight-free colour and texture distances (:class:`ssgwarp.evaluation.style_distance.StyleDistance`'s
 measures; a region's colours as the colour transfer gives them: its mean with part of the whole style's spread).
@@ -290,15 +290,15 @@ def fall_back_poor_matches(style: torch.Tensor, labels: torch.Tensor, region: to
 
 def style_regions(style: torch.Tensor, renders: torch.Tensor, view_labels: torch.Tensor, num_groups: int,
                   alphas: Optional[torch.Tensor] = None, regions: Optional[int] = None,
-                  seed: int = 0) -> dict:
+                  seed: int = 0, check: bool = False) -> dict:
     """Segment ``style [H, W, 3]`` and assign the scene's groups to its regions.
 
     ``renders [V, H', W', 3]`` / ``view_labels [V, H', W']``: the scene's renders and group maps (training
     views), ``alphas [V, H', W']``: scene pixels (>= 0.5) only. ``regions``: how many (default
     ``min(num_groups, MAX_REGIONS)``, at least 2 when there are 2 groups or more). Returns ``{"labels":
     [H, W] region ids, "region": [num_groups] region of each group (:data:`GLOBAL` for a group whose region is
-    a poor match, :func:`fall_back_poor_matches`), "regions": count, "group_mass", "region_mass", "fallback":
-    the check's record}``."""
+    a poor match, :func:`fall_back_poor_matches`, when ``check``), "regions": count, "group_mass", "region_mass",
+    "fallback": the check's record (None without ``check``)}``."""
     if num_groups < 1:
         raise InputError("style_regions: no groups")
     k = max(1, min(num_groups, MAX_REGIONS)) if regions is None else int(regions)
@@ -308,6 +308,6 @@ def style_regions(style: torch.Tensor, renders: torch.Tensor, view_labels: torch
     keep = None if alphas is None else alphas >= 0.5
     g_stats, g_mass = label_stats(renders, view_labels, num_groups, keep)
     region = assign_groups(g_stats, g_mass, r_stats, r_mass)
-    region, record = fall_back_poor_matches(style, labels, region, g_mass, seed)
+    region, record = fall_back_poor_matches(style, labels, region, g_mass, seed) if check else (region, None)
     return {"labels": labels, "region": region, "regions": count, "group_mass": g_mass, "region_mass": r_mass,
             "fallback": record}

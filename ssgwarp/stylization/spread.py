@@ -221,3 +221,28 @@ def strength_for(ratio: float, target: float = STRENGTH_TARGET) -> float:
     if ratio <= 1.0:
         return STRENGTH_RANGE[1]
     return min(max(math.sqrt((target ** 2 - 1) / (ratio ** 2 - 1)), STRENGTH_RANGE[0]), STRENGTH_RANGE[1])
+
+
+def paint_strength(stage2, tv_weight: float, scene, cams: Cameras, bg: torch.Tensor,
+                   say: Callable[[str], None]):
+    """``(stage2 with the smoothing weights divided by the painting strength, its record or None)`` for
+    ``--paint-strength`` S or ``auto`` (S from :func:`consistency_probe` of ``scene`` on ``cams``, through
+    :func:`strength_for`); ``tv_weight``: the TV weight the run would use at strength 1."""
+    import dataclasses
+
+    if stage2.paint_strength == 1 or stage2.mode == "finetune":
+        return stage2, None
+    rec: dict = {"setting": stage2.paint_strength}
+    if stage2.paint_strength == "auto":
+        ratio = consistency_probe(scene, cams, bg, stage2.consistency_neighbours, seed=stage2.seed)
+        rec.update(probe_ratio=ratio, probe_period_px=PROBE_PERIOD, probe_amplitude=PROBE_AMPLITUDE,
+                   target=STRENGTH_TARGET)
+        s = strength_for(ratio)
+    else:
+        s = float(stage2.paint_strength)
+    tv = tv_weight / s
+    rec.update(strength=s, tv_weight=tv, blend_weight=stage2.blend_weight / s)
+    say(f"painting strength {s:.2f}" + (f" (the consistency probe costs {rec['probe_ratio']:.2f}x on this scene)"
+                                        if "probe_ratio" in rec else "") + f": TV {tv:.3g}, blend spread "
+        f"{rec['blend_weight']:.3g}")
+    return dataclasses.replace(stage2, tv_weight=tv, blend_weight=rec["blend_weight"]), rec

@@ -134,6 +134,8 @@ class Stage2Config:
         paint_strength: painting strength: the smoothing weights (``tv_weight``, ``blend_weight``) are divided by it;
             ``"auto"``: chosen per scene at the start of Stage 2 from the 3-D consistency probe
             (:func:`ssgwarp.stylization.spread.consistency_probe`, :func:`~ssgwarp.stylization.spread.strength_for`).
+        region_check: without Stage 1, send a group whose style region is a poor match to the whole style
+            (:func:`ssgwarp.stylization.regions.fall_back_poor_matches`; off: it costs the demo, docs/stylize.md).
         deferred: deferred back-propagation (False: direct, for comparison).
         chunk: similarity entries per block of the nearest-neighbour search.
         nn_precision: dtype of the nearest-neighbour search (``auto``: bf16 on CUDA, fp32 on CPU).
@@ -169,6 +171,7 @@ class Stage2Config:
     feature_scale: float = 1.0
     style_scale: float | str = 1.0
     paint_strength: float | str = 1.0
+    region_check: bool = False
     deferred: bool = True
     chunk: int = DEFAULT_CHUNK
     nn_precision: str = "auto"

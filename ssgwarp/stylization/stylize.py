@@ -342,7 +342,7 @@ def _stage2_loss(r: Inputs, t: Targets, kv, content_ref: torch.Tensor, alphas: t
     if t.regions is not None:
         targets = build_targets(r.extractor, r.style_at_views, t.key_labels, stage2).for_regions(t.regions["region"])
         used = len(set(t.regions["region"].tolist()) - {-1})
-        back = t.regions.get("fallback", {}).get("fell_back", [])
+        back = (t.regions.get("fallback") or {}).get("fell_back", [])
         matching = (f"per group ({r.num_groups} groups) against {t.regions['regions']} regions of the style image "
                     f"({used} used; Stage 1 did not run)" + (f"; groups {', '.join(map(str, sorted(back)))} against "
                     "the whole style image (their regions were poor matches)" if back else ""))
@@ -413,26 +413,11 @@ def _stage2(r: Inputs, rec: Record, kv, stylized) -> Optional[Stage2Output]:
 
 def _strength(r: Inputs) -> tuple[Inputs, Optional[dict]]:
     """``--paint-strength``: the inputs with the smoothing weights divided by the painting strength, and its record
-    (with ``auto``: the consistency probe's ratio, :func:`ssgwarp.stylization.spread.consistency_probe`)."""
-    stage2 = r.stage2
-    if stage2.paint_strength == 1 or stage2.mode == "finetune":
-        return r, None
-    rec: dict = {"setting": stage2.paint_strength}
-    if stage2.paint_strength == "auto":
-        from .spread import PROBE_AMPLITUDE, PROBE_PERIOD, STRENGTH_TARGET, consistency_probe, strength_for
+    (:func:`ssgwarp.stylization.spread.paint_strength`)."""
+    from .spread import paint_strength
 
-        ratio = consistency_probe(r.scene, r.train_cams, r.bg, stage2.consistency_neighbours, seed=stage2.seed)
-        rec.update(probe_ratio=ratio, probe_period_px=PROBE_PERIOD, probe_amplitude=PROBE_AMPLITUDE,
-                   target=STRENGTH_TARGET)
-        s = strength_for(ratio)
-    else:
-        s = float(stage2.paint_strength)
-    tv = tv_weight_for(stage2, r.extractor) / s
-    rec.update(strength=s, tv_weight=tv, blend_weight=stage2.blend_weight / s)
-    r.say(f"painting strength {s:.2f}" + (f" (the consistency probe costs {rec['probe_ratio']:.2f}x on this scene)"
-                                          if "probe_ratio" in rec else "") + f": TV {tv:.3g}, blend spread "
-          f"{rec['blend_weight']:.3g}")
-    return dataclasses.replace(r, stage2=dataclasses.replace(stage2, tv_weight=tv, blend_weight=rec["blend_weight"])), rec
+    stage2, rec = paint_strength(r.stage2, tv_weight_for(r.stage2, r.extractor), r.scene, r.train_cams, r.bg, r.say)
+    return dataclasses.replace(r, stage2=stage2), rec
 
 
 def _renders(r: Inputs, rec: Record, styled: GaussianScene, bg: torch.Tensor) -> torch.Tensor:

@@ -57,7 +57,7 @@ def style_regions_for(r, originals: torch.Tensor) -> Targets:
     view_labels = group_maps(r.scene, r.train_cams, r.classifier, r.progress)
     alphas = render_alphas(r.scene, r.train_cams)
     regions = style_regions(r.style_at_views[0].float(), originals.float(), view_labels, int(r.num_groups),
-                            alphas=alphas, seed=r.stage2.seed)
+                            alphas=alphas, seed=r.stage2.seed, check=r.stage2.region_check)
     return Targets(False, key_labels=regions["labels"][None].to(r.device),
                    assign=gaussian_groups(r.scene, r.classifier)[0], regions=regions, view_labels=view_labels)
 
