@@ -13,12 +13,10 @@ constant, not part of the photo: it is never transformed).
 How the transforms are found (:class:`Appearance`): not by gradient descent (a view is visited a few
 times in a short run: 600 steps over 88 views is 7 visits each, too few steps of Adam to reach a gain of
 0.6), but in closed form: at each visit, the ridge least-squares fit of the detached render to the photo
-(``ridge`` pulls it toward the identity), on the photo's unclipped pixels (:func:`unclipped`: a pixel at
-white or black only bounds the exposure; taken as a value it reads a bright photo's gain too low). The
-transform the loss uses is that fit composed with the inverse of the mean of all views' latest fits
-(:meth:`Appearance.gauge`): the scene is pulled toward the mean exposure of the photos, so the transforms
-cannot drift together with the scene's colours (mean pinned to the identity). They start late
-(:func:`start_step`: after the scene has its coarse colours).
+(``ridge`` pulls it toward the identity). The transform the loss uses is that fit composed with the
+inverse of the mean of all views' latest fits (:meth:`Appearance.gauge`): the scene is pulled toward the
+mean exposure of the photos, so the transforms cannot drift together with the scene's colours (mean
+pinned to the identity). They start late (:func:`start_step`: after the scene has its coarse colours).
 
 ``auto`` decides from evidence, before training, from the capture's own points (:func:`points_probe`): each
 of its points (COLMAP's or triangulated) is seen in several training photos (hidden ones left out: the points
@@ -35,8 +33,7 @@ own (random initial points: triangulation found too few) has no such evidence: `
 
 Held-out views (:func:`score_half`, the protocol of the field for per-image appearance, e.g. NeRF-W's and
 the "in the wild" benchmarks'): a held-out photo has no trained transform, so one is fitted on the left
-half of the image (least squares, the same affine model, its unclipped pixels) and PSNR / SSIM are
-measured on the right half.
+half of the image (least squares, the same affine model) and PSNR / SSIM are measured on the right half.
 ``metrics.json`` says which protocol scored the run (``eval_protocol``).
 """
 from __future__ import annotations
@@ -54,10 +51,9 @@ MIN_SPREAD = 0.12   # auto: the photos' exposures must differ by at least this (
 MIN_RATIO = 2.0     # auto: ... and their variance be this many times the split-half noise
 VISIBLE_DEPTH = 0.05  # points probe: a point farther than this fraction behind the nearest one of its cell is hidden
 OUTLIER = 0.15      # points probe: log-colour residual beyond which an observation is an outlier (occlusion)
-CLIPPED = 2.0 / 255  # a photo's pixel this close to black or white in any channel is clipped: left out of the fit
 FULL_PROTOCOL = "full image"
 HALF_PROTOCOL = ("per-view affine colour transform (3x3 + offset) fitted by least squares on the left half of "
-                 "each held-out image (its unclipped pixels), PSNR/SSIM on the right half")
+                 "each held-out image, PSNR/SSIM on the right half")
 
 
 def check_mode(mode: str) -> str:
@@ -93,13 +89,6 @@ def fit_affine(x: torch.Tensor, y: torch.Tensor, ridge: float = 1e-2,
     eye = torch.eye(4, dtype=torch.float64, device=x.device)
     wt = torch.linalg.solve(xtx + lam * eye, x.T @ y + lam * w0.T)
     return wt.T.float()
-
-
-def unclipped(photo: torch.Tensor) -> torch.Tensor:
-    """``[H, W]`` 1 where the photo ``[H, W, 3]`` is not clipped (no channel within :data:`CLIPPED` of 0 or 1),
-    else 0. A clipped pixel only bounds the exposure (the scene times the gain is at least white there): a
-    least-squares fit that took it as a value would read a bright photo's gain too low."""
-    return ((photo > CLIPPED) & (photo < 1.0 - CLIPPED)).all(-1).to(photo.dtype)
 
 
 def apply_affine(W: torch.Tensor, color: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
@@ -150,10 +139,8 @@ class Appearance:
             bg = background[j, :3]
             if fit:
                 y = gt[j] - (1.0 - a.detach()) * bg
-                w = unclipped(gt[j]) if CLIPPED else None
-                if masks is not None:
-                    w = masks[j] if w is None else w * masks[j]
-                W = fit_affine(_features(c.detach(), a.detach()), y, self.ridge, w)
+                W = fit_affine(_features(c.detach(), a.detach()), y, self.ridge,
+                               None if masks is None else masks[j])
                 self.table[v] = W
                 self.fitted[v] = True
             W = self.table[v]
@@ -277,9 +264,7 @@ def score_half(color: torch.Tensor, alpha: torch.Tensor, gt: torch.Tensor, backg
     ``alpha [H, W, 1]``, ``gt [H, W, 3]``, ``background [3]``, ``mask [H, W]`` (or None)."""
     half = color.shape[1] // 2
     y = gt - (1.0 - alpha) * background
-    w = unclipped(gt[:, :half]) if CLIPPED else None
-    if mask is not None:
-        w = mask[:, :half] if w is None else w * mask[:, :half]
+    w = None if mask is None else mask[:, :half]
     W = fit_affine(_features(color[:, :half], alpha[:, :half]), y[:, :half], 1e-3, w)
     right = slice(half, None)
     pred = (apply_affine(W, color[:, right], alpha[:, right]) + (1.0 - alpha[:, right]) * background).clamp(0, 1)
