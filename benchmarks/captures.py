@@ -24,7 +24,8 @@ import sys
 import time
 from pathlib import Path
 
-from harness import CAPTURES, append_jsonl, capture_folder, data_root, dispatch, machine, write_text  # noqa: E402
+from harness import CAPTURES, append_jsonl, capture_folder, data_root, dispatch, knobs, machine, parser  # noqa: E402
+from harness import write_text  # noqa: E402
 from harness import table as md_table  # noqa: E402
 
 from ssgwarp.core.fileio import write_json  # noqa: E402
@@ -159,7 +160,7 @@ def table(rows: list[dict], tolerance: float = TOLERANCE) -> str:
 
 # ----------------------------------------------------------------------------- main
 def table_main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = parser("captures.py", __doc__)
     add = p.add_argument
     add("--captures", nargs="+", default=list(CAPTURES), help=f"{', '.join(CAPTURES)} or PATH[:IMAGES] (default: all)")
     add("--settings", nargs="+", default=list(SETTINGS), help="7k, auto (--iters auto) or a step count (default: both)")
@@ -195,11 +196,9 @@ def table_main(argv=None) -> int:
         if not rows:
             raise SystemExit(f"--from {a.from_file}: no rows")
     else:
-        import torch
+        from ssgwarp.cli import resolve_device
 
-        device = torch.device(a.device or ("cuda" if torch.cuda.is_available() else "cpu"))
-        if device.type == "cuda" and not torch.cuda.is_available():
-            raise SystemExit("CUDA is not available (pass --device cpu for a (slow) CPU run)")
+        device = resolve_device(a.device)
         for s in a.settings:
             setting_iters(s)
         for spec in a.captures:
@@ -295,8 +294,8 @@ def triangulation(a) -> int:
 
     from ssgwarp.capture.datasets import load_dataset
 
-    caps = [c for c in a.captures if c != "lego" and c != "livingroom" and c != "bird"] \
-        if a.captures == list(CAPTURES) else a.captures
+    caps = a.captures if a.captures != list(CAPTURES) else \
+        [c for c in a.captures if c not in ("lego", "livingroom", "bird")]   # (the shared ones with COLMAP points)
     rows = []
     from ssgwarp.capture.triangulate import triangulate
 
@@ -367,8 +366,7 @@ def mode_parser(mode: str, doc: str, work: str, runs: list[str]) -> argparse.Arg
 
     import torch
 
-    p = argparse.ArgumentParser(prog=f"captures.py {mode}", description=doc,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = parser(f"captures.py {mode}", doc)
     p.add_argument("--runs", nargs="+", default=runs, help="default: %(default)s")
     p.add_argument("--width", type=int, default=None, help="image width (default: as stored; inside-out 96)")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -491,16 +489,14 @@ def inside_out_main(argv=None) -> int:
     data = load_dataset(folder, progress=False, device=a.device)
     if a.points:  # a stand-in for SfM points (default: the loader's)
         data.points, data.points_source = surface_points(gt, a.points), "colmap"
-    fields, rows = {k: float(v) if "." in v or "e" in v else int(v) for k, _, v in (x.partition("=") for x in a.recipe)}, []
+    (rv, sv), rows = knobs(a.recipe, Recipe(), DefaultStrategy()), []   # (a Recipe field, else the strategy's knob)
     for spec in a.runs:
         sky, iters, far = (spec.split(":") + ["", ""])[:3]
-        st = {k: v for k, v in fields.items() if k not in Recipe.__dataclass_fields__}   # (the strategy's knobs)
-        st, recipe = DefaultStrategy(**st, **({"far_split_px": float(far)} if far else {})), Recipe(**{
-            k: v for k, v in fields.items() if k not in st})
+        st, recipe = DefaultStrategy(**{**sv, **({"far_split_px": float(far)} if far else {})}), Recipe(**rv)
         _, tr = trained(f"{sky}:{iters}", "SKY:ITERS[:FAR]", lambda _: data, a, recipe=recipe, strategy=st,
                         **({} if sky == "none" else {"sky": sky}))
         finish({"sky": sky + ("" if (rec := tr.sky_record) is None else f" ({'on' if rec['use'] else 'off'})"),
-                "sky_record": rec, "points": a.points or data.points_source, "recipe": fields, "far_split_px": st.far_split_px
+                "sky_record": rec, "points": a.points or data.points_source, "recipe": {**rv, **sv}, "far_split_px": st.far_split_px
                 if tr.strategy.far else 0, "far_gaussians": None if tr.strategy.center is None else int(((  # 5 extents out
                     tr.scene.means.detach() - tr.strategy.center).norm(dim=1) >= FAR_EXTENTS * tr.extent).sum()),
                 "iters": tr.iters, "width": width, "views": a.views, "psnr": tr.evaluate()["psnr"],

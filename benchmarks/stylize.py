@@ -20,7 +20,6 @@ costs), ``bound`` (the texture distance the style loss alone reaches).
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -29,7 +28,8 @@ from typing import Optional
 
 import torch
 
-from harness import ROOT, data_root, dispatch, machine, pyplot, save_figure, style_paths, write_text
+from harness import ROOT, capture_folder, data_root, dispatch, knobs, machine, parser, pyplot, save_figure, style_paths
+from harness import write_text
 from harness import table as md_table
 
 from ssgwarp.cli import resolve_device
@@ -321,7 +321,7 @@ def run_configs(args, styles, device, progress: bool) -> int:
 
 
 def styles_main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = parser("stylize.py", __doc__)
     add = p.add_argument
     add("--scene", default="demo", help="fern, demo, or a (grouped) reconstruction run folder")
     add("--styles", type=Path, default=DATA / "styles", help="folder of style images")
@@ -359,10 +359,7 @@ def styles_main(argv=None) -> int:
     device = resolve_device(args.device)
     torch.manual_seed(0)
     progress = not args.quiet
-    try:
-        styles = style_paths(args.styles_subset or "", args.styles)
-    except InputError as e:
-        raise SystemExit(str(e)) from None
+    styles = style_paths(args.styles_subset or "", args.styles)   # (an InputError: one line, harness.dispatch)
     if args.configs is not None:
         return run_configs(args, styles, device, progress)
     name = scene_name(args.scene)
@@ -442,7 +439,7 @@ def synthetic_run(run: Path, data_dir: Path, images: str, n: int, groups: int = 
 
 
 def stage2_main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="stylize.py stage2", description=STAGE2_DOC, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = parser("stylize.py stage2", STAGE2_DOC)
     add = p.add_argument
     add("--run", type=Path, default=None, help="existing grouped reconstruction of the capture")
     add("--data", type=Path, default=DATA / "llff_fern")
@@ -462,7 +459,7 @@ def stage2_main(argv=None) -> int:
     add("--device", default="auto")
     args = p.parse_args(argv)
 
-    from ssgwarp.cli import main as cli, resolve_device
+    from ssgwarp.cli import main as cli
     from ssgwarp.stylization.stage2 import Stage2Config
     from ssgwarp.stylization.stylize import StylizeOptions, stylize_run
 
@@ -501,13 +498,7 @@ def stage2_main(argv=None) -> int:
     results = {}
     for mode in [m.strip() for m in args.modes.split(",") if m.strip()]:
         over = {} if args.iters is None else {"iters": args.iters}
-        for kv in filter(None, (args.stage2 or "").split(",")):
-            k, _, v = kv.partition("=")
-            k = k.strip().replace("-", "_")
-            kind = type(getattr(Stage2Config(), k, ""))
-            over[k] = (v.strip().lower() in ("1", "true", "yes") if kind is bool
-                       else float(v) if kind in (float, type(None)) else kind(v))
-        s2 = Stage2Config(mode=mode, **over)
+        s2 = Stage2Config(**{"mode": mode, **over, **knobs((args.stage2 or "").split(","), Stage2Config())[0]})
         opts = StylizeOptions(keyviews=args.keyviews, extractor=args.extractor, path_frames=args.path_frames)
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
@@ -606,7 +597,7 @@ def probe_table(name, scene, cams, bg, opts, sd, args, described) -> dict:
 
 
 def probe_main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="stylize.py probe", description=PROBE_DOC, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = parser("stylize.py probe", PROBE_DOC)
     p.add_argument("--run", type=Path, required=True, help="a reconstruction run folder")
     p.add_argument("--style", type=Path, default=None, help="style image: texture distance per filter scale too")
     p.add_argument("--periods", default="1,2,4,8,16", help="probe periods in pixels")
@@ -666,7 +657,7 @@ def free_pixels(start: torch.Tensor, alphas: torch.Tensor, loss, counts: list[in
 
 
 def bound_main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="stylize.py bound", description=BOUND_DOC, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = parser("stylize.py bound", BOUND_DOC)
     add = p.add_argument
     add("--run", type=Path, required=True, help="a reconstruction run folder")
     add("--styles", default="", help="comma-separated style names (in --style-dir) or paths; default: all")
@@ -680,8 +671,6 @@ def bound_main(argv=None) -> int:
     add("--seed", type=int, default=0)
     add("--json", type=Path, default=None, help="also write the rows here (after every style)")
     args = p.parse_args(argv)
-
-
     try:
         counts = sorted({int(c) for c in args.steps.split(",")})
     except ValueError:
@@ -766,8 +755,7 @@ def bound(args, counts: list[int], styles: list[Path]) -> int:
 
 # ----------------------------------------------------------------------------- captures: the table on each capture
 def captures_main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="stylize.py captures", description=CAPTURES_DOC,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = parser("stylize.py captures", CAPTURES_DOC)
     p.add_argument("--captures", default="fern4,cup,livingroom,bird", help="shared capture names or PATH[:IMAGES]")
     p.add_argument("--recon-iters", type=int, default=7000, help="reconstruction steps")
     p.add_argument("--width", type=int, default=0, help="reconstruct at this image width (0: as loaded)")
@@ -778,9 +766,7 @@ def captures_main(argv=None) -> int:
     p.add_argument("--regions", action="store_true", help="only the region check of every style (no Stage 2): the "
                    "groups' shares, their regions, which fall back to the whole style and the predicted distances")
     args, rest = p.parse_known_args(argv)
-    from harness import capture_folder
     from ssgwarp.cli import main as cli
-    from ssgwarp.services.runs import load_run
     from ssgwarp.stylization.spread import consistency_probe, strength_for
 
     rows = []

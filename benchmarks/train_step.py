@@ -19,7 +19,6 @@ the fused Warp kernels per image size; on CUDA also host time with 20 calls queu
 """
 from __future__ import annotations
 
-import argparse
 import collections
 import contextlib
 import gc
@@ -36,12 +35,11 @@ from typing import ClassVar, Optional
 
 import torch
 
-from harness import (CAPTURES, ROOT, append_jsonl, capture_folder, cuda_kernel_ms, dispatch, header, interleaved,
-                     per_call_us, sync, table, write_text)
-from harness import cell as _f
+from harness import (CAPTURES, ROOT, append_jsonl, capture_folder, cuda_kernel_ms, dispatch, fmt, header, interleaved,
+                     knobs, parser, per_call_us, sync, table, write_text)
 
 from ssgwarp.capture.datasets import load_dataset
-from ssgwarp.errors import InputError
+from ssgwarp.cli import resolve_device
 from ssgwarp.core.fileio import write_json
 from ssgwarp.raster.rendering import render as render_views
 from ssgwarp.reconstruction.recipe import Recipe
@@ -209,19 +207,19 @@ def tables(rows: list[dict]) -> str:
         if r["backend"] == "ssgwarp" and key(r, backend="gsplat") in by:
             b = by[key(r, backend="gsplat")]
             pairs.append(f"| {r['scene']} | {r['iters']} | {r['strategy']} | {r['psnr'] - b['psnr']:+.2f} dB | "
-                         f"{r['seconds'] / b['seconds']:.2f}x | {_f(r['peak_mib'] / b['peak_mib'], '.2f')}x |")
+                         f"{r['seconds'] / b['seconds']:.2f}x | {fmt(r['peak_mib'] / b['peak_mib'])}x |")
     if pairs:
         lines += ["", "| scene | iters | strategy | PSNR ssgwarp - gsplat rasterizer (target >= -0.2 dB) | "
                       "time ssgwarp / gsplat (target <= 1.5x) | memory ssgwarp / gsplat |",
                   "|---|---:|---|---:|---:|---:|"] + pairs
     strat = []
     for r in rows:  # strategies: ours vs gsplat's; MCMC at the default's count vs default
-        for ref in (f"gsplat-{r['strategy']}",):
-            if key(r, strategy=ref) in by:
-                b = by[key(r, strategy=ref)]
-                strat.append(f"| {r['scene']} | {r['iters']} | {r['backend']} | {r['strategy']} - {ref} | "
-                             f"{r['psnr'] - b['psnr']:+.2f} dB | {r['gaussians']:,} / {b['gaussians']:,} | "
-                             f"{r['seconds'] / b['seconds']:.2f}x |")
+        ref = f"gsplat-{r['strategy']}"
+        if key(r, strategy=ref) in by:
+            b = by[key(r, strategy=ref)]
+            strat.append(f"| {r['scene']} | {r['iters']} | {r['backend']} | {r['strategy']} - {ref} | "
+                         f"{r['psnr'] - b['psnr']:+.2f} dB | {r['gaussians']:,} / {b['gaussians']:,} | "
+                         f"{r['seconds'] / b['seconds']:.2f}x |")
         if r["strategy"] == "mcmc" and r.get("matched"):
             d = by.get(key(r, strategy="default", max_gaussians=r["matched_budget"]))
             if d:
@@ -236,10 +234,7 @@ def tables(rows: list[dict]) -> str:
 
 def load_scene(spec: str, root: Path | None, device: torch.device, random_points: int = 100_000, width=None):
     """A shared capture by name (harness.CAPTURES) or PATH[:IMAGES], loaded on ``device`` (``width``: resized)."""
-    try:
-        folder, images = capture_folder(spec, root)
-    except InputError as e:
-        raise SystemExit(str(e)) from None
+    folder, images = capture_folder(spec, root)
     return load_dataset(folder, images=images, device=device, num_random_points=random_points, width=width)
 
 
@@ -253,8 +248,7 @@ def report(out: Path, setup: str, md: str, rows: list[dict], device: torch.devic
 
 def runs_main(argv=None) -> int:
     """`train_step.py runs`: whole training runs (see the module's docstring)."""
-    p = argparse.ArgumentParser(prog="train_step.py runs", description=RUNS_DOC,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = parser("train_step.py runs", RUNS_DOC)
     p.add_argument("--scenes", nargs="+", default=["fern8", "fern4"], help=f"{', '.join(CAPTURES)} or PATH[:IMAGES]")
     p.add_argument("--data-root", type=Path, default=None, help="folder holding llff_fern, colmap_cup, lego_200")
     p.add_argument("--backend", nargs="+", choices=("ssgwarp", "gsplat", "both"), default=["ssgwarp"])
@@ -276,10 +270,7 @@ def runs_main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=Path("benchmark-runs"), help="folder for results.json / results.md")
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
-    device = torch.device(a.device)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise SystemExit("CUDA is not available (pass --device cpu for a (slow) CPU run)")
-    root = a.data_root
+    device = resolve_device(a.device)
     backends = list(dict.fromkeys(b for x in a.backend for b in (("ssgwarp", "gsplat") if x == "both" else (x,))))
     rows = []
 
@@ -289,15 +280,14 @@ def runs_main(argv=None) -> int:
         write_json(a.out / "results.json", {"rows": rows})  # partial results survive an interruption
 
     for spec in a.scenes:
-        data = load_scene(spec, root, device, a.random_points, a.width)
+        data = load_scene(spec, a.data_root, device, a.random_points, a.width)
         for iters in a.iters:
             for backend in backends:
                 for strategy in a.strategy:
                     for budget, rs in ((b, rs) for b in a.max_gaussians for rs in a.recipe):
-                        kv, st = dict(x.split("=", 1) for x in rs.split(",") if x), make(strategy, budget)
-                        rv, sv = ({k: type(getattr(o, k) or 0.0)(v) for k, v in kv.items() if hasattr(o, k)}
-                                  for o in (Recipe(), st))   # (a Recipe field, else the strategy's knob)
-                        recipe, st = Recipe(**rv), replace(st, **{k: v for k, v in sv.items() if k not in rv})
+                        st = make(strategy, budget)
+                        rv, sv = knobs(rs.split(","), Recipe(), st)   # (a Recipe field, else the strategy's knob)
+                        recipe, st = Recipe(**rv), replace(st, **sv)
                         r = train_and_measure(data, backend=backend, strategy=st, iters=iters,
                                               sh_degree=a.sh_degree, seed=a.seed, max_gaussians=budget, recipe=recipe,
                                               device=device, progress=not a.no_progress, dssim_scale=a.dssim_scale)
@@ -562,7 +552,7 @@ def measure(data, backend: str, args, device: torch.device, optimizer: str = "to
 
 
 def step_main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = parser("train_step.py", __doc__)
     p.add_argument("--scene", default="fern8", help="fern8, fern4, cup, lego or PATH[:IMAGES]")
     p.add_argument("--data-root", type=Path, default=None)
     p.add_argument("--backend", nargs="+", choices=("ssgwarp", "gsplat"), default=["ssgwarp", "gsplat"])
@@ -627,8 +617,7 @@ def loss_closures(img, gt, fused: bool):
 
 
 def loss_main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="train_step.py loss", description="the photometric loss: torch reference "
-                                "against the fused Warp kernels, per image size")
+    p = parser("train_step.py loss", "the photometric loss: torch reference against the fused Warp kernels, per size")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("--sizes", nargs="+", default=list(LOSS_SIZES), help="WxH (default: %(default)s)")
     p.add_argument("--views", type=int, default=1, help="images per call ([V, H, W, 3])")
