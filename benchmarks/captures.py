@@ -1,10 +1,7 @@
-"""The capture quality table: every shared capture reconstructed as ``ssgwarp reconstruct`` does (its code path and
-defaults), held-out quality beside the checked-in baseline; more than ``--tolerance`` (0.2) dB below it is a
-REGRESSION (exit status 1). Rows are appended to ``--out``/results.jsonl as runs end and are not run again (rerun
-to finish an interrupted table; ``--fresh`` starts over); ``--out``/results.md gets the table. ``--settings``: ``7k``,
-``auto`` (``--iters auto``) or a step count; ``--iters N`` runs every setting at N steps (a smoke run, compared only
-with a baseline row of that count). ``--backdrop-evidence`` / ``--triangulation``: the backdrop decision's evidence,
-triangulated points against COLMAP's (no training). docs/reconstruction.md says how to read each.
+"""The capture quality table: every shared capture reconstructed as ``ssgwarp reconstruct`` does, held-out quality
+beside the checked-in baseline; more than ``--tolerance`` dB below it is a REGRESSION (exit status 1). Finished rows
+are kept in ``--out``/results.jsonl (a rerun finishes the table; ``--fresh`` starts over). How to read it and the
+evidence flags: docs/reconstruction.md.
 
     python benchmarks/captures.py --out runs/captures                             # the whole table (GPU)
     python benchmarks/captures.py --captures lego --iters 20 --max-images 8 --device cpu --out /tmp/cap
@@ -12,8 +9,7 @@ triangulated points against COLMAP's (no training). docs/reconstruction.md says 
     python benchmarks/captures.py --backdrop-evidence --captures fern8 cup lego livingroom bird --thin 2000
     python benchmarks/captures.py --triangulation --captures fern8 --min-angle 1 2 3
 
-Modes, each with its own ``--help``: ``appearance`` (per-image appearance on a copy of lego_200 with varied
-exposures), ``inside-out`` (the procedural inside-out capture's error per region, with and without ``--sky``).
+Modes, each with its own ``--help``: ``appearance``, ``inside-out`` (docs/benchmarks.md).
 """
 from __future__ import annotations
 
@@ -339,21 +335,17 @@ def triangulation(a) -> int:
 # ----------------------------------------------------------------------------- modes: appearance, inside-out
 APPEARANCE_DOC = """Per-image appearance (``reconstruct --appearance``) on a copy of lego_200 whose photos' exposures differ.
 
-The copy (``ssgwarp.procedural.vary_exposures``: gain 0.6-1.4, tint +-10 % per channel, ``--seed``; written once
-into ``--work``) is trained with the defaults at ``--iters`` steps; its training views' renders (the scene itself,
-as ``ssgwarp render --split train``) are scored against the UNMODIFIED images, with the held-out PSNR under the
-run's protocol and the decision's evidence. ``--runs``: ``CAPTURE:MODE``, CAPTURE ``orig`` (lego_200) or ``exp``
-(the copy), MODE auto / on / off. Target (issue 64): ``exp:auto`` within 0.3 dB of ``orig:auto``, which decides off.
+The copy (``ssgwarp.procedural.vary_exposures``, written once into ``--work``) is trained at ``--iters`` steps; its
+training views' renders are scored against the UNMODIFIED images (docs/reconstruction.md, "Per-image appearance").
+``--runs``: ``CAPTURE:MODE``, CAPTURE ``orig`` (lego_200) or ``exp`` (the copy), MODE auto / on / off.
 
     python benchmarks/captures.py appearance --runs orig:auto exp:auto exp:off --iters 600
 """
 INSIDE_OUT_DOC = """The procedural inside-out capture's held-out error region by region (known truth), with and without sky.
 
-``ssgwarp.procedural.build_inside_out(railing=True)``: ground, a ring of buildings, a sky dome, a railing near the
-rig; cameras in the middle looking outward, every 8th view held out. The truth's object ids give each held-out
-pixel its region: PSNR per region (ground, buildings, sky, railing), of the whole image and of the floaters (opaque
-pixels, alpha > 0.5, rendered nearer than half their true depth), their share of the pixels and of the error. ``--runs``:
-``SKY:ITERS[:FAR]``: SKY ``--sky`` auto / on / off (none: the default), FAR ``DefaultStrategy.far_split_px`` (0: off, the default).
+PSNR per region (ground, buildings, sky, railing), of the whole image and of the floaters (docs/reconstruction.md,
+"Where the error of an inside-out capture sits"). ``--runs``: ``SKY:ITERS[:FAR]``: SKY ``--sky`` auto / on / off
+(none: the default), FAR ``DefaultStrategy.far_split_px`` (0: off, the default).
 
     python benchmarks/captures.py inside-out --runs off:150 on:150 --width 48 --views 16 --density 0.25 --device cpu
 """

@@ -124,13 +124,10 @@ def machine(device: torch.device | str = "cpu") -> str:
 
 def header(device: torch.device | str = "cpu", what: str = "") -> str:
     """One line for the top of a table: the date, the machine, torch and warp versions, ``what``."""
-    try:
-        import warp
-        wv = f", warp {warp.__version__}"
-    except ImportError:
-        wv = ""
-    return f"{datetime.date.today().isoformat()}, {machine(device)}, torch {torch.__version__}{wv}" + \
-        (f"; {what}" if what else "")
+    import warp
+
+    return f"{datetime.date.today().isoformat()}, {machine(device)}, torch {torch.__version__}, warp " \
+        f"{warp.__version__}" + (f"; {what}" if what else "")
 
 
 # ----------------------------------------------------------------------------- timing
@@ -148,16 +145,7 @@ def stats(ms: list[float]) -> dict:
 def measure(fn, device, repeats: int = 10, warmup: int = 1, clock=time.perf_counter) -> dict:
     """Milliseconds of ``repeats`` synchronised calls of ``fn()`` after ``warmup`` calls (kernel compilation,
     JIT, clocks): ``{median, min, max, n}``. ``clock``: ``time.process_time`` suits a shared CPU."""
-    for _ in range(warmup):
-        fn()
-    sync(device)
-    ms = []
-    for _ in range(max(1, repeats)):
-        t0 = clock()
-        fn()
-        sync(device)
-        ms.append((clock() - t0) * 1e3)
-    return stats(ms)
+    return interleaved({0: fn}, device, repeats, rounds=1, warmup=warmup, clock=clock)[0]
 
 
 def interleaved(fns: dict, device, repeats: int, rounds: int = 4, warmup: int = 1, clock=time.perf_counter) -> dict:

@@ -1,11 +1,9 @@
 """The rasterizer against gsplat 1.5.3: speed and agreement, ssgwarp (CUDA, CPU) side by side in one run.
 
-Scene (issue 16's): N Gaussians, means ~ N(0, 2) around z = 8, scales ~ U(0, 0.02), random rotations and opacities;
-colours, or SH degree 3; one camera (60 deg field of view) or four. Per case: forward and forward+backward
-(``img.sum() + alpha.sum()``) ms, median / min / max of ``--repeats`` synchronised calls (ssgwarp and gsplat in turns
-after a GPU warm-up), the ratio to gsplat, the image difference, and each float32 image's distance to ssgwarp's
-float64 render. ``--cases``: a set name or ``[ball:|ball2:]NxWxH[:SH[:CAMERAS]]`` (``ball``: tradeoffs.py's scene of
-larger Gaussians). ``--clock cpu``: the process's CPU time (a shared machine).
+Issue 16's scene (docs/benchmarks.md). Per case: forward and forward+backward ms (median / min / max of
+``--repeats`` synchronised calls, ssgwarp and gsplat in turns), the ratio to gsplat, the image difference and each
+float32 image's distance to the float64 render. ``--cases``: a set name or ``[ball:|ball2:]NxWxH[:SH[:CAMERAS]]``
+(``ball``: tradeoffs.py's scene of larger Gaussians).
 
     python benchmarks/raster.py --cases quick --no-gsplat --device cpu          # CPU smoke run
     python benchmarks/raster.py --agreement        # + share of bit-identical projected Gaussians against gsplat's

@@ -1,22 +1,16 @@
 """Stylization across styles, and the probes behind docs/stylize.md's tables (no Stage 1 weights needed).
 
-For a scene (``--scene``: fern ``images_8``, the demo scene, or a grouped run folder) and every style image in
-``--styles``, runs ``ssgwarp stylize`` (Stage 2 matches the style image) and ``ssgwarp evaluate`` (30 path views) and
-prints one row per style: colour / texture distances to the style (``StyleDistance``) before and after, the same
-for half of the style image against the whole (``StyleDistance.halves``), the Gram loss, short/long-range
-consistency RMSE as ratios to the unstylized scene's, and floaters (Stage 2's ablations: ``--configs
-docs/notes/stylize-ablation.txt``). Finished styles are kept (``OUT/<scene>/<style>/result.json``) and skipped on the
-next run, so shards and interrupted runs add up; ``--report`` tables what is finished. Writes ``table.md``, ``results.json`` and
-``styles_sheet.jpg`` under ``OUT/<scene>``.
+For a scene (fern ``images_8``, the demo scene, or a grouped run folder) and every style image, ``ssgwarp stylize``
+and ``ssgwarp evaluate``: one row per style (the columns: docs/stylize.md). Finished styles are kept
+(``OUT/<scene>/<style>/result.json``), so shards and interrupted runs add up; ``--report`` tables what is finished.
+Writes ``table.md``, ``results.json`` and ``styles_sheet.jpg`` under ``OUT/<scene>``.
 
     python benchmarks/stylize.py --scene fern --shard 0/3      # a third of the styles (10-minute slots)
     python benchmarks/stylize.py --scene demo --demo-size small --styles-subset candy,udnie \
         --iters 10 --path-frames 6 --out /tmp/ss                       # CPU check (~2 min on 2 cores)
     python benchmarks/stylize.py --scene fern --configs FILE --timeout 420  # 'TAG: FLAGS' lines, all at once
 
-Modes, each with its own ``--help``: ``captures`` (this table on the four shared captures, one summary row each),
-``stage2`` (seconds per stage of ``ssgwarp stylize``), ``probe`` (the consistency error that texture fixed in 3-D
-costs), ``bound`` (the texture distance the style loss alone reaches).
+Modes, each with its own ``--help``: ``captures``, ``stage2``, ``probe``, ``bound`` (docs/benchmarks.md).
 """
 from __future__ import annotations
 

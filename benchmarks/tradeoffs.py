@@ -1,13 +1,9 @@
 """The measured speed/accuracy trade: each knob of the renderer and of stylization, time against error.
 
-Rasterizer knobs, one changed at a time from the defaults (float32, ``RasterSettings()``, tile 16, the scene's SH
-degree, all Gaussians): precision, alpha_min, t_min, alpha_max, fast_math, covariance, extent, tile_size (8 / 16 /
-32), sh_degree (0-3), gaussians (25 / 50 / 100 %, the most opaque kept), exact (``RasterSettings.exact()``). Each is
-timed (median of ``--repeats``; forward, and forward + backward of a fixed random weighting of the image) and
-compared with the float64 ``RasterSettings.exact()`` render of all Gaussians: image RMSE and max error, relative L2
-error of ``dL/dmeans``. ``--stylize``: Stage 2's key views (2 / 4 / 8) and ``feature_scale`` (0.25 / 0.5 / 1),
-with Stage 2's time and Gram / content losses. Writes ``tradeoffs.md``, ``tradeoffs.json`` (``--append`` keeps other
-devices' results) and ``tradeoffs_pareto.png`` (time against error, the Pareto front) to ``--out``.
+Each rasterizer knob changed alone from the defaults (:func:`raster_cases`), timed and compared with the float64
+``RasterSettings.exact()`` render of all Gaussians; ``--stylize``: Stage 2's key views and ``feature_scale``. Writes
+``tradeoffs.md``, ``tradeoffs.json`` (``--append`` keeps other devices' results) and ``tradeoffs_pareto.png`` to
+``--out``; docs/tradeoffs.md reads them.
 
     python benchmarks/tradeoffs.py --quick --out /tmp/tradeoffs          # < 1 min CPU smoke run
     python benchmarks/tradeoffs.py --devices cuda --n 500000 --size 1024 --stylize --append --out bench/tradeoffs
@@ -341,14 +337,11 @@ def main(argv=None) -> int:
     if args.quick:
         args.n, args.size, args.repeats, args.views = min(args.n, 400), min(args.size, 48), min(args.repeats, 2), 1
         args.stylize, args.stylize_iters = True, min(args.stylize_iters, 2)
-    if args.devices is None:
-        devs = ["cpu"] + (["cuda"] if torch.cuda.is_available() and not args.quick else [])
-    else:
-        devs = [d.strip() for d in args.devices.split(",") if d.strip()]
-    for d in devs:
-        if d == "cuda" and not torch.cuda.is_available():
+    devs = [d.strip() for d in (args.devices or ("cpu" if args.quick else "cpu,cuda")).split(",") if d.strip()]
+    if "cuda" in devs and not torch.cuda.is_available():
+        if args.devices:
             print("tradeoffs: CUDA is not available here; skipping cuda", file=sys.stderr)
-    devs = [d for d in devs if d != "cuda" or torch.cuda.is_available()]
+        devs.remove("cuda")
     args.out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(args.seed)
 
@@ -357,10 +350,8 @@ def main(argv=None) -> int:
         scene_desc = f"{args.scene.name} ({len(scene)} Gaussians, SH {scene.sh_degree})"
         run_dir = args.scene
     else:
-        w = args.size
-        h = max(8, round(args.size * 3 / 4))
         scene = synthetic_scene(args.n, args.sh_degree, args.seed)
-        cams = synthetic_cameras(args.views, w, h)
+        cams = synthetic_cameras(args.views, args.size, max(8, round(args.size * 3 / 4)))
         scene_desc = f"synthetic ({args.n} Gaussians, SH {args.sh_degree})"
         run_dir = None
 

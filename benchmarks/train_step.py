@@ -1,18 +1,14 @@
 """A training step's cost, and whole training runs, with ssgwarp's rasterizer or gsplat's (and its strategies).
 
-One :class:`~ssgwarp.reconstruction.trainer.Trainer` per ``--backend`` on the same capture, seed and recipe:
-``--warm`` steps (past the first refinements), then ``--steps`` timed steps: ms per step and, on CUDA, each
-synchronising call and the frames that made it (torch's sync debug mode). ``--profile``: torch.profiler's top host
-ops; ``--ops``: every torch op and Warp launch a step makes, per source line (a backward op names the line of its
-forward op), calls, host µs (under the profiler) and GPU launches per step.
+One Trainer per ``--backend`` on the same capture, seed and recipe: ``--warm`` steps, then ``--steps`` timed steps:
+ms per step and, on CUDA, each synchronising call and the frames that made it; ``--ops`` names a backward op by the
+line of its forward op (docs/benchmarks.md, "The training step").
 
     python benchmarks/train_step.py --scene fern4 --backend ssgwarp --profile
     OMP_NUM_THREADS=2 python benchmarks/train_step.py --device cpu --backend ssgwarp --warm 20 --steps 5 --ops
     python benchmarks/train_step.py --scene fern4 --backend ssgwarp --optimizer torch warp   # Adam: torch / WarpAdam
 
-Modes, each with its own ``--help``: ``runs`` (whole runs per scene x backend x strategy x budget: held-out PSNR /
-SSIM, Gaussians, time, memory), ``loss`` (the photometric loss, 0.8 L1 + 0.2 (1 - SSIM): the torch reference against
-the fused Warp kernels per image size; on CUDA also host time with 20 calls queued and the kernels' GPU time).
+Modes, each with its own ``--help``: ``runs`` (whole training runs), ``loss`` (the photometric loss, fused or not).
 
     python benchmarks/train_step.py runs --scenes fern8 fern4 --backend ssgwarp gsplat
     OMP_NUM_THREADS=1 python benchmarks/train_step.py loss --device cpu --clock cpu
@@ -49,11 +45,9 @@ from ssgwarp.reconstruction.strategy import DefaultStrategy, MCMCStrategy, Strat
 
 RUNS_DOC = """Whole training runs: our 3DGS loop with either rasterizer and each densification strategy.
 
-One Trainer loop per scene x ``--backend`` (``gsplat``: gsplat.rasterization, non-packed) x ``--strategy`` (ours, or
-gsplat 1.5's ``gsplat-default`` / ``gsplat-mcmc`` on our tensors and schedule) x ``--iters`` x ``--max-gaussians``
-(with mcmc: docs/tradeoffs.md's budget sweep). Distorted captures are undistorted into a pinhole crop.
-``--match-default``: also mcmc at the default run's final count. Tables (runs; rasterizer, strategy pairs; budget
-sweep) and raw rows go to ``--out``. Targets (issues 3, 14): within 0.2 dB of gsplat's rasterizer at <= 1.5x time.
+One Trainer loop per scene x ``--backend`` x ``--strategy`` (ours, or gsplat 1.5's on our tensors and schedule) x
+``--iters`` x ``--max-gaussians`` x ``--recipe``; tables and raw rows go to ``--out``. Targets (issues 3, 14): within
+0.2 dB of gsplat's rasterizer at <= 1.5x time.
 
     python benchmarks/train_step.py runs --scenes fern8 cup lego --strategy default gsplat-default --match-default
     python benchmarks/train_step.py runs --scenes PATH --iters 120 --device cpu --strategy default mcmc
@@ -238,14 +232,6 @@ def load_scene(spec: str, root: Path | None, device: torch.device, random_points
     return load_dataset(folder, images=images, device=device, num_random_points=random_points, width=width)
 
 
-def report(out: Path, setup: str, md: str, rows: list[dict], device: torch.device) -> None:
-    """Print the tables under a header (date, machine, setup) and write results.json / results.md to ``out``."""
-    head = header(device, setup)
-    print(f"\n{head}\n\n{md}")
-    write_json(out / "results.json", {"setup": head, "rows": rows})
-    write_text(out / "results.md", f"{head}\n\n{md}\n")
-
-
 def runs_main(argv=None) -> int:
     """`train_step.py runs`: whole training runs (see the module's docstring)."""
     p = parser("train_step.py runs", RUNS_DOC)
@@ -283,24 +269,24 @@ def runs_main(argv=None) -> int:
         data = load_scene(spec, a.data_root, device, a.random_points, a.width)
         for iters in a.iters:
             for backend in backends:
+                common = dict(backend=backend, iters=iters, sh_degree=a.sh_degree, seed=a.seed, device=device,
+                              progress=not a.no_progress, dssim_scale=a.dssim_scale)
                 for strategy in a.strategy:
                     for budget, rs in ((b, rs) for b in a.max_gaussians for rs in a.recipe):
                         st = make(strategy, budget)
                         rv, sv = knobs(rs.split(","), Recipe(), st)   # (a Recipe field, else the strategy's knob)
                         recipe, st = Recipe(**rv), replace(st, **sv)
-                        r = train_and_measure(data, backend=backend, strategy=st, iters=iters,
-                                              sh_degree=a.sh_degree, seed=a.seed, max_gaussians=budget, recipe=recipe,
-                                              device=device, progress=not a.no_progress, dssim_scale=a.dssim_scale)
+                        r = train_and_measure(data, strategy=st, max_gaussians=budget, recipe=recipe, **common)
                         record({"scene": spec, **r, **({"recipe": rs} if rs else {})})
                         if a.match_default and strategy == "default":
-                            m = train_and_measure(data, backend=backend, strategy="mcmc", iters=iters,
-                                                  sh_degree=a.sh_degree, seed=a.seed, max_gaussians=r["gaussians"],
-                                                  device=device, progress=not a.no_progress,
-                                                  dssim_scale=a.dssim_scale)
+                            m = train_and_measure(data, strategy="mcmc", max_gaussians=r["gaussians"], **common)
                             record({"scene": spec, **m, "matched": r["gaussians"], "matched_budget": budget})
         del data
-    report(a.out, f"SH degree {a.sh_degree}, seed {a.seed}, D-SSIM scale {a.dssim_scale:g}; held-out views every 8th",
-           tables(rows), rows, device)
+    head = header(device, f"SH degree {a.sh_degree}, seed {a.seed}, D-SSIM scale {a.dssim_scale:g}; held-out views "
+                          "every 8th")
+    print(f"\n{head}\n\n{tables(rows)}")
+    write_json(a.out / "results.json", {"setup": head, "rows": rows})
+    write_text(a.out / "results.md", f"{head}\n\n{tables(rows)}\n")
     return 0
 
 
