@@ -149,8 +149,7 @@ def cuda_row(row, case, args, gsplat) -> None:
     fns = dict(zip(("ssg_f", "ssg_fb"), closures(ssgwarp.rasterization, n, w, h, dev, **kw)))
     if gsplat is not None:
         fns.update(zip(("gs_f", "gs_fb"), closures(gsplat.rasterization, n, w, h, dev, **kw)))
-    t = interleaved(fns, dev, args.repeats)
-    for k, s in t.items():
+    for k, s in interleaved(fns, dev, args.repeats).items():
         row.update({k: s["median"], f"{k}_range": f"{s['min']:.2f}-{s['max']:.2f}"})
     img = fns["ssg_f"]()[0]
     params64 = [p.double() for p in make_scene(n, dev, sh_degree=deg)]
@@ -166,14 +165,11 @@ def cuda_row(row, case, args, gsplat) -> None:
                    gs64diff=float((gimg.double() - img64).abs().max()))
         if args.agreement:
             agreement(row, n, w, h, deg, cams, dev, gsplat)
-    if args.profile:
-        libs = [("ssgwarp", fns["ssg_f"], fns["ssg_fb"])]
-        if gsplat is not None:
-            libs.append(("gsplat", fns["gs_f"], fns["gs_fb"]))
-        for lib, f, fb in libs:
+    for lib, key in (("ssgwarp", "ssg"), ("gsplat", "gs")):
+        if args.profile and f"{key}_f" in fns:
             print(f"\n=== {lib}: N={n:,} {w}x{h}")
-            profile_pass(f"{lib} forward", f, args.repeats, 15)
-            profile_pass(f"{lib} forward+backward", fb, args.repeats, 15)
+            profile_pass(f"{lib} forward", fns[f"{key}_f"], args.repeats, 15)
+            profile_pass(f"{lib} forward+backward", fns[f"{key}_fb"], args.repeats, 15)
 
 
 def cpu_rows(case, args) -> list[dict]:
@@ -190,11 +186,10 @@ def cpu_rows(case, args) -> list[dict]:
                 kw["settings"] = RasterSettings(cpu_threads=threads)
             f, fb = closures(ssgwarp.rasterization, n, w, h, torch.device("cpu"), sh_degree=deg, cameras=cams,
                              kind=(kind or [""])[0], **kw)
-            reps = max(2, args.repeats // 5)
-            tf, tfb = measure(f, "cpu", reps, clock=clock), measure(fb, "cpu", reps, clock=clock)
-            rows.append({"tile": tile or "default", "threads": threads or "default", "cpu_f": tf["median"],
-                         "cpu_f_range": f"{tf['min']:.2f}-{tf['max']:.2f}", "cpu_fb": tfb["median"],
-                         "cpu_fb_range": f"{tfb['min']:.2f}-{tfb['max']:.2f}"})
+            t = interleaved({"cpu_f": f, "cpu_fb": fb}, "cpu", max(2, args.repeats // 5), rounds=1, clock=clock)
+            rows.append({"tile": tile or "default", "threads": threads or "default"})
+            for k, s in t.items():
+                rows[-1].update({k: s["median"], f"{k}_range": f"{s['min']:.2f}-{s['max']:.2f}"})
     return rows
 
 

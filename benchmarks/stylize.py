@@ -45,19 +45,17 @@ points (8 k-means groups); ``--random-stage1 sd15``: Stage 1 on random SD1.5-siz
 """
 PROBE_DOC = """What texture costs in the consistency metric when the texture is consistent by construction.
 
-Paints the Gaussians with a grey colour that is a fixed function of 3-D position (six seeded sinusoids of
-``period`` pixels at the median depth, std ``amplitude``) and scores ``ssgwarp evaluate``'s path views as it does
-(reprojection RMSE against the unpainted scene's, error share of the worst 10 / 25 % of pixels; ``--style``: texture
-distance per scale). ``--truth`` (an ``ssgwarp demo`` run, OUT/scene): also the procedural scene behind it.
+Paints the Gaussians with a grey pattern fixed in 3-D (``spread.probe_scene``) and scores ``ssgwarp evaluate``'s path
+views as it does (docs/stylize.md, "What limits texture"). ``--truth`` (an ``ssgwarp demo`` run, OUT/scene): also
+the procedural scene behind it.
 
     python benchmarks/stylize.py probe --run RUN --style ../shared/data/styles/candy.jpg
     python benchmarks/stylize.py probe --run ssgwarp-demo/scene --truth --periods 2,8,32
 """
 BOUND_DOC = """How far Stage 2's weight-free style loss takes the texture distance with nothing holding it back.
 
-Per style: Stage 2's colour transfer, then each path view's scene pixels (alpha >= 0.5) optimised freely with the
-style loss alone (Adam on the logits), scored after each of ``--steps`` steps per view. A texture target beyond
-this is beyond the loss, whatever the 3-D side does.
+Per style: Stage 2's colour transfer, then each path view's scene pixels optimised freely with the style loss
+alone, scored after each of ``--steps`` steps per view (docs/stylize.md, "How far the loss itself goes").
 
     python benchmarks/stylize.py bound --run RUN --styles candy,mosaic --steps 10,100
 """

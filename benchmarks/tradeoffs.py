@@ -14,7 +14,6 @@ Mode ``budget RESULTS.json ... --scene fern8``: held-out PSNR against Gaussians 
 """
 from __future__ import annotations
 
-import argparse
 import datetime
 import json
 import math
@@ -30,7 +29,7 @@ import ssgwarp
 from ssgwarp import RasterSettings
 from ssgwarp.core.cameras import Cameras, look_at
 from ssgwarp.raster.scene import GaussianScene
-from harness import ROOT, dispatch, machine, measure, passes, pyplot, save_figure, sync, write_text
+from harness import ROOT, dispatch, machine, measure, parser, passes, pyplot, save_figure, sync, write_text
 
 
 # ----------------------------------------------------------------------------- scene and cameras
@@ -312,9 +311,8 @@ def pareto_plot(results: dict, path: Path) -> Path:
 
 
 # ----------------------------------------------------------------------------- main
-def parse_args(argv=None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+def main(argv=None) -> int:
+    p = parser("tradeoffs.py", __doc__)
     p.add_argument("--out", type=Path, default=Path("tradeoffs"), help="output folder")
     p.add_argument("--quick", action="store_true", help="tiny sizes: a CPU smoke run in under a minute")
     p.add_argument("--devices", default=None, help="cpu, cuda or cpu,cuda (default: cpu, and cuda when present)")
@@ -329,11 +327,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--stylize-iters", type=int, default=100, help="Stage 2 iterations per stylization run")
     p.add_argument("--append", action="store_true", help="keep other devices' results already in --out")
     p.add_argument("--seed", type=int, default=0)
-    return p.parse_args(argv)
-
-
-def main(argv=None) -> int:
-    args = parse_args(argv)
+    args = p.parse_args(argv)
     if args.quick:
         args.n, args.size, args.repeats, args.views = min(args.n, 400), min(args.size, 48), min(args.repeats, 2), 1
         args.stylize, args.stylize_iters = True, min(args.stylize_iters, 2)
@@ -471,7 +465,7 @@ def plot(rows: list[dict], out: Path, title: str) -> Path:
 
 
 def budget_main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="tradeoffs.py budget", description=BUDGET_DOC, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = parser("tradeoffs.py budget", BUDGET_DOC)
     ap.add_argument("results", nargs="+", type=Path, help="results.json files of benchmarks/train_step.py runs")
     ap.add_argument("--scene", default="fern8")
     ap.add_argument("--iters", type=int, default=7000)

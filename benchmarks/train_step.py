@@ -561,12 +561,11 @@ def step_main(argv=None) -> int:
     for r in rows:
         append_jsonl(args.out, {k: v for k, v in r.items() if k not in ("profile", "ops")})
     print(f"\n{header(device)}; {args.scene}: steps {args.warm + 1}-{args.warm + args.steps} of a {args.iters}-step run\n")
-    print("| backend | Adam | ms per step | Adam alone, µs (GPU µs) | Gaussians | synchronisations per step |")
-    print("|---|---|---:|---:|---:|---|")
-    for r in rows:
-        gpu = f" ({r['adam_gpu_us']:.0f})" if r["adam_gpu_us"] is not None else ""
-        print(f"| {r['backend']} | {r['optimizer']} | {r['ms_per_step']:.2f} | {r['adam_us']:.0f}{gpu} | "
-              f"{r['gaussians']:,} | {'; '.join(r['syncs']) or '-'} |")
+    shown = [dict(r, syncs="; ".join(r["syncs"]) or "-", adam=f"{r['adam_us']:.0f}" + (
+        "" if r["adam_gpu_us"] is None else f" ({r['adam_gpu_us']:.0f})")) for r in rows]
+    print(table(shown, [("backend", "backend"), ("optimizer", "Adam"), ("ms_per_step", "ms per step"),
+                        ("adam", "Adam alone, µs (GPU µs)"), ("gaussians", "Gaussians"),
+                        ("syncs", "synchronisations per step")]))
     if len(rows) == 2:
         print(f"\nratio {rows[0]['backend']}/{rows[0]['optimizer']} / {rows[1]['backend']}/{rows[1]['optimizer']}: "
               f"{rows[0]['ms_per_step'] / rows[1]['ms_per_step']:.2f}x")
