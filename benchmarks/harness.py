@@ -53,8 +53,11 @@ def knobs(pairs, *targets) -> list[dict]:
         if i is None:
             raise InputError(f"{k}={v}: no such field of {' or '.join(type(t).__name__ for t in targets)}")
         like = getattr(targets[i], k)
-        out[i][k] = (v.lower() in ("1", "true", "yes", "on") if isinstance(like, bool) else v if isinstance(like, str)
-                     else float(v) if isinstance(like, float) or not v.lstrip("-").isdigit() else int(v))
+        kind = type(like) if isinstance(like, (str, float)) else int if v.lstrip("-").isdigit() else float
+        try:
+            out[i][k] = v.lower() in ("1", "true", "yes", "on") if isinstance(like, bool) else kind(v)
+        except ValueError:
+            raise InputError(f"{k}={v}: {type(targets[i]).__name__}.{k} takes a number") from None
     return out
 
 

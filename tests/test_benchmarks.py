@@ -127,3 +127,5 @@ def test_knobs_go_to_the_first_target_with_the_field_typed_as_its_value():
     assert type(a["x"]) is float and type(a["n"]) is int
     with pytest.raises(InputError, match="zz=1: no such field of A or B"):
         harness.knobs(["zz=1"], A(), B())
+    with pytest.raises(InputError, match="k=lots: B.k takes a number"):
+        harness.knobs(["k=lots"], A(), B())
