@@ -1,10 +1,7 @@
-"""The capture quality table: every shared capture reconstructed as ``ssgwarp reconstruct`` does (its code path and
-defaults), held-out quality beside the checked-in baseline; more than ``--tolerance`` (0.2) dB below it is a
-REGRESSION (exit status 1). Rows are appended to ``--out``/results.jsonl as runs end and are not run again (rerun
-to finish an interrupted table; ``--fresh`` starts over); ``--out``/results.md gets the table. ``--settings``: ``7k``,
-``auto`` (``--iters auto``) or a step count; ``--iters N`` runs every setting at N steps (a smoke run, compared only
-with a baseline row of that count). ``--backdrop-evidence`` / ``--triangulation``: the backdrop decision's evidence,
-triangulated points against COLMAP's (no training). docs/reconstruction.md says how to read each.
+"""The capture quality table: every shared capture reconstructed as ``ssgwarp reconstruct`` does, held-out quality
+beside the checked-in baseline; more than ``--tolerance`` dB below it is a REGRESSION (exit status 1). Finished rows
+are kept in ``--out``/results.jsonl (a rerun finishes the table; ``--fresh`` starts over). How to read it and the
+evidence flags: docs/reconstruction.md.
 
     python benchmarks/captures.py --out runs/captures                             # the whole table (GPU)
     python benchmarks/captures.py --captures lego --iters 20 --max-images 8 --device cpu --out /tmp/cap
@@ -12,8 +9,7 @@ triangulated points against COLMAP's (no training). docs/reconstruction.md says 
     python benchmarks/captures.py --backdrop-evidence --captures fern8 cup lego livingroom bird --thin 2000
     python benchmarks/captures.py --triangulation --captures fern8 --min-angle 1 2 3
 
-Modes, each with its own ``--help``: ``appearance`` (per-image appearance on a copy of lego_200 with varied
-exposures), ``inside-out`` (the procedural inside-out capture's error per region, with and without ``--sky``).
+Modes, each with its own ``--help``: ``appearance``, ``inside-out`` (docs/benchmarks.md).
 """
 from __future__ import annotations
 
@@ -24,7 +20,8 @@ import sys
 import time
 from pathlib import Path
 
-from harness import CAPTURES, append_jsonl, capture_folder, data_root, dispatch, machine, write_text  # noqa: E402
+from harness import CAPTURES, append_jsonl, capture_folder, data_root, dispatch, knobs, machine, parser  # noqa: E402
+from harness import write_text  # noqa: E402
 from harness import table as md_table  # noqa: E402
 
 from ssgwarp.core.fileio import write_json  # noqa: E402
@@ -159,7 +156,7 @@ def table(rows: list[dict], tolerance: float = TOLERANCE) -> str:
 
 # ----------------------------------------------------------------------------- main
 def table_main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = parser("captures.py", __doc__)
     add = p.add_argument
     add("--captures", nargs="+", default=list(CAPTURES), help=f"{', '.join(CAPTURES)} or PATH[:IMAGES] (default: all)")
     add("--settings", nargs="+", default=list(SETTINGS), help="7k, auto (--iters auto) or a step count (default: both)")
@@ -195,11 +192,9 @@ def table_main(argv=None) -> int:
         if not rows:
             raise SystemExit(f"--from {a.from_file}: no rows")
     else:
-        import torch
+        from ssgwarp.cli import resolve_device
 
-        device = torch.device(a.device or ("cuda" if torch.cuda.is_available() else "cpu"))
-        if device.type == "cuda" and not torch.cuda.is_available():
-            raise SystemExit("CUDA is not available (pass --device cpu for a (slow) CPU run)")
+        device = resolve_device(a.device)
         for s in a.settings:
             setting_iters(s)
         for spec in a.captures:
@@ -295,8 +290,8 @@ def triangulation(a) -> int:
 
     from ssgwarp.capture.datasets import load_dataset
 
-    caps = [c for c in a.captures if c != "lego" and c != "livingroom" and c != "bird"] \
-        if a.captures == list(CAPTURES) else a.captures
+    caps = a.captures if a.captures != list(CAPTURES) else \
+        [c for c in a.captures if c not in ("lego", "livingroom", "bird")]   # (the shared ones with COLMAP points)
     rows = []
     from ssgwarp.capture.triangulate import triangulate
 
@@ -340,21 +335,17 @@ def triangulation(a) -> int:
 # ----------------------------------------------------------------------------- modes: appearance, inside-out
 APPEARANCE_DOC = """Per-image appearance (``reconstruct --appearance``) on a copy of lego_200 whose photos' exposures differ.
 
-The copy (``ssgwarp.procedural.vary_exposures``: gain 0.6-1.4, tint +-10 % per channel, ``--seed``; written once
-into ``--work``) is trained with the defaults at ``--iters`` steps; its training views' renders (the scene itself,
-as ``ssgwarp render --split train``) are scored against the UNMODIFIED images, with the held-out PSNR under the
-run's protocol and the decision's evidence. ``--runs``: ``CAPTURE:MODE``, CAPTURE ``orig`` (lego_200) or ``exp``
-(the copy), MODE auto / on / off. Target (issue 64): ``exp:auto`` within 0.3 dB of ``orig:auto``, which decides off.
+The copy (``ssgwarp.procedural.vary_exposures``, written once into ``--work``) is trained at ``--iters`` steps; its
+training views' renders are scored against the UNMODIFIED images (docs/reconstruction.md, "Per-image appearance").
+``--runs``: ``CAPTURE:MODE``, CAPTURE ``orig`` (lego_200) or ``exp`` (the copy), MODE auto / on / off.
 
     python benchmarks/captures.py appearance --runs orig:auto exp:auto exp:off --iters 600
 """
 INSIDE_OUT_DOC = """The procedural inside-out capture's held-out error region by region (known truth), with and without sky.
 
-``ssgwarp.procedural.build_inside_out(railing=True)``: ground, a ring of buildings, a sky dome, a railing near the
-rig; cameras in the middle looking outward, every 8th view held out. The truth's object ids give each held-out
-pixel its region: PSNR per region (ground, buildings, sky, railing), of the whole image and of the floaters (opaque
-pixels, alpha > 0.5, rendered nearer than half their true depth), their share of the pixels and of the error. ``--runs``:
-``SKY:ITERS[:FAR]``: SKY ``--sky`` auto / on / off (none: the default), FAR ``DefaultStrategy.far_split_px`` (0: off, the default).
+PSNR per region (ground, buildings, sky, railing), of the whole image and of the floaters (docs/reconstruction.md,
+"Where the error of an inside-out capture sits"). ``--runs``: ``SKY:ITERS[:FAR]``: SKY ``--sky`` auto / on / off
+(none: the default), FAR ``DefaultStrategy.far_split_px`` (0: off, the default).
 
     python benchmarks/captures.py inside-out --runs off:150 on:150 --width 48 --views 16 --density 0.25 --device cpu
 """
@@ -367,8 +358,7 @@ def mode_parser(mode: str, doc: str, work: str, runs: list[str]) -> argparse.Arg
 
     import torch
 
-    p = argparse.ArgumentParser(prog=f"captures.py {mode}", description=doc,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = parser(f"captures.py {mode}", doc)
     p.add_argument("--runs", nargs="+", default=runs, help="default: %(default)s")
     p.add_argument("--width", type=int, default=None, help="image width (default: as stored; inside-out 96)")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -491,16 +481,14 @@ def inside_out_main(argv=None) -> int:
     data = load_dataset(folder, progress=False, device=a.device)
     if a.points:  # a stand-in for SfM points (default: the loader's)
         data.points, data.points_source = surface_points(gt, a.points), "colmap"
-    fields, rows = {k: float(v) if "." in v or "e" in v else int(v) for k, _, v in (x.partition("=") for x in a.recipe)}, []
+    (rv, sv), rows = knobs(a.recipe, Recipe(), DefaultStrategy()), []   # (a Recipe field, else the strategy's knob)
     for spec in a.runs:
         sky, iters, far = (spec.split(":") + ["", ""])[:3]
-        st = {k: v for k, v in fields.items() if k not in Recipe.__dataclass_fields__}   # (the strategy's knobs)
-        st, recipe = DefaultStrategy(**st, **({"far_split_px": float(far)} if far else {})), Recipe(**{
-            k: v for k, v in fields.items() if k not in st})
+        st, recipe = DefaultStrategy(**{**sv, **({"far_split_px": float(far)} if far else {})}), Recipe(**rv)
         _, tr = trained(f"{sky}:{iters}", "SKY:ITERS[:FAR]", lambda _: data, a, recipe=recipe, strategy=st,
                         **({} if sky == "none" else {"sky": sky}))
         finish({"sky": sky + ("" if (rec := tr.sky_record) is None else f" ({'on' if rec['use'] else 'off'})"),
-                "sky_record": rec, "points": a.points or data.points_source, "recipe": fields, "far_split_px": st.far_split_px
+                "sky_record": rec, "points": a.points or data.points_source, "recipe": {**rv, **sv}, "far_split_px": st.far_split_px
                 if tr.strategy.far else 0, "far_gaussians": None if tr.strategy.center is None else int(((  # 5 extents out
                     tr.scene.means.detach() - tr.strategy.center).norm(dim=1) >= FAR_EXTENTS * tr.extent).sum()),
                 "iters": tr.iters, "width": width, "views": a.views, "psnr": tr.evaluate()["psnr"],

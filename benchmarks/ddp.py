@@ -2,10 +2,9 @@
 
 Each configuration in its own process(es), same capture, seed and number of images (``--iters`` one-view steps; a
 batch of B trains ``--iters / B`` steps): ``1gpu-b1`` (the plain ``ssgwarp reconstruct``, the reference), ``1gpu-bN``
-(N views per step: what batching gives) and ``Ngpu-bN`` (``torchrun``, one view per GPU per step, NCCL). Held-out
-PSNR every ``--eval-every`` images (not timed); per configuration the training time at which it first reached the
-reference's final PSNR - 0.1 dB, the time from which it stayed there, the speed-up, final PSNR, Gaussians and peak
-memory per GPU. ``--batch-scaling`` repeats the batch configurations per Adam scaling (docs/scaling.md).
+(N views per step: what batching gives) and ``Ngpu-bN`` (``torchrun``, one view per GPU per step, NCCL). Per
+configuration: the training time to the reference's final PSNR - 0.1 dB (held-out PSNR every ``--eval-every``
+images), the speed-up, final PSNR, Gaussians and peak memory per GPU (docs/scaling.md).
 
     python benchmarks/ddp.py --data /root/data/llff_fern --images images_4 --iters 7000 --gpus 2 --out ddp_fern4.json
     python benchmarks/ddp.py --data /root/data/colmap_cup --images images --iters 30000 --only 1gpu-bN \
@@ -113,7 +112,8 @@ def main() -> int:
     ap.add_argument("--iters", type=int, default=7000, help="images trained on (= one-view steps; default 7000)")
     ap.add_argument("--eval-every", type=int, default=100, help="images between held-out evaluations")
     ap.add_argument("--gpus", type=int, default=2, help="processes of the data-parallel run (default 2)")
-    ap.add_argument("--batch-scaling", nargs="+", default=["sqrt"], choices=("sqrt", "linear", "none"))
+    ap.add_argument("--batch-scaling", nargs="+", default=["sqrt"], choices=("sqrt", "linear", "none"),
+                    help="Adam's learning-rate scalings: the batch configurations once per scaling (default sqrt)")
     ap.add_argument("--no-single-batch", action="store_true", help="skip the 1-GPU batch-N configuration")
     ap.add_argument("--only", nargs="+", choices=("1gpu-b1", "1gpu-bN", "Ngpu-bN"), default=None,
                     help="run only these configurations (the others are read from earlier runs into the same "

@@ -2,6 +2,7 @@
 modes, JSON lines, markdown tables and figures. ``python benchmarks/<tool>.py`` puts this folder on ``sys.path``."""
 from __future__ import annotations
 
+import argparse
 import datetime
 import json
 import os
@@ -21,18 +22,43 @@ STYLE_SUFFIXES = (".jpg", ".jpeg", ".png")
 
 
 def dispatch(modes: dict, default, argv=None) -> int:
-    """``modes[argv[0]](argv[1:])`` when the first argument names a mode (an ``InputError`` it raises: one line,
-    exit status 2), else ``default(argv)``."""
-    from ssgwarp.errors import InputError
+    """``modes[argv[0]](argv[1:])`` when the first argument names a mode, else ``default(argv)``; an ``InputError``
+    (any ``SsgwarpError``) either raises: one line naming the tool and mode, exit status 2."""
+    from ssgwarp.errors import SsgwarpError
 
     argv = sys.argv[1:] if argv is None else list(argv)
-    if not (argv and argv[0] in modes):
-        return default(argv)
+    mode = argv[0] if argv and argv[0] in modes else ""
+    fn = modes[mode] if mode else default
     try:
-        return modes[argv[0]](argv[1:])
-    except InputError as e:
-        print(f"{Path(modes[argv[0]].__code__.co_filename).name} {argv[0]}: {e}", file=sys.stderr)
+        return fn(argv[1:] if mode else argv)
+    except SsgwarpError as e:
+        print(f"{Path(fn.__code__.co_filename).name}{' ' + mode if mode else ''}: {e}", file=sys.stderr)
         return 2
+
+
+def parser(prog: str, doc: str) -> argparse.ArgumentParser:
+    """An argument parser whose ``--help`` shows ``doc`` as written (its examples' line breaks kept)."""
+    return argparse.ArgumentParser(prog=prog, description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+
+
+def knobs(pairs, *targets) -> list[dict]:
+    """``KEY=VALUE`` strings as one dict per target (dataclass instances): a key goes to the first target with that
+    field, its value typed as the field's value there (None: a number); an unknown key raises ``InputError``."""
+    from ssgwarp.errors import InputError
+
+    out = [{} for _ in targets]
+    for k, _, v in (p.strip().partition("=") for p in pairs if p.strip()):
+        k, v = k.strip().replace("-", "_"), v.strip()
+        i = next((i for i, t in enumerate(targets) if hasattr(t, k)), None)
+        if i is None:
+            raise InputError(f"{k}={v}: no such field of {' or '.join(type(t).__name__ for t in targets)}")
+        like = getattr(targets[i], k)
+        kind = type(like) if isinstance(like, (str, float)) else int if v.lstrip("-").isdigit() else float
+        try:
+            out[i][k] = v.lower() in ("1", "true", "yes", "on") if isinstance(like, bool) else kind(v)
+        except ValueError:
+            raise InputError(f"{k}={v}: {type(targets[i]).__name__}.{k} takes a number") from None
+    return out
 
 
 def data_root() -> Path:
@@ -101,13 +127,10 @@ def machine(device: torch.device | str = "cpu") -> str:
 
 def header(device: torch.device | str = "cpu", what: str = "") -> str:
     """One line for the top of a table: the date, the machine, torch and warp versions, ``what``."""
-    try:
-        import warp
-        wv = f", warp {warp.__version__}"
-    except ImportError:
-        wv = ""
-    return f"{datetime.date.today().isoformat()}, {machine(device)}, torch {torch.__version__}{wv}" + \
-        (f"; {what}" if what else "")
+    import warp
+
+    return f"{datetime.date.today().isoformat()}, {machine(device)}, torch {torch.__version__}, warp " \
+        f"{warp.__version__}" + (f"; {what}" if what else "")
 
 
 # ----------------------------------------------------------------------------- timing
@@ -125,16 +148,7 @@ def stats(ms: list[float]) -> dict:
 def measure(fn, device, repeats: int = 10, warmup: int = 1, clock=time.perf_counter) -> dict:
     """Milliseconds of ``repeats`` synchronised calls of ``fn()`` after ``warmup`` calls (kernel compilation,
     JIT, clocks): ``{median, min, max, n}``. ``clock``: ``time.process_time`` suits a shared CPU."""
-    for _ in range(warmup):
-        fn()
-    sync(device)
-    ms = []
-    for _ in range(max(1, repeats)):
-        t0 = clock()
-        fn()
-        sync(device)
-        ms.append((clock() - t0) * 1e3)
-    return stats(ms)
+    return interleaved({0: fn}, device, repeats, rounds=1, warmup=warmup, clock=clock)[0]
 
 
 def interleaved(fns: dict, device, repeats: int, rounds: int = 4, warmup: int = 1, clock=time.perf_counter) -> dict:
@@ -249,11 +263,6 @@ def fmt(v, digits: int = 2) -> str:
     if isinstance(v, int):
         return f"{v:,}"
     return f"{v:.2e}" if v != 0 and abs(v) < 1e-2 else f"{v:.{digits}f}"
-
-
-def cell(v, spec: str = ".2f") -> str:
-    """``format(v, spec)``, or 'n/a' for None / NaN."""
-    return "n/a" if v is None or (isinstance(v, float) and v != v) else format(v, spec)
 
 
 def table(rows: list[dict], cols) -> str:

@@ -17,7 +17,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from harness import header  # noqa: E402
+from harness import header, table  # noqa: E402
 from ssgwarp import RasterSettings, rasterization  # noqa: E402
 from test_rasterizer_extremes import _extreme_case, _front_camera  # noqa: E402
 
@@ -73,8 +73,8 @@ def main(argv=None) -> int:
             variants.insert(1, ("default, covariance='factor'", RasterSettings(covariance="factor")))
         for name, st in variants:
             ref_img, ref_g = render(params, vm, K, w, h, "torch", torch.float64, st)
-            row = [text, name]
-            for dt in (torch.float64, torch.float32):
+            row = {"case": text, "settings": name}
+            for tag, dt in (("f64", torch.float64), ("f32", torch.float32)):
                 img, gr = render(params, vm, K, w, h, "warp", dt, st)
                 finite = bool(torch.isfinite(img).all()) and all(bool(torch.isfinite(x).all()) for x in gr)
                 ierr = rel(ref_img, img)
@@ -82,16 +82,11 @@ def main(argv=None) -> int:
                 # is measured against 1e-3 of the problem's largest gradient, not its own noise
                 top = max([float(x.abs().max()) for x in ref_g if x.numel()] + [1e-9])
                 gerr = max(rel(a, b, 1e-3 * top) for a, b in zip(ref_g, gr))
-                row += [f"{ierr:.1e}", f"{gerr:.1e}", "yes" if finite else "NO"]
+                row.update({f"{tag} image rel err": f"{ierr:.1e}", f"{tag} grad rel err": f"{gerr:.1e}",
+                            f"{tag} finite": "yes" if finite else "NO"})
             rows.append(row)
             print(row, flush=True)
-    head = ["case", "settings", "f64 image rel err", "f64 grad rel err", "f64 finite",
-            "f32 image rel err", "f32 grad rel err", "f32 finite"]
-    print(f"\n{header('cpu')}\n")
-    print("| " + " | ".join(head) + " |")
-    print("|" + "---|" * len(head))
-    for r in rows:
-        print("| " + " | ".join(r) + " |")
+    print(f"\n{header('cpu')}\n\n{table(rows, [(k, k) for k in rows[0]])}")
     return 0
 
 

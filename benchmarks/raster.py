@@ -1,11 +1,9 @@
 """The rasterizer against gsplat 1.5.3: speed and agreement, ssgwarp (CUDA, CPU) side by side in one run.
 
-Scene (issue 16's): N Gaussians, means ~ N(0, 2) around z = 8, scales ~ U(0, 0.02), random rotations and opacities;
-colours, or SH degree 3; one camera (60 deg field of view) or four. Per case: forward and forward+backward
-(``img.sum() + alpha.sum()``) ms, median / min / max of ``--repeats`` synchronised calls (ssgwarp and gsplat in turns
-after a GPU warm-up), the ratio to gsplat, the image difference, and each float32 image's distance to ssgwarp's
-float64 render. ``--cases``: a set name or ``[ball:|ball2:]NxWxH[:SH[:CAMERAS]]`` (``ball``: tradeoffs.py's scene of
-larger Gaussians). ``--clock cpu``: the process's CPU time (a shared machine).
+Issue 16's scene (docs/benchmarks.md). Per case: forward and forward+backward ms (median / min / max of
+``--repeats`` synchronised calls, ssgwarp and gsplat in turns), the ratio to gsplat, the image difference and each
+float32 image's distance to the float64 render. ``--cases``: a set name or ``[ball:|ball2:]NxWxH[:SH[:CAMERAS]]``
+(``ball``: tradeoffs.py's scene of larger Gaussians).
 
     python benchmarks/raster.py --cases quick --no-gsplat --device cpu          # CPU smoke run
     python benchmarks/raster.py --agreement        # + share of bit-identical projected Gaussians against gsplat's
@@ -151,8 +149,7 @@ def cuda_row(row, case, args, gsplat) -> None:
     fns = dict(zip(("ssg_f", "ssg_fb"), closures(ssgwarp.rasterization, n, w, h, dev, **kw)))
     if gsplat is not None:
         fns.update(zip(("gs_f", "gs_fb"), closures(gsplat.rasterization, n, w, h, dev, **kw)))
-    t = interleaved(fns, dev, args.repeats)
-    for k, s in t.items():
+    for k, s in interleaved(fns, dev, args.repeats).items():
         row.update({k: s["median"], f"{k}_range": f"{s['min']:.2f}-{s['max']:.2f}"})
     img = fns["ssg_f"]()[0]
     params64 = [p.double() for p in make_scene(n, dev, sh_degree=deg)]
@@ -168,14 +165,11 @@ def cuda_row(row, case, args, gsplat) -> None:
                    gs64diff=float((gimg.double() - img64).abs().max()))
         if args.agreement:
             agreement(row, n, w, h, deg, cams, dev, gsplat)
-    if args.profile:
-        libs = [("ssgwarp", fns["ssg_f"], fns["ssg_fb"])]
-        if gsplat is not None:
-            libs.append(("gsplat", fns["gs_f"], fns["gs_fb"]))
-        for lib, f, fb in libs:
+    for lib, key in (("ssgwarp", "ssg"), ("gsplat", "gs")):
+        if args.profile and f"{key}_f" in fns:
             print(f"\n=== {lib}: N={n:,} {w}x{h}")
-            profile_pass(f"{lib} forward", f, args.repeats, 15)
-            profile_pass(f"{lib} forward+backward", fb, args.repeats, 15)
+            profile_pass(f"{lib} forward", fns[f"{key}_f"], args.repeats, 15)
+            profile_pass(f"{lib} forward+backward", fns[f"{key}_fb"], args.repeats, 15)
 
 
 def cpu_rows(case, args) -> list[dict]:
@@ -192,11 +186,10 @@ def cpu_rows(case, args) -> list[dict]:
                 kw["settings"] = RasterSettings(cpu_threads=threads)
             f, fb = closures(ssgwarp.rasterization, n, w, h, torch.device("cpu"), sh_degree=deg, cameras=cams,
                              kind=(kind or [""])[0], **kw)
-            reps = max(2, args.repeats // 5)
-            tf, tfb = measure(f, "cpu", reps, clock=clock), measure(fb, "cpu", reps, clock=clock)
-            rows.append({"tile": tile or "default", "threads": threads or "default", "cpu_f": tf["median"],
-                         "cpu_f_range": f"{tf['min']:.2f}-{tf['max']:.2f}", "cpu_fb": tfb["median"],
-                         "cpu_fb_range": f"{tfb['min']:.2f}-{tfb['max']:.2f}"})
+            t = interleaved({"cpu_f": f, "cpu_fb": fb}, "cpu", max(2, args.repeats // 5), rounds=1, clock=clock)
+            rows.append({"tile": tile or "default", "threads": threads or "default"})
+            for k, s in t.items():
+                rows[-1].update({k: s["median"], f"{k}_range": f"{s['min']:.2f}-{s['max']:.2f}"})
     return rows
 
 

@@ -1,26 +1,19 @@
 """Stylization across styles, and the probes behind docs/stylize.md's tables (no Stage 1 weights needed).
 
-For a scene (``--scene``: fern ``images_8``, the demo scene, or a grouped run folder) and every style image in
-``--styles``, runs ``ssgwarp stylize`` (Stage 2 matches the style image) and ``ssgwarp evaluate`` (30 path views) and
-prints one row per style: colour / texture distances to the style (``StyleDistance``) before and after, the same
-for half of the style image against the whole (``StyleDistance.halves``), the Gram loss, short/long-range
-consistency RMSE as ratios to the unstylized scene's, and floaters (Stage 2's ablations: ``--configs
-docs/notes/stylize-ablation.txt``). Finished styles are kept (``OUT/<scene>/<style>/result.json``) and skipped on the
-next run, so shards and interrupted runs add up; ``--report`` tables what is finished. Writes ``table.md``, ``results.json`` and
-``styles_sheet.jpg`` under ``OUT/<scene>``.
+For a scene (fern ``images_8``, the demo scene, or a grouped run folder) and every style image, ``ssgwarp stylize``
+and ``ssgwarp evaluate``: one row per style (the columns: docs/stylize.md). Finished styles are kept
+(``OUT/<scene>/<style>/result.json``), so shards and interrupted runs add up; ``--report`` tables what is finished.
+Writes ``table.md``, ``results.json`` and ``styles_sheet.jpg`` under ``OUT/<scene>``.
 
     python benchmarks/stylize.py --scene fern --shard 0/3      # a third of the styles (10-minute slots)
     python benchmarks/stylize.py --scene demo --demo-size small --styles-subset candy,udnie \
         --iters 10 --path-frames 6 --out /tmp/ss                       # CPU check (~2 min on 2 cores)
     python benchmarks/stylize.py --scene fern --configs FILE --timeout 420  # 'TAG: FLAGS' lines, all at once
 
-Modes, each with its own ``--help``: ``captures`` (this table on the four shared captures, one summary row each),
-``stage2`` (seconds per stage of ``ssgwarp stylize``), ``probe`` (the consistency error that texture fixed in 3-D
-costs), ``bound`` (the texture distance the style loss alone reaches).
+Modes, each with its own ``--help``: ``captures``, ``stage2``, ``probe``, ``bound`` (docs/benchmarks.md).
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -29,7 +22,8 @@ from typing import Optional
 
 import torch
 
-from harness import ROOT, data_root, dispatch, machine, pyplot, save_figure, style_paths, write_text
+from harness import ROOT, capture_folder, data_root, dispatch, knobs, machine, parser, pyplot, save_figure, style_paths
+from harness import write_text
 from harness import table as md_table
 
 from ssgwarp.cli import resolve_device
@@ -51,19 +45,17 @@ points (8 k-means groups); ``--random-stage1 sd15``: Stage 1 on random SD1.5-siz
 """
 PROBE_DOC = """What texture costs in the consistency metric when the texture is consistent by construction.
 
-Paints the Gaussians with a grey colour that is a fixed function of 3-D position (six seeded sinusoids of
-``period`` pixels at the median depth, std ``amplitude``) and scores ``ssgwarp evaluate``'s path views as it does
-(reprojection RMSE against the unpainted scene's, error share of the worst 10 / 25 % of pixels; ``--style``: texture
-distance per scale). ``--truth`` (an ``ssgwarp demo`` run, OUT/scene): also the procedural scene behind it.
+Paints the Gaussians with a grey pattern fixed in 3-D (``spread.probe_scene``) and scores ``ssgwarp evaluate``'s path
+views as it does (docs/stylize.md, "What limits texture"). ``--truth`` (an ``ssgwarp demo`` run, OUT/scene): also
+the procedural scene behind it.
 
     python benchmarks/stylize.py probe --run RUN --style ../shared/data/styles/candy.jpg
     python benchmarks/stylize.py probe --run ssgwarp-demo/scene --truth --periods 2,8,32
 """
 BOUND_DOC = """How far Stage 2's weight-free style loss takes the texture distance with nothing holding it back.
 
-Per style: Stage 2's colour transfer, then each path view's scene pixels (alpha >= 0.5) optimised freely with the
-style loss alone (Adam on the logits), scored after each of ``--steps`` steps per view. A texture target beyond
-this is beyond the loss, whatever the 3-D side does.
+Per style: Stage 2's colour transfer, then each path view's scene pixels optimised freely with the style loss
+alone, scored after each of ``--steps`` steps per view (docs/stylize.md, "How far the loss itself goes").
 
     python benchmarks/stylize.py bound --run RUN --styles candy,mosaic --steps 10,100
 """
@@ -321,7 +313,7 @@ def run_configs(args, styles, device, progress: bool) -> int:
 
 
 def styles_main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = parser("stylize.py", __doc__)
     add = p.add_argument
     add("--scene", default="demo", help="fern, demo, or a (grouped) reconstruction run folder")
     add("--styles", type=Path, default=DATA / "styles", help="folder of style images")
@@ -360,10 +352,7 @@ def styles_main(argv=None) -> int:
     device = resolve_device(args.device)
     torch.manual_seed(0)
     progress = not args.quiet
-    try:
-        styles = style_paths(args.styles_subset or "", args.styles)
-    except InputError as e:
-        raise SystemExit(str(e)) from None
+    styles = style_paths(args.styles_subset or "", args.styles)   # (an InputError: one line, harness.dispatch)
     if args.configs is not None:
         return run_configs(args, styles, device, progress)
     name = scene_name(args.scene)
@@ -443,7 +432,7 @@ def synthetic_run(run: Path, data_dir: Path, images: str, n: int, groups: int = 
 
 
 def stage2_main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="stylize.py stage2", description=STAGE2_DOC, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = parser("stylize.py stage2", STAGE2_DOC)
     add = p.add_argument
     add("--run", type=Path, default=None, help="existing grouped reconstruction of the capture")
     add("--data", type=Path, default=DATA / "llff_fern")
@@ -463,7 +452,7 @@ def stage2_main(argv=None) -> int:
     add("--device", default="auto")
     args = p.parse_args(argv)
 
-    from ssgwarp.cli import main as cli, resolve_device
+    from ssgwarp.cli import main as cli
     from ssgwarp.stylization.stage2 import Stage2Config
     from ssgwarp.stylization.stylize import StylizeOptions, stylize_run
 
@@ -502,13 +491,7 @@ def stage2_main(argv=None) -> int:
     results = {}
     for mode in [m.strip() for m in args.modes.split(",") if m.strip()]:
         over = {} if args.iters is None else {"iters": args.iters}
-        for kv in filter(None, (args.stage2 or "").split(",")):
-            k, _, v = kv.partition("=")
-            k = k.strip().replace("-", "_")
-            kind = type(getattr(Stage2Config(), k, ""))
-            over[k] = (v.strip().lower() in ("1", "true", "yes") if kind is bool
-                       else float(v) if kind in (float, type(None)) else kind(v))
-        s2 = Stage2Config(mode=mode, **over)
+        s2 = Stage2Config(**{"mode": mode, **over, **knobs((args.stage2 or "").split(","), Stage2Config())[0]})
         opts = StylizeOptions(keyviews=args.keyviews, extractor=args.extractor, path_frames=args.path_frames)
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
@@ -607,7 +590,7 @@ def probe_table(name, scene, cams, bg, opts, sd, args, described) -> dict:
 
 
 def probe_main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="stylize.py probe", description=PROBE_DOC, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = parser("stylize.py probe", PROBE_DOC)
     p.add_argument("--run", type=Path, required=True, help="a reconstruction run folder")
     p.add_argument("--style", type=Path, default=None, help="style image: texture distance per filter scale too")
     p.add_argument("--periods", default="1,2,4,8,16", help="probe periods in pixels")
@@ -667,7 +650,7 @@ def free_pixels(start: torch.Tensor, alphas: torch.Tensor, loss, counts: list[in
 
 
 def bound_main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="stylize.py bound", description=BOUND_DOC, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = parser("stylize.py bound", BOUND_DOC)
     add = p.add_argument
     add("--run", type=Path, required=True, help="a reconstruction run folder")
     add("--styles", default="", help="comma-separated style names (in --style-dir) or paths; default: all")
@@ -681,8 +664,6 @@ def bound_main(argv=None) -> int:
     add("--seed", type=int, default=0)
     add("--json", type=Path, default=None, help="also write the rows here (after every style)")
     args = p.parse_args(argv)
-
-
     try:
         counts = sorted({int(c) for c in args.steps.split(",")})
     except ValueError:
@@ -767,8 +748,7 @@ def bound(args, counts: list[int], styles: list[Path]) -> int:
 
 # ----------------------------------------------------------------------------- captures: the table on each capture
 def captures_main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="stylize.py captures", description=CAPTURES_DOC,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = parser("stylize.py captures", CAPTURES_DOC)
     p.add_argument("--captures", default="fern4,cup,livingroom,bird", help="shared capture names or PATH[:IMAGES]")
     p.add_argument("--recon-iters", type=int, default=7000, help="reconstruction steps")
     p.add_argument("--width", type=int, default=0, help="reconstruct at this image width (0: as loaded)")
@@ -779,9 +759,7 @@ def captures_main(argv=None) -> int:
     p.add_argument("--regions", action="store_true", help="only the region check of every style (no Stage 2): the "
                    "groups' shares, their regions, which fall back to the whole style and the predicted distances")
     args, rest = p.parse_known_args(argv)
-    from harness import capture_folder
     from ssgwarp.cli import main as cli
-    from ssgwarp.services.runs import load_run
     from ssgwarp.stylization.spread import consistency_probe, strength_for
 
     rows = []

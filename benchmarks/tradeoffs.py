@@ -1,13 +1,9 @@
 """The measured speed/accuracy trade: each knob of the renderer and of stylization, time against error.
 
-Rasterizer knobs, one changed at a time from the defaults (float32, ``RasterSettings()``, tile 16, the scene's SH
-degree, all Gaussians): precision, alpha_min, t_min, alpha_max, fast_math, covariance, extent, tile_size (8 / 16 /
-32), sh_degree (0-3), gaussians (25 / 50 / 100 %, the most opaque kept), exact (``RasterSettings.exact()``). Each is
-timed (median of ``--repeats``; forward, and forward + backward of a fixed random weighting of the image) and
-compared with the float64 ``RasterSettings.exact()`` render of all Gaussians: image RMSE and max error, relative L2
-error of ``dL/dmeans``. ``--stylize``: Stage 2's key views (2 / 4 / 8) and ``feature_scale`` (0.25 / 0.5 / 1),
-with Stage 2's time and Gram / content losses. Writes ``tradeoffs.md``, ``tradeoffs.json`` (``--append`` keeps other
-devices' results) and ``tradeoffs_pareto.png`` (time against error, the Pareto front) to ``--out``.
+Each rasterizer knob changed alone from the defaults (:func:`raster_cases`), timed and compared with the float64
+``RasterSettings.exact()`` render of all Gaussians; ``--stylize``: Stage 2's key views and ``feature_scale``. Writes
+``tradeoffs.md``, ``tradeoffs.json`` (``--append`` keeps other devices' results) and ``tradeoffs_pareto.png`` to
+``--out``; docs/tradeoffs.md reads them.
 
     python benchmarks/tradeoffs.py --quick --out /tmp/tradeoffs          # < 1 min CPU smoke run
     python benchmarks/tradeoffs.py --devices cuda --n 500000 --size 1024 --stylize --append --out bench/tradeoffs
@@ -18,7 +14,6 @@ Mode ``budget RESULTS.json ... --scene fern8``: held-out PSNR against Gaussians 
 """
 from __future__ import annotations
 
-import argparse
 import datetime
 import json
 import math
@@ -34,7 +29,7 @@ import ssgwarp
 from ssgwarp import RasterSettings
 from ssgwarp.core.cameras import Cameras, look_at
 from ssgwarp.raster.scene import GaussianScene
-from harness import ROOT, dispatch, machine, measure, passes, pyplot, save_figure, sync, write_text
+from harness import ROOT, dispatch, machine, measure, parser, passes, pyplot, save_figure, sync, write_text
 
 
 # ----------------------------------------------------------------------------- scene and cameras
@@ -316,9 +311,8 @@ def pareto_plot(results: dict, path: Path) -> Path:
 
 
 # ----------------------------------------------------------------------------- main
-def parse_args(argv=None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+def main(argv=None) -> int:
+    p = parser("tradeoffs.py", __doc__)
     p.add_argument("--out", type=Path, default=Path("tradeoffs"), help="output folder")
     p.add_argument("--quick", action="store_true", help="tiny sizes: a CPU smoke run in under a minute")
     p.add_argument("--devices", default=None, help="cpu, cuda or cpu,cuda (default: cpu, and cuda when present)")
@@ -333,22 +327,15 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--stylize-iters", type=int, default=100, help="Stage 2 iterations per stylization run")
     p.add_argument("--append", action="store_true", help="keep other devices' results already in --out")
     p.add_argument("--seed", type=int, default=0)
-    return p.parse_args(argv)
-
-
-def main(argv=None) -> int:
-    args = parse_args(argv)
+    args = p.parse_args(argv)
     if args.quick:
         args.n, args.size, args.repeats, args.views = min(args.n, 400), min(args.size, 48), min(args.repeats, 2), 1
         args.stylize, args.stylize_iters = True, min(args.stylize_iters, 2)
-    if args.devices is None:
-        devs = ["cpu"] + (["cuda"] if torch.cuda.is_available() and not args.quick else [])
-    else:
-        devs = [d.strip() for d in args.devices.split(",") if d.strip()]
-    for d in devs:
-        if d == "cuda" and not torch.cuda.is_available():
+    devs = [d.strip() for d in (args.devices or ("cpu" if args.quick else "cpu,cuda")).split(",") if d.strip()]
+    if "cuda" in devs and not torch.cuda.is_available():
+        if args.devices:
             print("tradeoffs: CUDA is not available here; skipping cuda", file=sys.stderr)
-    devs = [d for d in devs if d != "cuda" or torch.cuda.is_available()]
+        devs.remove("cuda")
     args.out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(args.seed)
 
@@ -357,10 +344,8 @@ def main(argv=None) -> int:
         scene_desc = f"{args.scene.name} ({len(scene)} Gaussians, SH {scene.sh_degree})"
         run_dir = args.scene
     else:
-        w = args.size
-        h = max(8, round(args.size * 3 / 4))
         scene = synthetic_scene(args.n, args.sh_degree, args.seed)
-        cams = synthetic_cameras(args.views, w, h)
+        cams = synthetic_cameras(args.views, args.size, max(8, round(args.size * 3 / 4)))
         scene_desc = f"synthetic ({args.n} Gaussians, SH {args.sh_degree})"
         run_dir = None
 
@@ -480,7 +465,7 @@ def plot(rows: list[dict], out: Path, title: str) -> Path:
 
 
 def budget_main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="tradeoffs.py budget", description=BUDGET_DOC, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = parser("tradeoffs.py budget", BUDGET_DOC)
     ap.add_argument("results", nargs="+", type=Path, help="results.json files of benchmarks/train_step.py runs")
     ap.add_argument("--scene", default="fern8")
     ap.add_argument("--iters", type=int, default=7000)

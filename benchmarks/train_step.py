@@ -1,25 +1,20 @@
 """A training step's cost, and whole training runs, with ssgwarp's rasterizer or gsplat's (and its strategies).
 
-One :class:`~ssgwarp.reconstruction.trainer.Trainer` per ``--backend`` on the same capture, seed and recipe:
-``--warm`` steps (past the first refinements), then ``--steps`` timed steps: ms per step and, on CUDA, each
-synchronising call and the frames that made it (torch's sync debug mode). ``--profile``: torch.profiler's top host
-ops; ``--ops``: every torch op and Warp launch a step makes, per source line (a backward op names the line of its
-forward op), calls, host µs (under the profiler) and GPU launches per step.
+One Trainer per ``--backend`` on the same capture, seed and recipe: ``--warm`` steps, then ``--steps`` timed steps:
+ms per step and, on CUDA, each synchronising call and the frames that made it; ``--ops`` names a backward op by the
+line of its forward op (docs/benchmarks.md, "The training step").
 
     python benchmarks/train_step.py --scene fern4 --backend ssgwarp --profile
     OMP_NUM_THREADS=2 python benchmarks/train_step.py --device cpu --backend ssgwarp --warm 20 --steps 5 --ops
     python benchmarks/train_step.py --scene fern4 --backend ssgwarp --optimizer torch warp   # Adam: torch / WarpAdam
 
-Modes, each with its own ``--help``: ``runs`` (whole runs per scene x backend x strategy x budget: held-out PSNR /
-SSIM, Gaussians, time, memory), ``loss`` (the photometric loss, 0.8 L1 + 0.2 (1 - SSIM): the torch reference against
-the fused Warp kernels per image size; on CUDA also host time with 20 calls queued and the kernels' GPU time).
+Modes, each with its own ``--help``: ``runs`` (whole training runs), ``loss`` (the photometric loss, fused or not).
 
     python benchmarks/train_step.py runs --scenes fern8 fern4 --backend ssgwarp gsplat
     OMP_NUM_THREADS=1 python benchmarks/train_step.py loss --device cpu --clock cpu
 """
 from __future__ import annotations
 
-import argparse
 import collections
 import contextlib
 import gc
@@ -36,12 +31,11 @@ from typing import ClassVar, Optional
 
 import torch
 
-from harness import (CAPTURES, ROOT, append_jsonl, capture_folder, cuda_kernel_ms, dispatch, header, interleaved,
-                     per_call_us, sync, table, write_text)
-from harness import cell as _f
+from harness import (CAPTURES, ROOT, append_jsonl, capture_folder, cuda_kernel_ms, dispatch, fmt, header, interleaved,
+                     knobs, parser, per_call_us, sync, table, write_text)
 
 from ssgwarp.capture.datasets import load_dataset
-from ssgwarp.errors import InputError
+from ssgwarp.cli import resolve_device
 from ssgwarp.core.fileio import write_json
 from ssgwarp.raster.rendering import render as render_views
 from ssgwarp.reconstruction.recipe import Recipe
@@ -51,11 +45,9 @@ from ssgwarp.reconstruction.strategy import DefaultStrategy, MCMCStrategy, Strat
 
 RUNS_DOC = """Whole training runs: our 3DGS loop with either rasterizer and each densification strategy.
 
-One Trainer loop per scene x ``--backend`` (``gsplat``: gsplat.rasterization, non-packed) x ``--strategy`` (ours, or
-gsplat 1.5's ``gsplat-default`` / ``gsplat-mcmc`` on our tensors and schedule) x ``--iters`` x ``--max-gaussians``
-(with mcmc: docs/tradeoffs.md's budget sweep). Distorted captures are undistorted into a pinhole crop.
-``--match-default``: also mcmc at the default run's final count. Tables (runs; rasterizer, strategy pairs; budget
-sweep) and raw rows go to ``--out``. Targets (issues 3, 14): within 0.2 dB of gsplat's rasterizer at <= 1.5x time.
+One Trainer loop per scene x ``--backend`` x ``--strategy`` (ours, or gsplat 1.5's on our tensors and schedule) x
+``--iters`` x ``--max-gaussians`` x ``--recipe``; tables and raw rows go to ``--out``. Targets (issues 3, 14): within
+0.2 dB of gsplat's rasterizer at <= 1.5x time.
 
     python benchmarks/train_step.py runs --scenes fern8 cup lego --strategy default gsplat-default --match-default
     python benchmarks/train_step.py runs --scenes PATH --iters 120 --device cpu --strategy default mcmc
@@ -209,19 +201,19 @@ def tables(rows: list[dict]) -> str:
         if r["backend"] == "ssgwarp" and key(r, backend="gsplat") in by:
             b = by[key(r, backend="gsplat")]
             pairs.append(f"| {r['scene']} | {r['iters']} | {r['strategy']} | {r['psnr'] - b['psnr']:+.2f} dB | "
-                         f"{r['seconds'] / b['seconds']:.2f}x | {_f(r['peak_mib'] / b['peak_mib'], '.2f')}x |")
+                         f"{r['seconds'] / b['seconds']:.2f}x | {fmt(r['peak_mib'] / b['peak_mib'])}x |")
     if pairs:
         lines += ["", "| scene | iters | strategy | PSNR ssgwarp - gsplat rasterizer (target >= -0.2 dB) | "
                       "time ssgwarp / gsplat (target <= 1.5x) | memory ssgwarp / gsplat |",
                   "|---|---:|---|---:|---:|---:|"] + pairs
     strat = []
     for r in rows:  # strategies: ours vs gsplat's; MCMC at the default's count vs default
-        for ref in (f"gsplat-{r['strategy']}",):
-            if key(r, strategy=ref) in by:
-                b = by[key(r, strategy=ref)]
-                strat.append(f"| {r['scene']} | {r['iters']} | {r['backend']} | {r['strategy']} - {ref} | "
-                             f"{r['psnr'] - b['psnr']:+.2f} dB | {r['gaussians']:,} / {b['gaussians']:,} | "
-                             f"{r['seconds'] / b['seconds']:.2f}x |")
+        ref = f"gsplat-{r['strategy']}"
+        if key(r, strategy=ref) in by:
+            b = by[key(r, strategy=ref)]
+            strat.append(f"| {r['scene']} | {r['iters']} | {r['backend']} | {r['strategy']} - {ref} | "
+                         f"{r['psnr'] - b['psnr']:+.2f} dB | {r['gaussians']:,} / {b['gaussians']:,} | "
+                         f"{r['seconds'] / b['seconds']:.2f}x |")
         if r["strategy"] == "mcmc" and r.get("matched"):
             d = by.get(key(r, strategy="default", max_gaussians=r["matched_budget"]))
             if d:
@@ -236,25 +228,13 @@ def tables(rows: list[dict]) -> str:
 
 def load_scene(spec: str, root: Path | None, device: torch.device, random_points: int = 100_000, width=None):
     """A shared capture by name (harness.CAPTURES) or PATH[:IMAGES], loaded on ``device`` (``width``: resized)."""
-    try:
-        folder, images = capture_folder(spec, root)
-    except InputError as e:
-        raise SystemExit(str(e)) from None
+    folder, images = capture_folder(spec, root)
     return load_dataset(folder, images=images, device=device, num_random_points=random_points, width=width)
-
-
-def report(out: Path, setup: str, md: str, rows: list[dict], device: torch.device) -> None:
-    """Print the tables under a header (date, machine, setup) and write results.json / results.md to ``out``."""
-    head = header(device, setup)
-    print(f"\n{head}\n\n{md}")
-    write_json(out / "results.json", {"setup": head, "rows": rows})
-    write_text(out / "results.md", f"{head}\n\n{md}\n")
 
 
 def runs_main(argv=None) -> int:
     """`train_step.py runs`: whole training runs (see the module's docstring)."""
-    p = argparse.ArgumentParser(prog="train_step.py runs", description=RUNS_DOC,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = parser("train_step.py runs", RUNS_DOC)
     p.add_argument("--scenes", nargs="+", default=["fern8", "fern4"], help=f"{', '.join(CAPTURES)} or PATH[:IMAGES]")
     p.add_argument("--data-root", type=Path, default=None, help="folder holding llff_fern, colmap_cup, lego_200")
     p.add_argument("--backend", nargs="+", choices=("ssgwarp", "gsplat", "both"), default=["ssgwarp"])
@@ -276,10 +256,7 @@ def runs_main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=Path("benchmark-runs"), help="folder for results.json / results.md")
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
-    device = torch.device(a.device)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise SystemExit("CUDA is not available (pass --device cpu for a (slow) CPU run)")
-    root = a.data_root
+    device = resolve_device(a.device)
     backends = list(dict.fromkeys(b for x in a.backend for b in (("ssgwarp", "gsplat") if x == "both" else (x,))))
     rows = []
 
@@ -289,28 +266,27 @@ def runs_main(argv=None) -> int:
         write_json(a.out / "results.json", {"rows": rows})  # partial results survive an interruption
 
     for spec in a.scenes:
-        data = load_scene(spec, root, device, a.random_points, a.width)
+        data = load_scene(spec, a.data_root, device, a.random_points, a.width)
         for iters in a.iters:
             for backend in backends:
+                common = dict(backend=backend, iters=iters, sh_degree=a.sh_degree, seed=a.seed, device=device,
+                              progress=not a.no_progress, dssim_scale=a.dssim_scale)
                 for strategy in a.strategy:
                     for budget, rs in ((b, rs) for b in a.max_gaussians for rs in a.recipe):
-                        kv, st = dict(x.split("=", 1) for x in rs.split(",") if x), make(strategy, budget)
-                        rv, sv = ({k: type(getattr(o, k) or 0.0)(v) for k, v in kv.items() if hasattr(o, k)}
-                                  for o in (Recipe(), st))   # (a Recipe field, else the strategy's knob)
-                        recipe, st = Recipe(**rv), replace(st, **{k: v for k, v in sv.items() if k not in rv})
-                        r = train_and_measure(data, backend=backend, strategy=st, iters=iters,
-                                              sh_degree=a.sh_degree, seed=a.seed, max_gaussians=budget, recipe=recipe,
-                                              device=device, progress=not a.no_progress, dssim_scale=a.dssim_scale)
+                        st = make(strategy, budget)
+                        rv, sv = knobs(rs.split(","), Recipe(), st)   # (a Recipe field, else the strategy's knob)
+                        recipe, st = Recipe(**rv), replace(st, **sv)
+                        r = train_and_measure(data, strategy=st, max_gaussians=budget, recipe=recipe, **common)
                         record({"scene": spec, **r, **({"recipe": rs} if rs else {})})
                         if a.match_default and strategy == "default":
-                            m = train_and_measure(data, backend=backend, strategy="mcmc", iters=iters,
-                                                  sh_degree=a.sh_degree, seed=a.seed, max_gaussians=r["gaussians"],
-                                                  device=device, progress=not a.no_progress,
-                                                  dssim_scale=a.dssim_scale)
+                            m = train_and_measure(data, strategy="mcmc", max_gaussians=r["gaussians"], **common)
                             record({"scene": spec, **m, "matched": r["gaussians"], "matched_budget": budget})
         del data
-    report(a.out, f"SH degree {a.sh_degree}, seed {a.seed}, D-SSIM scale {a.dssim_scale:g}; held-out views every 8th",
-           tables(rows), rows, device)
+    head = header(device, f"SH degree {a.sh_degree}, seed {a.seed}, D-SSIM scale {a.dssim_scale:g}; held-out views "
+                          "every 8th")
+    print(f"\n{head}\n\n{tables(rows)}")
+    write_json(a.out / "results.json", {"setup": head, "rows": rows})
+    write_text(a.out / "results.md", f"{head}\n\n{tables(rows)}\n")
     return 0
 
 
@@ -562,7 +538,7 @@ def measure(data, backend: str, args, device: torch.device, optimizer: str = "to
 
 
 def step_main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = parser("train_step.py", __doc__)
     p.add_argument("--scene", default="fern8", help="fern8, fern4, cup, lego or PATH[:IMAGES]")
     p.add_argument("--data-root", type=Path, default=None)
     p.add_argument("--backend", nargs="+", choices=("ssgwarp", "gsplat"), default=["ssgwarp", "gsplat"])
@@ -585,12 +561,11 @@ def step_main(argv=None) -> int:
     for r in rows:
         append_jsonl(args.out, {k: v for k, v in r.items() if k not in ("profile", "ops")})
     print(f"\n{header(device)}; {args.scene}: steps {args.warm + 1}-{args.warm + args.steps} of a {args.iters}-step run\n")
-    print("| backend | Adam | ms per step | Adam alone, µs (GPU µs) | Gaussians | synchronisations per step |")
-    print("|---|---|---:|---:|---:|---|")
-    for r in rows:
-        gpu = f" ({r['adam_gpu_us']:.0f})" if r["adam_gpu_us"] is not None else ""
-        print(f"| {r['backend']} | {r['optimizer']} | {r['ms_per_step']:.2f} | {r['adam_us']:.0f}{gpu} | "
-              f"{r['gaussians']:,} | {'; '.join(r['syncs']) or '-'} |")
+    shown = [dict(r, syncs="; ".join(r["syncs"]) or "-", adam=f"{r['adam_us']:.0f}" + (
+        "" if r["adam_gpu_us"] is None else f" ({r['adam_gpu_us']:.0f})")) for r in rows]
+    print(table(shown, [("backend", "backend"), ("optimizer", "Adam"), ("ms_per_step", "ms per step"),
+                        ("adam", "Adam alone, µs (GPU µs)"), ("gaussians", "Gaussians"),
+                        ("syncs", "synchronisations per step")]))
     if len(rows) == 2:
         print(f"\nratio {rows[0]['backend']}/{rows[0]['optimizer']} / {rows[1]['backend']}/{rows[1]['optimizer']}: "
               f"{rows[0]['ms_per_step'] / rows[1]['ms_per_step']:.2f}x")
@@ -627,8 +602,7 @@ def loss_closures(img, gt, fused: bool):
 
 
 def loss_main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="train_step.py loss", description="the photometric loss: torch reference "
-                                "against the fused Warp kernels, per image size")
+    p = parser("train_step.py loss", "the photometric loss: torch reference against the fused Warp kernels, per size")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("--sizes", nargs="+", default=list(LOSS_SIZES), help="WxH (default: %(default)s)")
     p.add_argument("--views", type=int, default=1, help="images per call ([V, H, W, 3])")

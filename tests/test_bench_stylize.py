@@ -111,12 +111,13 @@ def test_stage2_config_takes_the_stage2_options_given_and_overrides():
     assert ss.stage2_config(argparse.Namespace()) == Stage2Config()
 
 
-def test_an_unknown_style_name_stops_the_run_with_one_line(tmp_path, monkeypatch):
+def test_an_unknown_style_name_stops_the_run_with_one_line(tmp_path, monkeypatch, capsys):
     (tmp_path / "candy.jpg").write_bytes(b"x")
     monkeypatch.setattr(ss, "prepare_scene", lambda *a, **k: pytest.fail("no scene is built for a bad style name"))
-    with pytest.raises(SystemExit, match="style 'cnady': not a file and not an image in"):
-        ss.main(["--scene", "demo", "--styles", str(tmp_path), "--styles-subset", "candy,cnady",
-                 "--out", str(tmp_path / "out")])
+    assert ss.main(["--scene", "demo", "--styles", str(tmp_path), "--styles-subset", "candy,cnady",
+                    "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("stylize.py: style 'cnady': not a file and not an image in") and "\n" not in err
     assert not (tmp_path / "out").exists()
 
 
@@ -232,7 +233,6 @@ def test_capture_summary_names_the_styles_that_move_away():
 
 def test_captures_reconstructs_once_and_keeps_its_tables_apart_from_the_run(tmp_path, monkeypatch, capsys):
     import ssgwarp.cli
-    import ssgwarp.services.runs
     import ssgwarp.stylization.spread as spread
 
     (tmp_path / "cap").mkdir()
@@ -257,7 +257,7 @@ def test_captures_reconstructs_once_and_keeps_its_tables_apart_from_the_run(tmp_
 
     monkeypatch.setattr(ssgwarp.cli, "main", fake_cli)
     monkeypatch.setattr(ss, "styles_main", fake_styles)
-    monkeypatch.setattr(ssgwarp.services.runs, "load_run", lambda *a, **k: (torch.zeros(1), argparse.Namespace(
+    monkeypatch.setattr(ss, "load_run", lambda *a, **k: (torch.zeros(1), argparse.Namespace(
         cameras=torch.zeros(2), train_ids=[0, 1])))
     monkeypatch.setattr(spread, "consistency_probe", lambda scene, cams: 1.5)
     argv = ["--captures", str(tmp_path / "cap"), "--out", str(tmp_path / "o"), "--tag", "t", "--device", "cpu",

@@ -102,3 +102,30 @@ def test_raster_cases_by_set_or_spec():
         (1000, 64, 48, None, 1), (2000, 32, 32, 3, 4), (500, 64, 48, 3, 1, "ball2")]
     with pytest.raises(SystemExit, match="neither"):
         raster.parse_cases(["10kx64"])
+
+
+def test_knobs_go_to_the_first_target_with_the_field_typed_as_its_value():
+    from dataclasses import dataclass
+
+    from ssgwarp.errors import InputError
+
+    @dataclass
+    class A:
+        x: float = 1.0
+        n: int = 2
+        on: bool = False
+        name: str = "a"
+        opt: object = None
+
+    @dataclass
+    class B:
+        x: int = 0
+        k: int = 0
+
+    a, b = harness.knobs(["x=1", "n=3", "on=true", "name=7", "k=-4", "opt=2.5", " "], A(), B())
+    assert a == {"x": 1.0, "n": 3, "on": True, "name": "7", "opt": 2.5} and b == {"k": -4}
+    assert type(a["x"]) is float and type(a["n"]) is int
+    with pytest.raises(InputError, match="zz=1: no such field of A or B"):
+        harness.knobs(["zz=1"], A(), B())
+    with pytest.raises(InputError, match="k=lots: B.k takes a number"):
+        harness.knobs(["k=lots"], A(), B())
