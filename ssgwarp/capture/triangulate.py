@@ -368,7 +368,7 @@ def _keep_points(P, centres, imgs, cam, uv, mask, X, ok, max_reproj_px: float, m
 def triangulate(cameras: Cameras, images: torch.Tensor, *, names: Optional[Sequence[str]] = None,
                 progress: bool = True, max_features: int = 4000, max_size: int = 1024, neighbours: int = 8,
                 ratio: float = 0.8, max_epipolar_px: float = 2.0, max_reproj_px: float = 2.0,
-                min_angle_deg: float = 2.0, refine_iters: int = 3,
+                min_angle_deg: float = 1.0, refine_iters: int = 3,
                 depth_range: Optional[tuple[float, float]] = None,
                 pairs: Optional[Sequence[tuple[int, int]]] = None) -> Triangulation:
     """Triangulate points seen by the ``cameras`` in ``images`` (module docstring: the method).
@@ -386,9 +386,10 @@ def triangulate(cameras: Cameras, images: torch.Tensor, *, names: Optional[Seque
         max_epipolar_px: largest Sampson distance from the known epipolar geometry, pixels.
         max_reproj_px: largest reprojection error of a kept observation, pixels.
         min_angle_deg: smallest triangulation angle (largest angle between two rays of a point), degrees
-            (default 2: fern ``images_8`` without ``sparse/``: the median distance to COLMAP's points, in % of
-            their spread, 5.46 at 1 degree, 4.85 at 2, 4.36 at 3, keeping 3,929 / 3,375 / 2,814 points;
-            ``benchmarks/captures.py --triangulation --min-angle 1 2 3``).
+            (default 1. Fern ``images_8`` without ``sparse/``: the median distance to COLMAP's points, in % of
+            their spread, 5.46 at 1 degree, 5.16 at 1.5, 4.85 at 2, keeping 3,929 / 3,692 / 3,375 points,
+            ``benchmarks/captures.py --triangulation --min-angle 1 1.5 2``; but the fewer points cost training:
+            bird_360 at 160 px, 500 steps, held-out 26.70 / 26.15 / 25.30 dB, docs/reconstruction.md).
         refine_iters: Gauss-Newton steps per point.
         depth_range: ``(near, far)`` of the scene seen from the cameras, for choosing pairs (default: from
             the camera layout).
