@@ -16,10 +16,8 @@ from ssgwarp.raster.adam_ops import WarpAdam, warp_adam
 from ssgwarp.reconstruction.recipe import Recipe, resolve
 from ssgwarp.reconstruction.gaussians import GaussianParams
 from ssgwarp.errors import InputError
-from ssgwarp.capture.datasets import SceneData
-from ssgwarp.core.cameras import Cameras, intrinsics, look_at
-from ssgwarp.raster.scene import GaussianScene
 from ssgwarp.reconstruction.trainer import Trainer
+from test_step_cost import _data, _scene   # (the small capture and scene the step tests train on)
 
 SHAPES = {"means": (40, 3), "quats": (40, 4), "logit_opacities": (40,), "sh_dc": (40, 1, 3), "sh_rest": (40, 3, 3)}
 LRS = {"means": 1e-2, "quats": 1e-3, "logit_opacities": 5e-2, "sh_dc": 2.5e-3, "sh_rest": 1e-4}
@@ -169,22 +167,6 @@ def test_what_the_kernel_cannot_step_goes_to_torch():
     torch.testing.assert_close(q.detach(), p.detach())
     with pytest.raises(InputError, match="optimizer"):
         resolve(Recipe(optimizer="sgd"), "default", 100)
-
-
-def _data(views: int = 2):
-    eyes = torch.tensor([[0.0, 0.0, -3.0], [0.4, 0.0, -3.0], [-0.4, 0.1, -3.0]])[:views]
-    V = look_at(eyes, torch.zeros(views, 3), up=(0.0, -1.0, 0.0)).float()
-    cams = Cameras(V, intrinsics(20.0, 20.0, 12.0, 10.0, views), 24, 20)
-    g = torch.Generator().manual_seed(0)
-    return SceneData(cams, torch.rand(views, 20, 24, 3, generator=g), [f"v{i}" for i in range(views)],
-                     list(range(views - 1)), [views - 1], points=None)
-
-
-def _scene(sh_degree: int):
-    g = torch.Generator().manual_seed(1)
-    s = GaussianScene.from_points(torch.randn(60, 3, generator=g) * 0.4, torch.rand(60, 3, generator=g),
-                                  sh_degree=0, opacity=0.6)
-    return s.with_sh_degree(sh_degree)
 
 
 def test_the_trainer_trains_with_it():
