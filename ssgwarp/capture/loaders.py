@@ -183,9 +183,10 @@ def _depth_range(xyz: np.ndarray, viewmats: np.ndarray) -> tuple[Optional[float]
 
 
 def random_points_in_frusta(cameras: Cameras, images: torch.Tensor, near: np.ndarray, far: np.ndarray,
-                            n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+                            n: int, seed: int = 0, log_depth=None) -> tuple[torch.Tensor, torch.Tensor]:
     """``n`` points at random pixels of random views, at depths uniform in disparity between each
-    view's ``near`` and ``far``; coloured by that pixel. Returns ``(xyz [n,3], rgb [n,3])``."""
+    view's ``near`` and ``far`` (uniform in log depth for the views where ``log_depth``, a per-view bool array,
+    is set); coloured by that pixel. Returns ``(xyz [n,3], rgb [n,3])``."""
     g = torch.Generator().manual_seed(seed)
     c = len(cameras)
     cam = torch.randint(0, c, (n,), generator=g)
@@ -195,6 +196,9 @@ def random_points_in_frusta(cameras: Cameras, images: torch.Tensor, near: np.nda
     far_t = torch.as_tensor(far, dtype=torch.float64)[cam]
     t = torch.rand(n, generator=g, dtype=torch.float64)
     depth = 1.0 / (1.0 / near_t * (1 - t) + 1.0 / far_t * t)
+    if log_depth is not None:
+        log = torch.as_tensor(np.asarray(log_depth, dtype=bool))[cam]
+        depth = torch.where(log, near_t * (far_t / near_t) ** t, depth)
     K = cameras.Ks.double().cpu()[cam]
     x = (u - K[:, 0, 2]) / K[:, 0, 0] * depth
     y = (v - K[:, 1, 2]) / K[:, 1, 1] * depth

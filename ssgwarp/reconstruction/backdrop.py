@@ -37,6 +37,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Optional
 
+import numpy as np
 import torch
 
 from ..capture.loaders import focus_point, random_points_in_frusta
@@ -50,6 +51,7 @@ MIN_COVERAGE = 0.9       # median fraction of image cells the initial points mus
 GRID = 8                 # cells per image side for the coverage
 PLAIN_TOL = 0.02         # a cell whose pixels are all this close to the background colour is empty
 PLAIN_FRACTION = 0.3     # images with at least this fraction of background-colour pixels: an object on a plain ground
+LOG_RAYS_WHERE_BLIND = True
 FAR_FACTOR = 50.0        # far radius = this x the larger of the cameras' radius and the points' median distance
 RAY_FRACTION = 0.7       # of the backdrop points: along rays (the rest on the far shell)
 # the far-background evidence (far_evidence: a plane sweep of the cells no point falls in)
@@ -375,16 +377,20 @@ def backdrop_points(data, xyz: torch.Tensor, n: int, plan: BackdropPlan, seed: i
     center, cam_radius, median = far_field_radius(data, xyz, plan)
     far = FAR_FACTOR * max(cam_radius, median, 1e-6)
     # per view: rays from the median depth of the points it sees (or the cameras' radius) to the far radius
+    # (a view that sees no point: rays from the cameras' radius, uniform in log depth, not in inverse depth,
+    # which would put most of them within a few radii of the camera: floaters, docs/reconstruction.md)
     near = torch.empty(len(ids), dtype=torch.float64)
+    blind = np.zeros(len(ids), dtype=bool)
     for j in range(len(ids)):
         V = cams.viewmats[j].double()
         z = (xyz.double().cpu() @ V[2, :3] + V[2, 3])
         z = z[z > 0]
         near[j] = float(z.median()) if len(z) else max(cam_radius, 1e-3 * far)
+        blind[j] = len(z) == 0
     near = near.clamp(min=1e-3 * far, max=0.5 * far)
     n_rays = int(round(RAY_FRACTION * n))
     rx, rc = random_points_in_frusta(cams, images, near.numpy(), torch.full((len(ids),), far).numpy(), n_rays,
-                                     seed + 11)
+                                     seed + 11, log_depth=blind if LOG_RAYS_WHERE_BLIND else None)
     sx, sc = _shell(cams, images, center, far, n - n_rays)
     plan.points = len(rx) + len(sx)
     plan.far_radius = far
