@@ -8,14 +8,14 @@ follows them is :class:`ssgwarp.reconstruction.trainer.Trainer`.
 reads one written before the strategies had their own dataclass (one flat ``recipe``)."""
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, replace
 from typing import Any, Optional
 
 import numpy as np
 
 from ..errors import InputError
 from .schedules import AUTO, AUTO_MAX_ITERS
-from .strategy import REFINE_EPOCHS, STRATEGIES, Strategy, make_strategy
+from .strategy import REFINE_EPOCHS, Strategy, make_strategy
 
 BATCH_SCALINGS = ("sqrt", "linear", "none")
 OPTIMIZERS = ("torch", "warp")
@@ -178,11 +178,7 @@ FLAT_KNOBS = {
              "prune_opacity": "prune_opacity", "mcmc_growth": "growth", "noise_lr": "noise_lr",
              "opacity_reg": "opacity_reg", "scale_reg": "scale_reg"},
 }
-_FLAT_ONLY = {"reset_every", "grad_threshold", "percent_dense", "split_factor", "reset_opacity", "prune_world",
-              "prune_screen", "mcmc_growth", "noise_lr", "opacity_reg", "scale_reg", "refine_start", "refine_stop",
-              "refine_every", "prune_opacity"}   # every key of the old flat recipe that is no Recipe field now
-_OPTION_FIELDS = {"sh_degree", "res_start", "batch_scaling"}   # (recorded as their options, not in ``recipe``)
-
+_FLAT_ONLY = set().union(*FLAT_KNOBS.values())   # every key of the old flat recipe that is no Recipe field now
 
 def options_record(recipe: Optional[Recipe], strategy: Any) -> dict:
     """The recipe's and the strategy's part of a reconstruction's resume record (the options a resume must
@@ -209,8 +205,8 @@ def upgrade_record(old: Optional[dict]) -> Optional[dict]:
     name = old.get("--strategy", "default")
     if name not in FLAT_KNOBS:
         return old
-    recipe = {**{k: v for k, v in asdict(Recipe()).items() if k not in _OPTION_FIELDS}, **old["recipe"]}
-    knobs = {k: v for k, v in asdict(STRATEGIES[name]()).items() if k != "max_gaussians"}
+    fresh = options_record(None, name)   # (the defaults' record: every field of today, in today's layout)
+    recipe, knobs = {**fresh["recipe"], **old["recipe"]}, fresh["strategy"]
     if isinstance(old.get("strategy"), dict):
         return {**old, "recipe": recipe, "strategy": {**knobs, **old["strategy"]}}
     for k_old, k_new in FLAT_KNOBS[name].items():
