@@ -23,7 +23,7 @@ import math
 import torch
 
 from ..core.optim import Adam
-from ..kernels.adam import CONSTANTS, COUNT, END, ROW, adam_kernel
+from ..kernels.adam import CONSTANTS, COUNT, ROW, adam_kernel
 from . import launch as L
 
 SLOTS = 4   # pinned host tables in turn: one is written while the copies of the last steps may be pending

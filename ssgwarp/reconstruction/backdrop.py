@@ -51,7 +51,6 @@ MIN_COVERAGE = 0.9       # median fraction of image cells the initial points mus
 GRID = 8                 # cells per image side for the coverage
 PLAIN_TOL = 0.02         # a cell whose pixels are all this close to the background colour is empty
 PLAIN_FRACTION = 0.3     # images with at least this fraction of background-colour pixels: an object on a plain ground
-LOG_RAYS_WHERE_BLIND = True
 FAR_FACTOR = 50.0        # far radius = this x the larger of the cameras' radius and the points' median distance
 RAY_FRACTION = 0.7       # of the backdrop points: along rays (the rest on the far shell)
 # the far-background evidence (far_evidence: a plane sweep of the cells no point falls in)
@@ -390,7 +389,7 @@ def backdrop_points(data, xyz: torch.Tensor, n: int, plan: BackdropPlan, seed: i
     near = near.clamp(min=1e-3 * far, max=0.5 * far)
     n_rays = int(round(RAY_FRACTION * n))
     rx, rc = random_points_in_frusta(cams, images, near.numpy(), torch.full((len(ids),), far).numpy(), n_rays,
-                                     seed + 11, log_depth=blind if LOG_RAYS_WHERE_BLIND else None)
+                                     seed + 11, log_depth=blind)
     sx, sc = _shell(cams, images, center, far, n - n_rays)
     plan.points = len(rx) + len(sx)
     plan.far_radius = far
