@@ -124,7 +124,7 @@ def test_blending_weight_sums_and_lifted_labels(truth):
     """gaussian_sums: the per-Gaussian weights of a view sum to its rendered alpha; lifting the true
     masks labels each seen Gaussian with its own object."""
     from ssgwarp.grouping.association import UNSEEN, compact_masks, lift_masks
-    from ssgwarp.grouping.pseudomasks import gaussian_sums
+    from ssgwarp.raster.rendering import gaussian_sums
 
     gt, cams, _, objects = truth
     ones = torch.ones(H, W, 1)

@@ -53,7 +53,8 @@ import torch
 
 from ..core.cameras import Cameras
 from ..errors import InputError
-from .pseudomasks import _knn_vote, gaussian_sums, render_label_masks
+from ..raster.rendering import gaussian_sums
+from .pseudomasks import _knn_vote, render_label_masks
 from ..raster.scene import GaussianScene
 
 Tensor = torch.Tensor

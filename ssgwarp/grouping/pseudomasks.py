@@ -18,7 +18,6 @@ barely covers, or where no label dominates, are marked ``IGNORE``.
 
 Public API:
     ClusterConfig, ClusterResult
-    gaussian_sums(scene, camera, signal)          -> [N, D] per-Gaussian blending-weighted sums of a per-pixel signal
     lift_colours(scene, cameras, images)          -> (weight [N], colour [N, 3]) of the images under each Gaussian
     gaussian_features(scene, weights, colours=)   -> [N, 9] clustering features
     significant_gaussians(scene, cameras)         -> [N] bool (opaque enough and seen)
@@ -40,6 +39,7 @@ import torch
 from ..core.cameras import Cameras
 from ..errors import InputError
 from ..core.geometry import knn_indices
+from ..raster.rendering import gaussian_sums
 from ..raster.scene import GaussianScene
 
 Tensor = torch.Tensor
@@ -105,24 +105,6 @@ class ClusterResult:
 
 
 # -- lifting image signals onto the Gaussians ---------------------------------------
-
-def gaussian_sums(scene: GaussianScene, camera: Cameras, signal: Tensor, **raster_kwargs) -> Tensor:
-    """``[N, D]``: for each Gaussian, ``sum_p w_i(p) signal[p]`` over the pixels of one camera, where
-    ``w_i(p) = T_i(p) alpha_i(p)`` is its blending weight at pixel p.
-
-    The rasterizer blends D channels of zeros; the gradient of ``sum_p signal[p] . image[p]`` with
-    respect to those channel values is exactly these sums (one forward and one backward pass).
-    ``signal [H, W, D]``; a channel of ones gives each Gaussian's total weight in the view (in pixels).
-    """
-    geom = scene.replace(identities=None).map(torch.Tensor.detach)
-    x = torch.zeros(len(geom), signal.shape[-1], dtype=geom.dtype, device=geom.device, requires_grad=True)
-    with torch.enable_grad():
-        img, _, _ = geom.render(camera.to(geom.device), rgb=False, extra=x, **raster_kwargs)
-        # (the gradient of the sum of image x signal: exactly grad_outputs=signal, without the shape check that
-        # imports torch.fx's symbolic shapes and sympy, ~0.3 s, the first time a gradient is handed in)
-        (w,) = torch.autograd.grad((img[0] * signal.to(img.device, img.dtype)).sum(), x)
-    return w.detach()
-
 
 def lift_colours(scene: GaussianScene, cameras: Cameras, images: Tensor, *,
                  progress: bool = False) -> tuple[Tensor, Tensor]:

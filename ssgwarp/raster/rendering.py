@@ -7,7 +7,9 @@
   SH itself (its fused SH kernel); otherwise the channels are built here and blended in one pass;
 * :func:`render_views` -- no-gradient renders, one camera at a time (bounded memory), with the
   colour composited over a background: ``Views(rgb [V,H,W,3], depth [V,H,W], alpha [V,H,W])``;
-* :func:`render_to_files` -- :func:`render_views` written as PNGs, one per camera.
+* :func:`render_to_files` -- :func:`render_views` written as PNGs, one per camera;
+* :func:`gaussian_sums` -- per-Gaussian sums of a per-pixel signal weighted by the blending weights (a channel
+  of ones: each Gaussian's footprint in pixels), from one forward and one backward pass.
 
 The scene is read by attribute (``means``, ``quats``, ``scales``, ``opacities``, ``sh_dc``,
 ``sh_rest`` (else ``sh_coeffs``), ``sh_degree``, ``identities``): this module does not import
@@ -102,6 +104,25 @@ def render(scene, cameras, *, sh_degree: Optional[int] = None, rgb: bool = True,
     colors = gaussian_colors(scene, cameras, sh_degree=sh_degree, rgb=rgb, identities=identities, extra=extra)
     return rasterize(scene.means, scene.quats, scales, opacities, colors, viewmats, Ks,
                      cameras.width, cameras.height, **kwargs)
+
+
+def gaussian_sums(scene, cameras, signal: torch.Tensor, **raster_kwargs) -> torch.Tensor:
+    """``[N, D]``: for each Gaussian, ``sum_p w_i(p) signal[p]`` over the pixels of ``cameras`` (one view or
+    several, summed), where ``w_i(p) = T_i(p) alpha_i(p)`` is its blending weight at pixel p.
+
+    The rasterizer blends D channels of zeros; the gradient of ``sum_p signal[p] . image[p]`` with
+    respect to those channel values is exactly these sums (one forward and one backward pass).
+    ``signal [H, W, D]`` (every view) or ``[C, H, W, D]``; a channel of ones gives each Gaussian's total
+    weight in the views (in pixels).
+    """
+    geom = scene.replace(identities=None).map(torch.Tensor.detach)
+    x = torch.zeros(len(geom), signal.shape[-1], dtype=geom.dtype, device=geom.device, requires_grad=True)
+    with torch.enable_grad():
+        img, _, _ = geom.render(cameras.to(geom.device), rgb=False, extra=x, **raster_kwargs)
+        # (the gradient of the sum of image x signal: exactly grad_outputs=signal, without the shape check that
+        # imports torch.fx's symbolic shapes and sympy, ~0.3 s, the first time a gradient is handed in)
+        (w,) = torch.autograd.grad((img * signal.to(img.device, img.dtype)).sum(), x)
+    return w.detach()
 
 
 def background_tensor(background, like: torch.Tensor) -> torch.Tensor:

@@ -9,8 +9,8 @@ weights over the training views). ``prune_budget``: at most that many Gaussians 
 with the largest contributions.
 
 The contribution is the gradient of a one-channel render of ones with respect to those ones (the
-image is ``sum_i c_i alpha_i T_i``), so it comes from the rasterizer's existing forward and backward, in
-chunks of views, with no extra kernel and no per-Gaussian statistic kept during training. Measured
+image is ``sum_i c_i alpha_i T_i``; :func:`ssgwarp.raster.rendering.gaussian_sums`), so it comes from the
+rasterizer's existing forward and backward, in chunks of views, with no extra kernel and no per-Gaussian statistic kept during training. Measured
 deterministically (the same decision in every process of a multi-GPU run).
 
 When (:func:`prune_steps`): halfway between opacity resets (the opacities have recovered from the
@@ -23,29 +23,24 @@ from __future__ import annotations
 import torch
 
 from ..errors import InputError
-from ..raster.rasterize import rasterization
+from ..raster.rendering import gaussian_sums
+from ..raster.scene import GaussianScene
 
 CHUNK = 8   # views per render when measuring
 
 
-@torch.no_grad()
 def contributions(params: dict, cameras, chunk: int = CHUNK) -> torch.Tensor:
     """``[N]``: each Gaussian's blending weight summed over the pixels of ``cameras`` (all of them), from the
-    scene's stored parameters (``means``, ``quats``, ``log_scales``, ``logit_opacities``)."""
-    means = params["means"].detach()
-    n = means.shape[0]
-    ones = torch.ones(n, 1, device=means.device, dtype=means.dtype)
-    scales, opacities = torch.exp(params["log_scales"].detach()), torch.sigmoid(params["logit_opacities"].detach())
-    quats = params["quats"].detach()
-    total = torch.zeros(n, device=means.device, dtype=means.dtype)
+    scene's stored parameters (``means``, ``quats``, ``log_scales``, ``logit_opacities``; no colour is
+    rendered), ``chunk`` views per render (:func:`ssgwarp.raster.rendering.gaussian_sums` of a channel of ones)."""
+    means = params["means"]
+    scene = GaussianScene(means, params["log_scales"], params["quats"], params["logit_opacities"],
+                          torch.zeros_like(means), None, None, 0)
+    ones = torch.ones(cameras.height, cameras.width, 1, device=scene.device, dtype=scene.dtype)
+    total = torch.zeros(len(scene), device=scene.device, dtype=scene.dtype)
     for i in range(0, len(cameras), chunk):
         cams = cameras[list(range(i, min(i + chunk, len(cameras))))]
-        with torch.enable_grad():
-            colors = ones.clone().requires_grad_(True)
-            img, _, _ = rasterization(means, quats, scales, opacities, colors, cams.viewmats.to(means),
-                                      cams.Ks.to(means), cams.width, cams.height, deterministic=True, validate=False)
-            (grad,) = torch.autograd.grad(img.sum(), colors)
-        total += grad[:, 0]
+        total += gaussian_sums(scene, cams, ones, deterministic=True, validate=False)[:, 0]
     return total
 
 
