@@ -46,15 +46,20 @@ class FarField:
         """The rule for Gaussians :data:`FAR_EXTENTS` extents or more from the cameras' centre."""
         return cls(center, FAR_EXTENTS * float(extent), float(focal_px), float(split_radius_px))
 
-    def screen_radius(self, means: torch.Tensor, log_scales: torch.Tensor) -> torch.Tensor:
-        """``[N]`` each Gaussian's screen radius (pixels, 3 sigma of its largest axis) at its distance from the centre."""
-        d = (means - self.center.to(means.device, means.dtype)).norm(dim=1).clamp_min(1e-12)
+    def distance(self, means: torch.Tensor) -> torch.Tensor:
+        """``[N]`` each Gaussian's distance from the centre."""
+        return (means - self.center.to(means.device, means.dtype)).norm(dim=1)
+
+    def screen_radius(self, means: torch.Tensor, log_scales: torch.Tensor, distance=None) -> torch.Tensor:
+        """``[N]`` each Gaussian's screen radius (pixels, 3 sigma of its largest axis) at its distance from the centre
+        (``distance``: :meth:`distance`, when already computed)."""
+        d = (self.distance(means) if distance is None else distance).clamp_min(1e-12)
         return 3.0 * torch.exp(log_scales).amax(dim=1) * self.focal_px / d
 
     @torch.no_grad()
     def statistic(self, avg: torch.Tensor, means: torch.Tensor, log_scales: torch.Tensor) -> torch.Tensor:
         """The densification statistic: ``avg`` (each Gaussian's mean gradient) times ``max(1, r / split_radius_px)``
         for the far Gaussians, ``avg`` for the others."""
-        far = (means - self.center.to(means.device, means.dtype)).norm(dim=1) >= self.min_distance
-        boost = (self.screen_radius(means, log_scales) / self.split_radius_px).clamp_min(1.0).to(avg.dtype)
-        return torch.where(far, avg * boost, avg)
+        d = self.distance(means)
+        boost = (self.screen_radius(means, log_scales, d) / self.split_radius_px).clamp_min(1.0).to(avg.dtype)
+        return torch.where(d >= self.min_distance, avg * boost, avg)
